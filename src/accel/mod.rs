@@ -1,0 +1,70 @@
+//! Acceleration-structure build options, memory-usage figures and the description of a built accel.
+
+use crate::error::{Error, Result};
+
+bitflags::bitflags! {
+    /// Build flags, after OptiX 7's `OptixBuildFlags`.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+    pub struct BuildFlags: u32 {
+        /// Spend more build time for faster traces. Excludes `PREFER_FAST_BUILD`.
+        const PREFER_FAST_TRACE = 1;
+        /// Build as fast as possible at some cost in trace speed. Excludes `PREFER_FAST_TRACE`.
+        const PREFER_FAST_BUILD = 1 << 1;
+        /// The accel may later be updated (refit) with new positions of the same structure.
+        const ALLOW_UPDATE = 1 << 2;
+        /// The accel reports a compacted size and may later be compacted.
+        const ALLOW_COMPACTION = 1 << 3;
+        /// The triangles' vertices can be read back from the accel ([`crate::Accel::triangle_vertices`]).
+        const ALLOW_RANDOM_VERTEX_ACCESS = 1 << 4;
+    }
+}
+
+/// Options of one build.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub struct BuildOptions {
+    /// Build flags.
+    pub flags: BuildFlags,
+}
+
+impl BuildOptions {
+    /// Options with the given flags.
+    pub fn new(flags: BuildFlags) -> Self {
+        BuildOptions { flags }
+    }
+
+    /// Checks that the flags can be combined.
+    pub fn validate(&self) -> Result<()> {
+        if self.flags.contains(BuildFlags::PREFER_FAST_TRACE | BuildFlags::PREFER_FAST_BUILD) {
+            return Err(Error::InvalidBuildOptions(
+                "flags PREFER_FAST_TRACE and PREFER_FAST_BUILD are mutually exclusive".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Upper bounds of the memory a build (and a later update) uses, as `optixAccelComputeMemoryUsage` reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct MemoryUsage {
+    /// Bytes of the built accel ([`AccelInfo::size_bytes`] never exceeds it).
+    pub output_bytes: u64,
+    /// Bytes of working memory the build needs besides its output.
+    pub temp_bytes: u64,
+    /// Bytes of working memory an update needs (0 without `ALLOW_UPDATE`).
+    pub temp_update_bytes: u64,
+}
+
+/// What is known about a built accel.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AccelInfo {
+    /// Bytes the accel occupies on its device.
+    pub size_bytes: u64,
+    /// Triangles given to the build (degenerate ones included).
+    pub triangle_count: u64,
+    /// Build inputs (geometries).
+    pub geometry_count: u32,
+    /// The options it was built with.
+    pub options: BuildOptions,
+    /// With `ALLOW_COMPACTION`: the size a compacted copy would have.
+    pub compacted_size_bytes: Option<u64>,
+}

@@ -1,0 +1,58 @@
+//! The backend seam: whole batches in, whole hit buffers out. Each device kind implements [`Backend`]; callers
+//! go through [`crate::Context`] and never see which backend runs their work.
+
+pub mod cpu;
+
+use std::any::Any;
+
+use glam::Vec3;
+
+use crate::accel::{BuildOptions, MemoryUsage};
+use crate::error::Result;
+use crate::geometry::BuildInput;
+use crate::query::{Query, TraceOutput, TraceStats};
+
+/// Which implementation a device uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum BackendKind {
+    /// `obvhs`-built BVHs traced on the host's cores with rayon.
+    Cpu,
+}
+
+/// What a device is and can do.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DeviceInfo {
+    /// Stable id, e.g. `cpu:0`.
+    pub id: String,
+    /// The backend that runs it.
+    pub kind: BackendKind,
+    /// Human-readable name.
+    pub name: String,
+    /// Memory the device can use, in bytes (host memory for the CPU).
+    pub memory_bytes: u64,
+    /// Worker threads (CPU) or compute units.
+    pub parallelism: u32,
+}
+
+/// A built acceleration structure as a backend holds it.
+pub trait BackendAccel: Any + Send + Sync {
+    /// Bytes it occupies.
+    fn size_bytes(&self) -> u64;
+    /// The corners of triangle `prim_id` of geometry `geom_id`, if the accel kept random vertex access and the
+    /// triangle exists.
+    fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]>;
+    /// For downcasting to the backend's own type.
+    fn as_any(&self) -> &dyn Any;
+}
+
+/// One kind of device. Every method works on whole batches.
+pub trait Backend: Send + Sync {
+    /// Describes the device.
+    fn info(&self) -> DeviceInfo;
+    /// Upper bounds of the memory that [`Backend::build`] will use for these inputs and options.
+    fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage>;
+    /// Validates the inputs and builds an accel over them.
+    fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>>;
+    /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.
+    fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats>;
+}

@@ -1,0 +1,234 @@
+//! Devices and contexts. A context belongs to one device and owns everything built on it: its accels and
+//! buffers are freed when they are destroyed, or when the context is dropped.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use bytes::Bytes;
+use dashmap::DashMap;
+use glam::Vec3;
+
+use crate::accel::{AccelInfo, BuildFlags, BuildOptions, MemoryUsage};
+use crate::backend::cpu::CpuBackend;
+use crate::backend::{Backend, BackendAccel, DeviceInfo};
+use crate::error::{Error, Result};
+use crate::geometry::{BuildInput, triangle_counts};
+use crate::query::{Query, TraceOutput, TraceStats};
+
+/// A device that contexts can be created on.
+#[derive(Clone)]
+pub struct Device {
+    /// What the device is.
+    info: DeviceInfo,
+    /// The implementation every context on this device calls.
+    backend: Arc<dyn Backend>,
+}
+
+impl std::fmt::Debug for Device {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Device").field("info", &self.info).finish()
+    }
+}
+
+impl Device {
+    /// The CPU device, always present.
+    pub fn cpu() -> Device {
+        let backend = Arc::new(CpuBackend);
+        Device { info: backend.info(), backend }
+    }
+
+    /// Every device of this machine; the CPU comes first.
+    pub fn all() -> Vec<Device> {
+        vec![Device::cpu()]
+    }
+
+    /// What the device is.
+    pub fn info(&self) -> &DeviceInfo {
+        &self.info
+    }
+}
+
+/// Names an accel within its context.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct AccelHandle(pub u64);
+
+/// Names a buffer within its context.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct BufferHandle(pub u64);
+
+/// Bytes counted against a context while the object that holds this lives.
+#[derive(Debug)]
+struct Charge {
+    /// Bytes charged.
+    bytes: u64,
+    /// The context's running total.
+    total: Arc<AtomicU64>,
+}
+
+impl Charge {
+    /// Adds `bytes` to `total` until dropped.
+    fn new(bytes: u64, total: &Arc<AtomicU64>) -> Charge {
+        total.fetch_add(bytes, Ordering::Relaxed);
+        Charge { bytes, total: Arc::clone(total) }
+    }
+}
+
+impl Drop for Charge {
+    fn drop(&mut self) {
+        self.total.fetch_sub(self.bytes, Ordering::Relaxed);
+    }
+}
+
+/// A built acceleration structure. Traces may hold it while it is destroyed; its memory is freed when the last
+/// holder lets go.
+pub struct Accel {
+    /// Its handle in the context.
+    handle: AccelHandle,
+    /// Sizes, counts and options.
+    info: AccelInfo,
+    /// The backend's structure.
+    data: Box<dyn BackendAccel>,
+    /// Keeps the context's memory total honest.
+    _charge: Charge,
+}
+
+impl std::fmt::Debug for Accel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Accel").field("handle", &self.handle).field("info", &self.info).finish()
+    }
+}
+
+impl Accel {
+    /// Its handle.
+    pub fn handle(&self) -> AccelHandle {
+        self.handle
+    }
+
+    /// Sizes, counts and build options.
+    pub fn info(&self) -> &AccelInfo {
+        &self.info
+    }
+
+    /// The corners of triangle `prim_id` (as hits report it) of geometry `geom_id`. Needs
+    /// `ALLOW_RANDOM_VERTEX_ACCESS` at build.
+    pub fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Result<[Vec3; 3]> {
+        if !self.info.options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) {
+            return Err(Error::FailedPrecondition("the accel was built without ALLOW_RANDOM_VERTEX_ACCESS".into()));
+        }
+        self.data.triangle_vertices(geom_id, prim_id).ok_or_else(|| Error::InvalidQuery {
+            field: "prim_id",
+            rule: format!("geometry {geom_id} has no primitive {prim_id}"),
+        })
+    }
+}
+
+/// A buffer held by a context.
+#[derive(Debug)]
+struct Buffer {
+    /// The bytes (shared, never copied).
+    data: Bytes,
+    /// Keeps the context's memory total honest.
+    _charge: Charge,
+}
+
+/// Everything one user has built on one device.
+#[derive(Debug)]
+pub struct Context {
+    /// The device its work runs on.
+    device: Device,
+    /// Live accels by handle.
+    accels: DashMap<AccelHandle, Arc<Accel>>,
+    /// Live buffers by handle.
+    buffers: DashMap<BufferHandle, Buffer>,
+    /// The next handle to give out (accels and buffers share the sequence, so a handle is never reused).
+    next_handle: AtomicU64,
+    /// Bytes held by live accels and buffers.
+    bytes_in_use: Arc<AtomicU64>,
+}
+
+impl Context {
+    /// An empty context on `device`.
+    pub fn new(device: Device) -> Context {
+        Context {
+            device,
+            accels: DashMap::new(),
+            buffers: DashMap::new(),
+            next_handle: AtomicU64::new(1),
+            bytes_in_use: Arc::new(AtomicU64::new(0)),
+        }
+    }
+
+    /// The device the context runs on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// Bytes held by the context's live accels and buffers.
+    pub fn memory_in_use(&self) -> u64 {
+        self.bytes_in_use.load(Ordering::Relaxed)
+    }
+
+    /// Upper bounds of the memory that building these inputs would use.
+    pub fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage> {
+        self.device.backend.compute_memory_usage(inputs, options)
+    }
+
+    /// Validates the inputs and builds an accel over them. No lock is held while building, so traces on other
+    /// accels go on.
+    pub fn build_accel(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Arc<Accel>> {
+        let data = self.device.backend.build(inputs, options)?;
+        let triangle_count = triangle_counts(inputs)?.iter().sum::<usize>() as u64;
+        let size_bytes = data.size_bytes();
+        let info = AccelInfo {
+            size_bytes,
+            triangle_count,
+            geometry_count: inputs.len() as u32,
+            options: *options,
+            compacted_size_bytes: options.flags.contains(BuildFlags::ALLOW_COMPACTION).then_some(size_bytes),
+        };
+        let handle = AccelHandle(self.next_handle.fetch_add(1, Ordering::Relaxed));
+        let accel = Arc::new(Accel { handle, info, data, _charge: Charge::new(size_bytes, &self.bytes_in_use) });
+        self.accels.insert(handle, Arc::clone(&accel));
+        Ok(accel)
+    }
+
+    /// The accel named by `handle`.
+    pub fn accel(&self, handle: AccelHandle) -> Result<Arc<Accel>> {
+        self.accels.get(&handle).map(|a| Arc::clone(&a)).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+    }
+
+    /// Handles of the live accels, in creation order.
+    pub fn accel_handles(&self) -> Vec<AccelHandle> {
+        let mut handles: Vec<_> = self.accels.iter().map(|a| *a.key()).collect();
+        handles.sort();
+        handles
+    }
+
+    /// Destroys an accel; traces already holding it finish first.
+    pub fn destroy_accel(&self, handle: AccelHandle) -> Result<()> {
+        self.accels.remove(&handle).map(drop).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+    }
+
+    /// Keeps `data` in the context and returns its handle.
+    pub fn create_buffer(&self, data: Bytes) -> BufferHandle {
+        let handle = BufferHandle(self.next_handle.fetch_add(1, Ordering::Relaxed));
+        let charge = Charge::new(data.len() as u64, &self.bytes_in_use);
+        self.buffers.insert(handle, Buffer { data, _charge: charge });
+        handle
+    }
+
+    /// The bytes of a buffer (shared, not copied).
+    pub fn buffer(&self, handle: BufferHandle) -> Result<Bytes> {
+        self.buffers.get(&handle).map(|b| b.data.clone()).ok_or(Error::NotFound { what: "buffer", id: handle.0 })
+    }
+
+    /// Destroys a buffer.
+    pub fn destroy_buffer(&self, handle: BufferHandle) -> Result<()> {
+        self.buffers.remove(&handle).map(drop).ok_or(Error::NotFound { what: "buffer", id: handle.0 })
+    }
+
+    /// Traces `rays` against `accel` and writes the results into `out` in place.
+    pub fn trace(&self, accel: &Accel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
+        self.device.backend.trace(accel.data.as_ref(), query, rays, out)
+    }
+}

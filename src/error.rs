@@ -1,0 +1,91 @@
+//! The engine's one error type, and the coarse kinds that the service maps to gRPC status codes.
+
+use thiserror::Error;
+
+/// How a caller should treat an [`Error`]; the service maps each kind to one gRPC status code.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ErrorKind {
+    /// The request itself is wrong (bad build input, buffer size, format, option).
+    InvalidArgument,
+    /// A handle names nothing that exists in this context.
+    NotFound,
+    /// The request is well formed but the object is in the wrong state for it.
+    FailedPrecondition,
+    /// A size or count exceeds what can be represented or allocated.
+    ResourceExhausted,
+}
+
+/// Every failure the engine reports. Messages name the field, the element and the rule or limit.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum Error {
+    /// A triangle build input breaks a rule.
+    #[error("build input {input}: {field}{}: {rule}", element.map(|e| format!("[{e}]")).unwrap_or_default())]
+    InvalidBuildInput {
+        /// Index of the build input (its geometry id).
+        input: usize,
+        /// The field of the input, e.g. `vertices` or `indices`.
+        field: &'static str,
+        /// The offending element (vertex, triangle or byte index), where there is one.
+        element: Option<u64>,
+        /// The rule that was broken.
+        rule: String,
+    },
+    /// A build option or combination of options is invalid.
+    #[error("build options: {0}")]
+    InvalidBuildOptions(String),
+    /// A query parameter is invalid.
+    #[error("query {field}: {rule}")]
+    InvalidQuery {
+        /// The parameter, e.g. `max_hits_per_ray`.
+        field: &'static str,
+        /// The rule that was broken.
+        rule: String,
+    },
+    /// A ray, hit or count buffer has the wrong byte length for the request.
+    #[error("{buffer} buffer: {rule}")]
+    BufferSize {
+        /// Which buffer: `rays`, `hits` or `counts`.
+        buffer: &'static str,
+        /// What was expected and what was given.
+        rule: String,
+    },
+    /// A handle that names nothing in this context.
+    #[error("{what} {id} not found")]
+    NotFound {
+        /// What kind of object: `accel` or `buffer`.
+        what: &'static str,
+        /// The handle's value.
+        id: u64,
+    },
+    /// An operation that the object does not allow in its present state or with its build flags.
+    #[error("{0}")]
+    FailedPrecondition(String),
+    /// A size that overflows what the engine can address.
+    #[error("{what} needs {requested} bytes, beyond the limit of {limit}")]
+    TooLarge {
+        /// What was being sized.
+        what: &'static str,
+        /// The requested size (saturated).
+        requested: u64,
+        /// The largest size allowed.
+        limit: u64,
+    },
+}
+
+impl Error {
+    /// The coarse kind of this error, for mapping to a status code.
+    pub fn kind(&self) -> ErrorKind {
+        match self {
+            Error::InvalidBuildInput { .. }
+            | Error::InvalidBuildOptions(_)
+            | Error::InvalidQuery { .. }
+            | Error::BufferSize { .. } => ErrorKind::InvalidArgument,
+            Error::NotFound { .. } => ErrorKind::NotFound,
+            Error::FailedPrecondition(_) => ErrorKind::FailedPrecondition,
+            Error::TooLarge { .. } => ErrorKind::ResourceExhausted,
+        }
+    }
+}
+
+/// The engine's result type.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -1,0 +1,236 @@
+//! Hit formats: OptiX Prime's six, and a full one with every id, the barycentrics and the normal.
+
+use glam::Vec3A;
+
+use super::{write_f32, write_u32};
+
+/// `t` written for a ray that hit nothing (Prime: any `t < 0` is a miss).
+pub const MISS_T: f32 = -1.0;
+/// Id written for "none": a missed ray's primitive, geometry and instance, and the instance of a hit outside any
+/// instance (as `i32` it reads −1).
+pub const MISS_ID: u32 = u32::MAX;
+
+/// One intersection, as the engine reports it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the ray, in units of the ray direction's length.
+    pub t: f32,
+    /// Primitive id: the build input's primitive-index offset plus the triangle's index in that input.
+    pub prim_id: u32,
+    /// Geometry id: the index of the build input.
+    pub geom_id: u32,
+    /// User instance id, or [`MISS_ID`] outside any instance.
+    pub inst_id: u32,
+    /// Barycentric weight of the triangle's second vertex.
+    pub u: f32,
+    /// Barycentric weight of the third vertex: hit point = (1−u−v)·v0 + u·v1 + v·v2.
+    pub v: f32,
+    /// Geometric normal `(v1−v0)×(v2−v0)`, not normalized; the front face is the side it points to.
+    pub normal: Vec3A,
+    /// Whether the ray saw the triangle's back face (`dot(direction, normal) > 0`).
+    pub back_face: bool,
+}
+
+impl Hit {
+    /// What a missed ray reports.
+    pub const MISS: Hit = Hit {
+        t: MISS_T,
+        prim_id: MISS_ID,
+        geom_id: MISS_ID,
+        inst_id: MISS_ID,
+        u: 0.0,
+        v: 0.0,
+        normal: Vec3A::ZERO,
+        back_face: false,
+    };
+
+    /// Whether this is a real hit.
+    pub fn is_hit(&self) -> bool {
+        self.t >= 0.0
+    }
+}
+
+/// How hits are packed in a hit buffer. Offsets in bytes; every field is 4 bytes, little-endian; ids are
+/// `i32` with −1 for none. A miss has `t` = −1, ids −1, `u` = `v` = 0 and a zero normal.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum HitFormat {
+    /// Prime `HIT_BITMASK`: one bit a record, 1 = hit. Record `i` is bit `i % 8` (least significant first) of
+    /// byte `i / 8`; the buffer is `ceil(records / 8)` bytes and unused high bits of the last byte are 0.
+    Bitmask,
+    /// Prime `HIT_T`, 4 bytes: `0 t f32`.
+    T,
+    /// Prime `HIT_T_TRIID`, 8 bytes: `0 t f32 | 4 prim_id i32`.
+    TTriid,
+    /// Prime `HIT_T_TRIID_U_V`, 16 bytes: `0 t f32 | 4 prim_id i32 | 8 u f32 | 12 v f32`.
+    TTriidUV,
+    /// Prime `HIT_T_TRIID_INSTID`, 12 bytes: `0 t f32 | 4 prim_id i32 | 8 inst_id i32`.
+    TTriidInstid,
+    /// Prime `HIT_T_TRIID_INSTID_U_V`, 20 bytes: `0 t f32 | 4 prim_id i32 | 8 inst_id i32 | 12 u f32 | 16 v f32`.
+    TTriidInstidUV,
+    /// 48 bytes: `0 t f32 | 4 prim_id i32 | 8 geom_id i32 | 12 inst_id i32 | 16 u f32 | 20 v f32 |
+    /// 24 normal.xyz f32×3 (unit geometric normal, world space) | 36 flags u32 (bit 0: back face hit) |
+    /// 40 reserved u32×2 (0)`.
+    Full,
+}
+
+impl HitFormat {
+    /// Every hit format, in the order of the contract's enum.
+    pub const ALL: [HitFormat; 7] = [
+        HitFormat::Bitmask,
+        HitFormat::T,
+        HitFormat::TTriid,
+        HitFormat::TTriidUV,
+        HitFormat::TTriidInstid,
+        HitFormat::TTriidInstidUV,
+        HitFormat::Full,
+    ];
+
+    /// Bytes per record, or `None` for [`HitFormat::Bitmask`] (one bit a record).
+    pub const fn size(self) -> Option<usize> {
+        match self {
+            HitFormat::Bitmask => None,
+            HitFormat::T => Some(4),
+            HitFormat::TTriid => Some(8),
+            HitFormat::TTriidInstid => Some(12),
+            HitFormat::TTriidUV => Some(16),
+            HitFormat::TTriidInstidUV => Some(20),
+            HitFormat::Full => Some(48),
+        }
+    }
+
+    /// Bytes needed for `records` hit records.
+    pub const fn buffer_len(self, records: usize) -> usize {
+        match self.size() {
+            None => records.div_ceil(8),
+            Some(size) => records * size,
+        }
+    }
+
+    /// The format's name in lower case, as used by the contract and `rayctl`.
+    pub const fn name(self) -> &'static str {
+        match self {
+            HitFormat::Bitmask => "bitmask",
+            HitFormat::T => "t",
+            HitFormat::TTriid => "t_triid",
+            HitFormat::TTriidUV => "t_triid_u_v",
+            HitFormat::TTriidInstid => "t_triid_instid",
+            HitFormat::TTriidInstidUV => "t_triid_instid_u_v",
+            HitFormat::Full => "full",
+        }
+    }
+
+    /// Looks a format up by [`HitFormat::name`].
+    pub fn from_name(name: &str) -> Option<HitFormat> {
+        Self::ALL.into_iter().find(|f| f.name() == name)
+    }
+
+    /// Writes record `index` of a hit buffer. For byte formats `buffer` may be the whole buffer or any slice
+    /// that starts on a record boundary, with `index` relative to it; for the bitmask it must start on a byte
+    /// boundary (`index` relative to its first bit).
+    #[inline]
+    pub fn write(self, buffer: &mut [u8], index: usize, hit: &Hit) {
+        let Some(size) = self.size() else {
+            let bit = 1u8 << (index % 8);
+            if hit.is_hit() {
+                buffer[index / 8] |= bit;
+            } else {
+                buffer[index / 8] &= !bit;
+            }
+            return;
+        };
+        let b = &mut buffer[index * size..(index + 1) * size];
+        write_f32(b, 0, hit.t);
+        match self {
+            HitFormat::Bitmask | HitFormat::T => {}
+            HitFormat::TTriid => write_u32(b, 4, hit.prim_id),
+            HitFormat::TTriidUV => {
+                write_u32(b, 4, hit.prim_id);
+                write_f32(b, 8, hit.u);
+                write_f32(b, 12, hit.v);
+            }
+            HitFormat::TTriidInstid => {
+                write_u32(b, 4, hit.prim_id);
+                write_u32(b, 8, hit.inst_id);
+            }
+            HitFormat::TTriidInstidUV => {
+                write_u32(b, 4, hit.prim_id);
+                write_u32(b, 8, hit.inst_id);
+                write_f32(b, 12, hit.u);
+                write_f32(b, 16, hit.v);
+            }
+            HitFormat::Full => {
+                write_u32(b, 4, hit.prim_id);
+                write_u32(b, 8, hit.geom_id);
+                write_u32(b, 12, hit.inst_id);
+                write_f32(b, 16, hit.u);
+                write_f32(b, 20, hit.v);
+                let unit = hit.normal.normalize_or_zero();
+                for axis in 0..3 {
+                    write_f32(b, 24 + 4 * axis, unit[axis]);
+                }
+                write_u32(b, 36, u32::from(hit.back_face));
+                write_u32(b, 40, 0);
+                write_u32(b, 44, 0);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::format::{read_f32, read_u32};
+
+    #[test]
+    fn bitmask_sets_and_clears_single_bits_lsb_first() {
+        let hit = Hit { t: 1.0, ..Hit::MISS };
+        let mut bits = vec![0u8; HitFormat::Bitmask.buffer_len(10)];
+        assert_eq!(bits.len(), 2);
+        HitFormat::Bitmask.write(&mut bits, 0, &hit);
+        HitFormat::Bitmask.write(&mut bits, 9, &hit);
+        assert_eq!(bits, [0b0000_0001, 0b0000_0010]);
+        HitFormat::Bitmask.write(&mut bits, 0, &Hit::MISS);
+        assert_eq!(bits, [0, 0b0000_0010]);
+    }
+
+    #[test]
+    fn full_format_writes_every_field_at_its_offset() {
+        let hit = Hit {
+            t: 2.5,
+            prim_id: 7,
+            geom_id: 3,
+            inst_id: MISS_ID,
+            u: 0.25,
+            v: 0.5,
+            normal: Vec3A::new(0.0, 0.0, -4.0),
+            back_face: true,
+        };
+        let mut b = vec![0xffu8; 48];
+        HitFormat::Full.write(&mut b, 0, &hit);
+        assert_eq!(read_f32(&b, 0), 2.5);
+        assert_eq!(read_u32(&b, 4), 7);
+        assert_eq!(read_u32(&b, 8), 3);
+        assert_eq!(read_u32(&b, 12) as i32, -1);
+        assert_eq!((read_f32(&b, 16), read_f32(&b, 20)), (0.25, 0.5));
+        assert_eq!((read_f32(&b, 24), read_f32(&b, 28), read_f32(&b, 32)), (0.0, 0.0, -1.0));
+        assert_eq!(read_u32(&b, 36), 1);
+        assert_eq!(&b[40..], &[0; 8]);
+    }
+
+    #[test]
+    fn byte_formats_place_prime_fields() {
+        let hit = Hit { t: 1.5, prim_id: 42, inst_id: 9, u: 0.125, v: 0.375, ..Hit::MISS };
+        let mut b = vec![0u8; 20];
+        HitFormat::TTriidInstidUV.write(&mut b, 0, &hit);
+        assert_eq!(read_f32(&b, 0), 1.5);
+        assert_eq!(read_u32(&b, 4), 42);
+        assert_eq!(read_u32(&b, 8), 9);
+        assert_eq!((read_f32(&b, 12), read_f32(&b, 16)), (0.125, 0.375));
+        let mut b = vec![0u8; 16];
+        HitFormat::TTriidUV.write(&mut b, 0, &hit);
+        assert_eq!((read_u32(&b, 4), read_f32(&b, 8), read_f32(&b, 12)), (42, 0.125, 0.375));
+        for format in HitFormat::ALL {
+            assert_eq!(HitFormat::from_name(format.name()), Some(format));
+        }
+    }
+}

@@ -1,0 +1,7 @@
+//! Build inputs (what a caller hands over) and their validation into one flat list of triangles.
+
+mod gather;
+mod input;
+
+pub use gather::{GatheredTriangles, TriangleRef, gather, is_degenerate, triangle_counts};
+pub use input::{BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat};

@@ -1,0 +1,76 @@
+//! The geometric tests every backend shares: a ray prepared once, its watertight triangle test and its
+//! conservative box test.
+
+pub mod aabb;
+pub mod triangle;
+
+use glam::Vec3A;
+
+use crate::format::{Ray, RayFlags};
+
+/// A ray with the per-ray constants of the triangle and box tests computed once.
+#[derive(Debug, Clone, Copy)]
+pub struct PreparedRay {
+    /// Origin.
+    pub origin: Vec3A,
+    /// Direction (not normalized).
+    pub direction: Vec3A,
+    /// Smallest accepted `t` (inclusive).
+    pub tmin: f32,
+    /// Largest accepted `t` (inclusive), as given by the caller.
+    pub tmax: f32,
+    /// Prime mask.
+    pub mask: u32,
+    /// The ray's flags together with the query's.
+    pub flags: RayFlags,
+    /// Axis along which the direction is largest in magnitude; the triangle test projects along it.
+    pub kz: usize,
+    /// First axis of the projection plane (swapped with `ky` when the direction along `kz` is negative, which
+    /// keeps the winding of projected triangles).
+    pub kx: usize,
+    /// Second axis of the projection plane.
+    pub ky: usize,
+    /// Shear constants of the watertight test: `dir[kx]/dir[kz]`, `dir[ky]/dir[kz]`, `1/dir[kz]`.
+    pub shear: Vec3A,
+    /// `1/direction`, with +∞ for zero components (see [`aabb`]).
+    pub inv_direction: Vec3A,
+    /// Per axis, whether the direction is negative: which slab plane a ray meets first.
+    pub negative: [bool; 3],
+}
+
+impl PreparedRay {
+    /// Prepares `ray`, adding `query_flags` to its own flags.
+    #[inline]
+    pub fn new(ray: &Ray, query_flags: RayFlags) -> PreparedRay {
+        let d = ray.direction;
+        let abs = d.abs();
+        let kz = if abs.x >= abs.y && abs.x >= abs.z {
+            0
+        } else if abs.y >= abs.z {
+            1
+        } else {
+            2
+        };
+        let mut kx = (kz + 1) % 3;
+        let mut ky = (kx + 1) % 3;
+        if d[kz] < 0.0 {
+            std::mem::swap(&mut kx, &mut ky);
+        }
+        let shear = Vec3A::new(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]);
+        let inv = |c: f32| if c == 0.0 { f32::INFINITY } else { 1.0 / c };
+        PreparedRay {
+            origin: ray.origin,
+            direction: d,
+            tmin: ray.tmin,
+            tmax: ray.tmax,
+            mask: ray.mask,
+            flags: ray.flags | query_flags,
+            kz,
+            kx,
+            ky,
+            shear,
+            inv_direction: Vec3A::new(inv(d.x), inv(d.y), inv(d.z)),
+            negative: [d.x < 0.0, d.y < 0.0, d.z < 0.0],
+        }
+    }
+}

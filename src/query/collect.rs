@@ -1,0 +1,167 @@
+//! Per-ray collection of hits: the one place where a candidate triangle becomes a hit, where the tie rule is
+//! applied and where a ray's result is written into the caller's buffers.
+
+use glam::{Vec3, Vec3A};
+
+use super::{Query, QueryKind};
+use crate::format::{Hit, MISS_ID, RayFlags, write_u32};
+use crate::geometry::{GeometryFlags, TriangleRef};
+use crate::intersect::{PreparedRay, triangle};
+
+/// A triangle offered to a ray, with everything the acceptance rules need.
+#[derive(Debug, Clone, Copy)]
+pub struct TriangleCandidate<'a> {
+    /// The triangle's corners.
+    pub corners: &'a [Vec3; 3],
+    /// The ids its hits report.
+    pub id: TriangleRef,
+    /// Its Prime mask.
+    pub mask: u32,
+    /// Its geometry's flags.
+    pub geometry_flags: GeometryFlags,
+}
+
+/// Whether `a` is reported before `b`: smaller `t`, then smaller geometry id, then smaller primitive id.
+#[inline]
+fn precedes(a: &Hit, b: &Hit) -> bool {
+    (a.t, a.geom_id, a.prim_id) < (b.t, b.geom_id, b.prim_id)
+}
+
+/// Tests one triangle against the ray and offers the hit, if it is accepted, to `collector`: the mask rule,
+/// the intersection, the `[tmin, tmax]` range (inclusive) and face culling, in that order.
+#[inline(always)]
+pub fn consider_triangle(ray: &PreparedRay, candidate: &TriangleCandidate<'_>, collector: &mut Collector<'_>) {
+    if ray.mask & candidate.mask != 0 {
+        return;
+    }
+    let Some(hit) = triangle::intersect(ray, candidate.corners) else {
+        return;
+    };
+    if !(hit.t >= ray.tmin && hit.t <= collector.cull_tmax()) {
+        return;
+    }
+    if !candidate.geometry_flags.contains(GeometryFlags::DISABLE_FACE_CULLING) {
+        let culled = if hit.back_face { RayFlags::CULL_BACK_FACING } else { RayFlags::CULL_FRONT_FACING };
+        if ray.flags.contains(culled) {
+            return;
+        }
+    }
+    let [v0, v1, v2] = candidate.corners;
+    collector.offer(Hit {
+        t: hit.t,
+        prim_id: candidate.id.prim_id,
+        geom_id: candidate.id.geom_id,
+        inst_id: MISS_ID,
+        u: hit.u,
+        v: hit.v,
+        normal: Vec3A::from((*v1 - *v0).cross(*v2 - *v0)),
+        back_face: hit.back_face,
+    });
+}
+
+/// Collects the hits of one ray according to the query kind.
+#[derive(Debug)]
+pub struct Collector<'s> {
+    /// What is being collected.
+    kind: QueryKind,
+    /// The ray's own `tmax`, the cull distance of kinds that must see every hit.
+    ray_tmax: f32,
+    /// Set by the ray's or the query's `TERMINATE_ON_FIRST_HIT`.
+    terminate_on_first_hit: bool,
+    /// The first hit in report order so far (closest, any, count).
+    best: Option<Hit>,
+    /// Hits accepted so far.
+    count: u32,
+    /// For `all`: the first hits in report order, sorted; `len` of them are in use.
+    sorted: &'s mut [Hit],
+    /// Entries of `sorted` in use.
+    len: usize,
+    /// Whether traversal may stop.
+    done: bool,
+}
+
+impl<'s> Collector<'s> {
+    /// A collector for one ray; `scratch` must hold `max_hits_per_ray` entries for `all` queries (it is unused by
+    /// the other kinds).
+    #[inline]
+    pub fn new(query: &Query, ray: &PreparedRay, scratch: &'s mut [Hit]) -> Self {
+        Collector {
+            kind: query.kind,
+            ray_tmax: ray.tmax,
+            terminate_on_first_hit: ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT),
+            best: None,
+            count: 0,
+            sorted: scratch,
+            len: 0,
+            done: false,
+        }
+    }
+
+    /// The largest `t` still worth testing: the closest hit's `t` for closest-hit queries (inclusive, so that ties
+    /// reach the tie rule), the ray's `tmax` otherwise.
+    #[inline(always)]
+    pub fn cull_tmax(&self) -> f32 {
+        match (self.kind, &self.best) {
+            (QueryKind::Closest, Some(best)) => best.t,
+            _ => self.ray_tmax,
+        }
+    }
+
+    /// Whether traversal can stop: an `any` query or a terminate-on-first-hit ray has its hit.
+    #[inline(always)]
+    pub fn done(&self) -> bool {
+        self.done
+    }
+
+    /// Takes an accepted hit.
+    #[inline]
+    pub fn offer(&mut self, hit: Hit) {
+        self.count = self.count.saturating_add(1);
+        self.done = self.terminate_on_first_hit || self.kind == QueryKind::Any;
+        if self.kind == QueryKind::All {
+            self.insert_sorted(hit);
+        } else if self.kind == QueryKind::Any && self.best.is_some() {
+            // Keep the first hit found.
+        } else if self.best.is_none_or(|best| precedes(&hit, &best)) {
+            self.best = Some(hit);
+        }
+    }
+
+    /// Keeps the `sorted.len()` first hits in report order.
+    fn insert_sorted(&mut self, hit: Hit) {
+        let capacity = self.sorted.len();
+        if self.len == capacity && !precedes(&hit, &self.sorted[capacity - 1]) {
+            return;
+        }
+        let mut at = self.len.min(capacity - 1);
+        while at > 0 && precedes(&hit, &self.sorted[at - 1]) {
+            self.sorted[at] = self.sorted[at - 1];
+            at -= 1;
+        }
+        self.sorted[at] = hit;
+        self.len = (self.len + 1).min(capacity);
+    }
+
+    /// Whether the ray hit anything.
+    pub fn found(&self) -> bool {
+        self.count > 0
+    }
+
+    /// Writes this ray's records (starting at record `first_record` of `hits`) and, for counting kinds, its
+    /// count at u32 index `ray` of `counts`.
+    #[inline]
+    pub fn write(&self, query: &Query, hits: &mut [u8], first_record: usize, counts: &mut [u8], ray: usize) {
+        let format = query.hit_format;
+        if self.kind == QueryKind::All {
+            for slot in 0..self.sorted.len() {
+                let hit = if slot < self.len { &self.sorted[slot] } else { &Hit::MISS };
+                format.write(hits, first_record + slot, hit);
+            }
+        } else {
+            format.write(hits, first_record, self.best.as_ref().unwrap_or(&Hit::MISS));
+        }
+        if self.kind.has_counts() {
+            write_u32(counts, 4 * ray, self.count);
+        }
+    }
+}

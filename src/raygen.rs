@@ -1,0 +1,94 @@
+//! Ray batches made from a few numbers: a pinhole camera and uniformly random rays. Deterministic for a given
+//! seed, whatever the thread count.
+
+use glam::{Vec3, Vec3A};
+
+use crate::format::{Ray, RayFormat};
+
+/// A pinhole camera.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Camera {
+    /// Position of the eye.
+    pub eye: Vec3,
+    /// Point the camera looks at.
+    pub target: Vec3,
+    /// Up direction (need not be orthogonal to the view direction).
+    pub up: Vec3,
+    /// Vertical field of view, in degrees.
+    pub fov_y_degrees: f32,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+}
+
+impl Camera {
+    /// A camera that sees the whole box `[lo, hi]` from the front-right-above, 45° field of view.
+    pub fn framing(lo: Vec3, hi: Vec3, width: u32, height: u32) -> Camera {
+        let centre = (lo + hi) * 0.5;
+        let radius = (hi - lo).length() * 0.5;
+        let direction = Vec3::new(0.6, 0.45, 1.0).normalize();
+        Camera {
+            eye: centre + direction * radius * 2.7,
+            target: centre,
+            up: Vec3::Y,
+            fov_y_degrees: 45.0,
+            width,
+            height,
+        }
+    }
+
+    /// The ray through the centre of pixel (`x`, `y`), row 0 at the top; unit direction, `tmin` 0, `tmax` +∞.
+    pub fn ray(&self, x: u32, y: u32) -> Ray {
+        let forward = (self.target - self.eye).normalize();
+        let right = forward.cross(self.up).normalize();
+        let up = right.cross(forward);
+        let half_height = (self.fov_y_degrees.to_radians() * 0.5).tan();
+        let half_width = half_height * self.width as f32 / self.height as f32;
+        let sx = ((x as f32 + 0.5) / self.width as f32 * 2.0 - 1.0) * half_width;
+        let sy = (1.0 - (y as f32 + 0.5) / self.height as f32 * 2.0) * half_height;
+        let direction = (forward + right * sx + up * sy).normalize();
+        Ray { origin: self.eye.into(), direction: direction.into(), ..Ray::default() }
+    }
+
+    /// All pixels' rays, row by row, packed in `format`.
+    pub fn rays(&self, format: RayFormat) -> Vec<u8> {
+        let size = format.size();
+        let mut bytes = vec![0u8; self.width as usize * self.height as usize * size];
+        for (i, slot) in bytes.chunks_exact_mut(size).enumerate() {
+            let (x, y) = (i as u32 % self.width, i as u32 / self.width);
+            format.encode(&self.ray(x, y), slot);
+        }
+        bytes
+    }
+}
+
+/// A 64-bit hash of (`seed`, `index`) (SplitMix64's finalizer), so every ray is made independently.
+fn mix(seed: u64, index: u64) -> u64 {
+    let mut z = seed ^ index.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+    z ^ (z >> 31)
+}
+
+/// A uniform float in `[0, 1)` from the hash of (`seed`, `index`).
+pub fn uniform(seed: u64, index: u64) -> f32 {
+    (mix(seed, index) >> 40) as f32 / (1u64 << 24) as f32
+}
+
+/// `count` rays with origins uniform in the box `[lo, hi]` and directions uniform on the unit sphere, packed in
+/// `format`; `tmin` 0, `tmax` +∞.
+pub fn random_rays(lo: Vec3, hi: Vec3, count: usize, seed: u64, format: RayFormat) -> Vec<u8> {
+    let size = format.size();
+    let mut bytes = vec![0u8; count * size];
+    for (i, slot) in bytes.chunks_exact_mut(size).enumerate() {
+        let u = |k: u64| uniform(seed, i as u64 * 8 + k);
+        let origin = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
+        let z = 1.0 - 2.0 * u(3);
+        let phi = std::f32::consts::TAU * u(4);
+        let r = (1.0 - z * z).max(0.0).sqrt();
+        let direction = Vec3A::new(r * phi.cos(), r * phi.sin(), z);
+        format.encode(&Ray { origin: origin.into(), direction, ..Ray::default() }, slot);
+    }
+    bytes
+}
