@@ -47,7 +47,7 @@ impl Mesh {
     pub fn load_obj(path: impl AsRef<Path>) -> Result<Mesh, LoadError> {
         let path = path.as_ref();
         let error = |reason: String| LoadError { path: path.display().to_string(), reason };
-        let options = tobj::LoadOptions { triangulate: true, single_index: true, ..Default::default() };
+        let options = tobj::LoadOptions { triangulate: true, ..Default::default() };
         let (models, _) = tobj::load_obj(path, &options).map_err(|e| error(e.to_string()))?;
         let mut mesh = Mesh::default();
         for model in models {

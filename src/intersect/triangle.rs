@@ -97,8 +97,7 @@ pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> 
     let bz = sz * b[kz];
     let cz = sz * c[kz];
     let t_scaled = u * az + v * bz + w * cz;
-    let inv_det = 1.0 / det;
-    Some(TriangleHit { t: t_scaled * inv_det, u: v * inv_det, v: w * inv_det, back_face: det < 0.0 })
+    Some(TriangleHit { t: t_scaled / det, u: v / det, v: w / det, back_face: det < 0.0 })
 }
 
 #[cfg(test)]

@@ -1,0 +1,119 @@
+//! Build throughput (M triangles/s, reported by criterion as Melem/s): the bunny and the tiled
+//! million-triangle scene, with default options, `PREFER_FAST_BUILD` and `PREFER_FAST_TRACE`, on one thread and
+//! on all of them.
+//!
+//! Before timing, each preset is built once and checked (triangle count, and a small camera's closest hits
+//! equal to those of the default build), and a memory report is printed on stderr: the accel's
+//! `AccelInfo::size_bytes`, bytes per triangle, and `compute_memory_usage`'s output and temp bounds.
+//!
+//! `cargo bench --bench build`; filter with e.g. `cargo bench --bench build -- build/bunny`.
+
+mod common;
+
+use std::hint::black_box;
+use std::time::Duration;
+
+use criterion::{Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
+use rayd_engine::accel::{BuildFlags, BuildOptions};
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::geometry::BuildInput;
+use rayd_engine::query::{Query, TraceOutput};
+use rayd_engine::raygen::Camera;
+use rayd_engine::{Accel, Context, Device};
+
+use common::{in_pool, one_thread_pool, scenes, thread_configs};
+
+/// The presets benched, with their names in bench ids.
+const PRESETS: [(&str, BuildFlags); 3] = [
+    ("default", BuildFlags::empty()),
+    ("fast-build", BuildFlags::PREFER_FAST_BUILD),
+    ("fast-trace", BuildFlags::PREFER_FAST_TRACE),
+];
+/// Side of the small camera image that checks each build.
+const CHECK_SIDE: u32 = 128;
+
+/// Closest-hit records (t, triangle id, u, v) of `rays` against `accel`.
+fn closest_hits(context: &Context, accel: &Accel, rays: &[u8]) -> (Vec<u8>, u64) {
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    let mut hits = vec![0u8; query.output_layout(rays.len()).expect("valid query").hits];
+    let stats =
+        context.trace(accel, &query, rays, TraceOutput { hits: &mut hits, counts: &mut [] }).expect("trace succeeds");
+    (hits, stats.rays_hit)
+}
+
+/// `bytes` in MiB.
+fn mib(bytes: u64) -> f64 {
+    bytes as f64 / (1u64 << 20) as f64
+}
+
+/// Every build bench.
+fn build_benches(c: &mut Criterion) {
+    let context = Context::new(Device::cpu());
+    let one_thread = one_thread_pool();
+    eprintln!("build: all-threads = {} rayon threads", rayon::current_num_threads());
+    for scene in scenes() {
+        let triangles = scene.triangles();
+        let inputs = [BuildInput::Triangles(scene.packed.input())];
+        let (lo, hi) = scene.mesh.bounds();
+        let check_rays = Camera::framing(lo, hi, CHECK_SIDE, CHECK_SIDE).rays(RayFormat::OriginTminDirectionTmax);
+        let mut reference: Option<Vec<u8>> = None;
+        let mut group = c.benchmark_group(format!("build/{}", scene.name));
+        group
+            .sample_size(10)
+            .warm_up_time(Duration::from_secs(1))
+            .measurement_time(Duration::from_secs(5))
+            .sampling_mode(SamplingMode::Flat)
+            .throughput(Throughput::Elements(triangles));
+        for (preset, flags) in PRESETS {
+            let options = BuildOptions::new(flags);
+            // Checked once, and measured for the memory report.
+            let usage = context.compute_memory_usage(&inputs, &options).expect("memory usage");
+            let accel = context.build_accel(&inputs, &options).expect("build succeeds");
+            let info = *accel.info();
+            assert_eq!(info.triangle_count, triangles, "build/{}/{preset}: triangle count", scene.name);
+            let (hits, rays_hit) = closest_hits(&context, &accel, &check_rays);
+            assert!(rays_hit > 0, "build/{}/{preset}: the check camera sees nothing", scene.name);
+            match &reference {
+                None => reference = Some(hits),
+                Some(reference) => {
+                    assert!(hits == *reference, "build/{}/{preset}: hits differ from the default build's", scene.name)
+                }
+            }
+            let per_triangle = |bytes: u64| bytes as f64 / triangles as f64;
+            eprintln!(
+                "memory {}/{preset} ({triangles} triangles): AccelInfo.size_bytes {} ({:.1} MiB, {:.1} B/triangle); \
+                 compute_memory_usage output_bytes {} ({:.1} MiB, {:.1} B/triangle), temp_bytes {} ({:.1} MiB, \
+                 {:.1} B/triangle){}",
+                scene.name,
+                info.size_bytes,
+                mib(info.size_bytes),
+                per_triangle(info.size_bytes),
+                usage.output_bytes,
+                mib(usage.output_bytes),
+                per_triangle(usage.output_bytes),
+                usage.temp_bytes,
+                mib(usage.temp_bytes),
+                per_triangle(usage.temp_bytes),
+                if info.size_bytes > usage.output_bytes { " — WARNING: size exceeds the output bound" } else { "" },
+            );
+            context.destroy_accel(accel.handle()).expect("accel is live");
+            drop(accel);
+            for (threads, pool) in thread_configs(&one_thread) {
+                group.bench_function(format!("{preset}/{threads}"), |b| {
+                    in_pool(pool, || {
+                        b.iter(|| {
+                            // Destroyed at once, so that the context does not keep every accel built.
+                            let accel = context.build_accel(black_box(&inputs), &options).expect("build succeeds");
+                            context.destroy_accel(accel.handle()).expect("accel is live");
+                            black_box(accel)
+                        })
+                    })
+                });
+            }
+        }
+        group.finish();
+    }
+}
+
+criterion_group!(benches, build_benches);
+criterion_main!(benches);
