@@ -26,7 +26,10 @@ fn trace(inputs: &[BuildInput<'_>], query: Query, rays: &[Ray]) -> (Vec<u8>, Vec
 
 /// A unit right triangle in the plane z = `z` (normal +z).
 fn quad_triangle(z: f32) -> Mesh {
-    Mesh { positions: vec![Vec3::new(0.0, 0.0, z), Vec3::new(1.0, 0.0, z), Vec3::new(0.0, 1.0, z)], triangles: vec![[0, 1, 2]] }
+    Mesh {
+        positions: vec![Vec3::new(0.0, 0.0, z), Vec3::new(1.0, 0.0, z), Vec3::new(0.0, 1.0, z)],
+        triangles: vec![[0, 1, 2]],
+    }
 }
 
 fn down(x: f32, y: f32, from_z: f32) -> Ray {
@@ -122,7 +125,12 @@ fn face_culling_follows_ray_and_query_flags_unless_the_geometry_disables_it() {
 #[test]
 fn ids_barycentrics_and_normal_describe_the_hit_point() {
     let mesh = Mesh {
-        positions: vec![Vec3::new(0.0, 0.0, 0.0), Vec3::new(2.0, 0.0, 0.0), Vec3::new(0.0, 2.0, 0.0), Vec3::new(1.0, 3.0, 0.5)],
+        positions: vec![
+            Vec3::new(0.0, 0.0, 0.0),
+            Vec3::new(2.0, 0.0, 0.0),
+            Vec3::new(0.0, 2.0, 0.0),
+            Vec3::new(1.0, 3.0, 0.5),
+        ],
         triangles: vec![[0, 1, 2], [1, 3, 2]],
     }
     .pack();
@@ -189,7 +197,8 @@ fn degenerate_triangles_are_legal_never_hit_and_keep_their_ids() {
     assert_eq!((f32_at(&hits, 0), u32_at(&hits, 1)), (-1.0, MISS_ID));
     assert_eq!((f32_at(&hits, 2), u32_at(&hits, 3)), (2.0, 2));
 
-    let only_degenerate = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::X * 2.0], triangles: vec![[0, 1, 2]] }.pack();
+    let only_degenerate =
+        Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::X * 2.0], triangles: vec![[0, 1, 2]] }.pack();
     let (hits, _) = trace(&[BuildInput::Triangles(only_degenerate.input())], closest(HitFormat::T), &[along]);
     assert_eq!(f32_at(&hits, 0), -1.0);
 }
