@@ -185,6 +185,7 @@ impl Context {
             geometry_count: inputs.len() as u32,
             options: *options,
             compacted_size_bytes: options.flags.contains(BuildFlags::ALLOW_COMPACTION).then_some(size_bytes),
+            bounds: data.bounds(),
         };
         let handle = AccelHandle(self.next_handle.fetch_add(1, Ordering::Relaxed));
         let accel = Arc::new(Accel { handle, info, data, _charge: Charge::new(size_bytes, &self.bytes_in_use) });

@@ -1,5 +1,7 @@
 //! Acceleration-structure build options, memory-usage figures and the description of a built accel.
 
+use glam::Vec3;
+
 use crate::error::{Error, Result};
 
 bitflags::bitflags! {
@@ -55,7 +57,7 @@ pub struct MemoryUsage {
 }
 
 /// What is known about a built accel.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AccelInfo {
     /// Bytes the accel occupies on its device.
     pub size_bytes: u64,
@@ -67,4 +69,6 @@ pub struct AccelInfo {
     pub options: BuildOptions,
     /// With `ALLOW_COMPACTION`: the size a compacted copy would have.
     pub compacted_size_bytes: Option<u64>,
+    /// The box around every triangle (`min > max` when there are none).
+    pub bounds: (Vec3, Vec3),
 }

@@ -38,6 +38,8 @@ pub struct DeviceInfo {
 pub trait BackendAccel: Any + Send + Sync {
     /// Bytes it occupies.
     fn size_bytes(&self) -> u64;
+    /// The box around every triangle (`min > max` when there are none).
+    fn bounds(&self) -> (Vec3, Vec3);
     /// The corners of triangle `prim_id` of geometry `geom_id`, if the accel kept random vertex access and the
     /// triangle exists.
     fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]>;

@@ -207,6 +207,10 @@ impl BackendAccel for CpuAccel {
             + random_access
     }
 
+    fn bounds(&self) -> (Vec3, Vec3) {
+        self.corners.iter().flatten().fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| (lo.min(p), hi.max(p)))
+    }
+
     fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]> {
         let access = self.random_access.as_ref()?;
         let &(first, offset) = access.geometries.get(geom_id as usize)?;
