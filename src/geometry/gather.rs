@@ -98,7 +98,7 @@ fn check_triangle_input(input: usize, t: &TriangleInput<'_>) -> Result<usize> {
     let fail = |field, element: Option<u64>, rule: String| Error::InvalidBuildInput { input, field, element, rule };
     let vertex_size = t.vertices.format.size();
     let stride = t.vertices.stride.map_or(vertex_size, |s| s as usize);
-    if stride < vertex_size || stride % 4 != 0 {
+    if stride < vertex_size || !stride.is_multiple_of(4) {
         return Err(fail(
             "vertices.stride",
             None,
@@ -109,7 +109,7 @@ fn check_triangle_input(input: usize, t: &TriangleInput<'_>) -> Result<usize> {
         ));
     }
     let bytes = t.vertices.data.len();
-    if bytes % stride != 0 {
+    if !bytes.is_multiple_of(stride) {
         return Err(fail("vertices", None, format!("byte length {bytes} is not a multiple of the stride {stride}")));
     }
     let vertex_count = bytes / stride;
@@ -129,7 +129,7 @@ fn check_triangle_input(input: usize, t: &TriangleInput<'_>) -> Result<usize> {
         Some(indices) => {
             let size = indices.format.triangle_size();
             let len = indices.data.len();
-            if len % size != 0 {
+            if !len.is_multiple_of(size) {
                 return Err(fail(
                     "indices",
                     None,
@@ -151,7 +151,7 @@ fn check_triangle_input(input: usize, t: &TriangleInput<'_>) -> Result<usize> {
             len / size
         }
         None => {
-            if vertex_count % 3 != 0 {
+            if !vertex_count.is_multiple_of(3) {
                 return Err(fail(
                     "vertices",
                     None,

@@ -92,7 +92,7 @@ impl Query {
             });
         }
         let ray_size = self.ray_format.size();
-        if ray_bytes % ray_size != 0 {
+        if !ray_bytes.is_multiple_of(ray_size) {
             return Err(Error::BufferSize {
                 buffer: "rays",
                 rule: format!("{ray_bytes} bytes is not a multiple of {ray_size} ({})", self.ray_format.name()),

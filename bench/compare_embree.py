@@ -1,0 +1,262 @@
+#!/usr/bin/env python3
+"""Compares rayd's engine with Embree on the same triangles and the same rays, and prints one table.
+
+    python3 bench/compare_embree.py            # from anywhere; needs cargo and Python 3.11
+
+On first use it creates bench/.venv and installs embreex (Embree 4 for Python) and numpy into it, then runs
+itself again with that interpreter. For every case it runs `cargo run --release --example trace_mesh ... --export
+DIR` (rays: origin_tmin_direction_tmax, hits: t_triid_u_v), traces the exported rays against the exported
+triangles with Embree, and compares ray by ray. A ray agrees when both tracers miss, or both hit the same
+primitive, or both hit at distances within a relative 1e-4 (ties between triangles that share an edge or overlap).
+The script exits with status 1 when fewer than 99.99% of a case's rays agree, and lists the rays that do not.
+
+Speed: embreex's `EmbreeScene.run` loops over `rtcIntersect1` in one thread (it keeps the GIL, so Python
+threads do not help); rayd is therefore timed twice, with every thread (rayon's default) and with
+RAYON_NUM_THREADS=1, and the 1-thread figures are the like-for-like comparison. Trace times are medians of
+--repeat runs and exclude scene builds, which are reported apart (Embree builds with all its TBB threads).
+"""
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+BENCH = Path(__file__).resolve().parent
+ROOT = BENCH.parent
+VENV = BENCH / ".venv"
+VENV_PYTHON = VENV / "bin" / "python"
+PACKAGES = ["embreex==4.4.0.post1", "numpy"]
+MESHES = Path(os.environ.get("RAYD_MESHES", "/work/shared/data/meshes"))
+ALL_MESHES = ["stanford-bunny", "ogre", "nefertiti", "beast", "cow", "teapot", "fandisk", "spot"]
+REQUIRED_AGREEMENT = 99.99  # percent of rays, every case
+TIE_TOLERANCE = 1e-4  # relative |Δt| under which two different primitives count as a tie
+
+
+def ensure_venv():
+    """Runs this script inside bench/.venv, creating it and installing the packages first if needed."""
+    if Path(sys.prefix).resolve() == VENV.resolve():
+        return
+    if not VENV_PYTHON.exists():
+        print(f"creating {VENV} and installing {' '.join(PACKAGES)} ...", file=sys.stderr)
+        subprocess.run([sys.executable, "-m", "venv", str(VENV)], check=True)
+        subprocess.run([str(VENV_PYTHON), "-m", "pip", "install", "--quiet", *PACKAGES], check=True)
+    os.execv(str(VENV_PYTHON), [str(VENV_PYTHON), __file__, *sys.argv[1:]])
+
+
+ensure_venv()
+
+import numpy as np  # noqa: E402  (available only inside the venv)
+from embreex import mesh_construction, rtcore_scene  # noqa: E402
+
+
+def cases():
+    """(name, trace_mesh arguments) of every case."""
+    bunny = ["--mesh", str(MESHES / "stanford-bunny.obj")]
+    tiled = [arg for name in ALL_MESHES for arg in ("--mesh", str(MESHES / f"{name}.obj"))] + ["--tiled", "1000000"]
+    return [
+        ("bunny camera", bunny + ["--rays", "camera"]),
+        ("bunny random", bunny + ["--rays", "random"]),
+        ("tiled camera", tiled + ["--rays", "camera"]),
+        ("tiled random", tiled + ["--rays", "random"]),
+    ]
+
+
+def run_rayd(args, repeat, threads=None, export=None):
+    """Runs the trace_mesh example and returns its JSON report."""
+    command = ["cargo", "run", "--quiet", "--release", "--example", "trace_mesh", "--", *args, "--repeat", str(repeat)]
+    if export is not None:
+        command += ["--export", str(export)]
+    env = dict(os.environ)
+    if threads is not None:
+        env["RAYON_NUM_THREADS"] = str(threads)
+    output = subprocess.run(command, cwd=ROOT, env=env, check=True, capture_output=True, text=True).stdout
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def load_export(directory):
+    """The exported scene, rays and rayd hits as numpy arrays."""
+    vertices = np.fromfile(directory / "vertices.f32", dtype="<f4").reshape(-1, 3)
+    indices = np.fromfile(directory / "indices.u32", dtype="<u4").reshape(-1, 3)
+    # origin_tmin_direction_tmax: origin xyz, tmin, direction xyz, tmax (32 bytes).
+    rays = np.fromfile(directory / "rays.bin", dtype="<f4").reshape(-1, 8)
+    # t_triid_u_v: t f32, prim id i32, u f32, v f32 (16 bytes); a miss has t = -1 and prim id -1.
+    hits = np.fromfile(directory / "hits.bin", dtype="<f4").reshape(-1, 4)
+    return vertices, indices, rays, hits
+
+
+def trace_embree(vertices, indices, origins, directions, repeat):
+    """Builds an Embree scene, traces the rays `repeat` times; returns (build ms, median trace ms, hits)."""
+    start = time.perf_counter()
+    scene = rtcore_scene.EmbreeScene()
+    mesh_construction.TriangleMesh(scene, vertices, indices.astype(np.int32))
+    scene.run(origins[:1], directions[:1])  # the scene is committed (built) on its first run
+    build_ms = (time.perf_counter() - start) * 1e3
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        hits = scene.run(origins, directions, output=1)
+        times.append((time.perf_counter() - start) * 1e3)
+    return build_ms, float(np.median(times)), hits
+
+
+def explain(vertices, indices, who, prim, origin, direction):
+    """A line on where, in f64, the ray meets triangle `prim`: its barycentrics, the distance of the hit point
+    from the nearest edge (also in f32 ulps of the point's coordinates), and how the triangle across that edge
+    faces the ray (opposite facing = a fold, which the edge rule may count 0 or 2 times)."""
+    corners = vertices[indices[prim]].astype(np.float64)
+    o, d = origin.astype(np.float64), direction.astype(np.float64)
+    a, b, c = corners
+    e1, e2 = b - a, c - a
+    p, s = np.cross(d, e2), o - a
+    det = e1 @ p
+    q = np.cross(s, e1)
+    u, v = (s @ p) / det, (d @ q) / det
+    t = (e2 @ q) / det
+    weights = np.array([1.0 - u - v, u, v])
+    k = int(np.argmin(np.abs(weights)))  # the edge opposite corner k is the nearest
+    i, j = (k + 1) % 3, (k + 2) % 3
+    point = o + t * d
+    along = corners[j] - corners[i]
+    gap = np.linalg.norm(np.cross(point - corners[i], along)) / np.linalg.norm(along)
+    ulp = float(np.spacing(np.float32(np.abs(point).max())))
+    ends = indices[prim][[i, j]]
+    across = [int(n) for n in np.flatnonzero((indices == ends[0]).any(1) & (indices == ends[1]).any(1)) if n != prim]
+    facing = np.sign(np.cross(e1, e2) @ d)
+    sides = []
+    for n in across:
+        na, nb, nc = vertices[indices[n]].astype(np.float64)
+        sides.append(f"{n} ({'same' if np.sign(np.cross(nb - na, nc - na) @ d) == facing else 'opposite'} facing)")
+    return (f"      f64, {who}'s prim {prim}: t={t:.9g} barycentrics {np.array2string(weights, precision=3)}; "
+            f"{gap:.2e} ({gap / ulp:.2f} ulp) from edge {ends.tolist()}, across it: {', '.join(sides) or 'nothing'}")
+
+
+def compare(vertices, indices, rays, rayd, embree):
+    """Agreement figures and the rays that disagree, ray by ray."""
+    rayd_t, rayd_prim = rayd[:, 0], rayd[:, 1].view("<i4")
+    embree_t, embree_prim = embree["tfar"], embree["primID"]
+    rayd_hit, embree_hit = rayd_t >= 0, embree_prim >= 0
+    both = rayd_hit & embree_hit
+    same_prim = both & (rayd_prim == embree_prim)
+    absolute = np.abs(rayd_t[both] - embree_t[both])
+    relative = absolute / np.maximum(np.abs(embree_t[both]), 1e-30)
+    relative_all = np.zeros(len(rays))
+    relative_all[both] = relative
+    tie = both & ~same_prim & (relative_all <= TIE_TOLERANCE)
+    agree = (rayd_hit == embree_hit) & (~both | same_prim | tie)
+    bad = np.flatnonzero(~agree)
+    details = []
+    for i in bad[:10]:
+        line = (f"    ray {i}: origin {rays[i, 0:3].tolist()} direction {rays[i, 4:7].tolist()}\n"
+                f"      rayd   t={rayd_t[i]!r} prim={rayd_prim[i]} u={rayd[i, 2]!r} v={rayd[i, 3]!r}\n"
+                f"      embree t={embree_t[i]!r} prim={embree_prim[i]} u={embree['u'][i]!r} v={embree['v'][i]!r}")
+        for who, prim in (("rayd", rayd_prim[i]), ("embree", embree_prim[i])):
+            if prim >= 0:
+                line += "\n" + explain(vertices, indices, who, prim, rays[i, 0:3], rays[i, 4:7])
+        details.append(line)
+    return {
+        "hit_rate": 100.0 * rayd_hit.mean(),
+        "hit_miss": 100.0 * (rayd_hit == embree_hit).mean(),
+        "prim": 100.0 * same_prim.sum() / max(both.sum(), 1),
+        "ties": int(tie.sum()),
+        "dt_abs": float(absolute.max()) if absolute.size else 0.0,
+        "dt_max": float(relative.max()) if relative.size else 0.0,
+        "dt_p999": float(np.quantile(relative, 0.999)) if relative.size else 0.0,
+        "agree": 100.0 * agree.mean(),
+        "disagree": len(bad),
+        "details": details,
+    }
+
+
+def machine():
+    """A line saying where and when this ran."""
+    model = "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    rustc = subprocess.run(["rustc", "--version"], capture_output=True, text=True).stdout.strip()
+    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    return (f"machine: {os.cpu_count()} logical CPUs (nproc {len(os.sched_getaffinity(0))}), {model}, "
+            f"{platform.system()} {platform.release()}\n"
+            f"date: {datetime.datetime.now().astimezone().isoformat(timespec='seconds')}; load average at start: {load}\n"
+            f"{rustc}; embreex {__import__('embreex').__version__} (Embree 4, default scene flags, rtcIntersect1 "
+            f"loop, 1 thread); numpy {np.__version__}")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeat", type=int, default=5, help="timed traces per tracer and case (median reported)")
+    parser.add_argument("--keep", type=Path, help="export the buffers into this directory and keep them")
+    options = parser.parse_args()
+
+    print(machine(), flush=True)
+    print("building the trace_mesh example ...", flush=True)
+    subprocess.run(["cargo", "build", "--quiet", "--release", "--example", "trace_mesh"], cwd=ROOT, check=True)
+
+    rows, failures = [], []
+    with tempfile.TemporaryDirectory(prefix="rayd-embree-") as scratch:
+        base = options.keep or Path(scratch)
+        for name, args in cases():
+            export = base / name.replace(" ", "-")
+            print(f"{name}: rayd (all threads) ...", flush=True)
+            rayd_all = run_rayd(args, options.repeat, export=export)
+            print(f"{name}: rayd (1 thread) ...", flush=True)
+            rayd_one = run_rayd(args, options.repeat, threads=1, export=export / "one-thread")
+            vertices, indices, rays, rayd_hits = load_export(export)
+            same = (export / "hits.bin").read_bytes() == (export / "one-thread" / "hits.bin").read_bytes()
+            if not same:
+                failures.append(f"{name}: rayd's hits differ between 1 thread and {rayd_all['threads']} threads")
+            if not (np.all(rays[:, 3] == 0) and np.all(np.isinf(rays[:, 7]))):
+                sys.exit(f"{name}: rays must have tmin 0 and tmax +inf (embreex fixes tnear = 0)")
+            origins, directions = np.ascontiguousarray(rays[:, 0:3]), np.ascontiguousarray(rays[:, 4:7])
+            print(f"{name}: Embree ...", flush=True)
+            embree_build, embree_ms, embree_hits = trace_embree(vertices, indices, origins, directions,
+                                                                options.repeat)
+            result = compare(vertices, indices, rays, rayd_hits, embree_hits)
+            embree_mrays = len(rays) / embree_ms / 1e3
+            rows.append((name, len(rays), rayd_all, rayd_one, embree_build, embree_mrays, result))
+            if result["agree"] < REQUIRED_AGREEMENT:
+                failures.append(f"{name}: {result['agree']:.4f}% of rays agree, below {REQUIRED_AGREEMENT}%")
+            if result["details"]:
+                print(f"{name}: {result['disagree']} rays disagree (first {len(result['details'])}):")
+                print("\n".join(result["details"]), flush=True)
+
+    threads = rows[0][2]["threads"]
+    print()
+    print(f"Agreement (rayd vs Embree, same rays); a tie = different primitives hit at relative |dt| <= "
+          f"{TIE_TOLERANCE:g};\n|dt| over rays both hit, absolute (abs) and relative to Embree's t (large only for "
+          f"hits at tiny t, from origins next to a surface).")
+    print(f"{'case':<13} {'tris':>9} {'rays':>9} {'hit rate':>8} {'hit/miss':>9} {'prim id':>9} {'ties':>5} "
+          f"{'max abs':>9} {'max rel':>9} {'p99.9 rel':>9} {'agree':>9}")
+    for name, count, rayd_all, _, _, _, r in rows:
+        print(f"{name:<13} {rayd_all['triangles']:>9} {count:>9} {r['hit_rate']:>7.2f}% {r['hit_miss']:>8.4f}% "
+              f"{r['prim']:>8.4f}% {r['ties']:>5} {r['dt_abs']:>9.2e} {r['dt_max']:>9.2e} {r['dt_p999']:>9.2e} {r['agree']:>8.4f}%")
+    print()
+    print(f"Speed, closest hit, M rays/s (median of {options.repeat}); Embree (embreex) runs on 1 thread, so the "
+          f"like-for-like ratio is rayd 1 thread / Embree 1 thread.")
+    print(f"{'case':<13} {f'rayd {threads} thr':>12} {'rayd 1 thr':>11} {'Embree 1 thr':>13} "
+          f"{'ratio 1/1':>10} {f'ratio {threads}/1':>10} {f'rayd build ms ({threads} thr)':>22} "
+          f"{'Embree build ms (TBB)':>22}")
+    for name, _, rayd_all, rayd_one, embree_build, embree_mrays, _ in rows:
+        print(f"{name:<13} {rayd_all['mrays_per_s']:>12.2f} {rayd_one['mrays_per_s']:>11.2f} {embree_mrays:>13.2f} "
+              f"{rayd_one['mrays_per_s'] / embree_mrays:>10.2f} {rayd_all['mrays_per_s'] / embree_mrays:>10.2f} "
+              f"{rayd_all['build_ms']:>22.1f} {embree_build:>22.1f}")
+    print()
+    if failures:
+        print("FAIL:\n  " + "\n  ".join(failures))
+        sys.exit(1)
+    print(f"PASS: every case has >= {REQUIRED_AGREEMENT}% agreement, and rayd's hits are identical on 1 and "
+          f"{threads} threads.")
+
+
+if __name__ == "__main__":
+    main()
