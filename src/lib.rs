@@ -34,3 +34,5 @@ pub mod raygen;
 
 pub use context::{Accel, AccelHandle, BufferHandle, Context, Device};
 pub use error::{Error, ErrorKind, Result};
+/// The vector types of the public API.
+pub use glam;

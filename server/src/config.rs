@@ -1,0 +1,182 @@
+//! Configuration: embedded defaults, overlaid by an optional TOML file, by `RAYD_…` environment variables and by
+//! command-line flags, in that order.
+//!
+//! Every key of the file can also be set from the environment as `RAYD_<SECTION>_<KEY>` in upper case, e.g.
+//! `RAYD_LIMITS_MAX_RAYS_PER_BATCH=1000000`; top-level keys as `RAYD_<KEY>` (`RAYD_LISTEN`).
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+/// Everything `rayd` can be configured with.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Config {
+    /// Address of the gRPC service.
+    pub listen: SocketAddr,
+    /// Address of the admin HTTP endpoint (`/metrics`, `/healthz`); none disables it.
+    pub admin_listen: Option<SocketAddr>,
+    /// Directory for persisted accels (used by a later release; accepted and created now).
+    pub data_dir: Option<PathBuf>,
+    /// Log output: `text` or `json`.
+    pub log_format: String,
+    /// Request limits.
+    pub limits: Limits,
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            listen: "127.0.0.1:50051".parse().expect("valid address"),
+            admin_listen: Some("127.0.0.1:9464".parse().expect("valid address")),
+            data_dir: None,
+            log_format: "text".into(),
+            limits: Limits::default(),
+        }
+    }
+}
+
+/// Limits that protect the server; a request beyond one is refused before anything is allocated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Limits {
+    /// Largest gRPC message, in either direction (bytes).
+    pub max_message_bytes: u64,
+    /// Most rays in one `TraceBatch` call or one `TraceStream` chunk.
+    pub max_rays_per_batch: u64,
+    /// Largest `max_hits_per_ray` of an `all` query.
+    pub max_hits_per_ray: u32,
+    /// Largest accel, by `compute_memory_usage`'s output bound (bytes).
+    pub max_accel_bytes: u64,
+    /// Most accels per tenant.
+    pub max_accels: u32,
+    /// Largest buffer (bytes).
+    pub max_buffer_bytes: u64,
+    /// Most buffers per tenant.
+    pub max_buffers: u32,
+    /// Chunks of one `TraceStream` traced or waiting to be sent at once.
+    pub stream_window: u32,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_message_bytes: 64 << 20,
+            max_rays_per_batch: 1 << 24,
+            max_hits_per_ray: 256,
+            max_accel_bytes: 8 << 30,
+            max_accels: 1024,
+            max_buffer_bytes: 4 << 30,
+            max_buffers: 4096,
+            stream_window: 4,
+        }
+    }
+}
+
+/// Why a configuration could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("config file {path}: {source}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The file or an environment variable holds a bad value.
+    #[error("config: {0}")]
+    Invalid(String),
+}
+
+impl Config {
+    /// Builds the configuration from the embedded defaults, the TOML `file` if given, then every `RAYD_…` variable
+    /// of `env` that names a key.
+    pub fn load(file: Option<&std::path::Path>, env: impl IntoIterator<Item = (String, String)>) -> Result<Config, ConfigError> {
+        let mut table = toml::Table::try_from(Config::default()).map_err(|e| ConfigError::Invalid(e.to_string()))?;
+        if let Some(path) = file {
+            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
+            let overlay: toml::Table = text.parse().map_err(|e| ConfigError::Invalid(format!("{}: {e}", path.display())))?;
+            merge(&mut table, overlay);
+        }
+        let env: Vec<(String, String)> = env.into_iter().filter(|(k, _)| k.starts_with("RAYD_")).collect();
+        overlay_env(&mut table, "RAYD", &env)?;
+        table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))
+    }
+}
+
+/// Copies every key of `overlay` into `base`, descending into tables.
+fn merge(base: &mut toml::Table, overlay: toml::Table) {
+    for (key, value) in overlay {
+        match (base.get_mut(&key), value) {
+            (Some(toml::Value::Table(inner)), toml::Value::Table(value)) => merge(inner, value),
+            (_, value) => {
+                base.insert(key, value);
+            }
+        }
+    }
+}
+
+/// Sets each key of `table` for which `PREFIX_KEY` is in `env`. Values are read as TOML (numbers) and otherwise
+/// taken as strings (addresses, paths).
+fn overlay_env(table: &mut toml::Table, prefix: &str, env: &[(String, String)]) -> Result<(), ConfigError> {
+    let keys: Vec<String> = table.keys().cloned().collect();
+    for key in keys {
+        let name = format!("{prefix}_{}", key.to_uppercase());
+        if let Some(toml::Value::Table(inner)) = table.get_mut(&key) {
+            overlay_env(inner, &name, env)?;
+            continue;
+        }
+        if let Some((_, raw)) = env.iter().find(|(k, _)| *k == name) {
+            let value = raw.parse::<i64>().map(toml::Value::Integer).unwrap_or_else(|_| toml::Value::String(raw.clone()));
+            table.insert(key, value);
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env(pairs: &[(&str, &str)]) -> Vec<(String, String)> {
+        pairs.iter().map(|(k, v)| (k.to_string(), v.to_string())).collect()
+    }
+
+    #[test]
+    fn defaults_need_nothing() {
+        let config = Config::load(None, env(&[("HOME", "/root")])).unwrap();
+        assert_eq!(config, Config::default());
+        assert_eq!(config.listen.to_string(), "127.0.0.1:50051");
+    }
+
+    #[test]
+    fn file_then_environment_override_defaults() {
+        let dir = std::env::temp_dir().join(format!("rayd-config-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("rayd.toml");
+        std::fs::write(&path, "listen = \"0.0.0.0:7000\"\n[limits]\nmax_rays_per_batch = 1000\nmax_buffers = 3\n").unwrap();
+        let config = Config::load(
+            Some(&path),
+            env(&[("RAYD_LIMITS_MAX_BUFFERS", "9"), ("RAYD_ADMIN_LISTEN", "127.0.0.1:1")]),
+        )
+        .unwrap();
+        assert_eq!(config.listen.to_string(), "0.0.0.0:7000");
+        assert_eq!(config.limits.max_rays_per_batch, 1000);
+        assert_eq!(config.limits.max_buffers, 9);
+        assert_eq!(config.admin_listen.unwrap().to_string(), "127.0.0.1:1");
+    }
+
+    #[test]
+    fn unknown_keys_and_bad_values_are_errors_naming_them() {
+        let dir = std::env::temp_dir().join(format!("rayd-config-bad-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("rayd.toml");
+        std::fs::write(&path, "[limits]\nmax_rayz = 1\n").unwrap();
+        let error = Config::load(Some(&path), env(&[])).unwrap_err().to_string();
+        assert!(error.contains("max_rayz"), "{error}");
+        let error = Config::load(None, env(&[("RAYD_LIMITS_MAX_BUFFERS", "lots")])).unwrap_err().to_string();
+        assert!(error.contains("max_buffers"), "{error}");
+    }
+}

@@ -1,0 +1,84 @@
+//! The one place where failures become gRPC statuses.
+
+use rayd_engine::ErrorKind;
+use tonic::{Code, Status};
+
+/// Everything a call can fail with.
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceError {
+    /// The engine refused the request.
+    #[error(transparent)]
+    Engine(#[from] rayd_engine::Error),
+    /// A request field is missing or malformed.
+    #[error("{field}: {rule}")]
+    Invalid {
+        /// The field, as named in the contract (`query.ray_format`).
+        field: String,
+        /// What is wrong with it.
+        rule: String,
+    },
+    /// An object that does not exist for this tenant.
+    #[error("{what} {name:?} not found")]
+    NotFound {
+        /// `accel`, `buffer` or `device`.
+        what: &'static str,
+        /// The name, handle or id asked for.
+        name: String,
+    },
+    /// A name that is taken.
+    #[error("{what} {name:?} already exists")]
+    AlreadyExists {
+        /// `accel` or `buffer`.
+        what: &'static str,
+        /// The name.
+        name: String,
+    },
+    /// A configured limit.
+    #[error("{what}: {requested} exceeds limits.{limit} = {allowed}")]
+    Limit {
+        /// What was asked for.
+        what: String,
+        /// The amount asked for.
+        requested: u64,
+        /// The limit's key in the configuration.
+        limit: &'static str,
+        /// The configured value.
+        allowed: u64,
+    },
+}
+
+impl ServiceError {
+    /// A malformed field.
+    pub fn invalid(field: impl Into<String>, rule: impl Into<String>) -> Self {
+        ServiceError::Invalid { field: field.into(), rule: rule.into() }
+    }
+
+    /// Checks `requested <= allowed` for the limit named `limit`.
+    pub fn check_limit(what: impl FnOnce() -> String, requested: u64, limit: &'static str, allowed: u64) -> Result<(), Self> {
+        if requested > allowed {
+            return Err(ServiceError::Limit { what: what(), requested, limit, allowed });
+        }
+        Ok(())
+    }
+}
+
+impl From<ServiceError> for Status {
+    fn from(error: ServiceError) -> Status {
+        let code = match &error {
+            ServiceError::Engine(e) => match e.kind() {
+                ErrorKind::InvalidArgument => Code::InvalidArgument,
+                ErrorKind::NotFound => Code::NotFound,
+                ErrorKind::FailedPrecondition => Code::FailedPrecondition,
+                ErrorKind::ResourceExhausted => Code::ResourceExhausted,
+            },
+            ServiceError::Invalid { .. } => Code::InvalidArgument,
+            ServiceError::NotFound { .. } => Code::NotFound,
+            ServiceError::AlreadyExists { .. } => Code::AlreadyExists,
+            ServiceError::Limit { .. } => Code::ResourceExhausted,
+        };
+        Status::new(code, error.to_string())
+    }
+}
+
+/// The result type of the service's logic.
+pub type ServiceResult<T> = Result<T, ServiceError>;

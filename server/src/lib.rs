@@ -1,0 +1,73 @@
+//! `rayd`, the ray-tracing service: the gRPC service over the engine, the admin endpoint, and their life cycle.
+//!
+//! [`run`] takes its listeners and its shutdown future from the caller, so tests bind port 0 and stop it
+//! cleanly; `main.rs` only reads the configuration and signals.
+
+mod admin;
+pub mod config;
+mod convert;
+mod error;
+mod metrics;
+mod service;
+mod tenant;
+
+use std::future::Future;
+
+use rayd_engine::Device;
+use rayd_proto::rayd_server::RaydServer;
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tonic::transport::server::TcpIncoming;
+
+pub use config::{Config, Limits};
+use service::RaydService;
+
+/// Serves the gRPC service on `listener` and the admin endpoint on `admin` until `shutdown` completes; then the
+/// health service reports NOT_SERVING, no new connection is accepted, and calls in flight finish before it
+/// returns.
+pub async fn run(
+    config: Config,
+    listener: TcpListener,
+    admin: Option<TcpListener>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
+    let metrics = metrics::install();
+    if let Some(dir) = &config.data_dir {
+        std::fs::create_dir_all(dir)?;
+    }
+    let limits = config.limits;
+    let max_message = usize::try_from(limits.max_message_bytes).unwrap_or(usize::MAX);
+    let rayd = RaydServer::new(RaydService::new(Device::all(), limits))
+        .max_decoding_message_size(max_message)
+        .max_encoding_message_size(max_message);
+    let (health, health_service) = tonic_health::server::health_reporter();
+    health.set_serving::<RaydServer<RaydService>>().await;
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(rayd_proto::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+
+    let (stop, stopped) = watch::channel(false);
+    let wait_for_stop = move |mut receiver: watch::Receiver<bool>| async move {
+        let _ = receiver.wait_for(|stop| *stop).await;
+    };
+    let admin_task = admin.map(|listener| tokio::spawn(admin::serve(listener, metrics, wait_for_stop(stopped.clone()))));
+    let grpc_stop = wait_for_stop(stopped);
+    tokio::spawn(async move {
+        shutdown.await;
+        tracing::info!("shutting down: finishing calls in flight");
+        health.set_not_serving::<RaydServer<RaydService>>().await;
+        let _ = stop.send(true);
+    });
+    tonic::transport::Server::builder()
+        .add_service(health_service)
+        .add_service(reflection)
+        .add_service(rayd)
+        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), grpc_stop)
+        .await?;
+    if let Some(task) = admin_task {
+        task.await??;
+    }
+    tracing::info!("stopped");
+    Ok(())
+}

@@ -1,0 +1,65 @@
+//! Prometheus metrics: calls, latency and errors per method, rays traced, accels and their bytes. Rendered at
+//! the admin endpoint's `/metrics`.
+
+use std::future::Future;
+use std::sync::OnceLock;
+use std::time::Instant;
+
+use metrics::{counter, gauge, histogram};
+use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
+use rayd_engine::query::TraceStats;
+use tonic::{Response, Status};
+
+use crate::error::ServiceError;
+use crate::tenant::AccelEntry;
+
+/// Latency buckets, in seconds: 50 µs to 60 s.
+const LATENCY_BUCKETS: [f64; 14] = [5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1, 0.5, 2.0, 10.0, 60.0];
+
+/// Installs the process-wide recorder once and returns its handle.
+pub fn install() -> PrometheusHandle {
+    static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
+    HANDLE
+        .get_or_init(|| {
+            PrometheusBuilder::new()
+                .set_buckets(&LATENCY_BUCKETS)
+                .expect("non-empty buckets")
+                .install_recorder()
+                .expect("the only metrics recorder of the process")
+        })
+        .clone()
+}
+
+/// Runs one call's logic, records its latency and outcome, and turns its error into a status.
+pub async fn observe<T>(method: &'static str, call: impl Future<Output = Result<T, ServiceError>>) -> Result<Response<T>, Status> {
+    let start = Instant::now();
+    let result = call.await.map_err(Status::from);
+    histogram!("rayd_request_duration_seconds", "method" => method).record(start.elapsed().as_secs_f64());
+    counter!("rayd_requests_total", "method" => method).increment(1);
+    if let Err(status) = &result {
+        counter!("rayd_errors_total", "method" => method, "code" => format!("{:?}", status.code())).increment(1);
+        tracing::info!(method, code = ?status.code(), message = status.message(), "request failed");
+    }
+    result.map(Response::new)
+}
+
+/// Counts a finished trace.
+pub fn traced(stats: &TraceStats) {
+    counter!("rayd_rays_traced_total").increment(stats.rays);
+    counter!("rayd_rays_hit_total").increment(stats.rays_hit);
+    counter!("rayd_trace_batches_total").increment(1);
+}
+
+/// Counts a new accel.
+pub fn accel_built(entry: &AccelEntry) {
+    gauge!("rayd_accels").increment(1.0);
+    gauge!("rayd_accel_bytes").increment(entry.accel.info().size_bytes as f64);
+    tracing::info!(name = entry.name, handle = entry.handle, bytes = entry.accel.info().size_bytes, build_ms = entry.build_ns / 1_000_000, "accel built");
+}
+
+/// Counts a destroyed accel.
+pub fn accel_destroyed(entry: &AccelEntry) {
+    gauge!("rayd_accels").decrement(1.0);
+    gauge!("rayd_accel_bytes").decrement(entry.accel.info().size_bytes as f64);
+    tracing::info!(name = entry.name, handle = entry.handle, "accel destroyed");
+}

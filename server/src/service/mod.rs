@@ -1,0 +1,165 @@
+//! The gRPC handlers. Each one validates and converts its request, calls the tenant's logic (off the async
+//! runtime when it is heavy), and converts the result; errors become statuses in [`crate::error`].
+
+mod buffers;
+mod inputs;
+mod trace;
+
+use std::sync::Arc;
+
+use rayd_engine::Device;
+use rayd_proto as pb;
+use rayd_proto::rayd_server::Rayd;
+use tonic::{Request, Response, Status, Streaming};
+
+use crate::convert;
+use crate::error::{ServiceError, ServiceResult};
+use crate::metrics::observe;
+use crate::tenant::{AccelEntry, Tenant};
+
+/// Shared state of every call.
+#[derive(Debug)]
+pub struct RaydService {
+    /// The devices of this server.
+    devices: Vec<Device>,
+    /// The single tenant of a server without tenant configuration.
+    tenant: Arc<Tenant>,
+}
+
+impl RaydService {
+    /// A service over `devices` with one default tenant held to `limits`.
+    pub fn new(devices: Vec<Device>, limits: crate::config::Limits) -> RaydService {
+        let tenant = Arc::new(Tenant::new(limits, &devices));
+        RaydService { devices, tenant }
+    }
+
+    /// The tenant a request acts for.
+    fn tenant<T>(&self, _request: &Request<T>) -> Arc<Tenant> {
+        Arc::clone(&self.tenant)
+    }
+}
+
+/// Runs blocking work (builds, traces) on tokio's blocking pool so the async runtime keeps serving.
+async fn blocking<T: Send + 'static>(work: impl FnOnce() -> ServiceResult<T> + Send + 'static) -> ServiceResult<T> {
+    tokio::task::spawn_blocking(work).await.expect("blocking work does not panic")
+}
+
+/// The accel a reference names.
+fn resolve_accel(tenant: &Tenant, reference: Option<&pb::AccelRef>, field: &str) -> ServiceResult<AccelEntry> {
+    match reference.and_then(|r| r.r#ref.as_ref()) {
+        Some(pb::accel_ref::Ref::Name(name)) => tenant.accel(Some(name), None),
+        Some(pb::accel_ref::Ref::Handle(handle)) => tenant.accel(None, Some(handle)),
+        None => Err(ServiceError::invalid(field, "an accel name or handle is required")),
+    }
+}
+
+/// The contract's description of an accel.
+fn accel_message(entry: &AccelEntry) -> pb::AccelInfo {
+    convert::accel_info(entry.accel.info(), &entry.handle, &entry.name, &entry.device, entry.build_ns)
+}
+
+#[tonic::async_trait]
+impl Rayd for RaydService {
+    async fn list_devices(&self, _: Request<pb::ListDevicesRequest>) -> Result<Response<pb::ListDevicesResponse>, Status> {
+        observe("ListDevices", async {
+            let devices = self.devices.iter().map(|d| convert::device(d.info())).collect();
+            Ok(pb::ListDevicesResponse { devices })
+        })
+        .await
+    }
+
+    async fn upload_buffer(&self, request: Request<Streaming<pb::UploadBufferRequest>>) -> Result<Response<pb::BufferInfo>, Status> {
+        let tenant = self.tenant(&request);
+        observe("UploadBuffer", buffers::upload(tenant, request.into_inner())).await
+    }
+
+    type DownloadBufferStream = buffers::ChunkStream;
+
+    async fn download_buffer(&self, request: Request<pb::DownloadBufferRequest>) -> Result<Response<Self::DownloadBufferStream>, Status> {
+        let tenant = self.tenant(&request);
+        observe("DownloadBuffer", async { buffers::download(&tenant, request.get_ref()) }).await
+    }
+
+    async fn delete_buffer(&self, request: Request<pb::DeleteBufferRequest>) -> Result<Response<pb::DeleteBufferResponse>, Status> {
+        let tenant = self.tenant(&request);
+        observe("DeleteBuffer", async {
+            let reference = request.get_ref().buffer.as_ref().ok_or_else(|| ServiceError::invalid("buffer", "required"))?;
+            let entry = buffers::resolve(&tenant, reference)?;
+            tenant.delete_buffer(&entry)?;
+            Ok(pb::DeleteBufferResponse {})
+        })
+        .await
+    }
+
+    async fn list_buffers(&self, request: Request<pb::ListBuffersRequest>) -> Result<Response<pb::ListBuffersResponse>, Status> {
+        let tenant = self.tenant(&request);
+        observe("ListBuffers", async {
+            Ok(pb::ListBuffersResponse { buffers: tenant.buffers().iter().map(buffers::info).collect() })
+        })
+        .await
+    }
+
+    async fn compute_memory_usage(&self, request: Request<pb::ComputeMemoryUsageRequest>) -> Result<Response<pb::MemoryUsage>, Status> {
+        let tenant = self.tenant(&request);
+        observe("ComputeMemoryUsage", async {
+            let request = request.into_inner();
+            let owned = inputs::resolve(&tenant, &request.inputs)?;
+            let inputs: Vec<_> = owned.iter().map(|i| i.as_input()).collect();
+            let options = convert::build_options(request.options.as_ref());
+            Ok(convert::memory_usage(&tenant.compute_memory_usage(&request.device, &inputs, &options)?))
+        })
+        .await
+    }
+
+    async fn build_accel(&self, request: Request<pb::BuildAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
+        let tenant = self.tenant(&request);
+        observe("BuildAccel", async {
+            let request = request.into_inner();
+            let owned = inputs::resolve(&tenant, &request.inputs)?;
+            let options = convert::build_options(request.options.as_ref());
+            let entry = blocking(move || {
+                let inputs: Vec<_> = owned.iter().map(|i| i.as_input()).collect();
+                tenant.build_accel(&request.name, &request.device, &inputs, &options)
+            })
+            .await?;
+            crate::metrics::accel_built(&entry);
+            Ok(accel_message(&entry))
+        })
+        .await
+    }
+
+    async fn get_accel(&self, request: Request<pb::GetAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
+        let tenant = self.tenant(&request);
+        observe("GetAccel", async { Ok(accel_message(&resolve_accel(&tenant, request.get_ref().accel.as_ref(), "accel")?)) })
+            .await
+    }
+
+    async fn list_accels(&self, request: Request<pb::ListAccelsRequest>) -> Result<Response<pb::ListAccelsResponse>, Status> {
+        let tenant = self.tenant(&request);
+        observe("ListAccels", async { Ok(pb::ListAccelsResponse { accels: tenant.accels().iter().map(accel_message).collect() }) })
+            .await
+    }
+
+    async fn destroy_accel(&self, request: Request<pb::DestroyAccelRequest>) -> Result<Response<pb::DestroyAccelResponse>, Status> {
+        let tenant = self.tenant(&request);
+        observe("DestroyAccel", async {
+            let entry = resolve_accel(&tenant, request.get_ref().accel.as_ref(), "accel")?;
+            tenant.destroy_accel(&entry)?;
+            crate::metrics::accel_destroyed(&entry);
+            Ok(pb::DestroyAccelResponse {})
+        })
+        .await
+    }
+
+    async fn trace_batch(&self, request: Request<pb::TraceBatchRequest>) -> Result<Response<pb::TraceBatchResponse>, Status> {
+        let tenant = self.tenant(&request);
+        observe("TraceBatch", trace::batch(tenant, request.into_inner())).await
+    }
+
+    type TraceStreamStream = trace::ResponseStream;
+
+    async fn trace_stream(&self, request: Request<Streaming<pb::TraceStreamRequest>>) -> Result<Response<Self::TraceStreamStream>, Status> {
+        let tenant = self.tenant(&request);
+        observe("TraceStream", trace::stream(tenant, request.into_inner())).await
+    }
+}

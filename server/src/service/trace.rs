@@ -1,0 +1,125 @@
+//! `TraceBatch` (one call) and `TraceStream` (ordered chunks with bounded buffering).
+
+use std::pin::Pin;
+use std::sync::Arc;
+
+use bytes::Bytes;
+use rayd_engine::query::Query;
+use rayd_proto as pb;
+use tokio::sync::mpsc;
+use tokio_stream::Stream;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::{Status, Streaming};
+
+use super::{blocking, buffers, inputs, resolve_accel};
+use crate::convert;
+use crate::error::{ServiceError, ServiceResult};
+use crate::tenant::{AccelEntry, Tenant, TraceResult};
+
+/// The response stream of `TraceStream`.
+pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::TraceStreamResponse, Status>> + Send>>;
+
+/// Room left in a reply message for everything but the hit and count bytes.
+const REPLY_OVERHEAD_BYTES: u64 = 4096;
+
+/// The accel and engine query of a `TraceQuery`.
+fn resolve_query(tenant: &Tenant, query: Option<&pb::TraceQuery>) -> ServiceResult<(AccelEntry, Query)> {
+    let query = query.ok_or_else(|| ServiceError::invalid("query", "required"))?;
+    let accel = resolve_accel(tenant, query.accel.as_ref(), "query.accel")?;
+    Ok((accel, convert::query(query, tenant.limits().max_hits_per_ray)?))
+}
+
+/// Checks that the hits and counts of `rays` bytes fit in one reply message.
+fn check_reply_size(tenant: &Tenant, query: &Query, rays: usize) -> ServiceResult<()> {
+    let layout = query.output_layout(rays)?;
+    ServiceError::check_limit(
+        || format!("the reply to {} rays ({} hit and {} count bytes); use TraceStream or hits_buffer_name", layout.rays, layout.hits, layout.counts),
+        (layout.hits + layout.counts) as u64 + REPLY_OVERHEAD_BYTES,
+        "max_message_bytes",
+        tenant.limits().max_message_bytes,
+    )
+}
+
+/// Traces `rays` off the async runtime and counts them in the metrics.
+async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Bytes) -> ServiceResult<TraceResult> {
+    let tenant = Arc::clone(tenant);
+    let result = blocking(move || tenant.trace(&accel, &query, &rays)).await?;
+    crate::metrics::traced(&result.stats);
+    Ok(result)
+}
+
+/// One batch in one call.
+pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> ServiceResult<pb::TraceBatchResponse> {
+    let (accel, query) = resolve_query(&tenant, request.query.as_ref())?;
+    let rays = match request.rays {
+        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => bytes,
+        Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => inputs::buffer_bytes(&tenant, &reference, "rays_buffer")?,
+        None => return Err(ServiceError::invalid("rays", "rays_inline or rays_buffer is required")),
+    };
+    let to_buffer = !request.hits_buffer_name.is_empty();
+    if to_buffer {
+        let layout = query.output_layout(rays.len())?;
+        tenant.check_new_buffer(&request.hits_buffer_name, layout.hits as u64)?;
+    } else {
+        check_reply_size(&tenant, &query, rays.len())?;
+    }
+    let result = trace(&tenant, accel, query, rays).await?;
+    let stats = Some(convert::trace_stats(&result.stats, result.trace_ns));
+    if !to_buffer {
+        return Ok(pb::TraceBatchResponse { hits: result.hits, counts: result.counts, stats, ..Default::default() });
+    }
+    let hits_buffer = tenant.create_buffer(&request.hits_buffer_name, result.hits)?;
+    let counts_buffer = if result.counts.is_empty() {
+        None
+    } else {
+        Some(buffers::info(&tenant.create_buffer(&format!("{}.counts", request.hits_buffer_name), result.counts)?))
+    };
+    Ok(pb::TraceBatchResponse { hits_buffer: Some(buffers::info(&hits_buffer)), counts_buffer, stats, ..Default::default() })
+}
+
+/// Ordered chunks: each ray chunk is traced and answered in turn; at most `stream_window` answers wait to be sent,
+/// and no chunk is read while they do, so memory stays bounded on both sides.
+pub async fn stream(tenant: Arc<Tenant>, mut requests: Streaming<pb::TraceStreamRequest>) -> ServiceResult<ResponseStream> {
+    let first = requests.message().await.map_err(|s| ServiceError::invalid("stream", s.message().to_string()))?;
+    let query = match first.and_then(|m| m.part) {
+        Some(pb::trace_stream_request::Part::Query(query)) => query,
+        _ => return Err(ServiceError::invalid("query", "the first message of a trace stream must be its query")),
+    };
+    let (accel, query) = resolve_query(&tenant, Some(&query))?;
+    let (sender, receiver) = mpsc::channel(tenant.limits().stream_window.max(1) as usize);
+    tokio::spawn(async move {
+        let mut first_ray = 0u64;
+        loop {
+            let reply = match requests.message().await {
+                Ok(None) => break,
+                Err(status) => Err(Status::cancelled(status.message().to_string())),
+                Ok(Some(message)) => match message.part {
+                    Some(pb::trace_stream_request::Part::Rays(rays)) => {
+                        answer_chunk(&tenant, &accel, query, rays, first_ray).await.map_err(Status::from)
+                    }
+                    _ => Err(ServiceError::invalid("query", "only the first message may be a query").into()),
+                },
+            };
+            let failed = reply.is_err();
+            if let Ok(response) = &reply {
+                first_ray += response.stats.as_ref().map_or(0, |s| s.rays);
+            }
+            if sender.send(reply).await.is_err() || failed {
+                break;
+            }
+        }
+    });
+    Ok(Box::pin(ReceiverStream::new(receiver)))
+}
+
+/// Traces one chunk of a stream.
+async fn answer_chunk(tenant: &Arc<Tenant>, accel: &AccelEntry, query: Query, rays: Bytes, first_ray: u64) -> ServiceResult<pb::TraceStreamResponse> {
+    check_reply_size(tenant, &query, rays.len())?;
+    let result = trace(tenant, accel.clone(), query, rays).await?;
+    Ok(pb::TraceStreamResponse {
+        first_ray,
+        hits: result.hits,
+        counts: result.counts,
+        stats: Some(convert::trace_stats(&result.stats, result.trace_ns)),
+    })
+}

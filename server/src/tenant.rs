@@ -1,0 +1,278 @@
+//! A tenant's objects and the operations on them, in engine terms: named accels on any device, buffers, and
+//! traces. Every operation checks the configured limits before it allocates.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use bytes::Bytes;
+use dashmap::DashMap;
+use dashmap::mapref::entry::Entry;
+use rayd_engine::accel::{BuildOptions, MemoryUsage};
+use rayd_engine::geometry::BuildInput;
+use rayd_engine::query::{Query, TraceOutput, TraceStats};
+use rayd_engine::{Accel, BufferHandle, Context, Device};
+
+use crate::config::Limits;
+use crate::error::{ServiceError, ServiceResult};
+
+/// The device used when a request names none.
+pub const DEFAULT_DEVICE: &str = "cpu:0";
+
+/// A built accel under its tenant's name.
+#[derive(Debug, Clone)]
+pub struct AccelEntry {
+    /// The engine's accel (shared with traces running on it).
+    pub accel: Arc<Accel>,
+    /// The tenant's name for it.
+    pub name: String,
+    /// Its opaque handle in the contract.
+    pub handle: String,
+    /// The device it lives on.
+    pub device: String,
+    /// How long the build took.
+    pub build_ns: u64,
+}
+
+/// A buffer under its id.
+#[derive(Debug, Clone)]
+pub struct BufferEntry {
+    /// `buf-N`.
+    pub id: String,
+    /// The caller's name, or empty.
+    pub name: String,
+    /// Its handle in the CPU context, which holds and accounts its bytes.
+    handle: BufferHandle,
+    /// Its size.
+    pub size_bytes: u64,
+}
+
+/// The results of one trace, ready to be put in a reply without copying.
+#[derive(Debug)]
+pub struct TraceResult {
+    /// Hit records.
+    pub hits: Bytes,
+    /// Counts (`all` and `count` queries), else empty.
+    pub counts: Bytes,
+    /// What the engine did.
+    pub stats: TraceStats,
+    /// Time spent in the engine.
+    pub trace_ns: u64,
+}
+
+/// Everything one tenant has built, and the limits it is held to.
+#[derive(Debug)]
+pub struct Tenant {
+    /// The limits of every request.
+    limits: Limits,
+    /// One context per device, by device id.
+    contexts: HashMap<String, Context>,
+    /// Accels by name.
+    accels: DashMap<String, AccelEntry>,
+    /// Accel names by handle.
+    handles: DashMap<String, String>,
+    /// Buffers by id.
+    buffers: DashMap<String, BufferEntry>,
+    /// Buffer ids by name (named buffers only).
+    buffer_names: DashMap<String, String>,
+    /// The next buffer number.
+    next_buffer: AtomicU64,
+}
+
+/// Checks an accel or buffer name: 1 to 128 characters of `[A-Za-z0-9._-]`.
+pub fn check_name(field: &str, name: &str) -> ServiceResult<()> {
+    let valid = (1..=128).contains(&name.len()) && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
+    if !valid {
+        return Err(ServiceError::invalid(field, format!("{name:?} must be 1 to 128 characters of [A-Za-z0-9._-]")));
+    }
+    Ok(())
+}
+
+impl Tenant {
+    /// A tenant with a context on each device.
+    pub fn new(limits: Limits, devices: &[Device]) -> Tenant {
+        Tenant {
+            limits,
+            contexts: devices.iter().map(|d| (d.info().id.clone(), Context::new(d.clone()))).collect(),
+            accels: DashMap::new(),
+            handles: DashMap::new(),
+            buffers: DashMap::new(),
+            buffer_names: DashMap::new(),
+            next_buffer: AtomicU64::new(1),
+        }
+    }
+
+    /// The limits of this tenant's requests.
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    /// The context on device `id` (empty: the default device).
+    fn context(&self, id: &str) -> ServiceResult<(&str, &Context)> {
+        let id = if id.is_empty() { DEFAULT_DEVICE } else { id };
+        self.contexts
+            .get_key_value(id)
+            .map(|(k, c)| (k.as_str(), c))
+            .ok_or_else(|| ServiceError::NotFound { what: "device", name: id.into() })
+    }
+
+    /// Upper bounds of a build's memory on `device`.
+    pub fn compute_memory_usage(&self, device: &str, inputs: &[BuildInput<'_>], options: &BuildOptions) -> ServiceResult<MemoryUsage> {
+        Ok(self.context(device)?.1.compute_memory_usage(inputs, options)?)
+    }
+
+    /// Builds an accel named `name` on `device`. Blocks: call it off the async runtime.
+    pub fn build_accel(&self, name: &str, device: &str, inputs: &[BuildInput<'_>], options: &BuildOptions) -> ServiceResult<AccelEntry> {
+        check_name("name", name)?;
+        if self.accels.contains_key(name) {
+            return Err(ServiceError::AlreadyExists { what: "accel", name: name.into() });
+        }
+        let count = self.accels.len() as u64 + 1;
+        ServiceError::check_limit(|| "accels of this tenant".into(), count, "max_accels", self.limits.max_accels as u64)?;
+        let (device, context) = self.context(device)?;
+        let usage = context.compute_memory_usage(inputs, options)?;
+        ServiceError::check_limit(
+            || format!("accel {name:?} needs up to {} bytes", usage.output_bytes),
+            usage.output_bytes,
+            "max_accel_bytes",
+            self.limits.max_accel_bytes,
+        )?;
+        let start = Instant::now();
+        let accel = context.build_accel(inputs, options)?;
+        let entry = AccelEntry {
+            handle: format!("acc-{}", accel.handle().0),
+            accel,
+            name: name.into(),
+            device: device.into(),
+            build_ns: start.elapsed().as_nanos() as u64,
+        };
+        match self.accels.entry(name.into()) {
+            Entry::Occupied(_) => {
+                context.destroy_accel(entry.accel.handle())?;
+                Err(ServiceError::AlreadyExists { what: "accel", name: name.into() })
+            }
+            Entry::Vacant(slot) => {
+                self.handles.insert(entry.handle.clone(), name.into());
+                slot.insert(entry.clone());
+                Ok(entry)
+            }
+        }
+    }
+
+    /// The accel with this name or handle.
+    pub fn accel(&self, by_name: Option<&str>, by_handle: Option<&str>) -> ServiceResult<AccelEntry> {
+        let name = match (by_name, by_handle) {
+            (Some(name), _) => name.to_string(),
+            (None, Some(handle)) => self
+                .handles
+                .get(handle)
+                .map(|n| n.clone())
+                .ok_or_else(|| ServiceError::NotFound { what: "accel", name: handle.into() })?,
+            (None, None) => return Err(ServiceError::invalid("accel", "name or handle is required")),
+        };
+        self.accels.get(&name).map(|e| e.clone()).ok_or(ServiceError::NotFound { what: "accel", name })
+    }
+
+    /// Every accel, in creation order.
+    pub fn accels(&self) -> Vec<AccelEntry> {
+        let mut all: Vec<AccelEntry> = self.accels.iter().map(|e| e.clone()).collect();
+        all.sort_by_key(|e| e.accel.handle());
+        all
+    }
+
+    /// Destroys an accel; traces holding it finish first.
+    pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
+        if self.accels.remove(&entry.name).is_none() {
+            return Err(ServiceError::NotFound { what: "accel", name: entry.name.clone() });
+        }
+        self.handles.remove(&entry.handle);
+        self.context(&entry.device)?.1.destroy_accel(entry.accel.handle())?;
+        Ok(())
+    }
+
+    /// Checks that a buffer of `size` bytes named `name` may be created.
+    pub fn check_new_buffer(&self, name: &str, size: u64) -> ServiceResult<()> {
+        if !name.is_empty() {
+            check_name("header.name", name)?;
+            if self.buffer_names.contains_key(name) {
+                return Err(ServiceError::AlreadyExists { what: "buffer", name: name.into() });
+            }
+        }
+        ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
+        let count = self.buffers.len() as u64 + 1;
+        ServiceError::check_limit(|| "buffers of this tenant".into(), count, "max_buffers", self.limits.max_buffers as u64)
+    }
+
+    /// Keeps `data` as a buffer.
+    pub fn create_buffer(&self, name: &str, data: Bytes) -> ServiceResult<BufferEntry> {
+        self.check_new_buffer(name, data.len() as u64)?;
+        let id = format!("buf-{}", self.next_buffer.fetch_add(1, Ordering::Relaxed));
+        if !name.is_empty() {
+            match self.buffer_names.entry(name.into()) {
+                Entry::Occupied(_) => return Err(ServiceError::AlreadyExists { what: "buffer", name: name.into() }),
+                Entry::Vacant(slot) => {
+                    slot.insert(id.clone());
+                }
+            }
+        }
+        let size_bytes = data.len() as u64;
+        let handle = self.context(DEFAULT_DEVICE)?.1.create_buffer(data);
+        let entry = BufferEntry { id: id.clone(), name: name.into(), handle, size_bytes };
+        self.buffers.insert(id, entry.clone());
+        Ok(entry)
+    }
+
+    /// The buffer with this id or name.
+    pub fn buffer(&self, by_id: Option<&str>, by_name: Option<&str>) -> ServiceResult<(BufferEntry, Bytes)> {
+        let id = match (by_id, by_name) {
+            (Some(id), _) => id.to_string(),
+            (None, Some(name)) => self
+                .buffer_names
+                .get(name)
+                .map(|id| id.clone())
+                .ok_or_else(|| ServiceError::NotFound { what: "buffer", name: name.into() })?,
+            (None, None) => return Err(ServiceError::invalid("buffer", "id or name is required")),
+        };
+        let entry = self.buffers.get(&id).map(|e| e.clone()).ok_or(ServiceError::NotFound { what: "buffer", name: id })?;
+        let bytes = self.context(DEFAULT_DEVICE)?.1.buffer(entry.handle)?;
+        Ok((entry, bytes))
+    }
+
+    /// Every buffer, in creation order.
+    pub fn buffers(&self) -> Vec<BufferEntry> {
+        let mut all: Vec<BufferEntry> = self.buffers.iter().map(|e| e.clone()).collect();
+        all.sort_by_key(|e| e.handle);
+        all
+    }
+
+    /// Deletes a buffer.
+    pub fn delete_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
+        if self.buffers.remove(&entry.id).is_none() {
+            return Err(ServiceError::NotFound { what: "buffer", name: entry.id.clone() });
+        }
+        if !entry.name.is_empty() {
+            self.buffer_names.remove(&entry.name);
+        }
+        self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
+        Ok(())
+    }
+
+    /// Traces `rays` against `accel` into fresh reply buffers. Blocks: call it off the async runtime.
+    pub fn trace(&self, accel: &AccelEntry, query: &Query, rays: &[u8]) -> ServiceResult<TraceResult> {
+        let layout = query.output_layout(rays.len())?;
+        ServiceError::check_limit(
+            || "rays in one batch".into(),
+            layout.rays as u64,
+            "max_rays_per_batch",
+            self.limits.max_rays_per_batch,
+        )?;
+        let mut hits = vec![0u8; layout.hits];
+        let mut counts = vec![0u8; layout.counts];
+        let start = Instant::now();
+        let context = self.context(&accel.device)?.1;
+        let stats = context.trace(&accel.accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
+        let trace_ns = start.elapsed().as_nanos() as u64;
+        Ok(TraceResult { hits: Bytes::from(hits), counts: Bytes::from(counts), stats, trace_ns })
+    }
+}
