@@ -93,11 +93,16 @@ pub enum ConfigError {
 impl Config {
     /// Builds the configuration from the embedded defaults, the TOML `file` if given, then every `RAYD_…` variable
     /// of `env` that names a key.
-    pub fn load(file: Option<&std::path::Path>, env: impl IntoIterator<Item = (String, String)>) -> Result<Config, ConfigError> {
+    pub fn load(
+        file: Option<&std::path::Path>,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<Config, ConfigError> {
         let mut table = toml::Table::try_from(Config::default()).map_err(|e| ConfigError::Invalid(e.to_string()))?;
         if let Some(path) = file {
-            let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
-            let overlay: toml::Table = text.parse().map_err(|e| ConfigError::Invalid(format!("{}: {e}", path.display())))?;
+            let text =
+                std::fs::read_to_string(path).map_err(|source| ConfigError::Read { path: path.into(), source })?;
+            let overlay: toml::Table =
+                text.parse().map_err(|e| ConfigError::Invalid(format!("{}: {e}", path.display())))?;
             merge(&mut table, overlay);
         }
         let env: Vec<(String, String)> = env.into_iter().filter(|(k, _)| k.starts_with("RAYD_")).collect();
@@ -129,7 +134,8 @@ fn overlay_env(table: &mut toml::Table, prefix: &str, env: &[(String, String)]) 
             continue;
         }
         if let Some((_, raw)) = env.iter().find(|(k, _)| *k == name) {
-            let value = raw.parse::<i64>().map(toml::Value::Integer).unwrap_or_else(|_| toml::Value::String(raw.clone()));
+            let value =
+                raw.parse::<i64>().map(toml::Value::Integer).unwrap_or_else(|_| toml::Value::String(raw.clone()));
             table.insert(key, value);
         }
     }
@@ -156,12 +162,11 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("rayd-config-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("rayd.toml");
-        std::fs::write(&path, "listen = \"0.0.0.0:7000\"\n[limits]\nmax_rays_per_batch = 1000\nmax_buffers = 3\n").unwrap();
-        let config = Config::load(
-            Some(&path),
-            env(&[("RAYD_LIMITS_MAX_BUFFERS", "9"), ("RAYD_ADMIN_LISTEN", "127.0.0.1:1")]),
-        )
-        .unwrap();
+        std::fs::write(&path, "listen = \"0.0.0.0:7000\"\n[limits]\nmax_rays_per_batch = 1000\nmax_buffers = 3\n")
+            .unwrap();
+        let config =
+            Config::load(Some(&path), env(&[("RAYD_LIMITS_MAX_BUFFERS", "9"), ("RAYD_ADMIN_LISTEN", "127.0.0.1:1")]))
+                .unwrap();
         assert_eq!(config.listen.to_string(), "0.0.0.0:7000");
         assert_eq!(config.limits.max_rays_per_batch, 1000);
         assert_eq!(config.limits.max_buffers, 9);

@@ -12,7 +12,9 @@ use crate::error::{ServiceError, ServiceResult};
 /// The engine's ray format for a contract enum value.
 pub fn ray_format(value: i32, field: &str) -> ServiceResult<RayFormat> {
     let index = match pb::RayFormat::try_from(value) {
-        Ok(pb::RayFormat::Unspecified) | Err(_) => return Err(ServiceError::invalid(field, format!("{value} is not a ray format"))),
+        Ok(pb::RayFormat::Unspecified) | Err(_) => {
+            return Err(ServiceError::invalid(field, format!("{value} is not a ray format")));
+        }
         Ok(format) => format as usize,
     };
     Ok(RayFormat::ALL[index - 1])
@@ -21,7 +23,9 @@ pub fn ray_format(value: i32, field: &str) -> ServiceResult<RayFormat> {
 /// The engine's hit format for a contract enum value.
 pub fn hit_format(value: i32, field: &str) -> ServiceResult<HitFormat> {
     let index = match pb::HitFormat::try_from(value) {
-        Ok(pb::HitFormat::Unspecified) | Err(_) => return Err(ServiceError::invalid(field, format!("{value} is not a hit format"))),
+        Ok(pb::HitFormat::Unspecified) | Err(_) => {
+            return Err(ServiceError::invalid(field, format!("{value} is not a hit format")));
+        }
         Ok(format) => format as usize,
     };
     Ok(HitFormat::ALL[index - 1])

@@ -54,7 +54,12 @@ impl ServiceError {
     }
 
     /// Checks `requested <= allowed` for the limit named `limit`.
-    pub fn check_limit(what: impl FnOnce() -> String, requested: u64, limit: &'static str, allowed: u64) -> Result<(), Self> {
+    pub fn check_limit(
+        what: impl FnOnce() -> String,
+        requested: u64,
+        limit: &'static str,
+        allowed: u64,
+    ) -> Result<(), Self> {
         if requested > allowed {
             return Err(ServiceError::Limit { what: what(), requested, limit, allowed });
         }

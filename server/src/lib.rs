@@ -51,7 +51,8 @@ pub async fn run(
     let wait_for_stop = move |mut receiver: watch::Receiver<bool>| async move {
         let _ = receiver.wait_for(|stop| *stop).await;
     };
-    let admin_task = admin.map(|listener| tokio::spawn(admin::serve(listener, metrics, wait_for_stop(stopped.clone()))));
+    let admin_task =
+        admin.map(|listener| tokio::spawn(admin::serve(listener, metrics, wait_for_stop(stopped.clone()))));
     let grpc_stop = wait_for_stop(stopped);
     tokio::spawn(async move {
         shutdown.await;

@@ -35,7 +35,9 @@ fn configure(cli: Cli) -> Result<Config, Box<dyn std::error::Error + Send + Sync
     match cli.admin_listen.as_deref() {
         None => {}
         Some("off") => config.admin_listen = None,
-        Some(address) => config.admin_listen = Some(address.parse().map_err(|e| format!("--admin-listen {address:?}: {e}"))?),
+        Some(address) => {
+            config.admin_listen = Some(address.parse().map_err(|e| format!("--admin-listen {address:?}: {e}"))?)
+        }
     }
     if cli.data_dir.is_some() {
         config.data_dir = cli.data_dir;
@@ -48,7 +50,8 @@ async fn shutdown_signal() {
     let ctrl_c = tokio::signal::ctrl_c();
     #[cfg(unix)]
     {
-        let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).expect("SIGTERM handler");
+        let mut term =
+            tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()).expect("SIGTERM handler");
         tokio::select! {
             _ = ctrl_c => {}
             _ = term.recv() => {}

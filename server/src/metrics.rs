@@ -14,7 +14,8 @@ use crate::error::ServiceError;
 use crate::tenant::AccelEntry;
 
 /// Latency buckets, in seconds: 50 µs to 60 s.
-const LATENCY_BUCKETS: [f64; 14] = [5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1, 0.5, 2.0, 10.0, 60.0];
+const LATENCY_BUCKETS: [f64; 14] =
+    [5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1, 0.5, 2.0, 10.0, 60.0];
 
 /// Installs the process-wide recorder once and returns its handle.
 pub fn install() -> PrometheusHandle {
@@ -31,7 +32,10 @@ pub fn install() -> PrometheusHandle {
 }
 
 /// Runs one call's logic, records its latency and outcome, and turns its error into a status.
-pub async fn observe<T>(method: &'static str, call: impl Future<Output = Result<T, ServiceError>>) -> Result<Response<T>, Status> {
+pub async fn observe<T>(
+    method: &'static str,
+    call: impl Future<Output = Result<T, ServiceError>>,
+) -> Result<Response<T>, Status> {
     let start = Instant::now();
     let result = call.await.map_err(Status::from);
     histogram!("rayd_request_duration_seconds", "method" => method).record(start.elapsed().as_secs_f64());
@@ -54,7 +58,13 @@ pub fn traced(stats: &TraceStats) {
 pub fn accel_built(entry: &AccelEntry) {
     gauge!("rayd_accels").increment(1.0);
     gauge!("rayd_accel_bytes").increment(entry.accel.info().size_bytes as f64);
-    tracing::info!(name = entry.name, handle = entry.handle, bytes = entry.accel.info().size_bytes, build_ms = entry.build_ns / 1_000_000, "accel built");
+    tracing::info!(
+        name = entry.name,
+        handle = entry.handle,
+        bytes = entry.accel.info().size_bytes,
+        build_ms = entry.build_ns / 1_000_000,
+        "accel built"
+    );
 }
 
 /// Counts a destroyed accel.

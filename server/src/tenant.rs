@@ -82,7 +82,8 @@ pub struct Tenant {
 
 /// Checks an accel or buffer name: 1 to 128 characters of `[A-Za-z0-9._-]`.
 pub fn check_name(field: &str, name: &str) -> ServiceResult<()> {
-    let valid = (1..=128).contains(&name.len()) && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
+    let valid =
+        (1..=128).contains(&name.len()) && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
     if !valid {
         return Err(ServiceError::invalid(field, format!("{name:?} must be 1 to 128 characters of [A-Za-z0-9._-]")));
     }
@@ -118,18 +119,34 @@ impl Tenant {
     }
 
     /// Upper bounds of a build's memory on `device`.
-    pub fn compute_memory_usage(&self, device: &str, inputs: &[BuildInput<'_>], options: &BuildOptions) -> ServiceResult<MemoryUsage> {
+    pub fn compute_memory_usage(
+        &self,
+        device: &str,
+        inputs: &[BuildInput<'_>],
+        options: &BuildOptions,
+    ) -> ServiceResult<MemoryUsage> {
         Ok(self.context(device)?.1.compute_memory_usage(inputs, options)?)
     }
 
     /// Builds an accel named `name` on `device`. Blocks: call it off the async runtime.
-    pub fn build_accel(&self, name: &str, device: &str, inputs: &[BuildInput<'_>], options: &BuildOptions) -> ServiceResult<AccelEntry> {
+    pub fn build_accel(
+        &self,
+        name: &str,
+        device: &str,
+        inputs: &[BuildInput<'_>],
+        options: &BuildOptions,
+    ) -> ServiceResult<AccelEntry> {
         check_name("name", name)?;
         if self.accels.contains_key(name) {
             return Err(ServiceError::AlreadyExists { what: "accel", name: name.into() });
         }
         let count = self.accels.len() as u64 + 1;
-        ServiceError::check_limit(|| "accels of this tenant".into(), count, "max_accels", self.limits.max_accels as u64)?;
+        ServiceError::check_limit(
+            || "accels of this tenant".into(),
+            count,
+            "max_accels",
+            self.limits.max_accels as u64,
+        )?;
         let (device, context) = self.context(device)?;
         let usage = context.compute_memory_usage(inputs, options)?;
         ServiceError::check_limit(
@@ -201,7 +218,12 @@ impl Tenant {
         }
         ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
         let count = self.buffers.len() as u64 + 1;
-        ServiceError::check_limit(|| "buffers of this tenant".into(), count, "max_buffers", self.limits.max_buffers as u64)
+        ServiceError::check_limit(
+            || "buffers of this tenant".into(),
+            count,
+            "max_buffers",
+            self.limits.max_buffers as u64,
+        )
     }
 
     /// Keeps `data` as a buffer.
@@ -234,7 +256,8 @@ impl Tenant {
                 .ok_or_else(|| ServiceError::NotFound { what: "buffer", name: name.into() })?,
             (None, None) => return Err(ServiceError::invalid("buffer", "id or name is required")),
         };
-        let entry = self.buffers.get(&id).map(|e| e.clone()).ok_or(ServiceError::NotFound { what: "buffer", name: id })?;
+        let entry =
+            self.buffers.get(&id).map(|e| e.clone()).ok_or(ServiceError::NotFound { what: "buffer", name: id })?;
         let bytes = self.context(DEFAULT_DEVICE)?.1.buffer(entry.handle)?;
         Ok((entry, bytes))
     }

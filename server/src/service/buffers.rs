@@ -32,7 +32,10 @@ pub fn resolve(tenant: &Tenant, reference: &pb::BufferRef) -> ServiceResult<Buff
 }
 
 /// Receives a header and the data chunks, checking the declared size against the limits before anything else.
-pub async fn upload(tenant: Arc<Tenant>, mut stream: Streaming<pb::UploadBufferRequest>) -> ServiceResult<pb::BufferInfo> {
+pub async fn upload(
+    tenant: Arc<Tenant>,
+    mut stream: Streaming<pb::UploadBufferRequest>,
+) -> ServiceResult<pb::BufferInfo> {
     let header = match stream.message().await {
         Ok(Some(pb::UploadBufferRequest { part: Some(pb::upload_buffer_request::Part::Header(h)) })) => h,
         Ok(_) => return Err(ServiceError::invalid("header", "the first message of an upload must be its header")),
@@ -40,7 +43,9 @@ pub async fn upload(tenant: Arc<Tenant>, mut stream: Streaming<pb::UploadBufferR
     };
     tenant.check_new_buffer(&header.name, header.size_bytes)?;
     let mut data = BytesMut::with_capacity(header.size_bytes as usize);
-    while let Some(message) = stream.message().await.map_err(|s| ServiceError::invalid("stream", s.message().to_string()))? {
+    while let Some(message) =
+        stream.message().await.map_err(|s| ServiceError::invalid("stream", s.message().to_string()))?
+    {
         let Some(pb::upload_buffer_request::Part::Data(chunk)) = message.part else {
             return Err(ServiceError::invalid("header", "only the first message may be a header"));
         };
@@ -50,7 +55,10 @@ pub async fn upload(tenant: Arc<Tenant>, mut stream: Streaming<pb::UploadBufferR
         data.extend_from_slice(&chunk);
     }
     if data.len() as u64 != header.size_bytes {
-        return Err(ServiceError::invalid("data", format!("{} bytes received, {} declared", data.len(), header.size_bytes)));
+        return Err(ServiceError::invalid(
+            "data",
+            format!("{} bytes received, {} declared", data.len(), header.size_bytes),
+        ));
     }
     Ok(info(&tenant.create_buffer(&header.name, data.freeze())?))
 }
@@ -62,7 +70,10 @@ pub fn download(tenant: &Tenant, request: &pb::DownloadBufferRequest) -> Service
     let (_, bytes) = tenant.buffer(Some(&entry.id), None)?;
     let size = bytes.len() as u64;
     if request.offset > size {
-        return Err(ServiceError::invalid("offset", format!("{} is past the end of the {size}-byte buffer", request.offset)));
+        return Err(ServiceError::invalid(
+            "offset",
+            format!("{} is past the end of the {size}-byte buffer", request.offset),
+        ));
     }
     let end = if request.length == 0 { size } else { request.offset.saturating_add(request.length) };
     if end > size {

@@ -1,7 +1,9 @@
 //! Build inputs of a request, resolved to bytes (inline or from buffers) that outlive the blocking build.
 
 use bytes::Bytes;
-use rayd_engine::geometry::{BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat};
+use rayd_engine::geometry::{
+    BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat,
+};
 use rayd_proto as pb;
 
 use crate::error::{ServiceError, ServiceResult};

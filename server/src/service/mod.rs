@@ -60,7 +60,10 @@ fn accel_message(entry: &AccelEntry) -> pb::AccelInfo {
 
 #[tonic::async_trait]
 impl Rayd for RaydService {
-    async fn list_devices(&self, _: Request<pb::ListDevicesRequest>) -> Result<Response<pb::ListDevicesResponse>, Status> {
+    async fn list_devices(
+        &self,
+        _: Request<pb::ListDevicesRequest>,
+    ) -> Result<Response<pb::ListDevicesResponse>, Status> {
         observe("ListDevices", async {
             let devices = self.devices.iter().map(|d| convert::device(d.info())).collect();
             Ok(pb::ListDevicesResponse { devices })
@@ -68,22 +71,32 @@ impl Rayd for RaydService {
         .await
     }
 
-    async fn upload_buffer(&self, request: Request<Streaming<pb::UploadBufferRequest>>) -> Result<Response<pb::BufferInfo>, Status> {
+    async fn upload_buffer(
+        &self,
+        request: Request<Streaming<pb::UploadBufferRequest>>,
+    ) -> Result<Response<pb::BufferInfo>, Status> {
         let tenant = self.tenant(&request);
         observe("UploadBuffer", buffers::upload(tenant, request.into_inner())).await
     }
 
     type DownloadBufferStream = buffers::ChunkStream;
 
-    async fn download_buffer(&self, request: Request<pb::DownloadBufferRequest>) -> Result<Response<Self::DownloadBufferStream>, Status> {
+    async fn download_buffer(
+        &self,
+        request: Request<pb::DownloadBufferRequest>,
+    ) -> Result<Response<Self::DownloadBufferStream>, Status> {
         let tenant = self.tenant(&request);
         observe("DownloadBuffer", async { buffers::download(&tenant, request.get_ref()) }).await
     }
 
-    async fn delete_buffer(&self, request: Request<pb::DeleteBufferRequest>) -> Result<Response<pb::DeleteBufferResponse>, Status> {
+    async fn delete_buffer(
+        &self,
+        request: Request<pb::DeleteBufferRequest>,
+    ) -> Result<Response<pb::DeleteBufferResponse>, Status> {
         let tenant = self.tenant(&request);
         observe("DeleteBuffer", async {
-            let reference = request.get_ref().buffer.as_ref().ok_or_else(|| ServiceError::invalid("buffer", "required"))?;
+            let reference =
+                request.get_ref().buffer.as_ref().ok_or_else(|| ServiceError::invalid("buffer", "required"))?;
             let entry = buffers::resolve(&tenant, reference)?;
             tenant.delete_buffer(&entry)?;
             Ok(pb::DeleteBufferResponse {})
@@ -91,7 +104,10 @@ impl Rayd for RaydService {
         .await
     }
 
-    async fn list_buffers(&self, request: Request<pb::ListBuffersRequest>) -> Result<Response<pb::ListBuffersResponse>, Status> {
+    async fn list_buffers(
+        &self,
+        request: Request<pb::ListBuffersRequest>,
+    ) -> Result<Response<pb::ListBuffersResponse>, Status> {
         let tenant = self.tenant(&request);
         observe("ListBuffers", async {
             Ok(pb::ListBuffersResponse { buffers: tenant.buffers().iter().map(buffers::info).collect() })
@@ -99,7 +115,10 @@ impl Rayd for RaydService {
         .await
     }
 
-    async fn compute_memory_usage(&self, request: Request<pb::ComputeMemoryUsageRequest>) -> Result<Response<pb::MemoryUsage>, Status> {
+    async fn compute_memory_usage(
+        &self,
+        request: Request<pb::ComputeMemoryUsageRequest>,
+    ) -> Result<Response<pb::MemoryUsage>, Status> {
         let tenant = self.tenant(&request);
         observe("ComputeMemoryUsage", async {
             let request = request.into_inner();
@@ -130,17 +149,27 @@ impl Rayd for RaydService {
 
     async fn get_accel(&self, request: Request<pb::GetAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.tenant(&request);
-        observe("GetAccel", async { Ok(accel_message(&resolve_accel(&tenant, request.get_ref().accel.as_ref(), "accel")?)) })
-            .await
+        observe("GetAccel", async {
+            Ok(accel_message(&resolve_accel(&tenant, request.get_ref().accel.as_ref(), "accel")?))
+        })
+        .await
     }
 
-    async fn list_accels(&self, request: Request<pb::ListAccelsRequest>) -> Result<Response<pb::ListAccelsResponse>, Status> {
+    async fn list_accels(
+        &self,
+        request: Request<pb::ListAccelsRequest>,
+    ) -> Result<Response<pb::ListAccelsResponse>, Status> {
         let tenant = self.tenant(&request);
-        observe("ListAccels", async { Ok(pb::ListAccelsResponse { accels: tenant.accels().iter().map(accel_message).collect() }) })
-            .await
+        observe("ListAccels", async {
+            Ok(pb::ListAccelsResponse { accels: tenant.accels().iter().map(accel_message).collect() })
+        })
+        .await
     }
 
-    async fn destroy_accel(&self, request: Request<pb::DestroyAccelRequest>) -> Result<Response<pb::DestroyAccelResponse>, Status> {
+    async fn destroy_accel(
+        &self,
+        request: Request<pb::DestroyAccelRequest>,
+    ) -> Result<Response<pb::DestroyAccelResponse>, Status> {
         let tenant = self.tenant(&request);
         observe("DestroyAccel", async {
             let entry = resolve_accel(&tenant, request.get_ref().accel.as_ref(), "accel")?;
@@ -151,14 +180,20 @@ impl Rayd for RaydService {
         .await
     }
 
-    async fn trace_batch(&self, request: Request<pb::TraceBatchRequest>) -> Result<Response<pb::TraceBatchResponse>, Status> {
+    async fn trace_batch(
+        &self,
+        request: Request<pb::TraceBatchRequest>,
+    ) -> Result<Response<pb::TraceBatchResponse>, Status> {
         let tenant = self.tenant(&request);
         observe("TraceBatch", trace::batch(tenant, request.into_inner())).await
     }
 
     type TraceStreamStream = trace::ResponseStream;
 
-    async fn trace_stream(&self, request: Request<Streaming<pb::TraceStreamRequest>>) -> Result<Response<Self::TraceStreamStream>, Status> {
+    async fn trace_stream(
+        &self,
+        request: Request<Streaming<pb::TraceStreamRequest>>,
+    ) -> Result<Response<Self::TraceStreamStream>, Status> {
         let tenant = self.tenant(&request);
         observe("TraceStream", trace::stream(tenant, request.into_inner())).await
     }

@@ -33,7 +33,12 @@ fn resolve_query(tenant: &Tenant, query: Option<&pb::TraceQuery>) -> ServiceResu
 fn check_reply_size(tenant: &Tenant, query: &Query, rays: usize) -> ServiceResult<()> {
     let layout = query.output_layout(rays)?;
     ServiceError::check_limit(
-        || format!("the reply to {} rays ({} hit and {} count bytes); use TraceStream or hits_buffer_name", layout.rays, layout.hits, layout.counts),
+        || {
+            format!(
+                "the reply to {} rays ({} hit and {} count bytes); use TraceStream or hits_buffer_name",
+                layout.rays, layout.hits, layout.counts
+            )
+        },
         (layout.hits + layout.counts) as u64 + REPLY_OVERHEAD_BYTES,
         "max_message_bytes",
         tenant.limits().max_message_bytes,
@@ -53,7 +58,9 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     let (accel, query) = resolve_query(&tenant, request.query.as_ref())?;
     let rays = match request.rays {
         Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => bytes,
-        Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => inputs::buffer_bytes(&tenant, &reference, "rays_buffer")?,
+        Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => {
+            inputs::buffer_bytes(&tenant, &reference, "rays_buffer")?
+        }
         None => return Err(ServiceError::invalid("rays", "rays_inline or rays_buffer is required")),
     };
     let to_buffer = !request.hits_buffer_name.is_empty();
@@ -74,12 +81,20 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     } else {
         Some(buffers::info(&tenant.create_buffer(&format!("{}.counts", request.hits_buffer_name), result.counts)?))
     };
-    Ok(pb::TraceBatchResponse { hits_buffer: Some(buffers::info(&hits_buffer)), counts_buffer, stats, ..Default::default() })
+    Ok(pb::TraceBatchResponse {
+        hits_buffer: Some(buffers::info(&hits_buffer)),
+        counts_buffer,
+        stats,
+        ..Default::default()
+    })
 }
 
 /// Ordered chunks: each ray chunk is traced and answered in turn; at most `stream_window` answers wait to be sent,
 /// and no chunk is read while they do, so memory stays bounded on both sides.
-pub async fn stream(tenant: Arc<Tenant>, mut requests: Streaming<pb::TraceStreamRequest>) -> ServiceResult<ResponseStream> {
+pub async fn stream(
+    tenant: Arc<Tenant>,
+    mut requests: Streaming<pb::TraceStreamRequest>,
+) -> ServiceResult<ResponseStream> {
     let first = requests.message().await.map_err(|s| ServiceError::invalid("stream", s.message().to_string()))?;
     let query = match first.and_then(|m| m.part) {
         Some(pb::trace_stream_request::Part::Query(query)) => query,
@@ -113,7 +128,13 @@ pub async fn stream(tenant: Arc<Tenant>, mut requests: Streaming<pb::TraceStream
 }
 
 /// Traces one chunk of a stream.
-async fn answer_chunk(tenant: &Arc<Tenant>, accel: &AccelEntry, query: Query, rays: Bytes, first_ray: u64) -> ServiceResult<pb::TraceStreamResponse> {
+async fn answer_chunk(
+    tenant: &Arc<Tenant>,
+    accel: &AccelEntry,
+    query: Query,
+    rays: Bytes,
+    first_ray: u64,
+) -> ServiceResult<pb::TraceStreamResponse> {
     check_reply_size(tenant, &query, rays.len())?;
     let result = trace(tenant, accel.clone(), query, rays).await?;
     Ok(pb::TraceStreamResponse {
