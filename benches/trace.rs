@@ -11,18 +11,21 @@
 mod common;
 
 use std::hint::black_box;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use criterion::{Criterion, SamplingMode, Throughput, criterion_group, criterion_main};
 use rayd_engine::accel::BuildOptions;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::{BuildInput, GatheredTriangles, gather};
 use rayd_engine::query::{Query, QueryKind, TraceOutput, TraceStats};
-use rayd_engine::raygen::{Camera, random_rays};
+use rayd_engine::raygen::{Camera, random_rays, uniform};
 use rayd_engine::{Accel, Context, Device, oracle};
+use rayon::prelude::*;
 
 use common::{Scene, in_pool, one_thread_pool, scenes, thread_configs};
 
+/// Measurement time of a bench, unless 10 traces take longer.
+const MEASUREMENT_TIME: Duration = Duration::from_secs(5);
 /// Ray layout of every bench.
 const RAY_FORMAT: RayFormat = RayFormat::OriginTminDirectionTmax;
 /// Hit layout of every bench.
@@ -33,8 +36,11 @@ const CAMERA_SIDE: u32 = 1024;
 const RANDOM_RAYS: usize = 1 << 20;
 /// Seed of the random rays.
 const RANDOM_SEED: u64 = 7;
-/// Rays of each batch checked against the brute-force oracle, spread evenly over the batch.
-const ORACLE_SAMPLE: usize = 256;
+/// Rays of each batch checked against the brute-force oracle: this many spread over the batch, and as many
+/// spread over the rays that hit.
+const ORACLE_SAMPLE: usize = 128;
+/// Seed of the oracle's random sample.
+const ORACLE_SEED: u64 = 99;
 
 /// A query of `kind` in the bench formats.
 fn query(kind: QueryKind) -> Query {
@@ -79,6 +85,7 @@ impl Reference {
         rays: &[u8],
         hit_rate: std::ops::RangeInclusive<f64>,
     ) -> Reference {
+        let start = Instant::now();
         let size = HIT_FORMAT.size().expect("byte format");
         let count = rays.len() / RAY_FORMAT.size();
         let (closest, closest_stats) = trace(context, accel, &query(QueryKind::Closest), rays);
@@ -102,25 +109,33 @@ impl Reference {
             assert_eq!(hit_t(c) >= 0.0, hit_t(a) >= 0.0, "{label}: any and closest disagree on whether a ray hits");
             assert!(hit_t(a) < 0.0 || hit_t(a) >= hit_t(c), "{label}: an any hit closer than the closest hit");
         }
-        // The sample against the brute-force oracle.
-        let stride = (count / ORACLE_SAMPLE).max(1);
+        // A sample against the brute-force oracle: rays picked at random, and as many of the rays that the accel
+        // says hit, spread evenly over them.
+        let mut picked: Vec<usize> =
+            (0..ORACLE_SAMPLE as u64).map(|k| (uniform(ORACLE_SEED, k) as f64 * count as f64) as usize).collect();
+        let hit_rays: Vec<usize> = (0..count).filter(|&i| hit_t(&closest[i * size..(i + 1) * size]) >= 0.0).collect();
+        picked.extend(hit_rays.iter().step_by((hit_rays.len() / ORACLE_SAMPLE).max(1)).take(ORACLE_SAMPLE));
         let ray_size = RAY_FORMAT.size();
-        let sample: Vec<u8> =
-            (0..count).step_by(stride).flat_map(|i| &rays[i * ray_size..(i + 1) * ray_size]).copied().collect();
+        let sample: Vec<u8> = picked.iter().flat_map(|&i| &rays[i * ray_size..(i + 1) * ray_size]).copied().collect();
         let oracle_query = query(QueryKind::Closest);
         let mut expected = vec![0u8; oracle_query.output_layout(sample.len()).expect("valid query").hits];
-        oracle::trace(triangles, &oracle_query, &sample, TraceOutput { hits: &mut expected, counts: &mut [] })
-            .expect("oracle trace succeeds");
+        // In small pieces, so that the oracle's brute force runs on every thread.
+        expected.par_chunks_mut(16 * size).zip(sample.par_chunks(16 * ray_size)).for_each(|(hits, rays)| {
+            oracle::trace(triangles, &oracle_query, rays, TraceOutput { hits, counts: &mut [] })
+                .expect("oracle trace succeeds");
+        });
         let mut oracle_hits = 0;
-        for (k, i) in (0..count).step_by(stride).enumerate() {
+        for (k, &i) in picked.iter().enumerate() {
             let want = &expected[k * size..(k + 1) * size];
             let got = &closest[i * size..(i + 1) * size];
             assert_eq!(got, want, "{label}: closest hit of ray {i} differs from the oracle's");
             oracle_hits += usize::from(hit_t(want) >= 0.0);
         }
+        assert!(oracle_hits > 0, "{label}: no sampled ray hits");
         eprintln!(
-            "check {label}: {} sampled rays equal the oracle's closest hits ({oracle_hits} hits)",
-            sample.len() / ray_size
+            "check {label}: {} sampled rays equal the oracle's closest hits ({oracle_hits} hits); checks took {:.1} s",
+            picked.len(),
+            start.elapsed().as_secs_f64()
         );
         Reference { closest, any }
     }
@@ -149,17 +164,20 @@ fn trace_benches(c: &mut Criterion) {
     let context = Context::new(Device::cpu());
     let one_thread = one_thread_pool();
     eprintln!("trace: all-threads = {} rayon threads", rayon::current_num_threads());
+    let mut start = Instant::now();
     for scene in scenes() {
         let inputs = [BuildInput::Triangles(scene.packed.input())];
         let accel = context.build_accel(&inputs, &BuildOptions::default()).expect("build succeeds");
         let triangles = gather(&inputs).expect("valid inputs");
-        eprintln!("trace/{}: {} triangles, accel {} bytes", scene.name, scene.triangles(), accel.info().size_bytes);
+        eprintln!(
+            "trace/{}: {} triangles, accel {} bytes; loaded and built in {:.1} s",
+            scene.name,
+            scene.triangles(),
+            accel.info().size_bytes,
+            start.elapsed().as_secs_f64()
+        );
         let mut group = c.benchmark_group(format!("trace/{}", scene.name));
-        group
-            .sample_size(10)
-            .warm_up_time(Duration::from_secs(1))
-            .measurement_time(Duration::from_secs(5))
-            .sampling_mode(SamplingMode::Flat);
+        group.sample_size(10).warm_up_time(Duration::from_secs(1)).sampling_mode(SamplingMode::Flat);
         for (batch, rays, hit_rate) in ray_batches(&scene) {
             let label = format!("{}/{batch}", scene.name);
             let reference = Reference::checked(&context, &accel, &triangles, &label, &rays, hit_rate);
@@ -172,10 +190,13 @@ fn trace_benches(c: &mut Criterion) {
                     let id = format!("{batch}/{}/{threads}", kind.name());
                     // The kernel as timed, once, checked against the reference.
                     hits.fill(0xa5);
+                    let start = Instant::now();
                     let stats = in_pool(pool, || {
                         context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] })
                     })
                     .expect("trace succeeds");
+                    // Room for 10 samples of at least one trace each, however slow the machine.
+                    group.measurement_time(MEASUREMENT_TIME.max(start.elapsed() * 12));
                     assert_eq!(stats.rays, count as u64, "{label}/{id}: rays traced");
                     assert!(hits == reference.hits(kind), "{label}/{id}: hits differ from the reference run");
                     group.bench_function(&id, |b| {
@@ -190,6 +211,7 @@ fn trace_benches(c: &mut Criterion) {
             }
         }
         group.finish();
+        start = Instant::now();
     }
 }
 
