@@ -27,9 +27,9 @@ impl Camera {
     pub fn framing(lo: Vec3, hi: Vec3, width: u32, height: u32) -> Camera {
         let centre = (lo + hi) * 0.5;
         let radius = (hi - lo).length() * 0.5;
-        let direction = Vec3::new(0.6, 0.45, 1.0).normalize();
+        let direction = Vec3::new(0.5, 0.8, 1.0).normalize();
         Camera {
-            eye: centre + direction * radius * 2.7,
+            eye: centre + direction * radius * 1.5,
             target: centre,
             up: Vec3::Y,
             fov_y_degrees: 45.0,
