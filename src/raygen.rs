@@ -29,7 +29,7 @@ impl Camera {
         let radius = (hi - lo).length() * 0.5;
         let direction = Vec3::new(0.5, 0.8, 1.0).normalize();
         Camera {
-            eye: centre + direction * radius * 1.5,
+            eye: centre + direction * radius * 2.0,
             target: centre,
             up: Vec3::Y,
             fov_y_degrees: 45.0,
