@@ -1,0 +1,150 @@
+//! Load from the client side: concurrent tasks trace batches of random rays in a loop for a fixed time, and the
+//! latencies of every call are kept for percentiles.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use rayd_engine::query::Query;
+use rayd_engine::raygen::random_rays;
+use tokio::task::JoinSet;
+
+use crate::client::Client;
+use crate::convert::bounds;
+use crate::error::{Error, Result};
+
+/// What to run.
+#[derive(Debug, Clone, Copy)]
+pub struct BenchOptions {
+    /// Rays a call.
+    pub batch: usize,
+    /// Calls in flight at once (one task each).
+    pub concurrency: usize,
+    /// How long tasks keep starting new calls.
+    pub duration: Duration,
+    /// The query every call makes.
+    pub query: Query,
+}
+
+/// What a run measured.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BenchReport {
+    /// Rays traced, over all calls.
+    pub rays: u64,
+    /// Rays with a hit, as the server counted them.
+    pub rays_hit: u64,
+    /// From the first call's start to the last call's end.
+    pub elapsed: Duration,
+    /// Time the server spent tracing, summed over calls.
+    pub server_time: Duration,
+    /// Every call's end-to-end latency, sorted.
+    pub latencies: Vec<Duration>,
+}
+
+impl BenchReport {
+    /// Calls made.
+    pub fn batches(&self) -> usize {
+        self.latencies.len()
+    }
+
+    /// Rays a second, end to end.
+    pub fn rays_per_second(&self) -> f64 {
+        self.rays as f64 / self.elapsed.as_secs_f64().max(f64::MIN_POSITIVE)
+    }
+
+    /// The latency at quantile `q` in `[0, 1]` (nearest rank), or zero without calls.
+    pub fn latency(&self, q: f64) -> Duration {
+        let rank = (q * self.latencies.len() as f64).ceil() as usize;
+        self.latencies
+            .get(rank.saturating_sub(1).min(self.latencies.len().saturating_sub(1)))
+            .copied()
+            .unwrap_or_default()
+    }
+}
+
+/// One task's share of a run.
+#[derive(Debug, Default)]
+struct TaskTally {
+    /// Rays this task traced.
+    rays: u64,
+    /// Rays with a hit among them.
+    rays_hit: u64,
+    /// Server tracing time of this task's calls, in nanoseconds.
+    server_ns: u64,
+    /// This task's call latencies.
+    latencies: Vec<Duration>,
+}
+
+impl Client {
+    /// Runs `options.concurrency` tasks that each trace batches of random rays (origins in the accel's box,
+    /// uniform directions, a different seed a task) against `accel` until `options.duration` is over, calling
+    /// `on_batch` with the ray count after every call. The first failed call ends the run with its error.
+    pub async fn bench(
+        &self,
+        accel: &str,
+        options: &BenchOptions,
+        on_batch: Arc<dyn Fn(usize) + Send + Sync>,
+    ) -> Result<BenchReport> {
+        let info = self.accel(accel).await?;
+        let (lo, hi) = bounds(&info).ok_or_else(|| Error::InvalidArgument(format!("accel {accel}: no triangles")))?;
+        let start = Instant::now();
+        let deadline = start + options.duration;
+        let mut tasks = JoinSet::new();
+        for seed in 0..options.concurrency.max(1) as u64 {
+            let rays = Bytes::from(random_rays(lo, hi, options.batch, seed, options.query.ray_format));
+            let (client, accel, query, on_batch) = (self.clone(), accel.to_owned(), options.query, on_batch.clone());
+            tasks.spawn(async move {
+                let mut tally = TaskTally::default();
+                while Instant::now() < deadline {
+                    let call = Instant::now();
+                    let traced = client.trace(&accel, &query, rays.clone()).await?;
+                    tally.latencies.push(call.elapsed());
+                    tally.rays += traced.rays() as u64;
+                    tally.rays_hit += traced.stats().rays_hit;
+                    tally.server_ns += traced.stats().trace_ns;
+                    on_batch(traced.rays());
+                }
+                Ok::<_, Error>(tally)
+            });
+        }
+        let mut total = TaskTally::default();
+        while let Some(joined) = tasks.join_next().await {
+            let tally = joined.map_err(|e| Error::Protocol(format!("a bench task failed: {e}")))??;
+            total.rays += tally.rays;
+            total.rays_hit += tally.rays_hit;
+            total.server_ns += tally.server_ns;
+            total.latencies.extend(tally.latencies);
+        }
+        total.latencies.sort_unstable();
+        Ok(BenchReport {
+            rays: total.rays,
+            rays_hit: total.rays_hit,
+            elapsed: start.elapsed(),
+            server_time: Duration::from_nanos(total.server_ns),
+            latencies: total.latencies,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_use_the_nearest_rank() {
+        let report = BenchReport {
+            rays: 1000,
+            rays_hit: 10,
+            elapsed: Duration::from_secs(2),
+            server_time: Duration::ZERO,
+            latencies: (1..=100).map(Duration::from_millis).collect(),
+        };
+        assert_eq!(report.latency(0.5), Duration::from_millis(50));
+        assert_eq!(report.latency(0.9), Duration::from_millis(90));
+        assert_eq!(report.latency(0.99), Duration::from_millis(99));
+        assert_eq!(report.latency(1.0), Duration::from_millis(100));
+        assert_eq!(report.latency(0.0), Duration::from_millis(1));
+        assert_eq!(report.rays_per_second(), 500.0);
+        assert_eq!(BenchReport { latencies: vec![], ..report }.latency(0.5), Duration::ZERO);
+    }
+}

@@ -1,0 +1,361 @@
+//! rayctl's command line: global options, one subcommand a job, and parsers for the engine's format names,
+//! camera views and durations.
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use clap::builder::{PossibleValuesParser, TypedValueParser};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use glam::Vec3;
+use rayd_client::{DEFAULT_SERVER, Shading};
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, RayFlags, RayFormat};
+use rayd_engine::query::{Query, QueryKind};
+
+/// Command-line client of the rayd ray-tracing service.
+#[derive(Debug, Parser)]
+#[command(name = "rayctl", version)]
+pub struct Cli {
+    /// The server's URL.
+    #[arg(long, global = true, env = "RAYD_SERVER", default_value = DEFAULT_SERVER)]
+    pub server: String,
+    /// Sent as `authorization: Bearer <T>` with every call.
+    #[arg(long, value_name = "T", global = true, env = "RAYD_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// Print one JSON object instead of text.
+    #[arg(long, global = true)]
+    pub json: bool,
+    /// The server's largest message; traces whose rays or hits pass half of it are streamed.
+    #[arg(long, value_name = "BYTES", global = true, env = "RAYD_MAX_MESSAGE_BYTES", default_value_t = 64 << 20,
+          value_parser = clap::value_parser!(u64).range(1 << 16..), hide_short_help = true)]
+    pub max_message_bytes: u64,
+    /// What to do.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// rayctl's commands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// List the server's devices.
+    Devices,
+    /// Build an accel from a mesh file (.obj, .ply, .gltf, .glb).
+    Build(BuildArgs),
+    /// List the accels.
+    Accels,
+    /// Show one accel.
+    Info {
+        /// The accel's name.
+        name: String,
+    },
+    /// Destroy an accel.
+    Rm {
+        /// The accel's name.
+        name: String,
+    },
+    /// List the server-side buffers (uploads left behind, trace outputs).
+    Buffers,
+    /// Trace a file of packed rays.
+    Trace(TraceArgs),
+    /// Render a PNG picture of an accel through the trace API.
+    Render(RenderArgs),
+    /// Load the server with concurrent batches of random rays and report throughput and latency.
+    Bench(BenchArgs),
+}
+
+/// `rayctl build`.
+#[derive(Debug, Args)]
+pub struct BuildArgs {
+    /// The mesh file.
+    #[arg(long, value_name = "FILE")]
+    pub mesh: PathBuf,
+    /// The accel's name (default: the file's name without extension).
+    #[arg(long)]
+    pub name: Option<String>,
+    /// The device to build on (default: cpu:0).
+    #[arg(long, value_name = "ID", default_value = "")]
+    pub device: String,
+    /// Trade build time against trace speed.
+    #[arg(long, value_enum)]
+    pub prefer: Option<Prefer>,
+    /// Let the accel be updated (refit) later.
+    #[arg(long)]
+    pub allow_update: bool,
+    /// Let the accel be compacted later (it reports its compacted size).
+    #[arg(long)]
+    pub allow_compaction: bool,
+}
+
+/// `--prefer`'s choices.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Prefer {
+    /// Spend more build time for faster traces.
+    FastTrace,
+    /// Build as fast as possible.
+    FastBuild,
+}
+
+impl BuildArgs {
+    /// The build flags these options ask for.
+    pub fn flags(&self) -> BuildFlags {
+        let mut flags = match self.prefer {
+            Some(Prefer::FastTrace) => BuildFlags::PREFER_FAST_TRACE,
+            Some(Prefer::FastBuild) => BuildFlags::PREFER_FAST_BUILD,
+            None => BuildFlags::empty(),
+        };
+        flags.set(BuildFlags::ALLOW_UPDATE, self.allow_update);
+        flags.set(BuildFlags::ALLOW_COMPACTION, self.allow_compaction);
+        flags
+    }
+}
+
+/// The query options `trace` and `bench` share.
+#[derive(Debug, Args)]
+pub struct QueryArgs {
+    /// What is reported per ray.
+    #[arg(long, value_name = "KIND", default_value = "closest", value_parser = named(&QueryKind::ALL, QueryKind::name))]
+    pub query: QueryKind,
+    /// Hit records a ray for `--query all`.
+    #[arg(long, value_name = "N", default_value_t = 8)]
+    pub max_hits: u32,
+}
+
+impl QueryArgs {
+    /// The full query, with these formats.
+    pub fn query(&self, ray_format: RayFormat, hit_format: HitFormat) -> Query {
+        Query { kind: self.query, ray_format, hit_format, flags: RayFlags::empty(), max_hits_per_ray: self.max_hits }
+    }
+}
+
+/// `rayctl trace`.
+#[derive(Debug, Args)]
+pub struct TraceArgs {
+    /// The accel's name.
+    #[arg(long, value_name = "NAME")]
+    pub accel: String,
+    /// A file of packed rays, no header.
+    #[arg(long, value_name = "FILE")]
+    pub rays: PathBuf,
+    /// How the rays are packed.
+    #[arg(long, value_name = "FMT", value_parser = named(&RayFormat::ALL, RayFormat::name))]
+    pub ray_format: RayFormat,
+    /// How hits are packed.
+    #[arg(long, value_name = "FMT", value_parser = named(&HitFormat::ALL, HitFormat::name))]
+    pub hit_format: HitFormat,
+    /// The query.
+    #[command(flatten)]
+    pub query: QueryArgs,
+    /// Write the packed hits here (and the counts of `all`/`count` to FILE.counts).
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+}
+
+/// `rayctl render`.
+#[derive(Debug, Args)]
+pub struct RenderArgs {
+    /// The accel's name.
+    #[arg(long, value_name = "NAME")]
+    pub accel: String,
+    /// Pixels a row.
+    #[arg(long, value_name = "W", default_value_t = 800, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub width: u32,
+    /// Rows.
+    #[arg(long, value_name = "H", default_value_t = 600, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub height: u32,
+    /// Ten numbers: eye x,y,z, target x,y,z, up x,y,z, vertical field of view in degrees (default: framing the
+    /// accel's box).
+    #[arg(long, value_name = "EYE,TARGET,UP,FOVY", value_parser = parse_view, allow_hyphen_values = true)]
+    pub camera: Option<View>,
+    /// What the colours show.
+    #[arg(long, value_enum, default_value = "normal")]
+    pub shading: ShadingArg,
+    /// The PNG file to write.
+    #[arg(short = 'o', long = "output", value_name = "FILE.png")]
+    pub output: PathBuf,
+}
+
+/// `--shading`'s choices.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ShadingArg {
+    /// Surface normal as colour.
+    Normal,
+    /// Distance as brightness.
+    Depth,
+}
+
+impl From<ShadingArg> for Shading {
+    fn from(shading: ShadingArg) -> Shading {
+        match shading {
+            ShadingArg::Normal => Shading::Normal,
+            ShadingArg::Depth => Shading::Depth,
+        }
+    }
+}
+
+/// Where a camera stands and looks.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct View {
+    /// Position of the eye.
+    pub eye: Vec3,
+    /// Point looked at.
+    pub target: Vec3,
+    /// Up direction.
+    pub up: Vec3,
+    /// Vertical field of view, in degrees.
+    pub fov_y_degrees: f32,
+}
+
+/// `rayctl bench`.
+#[derive(Debug, Args)]
+pub struct BenchArgs {
+    /// The accel's name.
+    #[arg(long, value_name = "NAME")]
+    pub accel: String,
+    /// Rays a call.
+    #[arg(long, value_name = "N", default_value_t = 65536, value_parser = clap::value_parser!(u64).range(1..))]
+    pub batch: u64,
+    /// Calls in flight at once.
+    #[arg(long, value_name = "C", default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=4096))]
+    pub concurrency: u64,
+    /// Seconds to run.
+    #[arg(long, value_name = "S", default_value = "10", value_parser = parse_seconds)]
+    pub duration: Duration,
+    /// How the random rays are packed.
+    #[arg(long, value_name = "FMT", default_value = "origin_tmin_direction_tmax",
+          value_parser = named(&RayFormat::ALL, RayFormat::name))]
+    pub ray_format: RayFormat,
+    /// How hits are packed.
+    #[arg(long, value_name = "FMT", default_value = "t_triid_u_v", value_parser = named(&HitFormat::ALL, HitFormat::name))]
+    pub hit_format: HitFormat,
+    /// The query.
+    #[command(flatten)]
+    pub query: QueryArgs,
+}
+
+/// A parser that accepts the `name` of any of `all` (and lists them in help and errors).
+fn named<T: Copy + Send + Sync + 'static>(
+    all: &'static [T],
+    name: fn(T) -> &'static str,
+) -> impl TypedValueParser<Value = T> {
+    PossibleValuesParser::new(all.iter().map(|&value| name(value)))
+        .map(move |chosen| *all.iter().find(|&&value| name(value) == chosen).expect("one of the possible values"))
+}
+
+/// Parses `ex,ey,ez,tx,ty,tz,ux,uy,uz,fovy`.
+fn parse_view(text: &str) -> Result<View, String> {
+    let numbers: Vec<f32> = text
+        .split(',')
+        .map(|n| n.trim().parse::<f32>().map_err(|e| format!("{n:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    let [ex, ey, ez, tx, ty, tz, ux, uy, uz, fov] = numbers[..] else {
+        return Err(format!("expected 10 comma-separated numbers, got {}", numbers.len()));
+    };
+    if !(fov > 0.0 && fov < 180.0) {
+        return Err(format!("the field of view must be between 0 and 180 degrees, not {fov}"));
+    }
+    let (eye, target, up) = (Vec3::new(ex, ey, ez), Vec3::new(tx, ty, tz), Vec3::new(ux, uy, uz));
+    if !(eye - target).is_finite() || eye == target || (target - eye).cross(up).length_squared() == 0.0 {
+        return Err("the eye must differ from the target and up must not be parallel to the view".into());
+    }
+    Ok(View { eye, target, up, fov_y_degrees: fov })
+}
+
+/// Parses a positive number of seconds.
+fn parse_seconds(text: &str) -> Result<Duration, String> {
+    let seconds: f64 = text.parse().map_err(|e| format!("{text:?}: {e}"))?;
+    Duration::try_from_secs_f64(seconds)
+        .ok()
+        .filter(|d| !d.is_zero())
+        .ok_or_else(|| format!("{text}: not a positive duration"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Parses a command line that starts after `rayctl`.
+    fn parse(args: &[&str]) -> Result<Cli, clap::Error> {
+        Cli::try_parse_from(std::iter::once("rayctl").chain(args.iter().copied()))
+    }
+
+    #[test]
+    fn global_options_go_before_or_after_the_command() {
+        let cli = parse(&["--server", "http://h:1", "--json", "devices"]).unwrap();
+        assert_eq!((cli.server.as_str(), cli.json), ("http://h:1", true));
+        assert_eq!(cli.max_message_bytes, 64 << 20);
+        assert!(matches!(cli.command, Command::Devices));
+        let cli = parse(&["info", "bunny", "--token", "t0k", "--server", "http://h:2"]).unwrap();
+        assert_eq!((cli.server.as_str(), cli.token.as_deref()), ("http://h:2", Some("t0k")));
+        assert!(matches!(cli.command, Command::Info { name } if name == "bunny"));
+    }
+
+    #[test]
+    fn trace_takes_engine_format_names() {
+        let cli = parse(&[
+            "trace",
+            "--accel",
+            "a",
+            "--rays",
+            "r.bin",
+            "--ray-format",
+            "origin_tmin_direction_tmax",
+            "--hit-format",
+            "t_triid_u_v",
+            "--query",
+            "all",
+            "--max-hits",
+            "3",
+            "--out",
+            "h.bin",
+        ])
+        .unwrap();
+        let Command::Trace(trace) = cli.command else { panic!("not trace") };
+        let query = trace.query.query(trace.ray_format, trace.hit_format);
+        assert_eq!(query.ray_format, RayFormat::OriginTminDirectionTmax);
+        assert_eq!(query.hit_format, HitFormat::TTriidUV);
+        assert_eq!((query.kind, query.max_hits_per_ray), (QueryKind::All, 3));
+        assert_eq!(trace.out, Some(PathBuf::from("h.bin")));
+        let error = parse(&["trace", "--accel", "a", "--rays", "r", "--ray-format", "prime", "--hit-format", "t"]);
+        let error = error.unwrap_err();
+        assert_eq!(error.kind(), clap::error::ErrorKind::InvalidValue);
+        assert!(error.to_string().contains("origin_direction"), "the error lists the valid names");
+    }
+
+    #[test]
+    fn build_flags_follow_the_options_and_prefer_is_exclusive() {
+        let cli = parse(&["build", "--mesh", "m.ply", "--prefer", "fast-build", "--allow-compaction"]).unwrap();
+        let Command::Build(build) = cli.command else { panic!("not build") };
+        assert_eq!(build.flags(), BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_COMPACTION);
+        assert_eq!((build.name, build.device.as_str()), (None, ""));
+        assert!(parse(&["build", "--mesh", "m.ply", "--prefer", "fast"]).is_err());
+        assert!(parse(&["build"]).is_err(), "--mesh is required");
+    }
+
+    #[test]
+    fn render_camera_needs_ten_sane_numbers() {
+        let cli = parse(&["render", "--accel", "a", "-o", "x.png", "--camera", "0,0,5,0,0,0,0,1,0,40"]).unwrap();
+        let Command::Render(render) = cli.command else { panic!("not render") };
+        let view = render.camera.unwrap();
+        assert_eq!((view.eye, view.up, view.fov_y_degrees), (Vec3::new(0.0, 0.0, 5.0), Vec3::Y, 40.0));
+        assert_eq!((render.width, render.height, render.shading), (800, 600, ShadingArg::Normal));
+        let cli = parse(&["render", "--accel", "a", "-o", "x.png", "--camera", "-1,-2,-3,0,0,0,0,1,0,60"]).unwrap();
+        let Command::Render(render) = cli.command else { panic!("not render") };
+        assert_eq!(render.camera.unwrap().eye, Vec3::new(-1.0, -2.0, -3.0), "negative numbers are values");
+        for bad in ["0,0,5,0,0,0,0,1,0", "0,0,5,0,0,0,0,1,0,200", "0,0,0,0,0,0,0,1,0,40", "0,5,0,0,0,0,0,1,0,40"] {
+            assert!(parse(&["render", "--accel", "a", "-o", "x.png", "--camera", bad]).is_err(), "{bad}");
+        }
+        assert!(parse(&["render", "--accel", "a"]).is_err(), "-o is required");
+    }
+
+    #[test]
+    fn bench_defaults_and_duration() {
+        let cli = parse(&["bench", "--accel", "a", "--duration", "2.5"]).unwrap();
+        let Command::Bench(bench) = cli.command else { panic!("not bench") };
+        assert_eq!((bench.batch, bench.concurrency), (65536, 4));
+        assert_eq!(bench.duration, Duration::from_millis(2500));
+        assert_eq!((bench.ray_format, bench.hit_format), (RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV));
+        assert_eq!(bench.query.query, QueryKind::Closest);
+        assert!(parse(&["bench", "--accel", "a", "--duration", "0"]).is_err());
+        assert!(parse(&["bench", "--accel", "a", "--concurrency", "0"]).is_err());
+    }
+}

@@ -1,0 +1,163 @@
+//! What each rayctl command does: read local files, call the library, and shape the answer for [`show`].
+
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use indicatif::{ProgressBar, ProgressStyle};
+use rayd_client::convert::bounds;
+use rayd_client::{BenchOptions, Client, ClientOptions, Error, Result, load_mesh};
+use rayd_engine::raygen::Camera;
+use serde_json::json;
+
+use crate::args::{BenchArgs, BuildArgs, Cli, Command, RenderArgs, TraceArgs};
+use crate::show::{self, Output, ms};
+
+/// Connects to the server and runs the command.
+pub async fn run(cli: &Cli) -> Result<Output> {
+    let max_message_bytes = usize::try_from(cli.max_message_bytes).unwrap_or(usize::MAX);
+    let options = ClientOptions {
+        token: cli.token.clone(),
+        max_message_bytes,
+        batch_limit_bytes: max_message_bytes / 2,
+        ..ClientOptions::default()
+    };
+    let client = Client::connect(&cli.server, options).await?;
+    match &cli.command {
+        Command::Devices => Ok(show::devices(&client.devices().await?)),
+        Command::Build(args) => build(&client, args).await,
+        Command::Accels => Ok(show::accels(&client.accels().await?)),
+        Command::Info { name } => Ok(show::accel(&client.accel(name).await?)),
+        Command::Rm { name } => {
+            client.destroy_accel(name).await?;
+            Ok(Output { json: json!({ "destroyed": name }), text: format!("destroyed {name}") })
+        }
+        Command::Buffers => Ok(show::buffers(&client.buffers().await?)),
+        Command::Trace(args) => trace(&client, args).await,
+        Command::Render(args) => render(&client, args).await,
+        Command::Bench(args) => bench(&client, args, cli.json).await,
+    }
+}
+
+/// `rayctl build`: the accel is named after the file unless `--name` says otherwise.
+async fn build(client: &Client, args: &BuildArgs) -> Result<Output> {
+    let mesh = load_mesh(&args.mesh)?;
+    let stem = || args.mesh.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+    let name = args.name.clone().unwrap_or_else(stem);
+    Ok(show::accel(&client.build_mesh(&name, &mesh, &args.device, args.flags()).await?))
+}
+
+/// `rayctl trace`: `wall_ms` times the trace call alone, from sending the rays to holding every hit.
+async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
+    let rays = std::fs::read(&args.rays).map_err(|e| Error::io(&args.rays, e))?;
+    let query = args.query.query(args.ray_format, args.hit_format);
+    let start = Instant::now();
+    let traced = client.trace(&args.accel, &query, rays.into()).await?;
+    let wall = start.elapsed();
+    if let Some(out) = &args.out {
+        std::fs::write(out, traced.hits()).map_err(|e| Error::io(out, e))?;
+        if query.kind.has_counts() {
+            let mut counts = out.as_os_str().to_owned();
+            counts.push(".counts");
+            std::fs::write(&counts, traced.counts()).map_err(|e| Error::io(Path::new(&counts), e))?;
+        }
+    }
+    let stats = traced.stats();
+    let wall_ms = wall.as_secs_f64() * 1e3;
+    let json = json!({
+        "rays": traced.rays(), "hits": stats.rays_hit, "server_ms": ms(stats.trace_ns), "wall_ms": wall_ms,
+        "nodes_visited": stats.nodes_visited, "triangle_tests": stats.triangle_tests,
+    });
+    let text = format!(
+        "{} rays, {} hit ({:.1}%), server {:.2} ms, wall {wall_ms:.2} ms ({:.2} M rays/s end to end)",
+        traced.rays(),
+        stats.rays_hit,
+        100.0 * stats.rays_hit as f64 / traced.rays().max(1) as f64,
+        ms(stats.trace_ns),
+        traced.rays() as f64 / wall.as_secs_f64().max(f64::MIN_POSITIVE) / 1e6,
+    );
+    Ok(Output { json, text })
+}
+
+/// `rayctl render`: without `--camera`, a camera framing the accel's box.
+async fn render(client: &Client, args: &RenderArgs) -> Result<Output> {
+    let camera = match args.camera {
+        Some(view) => Camera {
+            eye: view.eye,
+            target: view.target,
+            up: view.up,
+            fov_y_degrees: view.fov_y_degrees,
+            width: args.width,
+            height: args.height,
+        },
+        None => {
+            let info = client.accel(&args.accel).await?;
+            let (lo, hi) = bounds(&info)
+                .ok_or_else(|| Error::InvalidArgument(format!("accel {}: no triangles to frame", args.accel)))?;
+            Camera::framing(lo, hi, args.width, args.height)
+        }
+    };
+    let start = Instant::now();
+    let image = client.render(&args.accel, &camera, args.shading.into()).await?;
+    let wall_ms = start.elapsed().as_secs_f64() * 1e3;
+    image.write_png(&args.output)?;
+    let file = args.output.display().to_string();
+    Ok(Output {
+        json: json!({ "file": file, "width": image.width, "height": image.height, "wall_ms": wall_ms }),
+        text: format!("wrote {file} ({}×{}, traced in {wall_ms:.1} ms)", image.width, image.height),
+    })
+}
+
+/// `rayctl bench`, with a progress bar over the run's duration unless `--json`.
+async fn bench(client: &Client, args: &BenchArgs, json: bool) -> Result<Output> {
+    let options = BenchOptions {
+        batch: args.batch as usize,
+        concurrency: args.concurrency as usize,
+        duration: args.duration,
+        query: args.query.query(args.ray_format, args.hit_format),
+    };
+    let bar = progress_bar(args.duration, json);
+    let (rays, start, ticker) = (Arc::new(AtomicU64::new(0)), Instant::now(), bar.clone());
+    let on_batch = Arc::new(move |n: usize| {
+        let total = rays.fetch_add(n as u64, Ordering::Relaxed) + n as u64;
+        let elapsed = start.elapsed();
+        ticker.set_position(elapsed.as_millis() as u64);
+        ticker.set_message(format!("{total} rays, {:.2} M rays/s", total as f64 / elapsed.as_secs_f64() / 1e6));
+    });
+    let report = client.bench(&args.accel, &options, on_batch).await;
+    bar.finish_and_clear();
+    let report = report?;
+    let latency_ms = |q| report.latency(q).as_secs_f64() * 1e3;
+    let (p50, p90, p99) = (latency_ms(0.5), latency_ms(0.9), latency_ms(0.99));
+    let json = json!({
+        "rays": report.rays, "hits": report.rays_hit, "batches": report.batches(),
+        "seconds": report.elapsed.as_secs_f64(), "rays_per_s": report.rays_per_second(),
+        "server_ms": report.server_time.as_secs_f64() * 1e3, "p50_ms": p50, "p90_ms": p90, "p99_ms": p99,
+    });
+    let text = format!(
+        "{} batches of {} rays, {} in flight, {:.2} s: {:.3} M rays/s ({:.1}% hit; server trace time {:.2} s summed \
+         over calls)\n\
+         latency p50 {p50:.2} ms  p90 {p90:.2} ms  p99 {p99:.2} ms",
+        report.batches(),
+        options.batch,
+        options.concurrency,
+        report.elapsed.as_secs_f64(),
+        report.rays_per_second() / 1e6,
+        100.0 * report.rays_hit as f64 / report.rays.max(1) as f64,
+        report.server_time.as_secs_f64(),
+    );
+    Ok(Output { json, text })
+}
+
+/// A bar that fills over `duration` (hidden for JSON output).
+fn progress_bar(duration: Duration, hidden: bool) -> ProgressBar {
+    if hidden {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::new(duration.as_millis() as u64);
+    let style = ProgressStyle::with_template("{spinner} {elapsed:>3} [{wide_bar}] {msg}").expect("a valid template");
+    bar.set_style(style.progress_chars("=> "));
+    bar.enable_steady_tick(Duration::from_millis(100));
+    bar
+}

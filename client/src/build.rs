@@ -1,0 +1,70 @@
+//! `BuildAccel` from a [`Mesh`]: small meshes go inline, large ones are uploaded as temporary buffers first.
+
+use bytes::Bytes;
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::geometry::{IndexFormat, VertexFormat};
+use rayd_engine::mesh::Mesh;
+use rayd_proto as proto;
+use rayd_proto::data_source::Source;
+
+use crate::client::Client;
+use crate::convert::{buffer_ref, build_options_to_proto, index_format_to_proto, vertex_format_to_proto};
+use crate::error::Result;
+
+impl Client {
+    /// Builds an accel from a request made by hand.
+    pub async fn build(&self, request: proto::BuildAccelRequest) -> Result<proto::AccelInfo> {
+        Ok(self.rpc.clone().build_accel(request).await?.into_inner())
+    }
+
+    /// Builds an accel called `name` on `device` (empty means `cpu:0`) from one mesh (geometry 0). Meshes of at
+    /// least [`ClientOptions::inline_mesh_bytes`](crate::ClientOptions::inline_mesh_bytes) are uploaded as two
+    /// buffers that are deleted again once the build is over, whatever its outcome.
+    pub async fn build_mesh(
+        &self,
+        name: &str,
+        mesh: &Mesh,
+        device: &str,
+        flags: BuildFlags,
+    ) -> Result<proto::AccelInfo> {
+        let packed = mesh.pack();
+        let (vertices, indices) = (Bytes::from(packed.vertices), Bytes::from(packed.indices));
+        let request = |vertices, indices| proto::BuildAccelRequest {
+            name: name.to_owned(),
+            device: device.to_owned(),
+            inputs: vec![triangles(vertices, indices)],
+            options: Some(build_options_to_proto(flags)),
+        };
+        if vertices.len() + indices.len() < self.options.inline_mesh_bytes {
+            return self.build(request(Source::Inline(vertices), Source::Inline(indices))).await;
+        }
+        let mut uploaded = Vec::new();
+        let result = async {
+            for data in [vertices, indices] {
+                uploaded.push(self.upload_buffer("", data).await?.id);
+            }
+            let by_id = |id: &str| Source::Buffer(buffer_ref(id));
+            self.build(request(by_id(&uploaded[0]), by_id(&uploaded[1]))).await
+        }
+        .await;
+        for id in &uploaded {
+            // Best effort: a buffer left behind only counts against the tenant's limits.
+            let _ = self.delete_buffer(id).await;
+        }
+        result
+    }
+}
+
+/// A build input of tightly packed float3 vertices and u32×3 indices.
+fn triangles(vertices: Source, indices: Source) -> proto::BuildInput {
+    let source = |source| Some(proto::DataSource { source: Some(source) });
+    proto::BuildInput {
+        input: Some(proto::build_input::Input::Triangles(proto::TriangleInput {
+            vertices: source(vertices),
+            vertex_format: vertex_format_to_proto(VertexFormat::Float3).into(),
+            indices: source(indices),
+            index_format: index_format_to_proto(IndexFormat::U32x3).into(),
+            ..Default::default()
+        })),
+    }
+}

@@ -1,0 +1,116 @@
+//! The connection to a rayd server and its simple calls (devices, accels, buffers). Uploads, builds and traces
+//! live in their own modules as further `impl Client` blocks.
+
+use rayd_proto as proto;
+use rayd_proto::rayd_client::RaydClient;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Endpoint};
+
+use crate::auth::Auth;
+use crate::convert::{accel_ref, buffer_ref};
+use crate::error::{Error, Result, chain};
+
+/// The server URL used when none is given.
+pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
+
+/// 1 MiB.
+const MIB: usize = 1 << 20;
+
+/// How a [`Client`] talks to the server. `Default` matches the server's defaults.
+#[derive(Debug, Clone)]
+pub struct ClientOptions {
+    /// Sent as `authorization: Bearer <token>` with every call, when set.
+    pub token: Option<String>,
+    /// Largest message sent or received; the server's default `max_message_bytes` is 64 MiB.
+    pub max_message_bytes: usize,
+    /// A trace goes through one `TraceBatch` call when its rays and its hits each fit in this many bytes, and
+    /// through `TraceStream` otherwise.
+    pub batch_limit_bytes: usize,
+    /// Ray bytes per `TraceStream` chunk (rounded down to whole rays, a multiple of 8).
+    pub stream_chunk_bytes: usize,
+    /// `TraceStream` chunks sent and not yet answered, at most (keeps memory bounded on both sides).
+    pub stream_window: usize,
+    /// Meshes whose packed vertices and indices together are smaller than this go inline in `BuildAccel`;
+    /// larger ones are uploaded as buffers first.
+    pub inline_mesh_bytes: usize,
+    /// Bytes per `UploadBuffer` data message.
+    pub upload_chunk_bytes: usize,
+}
+
+impl Default for ClientOptions {
+    fn default() -> Self {
+        ClientOptions {
+            token: None,
+            max_message_bytes: 64 * MIB,
+            batch_limit_bytes: 32 * MIB,
+            stream_chunk_bytes: 4 * MIB,
+            stream_window: 4,
+            inline_mesh_bytes: 8 * MIB,
+            upload_chunk_bytes: MIB,
+        }
+    }
+}
+
+/// A connection to one rayd server. Cheap to clone; clones share the connection and may be used concurrently.
+#[derive(Debug, Clone)]
+pub struct Client {
+    /// The generated stub, with the token interceptor and the message limits applied.
+    pub(crate) rpc: RaydClient<InterceptedService<Channel, Auth>>,
+    /// Thresholds that pick between call shapes (inline or buffer, batch or stream).
+    pub(crate) options: ClientOptions,
+}
+
+impl Client {
+    /// Connects to `url` (e.g. [`DEFAULT_SERVER`]) now, so that an unreachable server is reported here.
+    pub async fn connect(url: &str, options: ClientOptions) -> Result<Client> {
+        let connect_error = |reason: String| Error::Connect { url: url.to_owned(), reason };
+        let auth = Auth::new(options.token.as_deref())?;
+        let endpoint = Endpoint::from_shared(url.to_owned())
+            .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
+        let channel = endpoint.tcp_nodelay(true).connect().await.map_err(|e| connect_error(chain(&e)))?;
+        let rpc = RaydClient::with_interceptor(channel, auth)
+            .max_decoding_message_size(options.max_message_bytes)
+            .max_encoding_message_size(options.max_message_bytes);
+        Ok(Client { rpc, options })
+    }
+
+    /// The options this client was made with.
+    pub fn options(&self) -> &ClientOptions {
+        &self.options
+    }
+
+    /// Every device of the server, `cpu:0` first.
+    pub async fn devices(&self) -> Result<Vec<proto::Device>> {
+        Ok(self.rpc.clone().list_devices(proto::ListDevicesRequest {}).await?.into_inner().devices)
+    }
+
+    /// The accel called `name`.
+    pub async fn accel(&self, name: &str) -> Result<proto::AccelInfo> {
+        let request = proto::GetAccelRequest { accel: Some(accel_ref(name)) };
+        Ok(self.rpc.clone().get_accel(request).await?.into_inner())
+    }
+
+    /// Every accel of this tenant, in creation order.
+    pub async fn accels(&self) -> Result<Vec<proto::AccelInfo>> {
+        Ok(self.rpc.clone().list_accels(proto::ListAccelsRequest {}).await?.into_inner().accels)
+    }
+
+    /// Destroys the accel called `name` (traces already running on it finish first).
+    pub async fn destroy_accel(&self, name: &str) -> Result<()> {
+        let request = proto::DestroyAccelRequest { accel: Some(accel_ref(name)) };
+        self.rpc.clone().destroy_accel(request).await?;
+        Ok(())
+    }
+
+    /// Every buffer of this tenant.
+    pub async fn buffers(&self) -> Result<Vec<proto::BufferInfo>> {
+        Ok(self.rpc.clone().list_buffers(proto::ListBuffersRequest {}).await?.into_inner().buffers)
+    }
+
+    /// Deletes the buffer with server-given id `id`.
+    pub async fn delete_buffer(&self, id: &str) -> Result<()> {
+        let request = proto::DeleteBufferRequest { buffer: Some(buffer_ref(id)) };
+        self.rpc.clone().delete_buffer(request).await?;
+        Ok(())
+    }
+}

@@ -1,0 +1,203 @@
+//! The one place where the contract's enums and messages meet the engine's types. Names on the command line and
+//! in JSON output are the engine's (`RayFormat::name` and friends); numbers on the wire are the contract's.
+
+use glam::Vec3;
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::geometry::{IndexFormat, VertexFormat};
+use rayd_engine::query::{Query, QueryKind};
+use rayd_proto as proto;
+
+/// Defines, from one table of variant pairs, the conversion of an engine enum to the contract's enum and back
+/// (from the wire's `i32`, where UNSPECIFIED and unknown numbers give `None`).
+macro_rules! mirror {
+    ($to:ident, $from:ident: $engine:ident <=> $proto:ident { $($e:ident <=> $p:ident),+ $(,)? }) => {
+        #[doc = concat!("The contract's `", stringify!($proto), "` for an engine `", stringify!($engine), "`.")]
+        pub fn $to(value: $engine) -> proto::$proto {
+            match value {
+                $($engine::$e => proto::$proto::$p,)+
+            }
+        }
+
+        #[doc = concat!("The engine's `", stringify!($engine), "` for a wire value of `", stringify!($proto),
+            "`; `None` for UNSPECIFIED or a number this client does not know.")]
+        pub fn $from(value: i32) -> Option<$engine> {
+            match proto::$proto::try_from(value).ok()? {
+                $(proto::$proto::$p => Some($engine::$e),)+
+                #[allow(unreachable_patterns)]
+                _ => None,
+            }
+        }
+    };
+}
+
+mirror!(ray_format_to_proto, ray_format_from_proto: RayFormat <=> RayFormat {
+    OriginDirection <=> OriginDirection,
+    OriginTminDirectionTmax <=> OriginTminDirectionTmax,
+    OriginMaskDirectionTmax <=> OriginMaskDirectionTmax,
+    OriginTminDirectionTmaxTime <=> OriginTminDirectionTmaxTime,
+    Full <=> Full,
+});
+
+mirror!(hit_format_to_proto, hit_format_from_proto: HitFormat <=> HitFormat {
+    Bitmask <=> Bitmask,
+    T <=> T,
+    TTriid <=> TTriid,
+    TTriidUV <=> TTriidUV,
+    TTriidInstid <=> TTriidInstid,
+    TTriidInstidUV <=> TTriidInstidUV,
+    Full <=> Full,
+});
+
+mirror!(query_kind_to_proto, query_kind_from_proto: QueryKind <=> QueryType {
+    Closest <=> Closest,
+    Any <=> Any,
+    All <=> All,
+    Count <=> Count,
+});
+
+mirror!(vertex_format_to_proto, vertex_format_from_proto: VertexFormat <=> VertexFormat {
+    Float3 <=> Float3,
+    Float4 <=> Float4,
+});
+
+mirror!(index_format_to_proto, index_format_from_proto: IndexFormat <=> IndexFormat {
+    U32x3 <=> Uint32x3,
+    U16x3 <=> Uint16x3,
+});
+
+/// Reaches one flag field of the contract's build options.
+type FlagField = fn(&mut proto::BuildOptions) -> &mut bool;
+
+/// Each build flag beside the contract's field that carries it.
+const BUILD_FLAG_FIELDS: [(BuildFlags, FlagField); 5] = [
+    (BuildFlags::PREFER_FAST_TRACE, |o| &mut o.prefer_fast_trace),
+    (BuildFlags::PREFER_FAST_BUILD, |o| &mut o.prefer_fast_build),
+    (BuildFlags::ALLOW_UPDATE, |o| &mut o.allow_update),
+    (BuildFlags::ALLOW_COMPACTION, |o| &mut o.allow_compaction),
+    (BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS, |o| &mut o.allow_random_vertex_access),
+];
+
+/// The contract's build options for engine build flags.
+pub fn build_options_to_proto(flags: BuildFlags) -> proto::BuildOptions {
+    let mut options = proto::BuildOptions::default();
+    for (flag, field) in BUILD_FLAG_FIELDS {
+        *field(&mut options) = flags.contains(flag);
+    }
+    options
+}
+
+/// The engine's build flags for the contract's build options.
+pub fn build_flags_from_proto(mut options: proto::BuildOptions) -> BuildFlags {
+    BUILD_FLAG_FIELDS.into_iter().filter(|(_, field)| *field(&mut options)).map(|(flag, _)| flag).collect()
+}
+
+/// The lower-case names of a set of build flags (`prefer_fast_trace`, `allow_update`, …).
+pub fn build_flag_names(flags: BuildFlags) -> Vec<String> {
+    flags.iter_names().map(|(name, _)| name.to_lowercase()).collect()
+}
+
+/// Names the accel called `name`.
+pub fn accel_ref(name: &str) -> proto::AccelRef {
+    proto::AccelRef { r#ref: Some(proto::accel_ref::Ref::Name(name.to_owned())) }
+}
+
+/// Names the buffer with server-given id `id`.
+pub fn buffer_ref(id: &str) -> proto::BufferRef {
+    proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Id(id.to_owned())) }
+}
+
+/// The contract's trace query for an engine query on the accel called `accel`. Ray flag bits are the same
+/// numbers in both (`RayFlag` mirrors `RayFlags`).
+pub fn trace_query(accel: &str, query: &Query) -> proto::TraceQuery {
+    proto::TraceQuery {
+        accel: Some(accel_ref(accel)),
+        query: query_kind_to_proto(query.kind).into(),
+        ray_format: ray_format_to_proto(query.ray_format).into(),
+        hit_format: hit_format_to_proto(query.hit_format).into(),
+        ray_flags: query.flags.bits(),
+        max_hits_per_ray: query.max_hits_per_ray,
+    }
+}
+
+/// The box of an accel as engine vectors; `None` when the server sent none or the accel has no triangles.
+pub fn bounds(info: &proto::AccelInfo) -> Option<(Vec3, Vec3)> {
+    let vec3 = |v: Option<proto::Vec3>| v.map(|v| Vec3::new(v.x, v.y, v.z));
+    let bounds = info.bounds?;
+    let (lo, hi) = (vec3(bounds.min)?, vec3(bounds.max)?);
+    lo.cmple(hi).all().then_some((lo, hi))
+}
+
+/// A device backend's name in lower case (`cpu`), or `unknown`.
+pub fn backend_name(backend: i32) -> &'static str {
+    match proto::Backend::try_from(backend) {
+        Ok(proto::Backend::Cpu) => "cpu",
+        _ => "unknown",
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_engine_enum_round_trips_through_its_wire_number() {
+        for format in RayFormat::ALL {
+            assert_eq!(ray_format_from_proto(ray_format_to_proto(format).into()), Some(format));
+        }
+        for format in HitFormat::ALL {
+            assert_eq!(hit_format_from_proto(hit_format_to_proto(format).into()), Some(format));
+        }
+        for kind in QueryKind::ALL {
+            assert_eq!(query_kind_from_proto(query_kind_to_proto(kind).into()), Some(kind));
+        }
+        for format in [VertexFormat::Float3, VertexFormat::Float4] {
+            assert_eq!(vertex_format_from_proto(vertex_format_to_proto(format).into()), Some(format));
+        }
+        for format in [IndexFormat::U32x3, IndexFormat::U16x3] {
+            assert_eq!(index_format_from_proto(index_format_to_proto(format).into()), Some(format));
+        }
+    }
+
+    #[test]
+    fn wire_numbers_match_the_contract_and_unspecified_is_none() {
+        assert_eq!(i32::from(ray_format_to_proto(RayFormat::OriginTminDirectionTmax)), 2);
+        assert_eq!(i32::from(hit_format_to_proto(HitFormat::TTriidUV)), 4);
+        assert_eq!(i32::from(query_kind_to_proto(QueryKind::Count)), 4);
+        assert_eq!(i32::from(index_format_to_proto(IndexFormat::U16x3)), 2);
+        assert_eq!(ray_format_from_proto(0), None);
+        assert_eq!(hit_format_from_proto(99), None);
+    }
+
+    #[test]
+    fn build_flags_map_to_their_own_fields() {
+        let flags = BuildFlags::PREFER_FAST_BUILD | BuildFlags::ALLOW_COMPACTION;
+        let options = build_options_to_proto(flags);
+        assert!(options.prefer_fast_build && options.allow_compaction);
+        assert!(!options.prefer_fast_trace && !options.allow_update && !options.allow_random_vertex_access);
+        assert_eq!(build_flags_from_proto(options), flags);
+        assert_eq!(build_flags_from_proto(build_options_to_proto(BuildFlags::all())), BuildFlags::all());
+        assert_eq!(build_flag_names(flags), ["prefer_fast_build", "allow_compaction"]);
+    }
+
+    #[test]
+    fn query_keeps_flags_and_names_the_accel() {
+        let mut query = Query::closest(RayFormat::Full, HitFormat::T);
+        query.flags = rayd_engine::format::RayFlags::CULL_FRONT_FACING;
+        let wire = trace_query("bunny", &query);
+        assert_eq!(wire.ray_flags, proto::RayFlag::CullFrontFacing as u32);
+        assert_eq!(wire.accel, Some(accel_ref("bunny")));
+        assert_eq!(wire.query, proto::QueryType::Closest as i32);
+    }
+
+    #[test]
+    fn empty_or_missing_bounds_are_none() {
+        let v = |x| Some(proto::Vec3 { x, y: 0.0, z: 0.0 });
+        let mut info = proto::AccelInfo::default();
+        assert_eq!(bounds(&info), None);
+        info.bounds = Some(proto::Bounds { min: v(1.0), max: v(-1.0) });
+        assert_eq!(bounds(&info), None);
+        info.bounds = Some(proto::Bounds { min: v(-1.0), max: v(1.0) });
+        assert_eq!(bounds(&info), Some((Vec3::new(-1.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0))));
+    }
+}

@@ -1,0 +1,227 @@
+//! Tracing: one `TraceBatch` call when the rays and hits fit in a message, otherwise a `TraceStream` of ray
+//! chunks with a bounded window, reassembled in order. Callers get the same [`TraceResult`] either way.
+
+use std::sync::Arc;
+
+use bytes::{Bytes, BytesMut};
+use futures_util::StreamExt;
+use rayd_engine::query::{OutputLayout, Query};
+use rayd_proto as proto;
+use rayd_proto::{trace_batch_request, trace_stream_request};
+use tokio::sync::Semaphore;
+
+use crate::client::Client;
+use crate::convert::trace_query;
+use crate::error::{Error, Result};
+use crate::view::HitView;
+
+/// What a trace returned. Its buffers' lengths were checked against the query, so its views cannot fail.
+#[derive(Debug, Clone)]
+pub struct TraceResult {
+    /// The query that was traced, which says how `hits` is packed.
+    query: Query,
+    /// Number of rays traced.
+    rays: usize,
+    /// Hit records in `query.hit_format`, `query.records_per_ray()` a ray.
+    hits: Bytes,
+    /// For `all` and `count` queries one little-endian `u32` a ray; empty otherwise.
+    counts: Bytes,
+    /// The server's statistics, summed over chunks when the trace was streamed.
+    stats: proto::TraceStats,
+}
+
+impl TraceResult {
+    /// The query that was traced.
+    pub fn query(&self) -> &Query {
+        &self.query
+    }
+
+    /// Number of rays traced.
+    pub fn rays(&self) -> usize {
+        self.rays
+    }
+
+    /// The packed hit records: `query().records_per_ray()` a ray, those of ray `r` first at `r * records_per_ray`.
+    pub fn hits(&self) -> &Bytes {
+        &self.hits
+    }
+
+    /// For `all` and `count` queries the packed counts, one little-endian `u32` a ray; empty otherwise.
+    pub fn counts(&self) -> &Bytes {
+        &self.counts
+    }
+
+    /// The server's statistics (summed over chunks when the trace was streamed).
+    pub fn stats(&self) -> &proto::TraceStats {
+        &self.stats
+    }
+
+    /// The hit records, decoded on demand.
+    pub fn hit_view(&self) -> HitView<'_> {
+        HitView::new(&self.hits, self.query.hit_format, self.rays * self.query.records_per_ray())
+            .expect("lengths are checked when the result is made")
+    }
+
+    /// Ray `ray`'s count (hits found for `all`, crossings for `count`), or `None` when the query has no counts.
+    pub fn count(&self, ray: usize) -> Option<u32> {
+        let bytes = self.counts.get(4 * ray..4 * ray + 4)?;
+        Some(u32::from_le_bytes(bytes.try_into().expect("4 bytes")))
+    }
+}
+
+impl Client {
+    /// Traces packed `rays` (whole records of `query.ray_format`) against the accel called `accel`. Goes through
+    /// `TraceBatch` when the rays and the expected hits and counts each fit in
+    /// [`ClientOptions::batch_limit_bytes`](crate::ClientOptions::batch_limit_bytes), else through `TraceStream`.
+    pub async fn trace(&self, accel: &str, query: &Query, rays: Bytes) -> Result<TraceResult> {
+        let layout = query.output_layout(rays.len()).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let limit = self.options.batch_limit_bytes;
+        if rays.len() <= limit && layout.hits + layout.counts <= limit {
+            self.trace_batch(accel, query, rays, &layout).await
+        } else {
+            self.trace_stream(accel, query, rays, &layout).await
+        }
+    }
+
+    /// One `TraceBatch` call; the result's buffers are the response's own, not copies.
+    async fn trace_batch(&self, accel: &str, query: &Query, rays: Bytes, layout: &OutputLayout) -> Result<TraceResult> {
+        let request = proto::TraceBatchRequest {
+            query: Some(trace_query(accel, query)),
+            rays: Some(trace_batch_request::Rays::RaysInline(rays)),
+            hits_buffer_name: String::new(),
+        };
+        let response = self.rpc.clone().trace_batch(request).await?.into_inner();
+        check_lengths("the batch", (response.hits.len(), response.counts.len()), (layout.hits, layout.counts))?;
+        Ok(TraceResult {
+            query: *query,
+            rays: layout.rays,
+            hits: response.hits,
+            counts: response.counts,
+            stats: response.stats.unwrap_or_default(),
+        })
+    }
+
+    /// A `TraceStream` of chunks of [`chunk_rays`] rays (never more bytes than a batch), at most `stream_window` of
+    /// them unanswered.
+    async fn trace_stream(
+        &self,
+        accel: &str,
+        query: &Query,
+        rays: Bytes,
+        layout: &OutputLayout,
+    ) -> Result<TraceResult> {
+        let chunk_rays = chunk_rays(query, self.options.stream_chunk_bytes.min(self.options.batch_limit_bytes));
+        let chunk_bytes = chunk_rays * query.ray_format.size();
+        let chunks: Vec<Bytes> =
+            (0..rays.len()).step_by(chunk_bytes).map(|s| rays.slice(s..(s + chunk_bytes).min(rays.len()))).collect();
+        let window = CloseOnDrop(Arc::new(Semaphore::new(self.options.stream_window.max(1))));
+        let first = trace_stream_request::Part::Query(trace_query(accel, query));
+        let paced =
+            futures_util::stream::unfold((chunks.into_iter(), window.0.clone()), |(mut chunks, window)| async {
+                let chunk = chunks.next()?;
+                window.acquire().await.ok()?.forget();
+                Some((trace_stream_request::Part::Rays(chunk), (chunks, window)))
+            });
+        let requests = futures_util::stream::once(async { first })
+            .chain(paced)
+            .map(|part| proto::TraceStreamRequest { part: Some(part) });
+        let mut responses = self.rpc.clone().trace_stream(requests).await?.into_inner();
+
+        let mut stats = proto::TraceStats::default();
+        let (mut hits, mut counts) = (BytesMut::with_capacity(layout.hits), BytesMut::with_capacity(layout.counts));
+        let mut next_ray = 0;
+        while let Some(chunk) = responses.message().await? {
+            if chunk.first_ray != next_ray as u64 || next_ray >= layout.rays {
+                return Err(Error::Protocol(format!(
+                    "a stream chunk starts at ray {} where ray {next_ray} of {} was due",
+                    chunk.first_ray, layout.rays
+                )));
+            }
+            let n = chunk_rays.min(layout.rays - next_ray);
+            let expected = query.output_layout(n * query.ray_format.size()).expect("checked for the whole batch");
+            check_lengths("a stream chunk", (chunk.hits.len(), chunk.counts.len()), (expected.hits, expected.counts))?;
+            hits.extend_from_slice(&chunk.hits);
+            counts.extend_from_slice(&chunk.counts);
+            add_stats(&mut stats, &chunk.stats.unwrap_or_default());
+            next_ray += n;
+            window.0.add_permits(1);
+        }
+        if next_ray != layout.rays {
+            return Err(Error::Protocol(format!("the stream ended after {next_ray} of {} rays", layout.rays)));
+        }
+        Ok(TraceResult { query: *query, rays: layout.rays, hits: hits.freeze(), counts: counts.freeze(), stats })
+    }
+}
+
+/// Rays per stream chunk: as many as keep the chunk's rays, and its hits and counts, within `chunk_bytes`, rounded
+/// down to a multiple of 8 (so bitmask chunks end on a byte and concatenate exactly), at least 8.
+pub(crate) fn chunk_rays(query: &Query, chunk_bytes: usize) -> usize {
+    let hit_bytes = query.hit_format.size().unwrap_or(1) * query.records_per_ray();
+    let count_bytes = if query.kind.has_counts() { 4 } else { 0 };
+    let per_ray = query.ray_format.size().max(hit_bytes + count_bytes);
+    (chunk_bytes / per_ray / 8 * 8).max(8)
+}
+
+/// Fails with [`Error::Protocol`] unless the (hits, counts) byte lengths are the expected ones.
+fn check_lengths(what: &str, got: (usize, usize), expected: (usize, usize)) -> Result<()> {
+    if got != expected {
+        return Err(Error::Protocol(format!(
+            "{what} returned {} hit and {} count bytes where {} and {} were due",
+            got.0, got.1, expected.0, expected.1
+        )));
+    }
+    Ok(())
+}
+
+/// Adds a chunk's statistics to the running total.
+fn add_stats(total: &mut proto::TraceStats, chunk: &proto::TraceStats) {
+    total.rays += chunk.rays;
+    total.rays_hit += chunk.rays_hit;
+    total.nodes_visited += chunk.nodes_visited;
+    total.triangle_tests += chunk.triangle_tests;
+    total.trace_ns += chunk.trace_ns;
+}
+
+/// Closes the stream's window when the call ends, so the request stream stops waiting for permits that will
+/// never come (the server failed, or the caller gave up).
+struct CloseOnDrop(Arc<Semaphore>);
+
+impl Drop for CloseOnDrop {
+    fn drop(&mut self) {
+        self.0.close();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use rayd_engine::format::{HitFormat, RayFormat};
+    use rayd_engine::query::QueryKind;
+
+    use super::*;
+
+    #[test]
+    fn chunks_are_whole_multiples_of_8_rays_sized_by_the_larger_side() {
+        let query = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
+        assert_eq!(chunk_rays(&query, 4 << 20), (4 << 20) / 48 / 8 * 8, "48-byte hits outweigh 24-byte rays");
+        let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Bitmask);
+        assert_eq!(chunk_rays(&query, 4 << 20), (4 << 20) / 32);
+        let query =
+            Query { kind: QueryKind::All, max_hits_per_ray: 1000, ..Query::closest(RayFormat::Full, HitFormat::Full) };
+        assert_eq!(chunk_rays(&query, 4 << 20) % 8, 0);
+        assert_eq!(chunk_rays(&query, 4 << 20), (4 << 20) / 48004 / 8 * 8);
+        assert_eq!(chunk_rays(&query, 1000), 8, "never fewer than 8 rays");
+    }
+
+    #[test]
+    fn counts_are_read_per_ray_and_absent_without_them() {
+        let result = TraceResult {
+            query: Query::closest(RayFormat::OriginDirection, HitFormat::T),
+            rays: 2,
+            hits: Bytes::from([1.0f32, -1.0].iter().flat_map(|t| t.to_le_bytes()).collect::<Vec<_>>()),
+            counts: Bytes::from([3u32, 0].iter().flat_map(|c| c.to_le_bytes()).collect::<Vec<_>>()),
+            stats: proto::TraceStats::default(),
+        };
+        assert_eq!((result.count(0), result.count(1), result.count(2)), (Some(3), Some(0), None));
+        assert!(result.hit_view().is_hit(0) && !result.hit_view().is_hit(1));
+    }
+}
