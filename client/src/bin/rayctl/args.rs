@@ -55,6 +55,8 @@ pub enum Command {
     },
     /// List the server-side buffers (uploads left behind, trace outputs).
     Buffers,
+    /// Write a file of packed rays: a camera's (framing the accel by default) or random rays in its box.
+    Rays(RaysArgs),
     /// Trace a file of packed rays.
     Trace(TraceArgs),
     /// Render a PNG picture of an accel through the trace API.
@@ -148,6 +150,36 @@ pub struct TraceArgs {
     /// Write the packed hits here (and the counts of `all`/`count` to FILE.counts).
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+}
+
+/// `rayctl rays`.
+#[derive(Debug, Args)]
+pub struct RaysArgs {
+    /// The accel whose box the rays are made for.
+    #[arg(long, value_name = "NAME")]
+    pub accel: String,
+    /// Camera pixels a row.
+    #[arg(long, value_name = "W", default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub width: u32,
+    /// Camera rows.
+    #[arg(long, value_name = "H", default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=16384))]
+    pub height: u32,
+    /// The camera, as for `render` (default: framing the accel's box).
+    #[arg(long, value_name = "EYE,TARGET,UP,FOVY", value_parser = parse_view, allow_hyphen_values = true)]
+    pub camera: Option<View>,
+    /// Instead of a camera: this many rays with origins uniform in the accel's box and uniform directions.
+    #[arg(long, value_name = "N", conflicts_with = "camera")]
+    pub random: Option<usize>,
+    /// Seed of the random rays.
+    #[arg(long, default_value_t = 7)]
+    pub seed: u64,
+    /// How the rays are packed.
+    #[arg(long, value_name = "FMT", default_value = "origin_tmin_direction_tmax",
+          value_parser = named(&RayFormat::ALL, RayFormat::name))]
+    pub ray_format: RayFormat,
+    /// The file to write.
+    #[arg(short = 'o', long = "output", value_name = "FILE")]
+    pub output: PathBuf,
 }
 
 /// `rayctl render`.

@@ -8,10 +8,10 @@ use std::time::{Duration, Instant};
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
 use rayd_client::{BenchOptions, Client, ClientOptions, Error, Result, load_mesh};
-use rayd_engine::raygen::Camera;
+use rayd_engine::raygen::{Camera, random_rays};
 use serde_json::json;
 
-use crate::args::{BenchArgs, BuildArgs, Cli, Command, RenderArgs, TraceArgs};
+use crate::args::{BenchArgs, BuildArgs, Cli, Command, RaysArgs, RenderArgs, TraceArgs, View};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -34,6 +34,7 @@ pub async fn run(cli: &Cli) -> Result<Output> {
             Ok(Output { json: json!({ "destroyed": name }), text: format!("destroyed {name}") })
         }
         Command::Buffers => Ok(show::buffers(&client.buffers().await?)),
+        Command::Rays(args) => rays(&client, args).await,
         Command::Trace(args) => trace(&client, args).await,
         Command::Render(args) => render(&client, args).await,
         Command::Bench(args) => bench(&client, args, cli.json).await,
@@ -80,24 +81,45 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
     Ok(Output { json, text })
 }
 
+/// The accel's box, which must hold triangles.
+async fn accel_bounds(client: &Client, accel: &str) -> Result<(glam::Vec3, glam::Vec3)> {
+    let info = client.accel(accel).await?;
+    bounds(&info).ok_or_else(|| Error::InvalidArgument(format!("accel {accel}: no triangles to frame")))
+}
+
+/// The camera of `view`, or one framing the accel's box.
+async fn camera(client: &Client, accel: &str, view: Option<View>, width: u32, height: u32) -> Result<Camera> {
+    Ok(match view {
+        Some(view) => {
+            Camera { eye: view.eye, target: view.target, up: view.up, fov_y_degrees: view.fov_y_degrees, width, height }
+        }
+        None => {
+            let (lo, hi) = accel_bounds(client, accel).await?;
+            Camera::framing(lo, hi, width, height)
+        }
+    })
+}
+
+/// `rayctl rays`: camera or random rays for an accel, packed into a file for `trace`.
+async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
+    let bytes = match args.random {
+        Some(count) => {
+            let (lo, hi) = accel_bounds(client, &args.accel).await?;
+            random_rays(lo, hi, count, args.seed, args.ray_format)
+        }
+        None => camera(client, &args.accel, args.camera, args.width, args.height).await?.rays(args.ray_format),
+    };
+    std::fs::write(&args.output, &bytes).map_err(|e| Error::io(&args.output, e))?;
+    let (file, count) = (args.output.display().to_string(), bytes.len() / args.ray_format.size());
+    Ok(Output {
+        json: json!({ "file": file, "rays": count, "ray_format": args.ray_format.name() }),
+        text: format!("wrote {count} {} rays to {file}", args.ray_format.name()),
+    })
+}
+
 /// `rayctl render`: without `--camera`, a camera framing the accel's box.
 async fn render(client: &Client, args: &RenderArgs) -> Result<Output> {
-    let camera = match args.camera {
-        Some(view) => Camera {
-            eye: view.eye,
-            target: view.target,
-            up: view.up,
-            fov_y_degrees: view.fov_y_degrees,
-            width: args.width,
-            height: args.height,
-        },
-        None => {
-            let info = client.accel(&args.accel).await?;
-            let (lo, hi) = bounds(&info)
-                .ok_or_else(|| Error::InvalidArgument(format!("accel {}: no triangles to frame", args.accel)))?;
-            Camera::framing(lo, hi, args.width, args.height)
-        }
-    };
+    let camera = camera(client, &args.accel, args.camera, args.width, args.height).await?;
     let start = Instant::now();
     let image = client.render(&args.accel, &camera, args.shading.into()).await?;
     let wall_ms = start.elapsed().as_secs_f64() * 1e3;
