@@ -79,6 +79,11 @@ impl Client {
         &self.options
     }
 
+    /// The server's version and the limits it holds requests to.
+    pub async fn server_info(&self) -> Result<proto::ServerInfo> {
+        Ok(self.rpc.clone().get_server_info(proto::GetServerInfoRequest {}).await?.into_inner())
+    }
+
     /// Every device of the server, `cpu:0` first.
     pub async fn devices(&self) -> Result<Vec<proto::Device>> {
         Ok(self.rpc.clone().list_devices(proto::ListDevicesRequest {}).await?.into_inner().devices)

@@ -123,6 +123,20 @@ pub fn trace_stats(stats: &TraceStats, trace_ns: u64) -> pb::TraceStats {
     }
 }
 
+/// The contract's description of the limits.
+pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
+    pb::Limits {
+        max_message_bytes: limits.max_message_bytes,
+        max_rays_per_batch: limits.max_rays_per_batch,
+        max_hits_per_ray: limits.max_hits_per_ray,
+        max_accel_bytes: limits.max_accel_bytes,
+        max_accels: limits.max_accels,
+        max_buffer_bytes: limits.max_buffer_bytes,
+        max_buffers: limits.max_buffers,
+        stream_window: limits.stream_window,
+    }
+}
+
 /// The contract's device description.
 pub fn device(info: &DeviceInfo) -> pb::Device {
     pb::Device {

@@ -79,7 +79,14 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     let counts_buffer = if result.counts.is_empty() {
         None
     } else {
-        Some(buffers::info(&tenant.create_buffer(&format!("{}.counts", request.hits_buffer_name), result.counts)?))
+        // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
+        match tenant.create_buffer(&format!("{}.counts", request.hits_buffer_name), result.counts) {
+            Ok(entry) => Some(buffers::info(&entry)),
+            Err(error) => {
+                tenant.delete_buffer(&hits_buffer)?;
+                return Err(error);
+            }
+        }
     };
     Ok(pb::TraceBatchResponse {
         hits_buffer: Some(buffers::info(&hits_buffer)),
@@ -107,7 +114,8 @@ pub async fn stream(
         loop {
             let reply = match requests.message().await {
                 Ok(None) => break,
-                Err(status) => Err(Status::cancelled(status.message().to_string())),
+                // A chunk that could not be received (e.g. above max_message_bytes) keeps tonic's status.
+                Err(status) => Err(status),
                 Ok(Some(message)) => match message.part {
                     Some(pb::trace_stream_request::Part::Rays(rays)) => {
                         answer_chunk(&tenant, &accel, query, rays, first_ray).await.map_err(Status::from)
