@@ -9,26 +9,23 @@ use rayd_proto as pb;
 
 use crate::error::{ServiceError, ServiceResult};
 
+/// The engine value numbered `value` in the contract, whose enums number the engine's `ALL` lists from 1 (0 is
+/// UNSPECIFIED); the test below checks that the names agree.
+fn numbered<T: Copy>(all: &[T], value: i32, field: &str, what: &str) -> ServiceResult<T> {
+    let index = usize::try_from(value).ok().and_then(|v| v.checked_sub(1));
+    index
+        .and_then(|i| all.get(i).copied())
+        .ok_or_else(|| ServiceError::invalid(field, format!("{value} is not a {what}")))
+}
+
 /// The engine's ray format for a contract enum value.
 pub fn ray_format(value: i32, field: &str) -> ServiceResult<RayFormat> {
-    let index = match pb::RayFormat::try_from(value) {
-        Ok(pb::RayFormat::Unspecified) | Err(_) => {
-            return Err(ServiceError::invalid(field, format!("{value} is not a ray format")));
-        }
-        Ok(format) => format as usize,
-    };
-    Ok(RayFormat::ALL[index - 1])
+    numbered(&RayFormat::ALL, value, field, "ray format")
 }
 
 /// The engine's hit format for a contract enum value.
 pub fn hit_format(value: i32, field: &str) -> ServiceResult<HitFormat> {
-    let index = match pb::HitFormat::try_from(value) {
-        Ok(pb::HitFormat::Unspecified) | Err(_) => {
-            return Err(ServiceError::invalid(field, format!("{value} is not a hit format")));
-        }
-        Ok(format) => format as usize,
-    };
-    Ok(HitFormat::ALL[index - 1])
+    numbered(&HitFormat::ALL, value, field, "hit format")
 }
 
 /// The engine's query for a contract `TraceQuery` (the accel is resolved elsewhere).
