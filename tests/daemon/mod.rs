@@ -1,0 +1,167 @@
+//! The real `rayd` for end-to-end tests: the workspace's binaries, built fresh once per test process by the test's
+//! own profile, and a daemon started on port 0 with its own environment, stopped by SIGTERM like in production.
+#![allow(dead_code)] // Each end-to-end test file uses its own part of the harness.
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdout, Command, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Mutex, PoisonError};
+
+/// Each binary the tests run, and the workspace package that builds it.
+const BINARIES: [(&str, &str); 2] = [("rayd", "rayd-server"), ("rayctl", "rayd-client")];
+
+/// `target/<profile>`, where cargo puts the binaries: the test executable is `target/<profile>/deps/<test>`.
+fn profile_dir() -> PathBuf {
+    let exe = std::env::current_exe().expect("the test executable's path");
+    exe.parent().and_then(Path::parent).expect("the test executable is in target/<profile>/deps").to_path_buf()
+}
+
+/// The cargo target directory this test was built in.
+pub fn target_dir() -> PathBuf {
+    profile_dir().parent().expect("target/<profile> has a parent").to_path_buf()
+}
+
+/// The path of the workspace binary `name` (`rayd` or `rayctl`). Its package is built once per test process,
+/// with the profile and target directory of this test, so a test never runs a stale binary.
+pub fn binary(name: &str) -> PathBuf {
+    static BUILT: Mutex<Vec<&str>> = Mutex::new(Vec::new());
+    let (_, package) =
+        BINARIES.iter().find(|(binary, _)| *binary == name).unwrap_or_else(|| panic!("no workspace binary {name:?}"));
+    let mut built = BUILT.lock().unwrap_or_else(PoisonError::into_inner);
+    if !built.contains(package) {
+        cargo_build(package);
+        built.push(package);
+    }
+    profile_dir().join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
+}
+
+/// Runs `cargo build --bins -p PACKAGE` for this test's profile and target directory.
+fn cargo_build(package: &str) {
+    let profile_dir = profile_dir();
+    let profile = profile_dir.file_name().and_then(|p| p.to_str()).expect("a UTF-8 profile directory");
+    let mut cargo = Command::new(env!("CARGO"));
+    cargo
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["build", "--bins", "-p", package, "--target-dir"])
+        .arg(target_dir());
+    // `debug` holds the dev profile's output; every other profile's directory is named after it.
+    if profile != "debug" {
+        cargo.args(["--profile", profile]);
+    }
+    let output = cargo.output().expect("cargo runs");
+    assert!(output.status.success(), "cargo build -p {package} failed:\n{}", String::from_utf8_lossy(&output.stderr));
+}
+
+/// A running `rayd`; killed if still running when dropped, its log printed if the test failed (and deleted
+/// otherwise).
+pub struct Daemon {
+    /// The process.
+    child: Child,
+    /// Its standard output, held open after the first line so that rayd never writes to a closed pipe.
+    _stdout: BufReader<ChildStdout>,
+    /// Where the gRPC service listens, from the first line.
+    grpc: SocketAddr,
+    /// Where the admin HTTP endpoint listens, from the first line.
+    admin: SocketAddr,
+    /// rayd's standard error (its log), kept in a file so it can never fill a pipe and block the daemon.
+    log: PathBuf,
+}
+
+impl Daemon {
+    /// Starts `rayd --listen 127.0.0.1:0 --admin-listen 127.0.0.1:0` with `envs` (e.g.
+    /// `("RAYD_LIMITS_MAX_RAYS_PER_BATCH", "1000")`) and no other `RAYD_…` variable, and reads the addresses from
+    /// the first line of its output.
+    pub fn start(envs: &[(&str, &str)]) -> Daemon {
+        static STARTED: AtomicUsize = AtomicUsize::new(0);
+        let logs = Path::new(env!("CARGO_TARGET_TMPDIR")).join("rayd-logs");
+        std::fs::create_dir_all(&logs).expect("the log directory can be created");
+        let log = logs.join(format!("{}-{}.log", std::process::id(), STARTED.fetch_add(1, Ordering::Relaxed)));
+        let mut command = Command::new(binary("rayd"));
+        command.args(["--listen", "127.0.0.1:0", "--admin-listen", "127.0.0.1:0"]);
+        for (key, _) in std::env::vars().filter(|(key, _)| key.starts_with("RAYD_")) {
+            command.env_remove(key);
+        }
+        let stderr = std::fs::File::create(&log).expect("the log file can be created");
+        let mut child = command
+            .env("NO_COLOR", "1")
+            .envs(envs.iter().copied())
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(stderr)
+            .spawn()
+            .expect("rayd starts");
+        let mut stdout = BufReader::new(child.stdout.take().expect("piped stdout"));
+        let mut line = String::new();
+        stdout.read_line(&mut line).expect("rayd's standard output can be read");
+        let Some((grpc, admin)) = parse_listening(&line) else {
+            let _ = child.kill();
+            let _ = child.wait();
+            let log = std::fs::read_to_string(&log).unwrap_or_default();
+            panic!("rayd's first line is {line:?}, not `rayd listening on grpc=… admin=…`; its log:\n{log}");
+        };
+        Daemon { child, _stdout: stdout, grpc, admin, log }
+    }
+
+    /// The gRPC address.
+    pub fn grpc_addr(&self) -> SocketAddr {
+        self.grpc
+    }
+
+    /// The gRPC endpoint as a URL, `http://IP:PORT`, for tonic clients and `rayctl --server`.
+    pub fn url(&self) -> String {
+        format!("http://{}", self.grpc)
+    }
+
+    /// The body of an HTTP/1.0 GET of `path` on the admin endpoint; panics unless the status is 200.
+    pub fn admin_get(&self, path: &str) -> String {
+        let mut connection = TcpStream::connect(self.admin).expect("the admin endpoint accepts connections");
+        write!(connection, "GET {path} HTTP/1.0\r\nHost: {}\r\n\r\n", self.admin).expect("the request is sent");
+        let mut response = String::new();
+        connection.read_to_string(&mut response).expect("the response is read to its end");
+        let (head, body) = response.split_once("\r\n\r\n").unwrap_or_else(|| panic!("no HTTP head in {response:?}"));
+        let status = head.lines().next().unwrap_or_default();
+        assert!(status.split(' ').nth(1) == Some("200"), "GET {path}: {status}");
+        body.to_string()
+    }
+
+    /// Sends SIGTERM, the signal that starts a graceful shutdown, without waiting.
+    pub fn terminate(&self) {
+        let status = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().expect("kill runs");
+        assert!(status.success(), "kill -TERM {} failed", self.child.id());
+    }
+
+    /// Waits for the process to exit.
+    pub fn wait(&mut self) -> ExitStatus {
+        self.child.wait().expect("rayd can be waited for")
+    }
+
+    /// Sends SIGTERM and waits for the exit.
+    pub fn stop(&mut self) -> ExitStatus {
+        self.terminate();
+        self.wait()
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        if let Ok(None) = self.child.try_wait() {
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+        if std::thread::panicking() {
+            let log = std::fs::read_to_string(&self.log).unwrap_or_default();
+            eprintln!("--- rayd log ({}) ---\n{log}", self.log.display());
+        } else {
+            let _ = std::fs::remove_file(&self.log);
+        }
+    }
+}
+
+/// The gRPC and admin addresses of `rayd listening on grpc=IP:PORT admin=IP:PORT`.
+fn parse_listening(line: &str) -> Option<(SocketAddr, SocketAddr)> {
+    let fields = line.trim_end().strip_prefix("rayd listening on ")?;
+    let (grpc, admin) = fields.split_once(' ')?;
+    Some((grpc.strip_prefix("grpc=")?.parse().ok()?, admin.strip_prefix("admin=")?.parse().ok()?))
+}
