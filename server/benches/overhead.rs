@@ -16,6 +16,10 @@ use rayd_proto as pb;
 use rayd_proto::rayd_client::RaydClient;
 use tonic::transport::Channel;
 
+/// mimalloc keeps freed pages for reuse: large ray and hit messages then cost no fresh page faults each call.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 /// Timed repetitions of each large batch; the median is reported.
 const BATCH_RUNS: usize = 7;
 /// 1-ray calls timed for the latency percentiles (after as many warm-up calls).

@@ -34,6 +34,24 @@ where
         // Clears the unused high bits of a bitmask's last byte; every other byte is fully rewritten.
         *last = 0;
     }
+    let trace_chunk = |rays: &[u8], hits: &mut [u8], counts: &mut [u8]| {
+        let mut stats = TraceStats::default();
+        let mut state = new_state();
+        let mut scratch = vec![Hit::MISS; if query.kind == QueryKind::All { records_per_ray } else { 0 }];
+        for (index, bytes) in rays.chunks_exact(ray_size).enumerate() {
+            let ray = PreparedRay::new(&query.ray_format.decode(bytes), query.flags);
+            let mut collector = Collector::new(query, &ray, &mut scratch);
+            traverse(&mut state, &ray, &mut collector, &mut stats);
+            collector.write(query, hits, index * records_per_ray, counts, index);
+            stats.rays += 1;
+            stats.rays_hit += u64::from(collector.found());
+        }
+        stats
+    };
+    if layout.rays <= CHUNK_RAYS {
+        // One chunk: traced on the caller's thread, without a hop to the thread pool (small-batch latency).
+        return Ok(trace_chunk(rays, out.hits, out.counts));
+    }
     let hit_chunks: Vec<&mut [u8]> = out.hits.chunks_mut(hit_chunk.max(1)).collect();
     let count_chunks: Vec<&mut [u8]> = if query.kind.has_counts() {
         out.counts.chunks_mut(CHUNK_RAYS * 4).collect()
@@ -43,20 +61,7 @@ where
     let stats = rays
         .par_chunks(CHUNK_RAYS * ray_size)
         .zip(hit_chunks.into_par_iter().zip(count_chunks))
-        .map(|(rays, (hits, counts))| {
-            let mut stats = TraceStats::default();
-            let mut state = new_state();
-            let mut scratch = vec![Hit::MISS; if query.kind == QueryKind::All { records_per_ray } else { 0 }];
-            for (index, bytes) in rays.chunks_exact(ray_size).enumerate() {
-                let ray = PreparedRay::new(&query.ray_format.decode(bytes), query.flags);
-                let mut collector = Collector::new(query, &ray, &mut scratch);
-                traverse(&mut state, &ray, &mut collector, &mut stats);
-                collector.write(query, hits, index * records_per_ray, counts, index);
-                stats.rays += 1;
-                stats.rays_hit += u64::from(collector.found());
-            }
-            stats
-        })
+        .map(|(rays, (hits, counts))| trace_chunk(rays, hits, counts))
         .reduce(TraceStats::default, |mut a, b| {
             a.add(&b);
             a

@@ -60,10 +60,16 @@ fn accel_message(entry: &AccelEntry) -> pb::AccelInfo {
 
 #[tonic::async_trait]
 impl Rayd for RaydService {
-    async fn get_server_info(&self, request: Request<pb::GetServerInfoRequest>) -> Result<Response<pb::ServerInfo>, Status> {
+    async fn get_server_info(
+        &self,
+        request: Request<pb::GetServerInfoRequest>,
+    ) -> Result<Response<pb::ServerInfo>, Status> {
         let tenant = self.tenant(&request);
         observe("GetServerInfo", async {
-            Ok(pb::ServerInfo { version: env!("CARGO_PKG_VERSION").into(), limits: Some(convert::limits(tenant.limits())) })
+            Ok(pb::ServerInfo {
+                version: env!("CARGO_PKG_VERSION").into(),
+                limits: Some(convert::limits(tenant.limits())),
+            })
         })
         .await
     }
