@@ -7,12 +7,12 @@ mod common;
 mod daemon;
 mod reference;
 
-use daemon::Daemon;
+use daemon::{Daemon, sample};
 use rayd_engine::format::{HitFormat, Ray, RayFlags, RayFormat};
 use rayd_engine::query::{Query, QueryKind};
 use rayd_proto as pb;
 use rayd_proto::rayd_client::RaydClient;
-use reference::{BUNNY_TRIANGLES, Expected, bunny};
+use reference::{BUNNY_TRIANGLES, Expected, assert_same_bytes, bunny};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
@@ -60,15 +60,6 @@ async fn assert_refused<T: std::fmt::Debug>(
 async fn still_serving(client: &mut Client) {
     let devices = client.list_devices(pb::ListDevicesRequest {}).await.expect("rayd still serves").into_inner();
     assert_eq!(devices.devices[0].id, "cpu:0");
-}
-
-/// Asserts equal bytes, reporting the first difference instead of printing both buffers.
-fn assert_same_bytes(actual: &[u8], expected: &[u8], what: &str) {
-    assert_eq!(actual.len(), expected.len(), "{what}: byte length");
-    if let Some(i) = actual.iter().zip(expected).position(|(a, e)| a != e) {
-        let end = (i + 16).min(actual.len());
-        panic!("{what}: first difference at byte {i}: {:?}, expected {:?}", &actual[i..end], &expected[i..end]);
-    }
 }
 
 /// The contract's enum value of a ray format, looked up by name (`RAY_FORMAT_<NAME>`).
@@ -228,10 +219,8 @@ async fn list_buffers(client: &mut Client) -> Vec<pb::BufferInfo> {
 
 /// Asserts that the service's answer is the engine's, byte for byte.
 fn assert_traced_as_expected(response: &pb::TraceBatchResponse, expected: &Expected, what: &str) {
-    assert_same_bytes(&response.hits, &expected.hits, &format!("{what}: hits"));
-    assert_same_bytes(&response.counts, &expected.counts, &format!("{what}: counts"));
     let stats = response.stats.as_ref().expect("stats");
-    assert_eq!((stats.rays, stats.rays_hit), (expected.stats.rays, expected.stats.rays_hit), "{what}: stats");
+    expected.assert_answer(&response.hits, &response.counts, (stats.rays, stats.rays_hit), what);
 }
 
 /// Queries covering every query kind, the ray formats with and without tmin, mask and flags, and hit formats from
@@ -586,10 +575,10 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
     assert_refused(&mut client, result, Code::InvalidArgument, "declared").await;
     let result = client.upload_buffer(tokio_stream::iter([upload_header("huge", 16385)])).await;
     assert_refused(&mut client, result, Code::ResourceExhausted, "max_buffer_bytes").await;
-    // rayd reports a data message above max_message_bytes as a bad upload stream.
+    // A data message above max_message_bytes is refused by the gRPC layer, as in every other call.
     let oversized = [upload_header("oversized", 16384), upload_data(&[1; 70000])];
     let result = client.upload_buffer(tokio_stream::iter(oversized)).await;
-    assert_refused(&mut client, result, Code::InvalidArgument, "65536").await;
+    assert_refused(&mut client, result, Code::OutOfRange, "65536").await;
 
     build(&mut client, "tri", vec![triangle([0, 1, 2])]).await.expect("an accel");
     let into_buffers = |query: &Query, rays: usize| pb::TraceBatchRequest {
@@ -691,14 +680,4 @@ async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
     let labels = ["method=\"GetAccel\"", "code=\"NotFound\""];
     assert_eq!(sample(&metrics, "rayd_errors_total", &labels), Some(1.0), "{metrics}");
     assert_eq!(daemon.admin_get("/healthz"), "ok\n");
-}
-
-/// The value of the Prometheus sample `name` whose labels include every one of `labels` (`key="value"`).
-fn sample(metrics: &str, name: &str, labels: &[&str]) -> Option<f64> {
-    metrics.lines().find_map(|line| {
-        let (series, value) = line.rsplit_once(' ')?;
-        let (series_name, series_labels) = series.split_once('{').unwrap_or((series, ""));
-        let matches = series_name == name && labels.iter().all(|label| series_labels.contains(label));
-        matches.then(|| value.parse().expect("a numeric sample"))
-    })
 }

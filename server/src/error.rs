@@ -33,6 +33,9 @@ pub enum ServiceError {
         /// The name.
         name: String,
     },
+    /// The gRPC layer refused a message (too large, malformed, or the peer went away); its status is kept.
+    #[error("{}", .0.message())]
+    Transport(Status),
     /// A configured limit.
     #[error("{what}: {requested} exceeds limits.{limit} = {allowed}")]
     Limit {
@@ -80,6 +83,7 @@ impl From<ServiceError> for Status {
             ServiceError::NotFound { .. } => Code::NotFound,
             ServiceError::AlreadyExists { .. } => Code::AlreadyExists,
             ServiceError::Limit { .. } => Code::ResourceExhausted,
+            ServiceError::Transport(status) => status.code(),
         };
         Status::new(code, error.to_string())
     }

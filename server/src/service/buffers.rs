@@ -14,6 +14,9 @@ use crate::tenant::{BufferEntry, Tenant};
 /// Bytes per downloaded message when the request gives none.
 const DEFAULT_CHUNK_BYTES: u64 = 1 << 20;
 
+/// Most bytes reserved for an upload before its data arrives.
+const UPLOAD_RESERVE_BYTES: u64 = 64 << 20;
+
 /// The stream of a download.
 pub type ChunkStream = Pin<Box<dyn Stream<Item = Result<pb::BufferChunk, tonic::Status>> + Send>>;
 
@@ -39,13 +42,12 @@ pub async fn upload(
     let header = match stream.message().await {
         Ok(Some(pb::UploadBufferRequest { part: Some(pb::upload_buffer_request::Part::Header(h)) })) => h,
         Ok(_) => return Err(ServiceError::invalid("header", "the first message of an upload must be its header")),
-        Err(status) => return Err(ServiceError::invalid("stream", status.message().to_string())),
+        Err(status) => return Err(ServiceError::Transport(status)),
     };
     tenant.check_new_buffer(&header.name, header.size_bytes)?;
-    let mut data = BytesMut::with_capacity(header.size_bytes as usize);
-    while let Some(message) =
-        stream.message().await.map_err(|s| ServiceError::invalid("stream", s.message().to_string()))?
-    {
+    // Grows as data arrives: a header alone never reserves the whole declared size.
+    let mut data = BytesMut::with_capacity(header.size_bytes.min(UPLOAD_RESERVE_BYTES) as usize);
+    while let Some(message) = stream.message().await.map_err(ServiceError::Transport)? {
         let Some(pb::upload_buffer_request::Part::Data(chunk)) = message.part else {
             return Err(ServiceError::invalid("header", "only the first message may be a header"));
         };

@@ -107,7 +107,7 @@ pub async fn stream(
     tenant: Arc<Tenant>,
     mut requests: Streaming<pb::TraceStreamRequest>,
 ) -> ServiceResult<ResponseStream> {
-    let first = requests.message().await.map_err(|s| ServiceError::invalid("stream", s.message().to_string()))?;
+    let first = requests.message().await.map_err(ServiceError::Transport)?;
     let query = match first.and_then(|m| m.part) {
         Some(pb::trace_stream_request::Part::Query(query)) => query,
         _ => return Err(ServiceError::invalid("query", "the first message of a trace stream must be its query")),
