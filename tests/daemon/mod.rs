@@ -37,6 +37,15 @@ pub fn binary(name: &str) -> PathBuf {
     profile_dir().join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
 }
 
+/// Removes from `command`'s environment every `RAYD_…` variable of the test's own (`rayd` reads its configuration
+/// from them, `rayctl` its server and token), so that only what a test sets reaches the binary.
+pub fn without_rayd_env(command: &mut Command) -> &mut Command {
+    for (key, _) in std::env::vars_os().filter(|(key, _)| key.as_encoded_bytes().starts_with(b"RAYD_")) {
+        command.env_remove(key);
+    }
+    command
+}
+
 /// Runs `cargo build --bins -p PACKAGE` for this test's profile and target directory.
 fn cargo_build(package: &str) {
     let profile_dir = profile_dir();
@@ -79,10 +88,7 @@ impl Daemon {
         std::fs::create_dir_all(&logs).expect("the log directory can be created");
         let log = logs.join(format!("{}-{}.log", std::process::id(), STARTED.fetch_add(1, Ordering::Relaxed)));
         let mut command = Command::new(binary("rayd"));
-        command.args(["--listen", "127.0.0.1:0", "--admin-listen", "127.0.0.1:0"]);
-        for (key, _) in std::env::vars().filter(|(key, _)| key.starts_with("RAYD_")) {
-            command.env_remove(key);
-        }
+        without_rayd_env(&mut command).args(["--listen", "127.0.0.1:0", "--admin-listen", "127.0.0.1:0"]);
         let stderr = std::fs::File::create(&log).expect("the log file can be created");
         let mut child = command
             .env("NO_COLOR", "1")
@@ -126,6 +132,12 @@ impl Daemon {
         body.to_string()
     }
 
+    /// The value of the Prometheus sample `name` whose labels include every one of `labels` (`key="value"`) on
+    /// the admin endpoint's `/metrics`, or `None` while there is no such series (a counter never incremented).
+    pub fn metric(&self, name: &str, labels: &[&str]) -> Option<f64> {
+        sample(&self.admin_get("/metrics"), name, labels)
+    }
+
     /// Sends SIGTERM, the signal that starts a graceful shutdown, without waiting.
     pub fn terminate(&self) {
         let status = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().expect("kill runs");
@@ -164,4 +176,14 @@ fn parse_listening(line: &str) -> Option<(SocketAddr, SocketAddr)> {
     let fields = line.trim_end().strip_prefix("rayd listening on ")?;
     let (grpc, admin) = fields.split_once(' ')?;
     Some((grpc.strip_prefix("grpc=")?.parse().ok()?, admin.strip_prefix("admin=")?.parse().ok()?))
+}
+
+/// The value of the Prometheus sample `name` whose labels include every one of `labels` (`key="value"`).
+pub fn sample(metrics: &str, name: &str, labels: &[&str]) -> Option<f64> {
+    metrics.lines().find_map(|line| {
+        let (series, value) = line.rsplit_once(' ')?;
+        let (series_name, series_labels) = series.split_once('{').unwrap_or((series, ""));
+        let matches = series_name == name && labels.iter().all(|label| series_labels.contains(label));
+        matches.then(|| value.parse().expect("a numeric sample"))
+    })
 }

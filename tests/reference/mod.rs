@@ -40,6 +40,16 @@ pub struct Expected {
     pub stats: TraceStats,
 }
 
+impl Expected {
+    /// Asserts that an answer of the service (its hit and count bytes, and its statistics' `(rays, rays_hit)`) is
+    /// this one, byte for byte.
+    pub fn assert_answer(&self, hits: &[u8], counts: &[u8], (rays, rays_hit): (u64, u64), what: &str) {
+        assert_same_bytes(hits, &self.hits, &format!("{what}: hits"));
+        assert_same_bytes(counts, &self.counts, &format!("{what}: counts"));
+        assert_eq!((rays, rays_hit), (self.stats.rays, self.stats.rays_hit), "{what}: rays traced and rays hit");
+    }
+}
+
 /// The bunny, loaded and built once per test process.
 pub fn bunny() -> &'static Bunny {
     static BUNNY: OnceLock<Bunny> = OnceLock::new();
@@ -75,5 +85,14 @@ impl Bunny {
             .trace(&self.accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })
             .expect("the in-process trace succeeds");
         Expected { hits, counts, stats }
+    }
+}
+
+/// Asserts equal bytes, reporting the first difference instead of printing both buffers.
+pub fn assert_same_bytes(actual: &[u8], expected: &[u8], what: &str) {
+    assert_eq!(actual.len(), expected.len(), "{what}: byte length");
+    if let Some(i) = actual.iter().zip(expected).position(|(a, e)| a != e) {
+        let end = (i + 16).min(actual.len());
+        panic!("{what}: first difference at byte {i}: {:?}, expected {:?}", &actual[i..end], &expected[i..end]);
     }
 }

@@ -1,0 +1,214 @@
+//! End to end against the real `rayd` binary through the `rayd-client` library: the server's limits as
+//! GetServerInfo reports them; the shared bunny, loaded by the client's mesh loader, built inline and through
+//! uploaded buffers (deleted again afterwards, even when the build fails); traces by TraceBatch and by TraceStream,
+//! chosen by the client from its options, byte for byte as the engine traces in this process; `HitView` against
+//! decoding by hand; and the server's errors surfacing with their gRPC codes.
+
+mod common;
+mod daemon;
+mod reference;
+
+use std::path::Path;
+
+use common::{f32_at, u32_at};
+use daemon::Daemon;
+use rayd_client::{Client, ClientOptions, TraceResult, load_mesh};
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, MISS_ID, MISS_T, RayFormat};
+use rayd_engine::query::{Query, QueryKind};
+use reference::{BUNNY_TRIANGLES, Expected, bunny};
+use tonic::Code;
+
+/// The daemon's `max_rays_per_batch`: set, so that GetServerInfo has something to report, and above every trace
+/// here.
+const MAX_RAYS_PER_BATCH: u64 = 100_000;
+
+/// The daemon's `max_buffers`: exactly the two an uploaded mesh needs, so that a buffer left behind by one upload
+/// makes the next one fail.
+const MAX_BUFFERS: u32 = 2;
+
+/// The reference camera's size: 6912 rays, a few hundred kilobytes of them.
+const CAMERA: (u32, u32) = (96, 72);
+
+/// The daemon's `rayd_requests_total` of each of `methods` (0 for one never called): the calls that show which
+/// path a client took.
+fn requests(daemon: &Daemon, methods: &[&str]) -> Vec<u64> {
+    let count = |method: &str| daemon.metric("rayd_requests_total", &[&format!("method=\"{method}\"")]);
+    methods.iter().map(|&method| count(method).unwrap_or(0.0) as u64).collect()
+}
+
+/// Options with which the bunny takes every path meant for large data: its mesh is uploaded as two buffers, each
+/// in several messages, and a trace of the reference camera's rays goes through TraceStream in several chunks,
+/// the last one short, at most two of them in flight.
+fn small_messages() -> ClientOptions {
+    ClientOptions {
+        inline_mesh_bytes: 64 << 10,
+        upload_chunk_bytes: 256 << 10,
+        batch_limit_bytes: 64 << 10,
+        stream_chunk_bytes: 16 << 10,
+        stream_window: 2,
+        ..ClientOptions::default()
+    }
+}
+
+/// A client of `daemon` with `options`.
+async fn connect(daemon: &Daemon, options: ClientOptions) -> Client {
+    Client::connect(&daemon.url(), options).await.expect("the client connects to rayd")
+}
+
+/// The version in `server/Cargo.toml`, which rayd reports as its own.
+fn server_version() -> &'static str {
+    let manifest = include_str!("../server/Cargo.toml");
+    let version = manifest.lines().find_map(|line| line.strip_prefix("version = \"")?.strip_suffix('"'));
+    version.expect("server/Cargo.toml has a version line")
+}
+
+/// The closest hit with `t_triid_u_v` records, the hit bitmask of an `any` query, and the `all` and `count`
+/// queries with their counts, all on the same rays.
+fn queries() -> [Query; 4] {
+    let closest = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    [
+        closest,
+        Query { kind: QueryKind::Any, hit_format: HitFormat::Bitmask, ..closest },
+        Query { kind: QueryKind::All, max_hits_per_ray: 4, ..closest },
+        Query { kind: QueryKind::Count, ..closest },
+    ]
+}
+
+/// Asserts that a client's trace result is the engine's, byte for byte.
+fn assert_traced_as_expected(traced: &TraceResult, expected: &Expected, what: &str) {
+    let stats = traced.stats();
+    expected.assert_answer(traced.hits(), traced.counts(), (stats.rays, stats.rays_hit), what);
+    assert_eq!(traced.rays() as u64, expected.stats.rays, "{what}: rays of the result");
+}
+
+/// Record `r` of a `t_triid_u_v` hit buffer, decoded by hand: four little-endian words, t (f32), triangle (u32),
+/// u and v (f32).
+fn record(hits: &[u8], r: usize) -> (f32, u32, f32, f32) {
+    (f32_at(hits, 4 * r), u32_at(hits, 4 * r + 1), f32_at(hits, 4 * r + 2), f32_at(hits, 4 * r + 3))
+}
+
+/// Asserts that the views of the results of [`queries`] read what decoding their bytes by hand gives, for the
+/// first hit, the first miss and two more rays.
+fn assert_views_decode_as_by_hand([closest, any, all, count]: &[TraceResult; 4]) {
+    let hits = &closest.hits()[..];
+    let rays = closest.rays();
+    let first_hit = (0..rays).find(|&r| record(hits, r).0 >= 0.0).expect("a ray hits the bunny");
+    let first_miss = (0..rays).find(|&r| record(hits, r).0 < 0.0).expect("a ray misses the bunny");
+    let view = closest.hit_view();
+    assert_eq!(view.len(), rays, "one record a ray");
+    for r in [first_hit, first_miss, rays / 2, rays - 1] {
+        let hit = view.get(r);
+        let (t, triangle, u, v) = record(hits, r);
+        assert_eq!((hit.t, hit.prim_id, hit.u, hit.v), (t, triangle, u, v), "closest hit of ray {r}");
+        assert_eq!((view.is_hit(r), hit.is_hit()), (t >= 0.0, t >= 0.0), "ray {r}");
+        // The bitmask: bit r % 8 of byte r / 8, least significant first.
+        let bit = (any.hits()[r / 8] >> (r % 8)) & 1 == 1;
+        assert_eq!((any.hit_view().is_hit(r), bit), (t >= 0.0, t >= 0.0), "hit bit of ray {r}");
+        for (result, what) in [(all, "all"), (count, "count")] {
+            assert_eq!(result.count(r), Some(u32_at(result.counts(), r)), "{what}: count of ray {r}");
+        }
+        // `all`: records r·4 .. r·4+4, the hits first (as many as fit), then misses.
+        let found = all.count(r).expect("counts") as usize;
+        let all_view = all.hit_view();
+        for k in 0..4 {
+            let hit = all_view.get(4 * r + k);
+            assert_eq!((hit.t, hit.prim_id, hit.u, hit.v), record(&all.hits()[..], 4 * r + k), "all: ray {r} hit {k}");
+            assert_eq!(hit.is_hit(), k < found, "all: ray {r} hit {k} of {found}");
+        }
+    }
+    let (hit, miss) = (view.get(first_hit), view.get(first_miss));
+    assert!((hit.prim_id as u64) < BUNNY_TRIANGLES && hit.t > 0.0, "{hit:?}");
+    assert!(hit.u >= 0.0 && hit.v >= 0.0 && hit.u + hit.v <= 1.0 + 1e-6, "barycentrics of {hit:?}");
+    assert_eq!((miss.t, miss.prim_id), (MISS_T, MISS_ID));
+    assert_eq!(all.hit_view().len(), 4 * rays, "four records a ray");
+}
+
+#[tokio::test]
+async fn the_client_builds_and_traces_the_bunny_as_the_engine_does_and_reports_server_errors_by_code() {
+    let (max_rays, max_buffers) = (MAX_RAYS_PER_BATCH.to_string(), MAX_BUFFERS.to_string());
+    let daemon =
+        Daemon::start(&[("RAYD_LIMITS_MAX_RAYS_PER_BATCH", &max_rays), ("RAYD_LIMITS_MAX_BUFFERS", &max_buffers)]);
+    let direct = connect(&daemon, ClientOptions::default()).await;
+    let small = connect(&daemon, small_messages()).await;
+
+    let info = direct.server_info().await.expect("GetServerInfo");
+    assert_eq!(info.version, server_version());
+    let limits = info.limits.expect("the limits");
+    assert_eq!((limits.max_rays_per_batch, limits.max_buffers), (MAX_RAYS_PER_BATCH, MAX_BUFFERS), "as set");
+    let defaults = ClientOptions::default();
+    assert_eq!(
+        (limits.max_message_bytes, limits.stream_window),
+        (defaults.max_message_bytes as u64, defaults.stream_window as u32),
+        "limits left alone keep the server's defaults, which the client's defaults match"
+    );
+
+    let bunny = bunny();
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/meshes/stanford-bunny.obj");
+    let mesh = load_mesh(&path).expect("the client loads the bunny");
+    assert!(mesh == bunny.mesh, "the client's loader reads the bunny as the engine does");
+    let uploads = ["UploadBuffer", "DeleteBuffer"];
+    let inline = direct.build_mesh("bunny", &mesh, "", BuildFlags::empty()).await.expect("an inline build");
+    assert_eq!(requests(&daemon, &uploads), [0, 0], "{uploads:?} calls of an inline build");
+    let uploaded =
+        small.build_mesh("bunny-uploaded", &mesh, "", BuildFlags::empty()).await.expect("a build from buffers");
+    assert_eq!(requests(&daemon, &uploads), [2, 2], "{uploads:?} calls: vertices and indices");
+    assert!(direct.buffers().await.expect("ListBuffers").is_empty(), "the mesh's buffers are deleted after the build");
+    for info in [&inline, &uploaded] {
+        let expected = bunny.info();
+        assert_eq!((info.triangle_count, info.geometry_count), (BUNNY_TRIANGLES, 1), "{}", info.name);
+        assert_eq!(info.size_bytes, expected.size_bytes, "{}", info.name);
+        assert_eq!(rayd_client::convert::bounds(info), Some(expected.bounds), "{}", info.name);
+    }
+    assert_eq!(direct.accels().await.expect("ListAccels"), [inline.clone(), uploaded.clone()]);
+
+    let (width, height) = CAMERA;
+    // For each query, the first result that the client reassembled from stream chunks.
+    let mut streamed = Vec::new();
+    for (i, query) in queries().into_iter().enumerate() {
+        let rays = bunny.camera_rays(query.ray_format, width, height);
+        let expected = bunny.trace(&query, &rays);
+        assert!(0 < expected.stats.rays_hit && expected.stats.rays_hit < expected.stats.rays, "rays hit and miss");
+        for accel in [&inline.name, &uploaded.name] {
+            for (client, path) in [(&direct, "TraceBatch"), (&small, "TraceStream")] {
+                let what = format!("{query:?} on {accel} through {path}");
+                let result = client.trace(accel, &query, rays.clone().into()).await.expect(&what);
+                assert_traced_as_expected(&result, &expected, &what);
+                if path == "TraceStream" && streamed.len() == i {
+                    streamed.push(result);
+                }
+            }
+        }
+    }
+    let traces = queries().len() as u64 * 2;
+    assert_eq!(
+        requests(&daemon, &["TraceBatch", "TraceStream"]),
+        [traces, traces],
+        "TraceBatch and TraceStream calls: the default options trace the camera in one batch, the small ones stream it"
+    );
+    assert_views_decode_as_by_hand(&streamed.try_into().expect("one result a query"));
+
+    let query = queries()[0];
+    let rays = bunny.camera_rays(query.ray_format, width, height);
+    for client in [&direct, &small] {
+        let error = client.trace("nowhere", &query, rays.clone().into()).await.expect_err("an unknown accel");
+        assert_eq!(error.code(), Code::NotFound, "{error}");
+        assert!(error.to_string().contains("nowhere"), "{error}");
+    }
+    let error = direct.accel("nowhere").await.expect_err("an unknown accel");
+    assert_eq!(error.code(), Code::NotFound, "{error}");
+    let error = direct.destroy_accel("nowhere").await.expect_err("an unknown accel");
+    assert_eq!(error.code(), Code::NotFound, "{error}");
+    for client in [&direct, &small] {
+        let error = client.build_mesh("bunny", &mesh, "", BuildFlags::empty()).await.expect_err("a taken name");
+        assert_eq!(error.code(), Code::AlreadyExists, "{error}");
+        assert!(error.to_string().contains("bunny"), "{error}");
+    }
+    assert_eq!(requests(&daemon, &uploads), [4, 4], "{uploads:?} calls: the second build from buffers failed");
+    assert!(direct.buffers().await.expect("ListBuffers").is_empty(), "a failed build deletes its buffers too");
+
+    direct.destroy_accel("bunny").await.expect("DestroyAccel");
+    assert_eq!(direct.accels().await.expect("ListAccels"), [uploaded]);
+    let error = small.trace("bunny", &query, rays.into()).await.expect_err("a destroyed accel");
+    assert_eq!(error.code(), Code::NotFound, "{error}");
+}

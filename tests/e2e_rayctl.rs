@@ -1,0 +1,222 @@
+//! End to end against the real `rayd` binary through the real `rayctl`, as a person or a script runs it from the
+//! repository root: the shared bunny built from its file, listed and shown; camera rays written to a file, traced
+//! with hits (and counts) written to files byte for byte as the engine traces that file in this process; a PNG
+//! picture equal to the engine's hits shaded in this process; a short bench's report; and the exit codes and
+//! `error: <Code>: …` lines of a missing accel, a bad option and an unreachable server.
+
+mod common;
+mod daemon;
+mod reference;
+
+use std::collections::HashSet;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use daemon::Daemon;
+use rayd_client::{HitView, Shading, shade};
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::query::{Query, QueryKind};
+use reference::{BUNNY_TRIANGLES, assert_same_bytes, bunny};
+use serde_json::Value;
+
+/// The reference camera's size for `rayctl rays`.
+const CAMERA: (u32, u32) = (96, 72);
+
+/// The picture's size for `rayctl render`.
+const PICTURE: (u32, u32) = (64, 48);
+
+/// A server URL where nothing listens.
+const NOWHERE: &str = "http://127.0.0.1:1";
+
+/// Runs `rayctl --server SERVER ARGS` in the repository root, with none of the test's `RAYD_…` variables.
+fn rayctl(server: &str, args: &[&str]) -> Output {
+    let mut command = Command::new(daemon::binary("rayctl"));
+    daemon::without_rayd_env(&mut command).current_dir(env!("CARGO_MANIFEST_DIR")).args(["--server", server]);
+    command.args(args).env("NO_COLOR", "1").output().expect("rayctl runs")
+}
+
+/// What a run printed, for failure messages.
+fn printed(output: &Output) -> String {
+    let (stdout, stderr) = (String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr));
+    format!("{}\n--- stdout\n{stdout}--- stderr\n{stderr}", output.status)
+}
+
+/// Runs rayctl and returns its standard output, panicking unless it exits 0.
+fn succeeds(server: &str, args: &[&str]) -> String {
+    let output = rayctl(server, args);
+    assert!(output.status.success(), "rayctl {args:?}: {}", printed(&output));
+    String::from_utf8(output.stdout).expect("UTF-8 output")
+}
+
+/// Runs `rayctl --json ARGS` and returns the one JSON object it prints.
+fn json(server: &str, args: &[&str]) -> Value {
+    let args: Vec<&str> = std::iter::once("--json").chain(args.iter().copied()).collect();
+    let stdout = succeeds(server, &args);
+    let value: Value = serde_json::from_str(&stdout).unwrap_or_else(|e| panic!("rayctl {args:?}: {e}: {stdout}"));
+    assert!(value.is_object(), "rayctl {args:?} prints an object: {value}");
+    value
+}
+
+/// Runs rayctl, asserts that it exits with `code` and prints nothing on standard output, and returns its standard
+/// error.
+fn fails(server: &str, args: &[&str], code: i32) -> String {
+    let output = rayctl(server, args);
+    assert_eq!(output.status.code(), Some(code), "rayctl {args:?}: {}", printed(&output));
+    assert!(output.stdout.is_empty(), "rayctl {args:?}: {}", printed(&output));
+    String::from_utf8(output.stderr).expect("UTF-8 errors")
+}
+
+/// A directory of its own for the files one test has rayctl write; removed when the test passes, kept for a look
+/// when it fails.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    /// An empty `target/tmp/NAME-PID`.
+    fn new(name: &str) -> Scratch {
+        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("the scratch directory can be created");
+        Scratch(dir)
+    }
+
+    /// The path of `file` in the directory, as an argument for rayctl.
+    fn path(&self, file: &str) -> String {
+        self.0.join(file).into_os_string().into_string().expect("a UTF-8 scratch path")
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+/// The bytes of a file rayctl wrote.
+fn read(path: &str) -> Vec<u8> {
+    std::fs::read(path).unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
+/// A JSON number, as `f64`.
+fn number(value: &Value, key: &str) -> f64 {
+    value[key].as_f64().unwrap_or_else(|| panic!("a number {key:?} in {value}"))
+}
+
+/// The width, height, colour type and pixels of a PNG file.
+fn decode_png(path: &str) -> (u32, u32, png::ColorType, Vec<u8>) {
+    let file = std::fs::File::open(path).unwrap_or_else(|e| panic!("{path}: {e}"));
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().expect("a PNG header");
+    let mut pixels = vec![0; reader.output_buffer_size().expect("a sane PNG size")];
+    let frame = reader.next_frame(&mut pixels).expect("PNG pixels");
+    pixels.truncate(frame.buffer_size());
+    (frame.width, frame.height, frame.color_type, pixels)
+}
+
+#[test]
+fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does() {
+    let daemon = Daemon::start(&[]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl");
+    let bunny = bunny();
+
+    let built = succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    let triangles = BUNNY_TRIANGLES.to_string();
+    let shows = |line: &str| line.split_whitespace().eq(["triangles:", triangles.as_str()]);
+    assert!(built.lines().any(shows), "build shows the accel:\n{built}");
+    let accels = json(&server, &["accels"]);
+    let [info] = accels["accels"].as_array().expect("a list of accels").as_slice() else {
+        panic!("one accel: {accels}");
+    };
+    assert_eq!(*info, json(&server, &["info", "bunny"]), "info shows the accel as accels lists it");
+    assert_eq!((info["name"].as_str(), info["device"].as_str()), (Some("bunny"), Some("cpu:0")), "{info}");
+    assert_eq!(info["triangle_count"], BUNNY_TRIANGLES, "{info}");
+    assert_eq!(info["geometry_count"], 1, "{info}");
+    assert_eq!(info["size_bytes"], bunny.info().size_bytes, "the same accel as the engine builds here");
+    let corner = |key: &str| serde_json::from_value::<[f32; 3]>(info["bounds"][key].clone()).expect("3 numbers");
+    let (lo, hi) = bunny.info().bounds;
+    assert_eq!([corner("min"), corner("max")], [lo.to_array(), hi.to_array()], "bounds that read back exactly");
+    assert_eq!(json(&server, &["buffers"])["buffers"], Value::Array(vec![]), "an inline build leaves no buffer");
+
+    let (width, height) = CAMERA;
+    let rays_file = scratch.path("camera.rays");
+    let size = [width.to_string(), height.to_string()];
+    let written =
+        json(&server, &["rays", "--accel", "bunny", "--width", &size[0], "--height", &size[1], "-o", &rays_file]);
+    assert_eq!(written["rays"], width * height, "{written}");
+    assert_eq!(written["ray_format"], "origin_tmin_direction_tmax", "{written}");
+    let rays = read(&rays_file);
+    let camera = bunny.camera_rays(RayFormat::OriginTminDirectionTmax, width, height);
+    assert_same_bytes(&rays, &camera, "rays framing the accel's box: the reference camera's");
+
+    let trace = |kind: &str, out: &str| {
+        let formats = ["--ray-format", "origin_tmin_direction_tmax", "--hit-format", "t_triid_u_v"];
+        let mut args = vec!["trace", "--accel", "bunny", "--rays", rays_file.as_str()];
+        args.extend(formats.into_iter().chain(["--query", kind, "--out", out]));
+        json(&server, &args)
+    };
+    let closest = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    for query in [closest, Query { kind: QueryKind::Count, ..closest }] {
+        let kind = query.kind.name();
+        let expected = bunny.trace(&query, &rays);
+        assert!(0 < expected.stats.rays_hit && expected.stats.rays_hit < expected.stats.rays, "rays hit and miss");
+        let hits_file = scratch.path(&format!("camera.{kind}"));
+        let report = trace(kind, &hits_file);
+        assert!(number(&report, "server_ms") >= 0.0 && number(&report, "wall_ms") >= 0.0, "{kind}: {report}");
+        let counts_file = format!("{hits_file}.counts");
+        let counts = if query.kind.has_counts() {
+            read(&counts_file)
+        } else {
+            assert!(!Path::new(&counts_file).exists(), "{kind}: no counts file");
+            Vec::new()
+        };
+        let count = |key: &str| report[key].as_u64().unwrap_or_else(|| panic!("a count {key:?} in {report}"));
+        let stats = (count("rays"), count("hits"));
+        expected.assert_answer(&read(&hits_file), &counts, stats, &format!("{kind}: the files and the report"));
+    }
+
+    let (width, height) = PICTURE;
+    let png_file = scratch.path("bunny.png");
+    let size = [width.to_string(), height.to_string()];
+    let rendered =
+        json(&server, &["render", "--accel", "bunny", "--width", &size[0], "--height", &size[1], "-o", &png_file]);
+    assert_eq!(
+        (rendered["width"].as_u64(), rendered["height"].as_u64()),
+        (Some(width.into()), Some(height.into())),
+        "{rendered}"
+    );
+    let (png_width, png_height, colour, pixels) = decode_png(&png_file);
+    assert_eq!((png_width, png_height, colour), (width, height, png::ColorType::Rgb));
+    let colours: HashSet<&[u8]> = pixels.chunks_exact(3).collect();
+    assert!(colours.len() > 1, "not one flat colour: {colours:?}");
+    // The default shading colours the normal of the closest hit of one ray a pixel, rays as in `Bunny::camera_rays`.
+    let query = Query::closest(RayFormat::OriginDirection, Shading::Normal.hit_format());
+    let expected = bunny.trace(&query, &bunny.camera_rays(query.ray_format, width, height));
+    let hits = HitView::new(&expected.hits, query.hit_format, (width * height) as usize).expect("a hit per pixel");
+    assert_same_bytes(&pixels, &shade(&hits, width, height, Shading::Normal).rgb, "the picture's pixels");
+
+    let args = ["bench", "--accel", "bunny", "--batch", "1000", "--concurrency", "2", "--duration", "1"];
+    let report = json(&server, &args);
+    assert!(number(&report, "rays_per_s") > 0.0, "{report}");
+    let (p50, p90, p99) = (number(&report, "p50_ms"), number(&report, "p90_ms"), number(&report, "p99_ms"));
+    assert!(0.0 < p50 && p50 <= p90 && p90 <= p99, "latency percentiles in order: {report}");
+    let batches = report["batches"].as_u64().expect("a batch count");
+    assert!(batches > 0 && report["rays"] == batches * 1000, "whole batches of 1000 rays: {report}");
+
+    assert_eq!(json(&server, &["rm", "bunny"])["destroyed"], "bunny");
+    let stderr = fails(&server, &["info", "bunny"], 1);
+    assert!(stderr.starts_with("error: NotFound: ") && stderr.contains("bunny"), "{stderr}");
+    assert_eq!(json(&server, &["accels"])["accels"], Value::Array(vec![]), "no accel left");
+}
+
+#[test]
+fn usage_errors_exit_2_before_connecting_and_an_unreachable_server_exits_1_unavailable() {
+    let args = ["trace", "--accel", "bunny", "--rays", "r.bin", "--ray-format", "prime", "--hit-format", "t"];
+    let stderr = fails(NOWHERE, &args, 2);
+    assert!(
+        stderr.contains("prime") && stderr.contains("origin_tmin_direction_tmax"),
+        "names the valid formats: {stderr}"
+    );
+    let stderr = fails(NOWHERE, &["devices"], 1);
+    assert!(stderr.starts_with("error: Unavailable: ") && stderr.contains(NOWHERE), "{stderr}");
+}
