@@ -212,3 +212,22 @@ async fn the_client_builds_and_traces_the_bunny_as_the_engine_does_and_reports_s
     let error = small.trace("bunny", &query, rays.into()).await.expect_err("a destroyed accel");
     assert_eq!(error.code(), Code::NotFound, "{error}");
 }
+
+#[tokio::test]
+async fn the_client_keeps_every_call_within_the_servers_max_rays_per_batch() {
+    const LIMIT: u64 = 1000;
+    let limit = LIMIT.to_string();
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_RAYS_PER_BATCH", &limit)]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    assert_eq!(client.options().max_rays_per_call as u64, LIMIT, "taken from GetServerInfo at connect");
+    let bunny = bunny();
+    client.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.expect("an inline build");
+    let (width, height) = CAMERA;
+    for query in queries() {
+        let rays = bunny.camera_rays(query.ray_format, width, height);
+        let expected = bunny.trace(&query, &rays);
+        let traced = client.trace("bunny", &query, rays.into()).await.expect("a trace above the server's limit");
+        assert_traced_as_expected(&traced, &expected, &format!("{query:?} in chunks of at most {LIMIT} rays"));
+    }
+    assert_eq!(requests(&daemon, &["TraceBatch", "TraceStream"]), [0, 4], "6912 rays > 1000: every trace streams");
+}

@@ -30,6 +30,8 @@ pub struct ClientOptions {
     pub stream_chunk_bytes: usize,
     /// `TraceStream` chunks sent and not yet answered, at most (keeps memory bounded on both sides).
     pub stream_window: usize,
+    /// Rays in one `TraceBatch` call or one `TraceStream` chunk, at most (the server's `max_rays_per_batch`).
+    pub max_rays_per_call: usize,
     /// Meshes whose packed vertices and indices together are smaller than this go inline in `BuildAccel`;
     /// larger ones are uploaded as buffers first.
     pub inline_mesh_bytes: usize,
@@ -45,9 +47,21 @@ impl Default for ClientOptions {
             batch_limit_bytes: 32 * MIB,
             stream_chunk_bytes: 4 * MIB,
             stream_window: 4,
+            max_rays_per_call: 1 << 24,
             inline_mesh_bytes: 8 * MIB,
             upload_chunk_bytes: MIB,
         }
+    }
+}
+
+impl ClientOptions {
+    /// Lowers every option that the server's limits bound.
+    fn fit_to(&mut self, limits: &proto::Limits) {
+        let server = |value: u64| usize::try_from(value).unwrap_or(usize::MAX);
+        self.max_message_bytes = self.max_message_bytes.min(server(limits.max_message_bytes));
+        self.batch_limit_bytes = self.batch_limit_bytes.min(self.max_message_bytes / 2);
+        self.max_rays_per_call = self.max_rays_per_call.min(server(limits.max_rays_per_batch)).max(1);
+        self.stream_window = self.stream_window.min(limits.stream_window as usize).max(1);
     }
 }
 
@@ -61,14 +75,20 @@ pub struct Client {
 }
 
 impl Client {
-    /// Connects to `url` (e.g. [`DEFAULT_SERVER`]) now, so that an unreachable server is reported here.
-    pub async fn connect(url: &str, options: ClientOptions) -> Result<Client> {
+    /// Connects to `url` (e.g. [`DEFAULT_SERVER`]) now, so that an unreachable server is reported here, and
+    /// lowers the options' message size, rays per call and stream window to the server's limits.
+    pub async fn connect(url: &str, mut options: ClientOptions) -> Result<Client> {
         let connect_error = |reason: String| Error::Connect { url: url.to_owned(), reason };
         let auth = Auth::new(options.token.as_deref())?;
         let endpoint = Endpoint::from_shared(url.to_owned())
             .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
         let channel = endpoint.tcp_nodelay(true).connect().await.map_err(|e| connect_error(chain(&e)))?;
-        let rpc = RaydClient::with_interceptor(channel, auth)
+        let mut rpc = RaydClient::with_interceptor(channel, auth);
+        let info = rpc.get_server_info(proto::GetServerInfoRequest {}).await?.into_inner();
+        if let Some(limits) = info.limits {
+            options.fit_to(&limits);
+        }
+        let rpc = rpc
             .max_decoding_message_size(options.max_message_bytes)
             .max_encoding_message_size(options.max_message_bytes);
         Ok(Client { rpc, options })

@@ -76,7 +76,8 @@ impl Client {
     pub async fn trace(&self, accel: &str, query: &Query, rays: Bytes) -> Result<TraceResult> {
         let layout = query.output_layout(rays.len()).map_err(|e| Error::InvalidArgument(e.to_string()))?;
         let limit = self.options.batch_limit_bytes;
-        if rays.len() <= limit && layout.hits + layout.counts <= limit {
+        if rays.len() <= limit && layout.hits + layout.counts <= limit && layout.rays <= self.options.max_rays_per_call
+        {
             self.trace_batch(accel, query, rays, &layout).await
         } else {
             self.trace_stream(accel, query, rays, &layout).await
@@ -110,7 +111,8 @@ impl Client {
         rays: Bytes,
         layout: &OutputLayout,
     ) -> Result<TraceResult> {
-        let chunk_rays = chunk_rays(query, self.options.stream_chunk_bytes.min(self.options.batch_limit_bytes));
+        let chunk_bytes = self.options.stream_chunk_bytes.min(self.options.batch_limit_bytes);
+        let chunk_rays = chunk_rays(query, chunk_bytes, self.options.max_rays_per_call);
         let chunk_bytes = chunk_rays * query.ray_format.size();
         let chunks: Vec<Bytes> =
             (0..rays.len()).step_by(chunk_bytes).map(|s| rays.slice(s..(s + chunk_bytes).min(rays.len()))).collect();
@@ -153,13 +155,14 @@ impl Client {
     }
 }
 
-/// Rays per stream chunk: as many as keep the chunk's rays, and its hits and counts, within `chunk_bytes`, rounded
-/// down to a multiple of 8 (so bitmask chunks end on a byte and concatenate exactly), at least 8.
-pub(crate) fn chunk_rays(query: &Query, chunk_bytes: usize) -> usize {
+/// Rays per stream chunk: as many as keep the chunk's rays, and its hits and counts, within `chunk_bytes`, and at
+/// most `max_rays`, rounded down to a multiple of 8 (so bitmask chunks end on a byte and concatenate exactly), at
+/// least 8 (or `max_rays` when that is smaller).
+pub(crate) fn chunk_rays(query: &Query, chunk_bytes: usize, max_rays: usize) -> usize {
     let hit_bytes = query.hit_format.size().unwrap_or(1) * query.records_per_ray();
     let count_bytes = if query.kind.has_counts() { 4 } else { 0 };
     let per_ray = query.ray_format.size().max(hit_bytes + count_bytes);
-    (chunk_bytes / per_ray / 8 * 8).max(8)
+    ((chunk_bytes / per_ray).min(max_rays) / 8 * 8).max(8).min(max_rays.max(1))
 }
 
 /// Fails with [`Error::Protocol`] unless the (hits, counts) byte lengths are the expected ones.
@@ -202,14 +205,20 @@ mod tests {
     #[test]
     fn chunks_are_whole_multiples_of_8_rays_sized_by_the_larger_side() {
         let query = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
-        assert_eq!(chunk_rays(&query, 4 << 20), (4 << 20) / 48 / 8 * 8, "48-byte hits outweigh 24-byte rays");
+        assert_eq!(
+            chunk_rays(&query, 4 << 20, usize::MAX),
+            (4 << 20) / 48 / 8 * 8,
+            "48-byte hits outweigh 24-byte rays"
+        );
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Bitmask);
-        assert_eq!(chunk_rays(&query, 4 << 20), (4 << 20) / 32);
+        assert_eq!(chunk_rays(&query, 4 << 20, usize::MAX), (4 << 20) / 32);
         let query =
             Query { kind: QueryKind::All, max_hits_per_ray: 1000, ..Query::closest(RayFormat::Full, HitFormat::Full) };
-        assert_eq!(chunk_rays(&query, 4 << 20) % 8, 0);
-        assert_eq!(chunk_rays(&query, 4 << 20), (4 << 20) / 48004 / 8 * 8);
-        assert_eq!(chunk_rays(&query, 1000), 8, "never fewer than 8 rays");
+        assert_eq!(chunk_rays(&query, 4 << 20, usize::MAX) % 8, 0);
+        assert_eq!(chunk_rays(&query, 4 << 20, usize::MAX), (4 << 20) / 48004 / 8 * 8);
+        assert_eq!(chunk_rays(&query, 1000, usize::MAX), 8, "never fewer than 8 rays");
+        assert_eq!(chunk_rays(&query, 4 << 20, 20), 16, "the server's max_rays_per_batch caps chunks");
+        assert_eq!(chunk_rays(&query, 4 << 20, 5), 5, "below 8 rays only when the server allows fewer");
     }
 
     #[test]
