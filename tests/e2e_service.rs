@@ -658,6 +658,22 @@ async fn sigterm_lets_a_running_trace_finish_then_exits_zero() {
     assert!(Channel::from_shared(url).expect("a URL").connect().await.is_err(), "no connection after the exit");
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_left_open_delays_the_exit_by_the_grace_period_only() {
+    let mut daemon = Daemon::start(&[("RAYD_SHUTDOWN_GRACE_SECONDS", "1")]);
+    let channel = channel(&daemon).await;
+    let mut health = HealthClient::new(channel.clone());
+    let watched = HealthCheckRequest { service: "rayd.v1.Rayd".into() };
+    let mut watch = health.watch(watched).await.expect("a health watch").into_inner();
+    assert_eq!(watch.message().await.expect("a status").expect("a first status").status(), ServingStatus::Serving);
+    daemon.terminate();
+    // The watch stays open: only the grace period (1 s) lets rayd exit; 30 s bounds the test, it measures nothing.
+    let exit = tokio::task::block_in_place(|| daemon.wait_at_most(std::time::Duration::from_secs(30)));
+    let exit = exit.expect("rayd exits once the grace period is over, though a stream is still open");
+    assert_eq!(exit.code(), Some(0), "{exit:?}");
+    drop((watch, health, channel));
+}
+
 #[tokio::test]
 async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
     let daemon = Daemon::start(&[]);

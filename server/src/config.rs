@@ -21,6 +21,9 @@ pub struct Config {
     pub data_dir: Option<PathBuf>,
     /// Log output: `text` or `json`.
     pub log_format: String,
+    /// After SIGTERM, how long calls in flight (and open streams, such as health watches) may go on before rayd
+    /// exits anyway.
+    pub shutdown_grace_seconds: u64,
     /// Request limits.
     pub limits: Limits,
 }
@@ -32,6 +35,7 @@ impl Default for Config {
             admin_listen: Some("127.0.0.1:9464".parse().expect("valid address")),
             data_dir: None,
             log_format: "text".into(),
+            shutdown_grace_seconds: 30,
             limits: Limits::default(),
         }
     }

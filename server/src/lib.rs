@@ -24,7 +24,7 @@ use service::RaydService;
 
 /// Serves the gRPC service on `listener` and the admin endpoint on `admin` until `shutdown` completes; then the
 /// health service reports NOT_SERVING, no new connection is accepted, and calls in flight finish before it
-/// returns.
+/// returns — or `shutdown_grace_seconds` pass, whichever comes first.
 pub async fn run(
     config: Config,
     listener: TcpListener,
@@ -53,19 +53,27 @@ pub async fn run(
     };
     let admin_task =
         admin.map(|listener| tokio::spawn(admin::serve(listener, metrics, wait_for_stop(stopped.clone()))));
-    let grpc_stop = wait_for_stop(stopped);
+    let grpc_stop = wait_for_stop(stopped.clone());
+    let grace = std::time::Duration::from_secs(config.shutdown_grace_seconds);
+    let grace_over = async move {
+        wait_for_stop(stopped).await;
+        tokio::time::sleep(grace).await;
+    };
     tokio::spawn(async move {
         shutdown.await;
         tracing::info!("shutting down: finishing calls in flight");
         health.set_not_serving::<RaydServer<RaydService>>().await;
         let _ = stop.send(true);
     });
-    tonic::transport::Server::builder()
+    let server = tonic::transport::Server::builder()
         .add_service(health_service)
         .add_service(reflection)
         .add_service(rayd)
-        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), grpc_stop)
-        .await?;
+        .serve_with_incoming_shutdown(TcpIncoming::from(listener).with_nodelay(Some(true)), grpc_stop);
+    tokio::select! {
+        served = server => served?,
+        () = grace_over => tracing::warn!(seconds = grace.as_secs(), "grace period over: exiting with calls still open"),
+    }
     if let Some(task) = admin_task {
         task.await??;
     }

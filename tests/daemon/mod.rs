@@ -149,6 +149,20 @@ impl Daemon {
         self.child.wait().expect("rayd can be waited for")
     }
 
+    /// Waits for the process to exit, at most `limit` (a bound against hanging, not a measurement).
+    pub fn wait_at_most(&mut self, limit: std::time::Duration) -> Option<ExitStatus> {
+        let deadline = std::time::Instant::now() + limit;
+        loop {
+            if let Some(status) = self.child.try_wait().expect("rayd can be waited for") {
+                return Some(status);
+            }
+            if std::time::Instant::now() >= deadline {
+                return None;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+
     /// Sends SIGTERM and waits for the exit.
     pub fn stop(&mut self) -> ExitStatus {
         self.terminate();
