@@ -8,6 +8,7 @@ pub mod config;
 mod convert;
 mod error;
 mod metrics;
+mod registry;
 mod service;
 mod tenant;
 

@@ -7,8 +7,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use bytes::Bytes;
-use dashmap::DashMap;
-use dashmap::mapref::entry::Entry;
 use rayd_engine::accel::{BuildOptions, MemoryUsage};
 use rayd_engine::geometry::BuildInput;
 use rayd_engine::query::{Query, TraceOutput, TraceStats};
@@ -16,6 +14,7 @@ use rayd_engine::{Accel, BufferHandle, Context, Device};
 
 use crate::config::Limits;
 use crate::error::{ServiceError, ServiceResult};
+use crate::registry::Registry;
 
 /// The device used when a request names none.
 pub const DEFAULT_DEVICE: &str = "cpu:0";
@@ -68,14 +67,10 @@ pub struct Tenant {
     limits: Limits,
     /// One context per device, by device id.
     contexts: HashMap<String, Context>,
-    /// Accels by name.
-    accels: DashMap<String, AccelEntry>,
-    /// Accel names by handle.
-    handles: DashMap<String, String>,
-    /// Buffers by id.
-    buffers: DashMap<String, BufferEntry>,
-    /// Buffer ids by name (named buffers only).
-    buffer_names: DashMap<String, String>,
+    /// Accels by handle and name.
+    accels: Registry<AccelEntry>,
+    /// Buffers by id and name.
+    buffers: Registry<BufferEntry>,
     /// The next buffer number.
     next_buffer: AtomicU64,
 }
@@ -96,10 +91,8 @@ impl Tenant {
         Tenant {
             limits,
             contexts: devices.iter().map(|d| (d.info().id.clone(), Context::new(d.clone()))).collect(),
-            accels: DashMap::new(),
-            handles: DashMap::new(),
-            buffers: DashMap::new(),
-            buffer_names: DashMap::new(),
+            accels: Registry::new("accel"),
+            buffers: Registry::new("buffer"),
             next_buffer: AtomicU64::new(1),
         }
     }
@@ -137,9 +130,7 @@ impl Tenant {
         options: &BuildOptions,
     ) -> ServiceResult<AccelEntry> {
         check_name("name", name)?;
-        if self.accels.contains_key(name) {
-            return Err(ServiceError::AlreadyExists { what: "accel", name: name.into() });
-        }
+        self.accels.check_free(name)?;
         let count = self.accels.len() as u64 + 1;
         ServiceError::check_limit(
             || "accels of this tenant".into(),
@@ -164,46 +155,28 @@ impl Tenant {
             device: device.into(),
             build_ns: start.elapsed().as_nanos() as u64,
         };
-        match self.accels.entry(name.into()) {
-            Entry::Occupied(_) => {
-                context.destroy_accel(entry.accel.handle())?;
-                Err(ServiceError::AlreadyExists { what: "accel", name: name.into() })
-            }
-            Entry::Vacant(slot) => {
-                self.handles.insert(entry.handle.clone(), name.into());
-                slot.insert(entry.clone());
-                Ok(entry)
-            }
+        if let Err(taken) = self.accels.insert(entry.handle.clone(), name, entry.clone()) {
+            context.destroy_accel(entry.accel.handle())?;
+            return Err(taken);
         }
+        Ok(entry)
     }
 
     /// The accel with this name or handle.
     pub fn accel(&self, by_name: Option<&str>, by_handle: Option<&str>) -> ServiceResult<AccelEntry> {
-        let name = match (by_name, by_handle) {
-            (Some(name), _) => name.to_string(),
-            (None, Some(handle)) => self
-                .handles
-                .get(handle)
-                .map(|n| n.clone())
-                .ok_or_else(|| ServiceError::NotFound { what: "accel", name: handle.into() })?,
-            (None, None) => return Err(ServiceError::invalid("accel", "name or handle is required")),
-        };
-        self.accels.get(&name).map(|e| e.clone()).ok_or(ServiceError::NotFound { what: "accel", name })
+        self.accels.get(by_handle, by_name)
     }
 
     /// Every accel, in creation order.
     pub fn accels(&self) -> Vec<AccelEntry> {
-        let mut all: Vec<AccelEntry> = self.accels.iter().map(|e| e.clone()).collect();
+        let mut all = self.accels.values();
         all.sort_by_key(|e| e.accel.handle());
         all
     }
 
     /// Destroys an accel; traces holding it finish first.
     pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
-        if self.accels.remove(&entry.name).is_none() {
-            return Err(ServiceError::NotFound { what: "accel", name: entry.name.clone() });
-        }
-        self.handles.remove(&entry.handle);
+        self.accels.remove(&entry.handle, &entry.name)?;
         self.context(&entry.device)?.1.destroy_accel(entry.accel.handle())?;
         Ok(())
     }
@@ -212,9 +185,7 @@ impl Tenant {
     pub fn check_new_buffer(&self, name: &str, size: u64) -> ServiceResult<()> {
         if !name.is_empty() {
             check_name("header.name", name)?;
-            if self.buffer_names.contains_key(name) {
-                return Err(ServiceError::AlreadyExists { what: "buffer", name: name.into() });
-            }
+            self.buffers.check_free(name)?;
         }
         ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
         let count = self.buffers.len() as u64 + 1;
@@ -230,53 +201,34 @@ impl Tenant {
     pub fn create_buffer(&self, name: &str, data: Bytes) -> ServiceResult<BufferEntry> {
         self.check_new_buffer(name, data.len() as u64)?;
         let id = format!("buf-{}", self.next_buffer.fetch_add(1, Ordering::Relaxed));
-        if !name.is_empty() {
-            match self.buffer_names.entry(name.into()) {
-                Entry::Occupied(_) => return Err(ServiceError::AlreadyExists { what: "buffer", name: name.into() }),
-                Entry::Vacant(slot) => {
-                    slot.insert(id.clone());
-                }
-            }
-        }
         let size_bytes = data.len() as u64;
-        let handle = self.context(DEFAULT_DEVICE)?.1.create_buffer(data);
+        let context = self.context(DEFAULT_DEVICE)?.1;
+        let handle = context.create_buffer(data);
         let entry = BufferEntry { id: id.clone(), name: name.into(), handle, size_bytes };
-        self.buffers.insert(id, entry.clone());
+        if let Err(taken) = self.buffers.insert(id, name, entry.clone()) {
+            context.destroy_buffer(handle)?;
+            return Err(taken);
+        }
         Ok(entry)
     }
 
     /// The buffer with this id or name.
     pub fn buffer(&self, by_id: Option<&str>, by_name: Option<&str>) -> ServiceResult<(BufferEntry, Bytes)> {
-        let id = match (by_id, by_name) {
-            (Some(id), _) => id.to_string(),
-            (None, Some(name)) => self
-                .buffer_names
-                .get(name)
-                .map(|id| id.clone())
-                .ok_or_else(|| ServiceError::NotFound { what: "buffer", name: name.into() })?,
-            (None, None) => return Err(ServiceError::invalid("buffer", "id or name is required")),
-        };
-        let entry =
-            self.buffers.get(&id).map(|e| e.clone()).ok_or(ServiceError::NotFound { what: "buffer", name: id })?;
+        let entry = self.buffers.get(by_id, by_name)?;
         let bytes = self.context(DEFAULT_DEVICE)?.1.buffer(entry.handle)?;
         Ok((entry, bytes))
     }
 
     /// Every buffer, in creation order.
     pub fn buffers(&self) -> Vec<BufferEntry> {
-        let mut all: Vec<BufferEntry> = self.buffers.iter().map(|e| e.clone()).collect();
+        let mut all = self.buffers.values();
         all.sort_by_key(|e| e.handle);
         all
     }
 
     /// Deletes a buffer.
     pub fn delete_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
-        if self.buffers.remove(&entry.id).is_none() {
-            return Err(ServiceError::NotFound { what: "buffer", name: entry.id.clone() });
-        }
-        if !entry.name.is_empty() {
-            self.buffer_names.remove(&entry.name);
-        }
+        self.buffers.remove(&entry.id, &entry.name)?;
         self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
         Ok(())
     }
