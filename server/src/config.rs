@@ -59,8 +59,11 @@ pub struct Limits {
     pub max_buffer_bytes: u64,
     /// Most buffers per tenant.
     pub max_buffers: u32,
-    /// Chunks of one `TraceStream` traced or waiting to be sent at once.
+    /// Per `TraceStream`: chunks traced or waiting to be sent at once. Per `OpenStream` stream: messages read
+    /// ahead of the running operation, and answers waiting to be sent.
     pub stream_window: u32,
+    /// Most `OpenStream` streams open at once per tenant.
+    pub max_streams: u32,
 }
 
 impl Default for Limits {
@@ -74,6 +77,7 @@ impl Default for Limits {
             max_buffer_bytes: 4 << 30,
             max_buffers: 4096,
             stream_window: 4,
+            max_streams: 64,
         }
     }
 }

@@ -131,6 +131,18 @@ pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
         max_buffer_bytes: limits.max_buffer_bytes,
         max_buffers: limits.max_buffers,
         stream_window: limits.stream_window,
+        max_streams: limits.max_streams,
+    }
+}
+
+/// The contract's description of a tenant's holdings.
+pub fn usage(usage: &crate::tenant::Usage) -> pb::Usage {
+    pb::Usage {
+        accels: usage.accels,
+        buffers: usage.buffers,
+        object_bytes: usage.object_bytes,
+        streams: usage.streams,
+        stream_bytes: usage.stream_bytes,
     }
 }
 

@@ -33,6 +33,9 @@ pub enum ServiceError {
         /// The name.
         name: String,
     },
+    /// An object in the wrong state for the request (e.g. the product of a stream operation that failed).
+    #[error("{0}")]
+    Precondition(String),
     /// The gRPC layer refused a message (too large, malformed, or the peer went away); its status is kept.
     #[error("{}", .0.message())]
     Transport(Status),
@@ -83,6 +86,7 @@ impl From<ServiceError> for Status {
             ServiceError::NotFound { .. } => Code::NotFound,
             ServiceError::AlreadyExists { .. } => Code::AlreadyExists,
             ServiceError::Limit { .. } => Code::ResourceExhausted,
+            ServiceError::Precondition(_) => Code::FailedPrecondition,
             ServiceError::Transport(status) => status.code(),
         };
         Status::new(code, error.to_string())

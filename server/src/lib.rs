@@ -10,6 +10,7 @@ mod error;
 mod metrics;
 mod registry;
 mod service;
+mod streams;
 mod tenant;
 
 use std::future::Future;

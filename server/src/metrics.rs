@@ -73,3 +73,9 @@ pub fn accel_destroyed(entry: &AccelEntry) {
     gauge!("rayd_accel_bytes").decrement(entry.accel.info().size_bytes as f64);
     tracing::info!(name = entry.name, handle = entry.handle, "accel destroyed");
 }
+
+/// Counts one finished stream operation.
+pub fn stream_operation(op: &'static str, code: tonic::Code, duration_ns: u64) {
+    histogram!("rayd_stream_operation_duration_seconds", "op" => op).record(duration_ns as f64 * 1e-9);
+    counter!("rayd_stream_operations_total", "op" => op, "code" => format!("{code:?}")).increment(1);
+}

@@ -15,6 +15,7 @@ use rayd_engine::{Accel, BufferHandle, Context, Device};
 use crate::config::Limits;
 use crate::error::{ServiceError, ServiceResult};
 use crate::registry::Registry;
+use crate::streams::Streams;
 
 /// The device used when a request names none.
 pub const DEFAULT_DEVICE: &str = "cpu:0";
@@ -73,6 +74,23 @@ pub struct Tenant {
     buffers: Registry<BufferEntry>,
     /// The next buffer number.
     next_buffer: AtomicU64,
+    /// Open streams.
+    streams: Arc<Streams>,
+}
+
+/// What a tenant holds now.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Usage {
+    /// Accels.
+    pub accels: u32,
+    /// Buffers.
+    pub buffers: u32,
+    /// Bytes of accels and buffers on every device, as the contexts account them.
+    pub object_bytes: u64,
+    /// Streams open.
+    pub streams: u32,
+    /// Bytes the streams hold.
+    pub stream_bytes: u64,
 }
 
 /// Checks an accel or buffer name: 1 to 128 characters of `[A-Za-z0-9._-]`.
@@ -94,6 +112,23 @@ impl Tenant {
             accels: Registry::new("accel"),
             buffers: Registry::new("buffer"),
             next_buffer: AtomicU64::new(1),
+            streams: Arc::default(),
+        }
+    }
+
+    /// The tenant's streams.
+    pub fn streams(&self) -> &Arc<Streams> {
+        &self.streams
+    }
+
+    /// What the tenant holds now.
+    pub fn usage(&self) -> Usage {
+        Usage {
+            accels: self.accels.len() as u32,
+            buffers: self.buffers.len() as u32,
+            object_bytes: self.contexts.values().map(Context::memory_in_use).sum(),
+            streams: self.streams.open_count(),
+            stream_bytes: self.streams.held_bytes(),
         }
     }
 

@@ -3,7 +3,7 @@
 use std::pin::Pin;
 use std::sync::Arc;
 
-use bytes::BytesMut;
+use bytes::{Bytes, BytesMut};
 use rayd_proto as pb;
 use tokio_stream::Stream;
 use tonic::Streaming;
@@ -26,11 +26,64 @@ pub fn info(entry: &BufferEntry) -> pb::BufferInfo {
 }
 
 /// The buffer a reference names.
-pub fn resolve(tenant: &Tenant, reference: &pb::BufferRef) -> ServiceResult<BufferEntry> {
-    match &reference.r#ref {
-        Some(pb::buffer_ref::Ref::Id(id)) => Ok(tenant.buffer(Some(id), None)?.0),
-        Some(pb::buffer_ref::Ref::Name(name)) => Ok(tenant.buffer(None, Some(name))?.0),
-        None => Err(ServiceError::invalid("buffer", "a buffer id or name is required")),
+pub fn resolve(tenant: &Tenant, reference: Option<&pb::BufferRef>, field: &str) -> ServiceResult<(BufferEntry, Bytes)> {
+    match reference.and_then(|r| r.r#ref.as_ref()) {
+        Some(pb::buffer_ref::Ref::Id(id)) => tenant.buffer(Some(id), None),
+        Some(pb::buffer_ref::Ref::Name(name)) => tenant.buffer(None, Some(name)),
+        Some(pb::buffer_ref::Ref::Operation(_)) => Err(super::operation_outside_stream(field)),
+        None => Err(ServiceError::invalid(field, "a buffer id or name is required")),
+    }
+}
+
+/// A buffer being received: its header was checked against the limits, its data grows as it arrives.
+#[derive(Debug)]
+pub struct Upload {
+    /// The declared name and size.
+    header: pb::UploadBufferHeader,
+    /// What arrived so far.
+    data: BytesMut,
+}
+
+impl Upload {
+    /// Starts an upload after checking its name and declared size; a header alone never reserves the whole
+    /// declared size.
+    pub fn begin(tenant: &Tenant, header: pb::UploadBufferHeader) -> ServiceResult<Upload> {
+        tenant.check_new_buffer(&header.name, header.size_bytes)?;
+        let data = BytesMut::with_capacity(header.size_bytes.min(UPLOAD_RESERVE_BYTES) as usize);
+        Ok(Upload { header, data })
+    }
+
+    /// Appends `chunk`; more than the declared size is INVALID_ARGUMENT.
+    pub fn push(&mut self, chunk: &[u8]) -> ServiceResult<()> {
+        if self.data.len() as u64 + chunk.len() as u64 > self.header.size_bytes {
+            return Err(ServiceError::invalid(
+                "data",
+                format!("more than the declared {} bytes", self.header.size_bytes),
+            ));
+        }
+        self.data.extend_from_slice(chunk);
+        Ok(())
+    }
+
+    /// Bytes received so far.
+    pub fn received(&self) -> u64 {
+        self.data.len() as u64
+    }
+
+    /// Whether every declared byte has arrived.
+    pub fn is_complete(&self) -> bool {
+        self.received() == self.header.size_bytes
+    }
+
+    /// Keeps the data as a buffer, if all of it came.
+    pub fn finish(self, tenant: &Tenant) -> ServiceResult<BufferEntry> {
+        if !self.is_complete() {
+            return Err(ServiceError::invalid(
+                "data",
+                format!("{} bytes received, {} declared", self.received(), self.header.size_bytes),
+            ));
+        }
+        tenant.create_buffer(&self.header.name, self.data.freeze())
     }
 }
 
@@ -44,32 +97,22 @@ pub async fn upload(
         Ok(_) => return Err(ServiceError::invalid("header", "the first message of an upload must be its header")),
         Err(status) => return Err(ServiceError::Transport(status)),
     };
-    tenant.check_new_buffer(&header.name, header.size_bytes)?;
-    // Grows as data arrives: a header alone never reserves the whole declared size.
-    let mut data = BytesMut::with_capacity(header.size_bytes.min(UPLOAD_RESERVE_BYTES) as usize);
+    let mut upload = Upload::begin(&tenant, header)?;
     while let Some(message) = stream.message().await.map_err(ServiceError::Transport)? {
         let Some(pb::upload_buffer_request::Part::Data(chunk)) = message.part else {
             return Err(ServiceError::invalid("header", "only the first message may be a header"));
         };
-        if data.len() as u64 + chunk.len() as u64 > header.size_bytes {
-            return Err(ServiceError::invalid("data", format!("more than the declared {} bytes", header.size_bytes)));
-        }
-        data.extend_from_slice(&chunk);
+        upload.push(&chunk)?;
     }
-    if data.len() as u64 != header.size_bytes {
-        return Err(ServiceError::invalid(
-            "data",
-            format!("{} bytes received, {} declared", data.len(), header.size_bytes),
-        ));
-    }
-    Ok(info(&tenant.create_buffer(&header.name, data.freeze())?))
+    Ok(info(&upload.finish(&tenant)?))
 }
 
-/// Streams a range of a buffer as zero-copy slices.
-pub fn download(tenant: &Tenant, request: &pb::DownloadBufferRequest) -> ServiceResult<ChunkStream> {
-    let reference = request.buffer.as_ref().ok_or_else(|| ServiceError::invalid("buffer", "required"))?;
-    let entry = resolve(tenant, reference)?;
-    let (_, bytes) = tenant.buffer(Some(&entry.id), None)?;
+/// The buffer a download reads and its range in chunks (zero-copy slices).
+pub fn download_chunks(
+    tenant: &Tenant,
+    request: &pb::DownloadBufferRequest,
+) -> ServiceResult<(BufferEntry, impl Iterator<Item = pb::BufferChunk> + Send + 'static)> {
+    let (entry, bytes) = resolve(tenant, request.buffer.as_ref(), "buffer")?;
     let size = bytes.len() as u64;
     if request.offset > size {
         return Err(ServiceError::invalid(
@@ -85,7 +128,19 @@ pub fn download(tenant: &Tenant, request: &pb::DownloadBufferRequest) -> Service
     let chunk = if request.chunk_bytes == 0 { DEFAULT_CHUNK_BYTES } else { request.chunk_bytes as u64 }.min(limit);
     let chunks = (request.offset..end).step_by(chunk as usize).map(move |offset| {
         let stop = (offset + chunk).min(end);
-        Ok(pb::BufferChunk { offset, data: bytes.slice(offset as usize..stop as usize) })
+        pb::BufferChunk { offset, data: bytes.slice(offset as usize..stop as usize) }
     });
-    Ok(Box::pin(tokio_stream::iter(chunks)))
+    Ok((entry, chunks))
+}
+
+/// Streams a range of a buffer.
+pub fn download(tenant: &Tenant, request: &pb::DownloadBufferRequest) -> ServiceResult<ChunkStream> {
+    let (_, chunks) = download_chunks(tenant, request)?;
+    Ok(Box::pin(tokio_stream::iter(chunks.map(Ok))))
+}
+
+/// Deletes a buffer.
+pub fn delete(tenant: &Tenant, request: &pb::DeleteBufferRequest) -> ServiceResult<()> {
+    let (entry, _) = resolve(tenant, request.buffer.as_ref(), "buffer")?;
+    tenant.delete_buffer(&entry)
 }

@@ -88,15 +88,8 @@ fn data(tenant: &Tenant, source: Option<&pb::DataSource>, field: &str) -> Servic
     let Some(source) = source.and_then(|s| s.source.as_ref()) else { return Ok(None) };
     match source {
         pb::data_source::Source::Inline(bytes) => Ok(Some(bytes.clone())),
-        pb::data_source::Source::Buffer(reference) => Ok(Some(buffer_bytes(tenant, reference, field)?)),
-    }
-}
-
-/// The bytes of a referenced buffer.
-pub fn buffer_bytes(tenant: &Tenant, reference: &pb::BufferRef, field: &str) -> ServiceResult<Bytes> {
-    match &reference.r#ref {
-        Some(pb::buffer_ref::Ref::Id(id)) => Ok(tenant.buffer(Some(id), None)?.1),
-        Some(pb::buffer_ref::Ref::Name(name)) => Ok(tenant.buffer(None, Some(name))?.1),
-        None => Err(ServiceError::invalid(field, "a buffer id or name is required")),
+        pb::data_source::Source::Buffer(reference) => {
+            Ok(Some(super::buffers::resolve(tenant, Some(reference), field)?.1))
+        }
     }
 }

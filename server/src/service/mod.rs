@@ -1,8 +1,10 @@
 //! The gRPC handlers. Each one validates and converts its request, calls the tenant's logic (off the async
 //! runtime when it is heavy), and converts the result; errors become statuses in [`crate::error`].
 
+mod accels;
 mod buffers;
 mod inputs;
+mod stream;
 mod trace;
 
 use std::sync::Arc;
@@ -15,7 +17,7 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::metrics::observe;
-use crate::tenant::{AccelEntry, Tenant};
+use crate::tenant::Tenant;
 
 /// Shared state of every call.
 #[derive(Debug)]
@@ -44,18 +46,9 @@ async fn blocking<T: Send + 'static>(work: impl FnOnce() -> ServiceResult<T> + S
     tokio::task::spawn_blocking(work).await.expect("blocking work does not panic")
 }
 
-/// The accel a reference names.
-fn resolve_accel(tenant: &Tenant, reference: Option<&pb::AccelRef>, field: &str) -> ServiceResult<AccelEntry> {
-    match reference.and_then(|r| r.r#ref.as_ref()) {
-        Some(pb::accel_ref::Ref::Name(name)) => tenant.accel(Some(name), None),
-        Some(pb::accel_ref::Ref::Handle(handle)) => tenant.accel(None, Some(handle)),
-        None => Err(ServiceError::invalid(field, "an accel name or handle is required")),
-    }
-}
-
-/// The contract's description of an accel.
-fn accel_message(entry: &AccelEntry) -> pb::AccelInfo {
-    convert::accel_info(entry.accel.info(), &entry.handle, &entry.name, &entry.device, entry.build_ns)
+/// The error for a reference to a stream operation made outside any stream.
+fn operation_outside_stream(field: &str) -> ServiceError {
+    ServiceError::invalid(field, "names a stream operation, which only an operation of the same stream may do")
 }
 
 #[tonic::async_trait]
@@ -69,6 +62,7 @@ impl Rayd for RaydService {
             Ok(pb::ServerInfo {
                 version: env!("CARGO_PKG_VERSION").into(),
                 limits: Some(convert::limits(tenant.limits())),
+                usage: Some(convert::usage(&tenant.usage())),
             })
         })
         .await
@@ -109,10 +103,7 @@ impl Rayd for RaydService {
     ) -> Result<Response<pb::DeleteBufferResponse>, Status> {
         let tenant = self.tenant(&request);
         observe("DeleteBuffer", async {
-            let reference =
-                request.get_ref().buffer.as_ref().ok_or_else(|| ServiceError::invalid("buffer", "required"))?;
-            let entry = buffers::resolve(&tenant, reference)?;
-            tenant.delete_buffer(&entry)?;
+            buffers::delete(&tenant, request.get_ref())?;
             Ok(pb::DeleteBufferResponse {})
         })
         .await
@@ -146,25 +137,13 @@ impl Rayd for RaydService {
 
     async fn build_accel(&self, request: Request<pb::BuildAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.tenant(&request);
-        observe("BuildAccel", async {
-            let request = request.into_inner();
-            let owned = inputs::resolve(&tenant, &request.inputs)?;
-            let options = convert::build_options(request.options.as_ref());
-            let entry = blocking(move || {
-                let inputs: Vec<_> = owned.iter().map(|i| i.as_input()).collect();
-                tenant.build_accel(&request.name, &request.device, &inputs, &options)
-            })
-            .await?;
-            crate::metrics::accel_built(&entry);
-            Ok(accel_message(&entry))
-        })
-        .await
+        observe("BuildAccel", accels::build(tenant, request.into_inner())).await
     }
 
     async fn get_accel(&self, request: Request<pb::GetAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.tenant(&request);
         observe("GetAccel", async {
-            Ok(accel_message(&resolve_accel(&tenant, request.get_ref().accel.as_ref(), "accel")?))
+            Ok(accels::info(&accels::resolve(&tenant, request.get_ref().accel.as_ref(), "accel")?))
         })
         .await
     }
@@ -175,7 +154,7 @@ impl Rayd for RaydService {
     ) -> Result<Response<pb::ListAccelsResponse>, Status> {
         let tenant = self.tenant(&request);
         observe("ListAccels", async {
-            Ok(pb::ListAccelsResponse { accels: tenant.accels().iter().map(accel_message).collect() })
+            Ok(pb::ListAccelsResponse { accels: tenant.accels().iter().map(accels::info).collect() })
         })
         .await
     }
@@ -186,9 +165,7 @@ impl Rayd for RaydService {
     ) -> Result<Response<pb::DestroyAccelResponse>, Status> {
         let tenant = self.tenant(&request);
         observe("DestroyAccel", async {
-            let entry = resolve_accel(&tenant, request.get_ref().accel.as_ref(), "accel")?;
-            tenant.destroy_accel(&entry)?;
-            crate::metrics::accel_destroyed(&entry);
+            accels::destroy(&tenant, request.get_ref())?;
             Ok(pb::DestroyAccelResponse {})
         })
         .await
@@ -210,5 +187,15 @@ impl Rayd for RaydService {
     ) -> Result<Response<Self::TraceStreamStream>, Status> {
         let tenant = self.tenant(&request);
         observe("TraceStream", trace::stream(tenant, request.into_inner())).await
+    }
+
+    type OpenStreamStream = stream::ResponseStream;
+
+    async fn open_stream(
+        &self,
+        request: Request<Streaming<pb::StreamRequest>>,
+    ) -> Result<Response<Self::OpenStreamStream>, Status> {
+        let tenant = self.tenant(&request);
+        observe("OpenStream", async { stream::open(tenant, request.into_inner()) }).await
     }
 }

@@ -11,7 +11,7 @@ use tokio_stream::Stream;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Status, Streaming};
 
-use super::{blocking, buffers, inputs, resolve_accel};
+use super::{accels, blocking, buffers};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::tenant::{AccelEntry, Tenant, TraceResult};
@@ -25,7 +25,7 @@ const REPLY_OVERHEAD_BYTES: u64 = 4096;
 /// The accel and engine query of a `TraceQuery`.
 fn resolve_query(tenant: &Tenant, query: Option<&pb::TraceQuery>) -> ServiceResult<(AccelEntry, Query)> {
     let query = query.ok_or_else(|| ServiceError::invalid("query", "required"))?;
-    let accel = resolve_accel(tenant, query.accel.as_ref(), "query.accel")?;
+    let accel = accels::resolve(tenant, query.accel.as_ref(), "query.accel")?;
     Ok((accel, convert::query(query, tenant.limits().max_hits_per_ray)?))
 }
 
@@ -64,7 +64,7 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     let rays = match request.rays {
         Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => bytes,
         Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => {
-            inputs::buffer_bytes(&tenant, &reference, "rays_buffer")?
+            buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1
         }
         None => return Err(ServiceError::invalid("rays", "rays_inline or rays_buffer is required")),
     };

@@ -1,0 +1,46 @@
+//! Accel calls shared by the unary handlers and stream operations: build, destroy, and reading references.
+
+use std::sync::Arc;
+
+use rayd_proto as pb;
+
+use super::{blocking, inputs};
+use crate::convert;
+use crate::error::{ServiceError, ServiceResult};
+use crate::tenant::{AccelEntry, Tenant};
+
+/// The accel a reference names.
+pub fn resolve(tenant: &Tenant, reference: Option<&pb::AccelRef>, field: &str) -> ServiceResult<AccelEntry> {
+    match reference.and_then(|r| r.r#ref.as_ref()) {
+        Some(pb::accel_ref::Ref::Name(name)) => tenant.accel(Some(name), None),
+        Some(pb::accel_ref::Ref::Handle(handle)) => tenant.accel(None, Some(handle)),
+        Some(pb::accel_ref::Ref::Operation(_)) => Err(super::operation_outside_stream(field)),
+        None => Err(ServiceError::invalid(field, "an accel name or handle is required")),
+    }
+}
+
+/// The contract's description of an accel.
+pub fn info(entry: &AccelEntry) -> pb::AccelInfo {
+    convert::accel_info(entry.accel.info(), &entry.handle, &entry.name, &entry.device, entry.build_ns)
+}
+
+/// Builds an accel (off the async runtime).
+pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> ServiceResult<pb::AccelInfo> {
+    let owned = inputs::resolve(&tenant, &request.inputs)?;
+    let options = convert::build_options(request.options.as_ref());
+    let entry = blocking(move || {
+        let inputs: Vec<_> = owned.iter().map(|i| i.as_input()).collect();
+        tenant.build_accel(&request.name, &request.device, &inputs, &options)
+    })
+    .await?;
+    crate::metrics::accel_built(&entry);
+    Ok(info(&entry))
+}
+
+/// Destroys an accel; traces running on it finish first.
+pub fn destroy(tenant: &Tenant, request: &pb::DestroyAccelRequest) -> ServiceResult<()> {
+    let entry = resolve(tenant, request.accel.as_ref(), "accel")?;
+    tenant.destroy_accel(&entry)?;
+    crate::metrics::accel_destroyed(&entry);
+    Ok(())
+}

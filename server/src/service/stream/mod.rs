@@ -1,0 +1,110 @@
+//! `OpenStream`: an ordered, asynchronous queue of operations per call (the semantics are in streams.proto).
+//!
+//! A reader task takes messages off the call into a bounded queue; an executor task runs the operations one at a
+//! time, in order, and sends their answers through a bounded channel. Everything queued or unsent is counted in
+//! the tenant's stream bytes. Cancelling the call (or a rule broken by a message) aborts both tasks, which drops
+//! the queued work and the unsent answers.
+
+mod executor;
+mod products;
+mod reader;
+
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+
+use bytes::Bytes;
+use rayd_proto as pb;
+use rayd_proto::stream_request::Op;
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tokio_stream::{Stream, StreamExt};
+use tokio_util::sync::CancellationToken;
+use tonic::{Status, Streaming};
+
+use crate::error::ServiceResult;
+use crate::streams::Held;
+use crate::tenant::Tenant;
+
+/// The response stream of `OpenStream`.
+pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::StreamResponse, Status>> + Send>>;
+
+/// A message waiting for the executor, its bytes counted while it waits.
+#[derive(Debug)]
+enum Queued {
+    /// An operation.
+    Op {
+        /// Its id.
+        id: u64,
+        /// What to do (never `UploadData`).
+        op: Op,
+        /// Its bytes, counted.
+        _held: Held,
+    },
+    /// More data of upload `id`.
+    UploadData {
+        /// The upload's operation id.
+        id: u64,
+        /// The bytes.
+        data: Bytes,
+        /// Its bytes, counted.
+        _held: Held,
+    },
+}
+
+/// An answer waiting to be sent, its bytes counted until the call takes it.
+#[derive(Debug)]
+struct Answer {
+    /// The message.
+    response: pb::StreamResponse,
+    /// Its bytes, counted.
+    _held: Held,
+}
+
+/// How a stream is stopped early, shared by its two tasks.
+#[derive(Debug, Default)]
+struct Abort {
+    /// Cancelled when the stream must stop.
+    token: CancellationToken,
+    /// The status the call ends with, when a message broke the rules (the first reason wins).
+    reason: Mutex<Option<Status>>,
+}
+
+impl Abort {
+    /// Stops both tasks; `reason` (if any) ends the call after the answers already sent.
+    fn abort(&self, reason: Option<Status>) {
+        if let Some(status) = reason {
+            self.reason.lock().expect("not poisoned").get_or_insert(status);
+        }
+        self.token.cancel();
+    }
+
+    /// Completes once the stream must stop.
+    async fn cancelled(&self) {
+        self.token.cancelled().await
+    }
+
+    /// The status to end the call with, if any.
+    fn take_reason(&self) -> Option<Status> {
+        self.reason.lock().expect("not poisoned").take()
+    }
+}
+
+/// Opens a stream for `tenant` over `requests`.
+pub fn open(tenant: Arc<Tenant>, requests: Streaming<pb::StreamRequest>) -> ServiceResult<ResponseStream> {
+    let slot = tenant.streams().open(tenant.limits().max_streams)?;
+    let window = tenant.limits().stream_window.max(1);
+    let (queue, queued) = mpsc::channel(window as usize);
+    // One place more than the window, for the `opened` message.
+    let (answers, answered) = mpsc::channel(window as usize + 1);
+    let opened = pb::StreamResponse {
+        kind: Some(pb::stream_response::Kind::Opened(pb::StreamOpened { stream_id: slot.id, window })),
+    };
+    let held = tenant.streams().hold(0);
+    answers.try_send(Answer { response: opened, _held: held }).expect("an empty channel has room");
+    let abort = Arc::new(Abort::default());
+    tokio::spawn(reader::run(requests, queue, Arc::clone(tenant.streams()), Arc::clone(&abort)));
+    tokio::spawn(executor::Executor::new(tenant, slot).run(queued, answers, Arc::clone(&abort)));
+    let answers = ReceiverStream::new(answered).map(|answer| Ok(answer.response));
+    let ending = tokio_stream::iter(std::iter::once_with(move || abort.take_reason())).filter_map(|r| r.map(Err));
+    Ok(Box::pin(answers.chain(ending)))
+}

@@ -1,0 +1,206 @@
+//! What earlier operations of a stream made, so that later operations can name it before it exists
+//! (`AccelRef.operation`, `BufferRef.operation`): such references are replaced by the real id or handle just
+//! before an operation runs.
+
+use std::collections::HashMap;
+
+use rayd_proto as pb;
+use rayd_proto::operation_result::Outcome;
+use rayd_proto::stream_request::Op;
+
+use crate::error::{ServiceError, ServiceResult};
+
+/// What one operation made.
+#[derive(Debug)]
+enum Product {
+    /// A buffer, by id.
+    Buffer(String),
+    /// An accel, by handle.
+    Accel(String),
+    /// Nothing: the operation failed, with this message.
+    Failed(String),
+}
+
+/// The kind of object an operation makes, if any.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Producer {
+    /// An upload, or a trace into a hits buffer.
+    Buffer,
+    /// A build.
+    Accel,
+    /// Anything else.
+    Nothing,
+}
+
+impl Producer {
+    /// What `op` makes.
+    pub fn of(op: &Op) -> Producer {
+        match op {
+            Op::Upload(_) => Producer::Buffer,
+            Op::Trace(trace) if !trace.hits_buffer_name.is_empty() => Producer::Buffer,
+            Op::Build(_) => Producer::Accel,
+            _ => Producer::Nothing,
+        }
+    }
+}
+
+/// The products of a stream's operations, by operation id.
+#[derive(Debug, Default)]
+pub struct Products {
+    /// Only operations that make (or failed to make) something are kept.
+    made: HashMap<u64, Product>,
+}
+
+impl Products {
+    /// Records what operation `id`, a `producer`, came to.
+    pub fn record(&mut self, id: u64, producer: Producer, result: &ServiceResult<Option<Outcome>>) {
+        let product = match (producer, result) {
+            (Producer::Nothing, _) => return,
+            (_, Err(error)) => Product::Failed(error.to_string()),
+            (Producer::Accel, Ok(Some(Outcome::Accel(info)))) => Product::Accel(info.handle.clone()),
+            (Producer::Buffer, Ok(Some(Outcome::Buffer(info)))) => Product::Buffer(info.id.clone()),
+            (Producer::Buffer, Ok(Some(Outcome::Trace(trace)))) => match &trace.hits_buffer {
+                Some(info) => Product::Buffer(info.id.clone()),
+                None => return,
+            },
+            _ => return,
+        };
+        self.made.insert(id, product);
+    }
+
+    /// Replaces every operation reference in `op` (operation `id`) by what it names.
+    pub fn resolve(&self, id: u64, op: &mut Op) -> ServiceResult<()> {
+        match op {
+            Op::Build(build) => {
+                for (i, input) in build.inputs.iter_mut().enumerate() {
+                    let Some(pb::build_input::Input::Triangles(t)) = &mut input.input else { continue };
+                    for (name, source) in
+                        [("vertices", &mut t.vertices), ("indices", &mut t.indices), ("masks", &mut t.masks)]
+                    {
+                        if let Some(pb::DataSource { source: Some(pb::data_source::Source::Buffer(buffer)) }) = source {
+                            self.buffer(id, buffer, &format!("build.inputs[{i}].triangles.{name}.buffer"))?;
+                        }
+                    }
+                }
+                Ok(())
+            }
+            Op::Trace(trace) => {
+                if let Some(accel) = trace.query.as_mut().and_then(|q| q.accel.as_mut()) {
+                    self.accel(id, accel, "trace.query.accel")?;
+                }
+                if let Some(pb::trace_batch_request::Rays::RaysBuffer(buffer)) = &mut trace.rays {
+                    self.buffer(id, buffer, "trace.rays_buffer")?;
+                }
+                Ok(())
+            }
+            Op::Download(download) => self.optional_buffer(id, download.buffer.as_mut(), "download.buffer"),
+            Op::DeleteBuffer(delete) => self.optional_buffer(id, delete.buffer.as_mut(), "delete_buffer.buffer"),
+            Op::DestroyAccel(destroy) => match destroy.accel.as_mut() {
+                Some(accel) => self.accel(id, accel, "destroy_accel.accel"),
+                None => Ok(()),
+            },
+            Op::Upload(_) | Op::UploadData(_) | Op::RecordEvent(_) | Op::WaitEvent(_) => Ok(()),
+        }
+    }
+
+    /// Resolves a buffer reference that may be absent.
+    fn optional_buffer(&self, id: u64, reference: Option<&mut pb::BufferRef>, field: &str) -> ServiceResult<()> {
+        reference.map_or(Ok(()), |buffer| self.buffer(id, buffer, field))
+    }
+
+    /// Replaces a buffer reference by operation with the buffer's id.
+    fn buffer(&self, id: u64, reference: &mut pb::BufferRef, field: &str) -> ServiceResult<()> {
+        if let Some(pb::buffer_ref::Ref::Operation(operation)) = reference.r#ref {
+            let buffer = self.product(id, operation, field, "buffer", |p| match p {
+                Product::Buffer(buffer) => Some(buffer),
+                _ => None,
+            })?;
+            reference.r#ref = Some(pb::buffer_ref::Ref::Id(buffer));
+        }
+        Ok(())
+    }
+
+    /// Replaces an accel reference by operation with the accel's handle.
+    fn accel(&self, id: u64, reference: &mut pb::AccelRef, field: &str) -> ServiceResult<()> {
+        if let Some(pb::accel_ref::Ref::Operation(operation)) = reference.r#ref {
+            let accel = self.product(id, operation, field, "accel", |p| match p {
+                Product::Accel(handle) => Some(handle),
+                _ => None,
+            })?;
+            reference.r#ref = Some(pb::accel_ref::Ref::Handle(accel));
+        }
+        Ok(())
+    }
+
+    /// The `what` that earlier operation `operation` made, for operation `id`'s `field`.
+    fn product(
+        &self,
+        id: u64,
+        operation: u64,
+        field: &str,
+        what: &str,
+        pick: impl Fn(&Product) -> Option<&String>,
+    ) -> ServiceResult<String> {
+        if operation >= id {
+            return Err(ServiceError::invalid(
+                field,
+                format!("operation {operation} is not an earlier operation of this stream (this is {id})"),
+            ));
+        }
+        match self.made.get(&operation) {
+            Some(Product::Failed(message)) => {
+                Err(ServiceError::Precondition(format!("{field}: operation {operation} failed: {message}")))
+            }
+            Some(product) => pick(product)
+                .cloned()
+                .ok_or_else(|| ServiceError::Precondition(format!("{field}: operation {operation} made no {what}"))),
+            None => Err(ServiceError::Precondition(format!("{field}: operation {operation} made no {what}"))),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn trace_on(accel: pb::accel_ref::Ref, rays: pb::buffer_ref::Ref) -> Op {
+        Op::Trace(pb::TraceBatchRequest {
+            query: Some(pb::TraceQuery { accel: Some(pb::AccelRef { r#ref: Some(accel) }), ..Default::default() }),
+            rays: Some(pb::trace_batch_request::Rays::RaysBuffer(pb::BufferRef { r#ref: Some(rays) })),
+            hits_buffer_name: String::new(),
+        })
+    }
+
+    #[test]
+    fn references_to_earlier_products_become_ids_and_handles() {
+        let mut products = Products::default();
+        let accel = pb::AccelInfo { handle: "acc-7".into(), ..Default::default() };
+        let buffer = pb::BufferInfo { id: "buf-3".into(), ..Default::default() };
+        products.record(1, Producer::Accel, &Ok(Some(Outcome::Accel(accel))));
+        products.record(2, Producer::Buffer, &Ok(Some(Outcome::Buffer(buffer))));
+        let mut op = trace_on(pb::accel_ref::Ref::Operation(1), pb::buffer_ref::Ref::Operation(2));
+        products.resolve(3, &mut op).unwrap();
+        assert_eq!(op, trace_on(pb::accel_ref::Ref::Handle("acc-7".into()), pb::buffer_ref::Ref::Id("buf-3".into())));
+    }
+
+    #[test]
+    fn failed_missing_wrong_kind_and_later_operations_are_refused_by_field() {
+        let mut products = Products::default();
+        products.record(1, Producer::Accel, &Err(ServiceError::invalid("name", "bad")));
+        products.record(2, Producer::Buffer, &Ok(Some(Outcome::Buffer(pb::BufferInfo::default()))));
+        products.record(3, Producer::Nothing, &Ok(None));
+        let refuse = |accel: u64, rays: u64| {
+            let mut op = trace_on(pb::accel_ref::Ref::Operation(accel), pb::buffer_ref::Ref::Operation(rays));
+            products.resolve(4, &mut op).unwrap_err().to_string()
+        };
+        assert!(refuse(1, 2).contains("trace.query.accel: operation 1 failed: name: bad"), "{}", refuse(1, 2));
+        assert!(refuse(2, 2).contains("operation 2 made no accel"));
+        assert!(refuse(3, 2).contains("operation 3 made no accel"));
+        let later = refuse(4, 2);
+        assert!(later.contains("trace.query.accel") && later.contains("not an earlier operation"), "{later}");
+        assert!(matches!(
+            products.resolve(4, &mut trace_on(pb::accel_ref::Ref::Operation(1), pb::buffer_ref::Ref::Id("x".into()))),
+            Err(ServiceError::Precondition(_))
+        ));
+    }
+}

@@ -1,0 +1,169 @@
+//! A tenant's open streams: their ids, how far each has run (what events wait on), and the bytes they hold.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+
+use dashmap::DashMap;
+use tokio::sync::watch;
+
+use crate::error::{ServiceError, ServiceResult};
+
+/// How far a stream has run.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Progress {
+    /// Every operation up to this id has finished.
+    pub finished: u64,
+    /// The stream has ended: nothing more will run on it.
+    pub closed: bool,
+}
+
+/// The open streams of one tenant.
+#[derive(Debug, Default)]
+pub struct Streams {
+    /// The id the next stream gets; ids start at 1 and are never reused.
+    next_id: AtomicU64,
+    /// Streams open now.
+    open_count: AtomicU32,
+    /// The progress of each open stream, by id.
+    progress: DashMap<u64, watch::Receiver<Progress>>,
+    /// Bytes held by every stream: queued operations, partial uploads, unsent answers.
+    held_bytes: Arc<AtomicU64>,
+}
+
+/// One open stream's place in the table; dropping it marks the stream closed and frees its place.
+#[derive(Debug)]
+pub struct StreamSlot {
+    /// The stream's id.
+    pub id: u64,
+    /// Where its progress is published.
+    progress: watch::Sender<Progress>,
+    /// The table it belongs to.
+    streams: Arc<Streams>,
+}
+
+/// Bytes a stream holds, counted in its tenant's usage until dropped.
+#[derive(Debug)]
+pub struct Held {
+    /// The bytes counted.
+    bytes: u64,
+    /// The tenant's total.
+    total: Arc<AtomicU64>,
+}
+
+/// What waiting for another stream's operation comes to.
+#[derive(Debug)]
+pub enum Waitable {
+    /// The stream is open: wait on its progress.
+    Open(watch::Receiver<Progress>),
+    /// The stream has closed: it has no work left to wait for.
+    Closed,
+}
+
+impl Streams {
+    /// Opens a stream unless `max_streams` are open already.
+    pub fn open(self: &Arc<Self>, max_streams: u32) -> ServiceResult<StreamSlot> {
+        let admitted =
+            self.open_count.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < max_streams).then_some(n + 1));
+        if let Err(open) = admitted {
+            return Err(ServiceError::Limit {
+                what: "streams open at once".into(),
+                requested: open as u64 + 1,
+                limit: "max_streams",
+                allowed: max_streams as u64,
+            });
+        }
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed) + 1;
+        let (progress, receiver) = watch::channel(Progress::default());
+        self.progress.insert(id, receiver);
+        Ok(StreamSlot { id, progress, streams: Arc::clone(self) })
+    }
+
+    /// What waiting on stream `id` comes to; NOT_FOUND for an id never given out.
+    pub fn waitable(&self, id: u64) -> ServiceResult<Waitable> {
+        if id == 0 || id > self.next_id.load(Ordering::Relaxed) {
+            return Err(ServiceError::NotFound { what: "stream", name: id.to_string() });
+        }
+        Ok(self.progress.get(&id).map_or(Waitable::Closed, |receiver| Waitable::Open(receiver.clone())))
+    }
+
+    /// Counts `bytes` as held by a stream until the returned guard is dropped.
+    pub fn hold(&self, bytes: u64) -> Held {
+        self.held_bytes.fetch_add(bytes, Ordering::Relaxed);
+        Held { bytes, total: Arc::clone(&self.held_bytes) }
+    }
+
+    /// Streams open now.
+    pub fn open_count(&self) -> u32 {
+        self.open_count.load(Ordering::Relaxed)
+    }
+
+    /// Bytes all streams hold now.
+    pub fn held_bytes(&self) -> u64 {
+        self.held_bytes.load(Ordering::Relaxed)
+    }
+}
+
+impl StreamSlot {
+    /// Publishes that every operation up to `operation` has finished.
+    pub fn finished(&self, operation: u64) {
+        self.progress.send_modify(|p| p.finished = operation);
+    }
+}
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        self.streams.progress.remove(&self.id);
+        self.progress.send_modify(|p| p.closed = true);
+        self.streams.open_count.fetch_sub(1, Ordering::AcqRel);
+    }
+}
+
+impl Held {
+    /// Counts `bytes` more.
+    pub fn grow(&mut self, bytes: u64) {
+        self.total.fetch_add(bytes, Ordering::Relaxed);
+        self.bytes += bytes;
+    }
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        self.total.fetch_sub(self.bytes, Ordering::Relaxed);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn slots_are_limited_numbered_and_leave_a_closed_mark_behind() {
+        let streams = Arc::new(Streams::default());
+        let first = streams.open(2).unwrap();
+        let second = streams.open(2).unwrap();
+        assert_eq!((first.id, second.id), (1, 2));
+        assert!(matches!(streams.open(2), Err(ServiceError::Limit { limit: "max_streams", .. })));
+        let Waitable::Open(mut progress) = streams.waitable(1).unwrap() else { panic!("stream 1 is open") };
+        first.finished(3);
+        assert_eq!(progress.borrow_and_update().finished, 3);
+        drop(first);
+        assert!(progress.borrow().closed);
+        assert!(matches!(streams.waitable(1).unwrap(), Waitable::Closed));
+        assert!(matches!(streams.waitable(9), Err(ServiceError::NotFound { .. })));
+        assert_eq!(streams.open(2).unwrap().id, 3, "ids are not reused; the freed place is");
+        assert_eq!(streams.open_count(), 1);
+    }
+
+    #[test]
+    fn held_bytes_count_until_dropped() {
+        let streams = Streams::default();
+        let mut held = streams.hold(10);
+        held.grow(5);
+        let other = streams.hold(1);
+        assert_eq!(streams.held_bytes(), 16);
+        drop(held);
+        assert_eq!(streams.held_bytes(), 1);
+        drop(other);
+        assert_eq!(streams.held_bytes(), 0);
+    }
+}
