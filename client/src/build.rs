@@ -27,14 +27,8 @@ impl Client {
         device: &str,
         flags: BuildFlags,
     ) -> Result<proto::AccelInfo> {
-        let packed = mesh.pack();
-        let (vertices, indices) = (Bytes::from(packed.vertices), Bytes::from(packed.indices));
-        let request = |vertices, indices| proto::BuildAccelRequest {
-            name: name.to_owned(),
-            device: device.to_owned(),
-            inputs: vec![triangles(vertices, indices)],
-            options: Some(build_options_to_proto(flags)),
-        };
+        let (vertices, indices) = packed(mesh);
+        let request = |vertices, indices| mesh_request(name, device, flags, vertices, indices);
         if vertices.len() + indices.len() < self.options.inline_mesh_bytes {
             return self.build(request(Source::Inline(vertices), Source::Inline(indices))).await;
         }
@@ -52,6 +46,28 @@ impl Client {
             let _ = self.delete_buffer(id).await;
         }
         result
+    }
+}
+
+/// A mesh's tightly packed float3 vertices and u32×3 indices.
+pub(crate) fn packed(mesh: &Mesh) -> (Bytes, Bytes) {
+    let packed = mesh.pack();
+    (Bytes::from(packed.vertices), Bytes::from(packed.indices))
+}
+
+/// The request that builds accel `name` on `device` from one mesh's packed vertices and indices.
+pub(crate) fn mesh_request(
+    name: &str,
+    device: &str,
+    flags: BuildFlags,
+    vertices: Source,
+    indices: Source,
+) -> proto::BuildAccelRequest {
+    proto::BuildAccelRequest {
+        name: name.to_owned(),
+        device: device.to_owned(),
+        inputs: vec![triangles(vertices, indices)],
+        options: Some(build_options_to_proto(flags)),
     }
 }
 

@@ -35,8 +35,11 @@ pub struct ClientOptions {
     /// Meshes whose packed vertices and indices together are smaller than this go inline in `BuildAccel`;
     /// larger ones are uploaded as buffers first.
     pub inline_mesh_bytes: usize,
-    /// Bytes per `UploadBuffer` data message.
+    /// Bytes per `UploadBuffer` data message (and per upload message of a stream).
     pub upload_chunk_bytes: usize,
+    /// Bytes of a [`Stream`](crate::Stream)'s operations sent and not yet answered, at most: enqueueing waits
+    /// beyond it (an operation larger than this waits until it is alone in flight).
+    pub stream_bytes_in_flight: usize,
 }
 
 impl Default for ClientOptions {
@@ -50,6 +53,7 @@ impl Default for ClientOptions {
             max_rays_per_call: 1 << 24,
             inline_mesh_bytes: 8 * MIB,
             upload_chunk_bytes: MIB,
+            stream_bytes_in_flight: 64 * MIB,
         }
     }
 }
@@ -65,11 +69,14 @@ impl ClientOptions {
     }
 }
 
+/// The generated stub, with the token interceptor.
+pub(crate) type RpcClient = RaydClient<InterceptedService<Channel, Auth>>;
+
 /// A connection to one rayd server. Cheap to clone; clones share the connection and may be used concurrently.
 #[derive(Debug, Clone)]
 pub struct Client {
     /// The generated stub, with the token interceptor and the message limits applied.
-    pub(crate) rpc: RaydClient<InterceptedService<Channel, Auth>>,
+    pub(crate) rpc: RpcClient,
     /// Thresholds that pick between call shapes (inline or buffer, batch or stream).
     pub(crate) options: ClientOptions,
 }

@@ -107,11 +107,16 @@ pub fn buffer_ref(id: &str) -> proto::BufferRef {
     proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Id(id.to_owned())) }
 }
 
-/// The contract's trace query for an engine query on the accel called `accel`. Ray flag bits are the same
-/// numbers in both (`RayFlag` mirrors `RayFlags`).
+/// The contract's trace query for an engine query on the accel called `accel`.
 pub fn trace_query(accel: &str, query: &Query) -> proto::TraceQuery {
+    trace_query_ref(accel_ref(accel), query)
+}
+
+/// The contract's trace query for an engine query on the accel `accel` names. Ray flag bits are the same numbers
+/// in both (`RayFlag` mirrors `RayFlags`).
+pub fn trace_query_ref(accel: proto::AccelRef, query: &Query) -> proto::TraceQuery {
     proto::TraceQuery {
-        accel: Some(accel_ref(accel)),
+        accel: Some(accel),
         query: query_kind_to_proto(query.kind).into(),
         ray_format: ray_format_to_proto(query.ray_format).into(),
         hit_format: hit_format_to_proto(query.hit_format).into(),

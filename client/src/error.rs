@@ -33,6 +33,17 @@ pub enum Error {
     /// The server's answer breaks the contract (a wrong length, chunks out of order).
     #[error("the server broke the contract: {0}")]
     Protocol(String),
+    /// A stream operation failed (the server's status for it).
+    #[error("operation {operation}: {}", .status.message())]
+    Operation {
+        /// The operation's id in its stream.
+        operation: u64,
+        /// Why it failed.
+        status: tonic::Status,
+    },
+    /// Operations of a stream failed since the last synchronize (at least one), in operation order.
+    #[error("{} operation(s) failed: {}", .0.len(), .0.iter().map(|(id, s)| format!("operation {id}: {}", s.message())).collect::<Vec<_>>().join("; "))]
+    Operations(Vec<(u64, tonic::Status)>),
 }
 
 /// The client's result type.
@@ -51,6 +62,8 @@ impl Error {
                 _ => Code::Unknown,
             },
             Error::Protocol(_) => Code::Internal,
+            Error::Operation { status, .. } => status.code(),
+            Error::Operations(failed) => failed.first().map_or(Code::Unknown, |(_, status)| status.code()),
         }
     }
 

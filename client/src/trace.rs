@@ -62,6 +62,20 @@ impl TraceResult {
             .expect("lengths are checked when the result is made")
     }
 
+    /// The result of tracing `rays` bytes of `query.ray_format` records, from a `TraceBatch` answer (or a stream's
+    /// trace operation); fails with [`Error::Protocol`] when its lengths do not fit the query.
+    pub(crate) fn from_batch(query: &Query, rays: usize, response: proto::TraceBatchResponse) -> Result<TraceResult> {
+        let layout = query.output_layout(rays).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        check_lengths("the batch", (response.hits.len(), response.counts.len()), (layout.hits, layout.counts))?;
+        Ok(TraceResult {
+            query: *query,
+            rays: layout.rays,
+            hits: response.hits,
+            counts: response.counts,
+            stats: response.stats.unwrap_or_default(),
+        })
+    }
+
     /// Ray `ray`'s count (hits found for `all`, crossings for `count`), or `None` when the query has no counts.
     pub fn count(&self, ray: usize) -> Option<u32> {
         let bytes = self.counts.get(4 * ray..4 * ray + 4)?;
@@ -78,28 +92,18 @@ impl Client {
         let limit = self.options.batch_limit_bytes;
         if rays.len() <= limit && layout.hits + layout.counts <= limit && layout.rays <= self.options.max_rays_per_call
         {
-            self.trace_batch(accel, query, rays, &layout).await
+            self.trace_batch(accel, query, rays).await
         } else {
             self.trace_stream(accel, query, rays, &layout).await
         }
     }
 
     /// One `TraceBatch` call; the result's buffers are the response's own, not copies.
-    async fn trace_batch(&self, accel: &str, query: &Query, rays: Bytes, layout: &OutputLayout) -> Result<TraceResult> {
-        let request = proto::TraceBatchRequest {
-            query: Some(trace_query(accel, query)),
-            rays: Some(trace_batch_request::Rays::RaysInline(rays)),
-            hits_buffer_name: String::new(),
-        };
+    async fn trace_batch(&self, accel: &str, query: &Query, rays: Bytes) -> Result<TraceResult> {
+        let ray_bytes = rays.len();
+        let request = inline_trace(trace_query(accel, query), rays);
         let response = self.rpc.clone().trace_batch(request).await?.into_inner();
-        check_lengths("the batch", (response.hits.len(), response.counts.len()), (layout.hits, layout.counts))?;
-        Ok(TraceResult {
-            query: *query,
-            rays: layout.rays,
-            hits: response.hits,
-            counts: response.counts,
-            stats: response.stats.unwrap_or_default(),
-        })
+        TraceResult::from_batch(query, ray_bytes, response)
     }
 
     /// A `TraceStream` of chunks of [`chunk_rays`] rays (never more bytes than a batch), at most `stream_window` of
@@ -152,6 +156,15 @@ impl Client {
             return Err(Error::Protocol(format!("the stream ended after {next_ray} of {} rays", layout.rays)));
         }
         Ok(TraceResult { query: *query, rays: layout.rays, hits: hits.freeze(), counts: counts.freeze(), stats })
+    }
+}
+
+/// A `TraceBatch` request for inline `rays`, with the hits returned inline.
+pub(crate) fn inline_trace(query: proto::TraceQuery, rays: Bytes) -> proto::TraceBatchRequest {
+    proto::TraceBatchRequest {
+        query: Some(query),
+        rays: Some(trace_batch_request::Rays::RaysInline(rays)),
+        hits_buffer_name: String::new(),
     }
 }
 

@@ -5,6 +5,7 @@ use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
 use dashmap::DashMap;
 use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 
 use crate::error::{ServiceError, ServiceResult};
 
@@ -24,10 +25,19 @@ pub struct Streams {
     next_id: AtomicU64,
     /// Streams open now.
     open_count: AtomicU32,
-    /// The progress of each open stream, by id.
-    progress: DashMap<u64, watch::Receiver<Progress>>,
+    /// Each open stream, by id.
+    open: DashMap<u64, OpenStream>,
     /// Bytes held by every stream: queued operations, partial uploads, unsent answers.
     held_bytes: Arc<AtomicU64>,
+}
+
+/// What the table keeps of an open stream.
+#[derive(Debug)]
+struct OpenStream {
+    /// Its progress.
+    progress: watch::Receiver<Progress>,
+    /// Cancels it.
+    cancel: CancellationToken,
 }
 
 /// One open stream's place in the table; dropping it marks the stream closed and frees its place.
@@ -37,6 +47,8 @@ pub struct StreamSlot {
     pub id: u64,
     /// Where its progress is published.
     progress: watch::Sender<Progress>,
+    /// Cancelled when the stream must stop (by CancelStream, or by the stream itself).
+    pub cancel: CancellationToken,
     /// The table it belongs to.
     streams: Arc<Streams>,
 }
@@ -74,16 +86,32 @@ impl Streams {
         }
         let id = self.next_id.fetch_add(1, Ordering::Relaxed) + 1;
         let (progress, receiver) = watch::channel(Progress::default());
-        self.progress.insert(id, receiver);
-        Ok(StreamSlot { id, progress, streams: Arc::clone(self) })
+        let cancel = CancellationToken::new();
+        self.open.insert(id, OpenStream { progress: receiver, cancel: cancel.clone() });
+        Ok(StreamSlot { id, progress, cancel, streams: Arc::clone(self) })
+    }
+
+    /// Cancels stream `id` if it is open; NOT_FOUND for an id never given out.
+    pub fn cancel(&self, id: u64) -> ServiceResult<()> {
+        self.check_issued(id)?;
+        if let Some(stream) = self.open.get(&id) {
+            stream.cancel.cancel();
+        }
+        Ok(())
+    }
+
+    /// Fails with NOT_FOUND unless stream `id` was given out.
+    fn check_issued(&self, id: u64) -> ServiceResult<()> {
+        if id == 0 || id > self.next_id.load(Ordering::Relaxed) {
+            return Err(ServiceError::NotFound { what: "stream", name: id.to_string() });
+        }
+        Ok(())
     }
 
     /// What waiting on stream `id` comes to; NOT_FOUND for an id never given out.
     pub fn waitable(&self, id: u64) -> ServiceResult<Waitable> {
-        if id == 0 || id > self.next_id.load(Ordering::Relaxed) {
-            return Err(ServiceError::NotFound { what: "stream", name: id.to_string() });
-        }
-        Ok(self.progress.get(&id).map_or(Waitable::Closed, |receiver| Waitable::Open(receiver.clone())))
+        self.check_issued(id)?;
+        Ok(self.open.get(&id).map_or(Waitable::Closed, |stream| Waitable::Open(stream.progress.clone())))
     }
 
     /// Counts `bytes` as held by a stream until the returned guard is dropped.
@@ -112,7 +140,7 @@ impl StreamSlot {
 
 impl Drop for StreamSlot {
     fn drop(&mut self) {
-        self.streams.progress.remove(&self.id);
+        self.streams.open.remove(&self.id);
         self.progress.send_modify(|p| p.closed = true);
         self.streams.open_count.fetch_sub(1, Ordering::AcqRel);
     }
@@ -150,6 +178,10 @@ mod tests {
         assert!(progress.borrow().closed);
         assert!(matches!(streams.waitable(1).unwrap(), Waitable::Closed));
         assert!(matches!(streams.waitable(9), Err(ServiceError::NotFound { .. })));
+        streams.cancel(2).unwrap();
+        assert!(second.cancel.is_cancelled());
+        streams.cancel(1).expect("cancelling a closed stream is not an error");
+        assert!(matches!(streams.cancel(9), Err(ServiceError::NotFound { .. })));
         assert_eq!(streams.open(2).unwrap().id, 3, "ids are not reused; the freed place is");
         assert_eq!(streams.open_count(), 1);
     }

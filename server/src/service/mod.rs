@@ -198,4 +198,16 @@ impl Rayd for RaydService {
         let tenant = self.tenant(&request);
         observe("OpenStream", async { stream::open(tenant, request.into_inner()) }).await
     }
+
+    async fn cancel_stream(
+        &self,
+        request: Request<pb::CancelStreamRequest>,
+    ) -> Result<Response<pb::CancelStreamResponse>, Status> {
+        let tenant = self.tenant(&request);
+        observe("CancelStream", async {
+            tenant.streams().cancel(request.get_ref().stream_id)?;
+            Ok(pb::CancelStreamResponse {})
+        })
+        .await
+    }
 }

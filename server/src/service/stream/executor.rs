@@ -43,7 +43,10 @@ impl Executor {
         'operations: loop {
             let responses = tokio::select! {
                 biased;
-                () = abort.cancelled() => break,
+                () = abort.cancelled() => {
+                    abort.abort(Some(Status::cancelled("the stream was cancelled")));
+                    break;
+                }
                 () = answers.closed() => break,
                 responses = self.next(&mut queue) => responses,
             };

@@ -61,7 +61,7 @@ struct Answer {
 }
 
 /// How a stream is stopped early, shared by its two tasks.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 struct Abort {
     /// Cancelled when the stream must stop.
     token: CancellationToken,
@@ -78,7 +78,7 @@ impl Abort {
         self.token.cancel();
     }
 
-    /// Completes once the stream must stop.
+    /// Completes once the stream must stop (also when CancelStream cancelled it).
     async fn cancelled(&self) {
         self.token.cancelled().await
     }
@@ -101,7 +101,7 @@ pub fn open(tenant: Arc<Tenant>, requests: Streaming<pb::StreamRequest>) -> Serv
     };
     let held = tenant.streams().hold(0);
     answers.try_send(Answer { response: opened, _held: held }).expect("an empty channel has room");
-    let abort = Arc::new(Abort::default());
+    let abort = Arc::new(Abort { token: slot.cancel.clone(), reason: Mutex::default() });
     tokio::spawn(reader::run(requests, queue, Arc::clone(tenant.streams()), Arc::clone(&abort)));
     tokio::spawn(executor::Executor::new(tenant, slot).run(queued, answers, Arc::clone(&abort)));
     let answers = ReceiverStream::new(answered).map(|answer| Ok(answer.response));

@@ -1,0 +1,374 @@
+//! Streams: ordered, asynchronous queues of operations on the server (the semantics are in streams.proto),
+//! mirrored as CUDA streams are used:
+//!
+//! ```no_run
+//! # use rayd_client::{Client, ClientOptions};
+//! # use rayd_engine::{accel::BuildFlags, format::*, mesh::Mesh, query::Query};
+//! # async fn demo(client: Client, mesh: Mesh, rays: bytes::Bytes) -> rayd_client::Result<()> {
+//! let stream = client.create_stream().await?;
+//! let bunny = stream.build_mesh("bunny", &mesh, "", BuildFlags::PREFER_FAST_TRACE).await?;
+//! let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriid);
+//! let traced = stream.trace(&bunny, &query, rays).await?; // enqueued: nothing waited for yet
+//! stream.synchronize().await?; // every operation so far has finished, and none failed
+//! let hits = traced.result().expect("answered by now")?.hits().len();
+//! # Ok(()) }
+//! ```
+//!
+//! Enqueueing returns as soon as the operation is handed to the transport; it only waits when the operations
+//! in flight already hold [`ClientOptions::stream_bytes_in_flight`](crate::ClientOptions::stream_bytes_in_flight).
+//! Dropping a [`Stream`] cancels it: the server drops its queued operations, and unanswered handles fail.
+
+mod handle;
+mod receive;
+mod state;
+
+use std::sync::Arc;
+
+use bytes::Bytes;
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::mesh::Mesh;
+use rayd_engine::query::Query;
+use rayd_proto as proto;
+use rayd_proto::data_source::Source;
+use rayd_proto::stream_request::Op;
+use tokio::sync::{Mutex, Semaphore, mpsc};
+use tokio::task::JoinHandle;
+use tokio_stream::wrappers::ReceiverStream;
+
+pub use handle::{Event, Operation};
+use state::{Expect, Outcome, Shared, Slot, Unanswered};
+
+use crate::build::{mesh_request, packed};
+use crate::client::{Client, RpcClient};
+use crate::convert::trace_query_ref;
+use crate::error::{Error, Result};
+use crate::trace::{TraceResult, inline_trace};
+
+/// Messages queued for the transport before enqueueing waits.
+const REQUEST_QUEUE: usize = 16;
+
+/// Names an accel in a stream operation.
+#[derive(Debug, Clone, Copy)]
+pub enum AccelArg<'a> {
+    /// By the tenant's name for it.
+    Name(&'a str),
+    /// By its handle.
+    Handle(&'a str),
+    /// The accel a build operation makes: by operation on its own stream (so it can be used before it exists),
+    /// by handle on another stream once it is built.
+    Built(&'a Operation<proto::AccelInfo>),
+}
+
+/// Names a buffer in a stream operation.
+#[derive(Debug, Clone, Copy)]
+pub enum BufferArg<'a> {
+    /// By the caller's name for it.
+    Name(&'a str),
+    /// By its server id.
+    Id(&'a str),
+    /// The buffer an upload operation makes: by operation on its own stream, by id on another once uploaded.
+    Uploaded(&'a Operation<proto::BufferInfo>),
+}
+
+impl<'a> From<&'a str> for AccelArg<'a> {
+    fn from(name: &'a str) -> Self {
+        AccelArg::Name(name)
+    }
+}
+
+impl<'a> From<&'a proto::AccelInfo> for AccelArg<'a> {
+    fn from(info: &'a proto::AccelInfo) -> Self {
+        AccelArg::Handle(&info.handle)
+    }
+}
+
+impl<'a> From<&'a Operation<proto::AccelInfo>> for AccelArg<'a> {
+    fn from(build: &'a Operation<proto::AccelInfo>) -> Self {
+        AccelArg::Built(build)
+    }
+}
+
+impl<'a> From<&'a proto::BufferInfo> for BufferArg<'a> {
+    fn from(info: &'a proto::BufferInfo) -> Self {
+        BufferArg::Id(&info.id)
+    }
+}
+
+impl<'a> From<&'a Operation<proto::BufferInfo>> for BufferArg<'a> {
+    fn from(upload: &'a Operation<proto::BufferInfo>) -> Self {
+        BufferArg::Uploaded(upload)
+    }
+}
+
+/// One open stream. Its methods take `&self`: operations enqueued from several tasks are numbered and run in
+/// the order the enqueue calls got their turn.
+#[derive(Debug)]
+pub struct Stream {
+    /// What the handles and the receiving task share.
+    shared: Arc<Shared>,
+    /// The way to the call; `None` once finished.
+    sender: Mutex<Option<mpsc::Sender<proto::StreamRequest>>>,
+    /// Bytes of unanswered operations, bounded.
+    in_flight: Arc<Semaphore>,
+    /// The bound, in bytes.
+    in_flight_bytes: u32,
+    /// Bytes per upload message.
+    upload_chunk_bytes: usize,
+    /// Meshes smaller than this go inline in the build.
+    inline_mesh_bytes: usize,
+    /// The task that reads answers.
+    receiver: JoinHandle<()>,
+    /// The connection, for cancelling the stream when it is dropped unfinished.
+    rpc: Option<RpcClient>,
+}
+
+impl Client {
+    /// Opens a stream (one `OpenStream` call).
+    pub async fn create_stream(&self) -> Result<Stream> {
+        let (sender, requests) = mpsc::channel(REQUEST_QUEUE);
+        let mut responses = self.rpc.clone().open_stream(ReceiverStream::new(requests)).await?.into_inner();
+        let opened = match responses.message().await? {
+            Some(proto::StreamResponse { kind: Some(proto::stream_response::Kind::Opened(opened)) }) => opened,
+            _ => return Err(Error::Protocol("a stream did not start with its `opened` message".into())),
+        };
+        let shared = Arc::new(Shared::new(opened.stream_id));
+        let in_flight_bytes = u32::try_from(self.options.stream_bytes_in_flight).unwrap_or(u32::MAX).max(1);
+        Ok(Stream {
+            receiver: tokio::spawn(receive::answers(responses, Arc::clone(&shared))),
+            shared,
+            sender: Mutex::new(Some(sender)),
+            in_flight: Arc::new(Semaphore::new(in_flight_bytes as usize)),
+            in_flight_bytes,
+            upload_chunk_bytes: self.options.upload_chunk_bytes.max(1),
+            inline_mesh_bytes: self.options.inline_mesh_bytes,
+            rpc: Some(self.rpc.clone()),
+        })
+    }
+}
+
+impl Stream {
+    /// The server's id of this stream.
+    pub fn id(&self) -> u64 {
+        self.shared.stream_id
+    }
+
+    /// Enqueues an upload of `data` as a new buffer, named `name` unless it is empty.
+    pub async fn upload(&self, name: &str, data: Bytes) -> Result<Operation<proto::BufferInfo>> {
+        let header = proto::UploadBufferHeader { name: name.to_owned(), size_bytes: data.len() as u64 };
+        let first = data.slice(..self.upload_chunk_bytes.min(data.len()));
+        let rest = (first.len()..data.len())
+            .step_by(self.upload_chunk_bytes)
+            .map(|start| data.slice(start..(start + self.upload_chunk_bytes).min(data.len())))
+            .collect();
+        let op = Op::Upload(proto::StreamUpload { header: Some(header), first_data: first });
+        self.enqueue(op, rest, Expect::Buffer, |o| if let Outcome::Buffer(b) = o { Some(b.clone()) } else { None })
+            .await
+    }
+
+    /// Enqueues a build from a request made by hand (its buffer references may name earlier uploads of this
+    /// stream by operation).
+    pub async fn build(&self, request: proto::BuildAccelRequest) -> Result<Operation<proto::AccelInfo>> {
+        self.enqueue(Op::Build(request), Vec::new(), Expect::Accel, |o| match o {
+            Outcome::Accel(info) => Some(info.clone()),
+            _ => None,
+        })
+        .await
+    }
+
+    /// Enqueues the build of accel `name` on `device` from one mesh. Meshes of at least
+    /// [`ClientOptions::inline_mesh_bytes`](crate::ClientOptions::inline_mesh_bytes) are enqueued as two uploads,
+    /// the build naming them by operation, and two deletes after it.
+    pub async fn build_mesh(
+        &self,
+        name: &str,
+        mesh: &Mesh,
+        device: &str,
+        flags: BuildFlags,
+    ) -> Result<Operation<proto::AccelInfo>> {
+        let (vertices, indices) = packed(mesh);
+        if vertices.len() + indices.len() < self.inline_mesh_bytes {
+            return self
+                .build(mesh_request(name, device, flags, Source::Inline(vertices), Source::Inline(indices)))
+                .await;
+        }
+        let vertices = self.upload("", vertices).await?;
+        let indices = self.upload("", indices).await?;
+        let by_operation = |upload: &Operation<proto::BufferInfo>| {
+            Source::Buffer(proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Operation(upload.id())) })
+        };
+        let build =
+            self.build(mesh_request(name, device, flags, by_operation(&vertices), by_operation(&indices))).await?;
+        self.delete_buffer(&vertices).await?;
+        self.delete_buffer(&indices).await?;
+        Ok(build)
+    }
+
+    /// Enqueues a trace of packed `rays` (whole records of `query.ray_format`), the hits returned in the answer.
+    pub async fn trace<'a>(
+        &self,
+        accel: impl Into<AccelArg<'a>>,
+        query: &Query,
+        rays: Bytes,
+    ) -> Result<Operation<TraceResult>> {
+        let ray_bytes = rays.len();
+        query.output_layout(ray_bytes).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let request = inline_trace(trace_query_ref(self.accel_ref(accel.into())?, query), rays);
+        self.enqueue(Op::Trace(request), Vec::new(), Expect::Trace(*query, ray_bytes), |o| match o {
+            Outcome::Trace(result) => Some(result.clone()),
+            _ => None,
+        })
+        .await
+    }
+
+    /// Enqueues a download of a whole buffer.
+    pub async fn download<'a>(&self, buffer: impl Into<BufferArg<'a>>) -> Result<Operation<Bytes>> {
+        let request =
+            proto::DownloadBufferRequest { buffer: Some(self.buffer_ref(buffer.into())?), ..Default::default() };
+        self.enqueue(Op::Download(request), Vec::new(), Expect::Download, |o| match o {
+            Outcome::Bytes(data) => Some(data.clone()),
+            _ => None,
+        })
+        .await
+    }
+
+    /// Enqueues the deletion of a buffer.
+    pub async fn delete_buffer<'a>(&self, buffer: impl Into<BufferArg<'a>>) -> Result<Operation<()>> {
+        let request = proto::DeleteBufferRequest { buffer: Some(self.buffer_ref(buffer.into())?) };
+        self.enqueue_unit(Op::DeleteBuffer(request)).await
+    }
+
+    /// Enqueues the destruction of an accel.
+    pub async fn destroy_accel<'a>(&self, accel: impl Into<AccelArg<'a>>) -> Result<Operation<()>> {
+        let request = proto::DestroyAccelRequest { accel: Some(self.accel_ref(accel.into())?) };
+        self.enqueue_unit(Op::DestroyAccel(request)).await
+    }
+
+    /// Records an event: it completes when everything enqueued on this stream before it has finished.
+    pub async fn record_event(&self) -> Result<Event> {
+        Ok(Event { record: self.enqueue_unit(Op::RecordEvent(proto::RecordEvent {})).await? })
+    }
+
+    /// Makes the operations enqueued after this one wait until `event` (of any stream) has completed.
+    pub async fn wait_event(&self, event: &Event) -> Result<Operation<()>> {
+        let wait = proto::WaitEvent { stream_id: event.stream_id(), operation: event.operation() };
+        self.enqueue_unit(Op::WaitEvent(wait)).await
+    }
+
+    /// Waits until every operation enqueued so far has finished. Fails with [`Error::Operations`] listing the
+    /// operations that failed since the previous synchronize (later operations still ran: errors are not
+    /// sticky), or with the stream's own error if it broke.
+    pub async fn synchronize(&self) -> Result<()> {
+        let sent = self.shared.book().sent;
+        if let Some(broken) = self.shared.answered(sent).await {
+            return Err(Error::Status(broken));
+        }
+        let failures = std::mem::take(&mut self.shared.book().failures);
+        if failures.is_empty() { Ok(()) } else { Err(Error::Operations(failures)) }
+    }
+
+    /// Whether every operation enqueued so far has finished (never blocks).
+    pub fn query(&self) -> bool {
+        self.shared.is_answered(self.shared.book().sent)
+    }
+
+    /// Synchronizes, then closes the stream cleanly (the server ends the call with OK).
+    pub async fn finish(mut self) -> Result<()> {
+        let synchronized = self.synchronize().await;
+        self.sender.lock().await.take();
+        self.rpc = None;
+        synchronized
+    }
+
+    /// Enqueues an operation with no product.
+    async fn enqueue_unit(&self, op: Op) -> Result<Operation<()>> {
+        self.enqueue(op, Vec::new(), Expect::Nothing, |o| matches!(o, Outcome::Nothing).then_some(())).await
+    }
+
+    /// Numbers `op`, books its slot and sends it (followed by `upload_data` messages), once the bytes in flight
+    /// leave room for it.
+    async fn enqueue<T>(
+        &self,
+        op: Op,
+        upload_data: Vec<Bytes>,
+        expect: Expect,
+        extract: fn(&Outcome) -> Option<T>,
+    ) -> Result<Operation<T>> {
+        let bytes = op.encoded_len() + upload_data.iter().map(Bytes::len).sum::<usize>();
+        let permits = u32::try_from(bytes).unwrap_or(u32::MAX).clamp(1, self.in_flight_bytes);
+        let permit = Arc::clone(&self.in_flight)
+            .acquire_many_owned(permits)
+            .await
+            .map_err(|_| Error::InvalidArgument("the stream is closed".into()))?;
+        let sender = self.sender.lock().await;
+        let sender = sender.as_ref().ok_or_else(|| Error::InvalidArgument("the stream is finished".into()))?;
+        if let Some(broken) = self.shared.progress.borrow().broken.clone() {
+            return Err(Error::Status(broken));
+        }
+        let slot = Arc::new(Slot { expect, answer: Default::default() });
+        let id = {
+            let mut book = self.shared.book();
+            book.sent += 1;
+            let id = book.sent;
+            book.unanswered.push_back(Unanswered { id, slot: Arc::clone(&slot), _permit: permit });
+            id
+        };
+        let messages = std::iter::once(op).chain(upload_data.into_iter().map(Op::UploadData));
+        for op in messages {
+            if sender.send(proto::StreamRequest { operation: id, op: Some(op) }).await.is_err() {
+                // The call is gone; the receiving task fails the slot with the reason.
+                break;
+            }
+        }
+        Ok(Operation::new(id, slot, Arc::clone(&self.shared), extract))
+    }
+
+    /// The contract's reference for `accel`.
+    fn accel_ref(&self, accel: AccelArg<'_>) -> Result<proto::AccelRef> {
+        use proto::accel_ref::Ref;
+        let by = match accel {
+            AccelArg::Name(name) => Ref::Name(name.to_owned()),
+            AccelArg::Handle(handle) => Ref::Handle(handle.to_owned()),
+            AccelArg::Built(build) if build.is_on(&self.shared) => Ref::Operation(build.id()),
+            AccelArg::Built(build) => Ref::Handle(finished_elsewhere(build)?.handle),
+        };
+        Ok(proto::AccelRef { r#ref: Some(by) })
+    }
+
+    /// The contract's reference for `buffer`.
+    fn buffer_ref(&self, buffer: BufferArg<'_>) -> Result<proto::BufferRef> {
+        use proto::buffer_ref::Ref;
+        let by = match buffer {
+            BufferArg::Name(name) => Ref::Name(name.to_owned()),
+            BufferArg::Id(id) => Ref::Id(id.to_owned()),
+            BufferArg::Uploaded(upload) if upload.is_on(&self.shared) => Ref::Operation(upload.id()),
+            BufferArg::Uploaded(upload) => Ref::Id(finished_elsewhere(upload)?.id),
+        };
+        Ok(proto::BufferRef { r#ref: Some(by) })
+    }
+}
+
+/// The product of an operation of another stream, which must have finished (else name its product by name, after
+/// waiting on an event recorded after it).
+fn finished_elsewhere<T>(operation: &Operation<T>) -> Result<T> {
+    operation.result().unwrap_or_else(|| {
+        Err(Error::InvalidArgument(format!(
+            "operation {} of another stream has not finished: name its product by name, after waiting on an event \
+             recorded after it",
+            operation.id()
+        )))
+    })
+}
+
+impl Drop for Stream {
+    /// Cancels an unfinished stream (a `CancelStream` call, sent in the background): the server drops the queued
+    /// operations and frees what the stream held. Unanswered handles fail with CANCELLED.
+    fn drop(&mut self) {
+        if let (Some(mut rpc), Ok(runtime)) = (self.rpc.take(), tokio::runtime::Handle::try_current()) {
+            let request = proto::CancelStreamRequest { stream_id: self.shared.stream_id };
+            // Best effort: if it cannot be sent, the call's reset (or the connection's end) cancels the stream.
+            runtime.spawn(async move { rpc.cancel_stream(request).await });
+        }
+        self.receiver.abort();
+        self.shared.break_with(tonic::Status::cancelled("the stream was dropped"));
+    }
+}

@@ -1,0 +1,388 @@
+//! End to end against the real `rayd`: streams (`OpenStream`) through `rayd-client`, and by hand where a test must
+//! break the rules or hold a stream half-open. Order within a stream (server timestamps), products named before
+//! they exist, overlap of two streams, an event ordering work across streams, errors that are not sticky,
+//! cancellation returning the server's accounted memory to its baseline, bounded buffering, and many streams at
+//! once under `max_streams`.
+
+mod common;
+mod daemon;
+mod reference;
+
+use std::time::Duration;
+
+use bytes::Bytes;
+use daemon::Daemon;
+use hyper_util::rt::TokioIo;
+use rayd_client::proto::rayd_client::RaydClient;
+use rayd_client::{Client, ClientOptions, Error, Operation, TraceResult, proto};
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::query::{Query, QueryKind};
+use reference::{BUNNY_TRIANGLES, bunny};
+use tokio::sync::mpsc;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::Code;
+use tonic::transport::Channel;
+
+/// The closest-hit query of most traces here.
+fn closest() -> Query {
+    Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV)
+}
+
+/// A client of `daemon`.
+async fn connect(daemon: &Daemon, options: ClientOptions) -> Client {
+    Client::connect(&daemon.url(), options).await.expect("the client connects to rayd")
+}
+
+/// What the tenant holds now, as the server accounts it.
+async fn usage(client: &Client) -> proto::Usage {
+    client.server_info().await.expect("GetServerInfo").usage.expect("ServerInfo.usage")
+}
+
+/// Polls the tenant's usage (for up to 20 s) until `settled` holds, and returns it; panics with the last one.
+async fn usage_when(client: &Client, what: &str, settled: impl Fn(&proto::Usage) -> bool) -> proto::Usage {
+    let mut last = usage(client).await;
+    for _ in 0..200 {
+        if settled(&last) {
+            return last;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+        last = usage(client).await;
+    }
+    panic!("{what}: the server's usage never settled; last {last:?}")
+}
+
+/// Asserts that a stream's trace is what the engine makes of the same rays in this process.
+fn assert_as_engine(traced: &Operation<TraceResult>, query: &Query, rays: &[u8], what: &str) {
+    let traced = traced.result().expect("answered").expect("the trace succeeded");
+    let stats = traced.stats();
+    bunny().trace(query, rays).assert_answer(traced.hits(), traced.counts(), (stats.rays, stats.rays_hit), what);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_runs_its_operations_in_order_on_products_named_before_they_exist() {
+    let daemon = Daemon::start(&[]);
+    // Small thresholds: the mesh goes up as two uploads of several messages each, named by the build by operation.
+    let options = ClientOptions { inline_mesh_bytes: 64 << 10, upload_chunk_bytes: 256 << 10, ..Default::default() };
+    let client = connect(&daemon, options).await;
+    let stream = client.create_stream().await.expect("a stream opens");
+    let bunny = bunny();
+    let build = stream.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 64, 48));
+    let any = Query { kind: QueryKind::Any, hit_format: HitFormat::Bitmask, ..closest() };
+    let traced = [
+        stream.trace(&build, &closest(), rays.clone()).await.unwrap(),
+        stream.trace(&build, &any, rays.clone()).await.unwrap(),
+    ];
+    // Three downloaded chunks of 1 MiB and a short one: the download is reassembled in order.
+    let payload: Bytes = (0..(3 << 20) + 12345).map(|i: u32| (i.wrapping_mul(2_654_435_761) >> 24) as u8).collect();
+    let upload = stream.upload("payload", payload.clone()).await.unwrap();
+    let download = stream.download(&upload).await.unwrap();
+
+    stream.synchronize().await.expect("every operation succeeds");
+    assert!(stream.query(), "after synchronize the stream is idle");
+    let accel = build.result().unwrap().unwrap();
+    assert_eq!((accel.name.as_str(), accel.triangle_count), ("bunny", BUNNY_TRIANGLES));
+    assert_as_engine(&traced[0], &closest(), &rays, "closest hits on a stream");
+    assert_as_engine(&traced[1], &any, &rays, "any-hit bitmask on a stream");
+    assert_eq!(download.result().unwrap().unwrap(), payload, "the downloaded buffer is the uploaded one");
+    assert_eq!(upload.result().unwrap().unwrap().size_bytes, payload.len() as u64);
+
+    // Server timestamps: each operation started after the one before it finished.
+    let ran = [build.ran_unix_ns(), traced[0].ran_unix_ns(), traced[1].ran_unix_ns()]
+        .into_iter()
+        .chain([upload.ran_unix_ns(), download.ran_unix_ns()])
+        .map(|ran| ran.expect("answered"))
+        .collect::<Vec<_>>();
+    let ids = [build.id(), traced[0].id(), traced[1].id(), upload.id(), download.id()];
+    assert_eq!(ids, [3, 6, 7, 8, 9], "uploads 1 and 2, build 3, deletes 4 and 5, then the rest in enqueue order");
+    for pair in ran.windows(2) {
+        assert!(pair[0].0 <= pair[0].1 && pair[0].1 <= pair[1].0, "operations overlap within a stream: {ran:?}");
+    }
+    // The mesh's two buffers were deleted by operations 4 and 5, after the build used them.
+    let buffers: Vec<_> = client.buffers().await.unwrap().into_iter().map(|b| b.name).collect();
+    assert_eq!(buffers, ["payload"]);
+    stream.finish().await.expect("a clean finish");
+    assert_eq!(client.accel("bunny").await.unwrap().handle, accel.handle, "products outlive their stream");
+    usage_when(&client, "after finish", |u| u.streams == 0 && u.stream_bytes == 0).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_streams_run_at_the_same_time_and_an_event_orders_work_between_them() {
+    let daemon = Daemon::start(&[]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    let bunny = bunny();
+    client.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let (a, b) = (client.create_stream().await.unwrap(), client.create_stream().await.unwrap());
+    assert_ne!(a.id(), b.id());
+
+    // Overlap: a long trace on each stream, enqueued together.
+    let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 640, 480));
+    let on_a = a.trace("bunny", &closest(), rays.clone()).await.unwrap();
+    let on_b = b.trace("bunny", &closest(), rays.clone()).await.unwrap();
+    a.synchronize().await.unwrap();
+    b.synchronize().await.unwrap();
+    let ((a_start, a_end), (b_start, b_end)) = (on_a.ran_unix_ns().unwrap(), on_b.ran_unix_ns().unwrap());
+    assert!(
+        a_start < b_end && b_start < a_end,
+        "the two traces ran at the same time: a {a_start}..{a_end}, b {b_start}..{b_end}"
+    );
+    assert_as_engine(&on_a, &closest(), &rays, "stream a");
+    assert_as_engine(&on_b, &closest(), &rays, "stream b");
+
+    // An event: b traces an accel that a builds, by name, after waiting for the event a records after the build.
+    let built_on_a = a.build_mesh("later", &bunny.mesh, "", BuildFlags::PREFER_FAST_TRACE).await.unwrap();
+    let event = a.record_event().await.unwrap();
+    b.wait_event(&event).await.unwrap();
+    let small = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 32, 24));
+    let on_b = b.trace("later", &closest(), small.clone()).await.unwrap();
+    b.synchronize().await.expect("b's trace found the accel a built: the event held it back");
+    assert!(event.query(), "b waited for the event, so it has completed");
+    event.wait().await.unwrap();
+    let recorded = event.completed_unix_ns().unwrap();
+    assert!(built_on_a.ran_unix_ns().unwrap().1 <= recorded, "the event completes after the build before it");
+    assert!(on_b.ran_unix_ns().unwrap().0 >= recorded, "b's trace started after the event completed");
+    assert_as_engine(&on_b, &closest(), &small, "the trace after the event");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_failed_operation_reports_on_its_handle_and_at_synchronize_and_the_stream_goes_on() {
+    let daemon = Daemon::start(&[]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    let bunny = bunny();
+    client.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 32, 24));
+    let stream = client.create_stream().await.unwrap();
+    let missing = stream.trace("missing", &closest(), rays.clone()).await.unwrap();
+    let bad_build = stream.build_mesh("not a name!", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let on_failed = stream.trace(&bad_build, &closest(), rays.clone()).await.unwrap();
+    let fine = stream.trace("bunny", &closest(), rays.clone()).await.unwrap();
+
+    let Err(Error::Operations(failed)) = stream.synchronize().await else { panic!("synchronize reports failures") };
+    let codes: Vec<_> = failed.iter().map(|(id, status)| (*id, status.code())).collect();
+    assert_eq!(codes, [(1, Code::NotFound), (2, Code::InvalidArgument), (3, Code::FailedPrecondition)]);
+    assert!(failed[2].1.message().contains("trace.query.accel: operation 2 failed"), "{:?}", failed[2].1);
+    let Some(Err(Error::Operation { operation: 1, status })) = missing.result() else { panic!("the handle fails") };
+    assert!(status.message().contains("\"missing\""), "{status:?}");
+    assert_eq!(on_failed.result().unwrap().unwrap_err().code(), Code::FailedPrecondition);
+    assert_as_engine(&fine, &closest(), &rays, "the operation after the failures ran");
+    stream.record_event().await.unwrap();
+    stream.synchronize().await.expect("failures are reported once");
+}
+
+/// A stream opened by hand: the way to send its messages, its answers, and its id.
+struct RawStream {
+    /// Messages to send.
+    sender: mpsc::Sender<proto::StreamRequest>,
+    /// The answers.
+    answers: tonic::Streaming<proto::StreamResponse>,
+    /// The server's id.
+    id: u64,
+}
+
+/// Opens a stream by hand on `channel`.
+async fn open_raw(channel: &Channel) -> RawStream {
+    let (sender, requests) = mpsc::channel(1);
+    let mut rpc = RaydClient::new(channel.clone()).max_decoding_message_size(usize::MAX);
+    let mut answers = rpc.open_stream(ReceiverStream::new(requests)).await.unwrap().into_inner();
+    let Some(proto::stream_response::Kind::Opened(opened)) = answers.message().await.unwrap().unwrap().kind else {
+        panic!("the first message opens the stream")
+    };
+    RawStream { sender, answers, id: opened.stream_id }
+}
+
+/// A channel over one TCP connection, and a handle on that connection to cut it as a vanishing client would.
+async fn cuttable_channel(daemon: &Daemon) -> (Channel, std::net::TcpStream) {
+    let connection = std::net::TcpStream::connect(daemon.grpc_addr()).unwrap();
+    let kept = connection.try_clone().unwrap();
+    connection.set_nonblocking(true).unwrap();
+    let mut connection = Some(connection);
+    let connector = tower::service_fn(move |_| {
+        let taken = connection.take().ok_or_else(|| std::io::Error::other("one connection only"));
+        async move { Ok::<_, std::io::Error>(TokioIo::new(tokio::net::TcpStream::from_std(taken?)?)) }
+    });
+    let channel = Channel::from_shared(daemon.url()).unwrap().connect_with_connector(connector).await.unwrap();
+    (channel, kept)
+}
+
+/// Sends `messages` from a task of their own (sending blocks once the server stops reading), which keeps the
+/// request side open until it is aborted or the sender is dropped after the last message.
+fn send_all(
+    sender: mpsc::Sender<proto::StreamRequest>,
+    messages: Vec<(u64, proto::stream_request::Op)>,
+) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        for (operation, op) in messages {
+            if sender.send(proto::StreamRequest { operation, op: Some(op) }).await.is_err() {
+                return;
+            }
+        }
+        std::future::pending::<()>().await;
+    })
+}
+
+/// A trace of inline `rays` on the accel `accel`.
+fn trace_op(accel: &str, rays: Bytes) -> proto::stream_request::Op {
+    proto::stream_request::Op::Trace(proto::TraceBatchRequest {
+        query: Some(rayd_client::convert::trace_query(accel, &closest())),
+        rays: Some(proto::trace_batch_request::Rays::RaysInline(rays)),
+        hits_buffer_name: String::new(),
+    })
+}
+
+/// Upload `size` bytes, of which `first` come with the header.
+fn upload_op(size: u64, first: Bytes) -> proto::stream_request::Op {
+    let header = proto::UploadBufferHeader { name: String::new(), size_bytes: size };
+    proto::stream_request::Op::Upload(proto::StreamUpload { header: Some(header), first_data: first })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancelling_a_stream_frees_what_it_held_and_its_buffering_is_bounded() {
+    let daemon = Daemon::start(&[("RAYD_LIMITS_STREAM_WINDOW", "4")]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    client.build_mesh("bunny", &bunny().mesh, "", BuildFlags::empty()).await.unwrap();
+    let base = usage(&client).await;
+    assert_eq!((base.streams, base.stream_bytes), (0, 0));
+    let traces_run = || daemon.metric("rayd_stream_operations_total", &["op=\"trace\""]).unwrap_or(0.0);
+    let ran_before = traces_run();
+
+    // x is opened and left idle: its operation 1 never comes, so waiting for it blocks.
+    let channel = Channel::from_shared(daemon.url()).unwrap().connect_lazy();
+    let x = open_raw(&channel).await;
+    // y, on a connection of its own, waits for x's operation 1, then 16 traces of 1 MiB of rays queue behind it.
+    let (y_channel, y_connection) = cuttable_channel(&daemon).await;
+    let y = open_raw(&y_channel).await;
+    let ray = 1 << 20;
+    let wait = proto::stream_request::Op::WaitEvent(proto::WaitEvent { stream_id: x.id, operation: 1 });
+    let traces = (2..18).map(|id| (id, trace_op("bunny", Bytes::from(vec![0u8; ray]))));
+    let y_sending = send_all(y.sender, std::iter::once((1, wait)).chain(traces).collect());
+    let held = usage_when(&client, "y's queue filling", |u| u.stream_bytes >= 4 * ray as u64).await;
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let held = usage(&client).await.stream_bytes.max(held.stream_bytes);
+    // The window's 4 queued messages and the one the reader holds: 5 traces of 16, however long y waits.
+    assert!(held <= 5 * (ray as u64 + 1024), "the server read {held} bytes ahead");
+
+    // z is in the middle of an upload: 3 of 8 MiB have come.
+    let z = open_raw(&channel).await;
+    let data = proto::stream_request::Op::UploadData(Bytes::from(vec![7u8; 1 << 20]));
+    let z_messages = vec![(1, upload_op(8 << 20, Bytes::from(vec![7u8; 1 << 20]))), (1, data.clone()), (1, data)];
+    let z_sending = send_all(z.sender, z_messages);
+    let holding = usage_when(&client, "z's upload", |u| u.stream_bytes >= held + (3 << 20)).await;
+    assert_eq!(holding.streams, 3);
+
+    // y's client disconnects: its connection is cut (its request side is held back by flow control, so the call
+    // could not even be reset). z is cancelled by CancelStream, its call left open; it ends with CANCELLED.
+    y_connection.shutdown(std::net::Shutdown::Both).unwrap();
+    let mut rpc = RaydClient::new(channel.clone());
+    rpc.cancel_stream(proto::CancelStreamRequest { stream_id: z.id }).await.expect("CancelStream");
+    let mut z_answers = z.answers;
+    let ended = loop {
+        match z_answers.message().await {
+            Ok(Some(_)) => continue,
+            ended => break ended,
+        }
+    };
+    assert_eq!(ended.unwrap_err().code(), Code::Cancelled, "a cancelled stream's call ends with CANCELLED");
+    let after = usage_when(&client, "after cancelling", |u| u.streams == 1 && u.stream_bytes == 0).await;
+    drop((y.answers, y_sending, z_sending));
+    assert_eq!((after.object_bytes, after.buffers, after.accels), (base.object_bytes, base.buffers, base.accels));
+    assert_eq!(traces_run(), ran_before, "no queued trace of the cancelled stream ran");
+    drop(x);
+    usage_when(&client, "after x", |u| u.streams == 0).await;
+    let unknown = rpc.cancel_stream(proto::CancelStreamRequest { stream_id: 99 }).await.unwrap_err();
+    assert_eq!(unknown.code(), Code::NotFound);
+
+    // Dropping a client library stream cancels it too: of three long traces, at most the running one finishes.
+    let stream = client.create_stream().await.unwrap();
+    let rays = Bytes::from(bunny().camera_rays(RayFormat::OriginTminDirectionTmax, 640, 480));
+    let handles = [
+        stream.trace("bunny", &closest(), rays.clone()).await.unwrap(),
+        stream.trace("bunny", &closest(), rays.clone()).await.unwrap(),
+        stream.trace("bunny", &closest(), rays).await.unwrap(),
+    ];
+    drop(stream);
+    for handle in &handles {
+        assert_eq!(handle.wait().await.unwrap_err().code(), Code::Cancelled, "an unanswered operation fails");
+    }
+    let after = usage_when(&client, "after dropping", |u| u.streams == 0 && u.stream_bytes == 0).await;
+    assert_eq!(after.object_bytes, base.object_bytes);
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert!(traces_run() <= ran_before + 1.0, "queued traces were dropped, not run");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_message_that_breaks_the_rules_ends_the_stream_with_its_status() {
+    let daemon = Daemon::start(&[]);
+    let channel = Channel::from_shared(daemon.url()).unwrap().connect_lazy();
+    let cases = [
+        (vec![(2, proto::stream_request::Op::RecordEvent(proto::RecordEvent {}))], "operation: 2 received where 1"),
+        (
+            vec![
+                (1, upload_op(4, Bytes::from_static(b"ab"))),
+                (1, proto::stream_request::Op::UploadData(Bytes::from_static(b"cde"))),
+            ],
+            "more bytes than upload 1 declared",
+        ),
+        (vec![(1, proto::stream_request::Op::UploadData(Bytes::from_static(b"x")))], "not the upload"),
+    ];
+    for (messages, expected) in cases {
+        let mut raw = open_raw(&channel).await;
+        send_all(raw.sender, messages);
+        let status = loop {
+            match raw.answers.message().await {
+                Ok(Some(_)) => continue,
+                Ok(None) => panic!("the stream ended without an error ({expected})"),
+                Err(status) => break status,
+            }
+        };
+        assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+        assert!(status.message().contains(expected), "{status:?} should say {expected:?}");
+    }
+    // A reference to a stream operation outside a stream.
+    let by_operation = proto::AccelRef { r#ref: Some(proto::accel_ref::Ref::Operation(1)) };
+    let request = proto::GetAccelRequest { accel: Some(by_operation) };
+    let error = RaydClient::new(channel).get_accel(request).await.unwrap_err();
+    assert_eq!(error.code(), Code::InvalidArgument);
+    assert!(error.message().contains("stream operation"), "{error:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn many_streams_trace_at_once_up_to_max_streams() {
+    const STREAMS: u32 = 24;
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_STREAMS", &STREAMS.to_string())]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    let bunny = bunny();
+    client.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let mut streams = Vec::new();
+    for _ in 0..STREAMS {
+        streams.push(client.create_stream().await.expect("a stream within max_streams"));
+    }
+    let refused = client.create_stream().await.expect_err("one stream too many");
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert!(refused.to_string().contains("max_streams"), "{refused}");
+
+    let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 48, 32));
+    let mut tasks = tokio::task::JoinSet::new();
+    for stream in streams {
+        let rays = rays.clone();
+        tasks.spawn(async move {
+            let mut traced = Vec::new();
+            for _ in 0..3 {
+                traced.push(stream.trace("bunny", &closest(), rays.clone()).await.unwrap());
+            }
+            stream.synchronize().await.unwrap();
+            stream.finish().await.unwrap();
+            traced
+        });
+    }
+    let mut answered = 0;
+    while let Some(traced) = tasks.join_next().await {
+        for operation in traced.unwrap() {
+            assert_as_engine(&operation, &closest(), &rays, "one of many streams");
+            answered += 1;
+        }
+    }
+    assert_eq!(answered, 3 * STREAMS);
+    usage_when(&client, "after every stream finished", |u| u.streams == 0).await;
+    client.create_stream().await.expect("places are freed when streams end");
+}
