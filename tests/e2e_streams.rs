@@ -14,7 +14,7 @@ use bytes::Bytes;
 use daemon::Daemon;
 use hyper_util::rt::TokioIo;
 use rayd_client::proto::rayd_client::RaydClient;
-use rayd_client::{Client, ClientOptions, Error, Operation, TraceResult, proto};
+use rayd_client::{Client, ClientOptions, Error, EventId, Operation, TraceResult, proto};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::query::{Query, QueryKind};
@@ -308,6 +308,33 @@ async fn cancelling_a_stream_frees_what_it_held_and_its_buffering_is_bounded() {
     assert_eq!(after.object_bytes, base.object_bytes);
     tokio::time::sleep(Duration::from_millis(500)).await;
     assert!(traces_run() <= ran_before + 1.0, "queued traces were dropped, not run");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_client_holds_back_enqueueing_beyond_its_bytes_in_flight() {
+    let daemon = Daemon::start(&[]);
+    let options = ClientOptions { stream_bytes_in_flight: 3 << 20, ..Default::default() };
+    let client = connect(&daemon, options).await;
+    client.build_mesh("bunny", &bunny().mesh, "", BuildFlags::empty()).await.unwrap();
+    // Another client's stream, idle: its operation 1 never comes, so waiting for it holds this stream.
+    let channel = Channel::from_shared(daemon.url()).unwrap().connect_lazy();
+    let other = open_raw(&channel).await;
+    let stream = client.create_stream().await.unwrap();
+    let held = stream.wait_event(EventId { stream_id: other.id, operation: 1 }).await.unwrap();
+    // 1 MiB of rays a trace: two fit in 3 MiB with the wait; the third must wait for room.
+    let rays = Bytes::from(vec![0u8; 1 << 20]);
+    let mut queued = Vec::new();
+    for _ in 0..2 {
+        queued.push(stream.trace("bunny", &closest(), rays.clone()).await.unwrap());
+    }
+    let third = tokio::time::timeout(Duration::from_millis(500), stream.trace("bunny", &closest(), rays.clone())).await;
+    assert!(third.is_err(), "enqueueing beyond stream_bytes_in_flight waits");
+    assert!(!held.is_done() && !stream.query());
+    // Once the other stream closes, the wait completes, the traces run and room comes back.
+    drop(other);
+    queued.push(stream.trace("bunny", &closest(), rays.clone()).await.unwrap());
+    stream.synchronize().await.unwrap();
+    assert!(held.is_done() && queued.iter().all(|t| t.result().unwrap().is_ok()));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -40,6 +40,6 @@ pub use error::{Error, Result};
 pub use mesh::load_mesh;
 pub use rayd_proto as proto;
 pub use render::{Image, Shading, shade};
-pub use stream::{AccelArg, BufferArg, Event, Operation, Stream};
+pub use stream::{AccelArg, BufferArg, Event, EventId, Operation, Stream};
 pub use trace::TraceResult;
 pub use view::{HitView, RayView};

@@ -109,7 +109,8 @@ fn main() {
             );
         }
 
-        let upload: Bytes = (0..UPLOAD_BYTES).map(|i| (i as u32).wrapping_mul(2_654_435_761).to_le_bytes()[3]).collect();
+        let upload: Bytes =
+            (0..UPLOAD_BYTES).map(|i| (i as u32).wrapping_mul(2_654_435_761).to_le_bytes()[3]).collect();
         let batch = |i: usize| rays.slice(i * OVERLAP_BATCH_RAYS * ray_size..(i + 1) * OVERLAP_BATCH_RAYS * ray_size);
         let check = |handles: &[rayd_client::Operation<rayd_client::TraceResult>]| {
             for (i, handle) in handles.iter().enumerate() {

@@ -73,15 +73,20 @@ pub struct Event {
     pub(crate) record: Operation<()>,
 }
 
-impl Event {
+/// What names an event on the server: the recording stream's id and the record operation's id. Plain data, so an
+/// event recorded by another client (another process) can be waited on once its id is passed along.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct EventId {
     /// The recording stream's server id.
-    pub fn stream_id(&self) -> u64 {
-        self.record.shared.stream_id
-    }
+    pub stream_id: u64,
+    /// The record operation's id in that stream.
+    pub operation: u64,
+}
 
-    /// The record operation's id in the recording stream.
-    pub fn operation(&self) -> u64 {
-        self.record.id
+impl Event {
+    /// The event's name on the server.
+    pub fn id(&self) -> EventId {
+        EventId { stream_id: self.record.shared.stream_id, operation: self.record.id }
     }
 
     /// Whether the event has completed (never blocks).
@@ -97,6 +102,12 @@ impl Event {
     /// Waits until the event has completed; fails if its stream broke first.
     pub async fn wait(&self) -> Result<()> {
         self.record.wait().await
+    }
+}
+
+impl From<&Event> for EventId {
+    fn from(event: &Event) -> Self {
+        event.id()
     }
 }
 

@@ -35,7 +35,7 @@ use tokio::sync::{Mutex, Semaphore, mpsc};
 use tokio::task::JoinHandle;
 use tokio_stream::wrappers::ReceiverStream;
 
-pub use handle::{Event, Operation};
+pub use handle::{Event, EventId, Operation};
 use state::{Expect, Outcome, Shared, Slot, Unanswered};
 
 use crate::build::{mesh_request, packed};
@@ -248,9 +248,11 @@ impl Stream {
         Ok(Event { record: self.enqueue_unit(Op::RecordEvent(proto::RecordEvent {})).await? })
     }
 
-    /// Makes the operations enqueued after this one wait until `event` (of any stream) has completed.
-    pub async fn wait_event(&self, event: &Event) -> Result<Operation<()>> {
-        let wait = proto::WaitEvent { stream_id: event.stream_id(), operation: event.operation() };
+    /// Makes the operations enqueued after this one wait until `event` (of any stream of this tenant, also another
+    /// client's) has completed. An event of a stream that has closed is complete.
+    pub async fn wait_event(&self, event: impl Into<EventId>) -> Result<Operation<()>> {
+        let EventId { stream_id, operation } = event.into();
+        let wait = proto::WaitEvent { stream_id, operation };
         self.enqueue_unit(Op::WaitEvent(wait)).await
     }
 
