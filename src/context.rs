@@ -2,17 +2,17 @@
 //! buffers are freed when they are destroyed, or when the context is dropped.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 
 use bytes::Bytes;
 use dashmap::DashMap;
 use glam::Vec3;
 
-use crate::accel::{AccelInfo, BuildFlags, BuildOptions, MemoryUsage};
+use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
 use crate::backend::{Backend, BackendAccel, DeviceInfo};
 use crate::error::{Error, Result};
-use crate::geometry::{BuildInput, triangle_counts};
+use crate::geometry::{BuildInput, Instance, PlacedInstance, Placement, check_depth, place, triangle_counts};
 use crate::query::{Query, TraceOutput, TraceStats};
 
 /// A device that contexts can be created on.
@@ -88,8 +88,20 @@ pub struct Accel {
     info: AccelInfo,
     /// The backend's structure.
     data: Box<dyn BackendAccel>,
+    /// The accels it places (its instances' children, a transform's child): kept alive while it lives.
+    children: Vec<Arc<Accel>>,
+    /// Live accels that place this one; while there are any it cannot be destroyed.
+    referrers: AtomicUsize,
     /// Keeps the context's memory total honest.
     _charge: Charge,
+}
+
+impl Drop for Accel {
+    fn drop(&mut self) {
+        for child in &self.children {
+            child.referrers.fetch_sub(1, Ordering::AcqRel);
+        }
+    }
 }
 
 impl std::fmt::Debug for Accel {
@@ -109,6 +121,11 @@ impl Accel {
         &self.info
     }
 
+    /// The backend's structure, for backends tracing through instances.
+    pub(crate) fn backend_accel(&self) -> &dyn BackendAccel {
+        self.data.as_ref()
+    }
+
     /// The corners of triangle `prim_id` (as hits report it) of geometry `geom_id`. Needs
     /// `ALLOW_RANDOM_VERTEX_ACCESS` at build.
     pub fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Result<[Vec3; 3]> {
@@ -120,6 +137,19 @@ impl Accel {
             rule: format!("geometry {geom_id} has no primitive {prim_id}"),
         })
     }
+}
+
+/// What a build made, before it is registered.
+#[derive(Debug, Clone, Copy)]
+struct Shape {
+    /// Triangles, instances or a transform.
+    kind: AccelKind,
+    /// Triangles given.
+    triangle_count: u64,
+    /// Geometries given.
+    geometry_count: u32,
+    /// Instances given.
+    instance_count: u64,
 }
 
 /// A buffer held by a context.
@@ -173,24 +203,84 @@ impl Context {
         self.device.backend.compute_memory_usage(inputs, options)
     }
 
+    /// Upper bounds of the memory that building an instance accel over `instances` instances would use.
+    pub fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
+        self.device.backend.compute_instance_memory_usage(instances, options)
+    }
+
     /// Validates the inputs and builds an accel over them. No lock is held while building, so traces on other
     /// accels go on.
     pub fn build_accel(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Arc<Accel>> {
         let data = self.device.backend.build(inputs, options)?;
-        let triangle_count = triangle_counts(inputs)?.iter().sum::<usize>() as u64;
+        let shape = Shape {
+            kind: AccelKind::Triangles,
+            triangle_count: triangle_counts(inputs)?.iter().sum::<usize>() as u64,
+            geometry_count: inputs.len() as u32,
+            instance_count: 0,
+        };
+        Ok(self.register(shape, options, data, Vec::new()))
+    }
+
+    /// Builds an instance accel over already-built accels (geometry accels, instance accels, transforms, of this
+    /// device). Each transform must be finite and invertible, and the graph at most
+    /// [`MAX_GRAPH_DEPTH`](crate::geometry::MAX_GRAPH_DEPTH) levels deep. The children cannot be destroyed while
+    /// the instance accel lives.
+    pub fn build_instance_accel(&self, instances: &[Instance], options: &BuildOptions) -> Result<Arc<Accel>> {
+        options.validate()?;
+        let placed: Vec<PlacedInstance> =
+            instances.iter().enumerate().map(|(index, instance)| place(index, instance)).collect::<Result<_>>()?;
+        let data = self.device.backend.build_instances(&placed, options)?;
+        let shape =
+            Shape { kind: AccelKind::Instances, triangle_count: 0, geometry_count: 0, instance_count: placed.len() as u64 };
+        Ok(self.register(shape, options, data, placed.into_iter().map(|p| p.child).collect()))
+    }
+
+    /// Places `child` under a static transform (a 3×4 row-major object-to-world matrix), as a traversable that
+    /// instances can point at. The child cannot be destroyed while the transform lives.
+    pub fn build_transform(&self, transform: &[f32; 12], child: &Arc<Accel>) -> Result<Arc<Accel>> {
+        let placement = Placement::new(transform).ok_or_else(|| Error::InvalidBuildInput {
+            input: 0,
+            field: "transform",
+            element: None,
+            rule: "must be finite and invertible".into(),
+        })?;
+        check_depth(child.info.depth, "child", None)?;
+        let data = self.device.backend.build_transform(&placement, child)?;
+        let shape = Shape { kind: AccelKind::Transform, triangle_count: 0, geometry_count: 0, instance_count: 0 };
+        Ok(self.register(shape, &BuildOptions::default(), data, vec![Arc::clone(child)]))
+    }
+
+    /// Gives a built structure a handle, its description and its memory charge; counts it as a referrer of each
+    /// of its distinct `children`.
+    fn register(
+        &self,
+        shape: Shape,
+        options: &BuildOptions,
+        data: Box<dyn BackendAccel>,
+        mut children: Vec<Arc<Accel>>,
+    ) -> Arc<Accel> {
+        children.sort_by_key(|c| Arc::as_ptr(c) as usize);
+        children.dedup_by(|a, b| Arc::ptr_eq(a, b));
+        for child in &children {
+            child.referrers.fetch_add(1, Ordering::AcqRel);
+        }
         let size_bytes = data.size_bytes();
         let info = AccelInfo {
+            kind: shape.kind,
             size_bytes,
-            triangle_count,
-            geometry_count: inputs.len() as u32,
+            triangle_count: shape.triangle_count,
+            geometry_count: shape.geometry_count,
+            instance_count: shape.instance_count,
+            depth: 1 + children.iter().map(|c| c.info.depth).max().unwrap_or(0),
             options: *options,
             compacted_size_bytes: options.flags.contains(BuildFlags::ALLOW_COMPACTION).then_some(size_bytes),
             bounds: data.bounds(),
         };
         let handle = AccelHandle(self.next_handle.fetch_add(1, Ordering::Relaxed));
-        let accel = Arc::new(Accel { handle, info, data, _charge: Charge::new(size_bytes, &self.bytes_in_use) });
+        let charge = Charge::new(size_bytes, &self.bytes_in_use);
+        let accel = Arc::new(Accel { handle, info, data, children, referrers: AtomicUsize::new(0), _charge: charge });
         self.accels.insert(handle, Arc::clone(&accel));
-        Ok(accel)
+        accel
     }
 
     /// The accel named by `handle`.
@@ -205,8 +295,16 @@ impl Context {
         handles
     }
 
-    /// Destroys an accel; traces already holding it finish first.
+    /// Destroys an accel; traces already holding it finish first. An accel that live instance accels or
+    /// transforms place cannot be destroyed (FAILED_PRECONDITION): destroy them first.
     pub fn destroy_accel(&self, handle: AccelHandle) -> Result<()> {
+        let referrers = self.accel(handle)?.referrers.load(Ordering::Acquire);
+        if referrers > 0 {
+            return Err(Error::FailedPrecondition(format!(
+                "accel {} is placed by {referrers} live instance accel(s) or transform(s); destroy them first",
+                handle.0
+            )));
+        }
         self.accels.remove(&handle).map(drop).ok_or(Error::NotFound { what: "accel", id: handle.0 })
     }
 

@@ -4,7 +4,7 @@
 
 use crate::error::Result;
 use crate::geometry::{GatheredTriangles, is_degenerate};
-use crate::query::{Query, TraceOutput, TraceStats, TriangleCandidate, consider_triangle, trace_batch};
+use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, TriangleCandidate, consider_triangle, trace_batch};
 
 /// Traces `rays` against every triangle of `triangles`. `any` queries report the first hit in input order.
 pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
@@ -24,7 +24,7 @@ pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: Tra
                     mask: triangles.mask(i),
                     geometry_flags: triangles.geometry_flags[id.geom_id as usize],
                 };
-                consider_triangle(ray, &candidate, collector);
+                consider_triangle(ray, &candidate, &InstanceScope::WORLD, collector);
                 if collector.done() {
                     return;
                 }

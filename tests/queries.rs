@@ -36,6 +36,9 @@ fn down(x: f32, y: f32, from_z: f32) -> Ray {
     Ray { origin: Vec3A::new(x, y, from_z), direction: -Vec3A::Z, ..Ray::default() }
 }
 
+/// 4-byte words in one `full` hit record.
+const FULL_WORDS: usize = 20;
+
 fn closest(format: HitFormat) -> Query {
     Query::closest(RayFormat::Full, format)
 }
@@ -77,11 +80,11 @@ fn equal_t_ties_go_to_the_lowest_geometry_then_primitive_id() {
     let rays: Vec<Ray> = (0..64).map(|i| down(0.1 + 0.01 * (i % 8) as f32, 0.1 + 0.01 * (i / 8) as f32, 1.0)).collect();
     let (hits, _) = trace(&inputs, closest(HitFormat::Full), &rays);
     for ray in 0..rays.len() {
-        assert_eq!((u32_at(&hits, 12 * ray + 1), u32_at(&hits, 12 * ray + 2)), (7, 0), "ray {ray}");
+        assert_eq!((u32_at(&hits, FULL_WORDS * ray + 1), u32_at(&hits, FULL_WORDS * ray + 2)), (7, 0), "ray {ray}");
     }
     let all = Query { kind: QueryKind::All, max_hits_per_ray: 8, ..closest(HitFormat::Full) };
     let (hits, counts) = trace(&inputs, all, &rays[..1]);
-    let order: Vec<(u32, u32)> = (0..5).map(|k| (u32_at(&hits, 12 * k + 2), u32_at(&hits, 12 * k + 1))).collect();
+    let order: Vec<(u32, u32)> = (0..5).map(|k| (u32_at(&hits, FULL_WORDS * k + 2), u32_at(&hits, FULL_WORDS * k + 1))).collect();
     assert_eq!(order, [(0, 7), (0, 8), (1, 0), (1, 1), (1, 2)]);
     assert_eq!(u32_at(&counts, 0), 5);
 }
@@ -97,7 +100,7 @@ fn prime_masks_skip_triangles_whose_mask_shares_a_bit_with_the_ray() {
     ];
     let with_mask = |mask| Ray { mask, ..down(0.2, 0.2, 3.0) };
     let (hits, _) = trace(&inputs, closest(HitFormat::Full), &[with_mask(0), with_mask(0b1001), with_mask(0b0010)]);
-    let geometry = |ray: usize| u32_at(&hits, 12 * ray + 2);
+    let geometry = |ray: usize| u32_at(&hits, FULL_WORDS * ray + 2);
     assert_eq!([geometry(0), geometry(1), geometry(2)], [0, 0, 1]);
 }
 
@@ -114,8 +117,9 @@ fn face_culling_follows_ray_and_query_flags_unless_the_geometry_disables_it() {
     let between = Ray { origin: Vec3A::new(0.2, 0.2, -0.5), ..from_below };
     let (hits, _) = trace(&inputs, closest(HitFormat::Full), &[from_above, from_below, between]);
     assert_eq!((u32_at(&hits, 2), u32_at(&hits, 9)), (1, 0), "front face of geometry 0 culled, geometry 1 exempt");
-    assert_eq!((u32_at(&hits, 12 + 2), u32_at(&hits, 12 + 9)), (1, 1), "seen from below: back face flag set");
-    assert_eq!((u32_at(&hits, 24 + 2), u32_at(&hits, 24 + 9)), (0, 1));
+    let word = |ray: usize, offset: usize| u32_at(&hits, FULL_WORDS * ray + offset);
+    assert_eq!((word(1, 2), word(1, 9)), (1, 1), "seen from below: back face flag set");
+    assert_eq!((word(2, 2), word(2, 9)), (0, 1));
     let culling_query = Query { flags: RayFlags::CULL_BACK_FACING, ..closest(HitFormat::TTriid) };
     let (hits, _) = trace(&inputs, culling_query, &[from_below, between]);
     assert_eq!(f32_at(&hits, 0), 1.0, "geometry 1 is exempt from culling");

@@ -220,15 +220,15 @@ mod tests {
         let query = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
         assert_eq!(
             chunk_rays(&query, 4 << 20, usize::MAX),
-            (4 << 20) / 48 / 8 * 8,
-            "48-byte hits outweigh 24-byte rays"
+            (4 << 20) / 80 / 8 * 8,
+            "80-byte hits outweigh 24-byte rays"
         );
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Bitmask);
         assert_eq!(chunk_rays(&query, 4 << 20, usize::MAX), (4 << 20) / 32);
         let query =
             Query { kind: QueryKind::All, max_hits_per_ray: 1000, ..Query::closest(RayFormat::Full, HitFormat::Full) };
         assert_eq!(chunk_rays(&query, 4 << 20, usize::MAX) % 8, 0);
-        assert_eq!(chunk_rays(&query, 4 << 20, usize::MAX), (4 << 20) / 48004 / 8 * 8);
+        assert_eq!(chunk_rays(&query, 4 << 20, usize::MAX), (4 << 20) / 80004 / 8 * 8);
         assert_eq!(chunk_rays(&query, 1000, usize::MAX), 8, "never fewer than 8 rays");
         assert_eq!(chunk_rays(&query, 4 << 20, 20), 16, "the server's max_rays_per_batch caps chunks");
         assert_eq!(chunk_rays(&query, 4 << 20, 5), 5, "below 8 rays only when the server allows fewer");

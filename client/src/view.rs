@@ -2,7 +2,7 @@
 //! and decode one record at a time with the engine's formats.
 
 use glam::Vec3A;
-use rayd_engine::format::{Hit, HitFormat, Ray, RayFormat};
+use rayd_engine::format::{Hit, HitFormat, INSTANCE_PATH_SLOTS, InstancePath, Ray, RayFormat};
 
 use crate::error::{Error, Result};
 
@@ -119,6 +119,8 @@ impl<'a> HitView<'a> {
                 (hit.u, hit.v) = (f32_at(16), f32_at(20));
                 hit.normal = Vec3A::new(f32_at(24), f32_at(28), f32_at(32));
                 hit.back_face = u32_at(36) & 1 != 0;
+                let path_len = (u32_at(40) as usize).min(INSTANCE_PATH_SLOTS);
+                hit.inst_path = (0..path_len).fold(InstancePath::EMPTY, |path, slot| path.push(u32_at(48 + 4 * slot)));
             }
         }
         hit
@@ -152,6 +154,7 @@ mod tests {
         prim_id: 7,
         geom_id: 3,
         inst_id: 9,
+        inst_path: InstancePath::EMPTY.push(4).push(9),
         u: 0.25,
         v: 0.5,
         normal: Vec3A::new(0.0, -1.0, 0.0),
@@ -196,6 +199,7 @@ mod tests {
             assert_eq!(hit.geom_id, pick(carries("full"), HIT.geom_id, MISS_ID), "{format:?}");
             assert_eq!(hit.normal, pick(carries("full"), HIT.normal, Vec3A::ZERO), "{format:?}");
             assert_eq!(hit.back_face, pick(carries("full"), true, false), "{format:?}");
+            assert_eq!(hit.inst_path, pick(carries("full"), HIT.inst_path, InstancePath::EMPTY), "{format:?}");
         }
     }
 

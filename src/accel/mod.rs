@@ -56,19 +56,37 @@ pub struct MemoryUsage {
     pub temp_update_bytes: u64,
 }
 
+/// What an accel is built over.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum AccelKind {
+    /// Triangles (a geometry accel).
+    Triangles,
+    /// Instances of other accels (an instance accel).
+    Instances,
+    /// One other accel under a static transform.
+    Transform,
+}
+
 /// What is known about a built accel.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AccelInfo {
+    /// What it is built over.
+    pub kind: AccelKind,
     /// Bytes the accel occupies on its device.
     pub size_bytes: u64,
     /// Triangles given to the build (degenerate ones included).
     pub triangle_count: u64,
-    /// Build inputs (geometries).
+    /// Build inputs (geometries) of a geometry accel; 0 otherwise.
     pub geometry_count: u32,
+    /// Instances of an instance accel; 0 otherwise.
+    pub instance_count: u64,
+    /// Levels of the traversable graph it heads: 1 for a geometry accel, one more than its deepest child
+    /// otherwise.
+    pub depth: u32,
     /// The options it was built with.
     pub options: BuildOptions,
     /// With `ALLOW_COMPACTION`: the size a compacted copy would have.
     pub compacted_size_bytes: Option<u64>,
-    /// The box around every triangle (`min > max` when there are none).
+    /// The box around every triangle, in the accel's own space (`min > max` when there are none).
     pub bounds: (Vec3, Vec3),
 }

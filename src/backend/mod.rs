@@ -4,12 +4,14 @@
 pub mod cpu;
 
 use std::any::Any;
+use std::sync::Arc;
 
 use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
 use crate::error::Result;
-use crate::geometry::BuildInput;
+use crate::context::Accel;
+use crate::geometry::{BuildInput, PlacedInstance, Placement};
 use crate::query::{Query, TraceOutput, TraceStats};
 
 /// Which implementation a device uses.
@@ -55,6 +57,12 @@ pub trait Backend: Send + Sync {
     fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage>;
     /// Validates the inputs and builds an accel over them.
     fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>>;
+    /// Upper bounds of the memory that [`Backend::build_instances`] will use for `instances` instances.
+    fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage>;
+    /// Builds an instance accel over checked instances, whose children must be accels of this backend.
+    fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>>;
+    /// Places `child` (an accel of this backend) under a static transform.
+    fn build_transform(&self, placement: &Placement, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>>;
     /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats>;
 }

@@ -10,6 +10,42 @@ pub const MISS_T: f32 = -1.0;
 /// instance (as `i32` it reads −1).
 pub const MISS_ID: u32 = u32::MAX;
 
+/// Instance ids a hit record has room for: more than the deepest graph can stack above a geometry.
+pub const INSTANCE_PATH_SLOTS: usize = 8;
+
+/// The user ids of the instances a hit was found through, top (the traced accel's instance) to bottom (the
+/// instance of the geometry accel); unused slots hold [`MISS_ID`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct InstancePath {
+    /// The ids, then [`MISS_ID`]s.
+    ids: [u32; INSTANCE_PATH_SLOTS],
+    /// How many ids there are.
+    len: u8,
+}
+
+impl InstancePath {
+    /// The path of a hit outside any instance.
+    pub const EMPTY: InstancePath = InstancePath { ids: [MISS_ID; INSTANCE_PATH_SLOTS], len: 0 };
+
+    /// The path one instance further down. The graph depth limit keeps paths shorter than the slots; a push
+    /// beyond them panics.
+    pub const fn push(mut self, instance_id: u32) -> InstancePath {
+        self.ids[self.len as usize] = instance_id;
+        self.len += 1;
+        self
+    }
+
+    /// The ids, top to bottom.
+    pub fn ids(&self) -> &[u32] {
+        &self.ids[..self.len as usize]
+    }
+
+    /// The bottom instance's id (the one the instance-id hit formats report), or [`MISS_ID`].
+    pub fn last(&self) -> u32 {
+        self.ids().last().copied().unwrap_or(MISS_ID)
+    }
+}
+
 /// One intersection, as the engine reports it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Hit {
@@ -19,8 +55,10 @@ pub struct Hit {
     pub prim_id: u32,
     /// Geometry id: the index of the build input.
     pub geom_id: u32,
-    /// User instance id, or [`MISS_ID`] outside any instance.
+    /// The user id of the instance just above the geometry, or [`MISS_ID`] outside any instance.
     pub inst_id: u32,
+    /// Every instance above the geometry, top to bottom.
+    pub inst_path: InstancePath,
     /// Barycentric weight of the triangle's second vertex.
     pub u: f32,
     /// Barycentric weight of the third vertex: hit point = (1−u−v)·v0 + u·v1 + v·v2.
@@ -38,6 +76,7 @@ impl Hit {
         prim_id: MISS_ID,
         geom_id: MISS_ID,
         inst_id: MISS_ID,
+        inst_path: InstancePath::EMPTY,
         u: 0.0,
         v: 0.0,
         normal: Vec3A::ZERO,
@@ -63,13 +102,15 @@ pub enum HitFormat {
     TTriid,
     /// Prime `HIT_T_TRIID_U_V`, 16 bytes: `0 t f32 | 4 prim_id i32 | 8 u f32 | 12 v f32`.
     TTriidUV,
-    /// Prime `HIT_T_TRIID_INSTID`, 12 bytes: `0 t f32 | 4 prim_id i32 | 8 inst_id i32`.
+    /// Prime `HIT_T_TRIID_INSTID`, 12 bytes: `0 t f32 | 4 prim_id i32 | 8 inst_id i32` (the user id of the
+    /// instance just above the geometry; −1 outside any instance).
     TTriidInstid,
     /// Prime `HIT_T_TRIID_INSTID_U_V`, 20 bytes: `0 t f32 | 4 prim_id i32 | 8 inst_id i32 | 12 u f32 | 16 v f32`.
     TTriidInstidUV,
-    /// 48 bytes: `0 t f32 | 4 prim_id i32 | 8 geom_id i32 | 12 inst_id i32 | 16 u f32 | 20 v f32 |
-    /// 24 normal.xyz f32×3 (unit geometric normal, world space) | 36 flags u32 (bit 0: back face hit) |
-    /// 40 reserved u32×2 (0)`.
+    /// 80 bytes: `0 t f32 | 4 prim_id i32 | 8 geom_id i32 | 12 inst_id i32 | 16 u f32 | 20 v f32 |
+    /// 24 normal.xyz f32×3 (unit geometric normal, world space, on the front side) | 36 flags u32 (bit 0: back
+    /// face hit) | 40 path_len u32 (instances above the geometry) | 44 reserved u32 (0) | 48 inst_path i32×8 (their
+    /// user ids, top to bottom, then −1)`.
     Full,
 }
 
@@ -94,7 +135,7 @@ impl HitFormat {
             HitFormat::TTriidInstid => Some(12),
             HitFormat::TTriidUV => Some(16),
             HitFormat::TTriidInstidUV => Some(20),
-            HitFormat::Full => Some(48),
+            HitFormat::Full => Some(80),
         }
     }
 
@@ -169,8 +210,11 @@ impl HitFormat {
                     write_f32(b, 24 + 4 * axis, unit[axis]);
                 }
                 write_u32(b, 36, u32::from(hit.back_face));
-                write_u32(b, 40, 0);
+                write_u32(b, 40, hit.inst_path.len as u32);
                 write_u32(b, 44, 0);
+                for (slot, id) in hit.inst_path.ids.iter().enumerate() {
+                    write_u32(b, 48 + 4 * slot, *id);
+                }
             }
         }
     }
@@ -199,22 +243,27 @@ mod tests {
             t: 2.5,
             prim_id: 7,
             geom_id: 3,
-            inst_id: MISS_ID,
+            inst_id: 5,
+            inst_path: InstancePath::EMPTY.push(4).push(5),
             u: 0.25,
             v: 0.5,
             normal: Vec3A::new(0.0, 0.0, -4.0),
             back_face: true,
         };
-        let mut b = vec![0xffu8; 48];
+        let mut b = vec![0xffu8; 80];
         HitFormat::Full.write(&mut b, 0, &hit);
         assert_eq!(read_f32(&b, 0), 2.5);
         assert_eq!(read_u32(&b, 4), 7);
         assert_eq!(read_u32(&b, 8), 3);
-        assert_eq!(read_u32(&b, 12) as i32, -1);
+        assert_eq!(read_u32(&b, 12), 5);
         assert_eq!((read_f32(&b, 16), read_f32(&b, 20)), (0.25, 0.5));
         assert_eq!((read_f32(&b, 24), read_f32(&b, 28), read_f32(&b, 32)), (0.0, 0.0, -1.0));
         assert_eq!(read_u32(&b, 36), 1);
-        assert_eq!(&b[40..], &[0; 8]);
+        assert_eq!((read_u32(&b, 40), read_u32(&b, 44)), (2, 0));
+        let path: Vec<i32> = (0..8).map(|slot| read_u32(&b, 48 + 4 * slot) as i32).collect();
+        assert_eq!(path, [4, 5, -1, -1, -1, -1, -1, -1]);
+        HitFormat::Full.write(&mut b, 0, &Hit::MISS);
+        assert_eq!((read_u32(&b, 12) as i32, read_u32(&b, 40), read_u32(&b, 48) as i32), (-1, 0, -1));
     }
 
     #[test]

@@ -6,7 +6,7 @@
 pub mod hit;
 pub mod ray;
 
-pub use hit::{Hit, HitFormat, MISS_ID, MISS_T};
+pub use hit::{Hit, HitFormat, INSTANCE_PATH_SLOTS, InstancePath, MISS_ID, MISS_T};
 pub use ray::{Ray, RayFlags, RayFormat};
 
 /// Reads a little-endian `f32` at `offset`.

@@ -18,7 +18,7 @@ bitflags::bitflags! {
 }
 
 /// A decoded ray. Formats without a field give it its default: `tmin` 0, `tmax` +∞, `time` 0, `mask` 0,
-/// `flags` empty.
+/// `visibility` 0xFF, `flags` empty.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Ray {
     /// Origin, in world units.
@@ -33,6 +33,8 @@ pub struct Ray {
     pub time: f32,
     /// Prime masking: a triangle is skipped when `mask & triangle_mask != 0`.
     pub mask: u32,
+    /// OptiX instance visibility: the ray sees an instance when `visibility & instance_mask != 0`.
+    pub visibility: u8,
     /// Per-ray flags; unknown bits are ignored.
     pub flags: RayFlags,
 }
@@ -46,6 +48,7 @@ impl Default for Ray {
             tmax: f32::INFINITY,
             time: 0.0,
             mask: 0,
+            visibility: 0xFF,
             flags: RayFlags::empty(),
         }
     }
@@ -67,7 +70,8 @@ pub enum RayFormat {
     OriginTminDirectionTmaxTime,
     /// Everything, 48 bytes, 16-byte aligned records:
     /// `0 origin.xyz f32×3 | 12 tmin f32 | 16 direction.xyz f32×3 | 28 tmax f32 | 32 time f32 | 36 mask u32 |
-    /// 40 flags u32 ([`RayFlags`]) | 44 reserved u32 (write 0; ignored)`.
+    /// 40 flags u32 ([`RayFlags`]) | 44 visibility u32 (low 8 bits: the instance visibility mask; higher bits
+    /// ignored)`. A full ray with visibility 0 sees no instance (as in OptiX); other formats see every instance.
     Full,
 }
 
@@ -135,6 +139,7 @@ impl RayFormat {
                 ray.time = read_f32(b, 32);
                 ray.mask = read_u32(b, 36);
                 ray.flags = RayFlags::from_bits_truncate(read_u32(b, 40));
+                ray.visibility = read_u32(b, 44) as u8;
             }
         }
         ray
@@ -164,7 +169,7 @@ impl RayFormat {
         if self == RayFormat::Full {
             write_u32(b, 36, ray.mask);
             write_u32(b, 40, ray.flags.bits());
-            write_u32(b, 44, 0);
+            write_u32(b, 44, u32::from(ray.visibility));
         }
     }
 }
@@ -182,6 +187,7 @@ mod tests {
             tmax: 99.0,
             time: 0.75,
             mask: 0xdead_beef,
+            visibility: 0x5a,
             flags: RayFlags::CULL_BACK_FACING | RayFlags::TERMINATE_ON_FIRST_HIT,
         };
         for format in RayFormat::ALL {
@@ -199,6 +205,7 @@ mod tests {
             let has_mask = matches!(format, RayFormat::OriginMaskDirectionTmax | RayFormat::Full);
             assert_eq!(back.mask, if has_mask { ray.mask } else { 0 }, "{format:?}");
             assert_eq!(back.flags, if format == RayFormat::Full { ray.flags } else { RayFlags::empty() });
+            assert_eq!(back.visibility, if format == RayFormat::Full { ray.visibility } else { 0xFF });
             assert_eq!(RayFormat::from_name(format.name()), Some(format));
         }
     }

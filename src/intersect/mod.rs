@@ -4,7 +4,7 @@
 pub mod aabb;
 pub mod triangle;
 
-use glam::Vec3A;
+use glam::{Affine3A, Vec3A};
 
 use crate::format::{Ray, RayFlags};
 
@@ -19,8 +19,12 @@ pub struct PreparedRay {
     pub tmin: f32,
     /// Largest accepted `t` (inclusive), as given by the caller.
     pub tmax: f32,
+    /// The time the scene is intersected at.
+    pub time: f32,
     /// Prime mask.
     pub mask: u32,
+    /// Instance visibility mask.
+    pub visibility: u8,
     /// The ray's flags together with the query's.
     pub flags: RayFlags,
     /// Axis along which the direction is largest in magnitude; the triangle test projects along it.
@@ -63,7 +67,9 @@ impl PreparedRay {
             direction: d,
             tmin: ray.tmin,
             tmax: ray.tmax,
+            time: ray.time,
             mask: ray.mask,
+            visibility: ray.visibility,
             flags: ray.flags | query_flags,
             kz,
             kx,
@@ -72,5 +78,22 @@ impl PreparedRay {
             inv_direction: Vec3A::new(inv(d.x), inv(d.y), inv(d.z)),
             negative: [d.x < 0.0, d.y < 0.0, d.z < 0.0],
         }
+    }
+
+    /// The same ray in another space (e.g. an instance's object space). `t` keeps its meaning: the direction is
+    /// carried over unnormalized.
+    #[inline]
+    pub fn transformed(&self, to: &Affine3A) -> PreparedRay {
+        let ray = Ray {
+            origin: to.transform_point3a(self.origin),
+            direction: to.transform_vector3a(self.direction),
+            tmin: self.tmin,
+            tmax: self.tmax,
+            time: self.time,
+            mask: self.mask,
+            visibility: self.visibility,
+            flags: self.flags,
+        };
+        PreparedRay::new(&ray, RayFlags::empty())
     }
 }

@@ -1,11 +1,11 @@
 //! Per-ray collection of hits: the one place where a candidate triangle becomes a hit, where the tie rule is
 //! applied and where a ray's result is written into the caller's buffers.
 
-use glam::{Vec3, Vec3A};
+use glam::{Mat3A, Vec3, Vec3A};
 
 use super::{Query, QueryKind};
-use crate::format::{Hit, MISS_ID, RayFlags, write_u32};
-use crate::geometry::{GeometryFlags, TriangleRef};
+use crate::format::{Hit, InstancePath, RayFlags, write_u32};
+use crate::geometry::{GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
 use crate::intersect::{PreparedRay, triangle};
 
 /// A triangle offered to a ray, with everything the acceptance rules need.
@@ -21,16 +21,60 @@ pub struct TriangleCandidate<'a> {
     pub geometry_flags: GeometryFlags,
 }
 
-/// Whether `a` is reported before `b`: smaller `t`, then smaller geometry id, then smaller primitive id.
-#[inline]
-fn precedes(a: &Hit, b: &Hit) -> bool {
-    (a.t, a.geom_id, a.prim_id) < (b.t, b.geom_id, b.prim_id)
+/// Where a triangle is met: the instances above it and what they change about its hits.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InstanceScope {
+    /// The instances above, top to bottom.
+    pub path: InstancePath,
+    /// Front and back faces are swapped (an odd number of `FLIP_FACING` instances above).
+    pub flip_facing: bool,
+    /// Face culling is off (a `DISABLE_FACE_CULLING` instance above).
+    pub no_culling: bool,
+    /// Carries the geometry's normals to world space; `None` at the top level.
+    pub normal_to_world: Option<Mat3A>,
 }
 
-/// Tests one triangle against the ray and offers the hit, if it is accepted, to `collector`: the mask rule,
-/// the intersection, the `[tmin, tmax]` range (inclusive) and face culling, in that order.
+impl InstanceScope {
+    /// The scope of a traced accel itself: no instance above.
+    pub const WORLD: InstanceScope =
+        InstanceScope { path: InstancePath::EMPTY, flip_facing: false, no_culling: false, normal_to_world: None };
+
+    /// The scope below `instance`.
+    pub fn enter(&self, instance: &PlacedInstance) -> InstanceScope {
+        InstanceScope {
+            path: self.path.push(instance.instance_id),
+            flip_facing: self.flip_facing ^ instance.flags.contains(InstanceFlags::FLIP_FACING),
+            no_culling: self.no_culling || instance.flags.contains(InstanceFlags::DISABLE_FACE_CULLING),
+            ..self.through(&instance.placement)
+        }
+    }
+
+    /// The scope below a static transform.
+    pub fn through(&self, placement: &Placement) -> InstanceScope {
+        let normal_to_world = match self.normal_to_world {
+            Some(outer) => outer * placement.normal_to_world,
+            None => placement.normal_to_world,
+        };
+        InstanceScope { normal_to_world: Some(normal_to_world), ..*self }
+    }
+}
+
+/// Whether `a` is reported before `b`: smaller `t`, then the smaller instance path, geometry id and primitive id.
+#[inline]
+fn precedes(a: &Hit, b: &Hit) -> bool {
+    (a.t, a.inst_path, a.geom_id, a.prim_id) < (b.t, b.inst_path, b.geom_id, b.prim_id)
+}
+
+/// Tests one triangle, met in `scope`, against the ray (in the triangle's space) and offers the hit, if it is
+/// accepted, to `collector`: the mask rule, the intersection, the `[tmin, tmax]` range (inclusive) and face
+/// culling, in that order.
 #[inline(always)]
-pub fn consider_triangle(ray: &PreparedRay, candidate: &TriangleCandidate<'_>, collector: &mut Collector<'_>) {
+pub fn consider_triangle(
+    ray: &PreparedRay,
+    candidate: &TriangleCandidate<'_>,
+    scope: &InstanceScope,
+    collector: &mut Collector<'_>,
+) {
     if ray.mask & candidate.mask != 0 {
         return;
     }
@@ -40,22 +84,26 @@ pub fn consider_triangle(ray: &PreparedRay, candidate: &TriangleCandidate<'_>, c
     if !(hit.t >= ray.tmin && hit.t <= collector.cull_tmax()) {
         return;
     }
-    if !candidate.geometry_flags.contains(GeometryFlags::DISABLE_FACE_CULLING) {
-        let culled = if hit.back_face { RayFlags::CULL_BACK_FACING } else { RayFlags::CULL_FRONT_FACING };
+    let back_face = hit.back_face ^ scope.flip_facing;
+    if !scope.no_culling && !candidate.geometry_flags.contains(GeometryFlags::DISABLE_FACE_CULLING) {
+        let culled = if back_face { RayFlags::CULL_BACK_FACING } else { RayFlags::CULL_FRONT_FACING };
         if ray.flags.contains(culled) {
             return;
         }
     }
     let [v0, v1, v2] = candidate.corners;
+    let normal = Vec3A::from((*v1 - *v0).cross(*v2 - *v0));
+    let normal = scope.normal_to_world.map_or(normal, |to_world| to_world * normal);
     collector.offer(Hit {
         t: hit.t,
         prim_id: candidate.id.prim_id,
         geom_id: candidate.id.geom_id,
-        inst_id: MISS_ID,
+        inst_id: scope.path.last(),
+        inst_path: scope.path,
         u: hit.u,
         v: hit.v,
-        normal: Vec3A::from((*v1 - *v0).cross(*v2 - *v0)),
-        back_face: hit.back_face,
+        normal: if scope.flip_facing { -normal } else { normal },
+        back_face,
     });
 }
 

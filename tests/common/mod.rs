@@ -118,6 +118,7 @@ pub fn random_rays(count: usize, seed: u64) -> Vec<Ray> {
                 tmax,
                 time: u(13),
                 mask: if u(14) < 0.5 { 0 } else { 1 << (u(15) * 4.0) as u32 },
+                visibility: 0xFF,
                 flags,
             }
         })

@@ -1,20 +1,81 @@
-//! The CPU backend: BVHs built by `obvhs`, laid out by [`bvh`], traced by [`traverse`] over rayon chunks.
+//! The CPU backend: BVHs built by `obvhs` ([`bvh`]) over triangles ([`triangles`]) or placed instances
+//! ([`instances`]), traced by [`traverse`] over rayon chunks.
 
 mod bvh;
+mod instances;
 mod traverse;
+mod triangles;
+
+use std::any::Any;
+use std::sync::Arc;
+
+use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
+use crate::context::Accel;
 use crate::error::{Error, Result};
-use crate::geometry::{BuildInput, gather, triangle_counts};
-use crate::query::{Query, TraceOutput, TraceStats, trace_batch};
+use crate::geometry::{BuildInput, PlacedInstance, Placement, gather, triangle_counts};
+use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, trace_batch};
 
-pub use bvh::CpuAccel;
+pub use instances::{InstanceBvh, TransformNode};
+pub use triangles::TriangleBvh;
 
 /// The CPU device. It uses rayon's current thread pool, so a caller can bound its threads with
 /// `ThreadPool::install`.
 #[derive(Debug, Default)]
 pub struct CpuBackend;
+
+/// A CPU accel of any kind.
+#[derive(Debug)]
+pub enum CpuAccel {
+    /// A geometry accel.
+    Triangles(TriangleBvh),
+    /// An instance accel.
+    Instances(InstanceBvh),
+    /// A static transform.
+    Transform(TransformNode),
+}
+
+impl CpuAccel {
+    /// Stack entries a trace through it needs.
+    fn stack_size(&self) -> usize {
+        match self {
+            CpuAccel::Triangles(bvh) => bvh.depth + 1,
+            CpuAccel::Instances(bvh) => bvh.stack_size,
+            CpuAccel::Transform(node) => node.stack_size,
+        }
+    }
+}
+
+impl BackendAccel for CpuAccel {
+    fn size_bytes(&self) -> u64 {
+        match self {
+            CpuAccel::Triangles(bvh) => bvh.size_bytes(),
+            CpuAccel::Instances(bvh) => bvh.size_bytes(),
+            CpuAccel::Transform(node) => node.size_bytes(),
+        }
+    }
+
+    fn bounds(&self) -> (Vec3, Vec3) {
+        match self {
+            CpuAccel::Triangles(bvh) => bvh.bounds(),
+            CpuAccel::Instances(bvh) => bvh.bounds(),
+            CpuAccel::Transform(node) => node.bounds(),
+        }
+    }
+
+    fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]> {
+        match self {
+            CpuAccel::Triangles(bvh) => bvh.triangle_vertices(geom_id, prim_id),
+            CpuAccel::Instances(_) | CpuAccel::Transform(_) => None,
+        }
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
 
 impl Backend for CpuBackend {
     fn info(&self) -> DeviceInfo {
@@ -31,13 +92,26 @@ impl Backend for CpuBackend {
         options.validate()?;
         let counts = triangle_counts(inputs)?;
         let has_masks = inputs.iter().any(|BuildInput::Triangles(t)| t.masks.is_some());
-        Ok(bvh::memory_bounds(counts.iter().sum(), inputs.len(), has_masks, options))
+        Ok(triangles::memory_bounds(counts.iter().sum(), inputs.len(), has_masks, options))
     }
 
     fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
         options.validate()?;
         let triangles = gather(inputs)?;
-        Ok(Box::new(CpuAccel::build(triangles, options)))
+        Ok(Box::new(CpuAccel::Triangles(TriangleBvh::build(triangles, options))))
+    }
+
+    fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
+        options.validate()?;
+        Ok(instances::memory_bounds(instances, options))
+    }
+
+    fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
+        Ok(Box::new(CpuAccel::Instances(InstanceBvh::build(instances, options)?)))
+    }
+
+    fn build_transform(&self, placement: &Placement, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>> {
+        Ok(Box::new(CpuAccel::Transform(TransformNode::build(placement, child)?)))
     }
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
@@ -50,7 +124,7 @@ impl Backend for CpuBackend {
             rays,
             out,
             || accel.new_stack(),
-            |stack, ray, collector, stats| accel.traverse(stack, ray, collector, stats),
+            |stack, ray, collector, stats| accel.traverse(stack, ray, &InstanceScope::WORLD, collector, stats),
         )
     }
 }

@@ -1,92 +1,179 @@
-//! Stack-based traversal of the CPU BVH: nearer child first, boxes tested against the collector's current cull
-//! distance, popped entries re-checked against it.
+//! Stack-based traversal of the CPU BVHs: nearer child first, boxes tested against the collector's current cull
+//! distance, popped entries re-checked against it. Leaves of a geometry accel offer triangles to the collector;
+//! leaves of an instance accel carry the ray into each visible instance's space and traverse its child there,
+//! on the rest of the same stack.
+
+use std::ops::Range;
 
 use glam::Vec3A;
 
 use super::CpuAccel;
+use super::bvh::Node;
+use super::instances::{InstanceBvh, TransformNode, cpu_child};
+use super::triangles::TriangleBvh;
 use crate::intersect::{PreparedRay, aabb};
-use crate::query::{Collector, TraceStats, TriangleCandidate, consider_triangle};
+use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
 
 /// A node waiting on the traversal stack, with the distance at which the ray enters its box.
 pub(crate) type StackEntry = (u32, f32);
 
 impl CpuAccel {
-    /// A traversal stack deep enough for this BVH.
+    /// A traversal stack deep enough for this accel and everything below it.
     pub(crate) fn new_stack(&self) -> Vec<StackEntry> {
-        vec![(0, 0.0); self.depth + 1]
+        vec![(0, 0.0); self.stack_size()]
     }
 
-    /// Offers every triangle whose leaf the ray reaches to `collector`, until it is done.
-    #[inline]
+    /// Offers every triangle the ray reaches, in `scope`, to `collector`, until it is done.
     pub(crate) fn traverse(
         &self,
         stack: &mut [StackEntry],
         ray: &PreparedRay,
+        scope: &InstanceScope,
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
     ) {
-        let Some(root) = self.nodes.first() else {
-            return;
-        };
-        let test = |node: &super::bvh::Node, tmax: f32| {
-            aabb::intersect(ray, Vec3A::from(node.min), Vec3A::from(node.max), ray.tmin, tmax)
-        };
-        stats.nodes_visited += 1;
-        if test(root, collector.cull_tmax()).is_none() {
-            return;
+        match self {
+            CpuAccel::Triangles(bvh) => bvh.traverse(stack, ray, scope, collector, stats),
+            CpuAccel::Instances(bvh) => bvh.traverse(stack, ray, scope, collector, stats),
+            CpuAccel::Transform(node) => node.traverse(stack, ray, scope, collector, stats),
         }
-        let mut len = 0usize;
-        let mut current = 0u32;
-        loop {
-            let node = &self.nodes[current as usize];
-            let mut next = None;
-            if node.count > 0 {
-                let first = node.index as usize;
-                for slot in first..first + node.count as usize {
-                    stats.triangle_tests += 1;
-                    let id = self.refs[slot];
-                    let candidate = TriangleCandidate {
-                        corners: &self.corners[slot],
-                        id,
-                        mask: self.masks.as_ref().map_or(0, |m| m[slot]),
-                        geometry_flags: self.geometry_flags[id.geom_id as usize],
-                    };
-                    consider_triangle(ray, &candidate, collector);
-                    if collector.done() {
-                        return;
-                    }
-                }
-            } else {
-                let tmax = collector.cull_tmax();
-                let (left, right) = (node.index, node.index + 1);
-                stats.nodes_visited += 2;
-                let near_left = test(&self.nodes[left as usize], tmax);
-                let near_right = test(&self.nodes[right as usize], tmax);
-                next = match (near_left, near_right) {
-                    (Some(l), Some(r)) => {
-                        let (first, second) = if r < l { ((right, r), (left, l)) } else { ((left, l), (right, r)) };
-                        stack[len] = second;
-                        len += 1;
-                        Some(first.0)
-                    }
-                    (Some(_), None) => Some(left),
-                    (None, Some(_)) => Some(right),
-                    (None, None) => None,
+    }
+}
+
+impl TriangleBvh {
+    /// Offers the triangles of the leaves the ray reaches.
+    fn traverse(
+        &self,
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        scope: &InstanceScope,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+    ) {
+        walk(&self.nodes, stack, ray, collector, stats, |slots, _, collector, stats| {
+            for slot in slots {
+                stats.triangle_tests += 1;
+                let id = self.refs[slot];
+                let candidate = TriangleCandidate {
+                    corners: &self.corners[slot],
+                    id,
+                    mask: self.masks.as_ref().map_or(0, |m| m[slot]),
+                    geometry_flags: self.geometry_flags[id.geom_id as usize],
                 };
+                consider_triangle(ray, &candidate, scope, collector);
+                if collector.done() {
+                    return true;
+                }
             }
-            current = match next {
-                Some(node) => node,
-                None => loop {
-                    if len == 0 {
-                        return;
-                    }
-                    len -= 1;
-                    let (node, near) = stack[len];
-                    if near <= collector.cull_tmax() {
-                        break node;
-                    }
-                },
+            false
+        });
+    }
+}
+
+impl InstanceBvh {
+    /// Traverses the child of every visible instance whose box the ray reaches, in the instance's space.
+    fn traverse(
+        &self,
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        scope: &InstanceScope,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+    ) {
+        walk(&self.nodes, stack, ray, collector, stats, |slots, rest, collector, stats| {
+            for instance in &self.instances[slots] {
+                if ray.visibility & instance.mask == 0 {
+                    continue;
+                }
+                let Ok(child) = cpu_child(&instance.child) else { continue };
+                let local = ray.transformed(&instance.placement.world_to_object);
+                child.traverse(rest, &local, &scope.enter(instance), collector, stats);
+                if collector.done() {
+                    return true;
+                }
+            }
+            false
+        });
+    }
+}
+
+impl TransformNode {
+    /// Traverses the child in its own space.
+    fn traverse(
+        &self,
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        scope: &InstanceScope,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+    ) {
+        if let Ok(child) = cpu_child(&self.child) {
+            let local = ray.transformed(&self.placement.world_to_object);
+            child.traverse(stack, &local, &scope.through(&self.placement), collector, stats);
+        }
+    }
+}
+
+/// Walks `nodes` front to back and hands each leaf the ray reaches (its primitive slots, the free part of the
+/// stack, the collector and the statistics) to `leaf`, which returns whether the collector is done.
+#[inline(always)]
+fn walk(
+    nodes: &[Node],
+    stack: &mut [StackEntry],
+    ray: &PreparedRay,
+    collector: &mut Collector<'_>,
+    stats: &mut TraceStats,
+    mut leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
+) {
+    let Some(root) = nodes.first() else {
+        return;
+    };
+    let test =
+        |node: &Node, tmax: f32| aabb::intersect(ray, Vec3A::from(node.min), Vec3A::from(node.max), ray.tmin, tmax);
+    stats.nodes_visited += 1;
+    if test(root, collector.cull_tmax()).is_none() {
+        return;
+    }
+    let mut len = 0usize;
+    let mut current = 0u32;
+    loop {
+        let node = &nodes[current as usize];
+        let mut next = None;
+        if node.count > 0 {
+            let first = node.index as usize;
+            if leaf(first..first + node.count as usize, &mut stack[len..], collector, stats) {
+                return;
+            }
+        } else {
+            let tmax = collector.cull_tmax();
+            let (left, right) = (node.index, node.index + 1);
+            stats.nodes_visited += 2;
+            let near_left = test(&nodes[left as usize], tmax);
+            let near_right = test(&nodes[right as usize], tmax);
+            next = match (near_left, near_right) {
+                (Some(l), Some(r)) => {
+                    let (first, second) = if r < l { ((right, r), (left, l)) } else { ((left, l), (right, r)) };
+                    stack[len] = second;
+                    len += 1;
+                    Some(first.0)
+                }
+                (Some(_), None) => Some(left),
+                (None, Some(_)) => Some(right),
+                (None, None) => None,
             };
         }
+        current = match next {
+            Some(node) => node,
+            None => loop {
+                if len == 0 {
+                    return;
+                }
+                len -= 1;
+                let (node, near) = stack[len];
+                if near <= collector.cull_tmax() {
+                    break node;
+                }
+            },
+        };
     }
 }

@@ -1,0 +1,133 @@
+//! The geometry accel of the CPU backend: a BVH over triangles, with the triangles reordered to match its
+//! leaves.
+
+use glam::Vec3;
+use obvhs::aabb::Aabb;
+
+use super::bvh::{FIXED_BYTES, Layout, Node};
+use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
+use crate::geometry::{GatheredTriangles, GeometryFlags, TriangleRef, is_degenerate};
+
+/// The build's working memory per triangle: measured at 243–257 bytes on the shared meshes and random soups for
+/// every preset (`tests/memory_usage.rs` prints it); 384 leaves a 1.5× margin.
+const BUILD_TEMP_BYTES_PER_TRIANGLE: u64 = 384;
+/// Working memory of a build that does not depend on its size (thread-local buffers, rayon bookkeeping).
+const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
+
+/// A BVH over triangles, ready to trace.
+#[derive(Debug)]
+pub struct TriangleBvh {
+    /// Depth-first nodes; empty when no triangle can be hit.
+    pub(super) nodes: Vec<Node>,
+    /// Triangle corners: first those of the leaves, in leaf order, then the degenerate ones (never traversed,
+    /// kept for random vertex access).
+    pub(super) corners: Vec<[Vec3; 3]>,
+    /// Ids of each triangle, parallel to `corners`.
+    pub(super) refs: Vec<TriangleRef>,
+    /// Prime masks parallel to `corners`, when the build had masks.
+    pub(super) masks: Option<Vec<u32>>,
+    /// Flags of each geometry.
+    pub(super) geometry_flags: Vec<GeometryFlags>,
+    /// Longest root-to-leaf path, in nodes: the traversal stack's size.
+    pub(super) depth: usize,
+    /// With `ALLOW_RANDOM_VERTEX_ACCESS`: where each input triangle went.
+    random_access: Option<RandomAccess>,
+}
+
+/// Maps (geometry id, primitive id) to a triangle's position in the accel.
+#[derive(Debug)]
+struct RandomAccess {
+    /// Per geometry: its first triangle's index in input order, and its primitive-index offset.
+    geometries: Vec<(u32, u32)>,
+    /// Per triangle in input order: its index in `corners`.
+    slots: Vec<u32>,
+}
+
+/// Upper bounds of a build's memory for `triangles` triangles in `geometries` inputs.
+pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, options: &BuildOptions) -> MemoryUsage {
+    let n = triangles as u64;
+    let g = geometries as u64;
+    let nodes = (2 * n).saturating_sub(1) * size_of::<Node>() as u64;
+    let per_triangle = (size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
+    let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
+    let output_bytes = FIXED_BYTES + nodes + n * per_triangle + 4 * g + random_access;
+    let temp_bytes = BUILD_TEMP_FIXED_BYTES + n * BUILD_TEMP_BYTES_PER_TRIANGLE;
+    // An update recomputes triangle boxes and refits nodes bottom-up with a parent index per node.
+    let temp_update_bytes =
+        if options.flags.contains(BuildFlags::ALLOW_UPDATE) { n * 32 + 8 * n + FIXED_BYTES } else { 0 };
+    MemoryUsage { output_bytes, temp_bytes, temp_update_bytes }
+}
+
+impl TriangleBvh {
+    /// Builds the BVH over gathered, validated triangles.
+    pub fn build(triangles: GatheredTriangles, options: &BuildOptions) -> TriangleBvh {
+        let hittable: Vec<u32> =
+            (0..triangles.len() as u32).filter(|&i| !is_degenerate(&triangles.vertices[i as usize])).collect();
+        let boxes: Vec<Aabb> = hittable
+            .iter()
+            .map(|&i| {
+                let [a, b, c] = triangles.vertices[i as usize];
+                Aabb::new(a.min(b).min(c).into(), a.max(b).max(c).into())
+            })
+            .collect();
+        let layout = Layout::build(&boxes, &hittable, options.flags);
+        drop(boxes);
+        Self::lay_out(&triangles, layout, options)
+    }
+
+    /// Puts the triangles in leaf order (then the degenerate ones) beside the laid-out nodes.
+    fn lay_out(triangles: &GatheredTriangles, layout: Layout, options: &BuildOptions) -> TriangleBvh {
+        let Layout { nodes, mut order, depth } = layout;
+        let total = triangles.len();
+        let mut in_leaves = vec![false; total];
+        for &i in &order {
+            in_leaves[i as usize] = true;
+        }
+        order.extend((0..total as u32).filter(|&i| !in_leaves[i as usize]));
+        let corners: Vec<[Vec3; 3]> = order.iter().map(|&i| triangles.vertices[i as usize]).collect();
+        let refs: Vec<TriangleRef> = order.iter().map(|&i| triangles.refs[i as usize]).collect();
+        let masks = triangles.masks.as_ref().map(|m| order.iter().map(|&i| m[i as usize]).collect());
+        let random_access = options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS).then(|| {
+            let mut slots = vec![0u32; total];
+            for (slot, &i) in order.iter().enumerate() {
+                slots[i as usize] = slot as u32;
+            }
+            let mut geometries = Vec::with_capacity(triangles.geometry_flags.len());
+            for (i, r) in triangles.refs.iter().enumerate() {
+                if geometries.len() == r.geom_id as usize {
+                    geometries.push((i as u32, r.prim_id));
+                }
+            }
+            RandomAccess { geometries, slots }
+        });
+        TriangleBvh { nodes, corners, refs, masks, geometry_flags: triangles.geometry_flags.clone(), depth, random_access }
+    }
+
+    /// Bytes it occupies.
+    pub fn size_bytes(&self) -> u64 {
+        let bytes = |len: usize, size: usize| (len * size) as u64;
+        let random_access =
+            self.random_access.as_ref().map_or(0, |r| bytes(r.slots.capacity(), 4) + bytes(r.geometries.capacity(), 8));
+        FIXED_BYTES
+            + bytes(self.nodes.capacity(), size_of::<Node>())
+            + bytes(self.corners.capacity(), size_of::<[Vec3; 3]>())
+            + bytes(self.refs.capacity(), size_of::<TriangleRef>())
+            + self.masks.as_ref().map_or(0, |m| bytes(m.capacity(), 4))
+            + bytes(self.geometry_flags.capacity(), 4)
+            + random_access
+    }
+
+    /// The box around every triangle.
+    pub fn bounds(&self) -> (Vec3, Vec3) {
+        self.corners.iter().flatten().fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| (lo.min(p), hi.max(p)))
+    }
+
+    /// The corners of a triangle, with random vertex access.
+    pub fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]> {
+        let access = self.random_access.as_ref()?;
+        let &(first, offset) = access.geometries.get(geom_id as usize)?;
+        let end = access.geometries.get(geom_id as usize + 1).map_or(access.slots.len() as u32, |g| g.0);
+        let index = first.checked_add(prim_id.checked_sub(offset)?)?;
+        (index < end).then(|| self.corners[access.slots[index as usize] as usize])
+    }
+}
