@@ -230,8 +230,12 @@ impl Context {
         let placed: Vec<PlacedInstance> =
             instances.iter().enumerate().map(|(index, instance)| place(index, instance)).collect::<Result<_>>()?;
         let data = self.device.backend.build_instances(&placed, options)?;
-        let shape =
-            Shape { kind: AccelKind::Instances, triangle_count: 0, geometry_count: 0, instance_count: placed.len() as u64 };
+        let shape = Shape {
+            kind: AccelKind::Instances,
+            triangle_count: 0,
+            geometry_count: 0,
+            instance_count: placed.len() as u64,
+        };
         Ok(self.register(shape, options, data, placed.into_iter().map(|p| p.child).collect()))
     }
 

@@ -84,7 +84,8 @@ fn equal_t_ties_go_to_the_lowest_geometry_then_primitive_id() {
     }
     let all = Query { kind: QueryKind::All, max_hits_per_ray: 8, ..closest(HitFormat::Full) };
     let (hits, counts) = trace(&inputs, all, &rays[..1]);
-    let order: Vec<(u32, u32)> = (0..5).map(|k| (u32_at(&hits, FULL_WORDS * k + 2), u32_at(&hits, FULL_WORDS * k + 1))).collect();
+    let order: Vec<(u32, u32)> =
+        (0..5).map(|k| (u32_at(&hits, FULL_WORDS * k + 2), u32_at(&hits, FULL_WORDS * k + 1))).collect();
     assert_eq!(order, [(0, 7), (0, 8), (1, 0), (1, 1), (1, 2)]);
     assert_eq!(u32_at(&counts, 0), 5);
 }

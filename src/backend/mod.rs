@@ -9,8 +9,8 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
-use crate::error::Result;
 use crate::context::Accel;
+use crate::error::Result;
 use crate::geometry::{BuildInput, PlacedInstance, Placement};
 use crate::query::{Query, TraceOutput, TraceStats};
 

@@ -5,7 +5,5 @@ mod input;
 mod instance;
 
 pub use gather::{GatheredTriangles, TriangleRef, gather, is_degenerate, triangle_counts};
-pub use instance::{
-    Instance, InstanceFlags, MAX_GRAPH_DEPTH, PlacedInstance, Placement, check_depth, place,
-};
 pub use input::{BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat};
+pub use instance::{Instance, InstanceFlags, MAX_GRAPH_DEPTH, PlacedInstance, Placement, check_depth, place};

@@ -100,7 +100,15 @@ impl TriangleBvh {
             }
             RandomAccess { geometries, slots }
         });
-        TriangleBvh { nodes, corners, refs, masks, geometry_flags: triangles.geometry_flags.clone(), depth, random_access }
+        TriangleBvh {
+            nodes,
+            corners,
+            refs,
+            masks,
+            geometry_flags: triangles.geometry_flags.clone(),
+            depth,
+            random_access,
+        }
     }
 
     /// Bytes it occupies.
