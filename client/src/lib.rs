@@ -27,6 +27,7 @@ mod build;
 mod client;
 pub mod convert;
 mod error;
+mod instances;
 mod mesh;
 mod render;
 mod stream;

@@ -64,6 +64,9 @@ pub struct Limits {
     pub stream_window: u32,
     /// Most `OpenStream` streams open at once per tenant.
     pub max_streams: u32,
+    /// Deepest traversable graph an accel may head (a geometry accel is 1 level, each instance accel or transform
+    /// above it 1 more); 1 to 8.
+    pub max_graph_depth: u32,
 }
 
 impl Default for Limits {
@@ -78,6 +81,7 @@ impl Default for Limits {
             max_buffers: 4096,
             stream_window: 4,
             max_streams: 64,
+            max_graph_depth: rayd_engine::geometry::MAX_GRAPH_DEPTH,
         }
     }
 }
@@ -115,7 +119,15 @@ impl Config {
         }
         let env: Vec<(String, String)> = env.into_iter().filter(|(k, _)| k.starts_with("RAYD_")).collect();
         overlay_env(&mut table, "RAYD", &env)?;
-        table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))
+        let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
+        let depth = config.limits.max_graph_depth;
+        if !(1..=rayd_engine::geometry::MAX_GRAPH_DEPTH).contains(&depth) {
+            return Err(ConfigError::Invalid(format!(
+                "limits.max_graph_depth = {depth} must be 1 to {}",
+                rayd_engine::geometry::MAX_GRAPH_DEPTH
+            )));
+        }
+        Ok(config)
     }
 }
 

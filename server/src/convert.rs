@@ -1,7 +1,7 @@
 //! Conversions between the contract's messages and the engine's types. Field names in errors are the
 //! contract's.
 
-use rayd_engine::accel::{AccelInfo, BuildFlags, BuildOptions, MemoryUsage};
+use rayd_engine::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use rayd_engine::backend::{BackendKind, DeviceInfo};
 use rayd_engine::format::{HitFormat, RayFlags, RayFormat};
 use rayd_engine::query::{Query, QueryKind, TraceStats};
@@ -97,6 +97,14 @@ pub fn accel_info(info: &AccelInfo, handle: &str, name: &str, device: &str, buil
         compacted_size_bytes: info.compacted_size_bytes,
         build_ns,
         bounds: Some(pb::Bounds { min: Some(vec3(info.bounds.0)), max: Some(vec3(info.bounds.1)) }),
+        kind: match info.kind {
+            AccelKind::Triangles => pb::AccelKind::Triangles,
+            AccelKind::Instances => pb::AccelKind::Instances,
+            AccelKind::Transform => pb::AccelKind::Transform,
+        }
+        .into(),
+        instance_count: info.instance_count,
+        depth: info.depth,
     }
 }
 
@@ -132,6 +140,7 @@ pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
         max_buffers: limits.max_buffers,
         stream_window: limits.stream_window,
         max_streams: limits.max_streams,
+        max_graph_depth: limits.max_graph_depth,
     }
 }
 

@@ -7,8 +7,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use bytes::Bytes;
-use rayd_engine::accel::{BuildOptions, MemoryUsage};
-use rayd_engine::geometry::BuildInput;
+use rayd_engine::accel::MemoryUsage;
 use rayd_engine::query::{Query, TraceOutput, TraceStats};
 use rayd_engine::{Accel, BufferHandle, Context, Device};
 
@@ -137,8 +136,8 @@ impl Tenant {
         &self.limits
     }
 
-    /// The context on device `id` (empty: the default device).
-    fn context(&self, id: &str) -> ServiceResult<(&str, &Context)> {
+    /// The context on device `id` (empty: the default device), and the device's id.
+    pub fn context(&self, id: &str) -> ServiceResult<(&str, &Context)> {
         let id = if id.is_empty() { DEFAULT_DEVICE } else { id };
         self.contexts
             .get_key_value(id)
@@ -146,23 +145,14 @@ impl Tenant {
             .ok_or_else(|| ServiceError::NotFound { what: "device", name: id.into() })
     }
 
-    /// Upper bounds of a build's memory on `device`.
-    pub fn compute_memory_usage(
-        &self,
-        device: &str,
-        inputs: &[BuildInput<'_>],
-        options: &BuildOptions,
-    ) -> ServiceResult<MemoryUsage> {
-        Ok(self.context(device)?.1.compute_memory_usage(inputs, options)?)
-    }
-
-    /// Builds an accel named `name` on `device`. Blocks: call it off the async runtime.
+    /// Builds an accel named `name` on `device` with `build`, after checking the name, the accel count and the
+    /// output bound `usage` gives against the limits. Blocks: call it off the async runtime.
     pub fn build_accel(
         &self,
         name: &str,
         device: &str,
-        inputs: &[BuildInput<'_>],
-        options: &BuildOptions,
+        usage: impl FnOnce(&Context) -> rayd_engine::Result<MemoryUsage>,
+        build: impl FnOnce(&Context) -> rayd_engine::Result<Arc<Accel>>,
     ) -> ServiceResult<AccelEntry> {
         check_name("name", name)?;
         self.accels.check_free(name)?;
@@ -174,7 +164,7 @@ impl Tenant {
             self.limits.max_accels as u64,
         )?;
         let (device, context) = self.context(device)?;
-        let usage = context.compute_memory_usage(inputs, options)?;
+        let usage = usage(context)?;
         ServiceError::check_limit(
             || format!("accel {name:?} needs up to {} bytes", usage.output_bytes),
             usage.output_bytes,
@@ -182,7 +172,7 @@ impl Tenant {
             self.limits.max_accel_bytes,
         )?;
         let start = Instant::now();
-        let accel = context.build_accel(inputs, options)?;
+        let accel = build(context)?;
         let entry = AccelEntry {
             handle: format!("acc-{}", accel.handle().0),
             accel,
@@ -209,10 +199,11 @@ impl Tenant {
         all
     }
 
-    /// Destroys an accel; traces holding it finish first.
+    /// Destroys an accel; traces holding it finish first. One that instance accels or transforms place is
+    /// refused (FAILED_PRECONDITION) and stays.
     pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
-        self.accels.remove(&entry.handle, &entry.name)?;
         self.context(&entry.device)?.1.destroy_accel(entry.accel.handle())?;
+        self.accels.remove(&entry.handle, &entry.name)?;
         Ok(())
     }
 

@@ -3,7 +3,11 @@
 mod gather;
 mod input;
 mod instance;
+mod instance_records;
 
 pub use gather::{GatheredTriangles, TriangleRef, gather, is_degenerate, triangle_counts};
 pub use input::{BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat};
 pub use instance::{Instance, InstanceFlags, MAX_GRAPH_DEPTH, PlacedInstance, Placement, check_depth, place};
+pub use instance_records::{
+    INSTANCE_RECORD_BYTES, InstanceRecord, TransformFormat, instances_from_prime, instances_from_records,
+};

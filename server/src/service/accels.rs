@@ -26,11 +26,15 @@ pub fn info(entry: &AccelEntry) -> pb::AccelInfo {
 
 /// Builds an accel (off the async runtime).
 pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> ServiceResult<pb::AccelInfo> {
-    let owned = inputs::resolve(&tenant, &request.inputs)?;
+    let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
     let options = convert::build_options(request.options.as_ref());
     let entry = blocking(move || {
-        let inputs: Vec<_> = owned.iter().map(|i| i.as_input()).collect();
-        tenant.build_accel(&request.name, &request.device, &inputs, &options)
+        tenant.build_accel(
+            &request.name,
+            &request.device,
+            |context| resolved.memory_usage(context, &options),
+            |context| resolved.build(context, &options),
+        )
     })
     .await?;
     crate::metrics::accel_built(&entry);

@@ -1,13 +1,72 @@
-//! Build inputs of a request, resolved to bytes (inline or from buffers) that outlive the blocking build.
+//! Build inputs of a request, resolved to what outlives the blocking build: triangle bytes (inline or from
+//! buffers, shared), or instances and transforms over resolved child accels.
+
+use std::sync::Arc;
 
 use bytes::Bytes;
+use rayd_engine::accel::{BuildOptions, MemoryUsage};
 use rayd_engine::geometry::{
-    BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat,
+    BuildInput, GeometryFlags, IndexBuffer, IndexFormat, Instance, TransformFormat, TriangleInput, VertexBuffer,
+    VertexFormat, instances_from_prime, instances_from_records,
 };
+use rayd_engine::{Accel, Context};
 use rayd_proto as pb;
 
+use super::accels;
 use crate::error::{ServiceError, ServiceResult};
 use crate::tenant::Tenant;
+
+/// What a build is over, resolved.
+#[derive(Debug)]
+pub enum Resolved {
+    /// Triangle inputs: a geometry accel.
+    Triangles(Vec<OwnedTriangles>),
+    /// Instances: an instance accel.
+    Instances(Vec<Instance>),
+    /// A static transform over one child.
+    Transform {
+        /// Object to world, 3×4 row-major.
+        matrix: [f32; 12],
+        /// The child.
+        child: Arc<Accel>,
+    },
+}
+
+impl Resolved {
+    /// Upper bounds of the build's memory on `context`.
+    pub fn memory_usage(&self, context: &Context, options: &BuildOptions) -> rayd_engine::Result<MemoryUsage> {
+        match self {
+            Resolved::Triangles(owned) => {
+                let inputs: Vec<_> = owned.iter().map(OwnedTriangles::as_input).collect();
+                context.compute_memory_usage(&inputs, options)
+            }
+            Resolved::Instances(instances) => context.compute_instance_memory_usage(instances.len(), options),
+            // A transform is bounded by an instance accel of one instance.
+            Resolved::Transform { .. } => context.compute_instance_memory_usage(1, options),
+        }
+    }
+
+    /// Builds it on `context`.
+    pub fn build(&self, context: &Context, options: &BuildOptions) -> rayd_engine::Result<Arc<Accel>> {
+        match self {
+            Resolved::Triangles(owned) => {
+                let inputs: Vec<_> = owned.iter().map(OwnedTriangles::as_input).collect();
+                context.build_accel(&inputs, options)
+            }
+            Resolved::Instances(instances) => context.build_instance_accel(instances, options),
+            Resolved::Transform { matrix, child } => context.build_transform(matrix, child),
+        }
+    }
+
+    /// Levels of the graph it would head, below it: its deepest child's (0 for triangles).
+    fn child_depth(&self) -> u32 {
+        match self {
+            Resolved::Triangles(_) => 0,
+            Resolved::Instances(instances) => instances.iter().map(|i| i.child.info().depth).max().unwrap_or(0),
+            Resolved::Transform { child, .. } => child.info().depth,
+        }
+    }
+}
 
 /// A triangle input whose bytes are owned (shared `Bytes`, never copied).
 #[derive(Debug)]
@@ -41,13 +100,101 @@ impl OwnedTriangles {
     }
 }
 
-/// Resolves every input of a request.
-pub fn resolve(tenant: &Tenant, inputs: &[pb::BuildInput]) -> ServiceResult<Vec<OwnedTriangles>> {
-    inputs.iter().enumerate().map(|(i, input)| resolve_one(tenant, i, input)).collect()
+/// Resolves the inputs of a build on `device`, and checks the depth of the graph it would head against
+/// `max_graph_depth`.
+pub fn resolve(tenant: &Tenant, device: &str, inputs: &[pb::BuildInput]) -> ServiceResult<Resolved> {
+    use pb::build_input::Input;
+    let places = |input: &pb::BuildInput| matches!(input.input, Some(Input::Instances(_) | Input::Transform(_)));
+    let resolved = match inputs {
+        [] => return Err(ServiceError::invalid("inputs", "a build needs at least one input")),
+        [only] if places(only) => match &only.input {
+            Some(Input::Instances(instances)) => Resolved::Instances(resolve_instances(tenant, device, instances)?),
+            Some(Input::Transform(transform)) => resolve_transform(tenant, device, transform)?,
+            _ => return Err(ServiceError::invalid("inputs[0]", "a build input must be set")),
+        },
+        _ if inputs.iter().any(places) => {
+            return Err(ServiceError::invalid(
+                "inputs",
+                "an instance or transform input must be the build's only input",
+            ));
+        }
+        _ => Resolved::Triangles(
+            inputs
+                .iter()
+                .enumerate()
+                .map(|(i, input)| resolve_triangles(tenant, i, input))
+                .collect::<Result<_, _>>()?,
+        ),
+    };
+    let depth = resolved.child_depth() + 1;
+    ServiceError::check_limit(
+        || "levels of the accel's graph".into(),
+        u64::from(depth),
+        "max_graph_depth",
+        u64::from(tenant.limits().max_graph_depth),
+    )?;
+    Ok(resolved)
 }
 
-/// Resolves input `index`.
-fn resolve_one(tenant: &Tenant, index: usize, input: &pb::BuildInput) -> ServiceResult<OwnedTriangles> {
+/// The child accel `reference` names, which must be on `device`.
+fn child(tenant: &Tenant, device: &str, reference: Option<&pb::AccelRef>, field: &str) -> ServiceResult<Arc<Accel>> {
+    let entry = accels::resolve(tenant, reference, field)?;
+    let (device, _) = tenant.context(device)?;
+    if entry.device != device {
+        return Err(ServiceError::invalid(
+            field,
+            format!("accel {:?} is on device {}, the build on {device}", entry.name, entry.device),
+        ));
+    }
+    Ok(entry.accel)
+}
+
+/// The instances of an instance input.
+fn resolve_instances(tenant: &Tenant, device: &str, input: &pb::InstanceInput) -> ServiceResult<Vec<Instance>> {
+    use pb::instance_input::Instances;
+    let children: Vec<Arc<Accel>> = input
+        .children
+        .iter()
+        .enumerate()
+        .map(|(i, reference)| child(tenant, device, Some(reference), &format!("inputs[0].instances.children[{i}]")))
+        .collect::<Result<_, _>>()?;
+    let required = |field: &str| ServiceError::invalid(field, "required");
+    Ok(match &input.instances {
+        Some(Instances::Records(records)) => {
+            let records = data(tenant, Some(records), "inputs[0].instances.records")?
+                .ok_or_else(|| required("inputs[0].instances.records"))?;
+            instances_from_records(&records, &children)?
+        }
+        Some(Instances::Prime(prime)) => {
+            let field = |name: &str| format!("inputs[0].instances.prime.{name}");
+            let indices = data(tenant, prime.child_indices.as_ref(), &field("child_indices"))?
+                .ok_or_else(|| required(&field("child_indices")))?;
+            let transforms = data(tenant, prime.transforms.as_ref(), &field("transforms"))?
+                .ok_or_else(|| required(&field("transforms")))?;
+            let format = match pb::TransformFormat::try_from(prime.transform_format) {
+                Ok(pb::TransformFormat::Float4x4) => TransformFormat::Float4x4,
+                Ok(pb::TransformFormat::Float4x3) => TransformFormat::Float4x3,
+                _ => return Err(ServiceError::invalid(field("transform_format"), "must be FLOAT4X4 or FLOAT4X3")),
+            };
+            instances_from_prime(&indices, &transforms, format, &children)?
+        }
+        None => return Err(ServiceError::invalid("inputs[0].instances", "records or prime is required")),
+    })
+}
+
+/// The matrix and child of a transform input.
+fn resolve_transform(tenant: &Tenant, device: &str, input: &pb::TransformInput) -> ServiceResult<Resolved> {
+    let matrix: [f32; 12] = input.transform.as_slice().try_into().map_err(|_| {
+        ServiceError::invalid(
+            "inputs[0].transform.transform",
+            format!("{} values given, 12 needed", input.transform.len()),
+        )
+    })?;
+    Ok(Resolved::Transform { matrix, child: child(tenant, device, input.child.as_ref(), "inputs[0].transform.child")? })
+}
+
+/// Resolves triangle input `index`.
+fn resolve_triangles(tenant: &Tenant, index: usize, input: &pb::BuildInput) -> ServiceResult<OwnedTriangles> {
     let field = |name: &str| format!("inputs[{index}].triangles.{name}");
     let Some(pb::build_input::Input::Triangles(t)) = &input.input else {
         return Err(ServiceError::invalid(format!("inputs[{index}]"), "a build input must be set"));

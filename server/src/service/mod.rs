@@ -127,10 +127,10 @@ impl Rayd for RaydService {
         let tenant = self.tenant(&request);
         observe("ComputeMemoryUsage", async {
             let request = request.into_inner();
-            let owned = inputs::resolve(&tenant, &request.inputs)?;
-            let inputs: Vec<_> = owned.iter().map(|i| i.as_input()).collect();
+            let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
             let options = convert::build_options(request.options.as_ref());
-            Ok(convert::memory_usage(&tenant.compute_memory_usage(&request.device, &inputs, &options)?))
+            let (_, context) = tenant.context(&request.device)?;
+            Ok(convert::memory_usage(&resolved.memory_usage(context, &options)?))
         })
         .await
     }

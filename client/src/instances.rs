@@ -1,0 +1,63 @@
+//! `BuildAccel` over instances and transforms: instance accels from packed records, static transforms.
+
+use bytes::Bytes;
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::geometry::{INSTANCE_RECORD_BYTES, InstanceRecord};
+use rayd_proto as proto;
+
+use crate::client::Client;
+use crate::convert::{accel_ref, build_options_to_proto};
+use crate::error::Result;
+
+impl Client {
+    /// Builds an instance accel called `name` on `device` over `instances`, whose `child` fields index
+    /// `children` (names of accels on that device). The records go inline.
+    pub async fn build_instances(
+        &self,
+        name: &str,
+        device: &str,
+        children: &[&str],
+        instances: &[InstanceRecord],
+        flags: BuildFlags,
+    ) -> Result<proto::AccelInfo> {
+        let mut records = vec![0u8; instances.len() * INSTANCE_RECORD_BYTES];
+        for (record, bytes) in instances.iter().zip(records.chunks_exact_mut(INSTANCE_RECORD_BYTES)) {
+            record.encode(bytes);
+        }
+        let input = proto::InstanceInput {
+            children: children.iter().map(|child| accel_ref(child)).collect(),
+            instances: Some(proto::instance_input::Instances::Records(proto::DataSource {
+                source: Some(proto::data_source::Source::Inline(Bytes::from(records))),
+            })),
+        };
+        self.build(build_request(name, device, proto::build_input::Input::Instances(input), flags)).await
+    }
+
+    /// Builds a static transform called `name` on `device` placing the accel called `child` with `transform`
+    /// (object to world, 3×4 row-major).
+    pub async fn build_transform(
+        &self,
+        name: &str,
+        device: &str,
+        child: &str,
+        transform: [f32; 12],
+    ) -> Result<proto::AccelInfo> {
+        let input = proto::TransformInput { child: Some(accel_ref(child)), transform: transform.to_vec() };
+        self.build(build_request(name, device, proto::build_input::Input::Transform(input), BuildFlags::empty())).await
+    }
+}
+
+/// A build request with one input.
+fn build_request(
+    name: &str,
+    device: &str,
+    input: proto::build_input::Input,
+    flags: BuildFlags,
+) -> proto::BuildAccelRequest {
+    proto::BuildAccelRequest {
+        name: name.to_owned(),
+        device: device.to_owned(),
+        inputs: vec![proto::BuildInput { input: Some(input) }],
+        options: Some(build_options_to_proto(flags)),
+    }
+}
