@@ -220,3 +220,41 @@ fn usage_errors_exit_2_before_connecting_and_an_unreachable_server_exits_1_unava
     let stderr = fails(NOWHERE, &["devices"], 1);
     assert!(stderr.starts_with("error: Unavailable: ") && stderr.contains(NOWHERE), "{stderr}");
 }
+
+#[test]
+fn rayctl_builds_a_scene_file_as_an_instance_accel_over_its_meshes_and_renders_it() {
+    let daemon = Daemon::start(&[]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-scene");
+    let meshes = std::fs::canonicalize("../shared/data/meshes").expect("the shared meshes");
+    let scene = serde_json::json!({
+        "meshes": { "cow": meshes.join("cow.obj"), "teapot": meshes.join("teapot.obj") },
+        "instances": [
+            { "mesh": "cow" },
+            { "mesh": "teapot", "translate": [3, 0, 0], "scale": 0.2, "id": 40 },
+            { "mesh": "cow", "translate": [-3, 0, 0], "rotate": [0, 1, 0, 180], "scale": [1, 1, -1], "flip_facing": true },
+        ]
+    });
+    let file = scratch.path("farm.json");
+    std::fs::write(&file, scene.to_string()).unwrap();
+    let info = json(&server, &["scene", "--file", &file]);
+    assert_eq!((info["name"].as_str(), info["kind"].as_str()), (Some("farm"), Some("instances")), "{info}");
+    assert_eq!((info["instance_count"].as_u64(), info["depth"].as_u64()), (Some(3), Some(2)), "{info}");
+    let names: Vec<String> = json(&server, &["accels"])["accels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["name"].as_str().unwrap().to_owned())
+        .collect();
+    assert_eq!(names, ["farm.cow", "farm.teapot", "farm"], "one accel per mesh, then the scene");
+    let picture = scratch.path("farm.png");
+    succeeds(&server, &["render", "--accel", "farm", "-o", &picture, "--width", "64", "--height", "48"]);
+    let (_, _, _, pixels) = decode_png(&picture);
+    assert!(pixels.iter().any(|&p| p != pixels[0]), "the render shows something");
+    let refused = fails(&server, &["rm", "farm.cow"], 1);
+    assert!(refused.contains("FailedPrecondition"), "{refused}");
+    let broken = scratch.path("broken.json");
+    std::fs::write(&broken, r#"{ "meshes": {}, "instances": [{ "mesh": "nothing" }] }"#).unwrap();
+    let refused = fails(&server, &["scene", "--file", &broken], 1);
+    assert!(refused.contains("instances[0].mesh"), "{refused}");
+}

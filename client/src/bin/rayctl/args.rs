@@ -41,6 +41,8 @@ pub enum Command {
     Devices,
     /// Build an accel from a mesh file (.obj, .ply, .gltf, .glb).
     Build(BuildArgs),
+    /// Build a scene file (JSON: meshes and instances of them) as an instance accel over one accel per mesh.
+    Scene(SceneArgs),
     /// List the accels.
     Accels,
     /// Show one accel.
@@ -86,6 +88,20 @@ pub struct BuildArgs {
     /// Let the accel be compacted later (it reports its compacted size).
     #[arg(long)]
     pub allow_compaction: bool,
+}
+
+/// `rayctl scene`.
+#[derive(Debug, Args)]
+pub struct SceneArgs {
+    /// The scene file (see the README's "Scenes" section).
+    #[arg(long, value_name = "FILE")]
+    pub file: PathBuf,
+    /// The instance accel's name (default: the file's name without extension); meshes become `<name>.<mesh>`.
+    #[arg(long)]
+    pub name: Option<String>,
+    /// The device to build on (default: cpu:0).
+    #[arg(long, value_name = "ID", default_value = "")]
+    pub device: String,
 }
 
 /// `--prefer`'s choices.

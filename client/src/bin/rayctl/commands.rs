@@ -7,11 +7,12 @@ use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
-use rayd_client::{BenchOptions, Client, ClientOptions, Error, Result, load_mesh};
+use rayd_client::{BenchOptions, Client, ClientOptions, Error, Result, Scene, load_mesh};
+use rayd_engine::accel::BuildFlags;
 use rayd_engine::raygen::{Camera, random_rays};
 use serde_json::json;
 
-use crate::args::{BenchArgs, BuildArgs, Cli, Command, RaysArgs, RenderArgs, TraceArgs, View};
+use crate::args::{BenchArgs, BuildArgs, Cli, Command, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -27,6 +28,7 @@ pub async fn run(cli: &Cli) -> Result<Output> {
     match &cli.command {
         Command::Devices => Ok(show::devices(&client.devices().await?)),
         Command::Build(args) => build(&client, args).await,
+        Command::Scene(args) => scene(&client, args).await,
         Command::Accels => Ok(show::accels(&client.accels().await?)),
         Command::Info { name } => Ok(show::accel(&client.accel(name).await?)),
         Command::Rm { name } => {
@@ -47,6 +49,13 @@ async fn build(client: &Client, args: &BuildArgs) -> Result<Output> {
     let stem = || args.mesh.file_stem().unwrap_or_default().to_string_lossy().into_owned();
     let name = args.name.clone().unwrap_or_else(stem);
     Ok(show::accel(&client.build_mesh(&name, &mesh, &args.device, args.flags()).await?))
+}
+
+/// `rayctl scene`: named after the file unless `--name` says otherwise.
+async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
+    let scene = Scene::load(&args.file)?;
+    let name = args.name.clone().unwrap_or_else(|| args.file.file_stem().unwrap_or_default().to_string_lossy().into());
+    Ok(show::accel(&client.build_scene(&name, &args.device, &scene, BuildFlags::empty()).await?))
 }
 
 /// `rayctl trace`: `wall_ms` times the trace call alone, from sending the rays to holding every hit.

@@ -5,7 +5,7 @@ use rayd_client::convert::{
     backend_name, bounds, build_flag_names, build_flags_from_proto, hit_format_from_proto, query_kind_from_proto,
     ray_format_from_proto,
 };
-use rayd_client::proto::{AccelInfo, BufferInfo, Device};
+use rayd_client::proto::{self, AccelInfo, BufferInfo, Device};
 use serde_json::{Value, json};
 
 /// What a command prints: the same result for scripts and for people.
@@ -108,11 +108,21 @@ fn accel_json(info: &AccelInfo) -> Value {
     let (min, max) = bounds(info).map(|(lo, hi)| (lo.to_array().map(shortest), hi.to_array().map(shortest))).unzip();
     json!({
         "name": info.name, "handle": info.handle, "device": info.device, "size_bytes": info.size_bytes,
-        "triangle_count": info.triangle_count, "geometry_count": info.geometry_count,
-        "compacted_size_bytes": info.compacted_size_bytes, "build_ms": ms(info.build_ns),
+        "kind": kind_name(info.kind()), "triangle_count": info.triangle_count, "geometry_count": info.geometry_count,
+        "instance_count": info.instance_count, "depth": info.depth, "compacted_size_bytes": info.compacted_size_bytes, "build_ms": ms(info.build_ns),
         "options": build_flag_names(build_flags_from_proto(info.options.unwrap_or_default())),
         "bounds": min.map(|min| json!({ "min": min, "max": max })),
     })
+}
+
+/// An accel kind's lower-case name.
+fn kind_name(kind: proto::AccelKind) -> &'static str {
+    match kind {
+        proto::AccelKind::Unspecified => "unspecified",
+        proto::AccelKind::Triangles => "triangles",
+        proto::AccelKind::Instances => "instances",
+        proto::AccelKind::Transform => "transform",
+    }
 }
 
 /// `rayctl info` and `rayctl build`: one accel.
@@ -123,8 +133,11 @@ pub fn accel(info: &AccelInfo) -> Output {
         ("name", info.name.clone()),
         ("handle", info.handle.clone()),
         ("device", info.device.clone()),
+        ("kind", kind_name(info.kind()).into()),
         ("triangles", info.triangle_count.to_string()),
         ("geometries", info.geometry_count.to_string()),
+        ("instances", info.instance_count.to_string()),
+        ("graph depth", info.depth.to_string()),
         ("size", bytes(info.size_bytes)),
         ("compacted size", info.compacted_size_bytes.map_or("-".into(), bytes)),
         ("build time", format!("{:.2} ms", ms(info.build_ns))),
