@@ -533,7 +533,8 @@ async fn accel_and_trace_limits_are_resource_exhausted_and_the_server_keeps_serv
     let result = build(&mut client, "tri-3", vec![triangle([0, 1, 2])]).await;
     assert_refused(&mut client, result, Code::ResourceExhausted, "max_accels").await;
 
-    let closest = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
+    // 1000 16-byte records fit the 64 KiB messages; eight a ray (an `all` query) do not.
+    let closest = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
     let response = trace_batch(&mut client, trace_query("tri", &closest), &down_rays(1000)).await;
     assert_eq!(response.expect("max_rays_per_batch rays").into_inner().stats.expect("stats").rays, 1000);
     let result = trace_batch(&mut client, trace_query("tri", &closest), &down_rays(1001)).await;

