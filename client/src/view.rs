@@ -1,8 +1,7 @@
 //! Typed, zero-copy views over packed ray and hit buffers: they borrow the bytes (e.g. a trace result's `Bytes`)
 //! and decode one record at a time with the engine's formats.
 
-use glam::Vec3A;
-use rayd_engine::format::{Hit, HitFormat, INSTANCE_PATH_SLOTS, InstancePath, Ray, RayFormat};
+use rayd_engine::format::{Hit, HitFormat, Ray, RayFormat};
 
 use crate::error::{Error, Result};
 
@@ -96,34 +95,11 @@ impl<'a> HitView<'a> {
         }
     }
 
-    /// Record `index`, decoded. Fields the format does not carry read as in [`Hit::MISS`]; a bitmask hit, which
-    /// carries no distance, reads as `t = 0` so that [`Hit::is_hit`] holds. The `full` format's normal is the unit
-    /// geometric normal. Panics past the end.
+    /// Record `index`, decoded by [`HitFormat::read`]: fields the format does not carry read as in [`Hit::MISS`], a
+    /// bitmask hit as `t = 0`. Panics past the end.
     pub fn get(&self, index: usize) -> Hit {
-        let Some(size) = self.format.size() else {
-            return if self.is_hit(index) { Hit { t: 0.0, ..Hit::MISS } } else { Hit::MISS };
-        };
-        let b = &self.bytes[index * size..(index + 1) * size];
-        let (f32_at, u32_at) = (|offset| f32_at(b, offset), |offset| u32_at(b, offset));
-        let mut hit = Hit { t: f32_at(0), ..Hit::MISS };
-        match self.format {
-            HitFormat::Bitmask | HitFormat::T => {}
-            HitFormat::TTriid => hit.prim_id = u32_at(4),
-            HitFormat::TTriidUV => (hit.prim_id, hit.u, hit.v) = (u32_at(4), f32_at(8), f32_at(12)),
-            HitFormat::TTriidInstid => (hit.prim_id, hit.inst_id) = (u32_at(4), u32_at(8)),
-            HitFormat::TTriidInstidUV => {
-                (hit.prim_id, hit.inst_id, hit.u, hit.v) = (u32_at(4), u32_at(8), f32_at(12), f32_at(16));
-            }
-            HitFormat::Full => {
-                (hit.prim_id, hit.geom_id, hit.inst_id) = (u32_at(4), u32_at(8), u32_at(12));
-                (hit.u, hit.v) = (f32_at(16), f32_at(20));
-                hit.normal = Vec3A::new(f32_at(24), f32_at(28), f32_at(32));
-                hit.back_face = u32_at(36) & 1 != 0;
-                let path_len = (u32_at(40) as usize).min(INSTANCE_PATH_SLOTS);
-                hit.inst_path = (0..path_len).fold(InstancePath::EMPTY, |path, slot| path.push(u32_at(48 + 4 * slot)));
-            }
-        }
-        hit
+        assert!(index < self.len, "record {index} of {}", self.len);
+        self.format.read(self.bytes, index)
     }
 
     /// Every record, in order.
@@ -144,7 +120,8 @@ fn u32_at(bytes: &[u8], offset: usize) -> u32 {
 
 #[cfg(test)]
 mod tests {
-    use rayd_engine::format::MISS_ID;
+    use glam::Vec3A;
+    use rayd_engine::format::{InstancePath, MISS_ID};
 
     use super::*;
 

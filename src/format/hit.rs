@@ -2,7 +2,7 @@
 
 use glam::Vec3A;
 
-use super::{write_f32, write_u32};
+use super::{read_f32, read_u32, write_f32, write_u32};
 
 /// `t` written for a ray that hit nothing (Prime: any `t < 0` is a miss).
 pub const MISS_T: f32 = -1.0;
@@ -165,6 +165,37 @@ impl HitFormat {
         Self::ALL.into_iter().find(|f| f.name() == name)
     }
 
+    /// Reads record `index` of a hit buffer (laid out as [`HitFormat::write`] takes it). Fields the format does not
+    /// carry read as in [`Hit::MISS`]; a bitmask hit, which carries no distance, reads as `t = 0` so that
+    /// [`Hit::is_hit`] holds. The `full` format's normal reads as written: unit length.
+    pub fn read(self, buffer: &[u8], index: usize) -> Hit {
+        let Some(size) = self.size() else {
+            let hit = buffer[index / 8] & (1 << (index % 8)) != 0;
+            return if hit { Hit { t: 0.0, ..Hit::MISS } } else { Hit::MISS };
+        };
+        let b = &buffer[index * size..(index + 1) * size];
+        let (f32_at, u32_at) = (|offset| read_f32(b, offset), |offset| read_u32(b, offset));
+        let mut hit = Hit { t: f32_at(0), ..Hit::MISS };
+        match self {
+            HitFormat::Bitmask | HitFormat::T => {}
+            HitFormat::TTriid => hit.prim_id = u32_at(4),
+            HitFormat::TTriidUV => (hit.prim_id, hit.u, hit.v) = (u32_at(4), f32_at(8), f32_at(12)),
+            HitFormat::TTriidInstid => (hit.prim_id, hit.inst_id) = (u32_at(4), u32_at(8)),
+            HitFormat::TTriidInstidUV => {
+                (hit.prim_id, hit.inst_id, hit.u, hit.v) = (u32_at(4), u32_at(8), f32_at(12), f32_at(16));
+            }
+            HitFormat::Full => {
+                (hit.prim_id, hit.geom_id, hit.inst_id) = (u32_at(4), u32_at(8), u32_at(12));
+                (hit.u, hit.v) = (f32_at(16), f32_at(20));
+                hit.normal = Vec3A::new(f32_at(24), f32_at(28), f32_at(32));
+                hit.back_face = u32_at(36) & 1 != 0;
+                let path_len = (u32_at(40) as usize).min(INSTANCE_PATH_SLOTS);
+                hit.inst_path = (0..path_len).fold(InstancePath::EMPTY, |path, slot| path.push(u32_at(48 + 4 * slot)));
+            }
+        }
+        hit
+    }
+
     /// Writes record `index` of a hit buffer. For byte formats `buffer` may be the whole buffer or any slice
     /// that starts on a record boundary, with `index` relative to it; for the bitmask it must start on a byte
     /// boundary (`index` relative to its first bit).
@@ -223,7 +254,6 @@ impl HitFormat {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::format::{read_f32, read_u32};
 
     #[test]
     fn bitmask_sets_and_clears_single_bits_lsb_first() {
@@ -262,7 +292,9 @@ mod tests {
         assert_eq!((read_u32(&b, 40), read_u32(&b, 44)), (2, 0));
         let path: Vec<i32> = (0..8).map(|slot| read_u32(&b, 48 + 4 * slot) as i32).collect();
         assert_eq!(path, [4, 5, -1, -1, -1, -1, -1, -1]);
+        assert_eq!(HitFormat::Full.read(&b, 0), Hit { normal: Vec3A::new(0.0, 0.0, -1.0), ..hit }, "read back");
         HitFormat::Full.write(&mut b, 0, &Hit::MISS);
+        assert_eq!(HitFormat::Full.read(&b, 0), Hit::MISS);
         assert_eq!((read_u32(&b, 12) as i32, read_u32(&b, 40), read_u32(&b, 48) as i32), (-1, 0, -1));
     }
 
