@@ -73,14 +73,7 @@ impl Products {
         match op {
             Op::Build(build) => {
                 for (i, input) in build.inputs.iter_mut().enumerate() {
-                    let Some(pb::build_input::Input::Triangles(t)) = &mut input.input else { continue };
-                    for (name, source) in
-                        [("vertices", &mut t.vertices), ("indices", &mut t.indices), ("masks", &mut t.masks)]
-                    {
-                        if let Some(pb::DataSource { source: Some(pb::data_source::Source::Buffer(buffer)) }) = source {
-                            self.buffer(id, buffer, &format!("build.inputs[{i}].triangles.{name}.buffer"))?;
-                        }
-                    }
+                    self.build_input(id, input, &format!("build.inputs[{i}]"))?;
                 }
                 Ok(())
             }
@@ -101,6 +94,48 @@ impl Products {
             },
             Op::Upload(_) | Op::UploadData(_) | Op::RecordEvent(_) | Op::WaitEvent(_) => Ok(()),
         }
+    }
+
+    /// Resolves the references of one build input (named `field`): its data buffers and its child accels.
+    fn build_input(&self, id: u64, input: &mut pb::BuildInput, field: &str) -> ServiceResult<()> {
+        use pb::build_input::Input;
+        let mut sources: Vec<(String, &mut Option<pb::DataSource>)> = Vec::new();
+        match &mut input.input {
+            Some(Input::Triangles(t)) => {
+                sources.push((format!("{field}.triangles.vertices"), &mut t.vertices));
+                sources.push((format!("{field}.triangles.indices"), &mut t.indices));
+                sources.push((format!("{field}.triangles.masks"), &mut t.masks));
+            }
+            Some(Input::Instances(instances)) => {
+                for (c, child) in instances.children.iter_mut().enumerate() {
+                    self.accel(id, child, &format!("{field}.instances.children[{c}]"))?;
+                }
+                match &mut instances.instances {
+                    Some(pb::instance_input::Instances::Records(records)) => {
+                        if let Some(pb::data_source::Source::Buffer(buffer)) = &mut records.source {
+                            self.buffer(id, buffer, &format!("{field}.instances.records.buffer"))?;
+                        }
+                    }
+                    Some(pb::instance_input::Instances::Prime(prime)) => {
+                        sources.push((format!("{field}.instances.prime.child_indices"), &mut prime.child_indices));
+                        sources.push((format!("{field}.instances.prime.transforms"), &mut prime.transforms));
+                    }
+                    None => {}
+                }
+            }
+            Some(Input::Transform(transform)) => {
+                if let Some(child) = transform.child.as_mut() {
+                    self.accel(id, child, &format!("{field}.transform.child"))?;
+                }
+            }
+            None => {}
+        }
+        for (name, source) in sources {
+            if let Some(pb::DataSource { source: Some(pb::data_source::Source::Buffer(buffer)) }) = source {
+                self.buffer(id, buffer, &format!("{name}.buffer"))?;
+            }
+        }
+        Ok(())
     }
 
     /// Resolves a buffer reference that may be absent.
@@ -181,6 +216,34 @@ mod tests {
         let mut op = trace_on(pb::accel_ref::Ref::Operation(1), pb::buffer_ref::Ref::Operation(2));
         products.resolve(3, &mut op).unwrap();
         assert_eq!(op, trace_on(pb::accel_ref::Ref::Handle("acc-7".into()), pb::buffer_ref::Ref::Id("buf-3".into())));
+    }
+
+    #[test]
+    fn instance_children_and_transform_children_may_name_builds_of_the_stream() {
+        let mut products = Products::default();
+        let accel = pb::AccelInfo { handle: "acc-9".into(), ..Default::default() };
+        products.record(1, Producer::Accel, &Ok(Some(Outcome::Accel(accel))));
+        let by_operation = || pb::AccelRef { r#ref: Some(pb::accel_ref::Ref::Operation(1)) };
+        let build = |input| {
+            Op::Build(pb::BuildAccelRequest {
+                inputs: vec![pb::BuildInput { input: Some(input) }],
+                ..Default::default()
+            })
+        };
+        let mut op = build(pb::build_input::Input::Instances(pb::InstanceInput {
+            children: vec![by_operation()],
+            instances: None,
+        }));
+        products.resolve(2, &mut op).unwrap();
+        let Op::Build(request) = &op else { unreachable!() };
+        let Some(pb::build_input::Input::Instances(instances)) = &request.inputs[0].input else { unreachable!() };
+        assert_eq!(instances.children[0].r#ref, Some(pb::accel_ref::Ref::Handle("acc-9".into())));
+        let mut op = build(pb::build_input::Input::Transform(pb::TransformInput {
+            child: Some(pb::AccelRef { r#ref: Some(pb::accel_ref::Ref::Operation(3)) }),
+            transform: Vec::new(),
+        }));
+        let error = products.resolve(2, &mut op).unwrap_err().to_string();
+        assert!(error.contains("build.inputs[0].transform.child: operation 3 is not an earlier"), "{error}");
     }
 
     #[test]
