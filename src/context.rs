@@ -10,7 +10,7 @@ use glam::Vec3;
 
 use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
-use crate::backend::{Backend, BackendAccel, DeviceInfo};
+use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
 use crate::error::{Error, Result};
 use crate::geometry::{BuildInput, Instance, PlacedInstance, Placement, check_depth, place, triangle_counts};
 use crate::query::{Query, TraceOutput, TraceStats};
@@ -88,6 +88,8 @@ pub struct Accel {
     info: AccelInfo,
     /// The backend's structure.
     data: Box<dyn BackendAccel>,
+    /// The backend that built it.
+    backend: BackendKind,
     /// The accels it places (its instances' children, a transform's child): kept alive while it lives.
     children: Vec<Arc<Accel>>,
     /// Live accels that place this one; while there are any it cannot be destroyed.
@@ -254,6 +256,30 @@ impl Context {
         Ok(self.register(shape, &BuildOptions::default(), data, vec![Arc::clone(child)]))
     }
 
+    /// Copies `source` (an accel of this context's device, from this or another context) into this context, as
+    /// `rtpModelCopy` does; with `compact`, as `optixAccelCompact` does: the copy then occupies at most the source's
+    /// `compacted_size_bytes`, and the source must allow compaction. The copy traces as the source does, has its
+    /// options and places the same children. (Every copy is exact-size on the CPU backend.)
+    pub fn copy_accel(&self, source: &Accel, compact: bool) -> Result<Arc<Accel>> {
+        if source.backend != self.device.info.kind {
+            return Err(Error::FailedPrecondition(format!(
+                "copying a {:?} accel to a {:?} device is not supported",
+                source.backend, self.device.info.kind
+            )));
+        }
+        if compact && !source.info.options.flags.contains(BuildFlags::ALLOW_COMPACTION) {
+            return Err(Error::FailedPrecondition("compaction needs an accel built with ALLOW_COMPACTION".into()));
+        }
+        let shape = Shape {
+            kind: source.info.kind,
+            triangle_count: source.info.triangle_count,
+            geometry_count: source.info.geometry_count,
+            instance_count: source.info.instance_count,
+        };
+        let data = source.data.duplicate();
+        Ok(self.register(shape, &source.info.options, data, source.children.clone()))
+    }
+
     /// Gives a built structure a handle, its description and its memory charge; counts it as a referrer of each
     /// of its distinct `children`.
     fn register(
@@ -277,12 +303,17 @@ impl Context {
             instance_count: shape.instance_count,
             depth: 1 + children.iter().map(|c| c.info.depth).max().unwrap_or(0),
             options: *options,
-            compacted_size_bytes: options.flags.contains(BuildFlags::ALLOW_COMPACTION).then_some(size_bytes),
+            compacted_size_bytes: options
+                .flags
+                .contains(BuildFlags::ALLOW_COMPACTION)
+                .then(|| data.compacted_size_bytes()),
             bounds: data.bounds(),
         };
         let handle = AccelHandle(self.next_handle.fetch_add(1, Ordering::Relaxed));
         let charge = Charge::new(size_bytes, &self.bytes_in_use);
-        let accel = Arc::new(Accel { handle, info, data, children, referrers: AtomicUsize::new(0), _charge: charge });
+        let backend = self.device.info.kind;
+        let accel =
+            Arc::new(Accel { handle, info, data, backend, children, referrers: AtomicUsize::new(0), _charge: charge });
         self.accels.insert(handle, Arc::clone(&accel));
         accel
     }

@@ -192,3 +192,43 @@ fn building_an_accel_never_blocks_traces_on_another() {
     assert!(builder.join().unwrap().unwrap() >= 1_500_000);
     assert!(traces_during_build.load(Ordering::SeqCst) > 0, "no trace completed while the big build ran");
 }
+
+/// Hits of the bunny's camera rays on `accel`.
+fn camera_hits(context: &Context, accel: &rayd_engine::Accel, mesh: &Mesh) -> Vec<u8> {
+    let (lo, hi) = mesh.bounds();
+    let rays = Camera::framing(lo, hi, 64, 48).rays(RayFormat::OriginDirection);
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
+    let mut hits = vec![0u8; query.output_layout(rays.len()).unwrap().hits];
+    context.trace(accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
+    hits
+}
+
+#[test]
+fn copies_and_compacted_copies_trace_as_the_source_within_the_reported_size() {
+    let context = Context::new(Device::cpu());
+    let other = Context::new(Device::cpu());
+    let mesh = shared_mesh("stanford-bunny");
+    let packed = mesh.pack();
+    let input = [BuildInput::Triangles(packed.input())];
+    let compactable = context.build_accel(&input, &BuildOptions::new(BuildFlags::ALLOW_COMPACTION)).unwrap();
+    let compacted_size = compactable.info().compacted_size_bytes.expect("reported with ALLOW_COMPACTION");
+    assert!(compacted_size <= compactable.info().size_bytes);
+    let compacted = other.copy_accel(&compactable, true).unwrap();
+    assert!(compacted.info().size_bytes <= compacted_size, "{} > {compacted_size}", compacted.info().size_bytes);
+    assert_eq!(other.memory_in_use(), compacted.info().size_bytes, "the copy is charged to the context it is in");
+    let expected = camera_hits(&context, &compactable, &mesh);
+    assert!(expected.chunks_exact(16).any(|h| f32::from_le_bytes(h[..4].try_into().unwrap()) >= 0.0));
+    assert_eq!(camera_hits(&other, &compacted, &mesh), expected, "the compacted copy traces the same");
+    assert_eq!(
+        (compacted.info().options, compacted.info().triangle_count),
+        (compactable.info().options, compactable.info().triangle_count)
+    );
+    context.destroy_accel(compactable.handle()).unwrap();
+    assert_eq!(camera_hits(&other, &compacted, &mesh), expected, "a copy does not depend on its source");
+
+    let plain = context.build_accel(&input, &BuildOptions::default()).unwrap();
+    assert_eq!(plain.info().compacted_size_bytes, None);
+    let error = context.copy_accel(&plain, true).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::FailedPrecondition);
+    assert_eq!(camera_hits(&context, &context.copy_accel(&plain, false).unwrap(), &mesh), expected);
+}

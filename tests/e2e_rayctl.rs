@@ -251,8 +251,13 @@ fn rayctl_builds_a_scene_file_as_an_instance_accel_over_its_meshes_and_renders_i
     succeeds(&server, &["render", "--accel", "farm", "-o", &picture, "--width", "64", "--height", "48"]);
     let (_, _, _, pixels) = decode_png(&picture);
     assert!(pixels.iter().any(|&p| p != pixels[0]), "the render shows something");
+    let copy = json(&server, &["copy", "farm", "farm.copy"]);
+    assert_eq!((copy["kind"].as_str(), copy["instance_count"].as_u64()), (Some("instances"), Some(3)), "{copy}");
+    succeeds(&server, &["rm", "farm"]);
     let refused = fails(&server, &["rm", "farm.cow"], 1);
-    assert!(refused.contains("FailedPrecondition"), "{refused}");
+    assert!(refused.contains("FailedPrecondition"), "the copy still places the cow: {refused}");
+    let refused = fails(&server, &["copy", "farm.copy", "farm.small", "--compact"], 1);
+    assert!(refused.contains("FailedPrecondition") && refused.contains("ALLOW_COMPACTION"), "{refused}");
     let broken = scratch.path("broken.json");
     std::fs::write(&broken, r#"{ "meshes": {}, "instances": [{ "mesh": "nothing" }] }"#).unwrap();
     let refused = fails(&server, &["scene", "--file", &broken], 1);

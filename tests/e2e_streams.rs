@@ -108,6 +108,30 @@ async fn a_stream_runs_its_operations_in_order_on_products_named_before_they_exi
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_copies_and_compacts_what_it_built() {
+    let daemon = Daemon::start(&[]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    let stream = client.create_stream().await.unwrap();
+    let bunny = bunny();
+    let build = stream.build_mesh("bunny", &bunny.mesh, "", BuildFlags::ALLOW_COMPACTION).await.unwrap();
+    let compacted = stream.copy_accel(&build, "bunny.compact", "", true).await.unwrap();
+    let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 32, 24));
+    let traced = stream.trace(&compacted, &closest(), rays.clone()).await.unwrap();
+    let copied = stream.copy_accel("bunny.compact", "bunny.copy", "", false).await.unwrap();
+    let again = stream.copy_accel(&copied, "bunny.again", "", true).await.unwrap();
+    let refused = stream.copy_accel("nothing", "bunny.never", "", false).await.unwrap();
+    let Err(Error::Operations(failed)) = stream.synchronize().await else { panic!("the last copy fails") };
+    assert_eq!(failed.iter().map(|(id, s)| (*id, s.code())).collect::<Vec<_>>(), [(refused.id(), Code::NotFound)]);
+    let again = again.result().unwrap().expect("copies keep their source's options, compaction included");
+    let (source, compacted) = (build.result().unwrap().unwrap(), compacted.result().unwrap().unwrap());
+    assert!(compacted.size_bytes <= source.compacted_size_bytes.unwrap(), "{compacted:?} against {source:?}");
+    assert_eq!(compacted.triangle_count, source.triangle_count);
+    assert_as_engine(&traced, &closest(), &rays, "a trace on the compacted copy");
+    assert_eq!(copied.result().unwrap().unwrap().size_bytes, compacted.size_bytes);
+    assert_eq!(again.size_bytes, compacted.size_bytes, "compacting a compacted accel changes nothing");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_streams_run_at_the_same_time_and_an_event_orders_work_between_them() {
     let daemon = Daemon::start(&[]);
     let client = connect(&daemon, ClientOptions::default()).await;

@@ -127,6 +127,13 @@ impl Client {
         Ok(self.rpc.clone().list_accels(proto::ListAccelsRequest {}).await?.into_inner().accels)
     }
 
+    /// Copies the accel called `source` to a new accel `name` on `device` (empty: the source's); with `compact`, a
+    /// compacted copy (the source must allow compaction).
+    pub async fn copy_accel(&self, source: &str, name: &str, device: &str, compact: bool) -> Result<proto::AccelInfo> {
+        let request = copy_request(accel_ref(source), name, device, compact);
+        Ok(self.rpc.clone().copy_accel(request).await?.into_inner())
+    }
+
     /// Destroys the accel called `name` (traces already running on it finish first).
     pub async fn destroy_accel(&self, name: &str) -> Result<()> {
         let request = proto::DestroyAccelRequest { accel: Some(accel_ref(name)) };
@@ -145,4 +152,14 @@ impl Client {
         self.rpc.clone().delete_buffer(request).await?;
         Ok(())
     }
+}
+
+/// A `CopyAccel` request.
+pub(crate) fn copy_request(
+    source: proto::AccelRef,
+    name: &str,
+    device: &str,
+    compact: bool,
+) -> proto::CopyAccelRequest {
+    proto::CopyAccelRequest { accel: Some(source), name: name.to_owned(), device: device.to_owned(), compact }
 }

@@ -40,6 +40,10 @@ pub struct DeviceInfo {
 pub trait BackendAccel: Any + Send + Sync {
     /// Bytes it occupies.
     fn size_bytes(&self) -> u64;
+    /// Bytes an exact copy of it ([`BackendAccel::duplicate`]) occupies: its compacted size.
+    fn compacted_size_bytes(&self) -> u64;
+    /// An exact-size copy (compacted) that traces the same.
+    fn duplicate(&self) -> Box<dyn BackendAccel>;
     /// The box around every triangle (`min > max` when there are none).
     fn bounds(&self) -> (Vec3, Vec3);
     /// The corners of triangle `prim_id` of geometry `geom_id`, if the accel kept random vertex access and the

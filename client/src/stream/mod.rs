@@ -39,7 +39,7 @@ pub use handle::{Event, EventId, Operation};
 use state::{Expect, Outcome, Shared, Slot, Unanswered};
 
 use crate::build::{mesh_request, packed};
-use crate::client::{Client, RpcClient};
+use crate::client::{Client, RpcClient, copy_request};
 use crate::convert::trace_query_ref;
 use crate::error::{Error, Result};
 use crate::trace::{TraceResult, inline_trace};
@@ -168,11 +168,7 @@ impl Stream {
     /// Enqueues a build from a request made by hand (its buffer references may name earlier uploads of this
     /// stream by operation).
     pub async fn build(&self, request: proto::BuildAccelRequest) -> Result<Operation<proto::AccelInfo>> {
-        self.enqueue(Op::Build(request), Vec::new(), Expect::Accel, |o| match o {
-            Outcome::Accel(info) => Some(info.clone()),
-            _ => None,
-        })
-        .await
+        self.enqueue(Op::Build(request), Vec::new(), Expect::Accel, accel_outcome).await
     }
 
     /// Enqueues the build of accel `name` on `device` from one mesh. Meshes of at least
@@ -201,6 +197,18 @@ impl Stream {
         self.delete_buffer(&vertices).await?;
         self.delete_buffer(&indices).await?;
         Ok(build)
+    }
+
+    /// Enqueues a copy of an accel named `name` on `device` (empty: the source's); with `compact`, a compacted copy.
+    pub async fn copy_accel<'a>(
+        &self,
+        accel: impl Into<AccelArg<'a>>,
+        name: &str,
+        device: &str,
+        compact: bool,
+    ) -> Result<Operation<proto::AccelInfo>> {
+        let request = copy_request(self.accel_ref(accel.into())?, name, device, compact);
+        self.enqueue(Op::CopyAccel(request), Vec::new(), Expect::Accel, accel_outcome).await
     }
 
     /// Enqueues a trace of packed `rays` (whole records of `query.ray_format`), the hits returned in the answer.
@@ -347,6 +355,11 @@ impl Stream {
         };
         Ok(proto::BufferRef { r#ref: Some(by) })
     }
+}
+
+/// The accel description in an answer.
+fn accel_outcome(outcome: &Outcome) -> Option<proto::AccelInfo> {
+    if let Outcome::Accel(info) = outcome { Some(info.clone()) } else { None }
 }
 
 /// The product of an operation of another stream, which must have finished (else name its product by name, after

@@ -2,6 +2,7 @@
 
 use std::sync::Arc;
 
+use rayd_engine::accel::MemoryUsage;
 use rayd_proto as pb;
 
 use super::{blocking, inputs};
@@ -47,4 +48,21 @@ pub fn destroy(tenant: &Tenant, request: &pb::DestroyAccelRequest) -> ServiceRes
     tenant.destroy_accel(&entry)?;
     crate::metrics::accel_destroyed(&entry);
     Ok(())
+}
+
+/// Copies an accel, or makes a compacted copy (off the async runtime).
+pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> ServiceResult<pb::AccelInfo> {
+    let source = resolve(&tenant, request.accel.as_ref(), "accel")?;
+    let device = if request.device.is_empty() { source.device.clone() } else { request.device.clone() };
+    let entry = blocking(move || {
+        tenant.build_accel(
+            &request.name,
+            &device,
+            |_| Ok(MemoryUsage { output_bytes: source.accel.info().size_bytes, ..MemoryUsage::default() }),
+            |context| context.copy_accel(&source.accel, request.compact),
+        )
+    })
+    .await?;
+    crate::metrics::accel_built(&entry);
+    Ok(info(&entry))
 }

@@ -27,6 +27,43 @@ pub(super) struct Node {
 /// Bytes an accel needs besides its arrays: its own struct and the context's handle record around it.
 pub(super) const FIXED_BYTES: u64 = 1024;
 
+/// How an accel's arrays are counted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Footprint {
+    /// As allocated (capacity).
+    Allocated,
+    /// As an exact-size copy would allocate them (length): the compacted size.
+    Exact,
+}
+
+/// The length and capacity of a vector, whatever its element.
+pub(super) trait VecLen {
+    /// Elements held.
+    fn len(&self) -> usize;
+    /// Elements allocated.
+    fn capacity(&self) -> usize;
+}
+
+impl<T> VecLen for Vec<T> {
+    fn len(&self) -> usize {
+        Vec::len(self)
+    }
+
+    fn capacity(&self) -> usize {
+        Vec::capacity(self)
+    }
+}
+
+impl Footprint {
+    /// Elements of `v` counted.
+    pub(super) fn of(self, v: &dyn VecLen) -> usize {
+        match self {
+            Footprint::Allocated => v.capacity(),
+            Footprint::Exact => v.len(),
+        }
+    }
+}
+
 /// A BVH laid out for traversal.
 #[derive(Debug, Default)]
 pub(super) struct Layout {

@@ -7,7 +7,7 @@ use glam::Vec3;
 use obvhs::aabb::Aabb;
 
 use super::CpuAccel;
-use super::bvh::{FIXED_BYTES, Layout, Node};
+use super::bvh::{FIXED_BYTES, Footprint, Layout, Node};
 use crate::accel::{BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::{Error, Result};
@@ -18,8 +18,8 @@ const BUILD_TEMP_BYTES_PER_INSTANCE: u64 = 384;
 /// Working memory of a build that does not depend on its size.
 const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
 
-/// A BVH over instances, ready to trace.
-#[derive(Debug)]
+/// A BVH over instances, ready to trace. Cloning it makes an exact-size copy over the same children.
+#[derive(Debug, Clone)]
 pub struct InstanceBvh {
     /// Depth-first nodes over the instances' world boxes; empty when no instance has anything to hit.
     pub(super) nodes: Vec<Node>,
@@ -32,7 +32,7 @@ pub struct InstanceBvh {
 }
 
 /// One accel under a static transform.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct TransformNode {
     /// Where the child is placed.
     pub(super) placement: Placement,
@@ -94,11 +94,11 @@ impl InstanceBvh {
         })
     }
 
-    /// Bytes it occupies.
-    pub fn size_bytes(&self) -> u64 {
+    /// Bytes it occupies, counted as `footprint` says.
+    pub fn size_bytes(&self, footprint: Footprint) -> u64 {
         FIXED_BYTES
-            + (self.nodes.capacity() * size_of::<Node>()) as u64
-            + (self.instances.capacity() * size_of::<PlacedInstance>()) as u64
+            + (footprint.of(&self.nodes) * size_of::<Node>()) as u64
+            + (footprint.of(&self.instances) * size_of::<PlacedInstance>()) as u64
     }
 
     /// The box around every placed child.

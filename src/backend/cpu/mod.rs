@@ -18,6 +18,7 @@ use crate::error::{Error, Result};
 use crate::geometry::{BuildInput, PlacedInstance, Placement, gather, triangle_counts};
 use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, trace_batch};
 
+use bvh::Footprint;
 pub use instances::{InstanceBvh, TransformNode};
 pub use triangles::TriangleBvh;
 
@@ -27,7 +28,7 @@ pub use triangles::TriangleBvh;
 pub struct CpuBackend;
 
 /// A CPU accel of any kind.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub enum CpuAccel {
     /// A geometry accel.
     Triangles(TriangleBvh),
@@ -38,6 +39,15 @@ pub enum CpuAccel {
 }
 
 impl CpuAccel {
+    /// Bytes it occupies, counted as `footprint` says.
+    fn footprint(&self, footprint: Footprint) -> u64 {
+        match self {
+            CpuAccel::Triangles(bvh) => bvh.size_bytes(footprint),
+            CpuAccel::Instances(bvh) => bvh.size_bytes(footprint),
+            CpuAccel::Transform(node) => node.size_bytes(),
+        }
+    }
+
     /// Stack entries a trace through it needs.
     fn stack_size(&self) -> usize {
         match self {
@@ -50,11 +60,15 @@ impl CpuAccel {
 
 impl BackendAccel for CpuAccel {
     fn size_bytes(&self) -> u64 {
-        match self {
-            CpuAccel::Triangles(bvh) => bvh.size_bytes(),
-            CpuAccel::Instances(bvh) => bvh.size_bytes(),
-            CpuAccel::Transform(node) => node.size_bytes(),
-        }
+        self.footprint(Footprint::Allocated)
+    }
+
+    fn compacted_size_bytes(&self) -> u64 {
+        self.footprint(Footprint::Exact)
+    }
+
+    fn duplicate(&self) -> Box<dyn BackendAccel> {
+        Box::new(self.clone())
     }
 
     fn bounds(&self) -> (Vec3, Vec3) {

@@ -4,7 +4,7 @@
 use glam::Vec3;
 use obvhs::aabb::Aabb;
 
-use super::bvh::{FIXED_BYTES, Layout, Node};
+use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, VecLen};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::geometry::{GatheredTriangles, GeometryFlags, TriangleRef, is_degenerate};
 
@@ -14,8 +14,8 @@ const BUILD_TEMP_BYTES_PER_TRIANGLE: u64 = 384;
 /// Working memory of a build that does not depend on its size (thread-local buffers, rayon bookkeeping).
 const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
 
-/// A BVH over triangles, ready to trace.
-#[derive(Debug)]
+/// A BVH over triangles, ready to trace. Cloning it makes an exact-size copy.
+#[derive(Debug, Clone)]
 pub struct TriangleBvh {
     /// Depth-first nodes; empty when no triangle can be hit.
     pub(super) nodes: Vec<Node>,
@@ -35,7 +35,7 @@ pub struct TriangleBvh {
 }
 
 /// Maps (geometry id, primitive id) to a triangle's position in the accel.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 struct RandomAccess {
     /// Per geometry: its first triangle's index in input order, and its primitive-index offset.
     geometries: Vec<(u32, u32)>,
@@ -111,17 +111,16 @@ impl TriangleBvh {
         }
     }
 
-    /// Bytes it occupies.
-    pub fn size_bytes(&self) -> u64 {
-        let bytes = |len: usize, size: usize| (len * size) as u64;
-        let random_access =
-            self.random_access.as_ref().map_or(0, |r| bytes(r.slots.capacity(), 4) + bytes(r.geometries.capacity(), 8));
+    /// Bytes it occupies: its arrays as allocated (`Footprint::Allocated`), or as an exact copy would allocate them.
+    pub fn size_bytes(&self, footprint: Footprint) -> u64 {
+        let bytes = |v: &dyn VecLen, size: usize| (footprint.of(v) * size) as u64;
+        let random_access = self.random_access.as_ref().map_or(0, |r| bytes(&r.slots, 4) + bytes(&r.geometries, 8));
         FIXED_BYTES
-            + bytes(self.nodes.capacity(), size_of::<Node>())
-            + bytes(self.corners.capacity(), size_of::<[Vec3; 3]>())
-            + bytes(self.refs.capacity(), size_of::<TriangleRef>())
-            + self.masks.as_ref().map_or(0, |m| bytes(m.capacity(), 4))
-            + bytes(self.geometry_flags.capacity(), 4)
+            + bytes(&self.nodes, size_of::<Node>())
+            + bytes(&self.corners, size_of::<[Vec3; 3]>())
+            + bytes(&self.refs, size_of::<TriangleRef>())
+            + self.masks.as_ref().map_or(0, |m| bytes(m, 4))
+            + bytes(&self.geometry_flags, 4)
             + random_access
     }
 

@@ -50,6 +50,19 @@ pub enum Command {
         /// The accel's name.
         name: String,
     },
+    /// Copy an accel, or make a compacted copy of one (built with --allow-compaction).
+    Copy {
+        /// The accel to copy.
+        source: String,
+        /// The copy's name.
+        name: String,
+        /// The copy's device (default: the source's).
+        #[arg(long, value_name = "ID", default_value = "")]
+        device: String,
+        /// Make a compacted copy.
+        #[arg(long)]
+        compact: bool,
+    },
     /// Destroy an accel.
     Rm {
         /// The accel's name.

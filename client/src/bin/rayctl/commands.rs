@@ -31,6 +31,9 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         Command::Scene(args) => scene(&client, args).await,
         Command::Accels => Ok(show::accels(&client.accels().await?)),
         Command::Info { name } => Ok(show::accel(&client.accel(name).await?)),
+        Command::Copy { source, name, device, compact } => {
+            Ok(show::accel(&client.copy_accel(source, name, device, *compact).await?))
+        }
         Command::Rm { name } => {
             client.destroy_accel(name).await?;
             Ok(Output { json: json!({ "destroyed": name }), text: format!("destroyed {name}") })

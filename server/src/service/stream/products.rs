@@ -38,7 +38,7 @@ impl Producer {
         match op {
             Op::Upload(_) => Producer::Buffer,
             Op::Trace(trace) if !trace.hits_buffer_name.is_empty() => Producer::Buffer,
-            Op::Build(_) => Producer::Accel,
+            Op::Build(_) | Op::CopyAccel(_) => Producer::Accel,
             _ => Producer::Nothing,
         }
     }
@@ -88,10 +88,8 @@ impl Products {
             }
             Op::Download(download) => self.optional_buffer(id, download.buffer.as_mut(), "download.buffer"),
             Op::DeleteBuffer(delete) => self.optional_buffer(id, delete.buffer.as_mut(), "delete_buffer.buffer"),
-            Op::DestroyAccel(destroy) => match destroy.accel.as_mut() {
-                Some(accel) => self.accel(id, accel, "destroy_accel.accel"),
-                None => Ok(()),
-            },
+            Op::DestroyAccel(destroy) => self.optional_accel(id, destroy.accel.as_mut(), "destroy_accel.accel"),
+            Op::CopyAccel(copy) => self.optional_accel(id, copy.accel.as_mut(), "copy_accel.accel"),
             Op::Upload(_) | Op::UploadData(_) | Op::RecordEvent(_) | Op::WaitEvent(_) => Ok(()),
         }
     }
@@ -141,6 +139,11 @@ impl Products {
     /// Resolves a buffer reference that may be absent.
     fn optional_buffer(&self, id: u64, reference: Option<&mut pb::BufferRef>, field: &str) -> ServiceResult<()> {
         reference.map_or(Ok(()), |buffer| self.buffer(id, buffer, field))
+    }
+
+    /// Resolves an accel reference that may be absent.
+    fn optional_accel(&self, id: u64, reference: Option<&mut pb::AccelRef>, field: &str) -> ServiceResult<()> {
+        reference.map_or(Ok(()), |accel| self.accel(id, accel, field))
     }
 
     /// Replaces a buffer reference by operation with the buffer's id.
