@@ -2,7 +2,7 @@
 //! buffers are freed when they are destroyed, or when the context is dropped.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 
 use bytes::Bytes;
 use dashmap::DashMap;
@@ -12,7 +12,9 @@ use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
 use crate::error::{Error, Result};
-use crate::geometry::{BuildInput, Instance, PlacedInstance, Placement, check_depth, place, triangle_counts};
+use crate::geometry::{
+    BuildInput, Instance, PlacedInstance, Placement, Structure, check_depth, place, triangle_counts,
+};
 use crate::query::{Query, TraceOutput, TraceStats};
 
 /// A device that contexts can be created on.
@@ -92,8 +94,12 @@ pub struct Accel {
     backend: BackendKind,
     /// The accels it places (its instances' children, a transform's child): kept alive while it lives.
     children: Vec<Arc<Accel>>,
-    /// Live accels that place this one; while there are any it cannot be destroyed.
-    referrers: AtomicUsize,
+    /// Live accels that place this one (in any of its versions); while there are any it cannot be destroyed.
+    referrers: Arc<AtomicUsize>,
+    /// Set when an update replaced this version: accels that still place it are stale and refuse traces.
+    superseded: AtomicBool,
+    /// With `ALLOW_UPDATE`, a geometry accel's structure, which updates must keep.
+    structure: Option<Structure>,
     /// Keeps the context's memory total honest.
     _charge: Charge,
 }
@@ -123,6 +129,22 @@ impl Accel {
         &self.info
     }
 
+    /// Fails with FAILED_PRECONDITION if this accel, or one below it, places an accel in a version an update has
+    /// replaced: its results would be stale.
+    fn check_current(&self) -> Result<()> {
+        for child in &self.children {
+            if child.superseded.load(Ordering::Acquire) {
+                return Err(Error::FailedPrecondition(format!(
+                    "accel {} places accel {} as it was before an update: update accel {} (with the same children) \
+                     to trace the new one",
+                    self.handle.0, child.handle.0, self.handle.0
+                )));
+            }
+            child.check_current()?;
+        }
+        Ok(())
+    }
+
     /// The backend's structure, for backends tracing through instances.
     pub(crate) fn backend_accel(&self) -> &dyn BackendAccel {
         self.data.as_ref()
@@ -139,6 +161,26 @@ impl Accel {
             rule: format!("geometry {geom_id} has no primitive {prim_id}"),
         })
     }
+}
+
+/// The placement of a transform input's matrix; INVALID_ARGUMENT unless it is finite and invertible.
+fn transform_placement(transform: &[f32; 12]) -> Result<Placement> {
+    Placement::new(transform).ok_or_else(|| Error::InvalidBuildInput {
+        input: 0,
+        field: "transform",
+        element: None,
+        rule: "must be finite and invertible".into(),
+    })
+}
+
+/// `children` without repeats, each counting one more referrer.
+fn refer_to(mut children: Vec<Arc<Accel>>) -> Vec<Arc<Accel>> {
+    children.sort_by_key(|c| Arc::as_ptr(c) as usize);
+    children.dedup_by(|a, b| Arc::ptr_eq(a, b));
+    for child in &children {
+        child.referrers.fetch_add(1, Ordering::AcqRel);
+    }
+    children
 }
 
 /// What a build made, before it is registered.
@@ -220,7 +262,52 @@ impl Context {
             geometry_count: inputs.len() as u32,
             instance_count: 0,
         };
-        Ok(self.register(shape, options, data, Vec::new()))
+        let structure = options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| Structure::of(inputs)).transpose()?;
+        Ok(self.register(shape, options, data, Vec::new(), structure))
+    }
+
+    /// Updates (refits) a geometry accel built with `ALLOW_UPDATE` with new vertex positions of the same structure
+    /// (per input: triangle count, indices, masks, flags, offset; FAILED_PRECONDITION naming the difference
+    /// otherwise). The accel keeps its handle; traces already running finish on the old version, and accels that
+    /// place it refuse traces until they are updated too. Triangles degenerate at the build stay unhittable.
+    pub fn update_accel(&self, accel: &Accel, inputs: &[BuildInput<'_>]) -> Result<Arc<Accel>> {
+        let built = accel.structure.as_ref().ok_or_else(|| {
+            Error::FailedPrecondition("the accel is not a geometry accel built with ALLOW_UPDATE".into())
+        })?;
+        if let Some(difference) = built.difference(&Structure::of(inputs)?) {
+            return Err(Error::FailedPrecondition(format!(
+                "the update's structure differs from the build's: {difference}"
+            )));
+        }
+        let data = self.device.backend.update(accel.data.as_ref(), inputs)?;
+        self.replace(accel, data, Vec::new())
+    }
+
+    /// Updates (refits) an instance accel built with `ALLOW_UPDATE` with new instances: as many, each placing the
+    /// same accel (in its current version), with new transforms, ids, masks or flags. As [`Context::update_accel`]
+    /// otherwise.
+    pub fn update_instance_accel(&self, accel: &Accel, instances: &[Instance]) -> Result<Arc<Accel>> {
+        let placed: Vec<PlacedInstance> =
+            instances.iter().enumerate().map(|(index, instance)| place(index, instance)).collect::<Result<_>>()?;
+        let data = self.device.backend.update_instances(accel.data.as_ref(), &placed)?;
+        self.replace(accel, data, placed.into_iter().map(|p| p.child).collect())
+    }
+
+    /// Updates a static transform with a new matrix over `child`, which must be the accel it places (in its
+    /// current version). As [`Context::update_accel`] otherwise.
+    pub fn update_transform(&self, accel: &Accel, transform: &[f32; 12], child: &Arc<Accel>) -> Result<Arc<Accel>> {
+        match accel.children.as_slice() {
+            [placed] if accel.info.kind == AccelKind::Transform && placed.handle == child.handle => {}
+            _ => {
+                return Err(Error::FailedPrecondition(format!(
+                    "accel {} is not a transform placing accel {}",
+                    accel.handle.0, child.handle.0
+                )));
+            }
+        }
+        let placement = transform_placement(transform)?;
+        let data = self.device.backend.build_transform(&placement, child)?;
+        self.replace(accel, data, vec![Arc::clone(child)])
     }
 
     /// Builds an instance accel over already-built accels (geometry accels, instance accels, transforms, of this
@@ -238,22 +325,17 @@ impl Context {
             geometry_count: 0,
             instance_count: placed.len() as u64,
         };
-        Ok(self.register(shape, options, data, placed.into_iter().map(|p| p.child).collect()))
+        Ok(self.register(shape, options, data, placed.into_iter().map(|p| p.child).collect(), None))
     }
 
     /// Places `child` under a static transform (a 3×4 row-major object-to-world matrix), as a traversable that
     /// instances can point at. The child cannot be destroyed while the transform lives.
     pub fn build_transform(&self, transform: &[f32; 12], child: &Arc<Accel>) -> Result<Arc<Accel>> {
-        let placement = Placement::new(transform).ok_or_else(|| Error::InvalidBuildInput {
-            input: 0,
-            field: "transform",
-            element: None,
-            rule: "must be finite and invertible".into(),
-        })?;
+        let placement = transform_placement(transform)?;
         check_depth(child.info.depth, "child", None)?;
         let data = self.device.backend.build_transform(&placement, child)?;
         let shape = Shape { kind: AccelKind::Transform, triangle_count: 0, geometry_count: 0, instance_count: 0 };
-        Ok(self.register(shape, &BuildOptions::default(), data, vec![Arc::clone(child)]))
+        Ok(self.register(shape, &BuildOptions::default(), data, vec![Arc::clone(child)], None))
     }
 
     /// Copies `source` (an accel of this context's device, from this or another context) into this context, as
@@ -277,7 +359,7 @@ impl Context {
             instance_count: source.info.instance_count,
         };
         let data = source.data.duplicate();
-        Ok(self.register(shape, &source.info.options, data, source.children.clone()))
+        Ok(self.register(shape, &source.info.options, data, source.children.clone(), source.structure.clone()))
     }
 
     /// Gives a built structure a handle, its description and its memory charge; counts it as a referrer of each
@@ -287,13 +369,10 @@ impl Context {
         shape: Shape,
         options: &BuildOptions,
         data: Box<dyn BackendAccel>,
-        mut children: Vec<Arc<Accel>>,
+        children: Vec<Arc<Accel>>,
+        structure: Option<Structure>,
     ) -> Arc<Accel> {
-        children.sort_by_key(|c| Arc::as_ptr(c) as usize);
-        children.dedup_by(|a, b| Arc::ptr_eq(a, b));
-        for child in &children {
-            child.referrers.fetch_add(1, Ordering::AcqRel);
-        }
+        let children = refer_to(children);
         let size_bytes = data.size_bytes();
         let info = AccelInfo {
             kind: shape.kind,
@@ -310,12 +389,48 @@ impl Context {
             bounds: data.bounds(),
         };
         let handle = AccelHandle(self.next_handle.fetch_add(1, Ordering::Relaxed));
-        let charge = Charge::new(size_bytes, &self.bytes_in_use);
-        let backend = self.device.info.kind;
-        let accel =
-            Arc::new(Accel { handle, info, data, backend, children, referrers: AtomicUsize::new(0), _charge: charge });
+        let accel = Arc::new(Accel {
+            handle,
+            info,
+            data,
+            backend: self.device.info.kind,
+            children,
+            referrers: Arc::default(),
+            superseded: AtomicBool::new(false),
+            structure,
+            _charge: Charge::new(size_bytes, &self.bytes_in_use),
+        });
         self.accels.insert(handle, Arc::clone(&accel));
         accel
+    }
+
+    /// Puts `data` (an update of `old`, placing `children`) in `old`'s place: same handle, options and structure,
+    /// the referrers shared; `old` is marked superseded.
+    fn replace(&self, old: &Accel, data: Box<dyn BackendAccel>, children: Vec<Arc<Accel>>) -> Result<Arc<Accel>> {
+        if !self.accels.contains_key(&old.handle) {
+            return Err(Error::NotFound { what: "accel", id: old.handle.0 });
+        }
+        let size_bytes = data.size_bytes();
+        let info = AccelInfo {
+            size_bytes,
+            compacted_size_bytes: old.info.compacted_size_bytes.map(|_| data.compacted_size_bytes()),
+            bounds: data.bounds(),
+            ..old.info
+        };
+        let accel = Arc::new(Accel {
+            handle: old.handle,
+            info,
+            data,
+            backend: old.backend,
+            children: refer_to(children),
+            referrers: Arc::clone(&old.referrers),
+            superseded: AtomicBool::new(false),
+            structure: old.structure.clone(),
+            _charge: Charge::new(size_bytes, &self.bytes_in_use),
+        });
+        self.accels.insert(old.handle, Arc::clone(&accel));
+        old.superseded.store(true, Ordering::Release);
+        Ok(accel)
     }
 
     /// The accel named by `handle`.
@@ -361,8 +476,10 @@ impl Context {
         self.buffers.remove(&handle).map(drop).ok_or(Error::NotFound { what: "buffer", id: handle.0 })
     }
 
-    /// Traces `rays` against `accel` and writes the results into `out` in place.
+    /// Traces `rays` against `accel` and writes the results into `out` in place. FAILED_PRECONDITION when the
+    /// accel places an accel in a version an update has replaced (update the placing accel first).
     pub fn trace(&self, accel: &Accel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
+        accel.check_current()?;
         self.device.backend.trace(accel.data.as_ref(), query, rays, out)
     }
 }

@@ -65,6 +65,12 @@ pub trait Backend: Send + Sync {
     fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage>;
     /// Builds an instance accel over checked instances, whose children must be accels of this backend.
     fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>>;
+    /// A refitted copy of `accel` (a geometry accel of this backend built with `ALLOW_UPDATE`) with the positions
+    /// of `inputs`, whose structure the caller checked.
+    fn update(&self, accel: &dyn BackendAccel, inputs: &[BuildInput<'_>]) -> Result<Box<dyn BackendAccel>>;
+    /// A refitted copy of `accel` (an instance accel of this backend built with `ALLOW_UPDATE`) with `instances`.
+    fn update_instances(&self, accel: &dyn BackendAccel, instances: &[PlacedInstance])
+    -> Result<Box<dyn BackendAccel>>;
     /// Places `child` (an accel of this backend) under a static transform.
     fn build_transform(&self, placement: &Placement, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>>;
     /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.

@@ -4,6 +4,7 @@ mod gather;
 mod input;
 mod instance;
 mod instance_records;
+mod structure;
 
 pub use gather::{GatheredTriangles, TriangleRef, gather, is_degenerate, triangle_counts};
 pub use input::{BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat};
@@ -11,3 +12,4 @@ pub use instance::{Instance, InstanceFlags, MAX_GRAPH_DEPTH, PlacedInstance, Pla
 pub use instance_records::{
     INSTANCE_RECORD_BYTES, InstanceRecord, TransformFormat, instances_from_prime, instances_from_records,
 };
+pub use structure::Structure;

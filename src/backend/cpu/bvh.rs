@@ -143,3 +143,18 @@ fn build_bvh2(boxes: &[Aabb], params: obvhs::BvhBuildParams) -> Bvh2 {
     );
     bvh
 }
+
+/// Recomputes every node's box bottom-up from its leaves' primitives (`leaf_bounds` of a leaf's primitive
+/// slots). Children always follow their parent in the depth-first array, so a reverse sweep sees them first.
+pub(super) fn refit(nodes: &mut [Node], leaf_bounds: impl Fn(std::ops::Range<usize>) -> (Vec3, Vec3)) {
+    for i in (0..nodes.len()).rev() {
+        let node = nodes[i];
+        let (min, max) = if node.count > 0 {
+            leaf_bounds(node.index as usize..(node.index + node.count) as usize)
+        } else {
+            let (left, right) = (nodes[node.index as usize], nodes[node.index as usize + 1]);
+            (left.min.min(right.min), left.max.max(right.max))
+        };
+        nodes[i] = Node { min, max, ..node };
+    }
+}

@@ -7,8 +7,8 @@ use glam::Vec3;
 use obvhs::aabb::Aabb;
 
 use super::CpuAccel;
-use super::bvh::{FIXED_BYTES, Footprint, Layout, Node};
-use crate::accel::{BuildOptions, MemoryUsage};
+use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, refit};
+use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::{PlacedInstance, Placement};
@@ -29,6 +29,8 @@ pub struct InstanceBvh {
     pub(super) stack_size: usize,
     /// The box around every placed child.
     bounds: (Vec3, Vec3),
+    /// With `ALLOW_UPDATE`: the input index of the instance in each slot, to refit with new placements.
+    update_order: Option<Vec<u32>>,
 }
 
 /// One accel under a static transform.
@@ -53,14 +55,27 @@ pub(super) fn cpu_child(accel: &Accel) -> Result<&CpuAccel> {
         .ok_or_else(|| Error::FailedPrecondition("a child accel was built on another device".into()))
 }
 
+/// The error of an update of an accel built without `ALLOW_UPDATE`.
+pub(super) fn not_updatable() -> Error {
+    Error::FailedPrecondition("the accel was built without ALLOW_UPDATE".into())
+}
+
+/// The error of an update whose input differs in structure from the build's.
+pub(super) fn mismatch(difference: String) -> Error {
+    Error::FailedPrecondition(format!("the update's structure differs from the build's: {difference}"))
+}
+
 /// Upper bounds of an instance build's memory for `instances` instances.
-pub(super) fn memory_bounds(instances: usize, _options: &BuildOptions) -> MemoryUsage {
+pub(super) fn memory_bounds(instances: usize, options: &BuildOptions) -> MemoryUsage {
     let n = instances as u64;
     let nodes = (2 * n).saturating_sub(1) * size_of::<Node>() as u64;
+    let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
+    let output_bytes = FIXED_BYTES + nodes + n * size_of::<PlacedInstance>() as u64 + if updatable { 4 * n } else { 0 };
     MemoryUsage {
-        output_bytes: FIXED_BYTES + nodes + n * size_of::<PlacedInstance>() as u64,
+        output_bytes,
         temp_bytes: BUILD_TEMP_FIXED_BYTES + n * BUILD_TEMP_BYTES_PER_INSTANCE,
-        temp_update_bytes: 0,
+        // An update checks the new instances and writes a refitted copy.
+        temp_update_bytes: if updatable { output_bytes + n * size_of::<PlacedInstance>() as u64 } else { 0 },
     }
 }
 
@@ -91,7 +106,41 @@ impl InstanceBvh {
             instances: order.iter().map(|&i| instances[i as usize].clone()).collect(),
             stack_size: depth + 1 + child_stack,
             bounds,
+            update_order: options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| {
+                order.shrink_to_fit();
+                order
+            }),
         })
+    }
+
+    /// A copy with the placements, ids, masks and flags of `instances` (as many as at the build, each placing an
+    /// accel with the same handle) and its boxes refitted. Fails (naming what differs) for an accel built without
+    /// `ALLOW_UPDATE` or instances of another structure. Instances whose child was empty at the build stay out of
+    /// the leaves.
+    pub fn refit(&self, instances: &[PlacedInstance]) -> Result<InstanceBvh> {
+        let order = self.update_order.as_ref().ok_or_else(not_updatable)?;
+        if instances.len() != order.len() {
+            return Err(mismatch(format!("{} instances where the build had {}", instances.len(), order.len())));
+        }
+        let mut next = self.clone();
+        for (slot, &i) in order.iter().enumerate() {
+            let (was, now) = (&self.instances[slot].child, &instances[i as usize].child);
+            if was.handle() != now.handle() {
+                return Err(mismatch(format!(
+                    "instance {i} places accel {} where the build placed accel {}",
+                    now.handle().0,
+                    was.handle().0
+                )));
+            }
+            next.instances[slot] = instances[i as usize].clone();
+        }
+        let placed = |instance: &PlacedInstance| instance.placement.place_bounds(instance.child.info().bounds);
+        let empty = (Vec3::INFINITY, Vec3::NEG_INFINITY);
+        let union = |(lo, hi): (Vec3, Vec3), (min, max): (Vec3, Vec3)| (lo.min(min), hi.max(max));
+        let members = &next.instances;
+        refit(&mut next.nodes, |slots| members[slots].iter().map(placed).fold(empty, union));
+        next.bounds = next.instances.iter().map(placed).filter(|(min, max)| min.cmple(*max).all()).fold(empty, union);
+        Ok(next)
     }
 
     /// Bytes it occupies, counted as `footprint` says.
@@ -99,6 +148,7 @@ impl InstanceBvh {
         FIXED_BYTES
             + (footprint.of(&self.nodes) * size_of::<Node>()) as u64
             + (footprint.of(&self.instances) * size_of::<PlacedInstance>()) as u64
+            + self.update_order.as_ref().map_or(0, |o| 4 * footprint.of(o) as u64)
     }
 
     /// The box around every placed child.

@@ -128,11 +128,27 @@ impl Backend for CpuBackend {
         Ok(Box::new(CpuAccel::Transform(TransformNode::build(placement, child)?)))
     }
 
+    fn update(&self, accel: &dyn BackendAccel, inputs: &[BuildInput<'_>]) -> Result<Box<dyn BackendAccel>> {
+        let CpuAccel::Triangles(bvh) = cpu(accel)? else {
+            return Err(Error::FailedPrecondition("only a geometry accel is updated with triangles".into()));
+        };
+        let refitted = bvh.refit(&gather(inputs)?).ok_or_else(instances::not_updatable)?;
+        Ok(Box::new(CpuAccel::Triangles(refitted)))
+    }
+
+    fn update_instances(
+        &self,
+        accel: &dyn BackendAccel,
+        instances: &[PlacedInstance],
+    ) -> Result<Box<dyn BackendAccel>> {
+        let CpuAccel::Instances(bvh) = cpu(accel)? else {
+            return Err(Error::FailedPrecondition("only an instance accel is updated with instances".into()));
+        };
+        Ok(Box::new(CpuAccel::Instances(bvh.refit(instances)?)))
+    }
+
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
-        let accel = accel
-            .as_any()
-            .downcast_ref::<CpuAccel>()
-            .ok_or_else(|| Error::FailedPrecondition("the accel was built on another device".into()))?;
+        let accel = cpu(accel)?;
         trace_batch(
             query,
             rays,
@@ -141,6 +157,14 @@ impl Backend for CpuBackend {
             |stack, ray, collector, stats| accel.traverse(stack, ray, &InstanceScope::WORLD, collector, stats),
         )
     }
+}
+
+/// The CPU structure of `accel`; FAILED_PRECONDITION for an accel of another device.
+fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
+    accel
+        .as_any()
+        .downcast_ref::<CpuAccel>()
+        .ok_or_else(|| Error::FailedPrecondition("the accel was built on another device".into()))
 }
 
 /// Total host memory, from `/proc/meminfo` where there is one.

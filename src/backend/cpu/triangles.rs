@@ -4,7 +4,7 @@
 use glam::Vec3;
 use obvhs::aabb::Aabb;
 
-use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, VecLen};
+use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, VecLen, refit};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::geometry::{GatheredTriangles, GeometryFlags, TriangleRef, is_degenerate};
 
@@ -30,6 +30,8 @@ pub struct TriangleBvh {
     pub(super) geometry_flags: Vec<GeometryFlags>,
     /// Longest root-to-leaf path, in nodes: the traversal stack's size.
     pub(super) depth: usize,
+    /// With `ALLOW_UPDATE`: the input index of the triangle in each slot, to refit with new positions.
+    update_order: Option<Vec<u32>>,
     /// With `ALLOW_RANDOM_VERTEX_ACCESS`: where each input triangle went.
     random_access: Option<RandomAccess>,
 }
@@ -50,11 +52,13 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     let nodes = (2 * n).saturating_sub(1) * size_of::<Node>() as u64;
     let per_triangle = (size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
     let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
-    let output_bytes = FIXED_BYTES + nodes + n * per_triangle + 4 * g + random_access;
+    let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
+    let update_order = if updatable { 4 * n } else { 0 };
+    let output_bytes = FIXED_BYTES + nodes + n * per_triangle + 4 * g + random_access + update_order;
     let temp_bytes = BUILD_TEMP_FIXED_BYTES + n * BUILD_TEMP_BYTES_PER_TRIANGLE;
-    // An update recomputes triangle boxes and refits nodes bottom-up with a parent index per node.
-    let temp_update_bytes =
-        if options.flags.contains(BuildFlags::ALLOW_UPDATE) { n * 32 + 8 * n + FIXED_BYTES } else { 0 };
+    // An update gathers the new triangles (corners, ids, masks) and writes a refitted copy of the accel.
+    let gathered = n * (per_triangle + 4) + 4 * g;
+    let temp_update_bytes = if updatable { output_bytes + gathered + FIXED_BYTES } else { 0 };
     MemoryUsage { output_bytes, temp_bytes, temp_update_bytes }
 }
 
@@ -100,6 +104,10 @@ impl TriangleBvh {
             }
             RandomAccess { geometries, slots }
         });
+        let update_order = options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| {
+            order.shrink_to_fit();
+            order
+        });
         TriangleBvh {
             nodes,
             corners,
@@ -108,13 +116,38 @@ impl TriangleBvh {
             geometry_flags: triangles.geometry_flags.clone(),
             depth,
             random_access,
+            update_order,
         }
+    }
+
+    /// A copy with the positions (and masks) of `triangles`, of the same structure, and its boxes refitted;
+    /// `None` unless it was built with `ALLOW_UPDATE`. Triangles degenerate at the build stay out of the leaves.
+    pub fn refit(&self, triangles: &GatheredTriangles) -> Option<TriangleBvh> {
+        let order = self.update_order.as_ref()?;
+        let mut next = self.clone();
+        for (slot, &i) in order.iter().enumerate() {
+            next.corners[slot] = triangles.vertices[i as usize];
+        }
+        if let (Some(masks), Some(new)) = (next.masks.as_mut(), triangles.masks.as_ref()) {
+            for (slot, &i) in order.iter().enumerate() {
+                masks[slot] = new[i as usize];
+            }
+        }
+        let corners = &next.corners;
+        refit(&mut next.nodes, |slots| {
+            corners[slots]
+                .iter()
+                .flatten()
+                .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| (lo.min(p), hi.max(p)))
+        });
+        Some(next)
     }
 
     /// Bytes it occupies: its arrays as allocated (`Footprint::Allocated`), or as an exact copy would allocate them.
     pub fn size_bytes(&self, footprint: Footprint) -> u64 {
         let bytes = |v: &dyn VecLen, size: usize| (footprint.of(v) * size) as u64;
         let random_access = self.random_access.as_ref().map_or(0, |r| bytes(&r.slots, 4) + bytes(&r.geometries, 8));
+        let update_order = self.update_order.as_ref().map_or(0, |o| bytes(o, 4));
         FIXED_BYTES
             + bytes(&self.nodes, size_of::<Node>())
             + bytes(&self.corners, size_of::<[Vec3; 3]>())
@@ -122,6 +155,7 @@ impl TriangleBvh {
             + self.masks.as_ref().map_or(0, |m| bytes(m, 4))
             + bytes(&self.geometry_flags, 4)
             + random_access
+            + update_order
     }
 
     /// The box around every triangle.
