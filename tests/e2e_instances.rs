@@ -134,3 +134,53 @@ async fn instance_accels_and_transforms_trace_through_the_service() {
         client.destroy_accel(name).await.unwrap_or_else(|e| panic!("{name}: {e}"));
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn updates_refit_in_place_and_placing_accels_refuse_traces_until_updated_too() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let lowered = Mesh { positions: triangle.positions.iter().map(|p| *p - Vec3::Z).collect(), ..triangle.clone() };
+    let tri = client.build_mesh("tri", &triangle, "", BuildFlags::ALLOW_UPDATE).await.unwrap();
+    let placed = [record(0, 7, translation(0.0, 0.0, 5.0))];
+    client.build_instances("scene", "", &["tri"], &placed, BuildFlags::ALLOW_UPDATE).await.unwrap();
+    assert_eq!(down_at(&client, "scene", &[(0.25, 0.25)]).await[0], (5.0, vec![7]));
+
+    let updated = client.update_mesh("tri", &lowered).await.unwrap();
+    assert_eq!((updated.handle, updated.bounds.unwrap().min.unwrap().z), (tri.handle, -1.0), "same accel, moved");
+    assert_eq!(down_at(&client, "tri", &[(0.25, 0.25)]).await[0], (11.0, vec![]));
+    let query = Query::closest(RayFormat::Full, HitFormat::Full);
+    let ray = Ray { origin: Vec3A::new(0.25, 0.25, 10.0), direction: -Vec3A::Z, ..Ray::default() };
+    let stale = client.trace("scene", &query, Bytes::from(pack_rays(&[ray], RayFormat::Full))).await.unwrap_err();
+    assert_eq!(stale.code(), Code::FailedPrecondition, "{stale}");
+    assert!(stale.to_string().contains("before an update"), "{stale}");
+
+    // The scene is updated with the same child (now its new version) and a new placement, on a stream.
+    let stream = client.create_stream().await.unwrap();
+    let moved = [record(0, 7, translation(0.0, 0.0, 2.0))];
+    let mut records = vec![0u8; 64];
+    moved[0].encode(&mut records);
+    let input = proto::InstanceInput {
+        children: vec![rayd_client::convert::accel_ref("tri")],
+        instances: Some(proto::instance_input::Instances::Records(proto::DataSource {
+            source: Some(proto::data_source::Source::Inline(records.into())),
+        })),
+    };
+    let update = proto::UpdateAccelRequest {
+        accel: Some(rayd_client::convert::accel_ref("scene")),
+        inputs: vec![proto::BuildInput { input: Some(proto::build_input::Input::Instances(input)) }],
+    };
+    let refit = stream.update(update).await.unwrap();
+    stream.synchronize().await.unwrap();
+    assert_eq!(refit.result().unwrap().unwrap().bounds.unwrap().max.unwrap().z, 1.0);
+    assert_eq!(down_at(&client, "scene", &[(0.25, 0.25)]).await[0], (9.0, vec![7]), "moved and refreshed");
+
+    // An update of another structure, or of an accel built without allow_update, is refused by name.
+    let two = Mesh { positions: triangle.positions.clone(), triangles: vec![[0, 1, 2], [0, 2, 1]] };
+    let error = client.update_mesh("tri", &two).await.unwrap_err();
+    assert_eq!(error.code(), Code::FailedPrecondition);
+    assert!(error.to_string().contains("2 triangles where the build had 1"), "{error}");
+    client.build_mesh("fixed", &triangle, "", BuildFlags::empty()).await.unwrap();
+    let error = client.update_mesh("fixed", &lowered).await.unwrap_err();
+    assert!(error.to_string().contains("ALLOW_UPDATE"), "{error}");
+}

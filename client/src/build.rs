@@ -8,7 +8,7 @@ use rayd_proto as proto;
 use rayd_proto::data_source::Source;
 
 use crate::client::Client;
-use crate::convert::{buffer_ref, build_options_to_proto, index_format_to_proto, vertex_format_to_proto};
+use crate::convert::{accel_ref, buffer_ref, build_options_to_proto, index_format_to_proto, vertex_format_to_proto};
 use crate::error::Result;
 
 impl Client {
@@ -27,10 +27,35 @@ impl Client {
         device: &str,
         flags: BuildFlags,
     ) -> Result<proto::AccelInfo> {
+        self.with_mesh(mesh, |vertices, indices| self.build(mesh_request(name, device, flags, vertices, indices))).await
+    }
+
+    /// Updates (refits) an accel in place from a request made by hand.
+    pub async fn update(&self, request: proto::UpdateAccelRequest) -> Result<proto::AccelInfo> {
+        Ok(self.rpc.clone().update_accel(request).await?.into_inner())
+    }
+
+    /// Updates (refits) the accel called `name`, built with `allow_update` from a mesh of the same topology, with
+    /// `mesh`'s vertex positions. Large meshes go through temporary buffers as in [`Client::build_mesh`].
+    pub async fn update_mesh(&self, name: &str, mesh: &Mesh) -> Result<proto::AccelInfo> {
+        self.with_mesh(mesh, |vertices, indices| {
+            let inputs = mesh_request(name, "", BuildFlags::empty(), vertices, indices).inputs;
+            self.update(proto::UpdateAccelRequest { accel: Some(accel_ref(name)), inputs })
+        })
+        .await
+    }
+
+    /// Calls `call` with a mesh's vertices and indices: inline below
+    /// [`ClientOptions::inline_mesh_bytes`](crate::ClientOptions::inline_mesh_bytes), else as two uploaded buffers
+    /// that are deleted again once the call is over, whatever its outcome.
+    async fn with_mesh<Call: Future<Output = Result<proto::AccelInfo>>>(
+        &self,
+        mesh: &Mesh,
+        call: impl Fn(Source, Source) -> Call,
+    ) -> Result<proto::AccelInfo> {
         let (vertices, indices) = packed(mesh);
-        let request = |vertices, indices| mesh_request(name, device, flags, vertices, indices);
         if vertices.len() + indices.len() < self.options.inline_mesh_bytes {
-            return self.build(request(Source::Inline(vertices), Source::Inline(indices))).await;
+            return call(Source::Inline(vertices), Source::Inline(indices)).await;
         }
         let mut uploaded = Vec::new();
         let result = async {
@@ -38,7 +63,7 @@ impl Client {
                 uploaded.push(self.upload_buffer("", data).await?.id);
             }
             let by_id = |id: &str| Source::Buffer(buffer_ref(id));
-            self.build(request(by_id(&uploaded[0]), by_id(&uploaded[1]))).await
+            call(by_id(&uploaded[0]), by_id(&uploaded[1])).await
         }
         .await;
         for id in &uploaded {

@@ -63,6 +63,13 @@ impl<T: Clone> Registry<T> {
         self.by_id.get(&id).map(|value| value.clone()).ok_or_else(|| self.not_found(&id))
     }
 
+    /// Puts `value` in the place of the object `id`; NOT_FOUND if there is none.
+    pub fn replace(&self, id: &str, value: T) -> ServiceResult<()> {
+        let mut slot = self.by_id.get_mut(id).ok_or_else(|| self.not_found(id))?;
+        *slot = value;
+        Ok(())
+    }
+
     /// Every object, in no particular order.
     pub fn values(&self) -> Vec<T> {
         self.by_id.iter().map(|entry| entry.clone()).collect()
@@ -102,5 +109,8 @@ mod tests {
         registry.check_free("a").unwrap();
         assert!(registry.remove("t-1", "a").is_err());
         assert!(matches!(registry.get(None, None), Err(ServiceError::Invalid { .. })));
+        registry.replace("t-2", 20).unwrap();
+        assert_eq!(registry.get(Some("t-2"), None).unwrap(), 20);
+        assert!(registry.replace("t-1", 10).is_err(), "removed objects cannot be replaced");
     }
 }

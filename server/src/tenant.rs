@@ -187,6 +187,21 @@ impl Tenant {
         Ok(entry)
     }
 
+    /// Updates `entry`'s accel with `update` (which gets its context) and keeps the new version under the same handle
+    /// and name. Blocks: call it off the async runtime.
+    pub fn update_accel(
+        &self,
+        entry: &AccelEntry,
+        update: impl FnOnce(&Context) -> rayd_engine::Result<Arc<Accel>>,
+    ) -> ServiceResult<AccelEntry> {
+        let (_, context) = self.context(&entry.device)?;
+        let start = Instant::now();
+        let accel = update(context)?;
+        let updated = AccelEntry { accel, build_ns: start.elapsed().as_nanos() as u64, ..entry.clone() };
+        self.accels.replace(&entry.handle, updated.clone())?;
+        Ok(updated)
+    }
+
     /// The accel with this name or handle.
     pub fn accel(&self, by_name: Option<&str>, by_handle: Option<&str>) -> ServiceResult<AccelEntry> {
         self.accels.get(by_handle, by_name)

@@ -199,6 +199,11 @@ impl Stream {
         Ok(build)
     }
 
+    /// Enqueues an update (refit) from a request made by hand (its references may name earlier operations).
+    pub async fn update(&self, request: proto::UpdateAccelRequest) -> Result<Operation<proto::AccelInfo>> {
+        self.enqueue(Op::UpdateAccel(request), Vec::new(), Expect::Accel, accel_outcome).await
+    }
+
     /// Enqueues a copy of an accel named `name` on `device` (empty: the source's); with `compact`, a compacted copy.
     pub async fn copy_accel<'a>(
         &self,

@@ -66,3 +66,12 @@ pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> Service
     crate::metrics::accel_built(&entry);
     Ok(info(&entry))
 }
+
+/// Updates (refits) an accel in place (off the async runtime).
+pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> ServiceResult<pb::AccelInfo> {
+    let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
+    let resolved = inputs::resolve(&tenant, &entry.device, &request.inputs)?;
+    let updated =
+        blocking(move || tenant.update_accel(&entry, |context| resolved.update(context, &entry.accel))).await?;
+    Ok(info(&updated))
+}

@@ -58,6 +58,18 @@ impl Resolved {
         }
     }
 
+    /// Updates `accel` with these inputs on `context`.
+    pub fn update(&self, context: &Context, accel: &Accel) -> rayd_engine::Result<Arc<Accel>> {
+        match self {
+            Resolved::Triangles(owned) => {
+                let inputs: Vec<_> = owned.iter().map(OwnedTriangles::as_input).collect();
+                context.update_accel(accel, &inputs)
+            }
+            Resolved::Instances(instances) => context.update_instance_accel(accel, instances),
+            Resolved::Transform { matrix, child } => context.update_transform(accel, matrix, child),
+        }
+    }
+
     /// Levels of the graph it would head, below it: its deepest child's (0 for triangles).
     fn child_depth(&self) -> u32 {
         match self {

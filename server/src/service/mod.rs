@@ -140,6 +140,11 @@ impl Rayd for RaydService {
         observe("BuildAccel", accels::build(tenant, request.into_inner())).await
     }
 
+    async fn update_accel(&self, request: Request<pb::UpdateAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
+        let tenant = self.tenant(&request);
+        observe("UpdateAccel", accels::update(tenant, request.into_inner())).await
+    }
+
     async fn copy_accel(&self, request: Request<pb::CopyAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.tenant(&request);
         observe("CopyAccel", accels::copy(tenant, request.into_inner())).await

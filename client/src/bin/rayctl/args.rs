@@ -50,6 +50,14 @@ pub enum Command {
         /// The accel's name.
         name: String,
     },
+    /// Update (refit) an accel built with --allow-update from a mesh file of the same topology.
+    Update {
+        /// The accel's name.
+        name: String,
+        /// The mesh file with the new vertex positions.
+        #[arg(long, value_name = "FILE")]
+        mesh: PathBuf,
+    },
     /// Copy an accel, or make a compacted copy of one (built with --allow-compaction).
     Copy {
         /// The accel to copy.

@@ -31,6 +31,7 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         Command::Scene(args) => scene(&client, args).await,
         Command::Accels => Ok(show::accels(&client.accels().await?)),
         Command::Info { name } => Ok(show::accel(&client.accel(name).await?)),
+        Command::Update { name, mesh } => Ok(show::accel(&client.update_mesh(name, &load_mesh(mesh)?).await?)),
         Command::Copy { source, name, device, compact } => {
             Ok(show::accel(&client.copy_accel(source, name, device, *compact).await?))
         }

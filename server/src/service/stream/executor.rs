@@ -127,6 +127,7 @@ impl Executor {
             Op::UploadData(_) => return Err(ServiceError::invalid("upload_data", "data without an upload")),
             Op::Build(request) => Some(Outcome::Accel(accels::build(Arc::clone(tenant), request).await?)),
             Op::CopyAccel(request) => Some(Outcome::Accel(accels::copy(Arc::clone(tenant), request).await?)),
+            Op::UpdateAccel(request) => Some(Outcome::Accel(accels::update(Arc::clone(tenant), request).await?)),
             Op::Trace(request) => Some(Outcome::Trace(trace::batch(Arc::clone(tenant), request).await?)),
             Op::Download(request) => {
                 let (entry, parts) = buffers::download_chunks(tenant, &request)?;
@@ -205,6 +206,7 @@ fn op_name(op: &Op) -> &'static str {
         Op::Upload(_) | Op::UploadData(_) => "upload",
         Op::Build(_) => "build",
         Op::CopyAccel(_) => "copy_accel",
+        Op::UpdateAccel(_) => "update_accel",
         Op::Trace(_) => "trace",
         Op::Download(_) => "download",
         Op::DeleteBuffer(_) => "delete_buffer",

@@ -90,6 +90,13 @@ impl Products {
             Op::DeleteBuffer(delete) => self.optional_buffer(id, delete.buffer.as_mut(), "delete_buffer.buffer"),
             Op::DestroyAccel(destroy) => self.optional_accel(id, destroy.accel.as_mut(), "destroy_accel.accel"),
             Op::CopyAccel(copy) => self.optional_accel(id, copy.accel.as_mut(), "copy_accel.accel"),
+            Op::UpdateAccel(update) => {
+                self.optional_accel(id, update.accel.as_mut(), "update_accel.accel")?;
+                for (i, input) in update.inputs.iter_mut().enumerate() {
+                    self.build_input(id, input, &format!("update_accel.inputs[{i}]"))?;
+                }
+                Ok(())
+            }
             Op::Upload(_) | Op::UploadData(_) | Op::RecordEvent(_) | Op::WaitEvent(_) => Ok(()),
         }
     }
