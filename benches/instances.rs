@@ -17,7 +17,7 @@ use std::time::Instant;
 use glam::{Affine3A, Quat, Vec3};
 use rayd_engine::accel::BuildOptions;
 use rayd_engine::format::{HitFormat, RayFormat};
-use rayd_engine::geometry::{BuildInput, Instance, InstanceFlags};
+use rayd_engine::geometry::{BuildInput, Instance, InstanceFlags, Placement};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, TraceOutput};
 use rayd_engine::raygen::{Camera, random_rays, uniform};
@@ -56,15 +56,6 @@ fn placements(count: usize) -> Vec<Affine3A> {
             Affine3A::from_scale_rotation_translation(Vec3::splat(0.5 + 0.5 * u(7)), turn, (cell + jitter * 0.4) * 1.5)
         })
         .collect()
-}
-
-/// A 3×4 row-major matrix.
-fn rows(a: Affine3A) -> [f32; 12] {
-    let (m, t) = (a.matrix3, a.translation);
-    [
-        m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x, m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y, m.x_axis.z, m.y_axis.z,
-        m.z_axis.z, t.z,
-    ]
 }
 
 /// Seconds `f` takes, and its result.
@@ -108,7 +99,7 @@ fn instanced(context: &Context, meshes: &[(String, Mesh)], placement: &[Affine3A
         .iter()
         .enumerate()
         .map(|(i, &to_world)| Instance {
-            transform: rows(to_world),
+            transform: Placement::rows(&to_world),
             instance_id: i as u32,
             mask: 0xFF,
             flags: InstanceFlags::empty(),

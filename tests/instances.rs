@@ -13,7 +13,8 @@ use glam::{Affine3A, Mat3, Quat, Vec3, Vec3A};
 use rayd_engine::accel::{AccelKind, BuildOptions};
 use rayd_engine::format::{HitFormat, MISS_ID, Ray, RayFlags, RayFormat};
 use rayd_engine::geometry::{
-    BuildInput, GeometryFlags, Instance, InstanceFlags, MAX_GRAPH_DEPTH, TriangleInput, VertexBuffer, VertexFormat,
+    BuildInput, GeometryFlags, Instance, InstanceFlags, MAX_GRAPH_DEPTH, Placement, TriangleInput, VertexBuffer,
+    VertexFormat,
 };
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, QueryKind, TraceOutput};
@@ -49,25 +50,6 @@ struct Placed {
     mask: u8,
     flags: InstanceFlags,
     child: Rc<Node>,
-}
-
-/// A 3×4 row-major matrix of an affine transform.
-fn rows(affine: Affine3A) -> [f32; 12] {
-    let (m, t) = (affine.matrix3, affine.translation);
-    [
-        m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x, m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y, m.x_axis.z, m.y_axis.z,
-        m.z_axis.z, t.z,
-    ]
-}
-
-/// The affine transform of a 3×4 row-major matrix.
-fn affine(m: &[f32; 12]) -> Affine3A {
-    Affine3A::from_cols(
-        Vec3A::new(m[0], m[4], m[8]),
-        Vec3A::new(m[1], m[5], m[9]),
-        Vec3A::new(m[2], m[6], m[10]),
-        Vec3A::new(m[3], m[7], m[11]),
-    )
 }
 
 /// A geometry accel over `meshes`.
@@ -147,12 +129,24 @@ fn flatten(
                     flip ^ p.flags.contains(InstanceFlags::FLIP_FACING),
                     no_culling || p.flags.contains(InstanceFlags::DISABLE_FACE_CULLING),
                 );
-                flatten(&p.child, to_world * affine(&p.transform), &path, flags, visibility, out);
+                flatten(
+                    &p.child,
+                    to_world * Placement::new(&p.transform).unwrap().object_to_world,
+                    &path,
+                    flags,
+                    visibility,
+                    out,
+                );
             }
         }
-        Shape::Transform(matrix, child) => {
-            flatten(child, to_world * affine(matrix), path, (flip, no_culling), visibility, out)
-        }
+        Shape::Transform(matrix, child) => flatten(
+            child,
+            to_world * Placement::new(matrix).unwrap().object_to_world,
+            path,
+            (flip, no_culling),
+            visibility,
+            out,
+        ),
     }
 }
 
@@ -256,7 +250,7 @@ fn instanced_scenes_hit_as_their_flattened_triangles() {
     // A cluster of instances of both geometry accels: mirrored ones, flipped ones, unculled ones, two mask bits.
     let cluster_members = (0..8u32)
         .map(|i| Placed {
-            transform: rows(random_affine(seed, u64::from(i), 3.0, i % 3 == 1)),
+            transform: Placement::rows(&random_affine(seed, u64::from(i), 3.0, i % 3 == 1)),
             id: 100 + i,
             mask: [0x01, 0x02, 0x03][i as usize % 3],
             flags: match i % 4 {
@@ -268,10 +262,10 @@ fn instanced_scenes_hit_as_their_flattened_triangles() {
         })
         .collect();
     let cluster = instances(&context, cluster_members);
-    let moved = transform(&context, rows(random_affine(seed, 50, 4.0, true)), Rc::clone(&sphere));
+    let moved = transform(&context, Placement::rows(&random_affine(seed, 50, 4.0, true)), Rc::clone(&sphere));
     let mut top_members: Vec<Placed> = (0..3u32)
         .map(|i| Placed {
-            transform: rows(random_affine(seed, 60 + u64::from(i), 8.0, i == 2)),
+            transform: Placement::rows(&random_affine(seed, 60 + u64::from(i), 8.0, i == 2)),
             id: i + 1,
             mask: if i == 1 { 0x04 } else { 0xFF },
             flags: if i == 2 { InstanceFlags::FLIP_FACING } else { InstanceFlags::empty() },
@@ -279,14 +273,14 @@ fn instanced_scenes_hit_as_their_flattened_triangles() {
         })
         .collect();
     top_members.push(Placed {
-        transform: rows(Affine3A::IDENTITY),
+        transform: Placement::rows(&Affine3A::IDENTITY),
         id: 10,
         mask: 0x08,
         flags: InstanceFlags::empty(),
         child: moved,
     });
     top_members.push(Placed {
-        transform: rows(random_affine(seed, 70, 8.0, false)),
+        transform: Placement::rows(&random_affine(seed, 70, 8.0, false)),
         id: 11,
         mask: 0x01,
         flags: InstanceFlags::empty(),
@@ -388,8 +382,8 @@ fn unit_triangle() -> Mesh {
 fn hits_report_the_instance_path_and_keep_object_space_facing_through_mirrors_unless_flipped() {
     let context = Context::new(Device::cpu());
     let triangle = triangles(&context, vec![unit_triangle()]);
-    let mirror_x = rows(Affine3A::from_mat3(Mat3::from_diagonal(Vec3::new(-1.0, 1.0, 1.0))));
-    let lift = rows(Affine3A::from_translation(Vec3::new(0.0, 0.0, 5.0)));
+    let mirror_x = Placement::rows(&Affine3A::from_mat3(Mat3::from_diagonal(Vec3::new(-1.0, 1.0, 1.0))));
+    let lift = Placement::rows(&Affine3A::from_translation(Vec3::new(0.0, 0.0, 5.0)));
     let scene = |flags: InstanceFlags| {
         let inner = instances(
             &context,
@@ -442,7 +436,7 @@ fn huge_translations_keep_the_precision_of_the_untranslated_scene() {
     let moved = instances(
         &context,
         vec![Placed {
-            transform: rows(Affine3A::from_translation(Vec3::new(far, -far, far))),
+            transform: Placement::rows(&Affine3A::from_translation(Vec3::new(far, -far, far))),
             id: 1,
             mask: 0xFF,
             flags: InstanceFlags::empty(),
@@ -476,7 +470,7 @@ fn huge_translations_keep_the_precision_of_the_untranslated_scene() {
 fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_children() {
     let context = Context::new(Device::cpu());
     let triangle = triangles(&context, vec![unit_triangle()]);
-    let identity = rows(Affine3A::IDENTITY);
+    let identity = Placement::rows(&Affine3A::IDENTITY);
     let instance = |transform: [f32; 12]| Instance {
         transform,
         instance_id: 0,

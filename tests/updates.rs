@@ -10,7 +10,7 @@ use common::shared_mesh;
 use glam::{Affine3A, Vec3};
 use rayd_engine::accel::{BuildFlags, BuildOptions};
 use rayd_engine::format::{HitFormat, RayFormat};
-use rayd_engine::geometry::{BuildInput, Instance, InstanceFlags};
+use rayd_engine::geometry::{BuildInput, Instance, InstanceFlags, Placement};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, TraceOutput};
 use rayd_engine::raygen::Camera;
@@ -83,14 +83,7 @@ fn instance_accels_follow_moved_instances_and_refuse_traces_until_updated_after_
     let updatable = BuildOptions::new(BuildFlags::ALLOW_UPDATE);
     let child = context.build_accel(&[BuildInput::Triangles(packed.input())], &updatable).unwrap();
     let at = |child: &Arc<Accel>, x: f32| Instance {
-        transform: {
-            let t = Affine3A::from_translation(Vec3::new(x, 0.0, 0.0));
-            let (m, t) = (t.matrix3, t.translation);
-            [
-                m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x, m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y, m.x_axis.z,
-                m.y_axis.z, m.z_axis.z, t.z,
-            ]
-        },
+        transform: Placement::rows(&Affine3A::from_translation(Vec3::new(x, 0.0, 0.0))),
         instance_id: 5,
         mask: 0xFF,
         flags: InstanceFlags::empty(),

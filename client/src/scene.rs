@@ -22,7 +22,7 @@ use std::path::{Path, PathBuf};
 
 use glam::{Affine3A, Quat, Vec3};
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::geometry::{InstanceFlags, InstanceRecord};
+use rayd_engine::geometry::{InstanceFlags, InstanceRecord, Placement};
 use rayd_proto as proto;
 use serde::Deserialize;
 
@@ -103,7 +103,7 @@ impl Scene {
                 flags.set(InstanceFlags::FLIP_FACING, instance.flip_facing);
                 flags.set(InstanceFlags::DISABLE_FACE_CULLING, instance.disable_face_culling);
                 Ok(InstanceRecord {
-                    transform: instance.transform.unwrap_or_else(|| rows(instance.placement())),
+                    transform: instance.transform.unwrap_or_else(|| Placement::rows(&instance.placement())),
                     instance_id: instance.id.unwrap_or(index as u32),
                     mask: instance.mask.unwrap_or(0xFF),
                     flags,
@@ -127,15 +127,6 @@ impl SceneInstance {
         });
         Affine3A::from_scale_rotation_translation(scale, rotation, Vec3::from(self.translate.unwrap_or_default()))
     }
-}
-
-/// An affine transform as 3×4 row-major numbers.
-fn rows(affine: Affine3A) -> [f32; 12] {
-    let (m, t) = (affine.matrix3, affine.translation);
-    [
-        m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x, m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y, m.x_axis.z, m.y_axis.z,
-        m.z_axis.z, t.z,
-    ]
 }
 
 impl Client {

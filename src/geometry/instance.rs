@@ -77,6 +77,17 @@ impl Placement {
         })
     }
 
+    /// An affine transform as the 3×4 row-major matrix instances and transforms take (the inverse of
+    /// [`Placement::new`]'s reading).
+    pub fn rows(affine: &Affine3A) -> [f32; 12] {
+        let (m, t) = (affine.matrix3, affine.translation);
+        [
+            m.x_axis.x, m.y_axis.x, m.z_axis.x, t.x, //
+            m.x_axis.y, m.y_axis.y, m.z_axis.y, t.y, //
+            m.x_axis.z, m.y_axis.z, m.z_axis.z, t.z,
+        ]
+    }
+
     /// The box around `bounds` (min, max) once placed; an empty box (`min > max`) stays empty.
     pub fn place_bounds(&self, (min, max): (Vec3, Vec3)) -> (Vec3, Vec3) {
         if min.cmpgt(max).any() {
@@ -162,6 +173,8 @@ mod tests {
             placement.place_bounds((Vec3::ZERO, Vec3::ONE)),
             (Vec3::new(1.0, 2.0, 3.0), Vec3::new(3.0, 3.0, 4.0))
         );
+        let matrix = [2.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 2.0, 0.0, 0.0, 1.0, 3.0];
+        assert_eq!(Placement::rows(&Placement::new(&matrix).unwrap().object_to_world), matrix, "rows read back");
         assert!(Placement::new(&[0.0; 12]).is_none(), "singular");
         assert!(Placement::new(&[f32::NAN, 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.]).is_none(), "not finite");
         let empty = (Vec3::ONE, Vec3::ZERO);

@@ -48,11 +48,7 @@ pub struct TransformNode {
 
 /// The CPU structure of a child accel; FAILED_PRECONDITION for an accel of another device.
 pub(super) fn cpu_child(accel: &Accel) -> Result<&CpuAccel> {
-    accel
-        .backend_accel()
-        .as_any()
-        .downcast_ref::<CpuAccel>()
-        .ok_or_else(|| Error::FailedPrecondition("a child accel was built on another device".into()))
+    super::cpu(accel.backend_accel())
 }
 
 /// The error of an update of an accel built without `ALLOW_UPDATE`.
