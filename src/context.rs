@@ -13,8 +13,9 @@ use crate::backend::cpu::CpuBackend;
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
 use crate::error::{Error, Result};
 use crate::geometry::{
-    BuildInput, Instance, PlacedInstance, Placement, Structure, check_depth, place, triangle_counts,
+    BuildInput, Instance, PlacedInstance, Structure, Transform, TransformInput, check_depth, place, triangle_counts,
 };
+use crate::geometry::motion::TimeSpan;
 use crate::query::{Query, TraceOutput, TraceStats};
 
 /// A device that contexts can be created on.
@@ -163,14 +164,13 @@ impl Accel {
     }
 }
 
-/// The placement of a transform input's matrix; INVALID_ARGUMENT unless it is finite and invertible.
-fn transform_placement(transform: &[f32; 12]) -> Result<Placement> {
-    Placement::new(transform).ok_or_else(|| Error::InvalidBuildInput {
-        input: 0,
-        field: "transform",
-        element: None,
-        rule: "must be finite and invertible".into(),
-    })
+/// The kind of accel a transform input makes.
+fn transform_kind(transform: &TransformInput) -> AccelKind {
+    match transform {
+        TransformInput::Static(_) => AccelKind::Transform,
+        TransformInput::MatrixMotion { .. } => AccelKind::MatrixMotionTransform,
+        TransformInput::SrtMotion { .. } => AccelKind::SrtMotionTransform,
+    }
 }
 
 /// `children` without repeats, each counting one more referrer.
@@ -256,25 +256,27 @@ impl Context {
     /// accels go on.
     pub fn build_accel(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Arc<Accel>> {
         let data = self.device.backend.build(inputs, options)?;
+        let keys = options.motion.keys as usize;
         let shape = Shape {
             kind: AccelKind::Triangles,
-            triangle_count: triangle_counts(inputs)?.iter().sum::<usize>() as u64,
+            triangle_count: triangle_counts(inputs, keys)?.iter().sum::<usize>() as u64,
             geometry_count: inputs.len() as u32,
             instance_count: 0,
         };
-        let structure = options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| Structure::of(inputs)).transpose()?;
+        let structure =
+            options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| Structure::of(inputs, keys)).transpose()?;
         Ok(self.register(shape, options, data, Vec::new(), structure))
     }
 
     /// Updates (refits) a geometry accel built with `ALLOW_UPDATE` with new vertex positions of the same structure
     /// (per input: triangle count, indices, masks, flags, offset; FAILED_PRECONDITION naming the difference
-    /// otherwise). The accel keeps its handle; traces already running finish on the old version, and accels that
+    /// otherwise) and as many motion keys (INVALID_ARGUMENT otherwise). The accel keeps its handle; traces already running finish on the old version, and accels that
     /// place it refuse traces until they are updated too. Triangles degenerate at the build stay unhittable.
     pub fn update_accel(&self, accel: &Accel, inputs: &[BuildInput<'_>]) -> Result<Arc<Accel>> {
         let built = accel.structure.as_ref().ok_or_else(|| {
             Error::FailedPrecondition("the accel is not a geometry accel built with ALLOW_UPDATE".into())
         })?;
-        if let Some(difference) = built.difference(&Structure::of(inputs)?) {
+        if let Some(difference) = built.difference(&Structure::of(inputs, accel.info.options.motion.keys as usize)?) {
             return Err(Error::FailedPrecondition(format!(
                 "the update's structure differs from the build's: {difference}"
             )));
@@ -293,20 +295,30 @@ impl Context {
         self.replace(accel, data, placed.into_iter().map(|p| p.child).collect())
     }
 
-    /// Updates a static transform with a new matrix over `child`, which must be the accel it places (in its
-    /// current version). As [`Context::update_accel`] otherwise.
-    pub fn update_transform(&self, accel: &Accel, transform: &[f32; 12], child: &Arc<Accel>) -> Result<Arc<Accel>> {
+    /// Updates a transform with new keys (or a new matrix) over `child`, which must be the accel it places (in its
+    /// current version). The transform keeps its kind and motion options (FAILED_PRECONDITION otherwise). As
+    /// [`Context::update_accel`] otherwise.
+    pub fn update_transform(&self, accel: &Accel, transform: &TransformInput, child: &Arc<Accel>) -> Result<Arc<Accel>> {
         match accel.children.as_slice() {
-            [placed] if accel.info.kind == AccelKind::Transform && placed.handle == child.handle => {}
+            [placed] if transform_kind(transform) == accel.info.kind && placed.handle == child.handle => {}
             _ => {
                 return Err(Error::FailedPrecondition(format!(
-                    "accel {} is not a transform placing accel {}",
-                    accel.handle.0, child.handle.0
+                    "accel {} is not a {:?} placing accel {}",
+                    accel.handle.0,
+                    transform_kind(transform),
+                    child.handle.0
                 )));
             }
         }
-        let placement = transform_placement(transform)?;
-        let data = self.device.backend.build_transform(&placement, child)?;
+        let checked = transform.check()?;
+        if checked.motion() != accel.info.options.motion {
+            return Err(Error::FailedPrecondition(format!(
+                "the update's motion options {:?} differ from the transform's {:?}",
+                checked.motion(),
+                accel.info.options.motion
+            )));
+        }
+        let data = self.device.backend.build_transform(&checked, child)?;
         self.replace(accel, data, vec![Arc::clone(child)])
     }
 
@@ -328,14 +340,16 @@ impl Context {
         Ok(self.register(shape, options, data, placed.into_iter().map(|p| p.child).collect(), None))
     }
 
-    /// Places `child` under a static transform (a 3×4 row-major object-to-world matrix), as a traversable that
-    /// instances can point at. The child cannot be destroyed while the transform lives.
-    pub fn build_transform(&self, transform: &[f32; 12], child: &Arc<Accel>) -> Result<Arc<Accel>> {
-        let placement = transform_placement(transform)?;
+    /// Places `child` under a transform (static, matrix motion or SRT motion), as a traversable that instances can
+    /// point at; its info's motion options are the transform's. The child cannot be destroyed while the transform
+    /// lives.
+    pub fn build_transform(&self, transform: &TransformInput, child: &Arc<Accel>) -> Result<Arc<Accel>> {
+        let checked: Transform = transform.check()?;
         check_depth(child.info.depth, "child", None)?;
-        let data = self.device.backend.build_transform(&placement, child)?;
-        let shape = Shape { kind: AccelKind::Transform, triangle_count: 0, geometry_count: 0, instance_count: 0 };
-        Ok(self.register(shape, &BuildOptions::default(), data, vec![Arc::clone(child)], None))
+        let data = self.device.backend.build_transform(&checked, child)?;
+        let shape = Shape { kind: transform_kind(transform), triangle_count: 0, geometry_count: 0, instance_count: 0 };
+        let options = BuildOptions { motion: checked.motion(), ..BuildOptions::default() };
+        Ok(self.register(shape, &options, data, vec![Arc::clone(child)], None))
     }
 
     /// Copies `source` (an accel of this context's device, from this or another context) into this context, as
@@ -386,7 +400,7 @@ impl Context {
                 .flags
                 .contains(BuildFlags::ALLOW_COMPACTION)
                 .then(|| data.compacted_size_bytes()),
-            bounds: data.bounds(),
+            bounds: data.bounds_during(TimeSpan::ALL),
         };
         let handle = AccelHandle(self.next_handle.fetch_add(1, Ordering::Relaxed));
         let accel = Arc::new(Accel {
@@ -414,7 +428,7 @@ impl Context {
         let info = AccelInfo {
             size_bytes,
             compacted_size_bytes: old.info.compacted_size_bytes.map(|_| data.compacted_size_bytes()),
-            bounds: data.bounds(),
+            bounds: data.bounds_during(TimeSpan::ALL),
             ..old.info
         };
         let accel = Arc::new(Accel {
@@ -480,6 +494,7 @@ impl Context {
     /// accel places an accel in a version an update has replaced (update the placing accel first).
     pub fn trace(&self, accel: &Accel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
         accel.check_current()?;
+        query.check_times(rays)?;
         self.device.backend.trace(accel.data.as_ref(), query, rays, out)
     }
 }

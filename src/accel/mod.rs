@@ -3,6 +3,7 @@
 use glam::Vec3;
 
 use crate::error::{Error, Result};
+use crate::geometry::MotionOptions;
 
 bitflags::bitflags! {
     /// Build flags, after OptiX 7's `OptixBuildFlags`.
@@ -22,20 +23,25 @@ bitflags::bitflags! {
 }
 
 /// Options of one build.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct BuildOptions {
     /// Build flags.
     pub flags: BuildFlags,
+    /// Motion keys, time range and vanish flags (static by default). A geometry accel with `K` keys takes `K`
+    /// vertex buffers per input; an instance accel's keys only bound its instances over time (and its vanish flags
+    /// hide them outside its range). A transform's are its own.
+    pub motion: MotionOptions,
 }
 
 impl BuildOptions {
-    /// Options with the given flags.
+    /// Static options with the given flags.
     pub fn new(flags: BuildFlags) -> Self {
-        BuildOptions { flags }
+        BuildOptions { flags, motion: MotionOptions::STATIC }
     }
 
-    /// Checks that the flags can be combined.
+    /// Checks that the flags can be combined and the motion options are valid.
     pub fn validate(&self) -> Result<()> {
+        self.motion.check().map_err(|rule| Error::InvalidBuildOptions(format!("motion: {rule}")))?;
         if self.flags.contains(BuildFlags::PREFER_FAST_TRACE | BuildFlags::PREFER_FAST_BUILD) {
             return Err(Error::InvalidBuildOptions(
                 "flags PREFER_FAST_TRACE and PREFER_FAST_BUILD are mutually exclusive".into(),
@@ -65,6 +71,10 @@ pub enum AccelKind {
     Instances,
     /// One other accel under a static transform.
     Transform,
+    /// One other accel under a matrix motion transform.
+    MatrixMotionTransform,
+    /// One other accel under an SRT motion transform.
+    SrtMotionTransform,
 }
 
 /// What is known about a built accel.
@@ -87,6 +97,6 @@ pub struct AccelInfo {
     pub options: BuildOptions,
     /// With `ALLOW_COMPACTION`: the size a compacted copy would have.
     pub compacted_size_bytes: Option<u64>,
-    /// The box around every triangle, in the accel's own space (`min > max` when there are none).
+    /// The box around every triangle at every time, in the accel's own space (`min > max` when there are none).
     pub bounds: (Vec3, Vec3),
 }

@@ -11,7 +11,8 @@ use glam::Vec3;
 use crate::accel::{BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::Result;
-use crate::geometry::{BuildInput, PlacedInstance, Placement};
+use crate::geometry::motion::{Bounds, TimeSpan};
+use crate::geometry::{BuildInput, PlacedInstance, Transform};
 use crate::query::{Query, TraceOutput, TraceStats};
 
 /// Which implementation a device uses.
@@ -44,8 +45,9 @@ pub trait BackendAccel: Any + Send + Sync {
     fn compacted_size_bytes(&self) -> u64;
     /// An exact-size copy (compacted) that traces the same.
     fn duplicate(&self) -> Box<dyn BackendAccel>;
-    /// The box around every triangle (`min > max` when there are none).
-    fn bounds(&self) -> (Vec3, Vec3);
+    /// A box around every triangle it holds at every time of `span` (`min > max` when there are none). Parents
+    /// bound moving children with it; `TimeSpan::ALL` gives the accel's box over all of time.
+    fn bounds_during(&self, span: TimeSpan) -> Bounds;
     /// The corners of triangle `prim_id` of geometry `geom_id`, if the accel kept random vertex access and the
     /// triangle exists.
     fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]>;
@@ -71,8 +73,8 @@ pub trait Backend: Send + Sync {
     /// A refitted copy of `accel` (an instance accel of this backend built with `ALLOW_UPDATE`) with `instances`.
     fn update_instances(&self, accel: &dyn BackendAccel, instances: &[PlacedInstance])
     -> Result<Box<dyn BackendAccel>>;
-    /// Places `child` (an accel of this backend) under a static transform.
-    fn build_transform(&self, placement: &Placement, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>>;
+    /// Places `child` (an accel of this backend) under a checked transform.
+    fn build_transform(&self, transform: &Transform, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>>;
     /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats>;
 }

@@ -106,6 +106,14 @@ impl RayFormat {
         }
     }
 
+    /// Byte offset of the time within a ray, for the formats that carry one.
+    pub const fn time_offset(self) -> Option<usize> {
+        match self {
+            RayFormat::OriginTminDirectionTmaxTime | RayFormat::Full => Some(32),
+            _ => None,
+        }
+    }
+
     /// Looks a format up by [`RayFormat::name`].
     pub fn from_name(name: &str) -> Option<RayFormat> {
         Self::ALL.into_iter().find(|f| f.name() == name)

@@ -18,7 +18,9 @@ pub struct TriangleRef {
 /// Every triangle of a build, validated, in input order.
 #[derive(Debug, Clone, Default)]
 pub struct GatheredTriangles {
-    /// The three corners of each triangle.
+    /// Motion keys (1 without motion).
+    pub keys: usize,
+    /// The three corners of each triangle at each key: triangle `i`'s at key `k` are at `i·keys + k`.
     pub vertices: Vec<[Vec3; 3]>,
     /// The ids each triangle reports, parallel to `vertices`.
     pub refs: Vec<TriangleRef>,
@@ -31,12 +33,17 @@ pub struct GatheredTriangles {
 impl GatheredTriangles {
     /// Number of triangles.
     pub fn len(&self) -> usize {
-        self.vertices.len()
+        self.refs.len()
     }
 
     /// Whether there are no triangles.
     pub fn is_empty(&self) -> bool {
-        self.vertices.is_empty()
+        self.refs.is_empty()
+    }
+
+    /// The corners of triangle `index` at every key.
+    pub fn corners(&self, index: usize) -> &[[Vec3; 3]] {
+        &self.vertices[index * self.keys..(index + 1) * self.keys]
     }
 
     /// The mask of triangle `index` (0 without masks).
@@ -54,16 +61,16 @@ pub fn is_degenerate(corners: &[Vec3; 3]) -> bool {
     cross == DVec3::ZERO
 }
 
-/// Validates `inputs` and returns each input's triangle count. Errors name the input, the field, the element
-/// and the rule.
-pub fn triangle_counts(inputs: &[BuildInput<'_>]) -> Result<Vec<usize>> {
+/// Validates `inputs` for a build with `keys` motion keys and returns each input's triangle count. Errors name the
+/// input, the field, the element and the rule.
+pub fn triangle_counts(inputs: &[BuildInput<'_>], keys: usize) -> Result<Vec<usize>> {
     if inputs.is_empty() {
         return Err(Error::InvalidBuildOptions("a build needs at least one build input".into()));
     }
     let counts = inputs
         .iter()
         .enumerate()
-        .map(|(index, BuildInput::Triangles(triangles))| check_triangle_input(index, triangles))
+        .map(|(index, BuildInput::Triangles(triangles))| check_triangle_input(index, triangles, keys))
         .collect::<Result<Vec<_>>>()?;
     let total: usize = counts.iter().sum();
     if total >= u32::MAX as usize {
@@ -76,13 +83,15 @@ pub fn triangle_counts(inputs: &[BuildInput<'_>]) -> Result<Vec<usize>> {
     Ok(counts)
 }
 
-/// Validates `inputs` (see [`triangle_counts`]) and flattens them into one list of triangles.
-pub fn gather(inputs: &[BuildInput<'_>]) -> Result<GatheredTriangles> {
-    let counts = triangle_counts(inputs)?;
-    let total = counts.iter().sum();
+/// Validates `inputs` for a build with `keys` motion keys (see [`triangle_counts`]) and flattens them into one
+/// list of triangles.
+pub fn gather(inputs: &[BuildInput<'_>], keys: usize) -> Result<GatheredTriangles> {
+    let counts = triangle_counts(inputs, keys)?;
+    let total: usize = counts.iter().sum();
     let any_masks = inputs.iter().any(|BuildInput::Triangles(t)| t.masks.is_some());
     let mut out = GatheredTriangles {
-        vertices: Vec::with_capacity(total),
+        keys,
+        vertices: Vec::with_capacity(total * keys),
         refs: Vec::with_capacity(total),
         masks: any_masks.then(|| Vec::with_capacity(total)),
         geometry_flags: Vec::with_capacity(inputs.len()),
@@ -94,8 +103,19 @@ pub fn gather(inputs: &[BuildInput<'_>]) -> Result<GatheredTriangles> {
 }
 
 /// Checks one input against every rule and returns its triangle count.
-fn check_triangle_input(input: usize, t: &TriangleInput<'_>) -> Result<usize> {
+fn check_triangle_input(input: usize, t: &TriangleInput<'_>, keys: usize) -> Result<usize> {
     let fail = |field, element: Option<u64>, rule: String| Error::InvalidBuildInput { input, field, element, rule };
+    if t.motion_vertices.len() + 1 != keys {
+        return Err(fail(
+            "motion_vertices",
+            None,
+            format!(
+                "{} vertex buffers given besides `vertices`; the build's {keys} motion keys need {}",
+                t.motion_vertices.len(),
+                keys.saturating_sub(1)
+            ),
+        ));
+    }
     let vertex_size = t.vertices.format.size();
     let stride = t.vertices.stride.map_or(vertex_size, |s| s as usize);
     if stride < vertex_size || !stride.is_multiple_of(4) {
@@ -113,15 +133,26 @@ fn check_triangle_input(input: usize, t: &TriangleInput<'_>) -> Result<usize> {
         return Err(fail("vertices", None, format!("byte length {bytes} is not a multiple of the stride {stride}")));
     }
     let vertex_count = bytes / stride;
-    for v in 0..vertex_count {
-        for axis in 0..3 {
-            let value = read_f32(t.vertices.data, v * stride + 4 * axis);
-            if !value.is_finite() {
-                return Err(fail(
-                    "vertices",
-                    Some(v as u64),
-                    format!("coordinate {axis} is {value}; vertices must be finite"),
-                ));
+    for (key, data) in std::iter::once(t.vertices.data).chain(t.motion_vertices.iter().copied()).enumerate() {
+        let field = if key == 0 { "vertices" } else { "motion_vertices" };
+        if data.len() != bytes {
+            return Err(fail(
+                field,
+                Some(key as u64 - 1),
+                format!("{} bytes for motion key {key}, `vertices` has {bytes}: keys share the layout", data.len()),
+            ));
+        }
+        for v in 0..vertex_count {
+            for axis in 0..3 {
+                let value = read_f32(data, v * stride + 4 * axis);
+                if !value.is_finite() {
+                    let element = if key == 0 { v as u64 } else { (key - 1) as u64 };
+                    return Err(fail(
+                        field,
+                        Some(element),
+                        format!("key {key}, vertex {v}: coordinate {axis} is {value}; vertices must be finite"),
+                    ));
+                }
             }
         }
     }
@@ -198,8 +229,7 @@ fn read_index(data: &[u8], format: IndexFormat, i: usize) -> u32 {
 /// Appends a checked input's triangles.
 fn append_triangles(out: &mut GatheredTriangles, geom_id: u32, t: &TriangleInput<'_>, count: usize) {
     let stride = t.vertices.stride.map_or(t.vertices.format.size(), |s| s as usize);
-    let data = t.vertices.data;
-    let vertex = |v: usize| {
+    let vertex = |data: &[u8], v: usize| {
         Vec3::new(read_f32(data, v * stride), read_f32(data, v * stride + 4), read_f32(data, v * stride + 8))
     };
     for tri in 0..count {
@@ -207,7 +237,10 @@ fn append_triangles(out: &mut GatheredTriangles, geom_id: u32, t: &TriangleInput
             Some(indices) => read_index(indices.data, indices.format, 3 * tri + c) as usize,
             None => 3 * tri + c,
         };
-        out.vertices.push([vertex(corner(0)), vertex(corner(1)), vertex(corner(2))]);
+        let corners = [corner(0), corner(1), corner(2)];
+        for data in std::iter::once(t.vertices.data).chain(t.motion_vertices.iter().copied()) {
+            out.vertices.push(corners.map(|v| vertex(data, v)));
+        }
         out.refs.push(TriangleRef { geom_id, prim_id: t.primitive_index_offset + tri as u32 });
         if let Some(masks) = out.masks.as_mut() {
             masks.push(t.masks.map_or(0, |m| read_u32(m, 4 * tri)));
@@ -237,12 +270,13 @@ mod tests {
         let masks = u32_bytes(&[5, 6]);
         let input = TriangleInput {
             vertices: VertexBuffer { data: &vertices, format: VertexFormat::Float4, stride: Some(20) },
+            motion_vertices: &[],
             indices: Some(IndexBuffer { data: &indices, format: IndexFormat::U16x3 }),
             masks: Some(&masks),
             flags: GeometryFlags::DISABLE_FACE_CULLING,
             primitive_index_offset: 100,
         };
-        let g = gather(&[BuildInput::Triangles(input)]).unwrap();
+        let g = gather(&[BuildInput::Triangles(input)], 1).unwrap();
         assert_eq!(g.len(), 2);
         assert_eq!(g.vertices[1], [Vec3::ZERO, Vec3::Y, Vec3::Z]);
         assert_eq!(g.refs[1], TriangleRef { geom_id: 0, prim_id: 101 });
@@ -256,6 +290,7 @@ mod tests {
         fn soup(v: &[u8]) -> TriangleInput<'_> {
             TriangleInput {
                 vertices: VertexBuffer { data: v, format: VertexFormat::Float3, stride: None },
+                motion_vertices: &[],
                 indices: None,
                 masks: None,
                 flags: GeometryFlags::empty(),
@@ -264,7 +299,7 @@ mod tests {
         }
         let check = |inputs: &[TriangleInput<'_>], field: &str, element: Option<u64>| {
             let inputs: Vec<_> = inputs.iter().copied().map(BuildInput::Triangles).collect();
-            match gather(&inputs) {
+            match gather(&inputs, 1) {
                 Err(Error::InvalidBuildInput { input, field: f, element: e, .. }) => {
                     assert_eq!((input, f, e), (inputs.len() - 1, field, element));
                 }
@@ -290,7 +325,7 @@ mod tests {
         };
         check(&[bad_stride], "vertices.stride", None);
         check(&[TriangleInput { primitive_index_offset: u32::MAX, ..soup(&good_v) }], "primitive_index_offset", None);
-        assert!(matches!(gather(&[]), Err(Error::InvalidBuildOptions(_))));
+        assert!(matches!(gather(&[], 1), Err(Error::InvalidBuildOptions(_))));
     }
 
     #[test]

@@ -71,8 +71,11 @@ pub struct IndexBuffer<'a> {
 /// One geometry made of triangles; its position in the build's input list is its geometry id.
 #[derive(Debug, Clone, Copy)]
 pub struct TriangleInput<'a> {
-    /// Vertex positions.
+    /// Vertex positions (of the first motion key, with motion).
     pub vertices: VertexBuffer<'a>,
+    /// With motion: the vertex bytes of motion keys 1, 2, … (one fewer than the build's motion keys), each laid out
+    /// as `vertices` is (format, stride, vertex count). Empty for a static build.
+    pub motion_vertices: &'a [&'a [u8]],
     /// Indices; `None` makes the vertices a triangle soup (vertices 3i, 3i+1, 3i+2 form triangle i).
     pub indices: Option<IndexBuffer<'a>>,
     /// Optional Prime triangle masks: one little-endian u32 a triangle; a ray skips the triangle when
@@ -85,10 +88,11 @@ pub struct TriangleInput<'a> {
 }
 
 impl<'a> TriangleInput<'a> {
-    /// A tightly packed float3 vertex buffer with u32×3 indices, no masks, no flags, offset 0.
+    /// A tightly packed float3 vertex buffer with u32×3 indices, no motion, no masks, no flags, offset 0.
     pub fn indexed(vertices: &'a [u8], indices: &'a [u8]) -> Self {
         TriangleInput {
             vertices: VertexBuffer { data: vertices, format: VertexFormat::Float3, stride: None },
+            motion_vertices: &[],
             indices: Some(IndexBuffer { data: indices, format: IndexFormat::U32x3 }),
             masks: None,
             flags: GeometryFlags::empty(),

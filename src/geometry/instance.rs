@@ -57,12 +57,17 @@ impl Placement {
             return None;
         }
         let [m00, m01, m02, tx, m10, m11, m12, ty, m20, m21, m22, tz] = *matrix;
-        let object_to_world = Affine3A::from_cols(
+        Placement::from_affine(Affine3A::from_cols(
             Vec3A::new(m00, m10, m20),
             Vec3A::new(m01, m11, m21),
             Vec3A::new(m02, m12, m22),
             Vec3A::new(tx, ty, tz),
-        );
+        ))
+    }
+
+    /// The placement of an object-to-world map; `None` unless it is invertible with a finite inverse.
+    #[inline]
+    pub fn from_affine(object_to_world: Affine3A) -> Option<Placement> {
         let determinant = object_to_world.matrix3.determinant();
         if determinant == 0.0 || !determinant.is_finite() {
             return None;

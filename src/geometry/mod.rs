@@ -4,7 +4,9 @@ mod gather;
 mod input;
 mod instance;
 mod instance_records;
+pub mod motion;
 mod structure;
+mod transform;
 
 pub use gather::{GatheredTriangles, TriangleRef, gather, is_degenerate, triangle_counts};
 pub use input::{BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat};
@@ -12,4 +14,6 @@ pub use instance::{Instance, InstanceFlags, MAX_GRAPH_DEPTH, PlacedInstance, Pla
 pub use instance_records::{
     INSTANCE_RECORD_BYTES, InstanceRecord, TransformFormat, instances_from_prime, instances_from_records,
 };
+pub use motion::{MotionFlags, MotionOptions};
 pub use structure::Structure;
+pub use transform::{SRT_KEY_FLOATS, SrtKey, Transform, TransformInput};

@@ -37,9 +37,10 @@ fn hash(bytes: &[u8], tag: impl Hash) -> u64 {
 }
 
 impl Structure {
-    /// The structure of `inputs` (validated as a build would).
-    pub fn of(inputs: &[BuildInput<'_>]) -> Result<Structure> {
-        let counts = triangle_counts(inputs)?;
+    /// The structure of `inputs` (validated as a build with `keys` motion keys would be: an update must give as
+    /// many vertex buffers per input as the build).
+    pub fn of(inputs: &[BuildInput<'_>], keys: usize) -> Result<Structure> {
+        let counts = triangle_counts(inputs, keys)?;
         let inputs = inputs
             .iter()
             .zip(counts)
@@ -89,15 +90,15 @@ mod tests {
         let moved = [1u8; 36];
         let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
         let turned: Vec<u8> = [0u32, 2, 1].iter().flat_map(|i| i.to_le_bytes()).collect();
-        let of = |v: &[u8], i: &[u8]| Structure::of(&[BuildInput::Triangles(TriangleInput::indexed(v, i))]).unwrap();
+        let of = |v: &[u8], i: &[u8]| Structure::of(&[BuildInput::Triangles(TriangleInput::indexed(v, i))], 1).unwrap();
         let built = of(&vertices, &indices);
         assert_eq!(built.difference(&of(&moved, &indices)), None, "new positions keep the structure");
         assert_eq!(built.difference(&of(&vertices, &turned)).unwrap(), "input 0: different indices (topology)");
         let masks = [0u8; 4];
         let masked = TriangleInput { masks: Some(&masks), ..TriangleInput::indexed(&vertices, &indices) };
-        let with_masks = Structure::of(&[BuildInput::Triangles(masked)]).unwrap();
+        let with_masks = Structure::of(&[BuildInput::Triangles(masked)], 1).unwrap();
         assert_eq!(built.difference(&with_masks).unwrap(), "input 0: different masks");
-        let two = Structure::of(&[BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices)); 2]).unwrap();
+        let two = Structure::of(&[BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices)); 2], 1).unwrap();
         assert_eq!(built.difference(&two).unwrap(), "2 build inputs where the build had 1");
     }
 }

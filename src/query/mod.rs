@@ -8,7 +8,7 @@ pub use batch::{CHUNK_RAYS, trace_batch};
 pub use collect::{Collector, InstanceScope, TriangleCandidate, consider_triangle};
 
 use crate::error::{Error, Result};
-use crate::format::{HitFormat, RayFlags, RayFormat};
+use crate::format::{HitFormat, RayFlags, RayFormat, read_f32};
 
 /// What a trace reports for each ray.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -79,6 +79,20 @@ impl Query {
         match self.kind {
             QueryKind::All => self.max_hits_per_ray as usize,
             _ => 1,
+        }
+    }
+
+    /// Checks that every ray's time (in the formats that carry one) is a number: a NaN time makes the whole batch
+    /// INVALID_ARGUMENT, naming the first such ray. Infinite times are fine (they clamp or vanish).
+    pub fn check_times(&self, rays: &[u8]) -> Result<()> {
+        let Some(offset) = self.ray_format.time_offset() else { return Ok(()) };
+        let size = self.ray_format.size();
+        match rays.chunks_exact(size).position(|ray| read_f32(ray, offset).is_nan()) {
+            None => Ok(()),
+            Some(index) => Err(Error::InvalidQuery {
+                field: "rays.time",
+                rule: format!("ray {index} has time NaN; a ray's time must be a number"),
+            }),
         }
     }
 

@@ -1,12 +1,13 @@
 //! The BVH every CPU accel uses: built by `obvhs` (PLOC, reinsertion, leaf collapsing) over primitive boxes and
 //! copied into a compact depth-first node array whose leaves index the primitives in leaf order.
 
-use glam::Vec3;
+use glam::{Vec3, Vec3A};
 use obvhs::aabb::Aabb;
 use obvhs::bvh2::{Bvh2, leaf_collapser::collapse, reinsertion::ReinsertionOptimizer};
 use obvhs::ploc::{PlocBuilder, PlocSearchDistance, SortPrecision};
 
 use crate::accel::BuildFlags;
+use crate::geometry::motion::{Bounds, EMPTY, KeyTime, lerp, union};
 
 /// One BVH node, 32 bytes: `0 min.xyz f32×3 | 12 index u32 | 16 max.xyz f32×3 | 28 count u32`.
 /// An inner node has `count` 0 and its two children at `index` and `index + 1`; a leaf holds primitives
@@ -144,16 +145,62 @@ fn build_bvh2(boxes: &[Aabb], params: obvhs::BvhBuildParams) -> Bvh2 {
     bvh
 }
 
-/// Recomputes every node's box bottom-up from its leaves' primitives (`leaf_bounds` of a leaf's primitive
-/// slots). Children always follow their parent in the depth-first array, so a reverse sweep sees them first.
-pub(super) fn refit(nodes: &mut [Node], leaf_bounds: impl Fn(std::ops::Range<usize>) -> (Vec3, Vec3)) {
+/// Per-node boxes at each motion key of a motion BVH: node `i`'s box at key `k` is `boxes[i·keys + k]`. Between
+/// keys a node's box is the interpolation of its two key boxes ([`NodeKeys::at`]), which holds its primitives
+/// at that time because each leaf's key boxes do.
+#[derive(Debug, Clone)]
+pub(super) struct NodeKeys {
+    /// Motion keys, at least 2.
+    pub keys: usize,
+    /// The boxes, `keys` a node.
+    pub boxes: Vec<Bounds>,
+}
+
+impl NodeKeys {
+    /// Room for `nodes` nodes' boxes; [`refit`] fills them.
+    pub fn new(nodes: usize, keys: usize) -> NodeKeys {
+        NodeKeys { keys, boxes: vec![EMPTY; nodes * keys] }
+    }
+
+    /// Node `node`'s box at `at`.
+    #[inline(always)]
+    pub fn at(&self, node: u32, at: KeyTime) -> (Vec3A, Vec3A) {
+        let first = node as usize * self.keys + at.segment;
+        let (a, b) = (self.boxes[first], self.boxes[first + 1]);
+        (lerp(a.0, b.0, at.fraction).into(), lerp(a.1, b.1, at.fraction).into())
+    }
+
+    /// The root's box at each key (none for an empty BVH).
+    pub fn root(&self) -> &[Bounds] {
+        &self.boxes[..self.keys.min(self.boxes.len())]
+    }
+}
+
+/// Recomputes every node's box bottom-up from its leaves' primitives: `leaf_bounds(slots, key)` bounds a leaf's
+/// primitive slots at a key. Without `keys` each node's own box is its box (key 0); with them, each node's key
+/// boxes are filled and its own box is their union (its box over all of time). Children always follow their
+/// parent in the depth-first array, so a reverse sweep sees them first.
+pub(super) fn refit(
+    nodes: &mut [Node],
+    mut keys: Option<&mut NodeKeys>,
+    leaf_bounds: impl Fn(std::ops::Range<usize>, usize) -> Bounds,
+) {
     for i in (0..nodes.len()).rev() {
         let node = nodes[i];
-        let (min, max) = if node.count > 0 {
-            leaf_bounds(node.index as usize..(node.index + node.count) as usize)
-        } else {
-            let (left, right) = (nodes[node.index as usize], nodes[node.index as usize + 1]);
-            (left.min.min(right.min), left.max.max(right.max))
+        let slots = node.index as usize..(node.index + node.count) as usize;
+        let children = [node.index as usize, node.index as usize + 1];
+        let (min, max) = match keys.as_deref_mut() {
+            None if node.count > 0 => leaf_bounds(slots, 0),
+            None => children.map(|c| (nodes[c].min, nodes[c].max)).into_iter().fold(EMPTY, union),
+            Some(NodeKeys { keys, boxes }) => (0..*keys).fold(EMPTY, |all, k| {
+                let b = if node.count > 0 {
+                    leaf_bounds(slots.clone(), k)
+                } else {
+                    children.map(|c| boxes[c * *keys + k]).into_iter().fold(EMPTY, union)
+                };
+                boxes[i * *keys + k] = b;
+                union(all, b)
+            }),
         };
         nodes[i] = Node { min, max, ..node };
     }

@@ -3,15 +3,18 @@
 
 use std::sync::Arc;
 
-use glam::Vec3;
 use obvhs::aabb::Aabb;
 
 use super::CpuAccel;
-use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, refit};
+use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, refit};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::{Error, Result};
-use crate::geometry::{PlacedInstance, Placement};
+use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, is_empty, union};
+use crate::geometry::{MotionOptions, PlacedInstance, Transform};
+
+/// Parts each motion segment is checked in when an instance's key boxes are fitted.
+const FIT_CUTS: usize = 8;
 
 /// The build's working memory per instance (boxes, PLOC's and the optimizer's arrays), as for triangles.
 const BUILD_TEMP_BYTES_PER_INSTANCE: u64 = 384;
@@ -21,29 +24,35 @@ const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
 /// A BVH over instances, ready to trace. Cloning it makes an exact-size copy over the same children.
 #[derive(Debug, Clone)]
 pub struct InstanceBvh {
-    /// Depth-first nodes over the instances' world boxes; empty when no instance has anything to hit.
+    /// Depth-first nodes over the instances' world boxes over all of time; empty when no instance has anything
+    /// to hit.
     pub(super) nodes: Vec<Node>,
+    /// With motion: each node's box at each key, fitted so that their interpolation holds the placed children at
+    /// every time.
+    pub(super) node_keys: Option<NodeKeys>,
+    /// The motion options (static without motion).
+    pub(super) motion: MotionOptions,
     /// The instances in leaf order, then those with empty boxes (never traversed).
     pub(super) instances: Vec<PlacedInstance>,
     /// Stack entries a trace through it needs: its own path and its deepest child's stack.
     pub(super) stack_size: usize,
-    /// The box around every placed child.
-    bounds: (Vec3, Vec3),
+    /// The box around every placed child at every time.
+    bounds: Bounds,
     /// With `ALLOW_UPDATE`: the input index of the instance in each slot, to refit with new placements.
     update_order: Option<Vec<u32>>,
 }
 
-/// One accel under a static transform.
+/// One accel under a transform (static or moving).
 #[derive(Debug, Clone)]
 pub struct TransformNode {
-    /// Where the child is placed.
-    pub(super) placement: Placement,
+    /// Where the child is placed, at each time.
+    pub(super) transform: Transform,
     /// The child.
     pub(super) child: Arc<Accel>,
     /// The child's stack size.
     pub(super) stack_size: usize,
-    /// The child's box, placed.
-    bounds: (Vec3, Vec3),
+    /// The child's box, placed, over all of time.
+    bounds: Bounds,
 }
 
 /// The CPU structure of a child accel; FAILED_PRECONDITION for an accel of another device.
@@ -64,31 +73,48 @@ pub(super) fn mismatch(difference: String) -> Error {
 /// Upper bounds of an instance build's memory for `instances` instances.
 pub(super) fn memory_bounds(instances: usize, options: &BuildOptions) -> MemoryUsage {
     let n = instances as u64;
-    let nodes = (2 * n).saturating_sub(1) * size_of::<Node>() as u64;
+    let keys = u64::from(options.motion.keys);
+    let node_keys = if keys > 1 { keys * size_of::<Bounds>() as u64 } else { 0 };
+    let nodes = (2 * n).saturating_sub(1) * (size_of::<Node>() as u64 + node_keys);
     let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
     let output_bytes = FIXED_BYTES + nodes + n * size_of::<PlacedInstance>() as u64 + if updatable { 4 * n } else { 0 };
     MemoryUsage {
         output_bytes,
-        temp_bytes: BUILD_TEMP_FIXED_BYTES + n * BUILD_TEMP_BYTES_PER_INSTANCE,
+        temp_bytes: BUILD_TEMP_FIXED_BYTES + n * (BUILD_TEMP_BYTES_PER_INSTANCE + keys * size_of::<Bounds>() as u64),
         // An update checks the new instances and writes a refitted copy.
         temp_update_bytes: if updatable { output_bytes + n * size_of::<PlacedInstance>() as u64 } else { 0 },
     }
 }
 
+/// The box of each instance at each of `motion`'s keys (`keys` a row, in input order): their interpolation holds
+/// the placed child at every time (see [`MotionOptions::fit_key_bounds`]).
+fn instance_key_boxes(instances: &[PlacedInstance], motion: &MotionOptions) -> Vec<Bounds> {
+    instances
+        .iter()
+        .flat_map(|instance| {
+            let child = instance.child.backend_accel();
+            motion.fit_key_bounds(FIT_CUTS, |span| instance.placement.place_bounds(child.bounds_during(span)))
+        })
+        .collect()
+}
+
 impl InstanceBvh {
-    /// Builds the BVH over the instances' placed boxes.
+    /// Builds the BVH over the instances' placed boxes: over all of time for its topology, and at each motion key
+    /// for a motion instance accel.
     pub fn build(instances: &[PlacedInstance], options: &BuildOptions) -> Result<InstanceBvh> {
+        let keys = options.motion.keys as usize;
+        let key_boxes = instance_key_boxes(instances, &options.motion);
         let mut child_stack = 0;
         let mut boxes = Vec::with_capacity(instances.len());
         let mut hittable = Vec::with_capacity(instances.len());
-        let mut bounds = (Vec3::INFINITY, Vec3::NEG_INFINITY);
+        let mut bounds = EMPTY;
         for (index, instance) in instances.iter().enumerate() {
             child_stack = child_stack.max(cpu_child(&instance.child)?.stack_size());
-            let (min, max) = instance.placement.place_bounds(instance.child.info().bounds);
-            if min.cmple(max).all() {
+            let (min, max) = key_boxes[index * keys..(index + 1) * keys].iter().copied().fold(EMPTY, union);
+            if !is_empty(&(min, max)) {
                 boxes.push(Aabb::new(min.into(), max.into()));
                 hittable.push(index as u32);
-                bounds = (bounds.0.min(min), bounds.1.max(max));
+                bounds = union(bounds, (min, max));
             }
         }
         let Layout { nodes, mut order, depth } = Layout::build(&boxes, &hittable, options.flags);
@@ -97,16 +123,33 @@ impl InstanceBvh {
             in_leaves[i as usize] = true;
         }
         order.extend((0..instances.len() as u32).filter(|&i| !in_leaves[i as usize]));
-        Ok(InstanceBvh {
+        let mut bvh = InstanceBvh {
             nodes,
+            node_keys: (keys > 1).then(|| NodeKeys::new(0, keys)),
+            motion: options.motion,
             instances: order.iter().map(|&i| instances[i as usize].clone()).collect(),
             stack_size: depth + 1 + child_stack,
             bounds,
-            update_order: options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| {
-                order.shrink_to_fit();
-                order
-            }),
-        })
+            update_order: None,
+        };
+        bvh.refit_boxes(&order, &key_boxes);
+        if options.flags.contains(BuildFlags::ALLOW_UPDATE) {
+            order.shrink_to_fit();
+            bvh.update_order = Some(order);
+        }
+        Ok(bvh)
+    }
+
+    /// Refits the nodes (and their key boxes) to `key_boxes` of the instances in input order; `order` gives the
+    /// input index of each slot. The BVH's own box stays as it is.
+    fn refit_boxes(&mut self, order: &[u32], key_boxes: &[Bounds]) {
+        let keys = self.motion.keys as usize;
+        if let Some(node_keys) = self.node_keys.as_mut() {
+            *node_keys = NodeKeys::new(self.nodes.len(), keys);
+        }
+        refit(&mut self.nodes, self.node_keys.as_mut(), |slots, k| {
+            slots.map(|slot| key_boxes[order[slot] as usize * keys + k]).fold(EMPTY, union)
+        });
     }
 
     /// A copy with the placements, ids, masks and flags of `instances` (as many as at the build, each placing an
@@ -130,12 +173,9 @@ impl InstanceBvh {
             }
             next.instances[slot] = instances[i as usize].clone();
         }
-        let placed = |instance: &PlacedInstance| instance.placement.place_bounds(instance.child.info().bounds);
-        let empty = (Vec3::INFINITY, Vec3::NEG_INFINITY);
-        let union = |(lo, hi): (Vec3, Vec3), (min, max): (Vec3, Vec3)| (lo.min(min), hi.max(max));
-        let members = &next.instances;
-        refit(&mut next.nodes, |slots| members[slots].iter().map(placed).fold(empty, union));
-        next.bounds = next.instances.iter().map(placed).filter(|(min, max)| min.cmple(*max).all()).fold(empty, union);
+        let key_boxes = instance_key_boxes(instances, &self.motion);
+        next.refit_boxes(order, &key_boxes);
+        next.bounds = key_boxes.iter().copied().fold(EMPTY, union);
         Ok(next)
     }
 
@@ -144,30 +184,45 @@ impl InstanceBvh {
         FIXED_BYTES
             + (footprint.of(&self.nodes) * size_of::<Node>()) as u64
             + (footprint.of(&self.instances) * size_of::<PlacedInstance>()) as u64
+            + self.node_keys.as_ref().map_or(0, |k| (footprint.of(&k.boxes) * size_of::<Bounds>()) as u64)
             + self.update_order.as_ref().map_or(0, |o| 4 * footprint.of(o) as u64)
     }
 
-    /// The box around every placed child.
-    pub fn bounds(&self) -> (Vec3, Vec3) {
-        self.bounds
+    /// A box around every placed child at every time of `span`.
+    pub fn bounds_during(&self, span: TimeSpan) -> Bounds {
+        match &self.node_keys {
+            Some(keys) if !keys.boxes.is_empty() => self.motion.bounds_of_keys(keys.root(), span),
+            _ => self.bounds,
+        }
     }
 }
 
 impl TransformNode {
-    /// Places `child` with `placement`.
-    pub fn build(placement: &Placement, child: &Arc<Accel>) -> Result<TransformNode> {
+    /// Places `child` with `transform`.
+    pub fn build(transform: &Transform, child: &Arc<Accel>) -> Result<TransformNode> {
         let stack_size = cpu_child(child)?.stack_size();
-        let bounds = placement.place_bounds(child.info().bounds);
-        Ok(TransformNode { placement: *placement, child: Arc::clone(child), stack_size, bounds })
+        let node = TransformNode { transform: transform.clone(), child: Arc::clone(child), stack_size, bounds: EMPTY };
+        Ok(TransformNode { bounds: node.bounds_during(TimeSpan::ALL), ..node })
+    }
+
+    /// A box around the placed child at every time of `span`.
+    pub fn bounds_during(&self, span: TimeSpan) -> Bounds {
+        let child = self.child.backend_accel();
+        self.transform.bounds_during(span, &|inner| child.bounds_during(inner))
     }
 
     /// Bytes it occupies.
     pub fn size_bytes(&self) -> u64 {
-        FIXED_BYTES + size_of::<TransformNode>() as u64
+        let keys = match &self.transform {
+            Transform::Static(_) => 0,
+            Transform::Matrix { keys, .. } => keys.len() * size_of::<glam::Affine3A>(),
+            Transform::Srt { keys, .. } => keys.len() * size_of::<crate::geometry::SrtKey>(),
+        };
+        FIXED_BYTES + (size_of::<TransformNode>() + keys) as u64
     }
 
-    /// The child's box, placed.
-    pub fn bounds(&self) -> (Vec3, Vec3) {
+    /// The placed child's box over all of time.
+    pub fn bounds(&self) -> Bounds {
         self.bounds
     }
 }

@@ -15,7 +15,8 @@ use crate::accel::{BuildOptions, MemoryUsage};
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
 use crate::context::Accel;
 use crate::error::{Error, Result};
-use crate::geometry::{BuildInput, PlacedInstance, Placement, gather, triangle_counts};
+use crate::geometry::motion::{Bounds, TimeSpan};
+use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_counts};
 use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, trace_batch};
 
 use bvh::Footprint;
@@ -71,11 +72,12 @@ impl BackendAccel for CpuAccel {
         Box::new(self.clone())
     }
 
-    fn bounds(&self) -> (Vec3, Vec3) {
+    fn bounds_during(&self, span: TimeSpan) -> Bounds {
         match self {
-            CpuAccel::Triangles(bvh) => bvh.bounds(),
-            CpuAccel::Instances(bvh) => bvh.bounds(),
-            CpuAccel::Transform(node) => node.bounds(),
+            CpuAccel::Triangles(bvh) => bvh.bounds_during(span),
+            CpuAccel::Instances(bvh) => bvh.bounds_during(span),
+            CpuAccel::Transform(node) if span == TimeSpan::ALL => node.bounds(),
+            CpuAccel::Transform(node) => node.bounds_during(span),
         }
     }
 
@@ -104,14 +106,14 @@ impl Backend for CpuBackend {
 
     fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage> {
         options.validate()?;
-        let counts = triangle_counts(inputs)?;
+        let counts = triangle_counts(inputs, options.motion.keys as usize)?;
         let has_masks = inputs.iter().any(|BuildInput::Triangles(t)| t.masks.is_some());
         Ok(triangles::memory_bounds(counts.iter().sum(), inputs.len(), has_masks, options))
     }
 
     fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
         options.validate()?;
-        let triangles = gather(inputs)?;
+        let triangles = gather(inputs, options.motion.keys as usize)?;
         Ok(Box::new(CpuAccel::Triangles(TriangleBvh::build(triangles, options))))
     }
 
@@ -124,15 +126,16 @@ impl Backend for CpuBackend {
         Ok(Box::new(CpuAccel::Instances(InstanceBvh::build(instances, options)?)))
     }
 
-    fn build_transform(&self, placement: &Placement, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>> {
-        Ok(Box::new(CpuAccel::Transform(TransformNode::build(placement, child)?)))
+    fn build_transform(&self, transform: &Transform, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>> {
+        Ok(Box::new(CpuAccel::Transform(TransformNode::build(transform, child)?)))
     }
 
     fn update(&self, accel: &dyn BackendAccel, inputs: &[BuildInput<'_>]) -> Result<Box<dyn BackendAccel>> {
         let CpuAccel::Triangles(bvh) = cpu(accel)? else {
             return Err(Error::FailedPrecondition("only a geometry accel is updated with triangles".into()));
         };
-        let refitted = bvh.refit(&gather(inputs)?).ok_or_else(instances::not_updatable)?;
+        let triangles = gather(inputs, bvh.motion.keys as usize)?;
+        let refitted = bvh.refit(&triangles).ok_or_else(instances::not_updatable)?;
         Ok(Box::new(CpuAccel::Triangles(refitted)))
     }
 

@@ -5,12 +5,13 @@
 
 use std::ops::Range;
 
-use glam::Vec3A;
+use glam::{Vec3, Vec3A};
 
 use super::CpuAccel;
 use super::bvh::Node;
 use super::instances::{InstanceBvh, TransformNode, cpu_child};
 use super::triangles::TriangleBvh;
+use crate::geometry::motion::lerp;
 use crate::intersect::{PreparedRay, aabb};
 use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
 
@@ -41,7 +42,7 @@ impl CpuAccel {
 }
 
 impl TriangleBvh {
-    /// Offers the triangles of the leaves the ray reaches.
+    /// Offers the triangles of the leaves the ray reaches, as they are at the ray's time.
     fn traverse(
         &self,
         stack: &mut [StackEntry],
@@ -50,12 +51,40 @@ impl TriangleBvh {
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
     ) {
-        walk(&self.nodes, stack, ray, collector, stats, |slots, _, collector, stats| {
+        let Some(at) = self.motion.locate(ray.time) else { return };
+        match &self.node_keys {
+            None => self.walk_triangles(static_boxes(&self.nodes), |slot| self.corners[slot], stack, ray, scope, collector, stats),
+            Some(keys) => {
+                let stride = keys.keys;
+                let corners = |slot: usize| {
+                    let (a, b) = (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
+                    std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
+                };
+                self.walk_triangles(|node| keys.at(node, at), corners, stack, ray, scope, collector, stats)
+            }
+        }
+    }
+
+    /// Walks the nodes with their boxes from `node_box` and offers each reached triangle, with its corners from
+    /// `corners` (by slot).
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    fn walk_triangles(
+        &self,
+        node_box: impl Fn(u32) -> (Vec3A, Vec3A),
+        corners: impl Fn(usize) -> [Vec3; 3],
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        scope: &InstanceScope,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+    ) {
+        walk(&self.nodes, node_box, stack, ray, collector, stats, |slots, _, collector, stats| {
             for slot in slots {
                 stats.triangle_tests += 1;
                 let id = self.refs[slot];
                 let candidate = TriangleCandidate {
-                    corners: &self.corners[slot],
+                    corners: &corners(slot),
                     id,
                     mask: self.masks.as_ref().map_or(0, |m| m[slot]),
                     geometry_flags: self.geometry_flags[id.geom_id as usize],
@@ -71,7 +100,8 @@ impl TriangleBvh {
 }
 
 impl InstanceBvh {
-    /// Traverses the child of every visible instance whose box the ray reaches, in the instance's space.
+    /// Traverses the child of every visible instance whose box the ray reaches (at its time), in the instance's
+    /// space.
     fn traverse(
         &self,
         stack: &mut [StackEntry],
@@ -80,7 +110,25 @@ impl InstanceBvh {
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
     ) {
-        walk(&self.nodes, stack, ray, collector, stats, |slots, rest, collector, stats| {
+        let Some(at) = self.motion.locate(ray.time) else { return };
+        match &self.node_keys {
+            None => self.walk_instances(static_boxes(&self.nodes), stack, ray, scope, collector, stats),
+            Some(keys) => self.walk_instances(|node| keys.at(node, at), stack, ray, scope, collector, stats),
+        }
+    }
+
+    /// Walks the nodes with their boxes from `node_box` and traverses each reached instance's child.
+    #[inline(always)]
+    fn walk_instances(
+        &self,
+        node_box: impl Fn(u32) -> (Vec3A, Vec3A),
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        scope: &InstanceScope,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+    ) {
+        walk(&self.nodes, node_box, stack, ray, collector, stats, |slots, rest, collector, stats| {
             for instance in &self.instances[slots] {
                 if ray.visibility & instance.mask == 0 {
                     continue;
@@ -98,7 +146,7 @@ impl InstanceBvh {
 }
 
 impl TransformNode {
-    /// Traverses the child in its own space.
+    /// Traverses the child in its own space, as the transform places it at the ray's time.
     fn traverse(
         &self,
         stack: &mut [StackEntry],
@@ -107,31 +155,45 @@ impl TransformNode {
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
     ) {
+        let Some(placement) = self.transform.placement_at(ray.time) else { return };
         if let Ok(child) = cpu_child(&self.child) {
-            let local = ray.transformed(&self.placement.world_to_object);
-            child.traverse(stack, &local, &scope.through(&self.placement), collector, stats);
+            let local = ray.transformed(&placement.world_to_object);
+            child.traverse(stack, &local, &scope.through(&placement), collector, stats);
         }
     }
 }
 
-/// Walks `nodes` front to back and hands each leaf the ray reaches (its primitive slots, the free part of the
-/// stack, the collector and the statistics) to `leaf`, which returns whether the collector is done.
+/// The boxes of a static BVH: each node's own.
+#[inline(always)]
+fn static_boxes(nodes: &[Node]) -> impl Fn(u32) -> (Vec3A, Vec3A) + '_ {
+    |node| {
+        let node = &nodes[node as usize];
+        (Vec3A::from(node.min), Vec3A::from(node.max))
+    }
+}
+
+/// Walks `nodes` (whose boxes `node_box` gives by index) front to back and hands each leaf the ray reaches (its
+/// primitive slots, the free part of the stack, the collector and the statistics) to `leaf`, which returns whether
+/// the collector is done.
 #[inline(always)]
 fn walk(
     nodes: &[Node],
+    node_box: impl Fn(u32) -> (Vec3A, Vec3A),
     stack: &mut [StackEntry],
     ray: &PreparedRay,
     collector: &mut Collector<'_>,
     stats: &mut TraceStats,
     mut leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
 ) {
-    let Some(root) = nodes.first() else {
+    if nodes.is_empty() {
         return;
+    }
+    let test = |node: u32, tmax: f32| {
+        let (min, max) = node_box(node);
+        aabb::intersect(ray, min, max, ray.tmin, tmax)
     };
-    let test =
-        |node: &Node, tmax: f32| aabb::intersect(ray, Vec3A::from(node.min), Vec3A::from(node.max), ray.tmin, tmax);
     stats.nodes_visited += 1;
-    if test(root, collector.cull_tmax()).is_none() {
+    if test(0, collector.cull_tmax()).is_none() {
         return;
     }
     let mut len = 0usize;
@@ -148,8 +210,8 @@ fn walk(
             let tmax = collector.cull_tmax();
             let (left, right) = (node.index, node.index + 1);
             stats.nodes_visited += 2;
-            let near_left = test(&nodes[left as usize], tmax);
-            let near_right = test(&nodes[right as usize], tmax);
+            let near_left = test(left, tmax);
+            let near_right = test(right, tmax);
             next = match (near_left, near_right) {
                 (Some(l), Some(r)) => {
                     let (first, second) = if r < l { ((right, r), (left, l)) } else { ((left, l), (right, r)) };

@@ -4,9 +4,10 @@
 use glam::Vec3;
 use obvhs::aabb::Aabb;
 
-use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, VecLen, refit};
+use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
-use crate::geometry::{GatheredTriangles, GeometryFlags, TriangleRef, is_degenerate};
+use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, union};
+use crate::geometry::{GatheredTriangles, GeometryFlags, MotionOptions, TriangleRef, is_degenerate};
 
 /// The build's working memory per triangle: measured at 243–257 bytes on the shared meshes and random soups for
 /// every preset (`tests/memory_usage.rs` prints it); 384 leaves a 1.5× margin.
@@ -17,10 +18,16 @@ const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
 /// A BVH over triangles, ready to trace. Cloning it makes an exact-size copy.
 #[derive(Debug, Clone)]
 pub struct TriangleBvh {
-    /// Depth-first nodes; empty when no triangle can be hit.
+    /// Depth-first nodes (with motion, each box is the node's box over all of time); empty when no triangle can
+    /// be hit.
     pub(super) nodes: Vec<Node>,
-    /// Triangle corners: first those of the leaves, in leaf order, then the degenerate ones (never traversed,
-    /// kept for random vertex access).
+    /// With motion: each node's box at each key.
+    pub(super) node_keys: Option<NodeKeys>,
+    /// The motion options (static without motion).
+    pub(super) motion: MotionOptions,
+    /// Triangle corners, `motion.keys` sets a triangle (slot `i`'s at key `k` at `i·keys + k`): first those of the
+    /// leaves, in leaf order, then the degenerate ones (never traversed, kept for random vertex access). With
+    /// motion no triangle is left out: one degenerate at every key may have area in between.
     pub(super) corners: Vec<[Vec3; 3]>,
     /// Ids of each triangle, parallel to `corners`.
     pub(super) refs: Vec<TriangleRef>,
@@ -30,6 +37,8 @@ pub struct TriangleBvh {
     pub(super) geometry_flags: Vec<GeometryFlags>,
     /// Longest root-to-leaf path, in nodes: the traversal stack's size.
     pub(super) depth: usize,
+    /// The box around every corner at every key.
+    bounds: Bounds,
     /// With `ALLOW_UPDATE`: the input index of the triangle in each slot, to refit with new positions.
     update_order: Option<Vec<u32>>,
     /// With `ALLOW_RANDOM_VERTEX_ACCESS`: where each input triangle went.
@@ -49,8 +58,12 @@ struct RandomAccess {
 pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, options: &BuildOptions) -> MemoryUsage {
     let n = triangles as u64;
     let g = geometries as u64;
-    let nodes = (2 * n).saturating_sub(1) * size_of::<Node>() as u64;
-    let per_triangle = (size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
+    let keys = u64::from(options.motion.keys);
+    let node_count = (2 * n).saturating_sub(1);
+    let node_keys = if keys > 1 { keys * size_of::<Bounds>() as u64 } else { 0 };
+    let nodes = node_count * (size_of::<Node>() as u64 + node_keys);
+    let per_triangle =
+        (keys as usize * size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
     let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
     let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
     let update_order = if updatable { 4 * n } else { 0 };
@@ -63,20 +76,37 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
 }
 
 impl TriangleBvh {
-    /// Builds the BVH over gathered, validated triangles.
+    /// Builds the BVH over gathered, validated triangles, with `options.motion.keys` keys. A motion BVH's
+    /// topology is built over each triangle's box over all of time; its nodes then get their boxes at each key.
     pub fn build(triangles: GatheredTriangles, options: &BuildOptions) -> TriangleBvh {
-        let hittable: Vec<u32> =
-            (0..triangles.len() as u32).filter(|&i| !is_degenerate(&triangles.vertices[i as usize])).collect();
+        let moving = !options.motion.is_static();
+        let hittable: Vec<u32> = (0..triangles.len() as u32)
+            .filter(|&i| moving || !is_degenerate(&triangles.vertices[i as usize]))
+            .collect();
         let boxes: Vec<Aabb> = hittable
             .iter()
             .map(|&i| {
-                let [a, b, c] = triangles.vertices[i as usize];
-                Aabb::new(a.min(b).min(c).into(), a.max(b).max(c).into())
+                let (min, max) = corner_bounds(triangles.corners(i as usize));
+                Aabb::new(min.into(), max.into())
             })
             .collect();
         let layout = Layout::build(&boxes, &hittable, options.flags);
         drop(boxes);
-        Self::lay_out(&triangles, layout, options)
+        let mut bvh = Self::lay_out(&triangles, layout, options);
+        if moving {
+            bvh.node_keys = Some(NodeKeys::new(bvh.nodes.len(), triangles.keys));
+            bvh.refit_nodes();
+        }
+        bvh
+    }
+
+    /// Recomputes the nodes' boxes (and key boxes) from the corners.
+    fn refit_nodes(&mut self) {
+        let keys = self.motion.keys as usize;
+        let corners = &self.corners;
+        refit(&mut self.nodes, self.node_keys.as_mut(), |slots, k| {
+            slots.map(|slot| corner_bounds(&corners[slot * keys + k..=slot * keys + k])).fold(EMPTY, union)
+        });
     }
 
     /// Puts the triangles in leaf order (then the degenerate ones) beside the laid-out nodes.
@@ -88,7 +118,7 @@ impl TriangleBvh {
             in_leaves[i as usize] = true;
         }
         order.extend((0..total as u32).filter(|&i| !in_leaves[i as usize]));
-        let corners: Vec<[Vec3; 3]> = order.iter().map(|&i| triangles.vertices[i as usize]).collect();
+        let corners: Vec<[Vec3; 3]> = order.iter().flat_map(|&i| triangles.corners(i as usize)).copied().collect();
         let refs: Vec<TriangleRef> = order.iter().map(|&i| triangles.refs[i as usize]).collect();
         let masks = triangles.masks.as_ref().map(|m| order.iter().map(|&i| m[i as usize]).collect());
         let random_access = options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS).then(|| {
@@ -110,6 +140,9 @@ impl TriangleBvh {
         });
         TriangleBvh {
             nodes,
+            node_keys: None,
+            motion: options.motion,
+            bounds: corner_bounds(&corners),
             corners,
             refs,
             masks,
@@ -125,21 +158,17 @@ impl TriangleBvh {
     pub fn refit(&self, triangles: &GatheredTriangles) -> Option<TriangleBvh> {
         let order = self.update_order.as_ref()?;
         let mut next = self.clone();
+        let keys = self.motion.keys as usize;
         for (slot, &i) in order.iter().enumerate() {
-            next.corners[slot] = triangles.vertices[i as usize];
+            next.corners[slot * keys..(slot + 1) * keys].copy_from_slice(triangles.corners(i as usize));
         }
         if let (Some(masks), Some(new)) = (next.masks.as_mut(), triangles.masks.as_ref()) {
             for (slot, &i) in order.iter().enumerate() {
                 masks[slot] = new[i as usize];
             }
         }
-        let corners = &next.corners;
-        refit(&mut next.nodes, |slots| {
-            corners[slots]
-                .iter()
-                .flatten()
-                .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| (lo.min(p), hi.max(p)))
-        });
+        next.refit_nodes();
+        next.bounds = corner_bounds(&next.corners);
         Some(next)
     }
 
@@ -150,6 +179,7 @@ impl TriangleBvh {
         let update_order = self.update_order.as_ref().map_or(0, |o| bytes(o, 4));
         FIXED_BYTES
             + bytes(&self.nodes, size_of::<Node>())
+            + self.node_keys.as_ref().map_or(0, |k| bytes(&k.boxes, size_of::<Bounds>()))
             + bytes(&self.corners, size_of::<[Vec3; 3]>())
             + bytes(&self.refs, size_of::<TriangleRef>())
             + self.masks.as_ref().map_or(0, |m| bytes(m, 4))
@@ -158,17 +188,25 @@ impl TriangleBvh {
             + update_order
     }
 
-    /// The box around every triangle.
-    pub fn bounds(&self) -> (Vec3, Vec3) {
-        self.corners.iter().flatten().fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), &p| (lo.min(p), hi.max(p)))
+    /// A box around every triangle at every time of `span`.
+    pub fn bounds_during(&self, span: TimeSpan) -> Bounds {
+        match &self.node_keys {
+            Some(keys) if !keys.boxes.is_empty() => self.motion.bounds_of_keys(keys.root(), span),
+            _ => self.bounds,
+        }
     }
 
-    /// The corners of a triangle, with random vertex access.
+    /// The corners of a triangle (at the first key, with motion), with random vertex access.
     pub fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]> {
         let access = self.random_access.as_ref()?;
         let &(first, offset) = access.geometries.get(geom_id as usize)?;
         let end = access.geometries.get(geom_id as usize + 1).map_or(access.slots.len() as u32, |g| g.0);
         let index = first.checked_add(prim_id.checked_sub(offset)?)?;
-        (index < end).then(|| self.corners[access.slots[index as usize] as usize])
+        (index < end).then(|| self.corners[access.slots[index as usize] as usize * self.motion.keys as usize])
     }
+}
+
+/// The box around a run of triangles' corners.
+fn corner_bounds(corners: &[[Vec3; 3]]) -> Bounds {
+    corners.iter().flatten().fold(EMPTY, |acc, &p| union(acc, (p, p)))
 }

@@ -1,0 +1,349 @@
+//! Transforms that place one accel: static (OptiX `OptixStaticTransform`), matrix motion
+//! (`OptixMatrixMotionTransform`: a 3×4 matrix a key, interpolated per element) and SRT motion
+//! (`OptixSRTMotionTransform`: scale/shear/pivot, a quaternion interpolated by nlerp, a translation; C = T·R·S).
+
+use glam::{Affine3A, Mat3A, Quat, Vec3, Vec3A};
+
+use super::instance::Placement;
+use super::motion::{Bounds, EMPTY, MotionOptions, Piece, TimeSpan, is_empty, lerp, pad, union};
+use crate::error::{Error, Result};
+
+/// Floats of one SRT key.
+pub const SRT_KEY_FLOATS: usize = 16;
+
+/// Parts each segment of a motion transform is cut into when its boxes over time are computed.
+const BOUND_CUTS: usize = 8;
+
+/// A transform as a caller gives it.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TransformInput {
+    /// One object-to-world 3×4 row-major matrix (`m00 m01 m02 tx | m10 m11 m12 ty | m20 m21 m22 tz`).
+    Static([f32; 12]),
+    /// One 3×4 row-major matrix a motion key (at least 2 keys).
+    MatrixMotion {
+        /// The matrices, as many as `motion.keys`.
+        keys: Vec<[f32; 12]>,
+        /// Keys, time range and vanish flags.
+        motion: MotionOptions,
+    },
+    /// One SRT key a motion key (at least 2 keys): `sx a b pvx sy c pvy sz pvz qx qy qz qw tx ty tz`, the
+    /// seeds' layout: S = `[sx a b pvx | 0 sy c pvy | 0 0 sz pvz]`, R the quaternion `(qx, qy, qz, qw)`, T the
+    /// translation `(tx, ty, tz)`; the key's transform is C = T·R·S.
+    SrtMotion {
+        /// The keys, as many as `motion.keys`.
+        keys: Vec<[f32; SRT_KEY_FLOATS]>,
+        /// Keys, time range and vanish flags.
+        motion: MotionOptions,
+    },
+}
+
+/// One SRT key, checked: its quaternion normalized.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SrtKey {
+    /// Scale, shear and pivot: the upper triangle `sx a b | sy c | sz` and `(pvx, pvy, pvz)`.
+    scale: [f32; 9],
+    /// The rotation, unit length.
+    rotation: Quat,
+    /// The translation after the rotation.
+    translation: Vec3,
+}
+
+/// A checked transform: what traversal asks for its placement at a ray's time.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Transform {
+    /// The same placement at every time.
+    Static(Placement),
+    /// Matrices interpolated per element.
+    Matrix {
+        /// One affine map a key.
+        keys: Vec<Affine3A>,
+        /// Its motion.
+        motion: MotionOptions,
+    },
+    /// SRT keys.
+    Srt {
+        /// One key a key.
+        keys: Vec<SrtKey>,
+        /// Its motion.
+        motion: MotionOptions,
+    },
+}
+
+/// The error for key `key` of a transform.
+fn bad_key(key: usize, rule: impl Into<String>) -> Error {
+    Error::InvalidBuildInput { input: 0, field: "transform.keys", element: Some(key as u64), rule: rule.into() }
+}
+
+/// The affine map of a 3×4 row-major matrix, if finite and invertible.
+fn affine(key: usize, matrix: &[f32; 12]) -> Result<Affine3A> {
+    Placement::new(matrix).map(|p| p.object_to_world).ok_or_else(|| bad_key(key, "must be finite and invertible"))
+}
+
+impl SrtKey {
+    /// Reads and checks key `key`: finite, S invertible (`sx·sy·sz ≠ 0`), a non-zero quaternion (normalized here).
+    fn new(key: usize, v: &[f32; SRT_KEY_FLOATS]) -> Result<SrtKey> {
+        if !v.iter().all(|x| x.is_finite()) {
+            return Err(bad_key(key, "every SRT value must be finite"));
+        }
+        let [sx, a, b, pvx, sy, c, pvy, sz, pvz, qx, qy, qz, qw, tx, ty, tz] = *v;
+        if sx * sy * sz == 0.0 {
+            return Err(bad_key(key, "scale sx·sy·sz is 0: S must be invertible"));
+        }
+        let rotation = Quat::from_xyzw(qx, qy, qz, qw);
+        let length = rotation.length();
+        if !(length > 0.0 && length.is_finite()) {
+            return Err(bad_key(key, "the quaternion (qx, qy, qz, qw) must not be 0"));
+        }
+        Ok(SrtKey { scale: [sx, a, b, sy, c, sz, pvx, pvy, pvz], rotation: rotation / length, translation: Vec3::new(tx, ty, tz) })
+    }
+
+    /// S as an affine map.
+    fn scale_map(&self) -> Affine3A {
+        let [sx, a, b, sy, c, sz, pvx, pvy, pvz] = self.scale;
+        Affine3A::from_cols(
+            Vec3A::new(sx, 0.0, 0.0),
+            Vec3A::new(a, sy, 0.0),
+            Vec3A::new(b, c, sz),
+            Vec3A::new(pvx, pvy, pvz),
+        )
+    }
+
+    /// The key `f` of the way from `self` to `next`: S and T per element, R by nlerp.
+    fn interpolate(&self, next: &SrtKey, f: f32) -> SrtKey {
+        let mut scale = [0.0; 9];
+        for (i, s) in scale.iter_mut().enumerate() {
+            *s = self.scale[i] * (1.0 - f) + next.scale[i] * f;
+        }
+        let rotation = (self.rotation * (1.0 - f) + next.rotation * f).normalize();
+        SrtKey { scale, rotation, translation: lerp(self.translation, next.translation, f) }
+    }
+
+    /// C = T·R·S.
+    fn combined(&self) -> Affine3A {
+        Affine3A::from_rotation_translation(self.rotation, self.translation) * self.scale_map()
+    }
+}
+
+impl TransformInput {
+    /// Checks the transform: matrices finite and invertible, SRT keys as [`SrtKey`] says, as many keys as the
+    /// motion options (at least 2 for motion transforms), quaternions of neighbouring SRT keys less than 180°
+    /// apart (a non-negative dot product, as the seeds require for nlerp's shortest path).
+    pub fn check(&self) -> Result<Transform> {
+        match self {
+            TransformInput::Static(matrix) => Placement::new(matrix).map(Transform::Static).ok_or_else(|| {
+                Error::InvalidBuildInput {
+                    input: 0,
+                    field: "transform",
+                    element: None,
+                    rule: "must be finite and invertible".into(),
+                }
+            }),
+            TransformInput::MatrixMotion { keys, motion } => {
+                check_motion(motion, keys.len())?;
+                let keys = keys.iter().enumerate().map(|(k, m)| affine(k, m)).collect::<Result<_>>()?;
+                Ok(Transform::Matrix { keys, motion: *motion })
+            }
+            TransformInput::SrtMotion { keys, motion } => {
+                check_motion(motion, keys.len())?;
+                let keys: Vec<SrtKey> = keys.iter().enumerate().map(|(k, v)| SrtKey::new(k, v)).collect::<Result<_>>()?;
+                if let Some(k) = keys.windows(2).position(|pair| pair[0].rotation.dot(pair[1].rotation) < 0.0) {
+                    return Err(bad_key(
+                        k + 1,
+                        format!("its quaternion is 180° or more from key {k}'s (negative dot product): add keys"),
+                    ));
+                }
+                Ok(Transform::Srt { keys, motion: *motion })
+            }
+        }
+    }
+}
+
+/// Checks a motion transform's options against its key count.
+fn check_motion(motion: &MotionOptions, keys: usize) -> Result<()> {
+    let fail = |rule| Error::InvalidBuildInput { input: 0, field: "transform.motion", element: None, rule };
+    motion.check().map_err(fail)?;
+    if motion.is_static() {
+        return Err(fail("a motion transform needs at least 2 motion keys".into()));
+    }
+    motion.check_key_count(keys, "transform.keys")
+}
+
+impl Transform {
+    /// Its motion options (static for a static transform).
+    pub fn motion(&self) -> MotionOptions {
+        match self {
+            Transform::Static(_) => MotionOptions::STATIC,
+            Transform::Matrix { motion, .. } | Transform::Srt { motion, .. } => *motion,
+        }
+    }
+
+    /// The placement at `time`; `None` when the transform has vanished then, or its interpolated map is singular
+    /// (nothing below it can be hit at that time).
+    #[inline]
+    pub fn placement_at(&self, time: f32) -> Option<Placement> {
+        match self {
+            Transform::Static(placement) => Some(*placement),
+            Transform::Matrix { keys, motion } => {
+                let k = motion.locate(time)?;
+                let next = &keys[(k.segment + 1).min(keys.len() - 1)];
+                Placement::from_affine(interpolate_affine(&keys[k.segment], next, k.fraction))
+            }
+            Transform::Srt { keys, motion } => {
+                let k = motion.locate(time)?;
+                let next = &keys[(k.segment + 1).min(keys.len() - 1)];
+                Placement::from_affine(keys[k.segment].interpolate(next, k.fraction).combined())
+            }
+        }
+    }
+
+    /// A box holding the child, placed, at every time of `span`, given the child's box over any span (`child`).
+    pub fn bounds_during(&self, span: TimeSpan, child: &dyn Fn(TimeSpan) -> Bounds) -> Bounds {
+        let motion = match self {
+            Transform::Static(placement) => return placement.place_bounds(child(span)),
+            Transform::Matrix { motion, .. } | Transform::Srt { motion, .. } => motion,
+        };
+        motion.pieces(span, BOUND_CUTS).into_iter().fold(EMPTY, |acc, piece| {
+            let piece_bounds = match piece {
+                Piece::Held { span, key } => self.placed_at_key(key, child(span)),
+                Piece::Moving { span, segment, from, to } => self.placed_moving(segment, from, to, child(span)),
+            };
+            union(acc, piece_bounds)
+        })
+    }
+
+    /// `inner` placed by key `key`.
+    fn placed_at_key(&self, key: usize, inner: Bounds) -> Bounds {
+        match self {
+            Transform::Static(placement) => placement.place_bounds(inner),
+            Transform::Matrix { keys, .. } => map_bounds(&keys[key], inner),
+            Transform::Srt { keys, .. } => pad(map_bounds(&keys[key].combined(), inner)),
+        }
+    }
+
+    /// A box holding `inner` (which holds the child throughout) placed by the transform at every fraction from
+    /// `from` to `to` of segment `segment`.
+    fn placed_moving(&self, segment: usize, from: f32, to: f32, inner: Bounds) -> Bounds {
+        if is_empty(&inner) {
+            return inner;
+        }
+        match self {
+            Transform::Static(placement) => placement.place_bounds(inner),
+            // A point placed by the interpolated matrix moves on the segment between its places at both ends.
+            Transform::Matrix { keys, .. } => {
+                let at = |f: f32| interpolate_affine(&keys[segment], &keys[segment + 1], f);
+                pad(union(map_bounds(&at(from), inner), map_bounds(&at(to), inner)))
+            }
+            Transform::Srt { keys, .. } => {
+                let (start, end) =
+                    (keys[segment].interpolate(&keys[segment + 1], from), keys[segment].interpolate(&keys[segment + 1], to));
+                // S moves points linearly: both ends' boxes hold the scaled child.
+                let scaled = union(map_bounds(&start.scale_map(), inner), map_bounds(&end.scale_map(), inner));
+                // nlerp turns about one axis through the origin by the angle between the ends' quaternions: a point
+                // runs on a circular arc, within its sagitta ρ·(1 − cos(δ/2)) of the chord between its ends.
+                let rotate = |q: Quat| map_bounds(&Affine3A::from_quat(q), scaled);
+                let angle = 2.0 * start.rotation.dot(end.rotation).abs().min(1.0).acos();
+                let radius = corners(scaled).map(Vec3::length).into_iter().fold(0.0, f32::max);
+                let sagitta = radius * 2.0 * (angle / 4.0).sin().powi(2);
+                let turned = union(rotate(start.rotation), rotate(end.rotation));
+                let t = (start.translation.min(end.translation), start.translation.max(end.translation));
+                pad((turned.0 - sagitta + t.0, turned.1 + sagitta + t.1))
+            }
+        }
+    }
+}
+
+/// The matrix `f` of the way from `a` to `b`, per element.
+#[inline]
+fn interpolate_affine(a: &Affine3A, b: &Affine3A, f: f32) -> Affine3A {
+    Affine3A {
+        matrix3: Mat3A::from_cols(
+            a.matrix3.x_axis * (1.0 - f) + b.matrix3.x_axis * f,
+            a.matrix3.y_axis * (1.0 - f) + b.matrix3.y_axis * f,
+            a.matrix3.z_axis * (1.0 - f) + b.matrix3.z_axis * f,
+        ),
+        translation: a.translation * (1.0 - f) + b.translation * f,
+    }
+}
+
+/// The eight corners of a box.
+fn corners((min, max): Bounds) -> [Vec3; 8] {
+    std::array::from_fn(|i| {
+        Vec3::new(
+            if i & 1 == 0 { min.x } else { max.x },
+            if i & 2 == 0 { min.y } else { max.y },
+            if i & 4 == 0 { min.z } else { max.z },
+        )
+    })
+}
+
+/// The box around `inner` mapped by `map` (empty stays empty).
+fn map_bounds(map: &Affine3A, inner: Bounds) -> Bounds {
+    if is_empty(&inner) {
+        return inner;
+    }
+    corners(inner).iter().map(|&p| map.transform_point3(p)).fold(EMPTY, |acc, p| union(acc, (p, p)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::motion::MotionFlags;
+
+    const IDENTITY_SRT: [f32; 16] = [1., 0., 0., 0., 1., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0.];
+
+    fn two_keys() -> MotionOptions {
+        MotionOptions { keys: 2, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() }
+    }
+
+    #[test]
+    fn srt_rotation_of_60_degrees_about_z_is_reached_at_the_end() {
+        let half = std::f32::consts::FRAC_PI_6;
+        let mut turned = IDENTITY_SRT;
+        turned[11] = half.sin();
+        turned[12] = half.cos();
+        let t = TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, turned], motion: two_keys() }.check().unwrap();
+        let p = t.placement_at(1.0).unwrap().object_to_world.transform_point3(Vec3::X);
+        assert!((p - Vec3::new(0.5, 3f32.sqrt() / 2.0, 0.0)).length() < 1e-6, "{p}");
+        assert_eq!(t.placement_at(0.0).unwrap().object_to_world.transform_point3(Vec3::X), Vec3::X);
+    }
+
+    #[test]
+    fn bounds_during_hold_the_placed_child_at_sampled_times() {
+        let mut turned = IDENTITY_SRT;
+        (turned[11], turned[12]) = (0.7071068, 0.7071068);
+        turned[13] = 3.0;
+        turned[3] = -1.0; // pivot
+        let srt = TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, turned], motion: two_keys() }.check().unwrap();
+        let matrix = TransformInput::MatrixMotion {
+            keys: vec![[1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.], [0., -2., 0., 1., 1., 0., 0., 2., 0., 0., 1., 0.]],
+            motion: two_keys(),
+        }
+        .check()
+        .unwrap();
+        let child = |_: TimeSpan| (Vec3::new(0.5, -0.5, 0.0), Vec3::new(2.0, 0.5, 1.0));
+        for t in [srt, matrix] {
+            let whole = t.bounds_during(TimeSpan { start: 0.0, end: 1.0 }, &child);
+            for i in 0..=200 {
+                let time = i as f32 / 200.0;
+                let placement = t.placement_at(time).unwrap();
+                for c in corners(child(TimeSpan::at(time))) {
+                    let p = placement.object_to_world.transform_point3(c);
+                    assert!(p.cmpge(whole.0).all() && p.cmple(whole.1).all(), "{p} outside {whole:?} at {time}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn bad_keys_are_refused_with_their_index() {
+        let flipped = { let mut k = IDENTITY_SRT; k[12] = -1.0; k };
+        let err = TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, flipped], motion: two_keys() }.check();
+        assert!(matches!(err, Err(Error::InvalidBuildInput { element: Some(1), .. })), "{err:?}");
+        let flat = { let mut k = IDENTITY_SRT; k[7] = 0.0; k };
+        assert!(TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, flat], motion: two_keys() }.check().is_err());
+        let one = TransformInput::MatrixMotion { keys: vec![[0.0; 12]], motion: MotionOptions::STATIC };
+        assert!(one.check().is_err(), "a motion transform needs 2 keys");
+        let short = TransformInput::MatrixMotion { keys: vec![[1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.]], motion: two_keys() };
+        assert!(short.check().is_err(), "key count must match");
+    }
+}
