@@ -168,7 +168,7 @@ fn trace_benches(c: &mut Criterion) {
     for scene in scenes() {
         let inputs = [BuildInput::Triangles(scene.packed.input())];
         let accel = context.build_accel(&inputs, &BuildOptions::default()).expect("build succeeds");
-        let triangles = gather(&inputs).expect("valid inputs");
+        let triangles = gather(&inputs, 1).expect("valid inputs");
         eprintln!(
             "trace/{}: {} triangles, accel {} bytes; loaded and built in {:.1} s",
             scene.name,

@@ -12,10 +12,10 @@ use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
 use crate::error::{Error, Result};
+use crate::geometry::motion::TimeSpan;
 use crate::geometry::{
     BuildInput, Instance, PlacedInstance, Structure, Transform, TransformInput, check_depth, place, triangle_counts,
 };
-use crate::geometry::motion::TimeSpan;
 use crate::query::{Query, TraceOutput, TraceStats};
 
 /// A device that contexts can be created on.
@@ -298,7 +298,12 @@ impl Context {
     /// Updates a transform with new keys (or a new matrix) over `child`, which must be the accel it places (in its
     /// current version). The transform keeps its kind and motion options (FAILED_PRECONDITION otherwise). As
     /// [`Context::update_accel`] otherwise.
-    pub fn update_transform(&self, accel: &Accel, transform: &TransformInput, child: &Arc<Accel>) -> Result<Arc<Accel>> {
+    pub fn update_transform(
+        &self,
+        accel: &Accel,
+        transform: &TransformInput,
+        child: &Arc<Accel>,
+    ) -> Result<Arc<Accel>> {
         match accel.children.as_slice() {
             [placed] if transform_kind(transform) == accel.info.kind && placed.handle == child.handle => {}
             _ => {

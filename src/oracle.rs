@@ -6,9 +6,10 @@ use crate::error::Result;
 use crate::geometry::{GatheredTriangles, is_degenerate};
 use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, TriangleCandidate, consider_triangle, trace_batch};
 
-/// Traces `rays` against every triangle of `triangles`. `any` queries report the first hit in input order.
+/// Traces `rays` against every triangle of `triangles` (static: at their first key's positions, whatever the rays'
+/// times). `any` queries report the first hit in input order.
 pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
-    let hittable: Vec<usize> = (0..triangles.len()).filter(|&i| !is_degenerate(&triangles.vertices[i])).collect();
+    let hittable: Vec<usize> = (0..triangles.len()).filter(|&i| !is_degenerate(&triangles.corners(i)[0])).collect();
     trace_batch(
         query,
         rays,
@@ -19,7 +20,7 @@ pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: Tra
                 stats.triangle_tests += 1;
                 let id = triangles.refs[i];
                 let candidate = TriangleCandidate {
-                    corners: &triangles.vertices[i],
+                    corners: &triangles.corners(i)[0],
                     id,
                     mask: triangles.mask(i),
                     geometry_flags: triangles.geometry_flags[id.geom_id as usize],

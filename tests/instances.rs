@@ -13,8 +13,8 @@ use glam::{Affine3A, Mat3, Quat, Vec3, Vec3A};
 use rayd_engine::accel::{AccelKind, BuildOptions};
 use rayd_engine::format::{HitFormat, MISS_ID, Ray, RayFlags, RayFormat};
 use rayd_engine::geometry::{
-    BuildInput, GeometryFlags, Instance, InstanceFlags, MAX_GRAPH_DEPTH, Placement, TriangleInput, VertexBuffer,
-    VertexFormat,
+    BuildInput, GeometryFlags, Instance, InstanceFlags, MAX_GRAPH_DEPTH, Placement, TransformInput, TriangleInput,
+    VertexBuffer, VertexFormat,
 };
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, QueryKind, TraceOutput};
@@ -78,7 +78,7 @@ fn instances(context: &Context, placed: Vec<Placed>) -> Rc<Node> {
 
 /// A static transform over `child`.
 fn transform(context: &Context, matrix: [f32; 12], child: Rc<Node>) -> Rc<Node> {
-    let accel = context.build_transform(&matrix, &child.accel).unwrap();
+    let accel = context.build_transform(&TransformInput::Static(matrix), &child.accel).unwrap();
     Rc::new(Node { accel, shape: Shape::Transform(matrix, child) })
 }
 
@@ -183,6 +183,7 @@ fn flat_accel(context: &Context, flat: &[Flat]) -> (Arc<Accel>, Vec<Vec<usize>>)
         .map(|(no_culling, soup)| {
             BuildInput::Triangles(TriangleInput {
                 vertices: VertexBuffer { data: soup, format: VertexFormat::Float3, stride: None },
+                motion_vertices: &[],
                 indices: None,
                 masks: None,
                 flags: if *no_culling { GeometryFlags::DISABLE_FACE_CULLING } else { GeometryFlags::empty() },
@@ -493,7 +494,7 @@ fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_chil
     assert_eq!(top.accel.info().depth, MAX_GRAPH_DEPTH);
     let one_instance = context.compute_instance_memory_usage(1, &BuildOptions::default()).unwrap();
     assert!(top.accel.info().size_bytes <= one_instance.output_bytes, "a transform is bounded as one instance");
-    let error = context.build_transform(&identity, &top.accel).unwrap_err();
+    let error = context.build_transform(&TransformInput::Static(identity), &top.accel).unwrap_err();
     assert!(error.to_string().contains(&format!("more than {MAX_GRAPH_DEPTH}")), "{error}");
     let deep = [Instance { child: Arc::clone(&top.accel), ..instance(identity) }];
     assert!(context.build_instance_accel(&deep, &BuildOptions::default()).is_err());

@@ -57,7 +57,7 @@ fn trace_both(scene: &Scene, options: BuildOptions, query: &Query, rays: &[u8]) 
         [vec![0xA5; layout.hits], vec![0xA5; layout.counts], vec![0x5A; layout.hits], vec![0x5A; layout.counts]];
     let [cpu_hits, cpu_counts, oracle_hits, oracle_counts] = &mut out;
     context.trace(&accel, query, rays, TraceOutput { hits: cpu_hits, counts: cpu_counts }).unwrap();
-    let triangles = gather(&scene.inputs()).unwrap();
+    let triangles = gather(&scene.inputs(), 1).unwrap();
     oracle::trace(&triangles, query, rays, TraceOutput { hits: oracle_hits, counts: oracle_counts }).unwrap();
     out
 }

@@ -2,13 +2,15 @@
 
 use bytes::Bytes;
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::geometry::{IndexFormat, VertexFormat};
+use rayd_engine::geometry::{IndexFormat, MotionOptions, VertexFormat};
 use rayd_engine::mesh::Mesh;
 use rayd_proto as proto;
 use rayd_proto::data_source::Source;
 
 use crate::client::Client;
-use crate::convert::{accel_ref, buffer_ref, build_options_to_proto, index_format_to_proto, vertex_format_to_proto};
+use crate::convert::{
+    accel_ref, buffer_ref, build_options_to_proto, index_format_to_proto, motion_to_proto, vertex_format_to_proto,
+};
 use crate::error::Result;
 
 impl Client {
@@ -27,7 +29,26 @@ impl Client {
         device: &str,
         flags: BuildFlags,
     ) -> Result<proto::AccelInfo> {
-        self.with_mesh(mesh, |vertices, indices| self.build(mesh_request(name, device, flags, vertices, indices))).await
+        self.build_moving_mesh(name, std::slice::from_ref(mesh), device, flags, &MotionOptions::STATIC).await
+    }
+
+    /// Builds a motion geometry accel called `name` on `device` from one mesh at each of `motion`'s keys (the
+    /// same topology: `keys[0]`'s indices are used), vertex positions interpolated between keys. Large meshes go
+    /// through temporary buffers as in [`Client::build_mesh`].
+    pub async fn build_moving_mesh(
+        &self,
+        name: &str,
+        keys: &[Mesh],
+        device: &str,
+        flags: BuildFlags,
+        motion: &MotionOptions,
+    ) -> Result<proto::AccelInfo> {
+        self.with_meshes(keys, |vertices, indices| {
+            let mut request = mesh_request(name, device, flags, vertices, indices);
+            request.options.get_or_insert_default().motion = motion_to_proto(motion);
+            self.build(request)
+        })
+        .await
     }
 
     /// Updates (refits) an accel in place from a request made by hand.
@@ -38,32 +59,35 @@ impl Client {
     /// Updates (refits) the accel called `name`, built with `allow_update` from a mesh of the same topology, with
     /// `mesh`'s vertex positions. Large meshes go through temporary buffers as in [`Client::build_mesh`].
     pub async fn update_mesh(&self, name: &str, mesh: &Mesh) -> Result<proto::AccelInfo> {
-        self.with_mesh(mesh, |vertices, indices| {
+        self.with_meshes(std::slice::from_ref(mesh), |vertices, indices| {
             let inputs = mesh_request(name, "", BuildFlags::empty(), vertices, indices).inputs;
             self.update(proto::UpdateAccelRequest { accel: Some(accel_ref(name)), inputs })
         })
         .await
     }
 
-    /// Calls `call` with a mesh's vertices and indices: inline below
-    /// [`ClientOptions::inline_mesh_bytes`](crate::ClientOptions::inline_mesh_bytes), else as two uploaded buffers
-    /// that are deleted again once the call is over, whatever its outcome.
-    async fn with_mesh<Call: Future<Output = Result<proto::AccelInfo>>>(
+    /// Calls `call` with the vertices of each of `meshes` (motion keys of one topology) and the first one's
+    /// indices: inline below [`ClientOptions::inline_mesh_bytes`](crate::ClientOptions::inline_mesh_bytes) in all,
+    /// else as uploaded buffers that are deleted again once the call is over, whatever its outcome.
+    async fn with_meshes<Call: Future<Output = Result<proto::AccelInfo>>>(
         &self,
-        mesh: &Mesh,
-        call: impl Fn(Source, Source) -> Call,
+        meshes: &[Mesh],
+        call: impl Fn(Vec<Source>, Source) -> Call,
     ) -> Result<proto::AccelInfo> {
-        let (vertices, indices) = packed(mesh);
-        if vertices.len() + indices.len() < self.options.inline_mesh_bytes {
-            return call(Source::Inline(vertices), Source::Inline(indices)).await;
+        let (vertices, indices): (Vec<Bytes>, Vec<Bytes>) = meshes.iter().map(packed).unzip();
+        let indices = indices.into_iter().next().unwrap_or_default();
+        let total = vertices.iter().map(Bytes::len).sum::<usize>() + indices.len();
+        if total < self.options.inline_mesh_bytes {
+            return call(vertices.into_iter().map(Source::Inline).collect(), Source::Inline(indices)).await;
         }
         let mut uploaded = Vec::new();
         let result = async {
-            for data in [vertices, indices] {
+            for data in vertices.into_iter().chain([indices]) {
                 uploaded.push(self.upload_buffer("", data).await?.id);
             }
-            let by_id = |id: &str| Source::Buffer(buffer_ref(id));
-            call(by_id(&uploaded[0]), by_id(&uploaded[1])).await
+            let by_id = |id: &String| Source::Buffer(buffer_ref(id));
+            let (indices, vertices) = uploaded.split_last().expect("the indices were uploaded");
+            call(vertices.iter().map(by_id).collect(), by_id(indices)).await
         }
         .await;
         for id in &uploaded {
@@ -80,12 +104,13 @@ pub(crate) fn packed(mesh: &Mesh) -> (Bytes, Bytes) {
     (Bytes::from(packed.vertices), Bytes::from(packed.indices))
 }
 
-/// The request that builds accel `name` on `device` from one mesh's packed vertices and indices.
+/// The request that builds accel `name` on `device` from one mesh's packed vertices (one buffer a motion key) and
+/// indices.
 pub(crate) fn mesh_request(
     name: &str,
     device: &str,
     flags: BuildFlags,
-    vertices: Source,
+    vertices: Vec<Source>,
     indices: Source,
 ) -> proto::BuildAccelRequest {
     proto::BuildAccelRequest {
@@ -96,14 +121,16 @@ pub(crate) fn mesh_request(
     }
 }
 
-/// A build input of tightly packed float3 vertices and u32×3 indices.
-fn triangles(vertices: Source, indices: Source) -> proto::BuildInput {
-    let source = |source| Some(proto::DataSource { source: Some(source) });
+/// A build input of tightly packed float3 vertices (one buffer a motion key) and u32×3 indices.
+fn triangles(vertices: Vec<Source>, indices: Source) -> proto::BuildInput {
+    let source = |source| proto::DataSource { source: Some(source) };
+    let mut vertices = vertices.into_iter().map(source);
     proto::BuildInput {
         input: Some(proto::build_input::Input::Triangles(proto::TriangleInput {
-            vertices: source(vertices),
+            vertices: vertices.next(),
+            motion_vertices: vertices.collect(),
             vertex_format: vertex_format_to_proto(VertexFormat::Float3).into(),
-            indices: source(indices),
+            indices: Some(source(indices)),
             index_format: index_format_to_proto(IndexFormat::U32x3).into(),
             ..Default::default()
         })),

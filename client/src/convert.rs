@@ -4,7 +4,7 @@
 use glam::Vec3;
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
-use rayd_engine::geometry::{IndexFormat, VertexFormat};
+use rayd_engine::geometry::{IndexFormat, MotionFlags, MotionOptions, VertexFormat};
 use rayd_engine::query::{Query, QueryKind};
 use rayd_proto as proto;
 
@@ -85,6 +85,17 @@ pub fn build_options_to_proto(flags: BuildFlags) -> proto::BuildOptions {
         *field(&mut options) = flags.contains(flag);
     }
     options
+}
+
+/// The contract's motion options (unset for a static object).
+pub fn motion_to_proto(motion: &MotionOptions) -> Option<proto::MotionOptions> {
+    (!motion.is_static()).then(|| proto::MotionOptions {
+        keys: motion.keys,
+        time_begin: motion.time_begin,
+        time_end: motion.time_end,
+        start_vanish: motion.flags.contains(MotionFlags::START_VANISH),
+        end_vanish: motion.flags.contains(MotionFlags::END_VANISH),
+    })
 }
 
 /// The engine's build flags for the contract's build options.

@@ -2,11 +2,11 @@
 
 use bytes::Bytes;
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::geometry::{INSTANCE_RECORD_BYTES, InstanceRecord};
+use rayd_engine::geometry::{INSTANCE_RECORD_BYTES, InstanceRecord, TransformInput};
 use rayd_proto as proto;
 
 use crate::client::Client;
-use crate::convert::{accel_ref, build_options_to_proto};
+use crate::convert::{accel_ref, build_options_to_proto, motion_to_proto};
 use crate::error::Result;
 
 impl Client {
@@ -42,7 +42,30 @@ impl Client {
         child: &str,
         transform: [f32; 12],
     ) -> Result<proto::AccelInfo> {
-        let input = proto::TransformInput { child: Some(accel_ref(child)), transform: transform.to_vec() };
+        self.build_transform_input(name, device, child, &TransformInput::Static(transform)).await
+    }
+
+    /// Builds a transform of any kind (static, matrix motion or SRT motion) called `name` on `device` placing the
+    /// accel called `child`.
+    pub async fn build_transform_input(
+        &self,
+        name: &str,
+        device: &str,
+        child: &str,
+        transform: &TransformInput,
+    ) -> Result<proto::AccelInfo> {
+        let mut input = proto::TransformInput { child: Some(accel_ref(child)), ..Default::default() };
+        match transform {
+            TransformInput::Static(matrix) => input.transform = matrix.to_vec(),
+            TransformInput::MatrixMotion { keys, motion } => {
+                input.matrix_keys = keys.concat();
+                input.motion = motion_to_proto(motion);
+            }
+            TransformInput::SrtMotion { keys, motion } => {
+                input.srt_keys = keys.concat();
+                input.motion = motion_to_proto(motion);
+            }
+        }
         self.build(build_request(name, device, proto::build_input::Input::Transform(input), BuildFlags::empty())).await
     }
 }

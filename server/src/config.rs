@@ -7,6 +7,7 @@
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
+use rayd_engine::geometry::motion::MAX_MOTION_KEYS;
 use serde::{Deserialize, Serialize};
 
 /// Everything `rayd` can be configured with.
@@ -67,6 +68,8 @@ pub struct Limits {
     /// Deepest traversable graph an accel may head (a geometry accel is 1 level, each instance accel or transform
     /// above it 1 more); 1 to 8.
     pub max_graph_depth: u32,
+    /// Most motion keys of one accel or motion transform; 1 to 1024.
+    pub max_motion_keys: u32,
 }
 
 impl Default for Limits {
@@ -82,6 +85,7 @@ impl Default for Limits {
             stream_window: 4,
             max_streams: 64,
             max_graph_depth: rayd_engine::geometry::MAX_GRAPH_DEPTH,
+            max_motion_keys: 64,
         }
     }
 }
@@ -125,6 +129,12 @@ impl Config {
             return Err(ConfigError::Invalid(format!(
                 "limits.max_graph_depth = {depth} must be 1 to {}",
                 rayd_engine::geometry::MAX_GRAPH_DEPTH
+            )));
+        }
+        let keys = config.limits.max_motion_keys;
+        if !(1..=MAX_MOTION_KEYS).contains(&keys) {
+            return Err(ConfigError::Invalid(format!(
+                "limits.max_motion_keys = {keys} must be 1 to {MAX_MOTION_KEYS}"
             )));
         }
         Ok(config)

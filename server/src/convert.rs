@@ -4,6 +4,7 @@
 use rayd_engine::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use rayd_engine::backend::{BackendKind, DeviceInfo};
 use rayd_engine::format::{HitFormat, RayFlags, RayFormat};
+use rayd_engine::geometry::{MotionFlags, MotionOptions};
 use rayd_engine::query::{Query, QueryKind, TraceStats};
 use rayd_proto as pb;
 
@@ -59,7 +60,7 @@ pub fn query(q: &pb::TraceQuery, max_hits_per_ray: u32) -> ServiceResult<Query> 
     })
 }
 
-/// The engine's build options.
+/// The engine's build options (checked by the engine when it builds).
 pub fn build_options(options: Option<&pb::BuildOptions>) -> BuildOptions {
     let Some(o) = options else { return BuildOptions::default() };
     let mut flags = BuildFlags::empty();
@@ -68,7 +69,27 @@ pub fn build_options(options: Option<&pb::BuildOptions>) -> BuildOptions {
     flags.set(BuildFlags::ALLOW_UPDATE, o.allow_update);
     flags.set(BuildFlags::ALLOW_COMPACTION, o.allow_compaction);
     flags.set(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS, o.allow_random_vertex_access);
-    BuildOptions::new(flags)
+    BuildOptions { flags, motion: motion_options(o.motion.as_ref()) }
+}
+
+/// The engine's motion options: unset, or 0 keys, is static.
+pub fn motion_options(motion: Option<&pb::MotionOptions>) -> MotionOptions {
+    let Some(m) = motion else { return MotionOptions::STATIC };
+    let mut flags = MotionFlags::empty();
+    flags.set(MotionFlags::START_VANISH, m.start_vanish);
+    flags.set(MotionFlags::END_VANISH, m.end_vanish);
+    MotionOptions { keys: m.keys.max(1), time_begin: m.time_begin, time_end: m.time_end, flags }
+}
+
+/// The contract's motion options (unset for a static object).
+fn motion_options_message(motion: &MotionOptions) -> Option<pb::MotionOptions> {
+    (!motion.is_static()).then(|| pb::MotionOptions {
+        keys: motion.keys,
+        time_begin: motion.time_begin,
+        time_end: motion.time_end,
+        start_vanish: motion.flags.contains(MotionFlags::START_VANISH),
+        end_vanish: motion.flags.contains(MotionFlags::END_VANISH),
+    })
 }
 
 /// The contract's build options.
@@ -80,6 +101,7 @@ pub fn build_options_message(options: &BuildOptions) -> pb::BuildOptions {
         allow_update: has(BuildFlags::ALLOW_UPDATE),
         allow_compaction: has(BuildFlags::ALLOW_COMPACTION),
         allow_random_vertex_access: has(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS),
+        motion: motion_options_message(&options.motion),
     }
 }
 
@@ -101,6 +123,8 @@ pub fn accel_info(info: &AccelInfo, handle: &str, name: &str, device: &str, buil
             AccelKind::Triangles => pb::AccelKind::Triangles,
             AccelKind::Instances => pb::AccelKind::Instances,
             AccelKind::Transform => pb::AccelKind::Transform,
+            AccelKind::MatrixMotionTransform => pb::AccelKind::MatrixMotionTransform,
+            AccelKind::SrtMotionTransform => pb::AccelKind::SrtMotionTransform,
         }
         .into(),
         instance_count: info.instance_count,

@@ -217,8 +217,7 @@ impl MotionOptions {
             let Some(clipped) = span.clip(time(lo), time(hi)) else { continue };
             let segment = part / cuts;
             // As `locate` computes it, within this segment.
-            let fraction =
-                |t: f32| ((t - begin) / (end - begin) * segments as f32 - segment as f32).clamp(0.0, 1.0);
+            let fraction = |t: f32| ((t - begin) / (end - begin) * segments as f32 - segment as f32).clamp(0.0, 1.0);
             pieces.push(Piece::Moving {
                 span: clipped,
                 segment,

@@ -94,7 +94,11 @@ impl SrtKey {
         if !(length > 0.0 && length.is_finite()) {
             return Err(bad_key(key, "the quaternion (qx, qy, qz, qw) must not be 0"));
         }
-        Ok(SrtKey { scale: [sx, a, b, sy, c, sz, pvx, pvy, pvz], rotation: rotation / length, translation: Vec3::new(tx, ty, tz) })
+        Ok(SrtKey {
+            scale: [sx, a, b, sy, c, sz, pvx, pvy, pvz],
+            rotation: rotation / length,
+            translation: Vec3::new(tx, ty, tz),
+        })
     }
 
     /// S as an affine map.
@@ -130,14 +134,14 @@ impl TransformInput {
     /// apart (a non-negative dot product, as the seeds require for nlerp's shortest path).
     pub fn check(&self) -> Result<Transform> {
         match self {
-            TransformInput::Static(matrix) => Placement::new(matrix).map(Transform::Static).ok_or_else(|| {
-                Error::InvalidBuildInput {
+            TransformInput::Static(matrix) => {
+                Placement::new(matrix).map(Transform::Static).ok_or_else(|| Error::InvalidBuildInput {
                     input: 0,
                     field: "transform",
                     element: None,
                     rule: "must be finite and invertible".into(),
-                }
-            }),
+                })
+            }
             TransformInput::MatrixMotion { keys, motion } => {
                 check_motion(motion, keys.len())?;
                 let keys = keys.iter().enumerate().map(|(k, m)| affine(k, m)).collect::<Result<_>>()?;
@@ -145,7 +149,8 @@ impl TransformInput {
             }
             TransformInput::SrtMotion { keys, motion } => {
                 check_motion(motion, keys.len())?;
-                let keys: Vec<SrtKey> = keys.iter().enumerate().map(|(k, v)| SrtKey::new(k, v)).collect::<Result<_>>()?;
+                let keys: Vec<SrtKey> =
+                    keys.iter().enumerate().map(|(k, v)| SrtKey::new(k, v)).collect::<Result<_>>()?;
                 if let Some(k) = keys.windows(2).position(|pair| pair[0].rotation.dot(pair[1].rotation) < 0.0) {
                     return Err(bad_key(
                         k + 1,
@@ -234,8 +239,10 @@ impl Transform {
                 pad(union(map_bounds(&at(from), inner), map_bounds(&at(to), inner)))
             }
             Transform::Srt { keys, .. } => {
-                let (start, end) =
-                    (keys[segment].interpolate(&keys[segment + 1], from), keys[segment].interpolate(&keys[segment + 1], to));
+                let (start, end) = (
+                    keys[segment].interpolate(&keys[segment + 1], from),
+                    keys[segment].interpolate(&keys[segment + 1], to),
+                );
                 // S moves points linearly: both ends' boxes hold the scaled child.
                 let scaled = union(map_bounds(&start.scale_map(), inner), map_bounds(&end.scale_map(), inner));
                 // nlerp turns about one axis through the origin by the angle between the ends' quaternions: a point
@@ -315,7 +322,10 @@ mod tests {
         turned[3] = -1.0; // pivot
         let srt = TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, turned], motion: two_keys() }.check().unwrap();
         let matrix = TransformInput::MatrixMotion {
-            keys: vec![[1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.], [0., -2., 0., 1., 1., 0., 0., 2., 0., 0., 1., 0.]],
+            keys: vec![
+                [1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.],
+                [0., -2., 0., 1., 1., 0., 0., 2., 0., 0., 1., 0.],
+            ],
             motion: two_keys(),
         }
         .check()
@@ -336,14 +346,25 @@ mod tests {
 
     #[test]
     fn bad_keys_are_refused_with_their_index() {
-        let flipped = { let mut k = IDENTITY_SRT; k[12] = -1.0; k };
+        let flipped = {
+            let mut k = IDENTITY_SRT;
+            k[12] = -1.0;
+            k
+        };
         let err = TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, flipped], motion: two_keys() }.check();
         assert!(matches!(err, Err(Error::InvalidBuildInput { element: Some(1), .. })), "{err:?}");
-        let flat = { let mut k = IDENTITY_SRT; k[7] = 0.0; k };
+        let flat = {
+            let mut k = IDENTITY_SRT;
+            k[7] = 0.0;
+            k
+        };
         assert!(TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, flat], motion: two_keys() }.check().is_err());
         let one = TransformInput::MatrixMotion { keys: vec![[0.0; 12]], motion: MotionOptions::STATIC };
         assert!(one.check().is_err(), "a motion transform needs 2 keys");
-        let short = TransformInput::MatrixMotion { keys: vec![[1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.]], motion: two_keys() };
+        let short = TransformInput::MatrixMotion {
+            keys: vec![[1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.]],
+            motion: two_keys(),
+        };
         assert!(short.check().is_err(), "key count must match");
     }
 }

@@ -184,7 +184,7 @@ impl Stream {
         let (vertices, indices) = packed(mesh);
         if vertices.len() + indices.len() < self.inline_mesh_bytes {
             return self
-                .build(mesh_request(name, device, flags, Source::Inline(vertices), Source::Inline(indices)))
+                .build(mesh_request(name, device, flags, vec![Source::Inline(vertices)], Source::Inline(indices)))
                 .await;
         }
         let vertices = self.upload("", vertices).await?;
@@ -192,8 +192,9 @@ impl Stream {
         let by_operation = |upload: &Operation<proto::BufferInfo>| {
             Source::Buffer(proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Operation(upload.id())) })
         };
-        let build =
-            self.build(mesh_request(name, device, flags, by_operation(&vertices), by_operation(&indices))).await?;
+        let build = self
+            .build(mesh_request(name, device, flags, vec![by_operation(&vertices)], by_operation(&indices)))
+            .await?;
         self.delete_buffer(&vertices).await?;
         self.delete_buffer(&indices).await?;
         Ok(build)

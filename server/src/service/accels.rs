@@ -28,7 +28,7 @@ pub fn info(entry: &AccelEntry) -> pb::AccelInfo {
 /// Builds an accel (off the async runtime).
 pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
-    let options = convert::build_options(request.options.as_ref());
+    let options = inputs::options(&tenant, request.options.as_ref())?;
     let entry = blocking(move || {
         tenant.build_accel(
             &request.name,

@@ -6,13 +6,14 @@ use std::sync::Arc;
 use bytes::Bytes;
 use rayd_engine::accel::{BuildOptions, MemoryUsage};
 use rayd_engine::geometry::{
-    BuildInput, GeometryFlags, IndexBuffer, IndexFormat, Instance, TransformFormat, TriangleInput, VertexBuffer,
-    VertexFormat, instances_from_prime, instances_from_records,
+    BuildInput, GeometryFlags, IndexBuffer, IndexFormat, Instance, MotionOptions, TransformFormat, TransformInput,
+    TriangleInput, VertexBuffer, VertexFormat, instances_from_prime, instances_from_records,
 };
 use rayd_engine::{Accel, Context};
 use rayd_proto as pb;
 
 use super::accels;
+use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::tenant::Tenant;
 
@@ -23,10 +24,10 @@ pub enum Resolved {
     Triangles(Vec<OwnedTriangles>),
     /// Instances: an instance accel.
     Instances(Vec<Instance>),
-    /// A static transform over one child.
+    /// A transform (static or moving) over one child.
     Transform {
-        /// Object to world, 3×4 row-major.
-        matrix: [f32; 12],
+        /// Its matrix or keys.
+        transform: TransformInput,
         /// The child.
         child: Arc<Accel>,
     },
@@ -36,10 +37,7 @@ impl Resolved {
     /// Upper bounds of the build's memory on `context`.
     pub fn memory_usage(&self, context: &Context, options: &BuildOptions) -> rayd_engine::Result<MemoryUsage> {
         match self {
-            Resolved::Triangles(owned) => {
-                let inputs: Vec<_> = owned.iter().map(OwnedTriangles::as_input).collect();
-                context.compute_memory_usage(&inputs, options)
-            }
+            Resolved::Triangles(owned) => with_inputs(owned, |inputs| context.compute_memory_usage(inputs, options)),
             Resolved::Instances(instances) => context.compute_instance_memory_usage(instances.len(), options),
             // A transform is bounded by an instance accel of one instance.
             Resolved::Transform { .. } => context.compute_instance_memory_usage(1, options),
@@ -49,24 +47,18 @@ impl Resolved {
     /// Builds it on `context`.
     pub fn build(&self, context: &Context, options: &BuildOptions) -> rayd_engine::Result<Arc<Accel>> {
         match self {
-            Resolved::Triangles(owned) => {
-                let inputs: Vec<_> = owned.iter().map(OwnedTriangles::as_input).collect();
-                context.build_accel(&inputs, options)
-            }
+            Resolved::Triangles(owned) => with_inputs(owned, |inputs| context.build_accel(inputs, options)),
             Resolved::Instances(instances) => context.build_instance_accel(instances, options),
-            Resolved::Transform { matrix, child } => context.build_transform(matrix, child),
+            Resolved::Transform { transform, child } => context.build_transform(transform, child),
         }
     }
 
     /// Updates `accel` with these inputs on `context`.
     pub fn update(&self, context: &Context, accel: &Accel) -> rayd_engine::Result<Arc<Accel>> {
         match self {
-            Resolved::Triangles(owned) => {
-                let inputs: Vec<_> = owned.iter().map(OwnedTriangles::as_input).collect();
-                context.update_accel(accel, &inputs)
-            }
+            Resolved::Triangles(owned) => with_inputs(owned, |inputs| context.update_accel(accel, inputs)),
             Resolved::Instances(instances) => context.update_instance_accel(accel, instances),
-            Resolved::Transform { matrix, child } => context.update_transform(accel, matrix, child),
+            Resolved::Transform { transform, child } => context.update_transform(accel, transform, child),
         }
     }
 
@@ -85,6 +77,8 @@ impl Resolved {
 pub struct OwnedTriangles {
     /// Vertex bytes.
     vertices: Bytes,
+    /// Vertex bytes of motion keys 1, 2, ….
+    motion_vertices: Vec<Bytes>,
     /// How positions are stored.
     vertex_format: VertexFormat,
     /// Bytes between vertices, if not tightly packed.
@@ -99,11 +93,19 @@ pub struct OwnedTriangles {
     primitive_index_offset: u32,
 }
 
+/// Calls `call` with the engine's view of `owned`.
+fn with_inputs<R>(owned: &[OwnedTriangles], call: impl FnOnce(&[BuildInput<'_>]) -> R) -> R {
+    let motion: Vec<Vec<&[u8]>> = owned.iter().map(|o| o.motion_vertices.iter().map(|b| &b[..]).collect()).collect();
+    let inputs: Vec<_> = owned.iter().zip(&motion).map(|(o, motion)| o.as_input(motion)).collect();
+    call(&inputs)
+}
+
 impl OwnedTriangles {
-    /// The engine's view of this input.
-    pub fn as_input(&self) -> BuildInput<'_> {
+    /// The engine's view of this input, with `motion_vertices` the slices of its motion keys' bytes.
+    fn as_input<'a>(&'a self, motion_vertices: &'a [&'a [u8]]) -> BuildInput<'a> {
         BuildInput::Triangles(TriangleInput {
             vertices: VertexBuffer { data: &self.vertices, format: self.vertex_format, stride: self.stride },
+            motion_vertices,
             indices: self.indices.as_ref().map(|(data, format)| IndexBuffer { data, format: *format }),
             masks: self.masks.as_deref(),
             flags: self.flags,
@@ -194,15 +196,71 @@ fn resolve_instances(tenant: &Tenant, device: &str, input: &pb::InstanceInput) -
     })
 }
 
-/// The matrix and child of a transform input.
+/// The matrix or keys and the child of a transform input.
 fn resolve_transform(tenant: &Tenant, device: &str, input: &pb::TransformInput) -> ServiceResult<Resolved> {
-    let matrix: [f32; 12] = input.transform.as_slice().try_into().map_err(|_| {
-        ServiceError::invalid(
-            "inputs[0].transform.transform",
-            format!("{} values given, 12 needed", input.transform.len()),
-        )
-    })?;
-    Ok(Resolved::Transform { matrix, child: child(tenant, device, input.child.as_ref(), "inputs[0].transform.child")? })
+    let field = |name: &str| format!("inputs[0].transform.{name}");
+    let given = [
+        ("transform", input.transform.len()),
+        ("matrix_keys", input.matrix_keys.len()),
+        ("srt_keys", input.srt_keys.len()),
+    ];
+    let transform = match given.map(|(_, len)| len > 0) {
+        [true, false, false] => TransformInput::Static(input.transform.as_slice().try_into().map_err(|_| {
+            ServiceError::invalid(field("transform"), format!("{} values given, 12 needed", input.transform.len()))
+        })?),
+        [false, true, false] => {
+            let motion = transform_motion(tenant, input.motion.as_ref())?;
+            TransformInput::MatrixMotion { keys: keys(&input.matrix_keys, &field("matrix_keys"), &motion)?, motion }
+        }
+        [false, false, true] => {
+            let motion = transform_motion(tenant, input.motion.as_ref())?;
+            TransformInput::SrtMotion { keys: keys(&input.srt_keys, &field("srt_keys"), &motion)?, motion }
+        }
+        _ => {
+            let set: Vec<&str> = given.iter().filter(|(_, len)| *len > 0).map(|(name, _)| *name).collect();
+            return Err(ServiceError::invalid(
+                "inputs[0].transform",
+                format!("exactly one of transform, matrix_keys and srt_keys must be given; given: {set:?}"),
+            ));
+        }
+    };
+    Ok(Resolved::Transform { transform, child: child(tenant, device, input.child.as_ref(), &field("child"))? })
+}
+
+/// A motion transform's motion options, within `max_motion_keys`.
+fn transform_motion(tenant: &Tenant, motion: Option<&pb::MotionOptions>) -> ServiceResult<MotionOptions> {
+    let motion = convert::motion_options(motion);
+    check_motion_keys(tenant, &motion, "inputs[0].transform.motion.keys")?;
+    Ok(motion)
+}
+
+/// The engine's build options of a request, within the tenant's `max_motion_keys`.
+pub fn options(tenant: &Tenant, options: Option<&pb::BuildOptions>) -> ServiceResult<BuildOptions> {
+    let options = convert::build_options(options);
+    check_motion_keys(tenant, &options.motion, "options.motion.keys")?;
+    Ok(options)
+}
+
+/// Checks motion options against the tenant's `max_motion_keys`.
+fn check_motion_keys(tenant: &Tenant, motion: &MotionOptions, field: &str) -> ServiceResult<()> {
+    ServiceError::check_limit(
+        || format!("motion keys ({field})"),
+        u64::from(motion.keys),
+        "max_motion_keys",
+        u64::from(tenant.limits().max_motion_keys),
+    )
+}
+
+/// `values` cut into keys of `N` floats, as many as `motion` has keys.
+fn keys<const N: usize>(values: &[f32], field: &str, motion: &MotionOptions) -> ServiceResult<Vec<[f32; N]>> {
+    let needed = N * motion.keys as usize;
+    if values.len() != needed {
+        return Err(ServiceError::invalid(
+            field,
+            format!("{} values given; {} motion keys of {N} need {needed}", values.len(), motion.keys),
+        ));
+    }
+    Ok(values.chunks_exact(N).map(|key| key.try_into().expect("chunks of N")).collect())
 }
 
 /// Resolves triangle input `index`.
@@ -218,6 +276,15 @@ fn resolve_triangles(tenant: &Tenant, index: usize, input: &pb::BuildInput) -> S
     };
     let vertices = data(tenant, t.vertices.as_ref(), &field("vertices"))?
         .ok_or_else(|| ServiceError::invalid(field("vertices"), "vertices are required"))?;
+    let motion_vertices = t
+        .motion_vertices
+        .iter()
+        .enumerate()
+        .map(|(key, source)| {
+            let name = field(&format!("motion_vertices[{key}]"));
+            data(tenant, Some(source), &name)?.ok_or_else(|| ServiceError::invalid(name, "vertices are required"))
+        })
+        .collect::<Result<_, _>>()?;
     let indices = match data(tenant, t.indices.as_ref(), &field("indices"))? {
         None => None,
         Some(bytes) => {
@@ -233,6 +300,7 @@ fn resolve_triangles(tenant: &Tenant, index: usize, input: &pb::BuildInput) -> S
     flags.set(GeometryFlags::DISABLE_FACE_CULLING, t.disable_face_culling);
     Ok(OwnedTriangles {
         vertices,
+        motion_vertices,
         vertex_format,
         stride: (t.vertex_stride_bytes != 0).then_some(t.vertex_stride_bytes),
         indices,

@@ -53,11 +53,20 @@ impl TriangleBvh {
     ) {
         let Some(at) = self.motion.locate(ray.time) else { return };
         match &self.node_keys {
-            None => self.walk_triangles(static_boxes(&self.nodes), |slot| self.corners[slot], stack, ray, scope, collector, stats),
+            None => self.walk_triangles(
+                static_boxes(&self.nodes),
+                |slot| self.corners[slot],
+                stack,
+                ray,
+                scope,
+                collector,
+                stats,
+            ),
             Some(keys) => {
                 let stride = keys.keys;
                 let corners = |slot: usize| {
-                    let (a, b) = (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
+                    let (a, b) =
+                        (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
                     std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
                 };
                 self.walk_triangles(|node| keys.at(node, at), corners, stack, ray, scope, collector, stats)

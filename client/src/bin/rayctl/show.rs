@@ -111,8 +111,24 @@ fn accel_json(info: &AccelInfo) -> Value {
         "kind": kind_name(info.kind()), "triangle_count": info.triangle_count, "geometry_count": info.geometry_count,
         "instance_count": info.instance_count, "depth": info.depth, "compacted_size_bytes": info.compacted_size_bytes, "build_ms": ms(info.build_ns),
         "options": build_flag_names(build_flags_from_proto(info.options.unwrap_or_default())),
+        "motion": info.options.and_then(|o| o.motion).map(|m| json!({
+            "keys": m.keys, "time_begin": m.time_begin, "time_end": m.time_end,
+            "start_vanish": m.start_vanish, "end_vanish": m.end_vanish,
+        })),
         "bounds": min.map(|min| json!({ "min": min, "max": max })),
     })
+}
+
+/// An accel's motion options in words: `-` when static.
+fn motion_text(info: &AccelInfo) -> String {
+    let Some(m) = info.options.and_then(|o| o.motion) else { return "-".into() };
+    let vanish = match (m.start_vanish, m.end_vanish) {
+        (false, false) => "",
+        (true, false) => ", vanishes before",
+        (false, true) => ", vanishes after",
+        (true, true) => ", vanishes outside",
+    };
+    format!("{} keys over [{}, {}]{vanish}", m.keys, m.time_begin, m.time_end)
 }
 
 /// An accel kind's lower-case name.
@@ -122,6 +138,8 @@ fn kind_name(kind: proto::AccelKind) -> &'static str {
         proto::AccelKind::Triangles => "triangles",
         proto::AccelKind::Instances => "instances",
         proto::AccelKind::Transform => "transform",
+        proto::AccelKind::MatrixMotionTransform => "matrix_motion_transform",
+        proto::AccelKind::SrtMotionTransform => "srt_motion_transform",
     }
 }
 
@@ -142,6 +160,7 @@ pub fn accel(info: &AccelInfo) -> Output {
         ("compacted size", info.compacted_size_bytes.map_or("-".into(), bytes)),
         ("build time", format!("{:.2} ms", ms(info.build_ns))),
         ("options", if flags.is_empty() { "-".into() } else { flags.join(", ") }),
+        ("motion", motion_text(info)),
         ("bounds", bounds),
     ];
     let text = fields.iter().map(|(key, value)| format!("{:16}{value}", format!("{key}:"))).collect::<Vec<_>>();

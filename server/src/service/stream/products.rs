@@ -250,7 +250,7 @@ mod tests {
         assert_eq!(instances.children[0].r#ref, Some(pb::accel_ref::Ref::Handle("acc-9".into())));
         let mut op = build(pb::build_input::Input::Transform(pb::TransformInput {
             child: Some(pb::AccelRef { r#ref: Some(pb::accel_ref::Ref::Operation(3)) }),
-            transform: Vec::new(),
+            ..Default::default()
         }));
         let error = products.resolve(2, &mut op).unwrap_err().to_string();
         assert!(error.contains("build.inputs[0].transform.child: operation 3 is not an earlier"), "{error}");
