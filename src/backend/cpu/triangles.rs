@@ -118,7 +118,8 @@ impl TriangleBvh {
             in_leaves[i as usize] = true;
         }
         order.extend((0..total as u32).filter(|&i| !in_leaves[i as usize]));
-        let corners: Vec<[Vec3; 3]> = order.iter().flat_map(|&i| triangles.corners(i as usize)).copied().collect();
+        let mut corners: Vec<[Vec3; 3]> = Vec::with_capacity(total * triangles.keys);
+        corners.extend(order.iter().flat_map(|&i| triangles.corners(i as usize)));
         let refs: Vec<TriangleRef> = order.iter().map(|&i| triangles.refs[i as usize]).collect();
         let masks = triangles.masks.as_ref().map(|m| order.iter().map(|&i| m[i as usize]).collect());
         let random_access = options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS).then(|| {
