@@ -148,6 +148,21 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     let rays = read(&rays_file);
     let camera = bunny.camera_rays(RayFormat::OriginTminDirectionTmax, width, height);
     assert_same_bytes(&rays, &camera, "rays framing the accel's box: the reference camera's");
+    // Motion blur: the same camera rays, each at a time in [0.25, 0.75].
+    let timed_file = scratch.path("timed.rays");
+    let format = "origin_tmin_direction_tmax_time";
+    let args = ["rays", "--accel", "bunny", "--width", &size[0], "--height", &size[1], "--ray-format", format];
+    json(&server, &[&args[..], &["--time", "0.25,0.75", "-o", &timed_file]].concat());
+    let timed = read(&timed_file);
+    let with_time = bunny.camera_rays(RayFormat::OriginTminDirectionTmaxTime, width, height);
+    let times: Vec<f32> =
+        timed.chunks_exact(36).map(|ray| f32::from_le_bytes(ray[32..36].try_into().unwrap())).collect();
+    assert!(times.iter().all(|t| (0.25..=0.75).contains(t)), "times in the span");
+    assert!(times.iter().any(|&t| t != times[0]), "times spread over the span");
+    let untimed = |bytes: &[u8]| bytes.chunks_exact(36).flat_map(|ray| ray[..32].to_vec()).collect::<Vec<u8>>();
+    assert_same_bytes(&untimed(&timed), &untimed(&with_time), "the same rays apart from their times");
+    let stderr = fails(&server, &["rays", "--accel", "bunny", "--time", "1", "-o", &timed_file], 1);
+    assert!(stderr.contains("--time") && stderr.contains("carries no time"), "{stderr}");
 
     let trace = |kind: &str, out: &str| {
         let formats = ["--ray-format", "origin_tmin_direction_tmax", "--hit-format", "t_triid_u_v"];

@@ -140,7 +140,7 @@ impl MotionOptions {
         if self.keys == 0 || self.keys > MAX_MOTION_KEYS {
             return Err(format!("{} motion keys; 1 to {MAX_MOTION_KEYS} are allowed", self.keys));
         }
-        if !self.is_static() && !(self.time_begin.is_finite() && self.time_end.is_finite()) {
+        if !self.is_static() && (!self.time_begin.is_finite() || !self.time_end.is_finite()) {
             return Err(format!("time range [{}, {}] must be finite", self.time_begin, self.time_end));
         }
         if !self.is_static() && self.time_begin >= self.time_end {
@@ -186,7 +186,7 @@ impl MotionOptions {
             return (!self.flags.contains(MotionFlags::END_VANISH))
                 .then_some(KeyTime { segment: last_segment, fraction: 1.0 });
         }
-        if !(time >= self.time_begin) {
+        if time < self.time_begin || time.is_nan() {
             return (!self.flags.contains(MotionFlags::START_VANISH) || time.is_nan())
                 .then_some(KeyTime { segment: 0, fraction: 0.0 });
         }
@@ -268,11 +268,11 @@ impl MotionOptions {
         }
         // An empty key box (the object is elsewhere in time) takes what the segments beside it hold, so that the
         // interpolation stays finite.
-        for k in 0..keys {
-            if is_empty(&boxes[k]) {
+        for (k, key_box) in boxes.iter_mut().enumerate() {
+            if is_empty(key_box) {
                 let before = if k > 0 { during(key_span(k - 1)) } else { EMPTY };
                 let after = if k + 1 < keys { during(key_span(k)) } else { EMPTY };
-                boxes[k] = union(before, after);
+                *key_box = union(before, after);
             }
         }
         if boxes.iter().all(is_empty) {

@@ -131,7 +131,7 @@ impl SrtKey {
 impl TransformInput {
     /// Checks the transform: matrices finite and invertible, SRT keys as [`SrtKey`] says, as many keys as the
     /// motion options (at least 2 for motion transforms), quaternions of neighbouring SRT keys less than 180°
-    /// apart (a non-negative dot product, as the seeds require for nlerp's shortest path).
+    /// apart (a positive dot product, as the seeds require for nlerp's shortest path).
     pub fn check(&self) -> Result<Transform> {
         match self {
             TransformInput::Static(matrix) => {
@@ -151,10 +151,10 @@ impl TransformInput {
                 check_motion(motion, keys.len())?;
                 let keys: Vec<SrtKey> =
                     keys.iter().enumerate().map(|(k, v)| SrtKey::new(k, v)).collect::<Result<_>>()?;
-                if let Some(k) = keys.windows(2).position(|pair| pair[0].rotation.dot(pair[1].rotation) < 0.0) {
+                if let Some(k) = keys.windows(2).position(|pair| pair[0].rotation.dot(pair[1].rotation) <= 0.0) {
                     return Err(bad_key(
                         k + 1,
-                        format!("its quaternion is 180° or more from key {k}'s (negative dot product): add keys"),
+                        format!("its quaternion is 180° or more from key {k}'s (dot product not positive): add keys"),
                     ));
                 }
                 Ok(Transform::Srt { keys, motion: *motion })

@@ -214,9 +214,26 @@ pub struct RaysArgs {
     #[arg(long, value_name = "FMT", default_value = "origin_tmin_direction_tmax",
           value_parser = named(&RayFormat::ALL, RayFormat::name))]
     pub ray_format: RayFormat,
+    /// Motion blur: every ray at time T, or each at a time uniform in [T0, T1] (seeded by `--seed`). Needs a ray
+    /// format with time (`origin_tmin_direction_tmax_time` or `full`); without it rays are at time 0.
+    #[arg(long, value_name = "T|T0,T1", value_parser = parse_times, allow_hyphen_values = true)]
+    pub time: Option<(f32, f32)>,
     /// The file to write.
     #[arg(short = 'o', long = "output", value_name = "FILE")]
     pub output: PathBuf,
+}
+
+/// `T` or `T0,T1`: a span of time (`T0 ≤ T1`, finite).
+fn parse_times(text: &str) -> Result<(f32, f32), String> {
+    let values = text
+        .split(',')
+        .map(|v| v.trim().parse::<f32>().map_err(|e| format!("{v:?}: {e}")))
+        .collect::<Result<Vec<_>, _>>()?;
+    match values[..] {
+        [t] if t.is_finite() => Ok((t, t)),
+        [start, end] if start.is_finite() && end.is_finite() && start <= end => Ok((start, end)),
+        _ => Err(format!("expected a finite time T or a span T0,T1 with T0 <= T1, got {text:?}")),
+    }
 }
 
 /// `rayctl render`.

@@ -9,7 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
 use rayd_client::{BenchOptions, Client, ClientOptions, Error, Result, Scene, load_mesh};
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::raygen::{Camera, random_rays};
+use rayd_engine::raygen::{Camera, random_rays, uniform};
 use serde_json::json;
 
 use crate::args::{BenchArgs, BuildArgs, Cli, Command, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
@@ -115,13 +115,22 @@ async fn camera(client: &Client, accel: &str, view: Option<View>, width: u32, he
 
 /// `rayctl rays`: camera or random rays for an accel, packed into a file for `trace`.
 async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
-    let bytes = match args.random {
+    let mut bytes = match args.random {
         Some(count) => {
             let (lo, hi) = accel_bounds(client, &args.accel).await?;
             random_rays(lo, hi, count, args.seed, args.ray_format)
         }
         None => camera(client, &args.accel, args.camera, args.width, args.height).await?.rays(args.ray_format),
     };
+    if let Some((start, end)) = args.time {
+        let offset = args.ray_format.time_offset().ok_or_else(|| {
+            Error::InvalidArgument(format!("--time: ray format {} carries no time", args.ray_format.name()))
+        })?;
+        for (i, ray) in bytes.chunks_exact_mut(args.ray_format.size()).enumerate() {
+            let time = start + (end - start) * uniform(args.seed ^ 0x7153, i as u64);
+            ray[offset..offset + 4].copy_from_slice(&time.to_le_bytes());
+        }
+    }
     std::fs::write(&args.output, &bytes).map_err(|e| Error::io(&args.output, e))?;
     let (file, count) = (args.output.display().to_string(), bytes.len() / args.ray_format.size());
     Ok(Output {
