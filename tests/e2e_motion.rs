@@ -155,3 +155,31 @@ async fn moving_meshes_and_transforms_trace_at_each_rays_time() {
     assert_eq!(error.code(), Code::InvalidArgument, "{error}");
     assert!(error.to_string().contains("rays.time") && error.to_string().contains("ray 0"), "{error}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_scene_file_moves_its_instances() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let teapot = std::env::current_dir().unwrap().join("../shared/data/meshes/teapot.obj");
+    let text = format!(
+        r#"{{
+            "meshes": {{ "teapot": {teapot:?} }},
+            "motion": {{ "keys": 2, "time": [0, 1] }},
+            "instances": [{{ "mesh": "teapot", "id": 3,
+              "motion": {{ "time": [0, 1], "end_vanish": true, "keys": [{{}}, {{ "translate": [10, 0, 0] }}] }} }}]
+        }}"#
+    );
+    let scene: rayd_client::Scene = serde_json::from_str(&text).unwrap();
+    let info = client.build_scene("tea", "", &scene, BuildFlags::empty()).await.unwrap();
+    assert_eq!(info.options.unwrap().motion.unwrap().keys, 2);
+    let moving = client.accel("tea.0.motion").await.unwrap();
+    assert_eq!(moving.kind(), proto::AccelKind::SrtMotionTransform);
+    let bounds = client.accel("tea.teapot").await.unwrap().bounds.unwrap();
+    let (lo, hi) = (bounds.min.unwrap(), bounds.max.unwrap());
+    let (x, y) = ((lo.x + hi.x) / 2.0, (lo.y + hi.y) / 2.0);
+    let hits = down_at(&client, "tea", &[(x, y, 0.0), (x, y, 1.0), (x + 10.0, y, 0.0), (x + 10.0, y, 1.0)]).await;
+    let ids: Vec<u32> = hits.iter().map(|h| h.1).collect();
+    assert_eq!(ids, [3, u32::MAX, u32::MAX, 3], "{hits:?}");
+    let gone = down_at(&client, "tea", &[(x + 10.0, y, 1.5)]).await;
+    assert_eq!(gone[0].1, u32::MAX, "vanished after its range");
+}

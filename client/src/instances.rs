@@ -2,7 +2,7 @@
 
 use bytes::Bytes;
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::geometry::{INSTANCE_RECORD_BYTES, InstanceRecord, TransformInput};
+use rayd_engine::geometry::{INSTANCE_RECORD_BYTES, InstanceRecord, MotionOptions, TransformInput};
 use rayd_proto as proto;
 
 use crate::client::Client;
@@ -20,6 +20,20 @@ impl Client {
         instances: &[InstanceRecord],
         flags: BuildFlags,
     ) -> Result<proto::AccelInfo> {
+        self.build_moving_instances(name, device, children, instances, flags, &MotionOptions::STATIC).await
+    }
+
+    /// [`Client::build_instances`] with motion options: a motion instance accel, whose keys bound moving children
+    /// more tightly and whose vanish flags hide its instances outside its range.
+    pub async fn build_moving_instances(
+        &self,
+        name: &str,
+        device: &str,
+        children: &[&str],
+        instances: &[InstanceRecord],
+        flags: BuildFlags,
+        motion: &MotionOptions,
+    ) -> Result<proto::AccelInfo> {
         let mut records = vec![0u8; instances.len() * INSTANCE_RECORD_BYTES];
         for (record, bytes) in instances.iter().zip(records.chunks_exact_mut(INSTANCE_RECORD_BYTES)) {
             record.encode(bytes);
@@ -30,7 +44,9 @@ impl Client {
                 source: Some(proto::data_source::Source::Inline(Bytes::from(records))),
             })),
         };
-        self.build(build_request(name, device, proto::build_input::Input::Instances(input), flags)).await
+        let mut request = build_request(name, device, proto::build_input::Input::Instances(input), flags);
+        request.options.get_or_insert_default().motion = motion_to_proto(motion);
+        self.build(request).await
     }
 
     /// Builds a static transform called `name` on `device` placing the accel called `child` with `transform`

@@ -42,7 +42,7 @@ pub use error::{Error, Result};
 pub use mesh::load_mesh;
 pub use rayd_proto as proto;
 pub use render::{Image, Shading, shade};
-pub use scene::{Scale, Scene, SceneInstance};
+pub use scene::{InstanceMotion, MotionKey, Scale, Scene, SceneInstance, SceneMotion};
 pub use stream::{AccelArg, BufferArg, Event, EventId, Operation, Stream};
 pub use trace::TraceResult;
 pub use view::{HitView, RayView};

@@ -16,13 +16,30 @@
 //! Mesh paths are relative to the scene file. An instance is placed by `transform` (3×4 row-major, object to world)
 //! or else by `scale` (one number or three), then `rotate` (axis x y z and degrees), then `translate`. `id`
 //! defaults to the instance's index, `mask` to 255 (every ray sees it), the flags to false.
+//!
+//! Motion blur: an instance's `motion` moves its mesh (in the mesh's own space, before the instance's placement)
+//! through keys evenly spaced over `time`, each a `scale`, `rotate` and `translate` as above, interpolated as an
+//! SRT motion transform (rotations by nlerp, the shorter way round; turns of 180° or more between keys need more
+//! keys). `start_vanish` / `end_vanish` remove it before or after `time`. The scene's own `motion` gives the
+//! instance accel motion keys (tighter boxes for moving instances) and its range and vanish flags:
+//!
+//! ```json
+//! {
+//!   "meshes": { "cow": "meshes/cow.obj" },
+//!   "motion": { "keys": 2, "time": [0, 1] },
+//!   "instances": [
+//!     { "mesh": "cow", "translate": [0, 0, -5],
+//!       "motion": { "time": [0, 1], "keys": [{}, { "translate": [1, 0, 0], "rotate": [0, 1, 0, 45] }] } }
+//!   ]
+//! }
+//! ```
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use glam::{Affine3A, Quat, Vec3};
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::geometry::{InstanceFlags, InstanceRecord, Placement};
+use rayd_engine::geometry::{InstanceFlags, InstanceRecord, MotionFlags, MotionOptions, Placement, TransformInput};
 use rayd_proto as proto;
 use serde::Deserialize;
 
@@ -36,8 +53,54 @@ use crate::mesh::load_mesh;
 pub struct Scene {
     /// Mesh files by the name instances use.
     pub meshes: BTreeMap<String, PathBuf>,
+    /// The instance accel's motion options (default: static).
+    pub motion: Option<SceneMotion>,
     /// The instances.
     pub instances: Vec<SceneInstance>,
+}
+
+/// Motion options in a scene file.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SceneMotion {
+    /// Motion keys of the instance accel (1 or more).
+    pub keys: u32,
+    /// Time of the first and the last key.
+    pub time: [f32; 2],
+    /// Not there before the range.
+    #[serde(default)]
+    pub start_vanish: bool,
+    /// Not there after the range.
+    #[serde(default)]
+    pub end_vanish: bool,
+}
+
+/// The motion of one instance: keys evenly spaced over `time`.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InstanceMotion {
+    /// Time of the first and the last key.
+    pub time: [f32; 2],
+    /// Where the mesh is at each key, in its own space: at least 2.
+    pub keys: Vec<MotionKey>,
+    /// Not there before the range.
+    #[serde(default)]
+    pub start_vanish: bool,
+    /// Not there after the range.
+    #[serde(default)]
+    pub end_vanish: bool,
+}
+
+/// One key of an instance's motion: scale, then rotation, then translation (each optional).
+#[derive(Debug, Clone, Default, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MotionKey {
+    /// Scale: one factor or three.
+    pub scale: Option<Scale>,
+    /// Rotation: axis x y z, then degrees.
+    pub rotate: Option<[f32; 4]>,
+    /// Translation.
+    pub translate: Option<[f32; 3]>,
 }
 
 /// One instance of a scene file.
@@ -64,6 +127,8 @@ pub struct SceneInstance {
     /// Ignore ray flags that cull faces.
     #[serde(default)]
     pub disable_face_culling: bool,
+    /// Motion of the mesh under the instance.
+    pub motion: Option<InstanceMotion>,
 }
 
 /// A uniform or per-axis scale.
@@ -89,16 +154,25 @@ impl Scene {
         Ok(scene)
     }
 
-    /// The instance records, their children indexing the meshes in name order.
+    /// The instance records. Their children index the meshes in name order, then the motion transforms of the
+    /// moving instances ([`Scene::motion_transforms`]) in instance order.
     pub fn records(&self) -> Result<Vec<InstanceRecord>> {
         let names: Vec<&String> = self.meshes.keys().collect();
+        let mut moving = 0;
         self.instances
             .iter()
             .enumerate()
             .map(|(index, instance)| {
-                let child = names.iter().position(|name| **name == instance.mesh).ok_or_else(|| {
+                let mesh = names.iter().position(|name| **name == instance.mesh).ok_or_else(|| {
                     Error::InvalidArgument(format!("instances[{index}].mesh: no mesh is called {:?}", instance.mesh))
                 })?;
+                let child = match instance.motion {
+                    Some(_) => {
+                        moving += 1;
+                        names.len() + moving - 1
+                    }
+                    None => mesh,
+                };
                 let mut flags = InstanceFlags::empty();
                 flags.set(InstanceFlags::FLIP_FACING, instance.flip_facing);
                 flags.set(InstanceFlags::DISABLE_FACE_CULLING, instance.disable_face_culling);
@@ -114,24 +188,85 @@ impl Scene {
     }
 }
 
+impl Scene {
+    /// The motion transform of each moving instance, in instance order: (instance index, mesh name, transform).
+    pub fn motion_transforms(&self) -> Vec<(usize, &str, TransformInput)> {
+        self.instances
+            .iter()
+            .enumerate()
+            .filter_map(|(index, instance)| {
+                let motion = instance.motion.as_ref()?;
+                let mut previous = Quat::IDENTITY;
+                let keys = motion
+                    .keys
+                    .iter()
+                    .map(|key| {
+                        let (scale, mut rotation, translation) = parts(key.scale, key.rotate, key.translate);
+                        // The same rotation the shorter way round from the previous key.
+                        if rotation.dot(previous) < 0.0 {
+                            rotation = -rotation;
+                        }
+                        previous = rotation;
+                        let [qx, qy, qz, qw] = rotation.to_array();
+                        let (s, t) = (scale, translation);
+                        [s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, s.z, 0.0, qx, qy, qz, qw, t.x, t.y, t.z]
+                    })
+                    .collect::<Vec<_>>();
+                let options = MotionOptions {
+                    keys: keys.len() as u32,
+                    time_begin: motion.time[0],
+                    time_end: motion.time[1],
+                    flags: vanish_flags(motion.start_vanish, motion.end_vanish),
+                };
+                Some((index, instance.mesh.as_str(), TransformInput::SrtMotion { keys, motion: options }))
+            })
+            .collect()
+    }
+
+    /// The instance accel's motion options.
+    pub fn motion_options(&self) -> MotionOptions {
+        self.motion.as_ref().map_or(MotionOptions::STATIC, |m| MotionOptions {
+            keys: m.keys,
+            time_begin: m.time[0],
+            time_end: m.time[1],
+            flags: vanish_flags(m.start_vanish, m.end_vanish),
+        })
+    }
+}
+
+/// Motion flags from a scene file's booleans.
+fn vanish_flags(start: bool, end: bool) -> MotionFlags {
+    let mut flags = MotionFlags::empty();
+    flags.set(MotionFlags::START_VANISH, start);
+    flags.set(MotionFlags::END_VANISH, end);
+    flags
+}
+
+/// A scene file's scale, rotation and translation (each optional) as glam's parts.
+fn parts(scale: Option<Scale>, rotate: Option<[f32; 4]>, translate: Option<[f32; 3]>) -> (Vec3, Quat, Vec3) {
+    let scale = match scale {
+        None => Vec3::ONE,
+        Some(Scale::Uniform(s)) => Vec3::splat(s),
+        Some(Scale::Axes(axes)) => Vec3::from(axes),
+    };
+    let rotation = rotate.map_or(Quat::IDENTITY, |[x, y, z, degrees]| {
+        Quat::from_axis_angle(Vec3::new(x, y, z).normalize_or(Vec3::Z), degrees.to_radians())
+    });
+    (scale, rotation, Vec3::from(translate.unwrap_or_default()))
+}
+
 impl SceneInstance {
     /// Scale, then rotation, then translation.
     fn placement(&self) -> Affine3A {
-        let scale = match self.scale {
-            None => Vec3::ONE,
-            Some(Scale::Uniform(s)) => Vec3::splat(s),
-            Some(Scale::Axes(axes)) => Vec3::from(axes),
-        };
-        let rotation = self.rotate.map_or(Quat::IDENTITY, |[x, y, z, degrees]| {
-            Quat::from_axis_angle(Vec3::new(x, y, z).normalize_or(Vec3::Z), degrees.to_radians())
-        });
-        Affine3A::from_scale_rotation_translation(scale, rotation, Vec3::from(self.translate.unwrap_or_default()))
+        let (scale, rotation, translation) = parts(self.scale, self.rotate, self.translate);
+        Affine3A::from_scale_rotation_translation(scale, rotation, translation)
     }
 }
 
 impl Client {
-    /// Builds `scene` on `device`: each mesh as accel `<name>.<mesh>`, then the instance accel `name` over them
-    /// (with `flags`). Returns the instance accel's description.
+    /// Builds `scene` on `device`: each mesh as accel `<name>.<mesh>`, each moving instance's SRT motion transform
+    /// as `<name>.<instance index>.motion`, then the instance accel `name` over them (with `flags` and the scene's
+    /// motion options). Returns the instance accel's description.
     pub async fn build_scene(
         &self,
         name: &str,
@@ -146,8 +281,13 @@ impl Client {
             self.build_mesh(&child, &load_mesh(file)?, device, BuildFlags::empty()).await?;
             children.push(child);
         }
+        for (index, mesh, transform) in scene.motion_transforms() {
+            let child = format!("{name}.{index}.motion");
+            self.build_transform_input(&child, device, &format!("{name}.{mesh}"), &transform).await?;
+            children.push(child);
+        }
         let children: Vec<&str> = children.iter().map(String::as_str).collect();
-        self.build_instances(name, device, &children, &records, flags).await
+        self.build_moving_instances(name, device, &children, &records, flags, &scene.motion_options()).await
     }
 }
 
@@ -176,5 +316,33 @@ mod tests {
         let bad: Scene = serde_json::from_str(r#"{ "meshes": {}, "instances": [{ "mesh": "x" }] }"#).unwrap();
         assert!(bad.records().unwrap_err().to_string().contains("instances[0].mesh: no mesh is called \"x\""));
         assert!(serde_json::from_str::<Scene>(r#"{ "meshes": {}, "instances": [], "extra": 1 }"#).is_err());
+    }
+
+    #[test]
+    fn moving_instances_get_srt_transforms_after_the_meshes() {
+        let text = r#"{
+            "meshes": { "a": "a.obj" },
+            "motion": { "keys": 3, "time": [-1, 2], "end_vanish": true },
+            "instances": [
+                { "mesh": "a" },
+                { "mesh": "a", "motion": { "time": [0, 1], "start_vanish": true,
+                  "keys": [{ "rotate": [0, 0, 1, 170] }, { "scale": 2, "rotate": [0, 0, 1, -170], "translate": [1, 2, 3] }] } }
+            ]
+        }"#;
+        let scene: Scene = serde_json::from_str(text).unwrap();
+        let records = scene.records().unwrap();
+        assert_eq!((records[0].child, records[1].child), (0, 1), "the moving instance places its transform");
+        assert_eq!(scene.motion_options().keys, 3);
+        assert_eq!(scene.motion_options().flags, MotionFlags::END_VANISH);
+        let transforms = scene.motion_transforms();
+        let [(1, "a", TransformInput::SrtMotion { keys, motion })] = transforms.as_slice() else {
+            panic!("one SRT transform: {transforms:?}")
+        };
+        assert_eq!((motion.keys, motion.time_begin, motion.time_end), (2, 0.0, 1.0));
+        assert_eq!(motion.flags, MotionFlags::START_VANISH);
+        assert_eq!((keys[1][0], keys[1][4], keys[1][7], &keys[1][13..]), (2.0, 2.0, 2.0, &[1.0, 2.0, 3.0][..]));
+        let (q0, q1) = (Quat::from_slice(&keys[0][9..13]), Quat::from_slice(&keys[1][9..13]));
+        assert!(q0.dot(q1) > 0.0, "-170° is taken the short way from 170° (20° apart), not 340° round");
+        assert!(TransformInput::SrtMotion { keys: keys.clone(), motion: *motion }.check().is_ok());
     }
 }

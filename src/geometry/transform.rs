@@ -317,7 +317,7 @@ mod tests {
     #[test]
     fn bounds_during_hold_the_placed_child_at_sampled_times() {
         let mut turned = IDENTITY_SRT;
-        (turned[11], turned[12]) = (0.7071068, 0.7071068);
+        (turned[11], turned[12]) = (std::f32::consts::FRAC_1_SQRT_2, std::f32::consts::FRAC_1_SQRT_2);
         turned[13] = 3.0;
         turned[3] = -1.0; // pivot
         let srt = TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, turned], motion: two_keys() }.check().unwrap();
