@@ -255,7 +255,7 @@ impl MotionOptions {
     /// all that the object can be (it is not clamped by these options), unless a vanish flag removes that time.
     pub fn fit_key_bounds(&self, cuts: usize, during: impl Fn(TimeSpan) -> Bounds) -> Vec<Bounds> {
         if self.is_static() {
-            return vec![pad(during(TimeSpan::ALL))];
+            return vec![during(TimeSpan::ALL)];
         }
         let keys = self.keys as usize;
         let key_span = |segment: usize| TimeSpan { start: self.key_time(segment), end: self.key_time(segment + 1) };
