@@ -1,6 +1,7 @@
 //! Devices and contexts. A context belongs to one device and owns everything built on it: its accels and
 //! buffers are freed when they are destroyed, or when the context is dropped.
 
+use std::collections::HashSet;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 
@@ -10,7 +11,7 @@ use glam::Vec3;
 
 use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
-use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
+use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, Shape};
 use crate::error::{Error, Result};
 use crate::geometry::motion::TimeSpan;
 use crate::geometry::{
@@ -82,6 +83,15 @@ impl Drop for Charge {
     }
 }
 
+/// What an accel keeps of its inputs besides the backend's structure.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct Retained {
+    /// With `ALLOW_UPDATE`, a geometry accel's structure, which updates must keep.
+    pub(crate) structure: Option<Structure>,
+    /// A transform's input as given (its checked form normalizes SRT quaternions), for serialization.
+    pub(crate) transform: Option<TransformInput>,
+}
+
 /// A built acceleration structure. Traces may hold it while it is destroyed; its memory is freed when the last
 /// holder lets go.
 pub struct Accel {
@@ -99,8 +109,11 @@ pub struct Accel {
     referrers: Arc<AtomicUsize>,
     /// Set when an update replaced this version: accels that still place it are stale and refuse traces.
     superseded: AtomicBool,
-    /// With `ALLOW_UPDATE`, a geometry accel's structure, which updates must keep.
-    structure: Option<Structure>,
+    /// Set when it was restored over a newer version of a child than it was built over: it refuses traces
+    /// until it is updated.
+    stale: AtomicBool,
+    /// What it keeps of its inputs besides the backend's structure.
+    retained: Retained,
     /// Keeps the context's memory total honest.
     _charge: Charge,
 }
@@ -133,6 +146,13 @@ impl Accel {
     /// Fails with FAILED_PRECONDITION if this accel, or one below it, places an accel in a version an update has
     /// replaced: its results would be stale.
     fn check_current(&self) -> Result<()> {
+        if self.stale.load(Ordering::Acquire) {
+            return Err(Error::FailedPrecondition(format!(
+                "accel {} was saved over an older version of an accel it places (updated since): update accel {} \
+                 (with the same children) to trace it",
+                self.handle.0, self.handle.0
+            )));
+        }
         for child in &self.children {
             if child.superseded.load(Ordering::Acquire) {
                 return Err(Error::FailedPrecondition(format!(
@@ -146,9 +166,36 @@ impl Accel {
         Ok(())
     }
 
+    /// The accels it places (its instances' children or a transform's child), each once.
+    pub fn children(&self) -> &[Arc<Accel>] {
+        &self.children
+    }
+
+    /// Fails with FAILED_PRECONDITION if an update replaced this version of the accel, or if it or one below it
+    /// is stale ([`Accel::check_current`]).
+    pub(crate) fn check_latest(&self) -> Result<()> {
+        if self.superseded.load(Ordering::Acquire) {
+            return Err(Error::FailedPrecondition(format!(
+                "this version of accel {} was replaced by an update: use its current version",
+                self.handle.0
+            )));
+        }
+        self.check_current()
+    }
+
     /// The backend's structure, for backends tracing through instances.
     pub(crate) fn backend_accel(&self) -> &dyn BackendAccel {
         self.data.as_ref()
+    }
+
+    /// The backend that built it.
+    pub(crate) fn backend_kind(&self) -> BackendKind {
+        self.backend
+    }
+
+    /// What it keeps of its inputs.
+    pub(crate) fn retained(&self) -> &Retained {
+        &self.retained
     }
 
     /// The corners of triangle `prim_id` (as hits report it) of geometry `geom_id`. Needs
@@ -173,27 +220,14 @@ fn transform_kind(transform: &TransformInput) -> AccelKind {
     }
 }
 
-/// `children` without repeats, each counting one more referrer.
-fn refer_to(mut children: Vec<Arc<Accel>>) -> Vec<Arc<Accel>> {
-    children.sort_by_key(|c| Arc::as_ptr(c) as usize);
-    children.dedup_by(|a, b| Arc::ptr_eq(a, b));
+/// `children` without repeats (in the order of their first appearance), each counting one more referrer.
+fn refer_to(children: Vec<Arc<Accel>>) -> Vec<Arc<Accel>> {
+    let mut seen = HashSet::with_capacity(children.len());
+    let children: Vec<Arc<Accel>> = children.into_iter().filter(|c| seen.insert(Arc::as_ptr(c))).collect();
     for child in &children {
         child.referrers.fetch_add(1, Ordering::AcqRel);
     }
     children
-}
-
-/// What a build made, before it is registered.
-#[derive(Debug, Clone, Copy)]
-struct Shape {
-    /// Triangles, instances or a transform.
-    kind: AccelKind,
-    /// Triangles given.
-    triangle_count: u64,
-    /// Geometries given.
-    geometry_count: u32,
-    /// Instances given.
-    instance_count: u64,
 }
 
 /// A buffer held by a context.
@@ -237,6 +271,11 @@ impl Context {
         &self.device
     }
 
+    /// The implementation the context's work runs on.
+    pub(crate) fn backend(&self) -> &dyn Backend {
+        self.device.backend.as_ref()
+    }
+
     /// Bytes held by the context's live accels and buffers.
     pub fn memory_in_use(&self) -> u64 {
         self.bytes_in_use.load(Ordering::Relaxed)
@@ -265,7 +304,7 @@ impl Context {
         };
         let structure =
             options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| Structure::of(inputs, keys)).transpose()?;
-        Ok(self.register(shape, options, data, Vec::new(), structure))
+        Ok(self.register(shape, options, data, Vec::new(), Retained { structure, transform: None }))
     }
 
     /// Updates (refits) a geometry accel built with `ALLOW_UPDATE` with new vertex positions of the same structure
@@ -273,7 +312,7 @@ impl Context {
     /// otherwise) and as many motion keys (INVALID_ARGUMENT otherwise). The accel keeps its handle; traces already running finish on the old version, and accels that
     /// place it refuse traces until they are updated too. Triangles degenerate at the build stay unhittable.
     pub fn update_accel(&self, accel: &Accel, inputs: &[BuildInput<'_>]) -> Result<Arc<Accel>> {
-        let built = accel.structure.as_ref().ok_or_else(|| {
+        let built = accel.retained.structure.as_ref().ok_or_else(|| {
             Error::FailedPrecondition("the accel is not a geometry accel built with ALLOW_UPDATE".into())
         })?;
         if let Some(difference) = built.difference(&Structure::of(inputs, accel.info.options.motion.keys as usize)?) {
@@ -282,7 +321,7 @@ impl Context {
             )));
         }
         let data = self.device.backend.update(accel.data.as_ref(), inputs)?;
-        self.replace(accel, data, Vec::new())
+        self.replace(accel, data, Vec::new(), accel.retained.clone())
     }
 
     /// Updates (refits) an instance accel built with `ALLOW_UPDATE` with new instances: as many, each placing the
@@ -292,7 +331,7 @@ impl Context {
         let placed: Vec<PlacedInstance> =
             instances.iter().enumerate().map(|(index, instance)| place(index, instance)).collect::<Result<_>>()?;
         let data = self.device.backend.update_instances(accel.data.as_ref(), &placed)?;
-        self.replace(accel, data, placed.into_iter().map(|p| p.child).collect())
+        self.replace(accel, data, placed.into_iter().map(|p| p.child).collect(), accel.retained.clone())
     }
 
     /// Updates a transform with new keys (or a new matrix) over `child`, which must be the accel it places (in its
@@ -324,7 +363,8 @@ impl Context {
             )));
         }
         let data = self.device.backend.build_transform(&checked, child)?;
-        self.replace(accel, data, vec![Arc::clone(child)])
+        let retained = Retained { structure: None, transform: Some(transform.clone()) };
+        self.replace(accel, data, vec![Arc::clone(child)], retained)
     }
 
     /// Builds an instance accel over already-built accels (geometry accels, instance accels, transforms, of this
@@ -342,7 +382,8 @@ impl Context {
             geometry_count: 0,
             instance_count: placed.len() as u64,
         };
-        Ok(self.register(shape, options, data, placed.into_iter().map(|p| p.child).collect(), None))
+        let children = placed.into_iter().map(|p| p.child).collect();
+        Ok(self.register(shape, options, data, children, Retained::default()))
     }
 
     /// Places `child` under a transform (static, matrix motion or SRT motion), as a traversable that instances can
@@ -354,7 +395,8 @@ impl Context {
         let data = self.device.backend.build_transform(&checked, child)?;
         let shape = Shape { kind: transform_kind(transform), triangle_count: 0, geometry_count: 0, instance_count: 0 };
         let options = BuildOptions { motion: checked.motion(), ..BuildOptions::default() };
-        Ok(self.register(shape, &options, data, vec![Arc::clone(child)], None))
+        let retained = Retained { structure: None, transform: Some(transform.clone()) };
+        Ok(self.register(shape, &options, data, vec![Arc::clone(child)], retained))
     }
 
     /// Copies `source` (an accel of this context's device, from this or another context) into this context, as
@@ -378,18 +420,18 @@ impl Context {
             instance_count: source.info.instance_count,
         };
         let data = source.data.duplicate();
-        Ok(self.register(shape, &source.info.options, data, source.children.clone(), source.structure.clone()))
+        Ok(self.register(shape, &source.info.options, data, source.children.clone(), source.retained.clone()))
     }
 
-    /// Gives a built structure a handle, its description and its memory charge; counts it as a referrer of each
-    /// of its distinct `children`.
-    fn register(
+    /// Gives a built (or deserialized) structure a handle, its description and its memory charge; counts it as a
+    /// referrer of each of its distinct `children`.
+    pub(crate) fn register(
         &self,
         shape: Shape,
         options: &BuildOptions,
         data: Box<dyn BackendAccel>,
         children: Vec<Arc<Accel>>,
-        structure: Option<Structure>,
+        retained: Retained,
     ) -> Arc<Accel> {
         let children = refer_to(children);
         let size_bytes = data.size_bytes();
@@ -416,16 +458,23 @@ impl Context {
             children,
             referrers: Arc::default(),
             superseded: AtomicBool::new(false),
-            structure,
+            stale: AtomicBool::new(false),
+            retained,
             _charge: Charge::new(size_bytes, &self.bytes_in_use),
         });
         self.accels.insert(handle, Arc::clone(&accel));
         accel
     }
 
-    /// Puts `data` (an update of `old`, placing `children`) in `old`'s place: same handle, options and structure,
-    /// the referrers shared; `old` is marked superseded.
-    fn replace(&self, old: &Accel, data: Box<dyn BackendAccel>, children: Vec<Arc<Accel>>) -> Result<Arc<Accel>> {
+    /// Puts `data` (an update of `old`, placing `children`, keeping `retained`) in `old`'s place: same handle and
+    /// options, the referrers shared; `old` is marked superseded.
+    fn replace(
+        &self,
+        old: &Accel,
+        data: Box<dyn BackendAccel>,
+        children: Vec<Arc<Accel>>,
+        retained: Retained,
+    ) -> Result<Arc<Accel>> {
         if !self.accels.contains_key(&old.handle) {
             return Err(Error::NotFound { what: "accel", id: old.handle.0 });
         }
@@ -444,12 +493,25 @@ impl Context {
             children: refer_to(children),
             referrers: Arc::clone(&old.referrers),
             superseded: AtomicBool::new(false),
-            structure: old.structure.clone(),
+            stale: AtomicBool::new(false),
+            retained,
             _charge: Charge::new(size_bytes, &self.bytes_in_use),
         });
         self.accels.insert(old.handle, Arc::clone(&accel));
         old.superseded.store(true, Ordering::Release);
         Ok(accel)
+    }
+
+    /// Marks `accel` stale: it places an older version of a child than the one it now places (as when it is
+    /// restored after that child was updated), so it refuses traces until it is updated.
+    pub fn mark_stale(&self, accel: &Accel) {
+        accel.stale.store(true, Ordering::Release);
+    }
+
+    /// Makes every handle given out from now on greater than `past` (for restoring objects under the handles
+    /// they had, without collisions).
+    pub fn advance_handles(&self, past: u64) {
+        self.next_handle.fetch_max(past.saturating_add(1), Ordering::Relaxed);
     }
 
     /// The accel named by `handle`.

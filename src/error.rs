@@ -60,6 +60,22 @@ pub enum Error {
     /// An operation that the object does not allow in its present state or with its build flags.
     #[error("{0}")]
     FailedPrecondition(String),
+    /// A serialized blob is damaged, truncated or inconsistent (what is wrong, and where).
+    #[error("blob: {0}")]
+    InvalidBlob(String),
+    /// A blob cannot be read by this build: another format version, backend layout or byte order.
+    #[error("blob {field} is {found}; this build supports {supported}")]
+    IncompatibleBlob {
+        /// The header field, e.g. `format version`.
+        field: &'static str,
+        /// The blob's value.
+        found: String,
+        /// The value this build reads.
+        supported: String,
+    },
+    /// The external accels given with a blob do not match what it refers to.
+    #[error("external accels: {0}")]
+    InvalidExternal(String),
     /// A size that overflows what the engine can address.
     #[error("{what} needs {requested} bytes, beyond the limit of {limit}")]
     TooLarge {
@@ -79,9 +95,11 @@ impl Error {
             Error::InvalidBuildInput { .. }
             | Error::InvalidBuildOptions(_)
             | Error::InvalidQuery { .. }
-            | Error::BufferSize { .. } => ErrorKind::InvalidArgument,
+            | Error::BufferSize { .. }
+            | Error::InvalidBlob(_)
+            | Error::InvalidExternal(_) => ErrorKind::InvalidArgument,
             Error::NotFound { .. } => ErrorKind::NotFound,
-            Error::FailedPrecondition(_) => ErrorKind::FailedPrecondition,
+            Error::FailedPrecondition(_) | Error::IncompatibleBlob { .. } => ErrorKind::FailedPrecondition,
             Error::TooLarge { .. } => ErrorKind::ResourceExhausted,
         }
     }

@@ -266,6 +266,23 @@ fn rayctl_builds_a_scene_file_as_an_instance_accel_over_its_meshes_and_renders_i
     succeeds(&server, &["render", "--accel", "farm", "-o", &picture, "--width", "64", "--height", "48"]);
     let (_, _, _, pixels) = decode_png(&picture);
     assert!(pixels.iter().any(|&p| p != pixels[0]), "the render shows something");
+    // Save the scene to a file and load it back under another name: the same picture.
+    let saved = scratch.path("farm.rayd");
+    let report = json(&server, &["save", "farm", "-o", &saved]);
+    assert_eq!(report["bytes"].as_u64(), std::fs::metadata(&saved).ok().map(|m| m.len()), "{report}");
+    let loaded = json(&server, &["load", &saved, "--name", "barn"]);
+    let loaded_names: Vec<&str> =
+        loaded["accels"].as_array().unwrap().iter().map(|a| a["name"].as_str().unwrap()).collect();
+    assert_eq!(loaded_names, ["barn.1", "barn.2", "barn"], "the meshes, then the scene");
+    let again = scratch.path("barn.png");
+    succeeds(&server, &["render", "--accel", "barn", "-o", &again, "--width", "64", "--height", "48"]);
+    assert_eq!(decode_png(&again).3, pixels, "the loaded scene renders the same picture");
+    let damaged = scratch.path("damaged.rayd");
+    let mut bytes = std::fs::read(&saved).unwrap();
+    bytes.truncate(bytes.len() / 2);
+    std::fs::write(&damaged, bytes).unwrap();
+    let refused = fails(&server, &["load", &damaged], 1);
+    assert!(refused.contains("InvalidArgument"), "{refused}");
     let copy = json(&server, &["copy", "farm", "farm.copy"]);
     assert_eq!((copy["kind"].as_str(), copy["instance_count"].as_u64()), (Some("instances"), Some(3)), "{copy}");
     succeeds(&server, &["rm", "farm"]);
@@ -273,6 +290,12 @@ fn rayctl_builds_a_scene_file_as_an_instance_accel_over_its_meshes_and_renders_i
     assert!(refused.contains("FailedPrecondition"), "the copy still places the cow: {refused}");
     let refused = fails(&server, &["copy", "farm.copy", "farm.small", "--compact"], 1);
     assert!(refused.contains("FailedPrecondition") && refused.contains("ALLOW_COMPACTION"), "{refused}");
+    let refused = fails(&server, &["compact", "farm.copy", "farm.small"], 1);
+    assert!(refused.contains("ALLOW_COMPACTION"), "{refused}");
+    let cow = meshes.join("cow.obj");
+    let built = json(&server, &["build", "--mesh", cow.to_str().unwrap(), "--name", "cow", "--allow-compaction"]);
+    let small = json(&server, &["compact", "cow", "cow.small"]);
+    assert!(small["size_bytes"].as_u64() <= built["compacted_size_bytes"].as_u64(), "{small} {built}");
     let broken = scratch.path("broken.json");
     std::fs::write(&broken, r#"{ "meshes": {}, "instances": [{ "mesh": "nothing" }] }"#).unwrap();
     let refused = fails(&server, &["scene", "--file", &broken], 1);

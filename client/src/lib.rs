@@ -30,6 +30,7 @@ mod error;
 mod instances;
 mod mesh;
 mod render;
+mod saved;
 mod scene;
 mod stream;
 mod trace;

@@ -18,7 +18,8 @@ pub struct Config {
     pub listen: SocketAddr,
     /// Address of the admin HTTP endpoint (`/metrics`, `/healthz`); none disables it.
     pub admin_listen: Option<SocketAddr>,
-    /// Directory for persisted accels (used by a later release; accepted and created now).
+    /// Directory where every buffer and accel is persisted and restored from at start; none keeps them in memory
+    /// only.
     pub data_dir: Option<PathBuf>,
     /// Log output: `text` or `json`.
     pub log_format: String,

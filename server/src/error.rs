@@ -39,6 +39,14 @@ pub enum ServiceError {
     /// The gRPC layer refused a message (too large, malformed, or the peer went away); its status is kept.
     #[error("{}", .0.message())]
     Transport(Status),
+    /// The data directory could not be written or read.
+    #[error("persisting {what} in the data directory failed: {source}")]
+    Storage {
+        /// What was being persisted.
+        what: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
     /// A configured limit.
     #[error("{what}: {requested} exceeds limits.{limit} = {allowed}")]
     Limit {
@@ -54,6 +62,11 @@ pub enum ServiceError {
 }
 
 impl ServiceError {
+    /// A failure of the data directory.
+    pub fn storage(what: String, source: std::io::Error) -> Self {
+        ServiceError::Storage { what, source }
+    }
+
     /// A malformed field.
     pub fn invalid(field: impl Into<String>, rule: impl Into<String>) -> Self {
         ServiceError::Invalid { field: field.into(), rule: rule.into() }
@@ -88,6 +101,10 @@ impl From<ServiceError> for Status {
             ServiceError::Limit { .. } => Code::ResourceExhausted,
             ServiceError::Precondition(_) => Code::FailedPrecondition,
             ServiceError::Transport(status) => status.code(),
+            ServiceError::Storage { source, .. } if source.kind() == std::io::ErrorKind::StorageFull => {
+                Code::ResourceExhausted
+            }
+            ServiceError::Storage { .. } => Code::Internal,
         };
         Status::new(code, error.to_string())
     }

@@ -8,6 +8,7 @@ pub mod config;
 mod convert;
 mod error;
 mod metrics;
+mod persist;
 mod registry;
 mod service;
 mod streams;
@@ -34,12 +35,13 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let metrics = metrics::install();
-    if let Some(dir) = &config.data_dir {
-        std::fs::create_dir_all(dir)?;
-    }
+    let store = match &config.data_dir {
+        Some(dir) => Some(persist::Store::open(dir, "default")?),
+        None => None,
+    };
     let limits = config.limits;
     let max_message = usize::try_from(limits.max_message_bytes).unwrap_or(usize::MAX);
-    let rayd = RaydServer::new(RaydService::new(Device::all(), limits))
+    let rayd = RaydServer::new(RaydService::new(Device::all(), limits, store)?)
         .max_decoding_message_size(max_message)
         .max_encoding_message_size(max_message);
     let (health, health_service) = tonic_health::server::health_reporter();

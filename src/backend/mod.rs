@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use glam::Vec3;
 
-use crate::accel::{BuildOptions, MemoryUsage};
+use crate::accel::{AccelKind, BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::Result;
 use crate::geometry::motion::{Bounds, TimeSpan};
@@ -37,6 +37,19 @@ pub struct DeviceInfo {
     pub parallelism: u32,
 }
 
+/// What a build made (or a blob describes), besides its options: its kind and the counts its info reports.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shape {
+    /// Triangles, instances or a transform.
+    pub kind: AccelKind,
+    /// Triangles given.
+    pub triangle_count: u64,
+    /// Geometries given.
+    pub geometry_count: u32,
+    /// Instances given.
+    pub instance_count: u64,
+}
+
 /// A built acceleration structure as a backend holds it.
 pub trait BackendAccel: Any + Send + Sync {
     /// Bytes it occupies.
@@ -51,6 +64,10 @@ pub trait BackendAccel: Any + Send + Sync {
     /// The corners of triangle `prim_id` of geometry `geom_id`, if the accel kept random vertex access and the
     /// triangle exists.
     fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]>;
+    /// Appends the payload that [`Backend::decode`] reads back (see [`crate::serialize`]); instances name their
+    /// children by position in `children`, the accel's distinct children. A transform writes none: it is rebuilt
+    /// from its input.
+    fn encode(&self, children: &[Arc<Accel>], out: &mut Vec<u8>) -> Result<()>;
     /// For downcasting to the backend's own type.
     fn as_any(&self) -> &dyn Any;
 }
@@ -75,6 +92,18 @@ pub trait Backend: Send + Sync {
     -> Result<Box<dyn BackendAccel>>;
     /// Places `child` (an accel of this backend) under a checked transform.
     fn build_transform(&self, transform: &Transform, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>>;
+    /// The version of the payload layout [`BackendAccel::encode`] writes; it changes whenever the layout does.
+    fn layout_version(&self) -> u32;
+    /// Reads the payload of a geometry or instance accel of `shape` built with `options` (both checked) and placing
+    /// `children`, checking everything that traversal, updates and vertex access rely on: INVALID_ARGUMENT naming
+    /// what is wrong.
+    fn decode(
+        &self,
+        shape: &Shape,
+        options: &BuildOptions,
+        payload: &[u8],
+        children: &[Arc<Accel>],
+    ) -> Result<Box<dyn BackendAccel>>;
     /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats>;
 }

@@ -15,5 +15,6 @@ pub use instance_records::{
     INSTANCE_RECORD_BYTES, InstanceRecord, TransformFormat, instances_from_prime, instances_from_records,
 };
 pub use motion::{MotionFlags, MotionOptions};
+pub(crate) use structure::InputStructure;
 pub use structure::Structure;
 pub use transform::{SRT_KEY_FLOATS, SrtKey, Transform, TransformInput};

@@ -6,26 +6,26 @@ use std::hash::{DefaultHasher, Hash, Hasher};
 use super::{BuildInput, GeometryFlags, triangle_counts};
 use crate::error::Result;
 
-/// The structure of one triangle input.
+/// The structure of one triangle input (its fields are open to the crate for serialization).
 #[derive(Debug, Clone, PartialEq, Eq)]
-struct InputStructure {
+pub(crate) struct InputStructure {
     /// Triangles.
-    triangles: usize,
+    pub(crate) triangles: usize,
     /// Primitive-index offset.
-    offset: u32,
+    pub(crate) offset: u32,
     /// Flags.
-    flags: GeometryFlags,
+    pub(crate) flags: GeometryFlags,
     /// Hash of the index bytes and format (0 for a soup).
-    topology: u64,
+    pub(crate) topology: u64,
     /// Hash of the mask bytes (0 without masks).
-    masks: u64,
+    pub(crate) masks: u64,
 }
 
 /// The structure of a triangle build.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Structure {
     /// One per input.
-    inputs: Vec<InputStructure>,
+    pub(crate) inputs: Vec<InputStructure>,
 }
 
 /// A hash of `bytes`.

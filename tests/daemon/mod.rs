@@ -163,6 +163,12 @@ impl Daemon {
         }
     }
 
+    /// Kills the process with SIGKILL (`kill -9`: no chance to finish anything) and waits for it.
+    pub fn kill(&mut self) {
+        self.child.kill().expect("rayd can be killed");
+        self.child.wait().expect("rayd can be waited for");
+    }
+
     /// Sends SIGTERM and waits for the exit.
     pub fn stop(&mut self) -> ExitStatus {
         self.terminate();

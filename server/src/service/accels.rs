@@ -2,6 +2,8 @@
 
 use std::sync::Arc;
 
+use bytes::Bytes;
+
 use rayd_engine::accel::MemoryUsage;
 use rayd_proto as pb;
 
@@ -74,4 +76,26 @@ pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> Ser
     let updated =
         blocking(move || tenant.update_accel(&entry, |context| resolved.update(context, &entry.accel))).await?;
     Ok(info(&updated))
+}
+
+/// Serializes an accel and everything below it into a new buffer (off the async runtime).
+pub async fn save(tenant: Arc<Tenant>, request: pb::SaveAccelRequest) -> ServiceResult<pb::BufferInfo> {
+    let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
+    let buffer = blocking(move || {
+        let blob = tenant.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
+        tenant.create_buffer(&request.buffer_name, Bytes::from(blob))
+    })
+    .await?;
+    Ok(super::buffers::info(&buffer))
+}
+
+/// Recreates the accels of a saved blob (off the async runtime).
+pub async fn load(tenant: Arc<Tenant>, request: pb::LoadAccelRequest) -> ServiceResult<pb::LoadAccelResponse> {
+    let blob = inputs::data(&tenant, request.blob.as_ref(), "blob")?
+        .ok_or_else(|| ServiceError::invalid("blob", "a blob is required"))?;
+    let entries = blocking(move || tenant.load_accels(&request.name, &request.device, &blob)).await?;
+    for entry in &entries {
+        crate::metrics::accel_built(entry);
+    }
+    Ok(pb::LoadAccelResponse { accels: entries.iter().map(info).collect() })
 }

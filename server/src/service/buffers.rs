@@ -104,7 +104,8 @@ pub async fn upload(
         };
         upload.push(&chunk)?;
     }
-    Ok(info(&upload.finish(&tenant)?))
+    // With a data directory the buffer is written to disk: off the async runtime.
+    Ok(info(&super::blocking(move || upload.finish(&tenant)).await?))
 }
 
 /// The buffer a download reads and its range in chunks (zero-copy slices).

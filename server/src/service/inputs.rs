@@ -311,7 +311,7 @@ fn resolve_triangles(tenant: &Tenant, index: usize, input: &pb::BuildInput) -> S
 }
 
 /// The bytes of a data source: inline, or a buffer's (shared, not copied).
-fn data(tenant: &Tenant, source: Option<&pb::DataSource>, field: &str) -> ServiceResult<Option<Bytes>> {
+pub fn data(tenant: &Tenant, source: Option<&pb::DataSource>, field: &str) -> ServiceResult<Option<Bytes>> {
     let Some(source) = source.and_then(|s| s.source.as_ref()) else { return Ok(None) };
     match source {
         pb::data_source::Source::Inline(bytes) => Ok(Some(bytes.clone())),

@@ -17,6 +17,7 @@ use tonic::{Request, Response, Status, Streaming};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::metrics::observe;
+use crate::persist::Store;
 use crate::tenant::Tenant;
 
 /// Shared state of every call.
@@ -29,10 +30,31 @@ pub struct RaydService {
 }
 
 impl RaydService {
-    /// A service over `devices` with one default tenant held to `limits`.
-    pub fn new(devices: Vec<Device>, limits: crate::config::Limits) -> RaydService {
-        let tenant = Arc::new(Tenant::new(limits, &devices));
-        RaydService { devices, tenant }
+    /// A service over `devices` with one default tenant held to `limits`; with a `store`, the tenant's objects
+    /// are restored from it (what cannot be restored is logged and skipped) and persisted in it from now on.
+    pub fn new(
+        devices: Vec<Device>,
+        limits: crate::config::Limits,
+        store: Option<Store>,
+    ) -> Result<RaydService, ServiceError> {
+        let mut tenant = Tenant::new(limits, &devices);
+        if let Some(store) = store {
+            tenant = tenant.with_store(store);
+            let start = std::time::Instant::now();
+            let restored = tenant.restore()?;
+            for (object, why) in &restored.skipped {
+                tracing::warn!(%object, %why, "not restored");
+            }
+            tracing::info!(
+                buffers = restored.buffers,
+                accels = restored.accels,
+                stale = restored.stale,
+                skipped = restored.skipped.len(),
+                ms = start.elapsed().as_millis() as u64,
+                "restored the data directory"
+            );
+        }
+        Ok(RaydService { devices, tenant: Arc::new(tenant) })
     }
 
     /// The tenant a request acts for.
@@ -179,6 +201,19 @@ impl Rayd for RaydService {
             Ok(pb::DestroyAccelResponse {})
         })
         .await
+    }
+
+    async fn save_accel(&self, request: Request<pb::SaveAccelRequest>) -> Result<Response<pb::BufferInfo>, Status> {
+        let tenant = self.tenant(&request);
+        observe("SaveAccel", accels::save(tenant, request.into_inner())).await
+    }
+
+    async fn load_accel(
+        &self,
+        request: Request<pb::LoadAccelRequest>,
+    ) -> Result<Response<pb::LoadAccelResponse>, Status> {
+        let tenant = self.tenant(&request);
+        observe("LoadAccel", accels::load(tenant, request.into_inner())).await
     }
 
     async fn trace_batch(

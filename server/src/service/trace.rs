@@ -80,25 +80,30 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     if !to_buffer {
         return Ok(pb::TraceBatchResponse { hits: result.hits, counts: result.counts, stats, ..Default::default() });
     }
-    let hits_buffer = tenant.create_buffer(&request.hits_buffer_name, result.hits)?;
-    let counts_buffer = if result.counts.is_empty() {
-        None
-    } else {
-        // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
-        match tenant.create_buffer(&format!("{}.counts", request.hits_buffer_name), result.counts) {
-            Ok(entry) => Some(buffers::info(&entry)),
-            Err(error) => {
-                tenant.delete_buffer(&hits_buffer)?;
-                return Err(error);
+    // With a data directory the buffers are written to disk: off the async runtime.
+    blocking(move || {
+        let name = &request.hits_buffer_name;
+        let hits_buffer = tenant.create_buffer(name, result.hits)?;
+        let counts_buffer = if result.counts.is_empty() {
+            None
+        } else {
+            // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
+            match tenant.create_buffer(&format!("{name}.counts"), result.counts) {
+                Ok(entry) => Some(buffers::info(&entry)),
+                Err(error) => {
+                    tenant.delete_buffer(&hits_buffer)?;
+                    return Err(error);
+                }
             }
-        }
-    };
-    Ok(pb::TraceBatchResponse {
-        hits_buffer: Some(buffers::info(&hits_buffer)),
-        counts_buffer,
-        stats,
-        ..Default::default()
+        };
+        Ok(pb::TraceBatchResponse {
+            hits_buffer: Some(buffers::info(&hits_buffer)),
+            counts_buffer,
+            stats,
+            ..Default::default()
+        })
     })
+    .await
 }
 
 /// Ordered chunks: each ray chunk is traced and answered in turn; at most `stream_window` answers wait to be sent,

@@ -1,5 +1,8 @@
 //! A tenant's objects and the operations on them, in engine terms: named accels on any device, buffers, and
-//! traces. Every operation checks the configured limits before it allocates.
+//! traces. Every operation checks the configured limits before it allocates. With a data directory every change
+//! is also persisted, and restored at start ([`persistence`]).
+
+mod persistence;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -13,6 +16,7 @@ use rayd_engine::{Accel, BufferHandle, Context, Device};
 
 use crate::config::Limits;
 use crate::error::{ServiceError, ServiceResult};
+use crate::persist::Store;
 use crate::registry::Registry;
 use crate::streams::Streams;
 
@@ -32,6 +36,8 @@ pub struct AccelEntry {
     pub device: String,
     /// How long the build took.
     pub build_ns: u64,
+    /// Updates so far.
+    pub version: u64,
 }
 
 /// A buffer under its id.
@@ -75,6 +81,8 @@ pub struct Tenant {
     next_buffer: AtomicU64,
     /// Open streams.
     streams: Arc<Streams>,
+    /// Where objects are persisted, with a data directory.
+    store: Option<Store>,
 }
 
 /// What a tenant holds now.
@@ -112,6 +120,7 @@ impl Tenant {
             buffers: Registry::new("buffer"),
             next_buffer: AtomicU64::new(1),
             streams: Arc::default(),
+            store: None,
         }
     }
 
@@ -179,12 +188,73 @@ impl Tenant {
             name: name.into(),
             device: device.into(),
             build_ns: start.elapsed().as_nanos() as u64,
+            version: 0,
         };
         if let Err(taken) = self.accels.insert(entry.handle.clone(), name, entry.clone()) {
             context.destroy_accel(entry.accel.handle())?;
             return Err(taken);
         }
+        if let Err(unsaved) = self.persist_accel(&entry) {
+            self.accels.remove(&entry.handle, &entry.name)?;
+            context.destroy_accel(entry.accel.handle())?;
+            return Err(unsaved);
+        }
         Ok(entry)
+    }
+
+    /// Recreates the accels of a saved blob on `device`: the root called `name`, the accels below it `name.1`,
+    /// `name.2`, … in the blob's order, after checking the names, the blob's size against `max_accel_bytes` and the
+    /// accel count against `max_accels`. All or nothing. Blocks: call it off the async runtime.
+    pub fn load_accels(&self, name: &str, device: &str, blob: &[u8]) -> ServiceResult<Vec<AccelEntry>> {
+        check_name("name", name)?;
+        ServiceError::check_limit(
+            || "the blob's bytes".into(),
+            blob.len() as u64,
+            "max_accel_bytes",
+            self.limits.max_accel_bytes,
+        )?;
+        let summary = rayd_engine::serialize::blob_summary(blob)?;
+        let names: Vec<String> = (1..summary.accels).map(|i| format!("{name}.{i}")).chain([name.to_owned()]).collect();
+        for name in &names {
+            check_name("name", name)?;
+            self.accels.check_free(name)?;
+        }
+        ServiceError::check_limit(
+            || "accels of this tenant".into(),
+            (self.accels.len() + names.len()) as u64,
+            "max_accels",
+            self.limits.max_accels as u64,
+        )?;
+        let (device, context) = self.context(device)?;
+        let start = Instant::now();
+        let accels = context.deserialize_accel(blob, &[])?;
+        let build_ns = start.elapsed().as_nanos() as u64;
+        let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
+        for (accel, name) in accels.iter().zip(names) {
+            let entry = AccelEntry {
+                handle: format!("acc-{}", accel.handle().0),
+                accel: Arc::clone(accel),
+                name,
+                device: device.into(),
+                build_ns,
+                version: 0,
+            };
+            let inserted = self.accels.insert(entry.handle.clone(), &entry.name, entry.clone());
+            let saved = inserted.and_then(|()| {
+                entries.push(entry.clone());
+                self.persist_accel(&entry)
+            });
+            if let Err(failed) = saved {
+                for done in entries.iter().rev() {
+                    self.forget_accel(done)?;
+                }
+                for accel in accels.iter().rev() {
+                    context.destroy_accel(accel.handle())?;
+                }
+                return Err(failed);
+            }
+        }
+        Ok(entries)
     }
 
     /// Updates `entry`'s accel with `update` (which gets its context) and keeps the new version under the same handle
@@ -197,8 +267,10 @@ impl Tenant {
         let (_, context) = self.context(&entry.device)?;
         let start = Instant::now();
         let accel = update(context)?;
-        let updated = AccelEntry { accel, build_ns: start.elapsed().as_nanos() as u64, ..entry.clone() };
+        let build_ns = start.elapsed().as_nanos() as u64;
+        let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
         self.accels.replace(&entry.handle, updated.clone())?;
+        self.persist_accel(&updated)?;
         Ok(updated)
     }
 
@@ -218,8 +290,13 @@ impl Tenant {
     /// refused (FAILED_PRECONDITION) and stays.
     pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
         self.context(&entry.device)?.1.destroy_accel(entry.accel.handle())?;
+        self.forget_accel(entry)
+    }
+
+    /// Drops `entry` from the registry and the store (its accel is destroyed by the caller).
+    fn forget_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
         self.accels.remove(&entry.handle, &entry.name)?;
-        Ok(())
+        self.unpersist_accel(&entry.handle)
     }
 
     /// Checks that a buffer of `size` bytes named `name` may be created.
@@ -250,6 +327,11 @@ impl Tenant {
             context.destroy_buffer(handle)?;
             return Err(taken);
         }
+        if let Err(unsaved) = self.persist_buffer(&entry) {
+            self.buffers.remove(&entry.id, &entry.name)?;
+            context.destroy_buffer(handle)?;
+            return Err(unsaved);
+        }
         Ok(entry)
     }
 
@@ -271,7 +353,7 @@ impl Tenant {
     pub fn delete_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
         self.buffers.remove(&entry.id, &entry.name)?;
         self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
-        Ok(())
+        self.unpersist_buffer(&entry.id)
     }
 
     /// Traces `rays` against `accel` into fresh reply buffers. Blocks: call it off the async runtime.

@@ -37,9 +37,9 @@ pub struct InstanceBvh {
     /// Stack entries a trace through it needs: its own path and its deepest child's stack.
     pub(super) stack_size: usize,
     /// The box around every placed child at every time.
-    bounds: Bounds,
+    pub(super) bounds: Bounds,
     /// With `ALLOW_UPDATE`: the input index of the instance in each slot, to refit with new placements.
-    update_order: Option<Vec<u32>>,
+    pub(super) update_order: Option<Vec<u32>>,
 }
 
 /// One accel under a transform (static or moving).

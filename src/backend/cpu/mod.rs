@@ -3,6 +3,7 @@
 
 mod bvh;
 mod instances;
+mod persist;
 mod traverse;
 mod triangles;
 
@@ -12,7 +13,7 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
-use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo};
+use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, Shape};
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
@@ -88,6 +89,10 @@ impl BackendAccel for CpuAccel {
         }
     }
 
+    fn encode(&self, children: &[Arc<Accel>], out: &mut Vec<u8>) -> Result<()> {
+        self.encode_payload(children, out)
+    }
+
     fn as_any(&self) -> &dyn Any {
         self
     }
@@ -148,6 +153,20 @@ impl Backend for CpuBackend {
             return Err(Error::FailedPrecondition("only an instance accel is updated with instances".into()));
         };
         Ok(Box::new(CpuAccel::Instances(bvh.refit(instances)?)))
+    }
+
+    fn layout_version(&self) -> u32 {
+        persist::LAYOUT_VERSION
+    }
+
+    fn decode(
+        &self,
+        shape: &Shape,
+        options: &BuildOptions,
+        payload: &[u8],
+        children: &[Arc<Accel>],
+    ) -> Result<Box<dyn BackendAccel>> {
+        Ok(Box::new(CpuAccel::decode_payload(shape, options, payload, children)?))
     }
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {

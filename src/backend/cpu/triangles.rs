@@ -38,20 +38,20 @@ pub struct TriangleBvh {
     /// Longest root-to-leaf path, in nodes: the traversal stack's size.
     pub(super) depth: usize,
     /// The box around every corner at every key.
-    bounds: Bounds,
+    pub(super) bounds: Bounds,
     /// With `ALLOW_UPDATE`: the input index of the triangle in each slot, to refit with new positions.
-    update_order: Option<Vec<u32>>,
+    pub(super) update_order: Option<Vec<u32>>,
     /// With `ALLOW_RANDOM_VERTEX_ACCESS`: where each input triangle went.
-    random_access: Option<RandomAccess>,
+    pub(super) random_access: Option<RandomAccess>,
 }
 
 /// Maps (geometry id, primitive id) to a triangle's position in the accel.
 #[derive(Debug, Clone)]
-struct RandomAccess {
+pub(super) struct RandomAccess {
     /// Per geometry: its first triangle's index in input order, and its primitive-index offset.
-    geometries: Vec<(u32, u32)>,
+    pub(super) geometries: Vec<(u32, u32)>,
     /// Per triangle in input order: its index in `corners`.
-    slots: Vec<u32>,
+    pub(super) slots: Vec<u32>,
 }
 
 /// Upper bounds of a build's memory for `triangles` triangles in `geometries` inputs.
@@ -208,6 +208,6 @@ impl TriangleBvh {
 }
 
 /// The box around a run of triangles' corners.
-fn corner_bounds(corners: &[[Vec3; 3]]) -> Bounds {
+pub(super) fn corner_bounds(corners: &[[Vec3; 3]]) -> Bounds {
     corners.iter().flatten().fold(EMPTY, |acc, &p| union(acc, (p, p)))
 }

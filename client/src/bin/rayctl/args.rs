@@ -71,6 +71,35 @@ pub enum Command {
         #[arg(long)]
         compact: bool,
     },
+    /// Make a compacted copy of an accel built with --allow-compaction (the same as `copy --compact`).
+    Compact {
+        /// The accel to compact.
+        source: String,
+        /// The compacted copy's name.
+        name: String,
+        /// The copy's device (default: the source's).
+        #[arg(long, value_name = "ID", default_value = "")]
+        device: String,
+    },
+    /// Save an accel and everything below it to a file (a versioned, checksummed blob).
+    Save {
+        /// The accel's name.
+        name: String,
+        /// The file to write.
+        #[arg(short = 'o', long = "output", value_name = "FILE")]
+        output: PathBuf,
+    },
+    /// Load a file written by `save`: the root gets `--name`, the accels below it NAME.1, NAME.2, ….
+    Load {
+        /// The file to read.
+        file: PathBuf,
+        /// The root accel's name (default: the file's name without its extension).
+        #[arg(long, value_name = "NAME")]
+        name: Option<String>,
+        /// The device (default: cpu:0).
+        #[arg(long, value_name = "ID", default_value = "")]
+        device: String,
+    },
     /// Destroy an accel.
     Rm {
         /// The accel's name.

@@ -35,6 +35,24 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         Command::Copy { source, name, device, compact } => {
             Ok(show::accel(&client.copy_accel(source, name, device, *compact).await?))
         }
+        Command::Compact { source, name, device } => {
+            Ok(show::accel(&client.copy_accel(source, name, device, true).await?))
+        }
+        Command::Save { name, output } => {
+            let blob = client.save_accel(name).await?;
+            std::fs::write(output, &blob).map_err(|e| Error::io(output, e))?;
+            let file = output.display().to_string();
+            Ok(Output {
+                json: json!({ "accel": name, "file": file, "bytes": blob.len() }),
+                text: format!("saved {name} to {file} ({} bytes)", blob.len()),
+            })
+        }
+        Command::Load { file, name, device } => {
+            let blob = std::fs::read(file).map_err(|e| Error::io(file, e))?;
+            let stem = || file.file_stem().unwrap_or_default().to_string_lossy().into_owned();
+            let loaded = client.load_accel(&name.clone().unwrap_or_else(stem), device, blob.into()).await?;
+            Ok(show::loaded(&loaded))
+        }
         Command::Rm { name } => {
             client.destroy_accel(name).await?;
             Ok(Output { json: json!({ "destroyed": name }), text: format!("destroyed {name}") })

@@ -167,6 +167,18 @@ pub fn accel(info: &AccelInfo) -> Output {
     Output { json: accel_json(info), text: text.join("\n") }
 }
 
+/// `rayctl load`: the root accel, and how many were loaded.
+pub fn loaded(accels: &[AccelInfo]) -> Output {
+    let Some(root) = accels.last() else {
+        return Output { json: json!({ "accels": [] }), text: "loaded nothing".into() };
+    };
+    let shown = accel(root);
+    Output {
+        json: json!({ "accels": accels.iter().map(accel_json).collect::<Vec<_>>() }),
+        text: format!("loaded {} accel(s)\n{}", accels.len(), shown.text),
+    }
+}
+
 /// `rayctl accels`.
 pub fn accels(accels: &[AccelInfo]) -> Output {
     let rows: Vec<Vec<String>> = accels

@@ -174,7 +174,9 @@ impl Executor {
                 }
             }
         }
-        Ok(buffers::info(&receiving.finish(&self.tenant)?))
+        let tenant = Arc::clone(&self.tenant);
+        // With a data directory the buffer is written to disk: off the async runtime.
+        Ok(buffers::info(&super::super::blocking(move || receiving.finish(&tenant)).await?))
     }
 
     /// Waits until operation `event.operation` of stream `event.stream_id` has finished (or that stream closed).

@@ -1,0 +1,182 @@
+//! A tenant's objects in its [`Store`]: written after every change (a change whose write fails is undone where it
+//! can be, and reported), and restored at start: buffers first, then accels, each after the accels it places. An
+//! accel saved against an older version of a child (the child was updated since, and the accel not) comes back
+//! stale, refusing traces until it is updated, as it did before the restart.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use rayd_engine::Accel;
+
+use super::{AccelEntry, BufferEntry, DEFAULT_DEVICE, Tenant};
+use crate::error::{ServiceError, ServiceResult};
+use crate::persist::{AccelRecord, BufferRecord, ChildRecord, Store};
+
+/// What a restore did.
+#[derive(Debug, Default, PartialEq, Eq)]
+pub struct Restored {
+    /// Buffers restored.
+    pub buffers: usize,
+    /// Accels restored.
+    pub accels: usize,
+    /// Of those, accels that place an older version of a child and refuse traces until updated.
+    pub stale: usize,
+    /// Objects skipped: the file (or handle) and why.
+    pub skipped: Vec<(String, String)>,
+}
+
+/// The number in a `prefix-N` id or handle.
+fn number(id: &str) -> Option<u64> {
+    id.split_once('-')?.1.parse().ok()
+}
+
+impl Tenant {
+    /// Persists this tenant's objects in `store` from now on.
+    pub fn with_store(self, store: Store) -> Tenant {
+        Tenant { store: Some(store), ..self }
+    }
+
+    /// Writes `entry`'s accel (its children referred to) to the store, if there is one.
+    pub(super) fn persist_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
+        let Some(store) = &self.store else { return Ok(()) };
+        let children = entry.accel.children();
+        let registered = self.accels.values();
+        let child_records = children
+            .iter()
+            .map(|child| {
+                let placed = registered.iter().find(|e| Arc::ptr_eq(&e.accel, child)).ok_or_else(|| {
+                    ServiceError::Precondition(format!("accel {:?} places an accel that is not registered", entry.name))
+                })?;
+                Ok(ChildRecord { handle: placed.handle.clone(), version: placed.version })
+            })
+            .collect::<ServiceResult<Vec<_>>>()?;
+        let blob = self.context(&entry.device)?.1.serialize_accel(&entry.accel, children)?;
+        let record = AccelRecord {
+            name: entry.name.clone(),
+            handle: entry.handle.clone(),
+            device: entry.device.clone(),
+            build_ns: entry.build_ns,
+            version: entry.version,
+            children: child_records,
+        };
+        store.put_accel(&record, &blob).map_err(|e| ServiceError::storage(format!("accel {:?}", entry.name), e))
+    }
+
+    /// Removes an accel from the store, if there is one.
+    pub(super) fn unpersist_accel(&self, handle: &str) -> ServiceResult<()> {
+        let Some(store) = &self.store else { return Ok(()) };
+        store.remove_accel(handle).map_err(|e| ServiceError::storage(format!("accel {handle}"), e))
+    }
+
+    /// Writes a buffer to the store, if there is one.
+    pub(super) fn persist_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
+        let Some(store) = &self.store else { return Ok(()) };
+        let data = self.context(DEFAULT_DEVICE)?.1.buffer(entry.handle)?;
+        let record = BufferRecord { id: entry.id.clone(), name: entry.name.clone() };
+        store.put_buffer(&record, &data).map_err(|e| ServiceError::storage(format!("buffer {}", entry.id), e))
+    }
+
+    /// Removes a buffer from the store, if there is one.
+    pub(super) fn unpersist_buffer(&self, id: &str) -> ServiceResult<()> {
+        let Some(store) = &self.store else { return Ok(()) };
+        store.remove_buffer(id).map_err(|e| ServiceError::storage(format!("buffer {id}"), e))
+    }
+
+    /// Restores every object of the store (nothing without one), under the ids, handles and names it had. Files
+    /// that cannot be used are skipped with the reason, and so are accels whose children could not be restored.
+    pub fn restore(&self) -> ServiceResult<Restored> {
+        let Some(store) = &self.store else { return Ok(Restored::default()) };
+        let stored = store.read_all().map_err(|e| ServiceError::storage("the data directory".into(), e))?;
+        let mut restored = Restored {
+            skipped: stored.skipped.into_iter().map(|(path, why)| (path.display().to_string(), why)).collect(),
+            ..Restored::default()
+        };
+        // New objects must never take an id or handle a restored one has.
+        let highest = stored
+            .buffers
+            .iter()
+            .map(|(r, _)| number(&r.id))
+            .chain(stored.accels.iter().map(|(r, _)| number(&r.handle)));
+        let highest = highest.flatten().max().unwrap_or(0);
+        self.next_buffer.fetch_max(highest + 1, std::sync::atomic::Ordering::Relaxed);
+        for context in self.contexts.values() {
+            context.advance_handles(highest);
+        }
+        for (record, data) in stored.buffers {
+            match self.restore_buffer(&record, data) {
+                Ok(()) => restored.buffers += 1,
+                Err(e) => restored.skipped.push((record.id, e.to_string())),
+            }
+        }
+        let mut pending: Vec<(AccelRecord, bytes::Bytes)> = stored.accels;
+        pending.sort_by_key(|(record, _)| number(&record.handle));
+        let mut by_handle: HashMap<String, AccelEntry> = HashMap::new();
+        while !pending.is_empty() {
+            let ready = |record: &AccelRecord| record.children.iter().all(|c| by_handle.contains_key(&c.handle));
+            let Some(next) = pending.iter().position(|(record, _)| ready(record)) else { break };
+            let (record, blob) = pending.remove(next);
+            match self.restore_accel(&record, &blob, &by_handle) {
+                Ok((entry, stale)) => {
+                    restored.accels += 1;
+                    restored.stale += usize::from(stale);
+                    by_handle.insert(record.handle, entry);
+                }
+                Err(e) => restored.skipped.push((record.handle, e.to_string())),
+            }
+        }
+        for (record, _) in pending {
+            let missing: Vec<&str> = record
+                .children
+                .iter()
+                .map(|c| c.handle.as_str())
+                .filter(|handle| !by_handle.contains_key(*handle))
+                .collect();
+            restored.skipped.push((record.handle, format!("its children {missing:?} could not be restored")));
+        }
+        Ok(restored)
+    }
+
+    /// Restores one buffer under its id and name.
+    fn restore_buffer(&self, record: &BufferRecord, data: bytes::Bytes) -> ServiceResult<()> {
+        self.check_new_buffer(&record.name, data.len() as u64)?;
+        let size_bytes = data.len() as u64;
+        let context = self.context(DEFAULT_DEVICE)?.1;
+        let handle = context.create_buffer(data);
+        let entry = BufferEntry { id: record.id.clone(), name: record.name.clone(), handle, size_bytes };
+        self.buffers.insert(record.id.clone(), &record.name, entry).inspect_err(|_| {
+            let _ = context.destroy_buffer(handle);
+        })
+    }
+
+    /// Restores one accel over its restored children; also says whether it comes back stale.
+    fn restore_accel(
+        &self,
+        record: &AccelRecord,
+        blob: &[u8],
+        restored: &HashMap<String, AccelEntry>,
+    ) -> ServiceResult<(AccelEntry, bool)> {
+        let children: Vec<Arc<Accel>> =
+            record.children.iter().map(|c| Arc::clone(&restored[&c.handle].accel)).collect();
+        let stale = record.children.iter().any(|c| restored[&c.handle].version != c.version);
+        let (device, context) = self.context(&record.device)?;
+        let accel = context
+            .deserialize_accel(blob, &children)?
+            .pop()
+            .ok_or_else(|| ServiceError::Precondition(format!("the file of accel {} holds no accel", record.handle)))?;
+        if stale {
+            context.mark_stale(&accel);
+        }
+        let entry = AccelEntry {
+            accel,
+            name: record.name.clone(),
+            handle: record.handle.clone(),
+            device: device.into(),
+            build_ns: record.build_ns,
+            version: record.version,
+        };
+        self.accels.insert(record.handle.clone(), &record.name, entry.clone()).inspect_err(|_| {
+            let _ = context.destroy_accel(entry.accel.handle());
+        })?;
+        Ok((entry, stale))
+    }
+}
