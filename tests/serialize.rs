@@ -269,6 +269,11 @@ fn closest_hits(traced: &[(Vec<u8>, Vec<u8>)]) -> usize {
 /// Asserts that `loaded` (in `loaded_context`) reports the info of `original` and traces as it does.
 fn assert_same(original_context: &Context, original: &Accel, loaded_context: &Context, loaded: &Accel) {
     assert_eq!(loaded.info(), original.info(), "info");
+    assert_traces_same(original_context, original, loaded_context, loaded);
+}
+
+/// Asserts that `loaded` (in `loaded_context`) traces as `original` does.
+fn assert_traces_same(original_context: &Context, original: &Accel, loaded_context: &Context, loaded: &Accel) {
     let rays = rays(3000, 5);
     let expected = trace_all(original_context, original, &rays);
     assert!(closest_hits(&expected) > 100, "the scene is hit ({} hits)", closest_hits(&expected));
@@ -441,6 +446,38 @@ fn a_transform_updated_after_the_load_traces_as_the_original_updated() {
 }
 
 #[test]
+fn empty_accels_round_trip() {
+    let context = cpu();
+    // A geometry accel of degenerate triangles only (no node at all) and an instance accel without instances.
+    let flat = vertex_bytes(&[Vec3::ZERO, Vec3::X, Vec3::X * 2.0]);
+    let indices = words([0, 1, 2, 2, 1, 0]);
+    let inputs = [BuildInput::Triangles(TriangleInput::indexed(&flat, &indices))];
+    let geometry = context.build_accel(&inputs, &BuildOptions::new(KEEP_ALL)).unwrap();
+    let none = context.build_instance_accel(&[], &BuildOptions::new(BuildFlags::ALLOW_UPDATE)).unwrap();
+    let root = context
+        .build_instance_accel(
+            &[
+                instance(&geometry, matrix(Vec3::X, 0.0, Vec3::ONE, Vec3::ZERO), 1),
+                instance(&none, matrix(Vec3::X, 0.0, Vec3::ONE, Vec3::ZERO), 2),
+            ],
+            &BuildOptions::default(),
+        )
+        .unwrap();
+    let blob = context.serialize_accel(&root, &[]).unwrap();
+    let loaded_context = cpu();
+    let loaded = loaded_context.deserialize_accel(&blob, &[]).unwrap();
+    for (original, copy) in children_first(&root).iter().zip(&loaded) {
+        assert_eq!(copy.info(), original.info());
+    }
+    for (geom, prim) in [(0, 0), (0, 1), (0, 2), (1, 0)] {
+        assert_eq!(loaded[0].triangle_vertices(geom, prim), geometry.triangle_vertices(geom, prim), "({geom}, {prim})");
+    }
+    let rays = rays(100, 3);
+    assert!(trace_all(&loaded_context, &loaded[2], &rays) == trace_all(&context, &root, &rays));
+    assert!(loaded_context.serialize_accel(&loaded[2], &[]).unwrap() == blob);
+}
+
+#[test]
 fn stale_graphs_and_replaced_versions_are_not_serialized() {
     let context = cpu();
     let geometry = masked_geometry(&context, Vec3::ZERO);
@@ -463,10 +500,19 @@ fn stale_graphs_and_replaced_versions_are_not_serialized() {
 // External children.
 // ---------------------------------------------------------------------------------------------------------------
 
-/// An instance accel over a geometry accel (placed twice) and a static transform of a moving one, in `context`;
-/// returns it and its direct children.
-fn over_two_children(context: &Context) -> (Arc<Accel>, Vec<Arc<Accel>>) {
-    let geometry = masked_geometry(context, Vec3::ZERO);
+/// The instances of [`over_two_children`]'s instance accel.
+fn three_instances(geometry: &Arc<Accel>, transform: &Arc<Accel>) -> Vec<Instance> {
+    vec![
+        instance(geometry, matrix(Vec3::X, 0.0, Vec3::ONE, Vec3::ZERO), 1),
+        instance(transform, matrix(Vec3::X, 0.4, Vec3::ONE, Vec3::ZERO), 2),
+        instance(geometry, matrix(Vec3::Y, 0.9, Vec3::splat(0.5), Vec3::new(1.0, 1.0, 0.0)), 3),
+    ]
+}
+
+/// An instance accel over a geometry accel (placed twice, `shift`ed) and a static transform of a moving one, in
+/// `context`; returns it and its direct children.
+fn over_two_children(context: &Context, shift: Vec3) -> (Arc<Accel>, Vec<Arc<Accel>>) {
+    let geometry = masked_geometry(context, shift);
     let moving = moving_geometry(
         context,
         100,
@@ -476,23 +522,16 @@ fn over_two_children(context: &Context) -> (Arc<Accel>, Vec<Arc<Accel>>) {
     let transform =
         context.build_transform(&TransformInput::Static(matrix(Vec3::Z, 0.5, Vec3::ONE, Vec3::Y)), &moving).unwrap();
     let parent = context
-        .build_instance_accel(
-            &[
-                instance(&geometry, matrix(Vec3::X, 0.0, Vec3::ONE, Vec3::ZERO), 1),
-                instance(&transform, matrix(Vec3::X, 0.4, Vec3::ONE, Vec3::ZERO), 2),
-                instance(&geometry, matrix(Vec3::Y, 0.9, Vec3::splat(0.5), Vec3::new(1.0, 1.0, 0.0)), 3),
-            ],
-            &BuildOptions::default(),
-        )
+        .build_instance_accel(&three_instances(&geometry, &transform), &BuildOptions::new(BuildFlags::ALLOW_UPDATE))
         .unwrap();
     let children = parent.children().to_vec();
     (parent, children)
 }
 
 #[test]
-fn external_children_are_referred_to_and_must_be_supplied_equivalent_and_complete() {
+fn external_children_are_referred_to_and_must_be_supplied_complete_and_of_their_kinds() {
     let context = cpu();
-    let (parent, children) = over_two_children(&context);
+    let (parent, children) = over_two_children(&context, Vec3::ZERO);
     assert_eq!(children.len(), 2);
     let blob = context.serialize_accel(&parent, &children).unwrap();
     let summary = blob_summary(&blob).unwrap();
@@ -501,7 +540,7 @@ fn external_children_are_referred_to_and_must_be_supplied_equivalent_and_complet
 
     // Another context, with equivalent children built there.
     let other = cpu();
-    let (_, equivalent) = over_two_children(&other);
+    let (_, equivalent) = over_two_children(&other, Vec3::ZERO);
     let loaded = other.deserialize_accel(&blob, &equivalent).unwrap();
     assert_eq!(loaded.len(), 1);
     assert_same(&context, &parent, &other, &loaded[0]);
@@ -519,6 +558,28 @@ fn external_children_are_referred_to_and_must_be_supplied_equivalent_and_complet
     let err = other.deserialize_accel(&blob, &swapped).unwrap_err();
     assert!(err.to_string().contains("external accel 0"), "{err}");
     assert_eq!(other.accel_handles(), before);
+
+    // Children of other bounds (newer versions): the parent loads stale, and traces once updated over them.
+    let (moved_parent, moved) = over_two_children(&other, Vec3::new(0.2, -0.1, 0.0));
+    let stale = other.deserialize_accel(&blob, &moved).unwrap().pop().unwrap();
+    let (rays, query) = (pack_rays(&rays(10, 1), RayFormat::Full), Query::closest(RayFormat::Full, HitFormat::Full));
+    let mut hits = vec![0u8; 10 * 80];
+    let err = other.trace(&stale, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::FailedPrecondition, "{err}");
+    assert_eq!(other.serialize_accel(&stale, &moved).unwrap_err().kind(), ErrorKind::FailedPrecondition);
+    let updated = other.update_instance_accel(&stale, &three_instances(&moved[0], &moved[1])).unwrap();
+    assert_traces_same(&other, &moved_parent, &other, &updated);
+
+    // A grandchild external, below an embedded transform: a newer version leaves the transform's parent stale.
+    let moving = &children[1].children()[0];
+    let blob = context.serialize_accel(&parent, std::slice::from_ref(moving)).unwrap();
+    assert_eq!(blob_summary(&blob).unwrap().accels, 3);
+    let options = BuildOptions { motion: motion(2, 0.0, 1.0, MotionFlags::empty()), ..BuildOptions::default() };
+    for (scale, stale) in [(1.0, false), (1.2, true)] {
+        let loaded = other.deserialize_accel(&blob, &[moving_geometry(&other, 100, &options, scale)]).unwrap();
+        let traced = other.trace(&loaded[2], &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] });
+        assert_eq!(traced.is_err(), stale, "scale {scale}");
+    }
 
     // Refusals at serialization: the root among the external accels.
     assert_eq!(

@@ -38,6 +38,14 @@ pub enum IndexFormat {
 }
 
 impl IndexFormat {
+    /// The format's name in lower case (`u32x3`, `u16x3`).
+    pub const fn name(self) -> &'static str {
+        match self {
+            IndexFormat::U32x3 => "u32x3",
+            IndexFormat::U16x3 => "u16x3",
+        }
+    }
+
     /// Bytes of one triangle's indices.
     pub const fn triangle_size(self) -> usize {
         match self {

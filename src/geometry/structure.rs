@@ -1,8 +1,6 @@
 //! What an update must keep: the structure of a triangle build (per input: triangle count, primitive-index offset,
 //! flags, the bytes of its indices and masks), as a key to compare, after the seed's DynamicAccel.
 
-use std::hash::{DefaultHasher, Hash, Hasher};
-
 use super::{BuildInput, GeometryFlags, triangle_counts};
 use crate::error::Result;
 
@@ -28,12 +26,13 @@ pub struct Structure {
     pub(crate) inputs: Vec<InputStructure>,
 }
 
-/// A hash of `bytes`.
-fn hash(bytes: &[u8], tag: impl Hash) -> u64 {
-    let mut hasher = DefaultHasher::new();
-    tag.hash(&mut hasher);
-    bytes.hash(&mut hasher);
-    hasher.finish()
+/// A hash of `bytes` under `tag` that stays the same across Rust releases and machines (it is persisted with
+/// updatable accels): the CRC-32 of tag and bytes above their length.
+fn hash(bytes: &[u8], tag: &str) -> u64 {
+    let mut crc = crc32fast::Hasher::new();
+    crc.update(tag.as_bytes());
+    crc.update(bytes);
+    (u64::from(crc.finalize()) << 32) | (bytes.len() as u64 & 0xFFFF_FFFF)
 }
 
 impl Structure {
@@ -48,7 +47,7 @@ impl Structure {
                 triangles,
                 offset: input.primitive_index_offset,
                 flags: input.flags,
-                topology: input.indices.map_or(0, |i| hash(i.data, i.format)),
+                topology: input.indices.map_or(0, |i| hash(i.data, i.format.name())),
                 masks: input.masks.map_or(0, |m| hash(m, "masks")),
             })
             .collect();

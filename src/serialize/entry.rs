@@ -2,7 +2,7 @@
 //! an update must keep and a transform's keys (layout in the [module documentation](super)). Reading checks each
 //! field on its own and against the others; resolving the references is the caller's.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 
 use super::wire::{Reader, Wire, invalid, put, put_array, u32_at};
@@ -180,10 +180,12 @@ fn check_children(children: &[u32], kind: AccelKind, index: usize, external: usi
         AccelKind::Instances => None,
         AccelKind::Transform | AccelKind::MatrixMotionTransform | AccelKind::SrtMotionTransform => Some(1),
     };
-    if expected.is_some_and(|n| n != children.len()) {
-        return Err(invalid(format!("{} children; a {kind:?} accel has {}", children.len(), expected.unwrap_or(0))));
+    if let Some(expected) = expected
+        && expected != children.len()
+    {
+        return Err(invalid(format!("{} children; a {kind:?} accel has {expected}", children.len())));
     }
-    let mut seen = std::collections::HashSet::with_capacity(children.len());
+    let mut seen = HashSet::with_capacity(children.len());
     for (position, &code) in children.iter().enumerate() {
         let (target, limit, what) = match code & EXTERNAL_BIT {
             0 => (code as usize, index, "earlier accels"),
@@ -244,7 +246,8 @@ fn read_transform(reader: &mut Reader<'_>, kind: AccelKind, motion: &MotionOptio
     Ok(input)
 }
 
-/// What a blob records of an external accel, to check the one given at load: its kind and its bounds.
+/// What a blob records of an external accel, to check the one given at load: its kind, and its bounds (which
+/// the accels placing it were built over).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct ExternalRecord {
     /// The kind's code.
@@ -259,10 +262,10 @@ impl ExternalRecord {
         ExternalRecord { kind: kind_code(accel.info().kind), bounds: accel.info().bounds }
     }
 
-    /// Whether `other` records the same kind and bit-identical bounds.
-    pub(crate) fn matches(&self, other: &ExternalRecord) -> bool {
+    /// Whether `other` records bit-identical bounds.
+    pub(crate) fn same_bounds(&self, other: &ExternalRecord) -> bool {
         let bits = |r: &ExternalRecord| [r.bounds.0, r.bounds.1].map(|v| v.to_array().map(f32::to_bits));
-        self.kind == other.kind && bits(self) == bits(other)
+        bits(self) == bits(other)
     }
 }
 

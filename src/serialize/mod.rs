@@ -4,8 +4,10 @@
 //! A blob holds an accel (the root) and every accel below it that is not external, each once (an accel placed by
 //! many instances, or reached along many paths, is stored once and shared again when loaded), children before
 //! their parents, the root last. External accels are referred to by their position in the list given to
-//! [`Context::serialize_accel`]; [`Context::deserialize_accel`] must be given equivalent accels in the same
-//! order (same kind and bit-identical bounds, checked). A loaded accel traces bit for bit as the original,
+//! [`Context::serialize_accel`]; [`Context::deserialize_accel`] must be given accels of the same kinds in the same
+//! order (checked). Given ones with other bounds than those recorded (newer versions, as when a parent is restored
+//! after its child was updated), the instance accels built over them load stale: they refuse traces until they
+//! are updated (see [`Context::mark_stale`]). A loaded accel traces bit for bit as the original,
 //! reports the same [`AccelInfo`](crate::accel::AccelInfo) (its `size_bytes` is that of an exact-size copy, as
 //! after [`Context::copy_accel`]), and keeps what updates, compaction and random vertex access need. Only the
 //! current version of an accel is serialized; an accel whose graph is stale is refused.
@@ -108,8 +110,10 @@ impl Context {
     }
 
     /// Creates in this context every accel a blob embeds, children first, the root last, and returns them;
-    /// `external` supplies, in order, the accels the blob refers to. A damaged or inconsistent blob is
-    /// INVALID_ARGUMENT, one this build cannot read FAILED_PRECONDITION; on any error no accel is left behind.
+    /// `external` supplies, in order, the accels the blob refers to (as many, of the recorded kinds and this
+    /// context's device; those whose bounds changed since leave the instance accels over them stale). A damaged
+    /// or inconsistent blob is INVALID_ARGUMENT, one this build cannot read FAILED_PRECONDITION; on any error no
+    /// accel is left behind.
     pub fn deserialize_accel(&self, blob: &[u8], external: &[Arc<Accel>]) -> Result<Vec<Arc<Accel>>> {
         read::accels(self, blob, external)
     }

@@ -1,6 +1,11 @@
 //! Reading a blob: the header, the external accels given against what the blob recorded of them, then each
 //! entry in turn, made into an accel of the context over the accels before it. A failure takes back every accel
 //! already made.
+//!
+//! An external accel of the recorded kind whose bounds differ from the recorded ones (a newer version of the
+//! accel the blob was made over, as when a parent is restored after its child was updated) is accepted, but the
+//! instance accels built over it (directly or through transforms, which are rebuilt over it) are marked stale:
+//! their boxes may not hold it, so they refuse traces until they are updated.
 
 use std::sync::Arc;
 
@@ -8,6 +13,7 @@ use super::entry::{EXTERNAL_BIT, Entry, ExternalRecord, kind_of};
 use super::header::{HEADER_BYTES, Header};
 use super::wire::{Reader, invalid};
 use crate::accel::AccelKind;
+use crate::backend::BackendKind;
 use crate::context::{Accel, Context};
 use crate::error::{Error, Result};
 use crate::geometry::MAX_GRAPH_DEPTH;
@@ -29,27 +35,25 @@ pub(crate) fn accels(context: &Context, blob: &[u8], external: &[Arc<Accel>]) ->
     if records.len() != external.len() {
         return Err(invalid(format!("{} external records, the header counts {}", records.len(), external.len())));
     }
+    let mut graph = Graph { context, made: Vec::new(), external: Vec::with_capacity(external.len()) };
     for (index, (accel, record)) in external.iter().zip(&records).enumerate() {
-        check_external(index, accel, record, device)?;
+        let moved = check_external(index, accel, record, device)?;
+        graph.external.push((Arc::clone(accel), moved));
     }
-    let mut made = Made { context, accels: Vec::new() };
     for index in 0..header.accels as usize {
-        let accel = Entry::read(&mut reader, index, external.len())
-            .and_then(|entry| make(context, entry, &made.accels, external))
+        let made = Entry::read(&mut reader, index, external.len())
+            .and_then(|entry| graph.make(entry))
             .map_err(|e| within(index, e))?;
-        made.accels.push(accel);
+        graph.made.push(made);
     }
     reader.finish("the payload")?;
-    Ok(made.keep())
+    Ok(graph.keep())
 }
 
-/// Checks external accel `index` against what the blob recorded of it.
-fn check_external(
-    index: usize,
-    accel: &Accel,
-    record: &ExternalRecord,
-    device: crate::backend::BackendKind,
-) -> Result<()> {
+/// Checks external accel `index` against what the blob recorded of it: of this context's device
+/// (FAILED_PRECONDITION otherwise) and of the recorded kind (INVALID_ARGUMENT otherwise). Returns whether its
+/// bounds differ from the recorded ones.
+fn check_external(index: usize, accel: &Accel, record: &ExternalRecord, device: BackendKind) -> Result<bool> {
     if accel.backend_kind() != device {
         return Err(Error::FailedPrecondition(format!(
             "external accel {index} (accel {}) is a {:?} accel; this context's device is {device:?}",
@@ -58,46 +62,82 @@ fn check_external(
         )));
     }
     let given = ExternalRecord::of(accel);
-    if !given.matches(record) {
-        let kind = kind_of(record.kind)?;
+    if given.kind != record.kind {
         return Err(Error::InvalidExternal(format!(
-            "external accel {index} (accel {}) is a {:?} accel with bounds {:?}; the blob was made over a {kind:?} \
-             accel with bounds {:?}",
+            "external accel {index} (accel {}) is a {:?} accel; the blob was made over a {:?} accel",
             accel.handle().0,
             accel.info().kind,
-            accel.info().bounds,
-            record.bounds
+            kind_of(record.kind)?
         )));
     }
-    Ok(())
+    Ok(!given.same_bounds(record))
 }
 
-/// Makes the accel of `entry` in `context`, over the accels `made` before it and `external`.
-fn make(context: &Context, entry: Entry<'_>, made: &[Arc<Accel>], external: &[Arc<Accel>]) -> Result<Arc<Accel>> {
-    let children: Vec<Arc<Accel>> = entry
-        .children
-        .iter()
-        .map(|&code| match code & EXTERNAL_BIT {
-            0 => Arc::clone(&made[code as usize]),
-            _ => Arc::clone(&external[(code & !EXTERNAL_BIT) as usize]),
-        })
-        .collect();
-    let deepest = children.iter().map(|c| c.info().depth).max().unwrap_or(0);
-    if deepest >= MAX_GRAPH_DEPTH {
-        return Err(invalid(format!(
-            "it would head a graph of {} levels, more than {MAX_GRAPH_DEPTH}",
-            u64::from(deepest) + 1
-        )));
-    }
-    let backend = context.backend();
-    let data = match (entry.shape.kind, &entry.transform, children.as_slice()) {
-        (AccelKind::Triangles | AccelKind::Instances, _, _) => {
-            backend.decode(&entry.shape, &entry.options, entry.payload, &children)?
+/// The accels a blob's entries may place: those made from it so far (destroyed again, last first, unless kept)
+/// and the external ones, each with whether its bounds may differ from those the blob's accels were built over.
+struct Graph<'a> {
+    /// The context they are made in.
+    context: &'a Context,
+    /// The accels made, in the blob's order.
+    made: Vec<(Arc<Accel>, bool)>,
+    /// The external accels.
+    external: Vec<(Arc<Accel>, bool)>,
+}
+
+impl Graph<'_> {
+    /// Makes the accel of `entry` over the accels its child references name (checked by [`Entry::read`]).
+    fn make(&self, entry: Entry<'_>) -> Result<(Arc<Accel>, bool)> {
+        let (children, moved): (Vec<Arc<Accel>>, Vec<bool>) = entry
+            .children
+            .iter()
+            .map(|&code| {
+                let (accel, moved) = match code & EXTERNAL_BIT {
+                    0 => &self.made[code as usize],
+                    _ => &self.external[(code & !EXTERNAL_BIT) as usize],
+                };
+                (Arc::clone(accel), *moved)
+            })
+            .unzip();
+        let deepest = children.iter().map(|c| c.info().depth).max().unwrap_or(0);
+        if deepest >= MAX_GRAPH_DEPTH {
+            return Err(invalid(format!(
+                "it would head a graph of {} levels, more than {MAX_GRAPH_DEPTH}",
+                u64::from(deepest) + 1
+            )));
         }
-        (_, Some(transform), [child]) if entry.payload.is_empty() => backend.build_transform(transform, child)?,
-        _ => return Err(invalid("a transform with a backend payload")),
-    };
-    Ok(context.register(entry.shape, &entry.options, data, children, entry.retained))
+        let backend = self.context.backend();
+        let data = match (entry.shape.kind, &entry.transform, children.as_slice()) {
+            (AccelKind::Triangles | AccelKind::Instances, _, _) => {
+                backend.decode(&entry.shape, &entry.options, entry.payload, &children)?
+            }
+            (_, Some(transform), [child]) if entry.payload.is_empty() => backend.build_transform(transform, child)?,
+            _ => return Err(invalid("a transform with a backend payload")),
+        };
+        let kind = entry.shape.kind;
+        let accel = self.context.register(entry.shape, &entry.options, data, children, entry.retained);
+        let over_moved = moved.contains(&true);
+        if over_moved && kind == AccelKind::Instances {
+            self.context.mark_stale(&accel);
+        }
+        // A transform is rebuilt over its child: its bounds follow the child's.
+        let transform =
+            matches!(kind, AccelKind::Transform | AccelKind::MatrixMotionTransform | AccelKind::SrtMotionTransform);
+        Ok((accel, over_moved && transform))
+    }
+
+    /// Keeps the accels made.
+    fn keep(mut self) -> Vec<Arc<Accel>> {
+        std::mem::take(&mut self.made).into_iter().map(|(accel, _)| accel).collect()
+    }
+}
+
+impl Drop for Graph<'_> {
+    fn drop(&mut self) {
+        while let Some((accel, _)) = self.made.pop() {
+            // Nothing but accels made after it places it, and those are gone: it can be destroyed.
+            let _ = self.context.destroy_accel(accel.handle());
+        }
+    }
 }
 
 /// `error`, when it is about the blob, said to be about accel `index`.
@@ -105,29 +145,5 @@ fn within(index: usize, error: Error) -> Error {
     match error {
         Error::InvalidBlob(what) => Error::InvalidBlob(format!("accel {index}: {what}")),
         other => other,
-    }
-}
-
-/// The accels made so far from a blob: destroyed again, last first, unless kept.
-struct Made<'a> {
-    /// Their context.
-    context: &'a Context,
-    /// The accels, in the blob's order.
-    accels: Vec<Arc<Accel>>,
-}
-
-impl Made<'_> {
-    /// Keeps the accels made.
-    fn keep(mut self) -> Vec<Arc<Accel>> {
-        std::mem::take(&mut self.accels)
-    }
-}
-
-impl Drop for Made<'_> {
-    fn drop(&mut self) {
-        while let Some(accel) = self.accels.pop() {
-            // Nothing but accels made after it places it, and those are gone: it can be destroyed.
-            let _ = self.context.destroy_accel(accel.handle());
-        }
     }
 }

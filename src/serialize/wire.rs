@@ -43,7 +43,7 @@ pub(crate) fn put_u32_at(bytes: &mut [u8], at: usize, value: u32) {
 
 /// Writes `value` at byte `at`.
 #[inline(always)]
-pub(crate) fn put_f32_at(bytes: &mut [u8], at: usize, value: f32) {
+fn put_f32_at(bytes: &mut [u8], at: usize, value: f32) {
     bytes[at..at + 4].copy_from_slice(&value.to_le_bytes());
 }
 
