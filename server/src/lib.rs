@@ -3,6 +3,7 @@
 //! [`run`] takes its listeners and its shutdown future from the caller, so tests bind port 0 and stop it
 //! cleanly; `main.rs` only reads the configuration and signals.
 
+mod access;
 mod admin;
 pub mod config;
 mod convert;
@@ -35,13 +36,8 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let metrics = metrics::install();
-    let store = match &config.data_dir {
-        Some(dir) => Some(persist::Store::open(dir, "default")?),
-        None => None,
-    };
-    let limits = config.limits;
-    let max_message = usize::try_from(limits.max_message_bytes).unwrap_or(usize::MAX);
-    let rayd = RaydServer::new(RaydService::new(Device::all(), limits, store)?)
+    let max_message = usize::try_from(config.limits.max_message_bytes).unwrap_or(usize::MAX);
+    let rayd = RaydServer::new(RaydService::new(Device::all(), &config)?)
         .max_decoding_message_size(max_message)
         .max_encoding_message_size(max_message);
     let (health, health_service) = tonic_health::server::health_reporter();

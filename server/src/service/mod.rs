@@ -14,6 +14,8 @@ use rayd_proto as pb;
 use rayd_proto::rayd_server::Rayd;
 use tonic::{Request, Response, Status, Streaming};
 
+use crate::access::Tenants;
+use crate::config::{Config, Limits, Role};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::metrics::observe;
@@ -25,42 +27,61 @@ use crate::tenant::Tenant;
 pub struct RaydService {
     /// The devices of this server.
     devices: Vec<Device>,
-    /// The single tenant of a server without tenant configuration.
-    tenant: Arc<Tenant>,
+    /// The tenants, and how a call reaches its own.
+    tenants: Tenants,
 }
 
 impl RaydService {
-    /// A service over `devices` with one default tenant held to `limits`; with a `store`, the tenant's objects
-    /// are restored from it (what cannot be restored is logged and skipped) and persisted in it from now on.
-    pub fn new(
-        devices: Vec<Device>,
-        limits: crate::config::Limits,
-        store: Option<Store>,
-    ) -> Result<RaydService, ServiceError> {
-        let mut tenant = Tenant::new(limits, &devices);
-        if let Some(store) = store {
-            tenant = tenant.with_store(store);
-            let start = std::time::Instant::now();
-            let restored = tenant.restore()?;
-            for (object, why) in &restored.skipped {
-                tracing::warn!(%object, %why, "not restored");
+    /// A service over `devices` with the configured tenants (or one default tenant without authentication), each
+    /// held to its limits; with a data directory, each tenant's objects are restored from its directory (what
+    /// cannot be restored is logged and skipped) and persisted there from now on.
+    pub fn new(devices: Vec<Device>, config: &Config) -> Result<RaydService, ServiceError> {
+        let make = |name: &str, limits: Limits| -> Result<Arc<Tenant>, ServiceError> {
+            let mut tenant = Tenant::new(limits, &devices);
+            if let Some(dir) = &config.data_dir {
+                let store = Store::open(dir, name)
+                    .map_err(|e| ServiceError::storage(format!("tenant {name:?}'s directory"), e))?;
+                tenant = tenant.with_store(store);
+                restore_logged(name, &tenant)?;
             }
-            tracing::info!(
-                buffers = restored.buffers,
-                accels = restored.accels,
-                stale = restored.stale,
-                skipped = restored.skipped.len(),
-                ms = start.elapsed().as_millis() as u64,
-                "restored the data directory"
-            );
-        }
-        Ok(RaydService { devices, tenant: Arc::new(tenant) })
+            Ok(Arc::new(tenant))
+        };
+        let tenants = if config.tenants.is_empty() {
+            Tenants::open(make("default", config.limits)?)
+        } else {
+            let mut keys = Vec::new();
+            for configured in &config.tenants {
+                let tenant = make(&configured.name, configured.limits)?;
+                keys.extend(configured.keys.iter().map(|k| (k.key.clone(), k.role, Arc::clone(&tenant))));
+            }
+            Tenants::with_keys(keys)
+        };
+        Ok(RaydService { devices, tenants })
     }
 
-    /// The tenant a request acts for.
-    fn tenant<T>(&self, _request: &Request<T>) -> Arc<Tenant> {
-        Arc::clone(&self.tenant)
+    /// The tenant a request acts for, if its key may make `call`, which needs `needs`.
+    fn caller<T>(&self, request: &Request<T>, call: &str, needs: Role) -> Result<Arc<Tenant>, Status> {
+        self.tenants.caller(request, call, needs)
     }
+}
+
+/// Restores `tenant`'s objects, logging what was restored and what was skipped (and why).
+fn restore_logged(name: &str, tenant: &Tenant) -> Result<(), ServiceError> {
+    let start = std::time::Instant::now();
+    let restored = tenant.restore()?;
+    for (object, why) in &restored.skipped {
+        tracing::warn!(tenant = name, %object, %why, "not restored");
+    }
+    tracing::info!(
+        tenant = name,
+        buffers = restored.buffers,
+        accels = restored.accels,
+        stale = restored.stale,
+        skipped = restored.skipped.len(),
+        ms = start.elapsed().as_millis() as u64,
+        "restored the data directory"
+    );
+    Ok(())
 }
 
 /// Runs blocking work (builds, traces) on tokio's blocking pool so the async runtime keeps serving.
@@ -79,7 +100,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::GetServerInfoRequest>,
     ) -> Result<Response<pb::ServerInfo>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "GetServerInfo", Role::Read)?;
         observe("GetServerInfo", async {
             Ok(pb::ServerInfo {
                 version: env!("CARGO_PKG_VERSION").into(),
@@ -92,8 +113,9 @@ impl Rayd for RaydService {
 
     async fn list_devices(
         &self,
-        _: Request<pb::ListDevicesRequest>,
+        request: Request<pb::ListDevicesRequest>,
     ) -> Result<Response<pb::ListDevicesResponse>, Status> {
+        self.caller(&request, "ListDevices", Role::Read)?;
         observe("ListDevices", async {
             let devices = self.devices.iter().map(|d| convert::device(d.info())).collect();
             Ok(pb::ListDevicesResponse { devices })
@@ -105,7 +127,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<Streaming<pb::UploadBufferRequest>>,
     ) -> Result<Response<pb::BufferInfo>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "UploadBuffer", Role::Write)?;
         observe("UploadBuffer", buffers::upload(tenant, request.into_inner())).await
     }
 
@@ -115,7 +137,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::DownloadBufferRequest>,
     ) -> Result<Response<Self::DownloadBufferStream>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "DownloadBuffer", Role::Read)?;
         observe("DownloadBuffer", async { buffers::download(&tenant, request.get_ref()) }).await
     }
 
@@ -123,7 +145,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::DeleteBufferRequest>,
     ) -> Result<Response<pb::DeleteBufferResponse>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "DeleteBuffer", Role::Write)?;
         observe("DeleteBuffer", async {
             buffers::delete(&tenant, request.get_ref())?;
             Ok(pb::DeleteBufferResponse {})
@@ -135,7 +157,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::ListBuffersRequest>,
     ) -> Result<Response<pb::ListBuffersResponse>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "ListBuffers", Role::Read)?;
         observe("ListBuffers", async {
             Ok(pb::ListBuffersResponse { buffers: tenant.buffers().iter().map(buffers::info).collect() })
         })
@@ -146,7 +168,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::ComputeMemoryUsageRequest>,
     ) -> Result<Response<pb::MemoryUsage>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "ComputeMemoryUsage", Role::Read)?;
         observe("ComputeMemoryUsage", async {
             let request = request.into_inner();
             let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
@@ -158,22 +180,22 @@ impl Rayd for RaydService {
     }
 
     async fn build_accel(&self, request: Request<pb::BuildAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "BuildAccel", Role::Write)?;
         observe("BuildAccel", accels::build(tenant, request.into_inner())).await
     }
 
     async fn update_accel(&self, request: Request<pb::UpdateAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "UpdateAccel", Role::Write)?;
         observe("UpdateAccel", accels::update(tenant, request.into_inner())).await
     }
 
     async fn copy_accel(&self, request: Request<pb::CopyAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "CopyAccel", Role::Write)?;
         observe("CopyAccel", accels::copy(tenant, request.into_inner())).await
     }
 
     async fn get_accel(&self, request: Request<pb::GetAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "GetAccel", Role::Read)?;
         observe("GetAccel", async {
             Ok(accels::info(&accels::resolve(&tenant, request.get_ref().accel.as_ref(), "accel")?))
         })
@@ -184,7 +206,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::ListAccelsRequest>,
     ) -> Result<Response<pb::ListAccelsResponse>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "ListAccels", Role::Read)?;
         observe("ListAccels", async {
             Ok(pb::ListAccelsResponse { accels: tenant.accels().iter().map(accels::info).collect() })
         })
@@ -195,7 +217,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::DestroyAccelRequest>,
     ) -> Result<Response<pb::DestroyAccelResponse>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "DestroyAccel", Role::Write)?;
         observe("DestroyAccel", async {
             accels::destroy(&tenant, request.get_ref())?;
             Ok(pb::DestroyAccelResponse {})
@@ -204,7 +226,7 @@ impl Rayd for RaydService {
     }
 
     async fn save_accel(&self, request: Request<pb::SaveAccelRequest>) -> Result<Response<pb::BufferInfo>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "SaveAccel", Role::Write)?;
         observe("SaveAccel", accels::save(tenant, request.into_inner())).await
     }
 
@@ -212,7 +234,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::LoadAccelRequest>,
     ) -> Result<Response<pb::LoadAccelResponse>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "LoadAccel", Role::Write)?;
         observe("LoadAccel", accels::load(tenant, request.into_inner())).await
     }
 
@@ -220,7 +242,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::TraceBatchRequest>,
     ) -> Result<Response<pb::TraceBatchResponse>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "TraceBatch", Role::Read)?;
         observe("TraceBatch", trace::batch(tenant, request.into_inner())).await
     }
 
@@ -230,7 +252,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<Streaming<pb::TraceStreamRequest>>,
     ) -> Result<Response<Self::TraceStreamStream>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "TraceStream", Role::Read)?;
         observe("TraceStream", trace::stream(tenant, request.into_inner())).await
     }
 
@@ -240,7 +262,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<Streaming<pb::StreamRequest>>,
     ) -> Result<Response<Self::OpenStreamStream>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "OpenStream", Role::Write)?;
         observe("OpenStream", async { stream::open(tenant, request.into_inner()) }).await
     }
 
@@ -248,7 +270,7 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::CancelStreamRequest>,
     ) -> Result<Response<pb::CancelStreamResponse>, Status> {
-        let tenant = self.tenant(&request);
+        let tenant = self.caller(&request, "CancelStream", Role::Write)?;
         observe("CancelStream", async {
             tenant.streams().cancel(request.get_ref().stream_id)?;
             Ok(pb::CancelStreamResponse {})

@@ -4,11 +4,14 @@
 //! Every key of the file can also be set from the environment as `RAYD_<SECTION>_<KEY>` in upper case, e.g.
 //! `RAYD_LIMITS_MAX_RAYS_PER_BATCH=1000000`; top-level keys as `RAYD_<KEY>` (`RAYD_LISTEN`).
 
+mod tenants;
+
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
 use rayd_engine::geometry::motion::MAX_MOTION_KEYS;
 use serde::{Deserialize, Serialize};
+pub use tenants::{KeyConfig, MIN_KEY_CHARS, Role, TenantConfig};
 
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -26,8 +29,10 @@ pub struct Config {
     /// After SIGTERM, how long calls in flight (and open streams, such as health watches) may go on before rayd
     /// exits anyway.
     pub shutdown_grace_seconds: u64,
-    /// Request limits.
+    /// Request limits (of the default tenant, and of configured tenants where they set none of their own).
     pub limits: Limits,
+    /// Tenants and their API keys. None: one default tenant, no authentication (for loopback use).
+    pub tenants: Vec<TenantConfig>,
 }
 
 impl Default for Config {
@@ -39,6 +44,7 @@ impl Default for Config {
             log_format: "text".into(),
             shutdown_grace_seconds: 30,
             limits: Limits::default(),
+            tenants: Vec::new(),
         }
     }
 }
@@ -91,6 +97,24 @@ impl Default for Limits {
     }
 }
 
+impl Limits {
+    /// Checks the limits that have a range; errors name the key under `section`.
+    fn check(&self, section: &str) -> Result<(), String> {
+        let depth = self.max_graph_depth;
+        if !(1..=rayd_engine::geometry::MAX_GRAPH_DEPTH).contains(&depth) {
+            return Err(format!(
+                "{section}.max_graph_depth = {depth} must be 1 to {}",
+                rayd_engine::geometry::MAX_GRAPH_DEPTH
+            ));
+        }
+        let keys = self.max_motion_keys;
+        if !(1..=MAX_MOTION_KEYS).contains(&keys) {
+            return Err(format!("{section}.max_motion_keys = {keys} must be 1 to {MAX_MOTION_KEYS}"));
+        }
+        Ok(())
+    }
+}
+
 /// Why a configuration could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -124,21 +148,30 @@ impl Config {
         }
         let env: Vec<(String, String)> = env.into_iter().filter(|(k, _)| k.starts_with("RAYD_")).collect();
         overlay_env(&mut table, "RAYD", &env)?;
+        inherit_limits(&mut table);
         let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
-        let depth = config.limits.max_graph_depth;
-        if !(1..=rayd_engine::geometry::MAX_GRAPH_DEPTH).contains(&depth) {
-            return Err(ConfigError::Invalid(format!(
-                "limits.max_graph_depth = {depth} must be 1 to {}",
-                rayd_engine::geometry::MAX_GRAPH_DEPTH
-            )));
+        config.limits.check("limits").map_err(ConfigError::Invalid)?;
+        for (i, tenant) in config.tenants.iter().enumerate() {
+            tenant.limits.check(&format!("tenants[{i}].limits")).map_err(ConfigError::Invalid)?;
         }
-        let keys = config.limits.max_motion_keys;
-        if !(1..=MAX_MOTION_KEYS).contains(&keys) {
-            return Err(ConfigError::Invalid(format!(
-                "limits.max_motion_keys = {keys} must be 1 to {MAX_MOTION_KEYS}"
-            )));
-        }
+        tenants::check(&config.tenants).map_err(ConfigError::Invalid)?;
         Ok(config)
+    }
+}
+
+/// Gives each tenant the server's `[limits]` under the keys it sets itself.
+fn inherit_limits(table: &mut toml::Table) {
+    let Some(toml::Value::Table(server)) = table.get("limits").cloned() else { return };
+    let Some(toml::Value::Array(tenants)) = table.get_mut("tenants") else { return };
+    for tenant in tenants {
+        let Some(tenant) = tenant.as_table_mut() else { continue };
+        let own = match tenant.remove("limits") {
+            Some(toml::Value::Table(own)) => own,
+            _ => toml::Table::new(),
+        };
+        let mut limits = server.clone();
+        merge(&mut limits, own);
+        tenant.insert("limits".into(), toml::Value::Table(limits));
     }
 }
 
@@ -202,6 +235,37 @@ mod tests {
         assert_eq!(config.limits.max_rays_per_batch, 1000);
         assert_eq!(config.limits.max_buffers, 9);
         assert_eq!(config.admin_listen.unwrap().to_string(), "127.0.0.1:1");
+    }
+
+    #[test]
+    fn tenants_inherit_the_server_limits_they_do_not_set_and_bad_tenants_are_refused() {
+        let dir = std::env::temp_dir().join(format!("rayd-config-tenants-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("rayd.toml");
+        let good = r#"
+            [limits]
+            max_buffers = 7
+            [[tenants]]
+            name = "acme"
+            keys = [{ key = "0123456789abcdef", role = "write" }, { key = "fedcba9876543210", role = "read" }]
+            limits = { max_accels = 3 }
+        "#;
+        std::fs::write(&path, good).unwrap();
+        let config = Config::load(Some(&path), env(&[])).unwrap();
+        let acme = &config.tenants[0];
+        assert_eq!((acme.limits.max_accels, acme.limits.max_buffers), (3, 7), "its own, then the server's");
+        assert_eq!(acme.keys[1].role, Role::Read);
+        for (bad, why) in [
+            (good.replace("fedcba9876543210", "0123456789abcdef"), "unique"),
+            (good.replace("\"fedcba9876543210\"", "\"short\""), "shorter than 16"),
+            (good.replace("\"acme\"", "\"a/b\""), "[A-Za-z0-9._-]"),
+            (good.replace("role = \"read\"", "role = \"root\""), "root"),
+            (good.replace("max_accels = 3", "max_graph_depth = 9"), "tenants[0].limits.max_graph_depth"),
+        ] {
+            std::fs::write(&path, bad).unwrap();
+            let error = Config::load(Some(&path), env(&[])).unwrap_err().to_string();
+            assert!(error.contains(why), "{why}: {error}");
+        }
     }
 
     #[test]

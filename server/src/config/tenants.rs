@@ -1,0 +1,97 @@
+//! Tenants in the configuration: each with its API keys (Bearer tokens), each key with a role, and optionally its
+//! own limits (keys it does not set take the server's `[limits]`).
+//!
+//! ```toml
+//! [[tenants]]
+//! name = "acme"
+//! keys = [
+//!   { key = "acme-pipeline-2f9c0d1e7b6a", role = "write" },
+//!   { key = "acme-renderer-8e1a44c09d3f", role = "read" },
+//! ]
+//! limits = { max_accels = 100 }
+//! ```
+
+use serde::{Deserialize, Serialize};
+
+use super::Limits;
+
+/// The shortest API key accepted.
+pub const MIN_KEY_CHARS: usize = 16;
+
+/// What a key may do. Each role may do what the ones before it may.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Role {
+    /// Read and trace: list, get, download, trace (into replies or new buffers of its own).
+    Read,
+    /// Also build, update, copy, destroy, upload, delete, save, load, and open streams.
+    Write,
+    /// Also server-wide calls.
+    Admin,
+}
+
+impl Role {
+    /// The role's name, as in the configuration.
+    pub fn name(self) -> &'static str {
+        match self {
+            Role::Read => "read",
+            Role::Write => "write",
+            Role::Admin => "admin",
+        }
+    }
+}
+
+/// One API key.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct KeyConfig {
+    /// The Bearer token, at least [`MIN_KEY_CHARS`] characters, unique across all tenants.
+    pub key: String,
+    /// What it may do.
+    pub role: Role,
+}
+
+/// One tenant.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TenantConfig {
+    /// 1 to 64 characters of `[A-Za-z0-9._-]`; also its directory under the data directory.
+    pub name: String,
+    /// Its keys, at least one; several may be active at once (to rotate them without downtime).
+    pub keys: Vec<KeyConfig>,
+    /// Its limits: the server's `[limits]` with the keys set here replaced (filled in when the configuration is
+    /// loaded).
+    #[serde(default)]
+    pub limits: Limits,
+}
+
+/// Checks the tenants: valid, unique names; at least one key each; keys long enough and unique across tenants.
+pub fn check(tenants: &[TenantConfig]) -> Result<(), String> {
+    let mut keys: Vec<&str> = Vec::new();
+    for (i, tenant) in tenants.iter().enumerate() {
+        let name = &tenant.name;
+        let valid = (1..=64).contains(&name.len())
+            && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b))
+            && name != "."
+            && name != "..";
+        if !valid {
+            return Err(format!("tenants[{i}].name {name:?} must be 1 to 64 characters of [A-Za-z0-9._-]"));
+        }
+        if tenants[..i].iter().any(|t| t.name == *name) {
+            return Err(format!("tenants[{i}].name {name:?} is used twice"));
+        }
+        if tenant.keys.is_empty() {
+            return Err(format!("tenants[{i}] ({name}) has no keys"));
+        }
+        for (k, key) in tenant.keys.iter().enumerate() {
+            if key.key.chars().count() < MIN_KEY_CHARS {
+                return Err(format!("tenants[{i}].keys[{k}] is shorter than {MIN_KEY_CHARS} characters"));
+            }
+            if keys.contains(&key.key.as_str()) {
+                return Err(format!("tenants[{i}].keys[{k}] is also another key (keys must be unique)"));
+            }
+            keys.push(&key.key);
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,182 @@
+//! End to end against the real `rayd` with configured tenants: every kind of call × {no key, an unknown key, a
+//! read key, a write key, an admin key of another tenant}, each with its expected code; another tenant's objects
+//! answer NOT_FOUND exactly as missing ones do; a rotated pair of keys both work; per-tenant limits; and persisted
+//! tenants in separate directories.
+
+mod common;
+mod daemon;
+
+use std::future::Future;
+use std::path::{Path, PathBuf};
+
+use bytes::Bytes;
+use common::pack_rays;
+use daemon::Daemon;
+use rayd_client::{Client, ClientOptions, Error};
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, Ray, RayFormat};
+use rayd_engine::glam::{Vec3, Vec3A};
+use rayd_engine::mesh::Mesh;
+use rayd_engine::query::Query;
+use tonic::Code;
+
+const ACME_WRITE: &str = "acme-write-key-0123456789";
+const ACME_WRITE_NEXT: &str = "acme-write-key-rotated-9876";
+const ACME_READ: &str = "acme-read-key-0123456789";
+const BETA_ADMIN: &str = "beta-admin-key-0123456789";
+
+/// A configuration file with tenants `acme` (two write keys, a read key, at most 3 accels) and `beta` (an admin
+/// key), and a data directory.
+fn config(dir: &Path) -> PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let path = dir.join("rayd.toml");
+    let text = format!(
+        r#"data_dir = {data:?}
+[[tenants]]
+name = "acme"
+keys = [
+  {{ key = "{ACME_WRITE}", role = "write" }},
+  {{ key = "{ACME_WRITE_NEXT}", role = "write" }},
+  {{ key = "{ACME_READ}", role = "read" }},
+]
+limits = {{ max_accels = 3 }}
+
+[[tenants]]
+name = "beta"
+keys = [{{ key = "{BETA_ADMIN}", role = "admin" }}]
+"#,
+        data = dir.join("data")
+    );
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+/// A client sending `token`.
+async fn client(daemon: &Daemon, token: Option<&str>) -> Client {
+    let options = ClientOptions { token: token.map(str::to_owned), ..ClientOptions::default() };
+    Client::connect(&daemon.url(), options).await.unwrap()
+}
+
+/// The code a call ends with (`Ok` for success).
+async fn code<T>(call: impl Future<Output = Result<T, Error>>) -> Code {
+    call.await.map_or_else(|e| e.code(), |_| Code::Ok)
+}
+
+/// One closest-hit trace of a ray down onto the unit triangle.
+fn one_ray() -> Bytes {
+    let ray = Ray { origin: Vec3A::new(0.2, 0.2, 1.0), direction: -Vec3A::Z, ..Ray::default() };
+    Bytes::from(pack_rays(&[ray], RayFormat::OriginTminDirectionTmax))
+}
+
+/// The codes of one call of each kind made with `caller` on the objects named `accel` and `buffer` (new objects
+/// are named after `fresh`), in the order of [`CALLS`].
+async fn codes(caller: &Client, accel: &str, buffer: &str, fresh: &str) -> Vec<Code> {
+    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+    vec![
+        code(caller.server_info()).await,
+        code(caller.devices()).await,
+        code(caller.accels()).await,
+        code(caller.accel(accel)).await,
+        code(caller.buffers()).await,
+        code(caller.download_buffer(buffer)).await,
+        code(caller.trace(accel, &query, one_ray())).await,
+        code(caller.build_mesh(fresh, &triangle, "", BuildFlags::empty())).await,
+        code(caller.copy_accel(accel, &format!("{fresh}.copy"), "", false)).await,
+        code(caller.save_accel(accel)).await,
+        code(caller.create_stream()).await,
+        code(caller.destroy_accel(accel)).await,
+        code(caller.delete_buffer(buffer)).await,
+        // Last: ids are per tenant, so a new buffer may take the id of another tenant's.
+        code(caller.upload_buffer("", Bytes::from_static(b"1234"))).await,
+    ]
+}
+
+/// The codes of the calls [`codes`] makes, made with the generated stub (so that they get as far as the server
+/// without a usable key), sending `token` if any.
+async fn raw_codes(daemon: &Daemon, token: Option<&str>, accel: &str, buffer: &str) -> Vec<Code> {
+    use rayd_client::proto::{self, rayd_client::RaydClient};
+    let header: Option<tonic::metadata::MetadataValue<_>> = token.map(|t| format!("Bearer {t}").parse().unwrap());
+    let channel = tonic::transport::Endpoint::from_shared(daemon.url()).unwrap().connect().await.unwrap();
+    let mut rpc = RaydClient::with_interceptor(channel, move |mut request: tonic::Request<()>| {
+        if let Some(value) = &header {
+            request.metadata_mut().insert("authorization", value.clone());
+        }
+        Ok(request)
+    });
+    let accel_ref = || Some(rayd_client::convert::accel_ref(accel));
+    let buffer_ref = || Some(rayd_client::convert::buffer_ref(buffer));
+    vec![
+        of(rpc.get_server_info(proto::GetServerInfoRequest {}).await),
+        of(rpc.list_devices(proto::ListDevicesRequest {}).await),
+        of(rpc.list_accels(proto::ListAccelsRequest {}).await),
+        of(rpc.get_accel(proto::GetAccelRequest { accel: accel_ref() }).await),
+        of(rpc.list_buffers(proto::ListBuffersRequest {}).await),
+        of(rpc.download_buffer(proto::DownloadBufferRequest { buffer: buffer_ref(), ..Default::default() }).await),
+        of(rpc.trace_batch(proto::TraceBatchRequest::default()).await),
+        of(rpc.build_accel(proto::BuildAccelRequest::default()).await),
+        of(rpc.copy_accel(proto::CopyAccelRequest { accel: accel_ref(), ..Default::default() }).await),
+        of(rpc.save_accel(proto::SaveAccelRequest { accel: accel_ref(), ..Default::default() }).await),
+        of(rpc.open_stream(tokio_stream::iter(Vec::<proto::StreamRequest>::new())).await),
+        of(rpc.destroy_accel(proto::DestroyAccelRequest { accel: accel_ref() }).await),
+        of(rpc.delete_buffer(proto::DeleteBufferRequest { buffer: buffer_ref() }).await),
+        of(rpc.upload_buffer(tokio_stream::iter(Vec::<proto::UploadBufferRequest>::new())).await),
+    ]
+}
+
+/// The code a call of the generated stub ended with.
+fn of<T>(result: Result<tonic::Response<T>, tonic::Status>) -> Code {
+    result.map_or_else(|status| status.code(), |_| Code::Ok)
+}
+
+/// The calls [`codes`] makes: the first seven need a read key, the others a write key.
+const CALLS: usize = 14;
+/// How many of [`CALLS`] only read.
+const READS: usize = 7;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_call_answers_by_key_role_and_tenant() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("rayd-tenancy-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let daemon = Daemon::start(&[("RAYD_CONFIG", config(&dir).to_str().unwrap())]);
+    let acme = client(&daemon, Some(ACME_WRITE)).await;
+    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    acme.build_mesh("tri", &triangle, "", BuildFlags::empty()).await.unwrap();
+    let buffer = acme.upload_buffer("data", Bytes::from_static(b"acme's bytes")).await.unwrap();
+
+    let unauthenticated = vec![Code::Unauthenticated; CALLS];
+    assert_eq!(raw_codes(&daemon, None, "tri", &buffer.id).await, unauthenticated, "no key");
+    let unknown = raw_codes(&daemon, Some("no-such-key-at-all-000000"), "tri", &buffer.id).await;
+    assert_eq!(unknown, unauthenticated, "an unknown key");
+    let error = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap_err();
+    assert_eq!(error.code(), Code::Unauthenticated, "the client reports it at once: {error}");
+
+    let read = codes(&client(&daemon, Some(ACME_READ)).await, "tri", &buffer.id, "x").await;
+    let mut expected = vec![Code::Ok; READS];
+    expected.extend([Code::PermissionDenied; CALLS - READS]);
+    assert_eq!(read, expected, "a read key reads and traces, and may do nothing else");
+
+    // Another tenant, even with an admin key, sees none of acme's objects: NOT_FOUND, as for missing ones.
+    let beta = client(&daemon, Some(BETA_ADMIN)).await;
+    let foreign = codes(&beta, "tri", &buffer.id, "beta1").await;
+    let missing = codes(&beta, "nothing", "buf-999", "beta2").await;
+    assert_eq!(foreign, missing, "another tenant's objects look exactly like missing ones");
+    assert_eq!([foreign[3], foreign[5], foreign[6]], [Code::NotFound; 3], "get, download, trace");
+    let names: Vec<String> = beta.accels().await.unwrap().into_iter().map(|a| a.name).collect();
+    assert_eq!(names, ["beta1", "beta2"], "beta lists only its own accels");
+    assert_eq!(acme.accel("tri").await.unwrap().name, "tri", "acme's accel is untouched");
+    assert_eq!(acme.download_buffer(&buffer.id).await.unwrap(), Bytes::from_static(b"acme's bytes"));
+
+    // Both write keys of acme work (rotation); acme's own limit of 3 accels holds.
+    let next = client(&daemon, Some(ACME_WRITE_NEXT)).await;
+    let write = codes(&next, "tri", &buffer.id, "acme1").await;
+    assert_eq!(write, vec![Code::Ok; CALLS], "a write key may do everything on its tenant's objects");
+    for name in ["a", "b", "c"] {
+        let _ = acme.build_mesh(name, &triangle, "", BuildFlags::empty()).await;
+    }
+    let error = acme.build_mesh("d", &triangle, "", BuildFlags::empty()).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("max_accels = 3"), "{error}");
+    assert!(dir.join("data/tenants/acme/accels").is_dir() && dir.join("data/tenants/beta/accels").is_dir());
+    let _ = std::fs::remove_dir_all(&dir);
+}
