@@ -180,3 +180,48 @@ async fn every_call_answers_by_key_role_and_tenant() {
     assert!(dir.join("data/tenants/acme/accels").is_dir() && dir.join("data/tenants/beta/accels").is_dir());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tenant_quotas_refuse_before_anything_is_made() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("rayd-quotas-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("rayd.toml");
+    let key = "gamma-write-key-0123456789";
+    let text = format!(
+        r#"[[tenants]]
+name = "gamma"
+keys = [{{ key = "{key}", role = "write" }}]
+limits = {{ max_total_buffer_bytes = 10, max_total_accel_bytes = 6000, max_rays_per_second = 100 }}
+"#
+    );
+    std::fs::write(&path, text).unwrap();
+    let daemon = Daemon::start(&[("RAYD_CONFIG", path.to_str().unwrap())]);
+    let gamma = client(&daemon, Some(key)).await;
+    let limits = gamma.server_info().await.unwrap().limits.unwrap();
+    assert_eq!((limits.max_total_buffer_bytes, limits.max_rays_per_second), (10, 100), "the tenant's own quotas");
+
+    gamma.upload_buffer("a", Bytes::from_static(b"12345678")).await.unwrap();
+    let error = gamma.upload_buffer("b", Bytes::from_static(b"12345678")).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("max_total_buffer_bytes = 10"), "{error}");
+    assert_eq!(gamma.buffers().await.unwrap().len(), 1, "nothing of the refused upload remains");
+
+    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    gamma.build_mesh("tri", &triangle, "", BuildFlags::empty()).await.unwrap();
+    let sphere = common::icosphere(3, Vec3::ZERO);
+    let error = gamma.build_mesh("sphere", &sphere, "", BuildFlags::empty()).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("max_total_accel_bytes = 6000"), "{error}");
+    assert_eq!(gamma.accels().await.unwrap().len(), 1, "nothing of the refused build remains");
+
+    // 100 rays a second: a batch of 1000 runs (into debt), the next one is refused until the allowance refills.
+    let rays: Vec<Ray> =
+        (0..1000).map(|_| Ray { origin: Vec3A::new(0.2, 0.2, 1.0), direction: -Vec3A::Z, ..Ray::default() }).collect();
+    let rays = Bytes::from(pack_rays(&rays, RayFormat::OriginTminDirectionTmax));
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+    gamma.trace("tri", &query, rays.clone()).await.unwrap();
+    let error = gamma.trace("tri", &query, one_ray()).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("max_rays_per_second = 100"), "{error}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

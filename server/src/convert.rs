@@ -165,6 +165,11 @@ pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
         stream_window: limits.stream_window,
         max_streams: limits.max_streams,
         max_graph_depth: limits.max_graph_depth,
+        max_motion_keys: limits.max_motion_keys,
+        max_total_accel_bytes: limits.max_total_accel_bytes,
+        max_total_buffer_bytes: limits.max_total_buffer_bytes,
+        max_rays_per_second: limits.max_rays_per_second,
+        max_concurrent_operations: limits.max_concurrent_operations,
     }
 }
 

@@ -77,6 +77,15 @@ pub struct Limits {
     pub max_graph_depth: u32,
     /// Most motion keys of one accel or motion transform; 1 to 1024.
     pub max_motion_keys: u32,
+    /// Most bytes of all of a tenant's accels together.
+    pub max_total_accel_bytes: u64,
+    /// Most bytes of all of a tenant's buffers together.
+    pub max_total_buffer_bytes: u64,
+    /// Rays a tenant may trace per second, averaged over a second (a batch may exceed the rest of the second's
+    /// allowance; the next ones wait for it to refill); 0 means no limit.
+    pub max_rays_per_second: u64,
+    /// Builds, updates, copies, loads and traces a tenant may have running at once.
+    pub max_concurrent_operations: u32,
 }
 
 impl Default for Limits {
@@ -93,6 +102,10 @@ impl Default for Limits {
             max_streams: 64,
             max_graph_depth: rayd_engine::geometry::MAX_GRAPH_DEPTH,
             max_motion_keys: 64,
+            max_total_accel_bytes: 32 << 30,
+            max_total_buffer_bytes: 16 << 30,
+            max_rays_per_second: 0,
+            max_concurrent_operations: 64,
         }
     }
 }

@@ -3,6 +3,7 @@
 //! is also persisted, and restored at start ([`persistence`]).
 
 mod persistence;
+mod quota;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -19,6 +20,7 @@ use crate::error::{ServiceError, ServiceResult};
 use crate::persist::Store;
 use crate::registry::Registry;
 use crate::streams::Streams;
+use quota::Quotas;
 
 /// The device used when a request names none.
 pub const DEFAULT_DEVICE: &str = "cpu:0";
@@ -83,6 +85,8 @@ pub struct Tenant {
     streams: Arc<Streams>,
     /// Where objects are persisted, with a data directory.
     store: Option<Store>,
+    /// Operations running and rays allowed.
+    quotas: Quotas,
 }
 
 /// What a tenant holds now.
@@ -121,6 +125,7 @@ impl Tenant {
             next_buffer: AtomicU64::new(1),
             streams: Arc::default(),
             store: None,
+            quotas: Quotas::new(limits.max_rays_per_second),
         }
     }
 
@@ -165,6 +170,7 @@ impl Tenant {
     ) -> ServiceResult<AccelEntry> {
         check_name("name", name)?;
         self.accels.check_free(name)?;
+        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
         let count = self.accels.len() as u64 + 1;
         ServiceError::check_limit(
             || "accels of this tenant".into(),
@@ -180,6 +186,7 @@ impl Tenant {
             "max_accel_bytes",
             self.limits.max_accel_bytes,
         )?;
+        self.check_total_accel_bytes(usage.output_bytes)?;
         let start = Instant::now();
         let accel = build(context)?;
         let entry = AccelEntry {
@@ -214,6 +221,8 @@ impl Tenant {
             self.limits.max_accel_bytes,
         )?;
         let summary = rayd_engine::serialize::blob_summary(blob)?;
+        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
+        self.check_total_accel_bytes(blob.len() as u64)?;
         let names: Vec<String> = (1..summary.accels).map(|i| format!("{name}.{i}")).chain([name.to_owned()]).collect();
         for name in &names {
             check_name("name", name)?;
@@ -265,6 +274,7 @@ impl Tenant {
         update: impl FnOnce(&Context) -> rayd_engine::Result<Arc<Accel>>,
     ) -> ServiceResult<AccelEntry> {
         let (_, context) = self.context(&entry.device)?;
+        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
         let start = Instant::now();
         let accel = update(context)?;
         let build_ns = start.elapsed().as_nanos() as u64;
@@ -277,6 +287,17 @@ impl Tenant {
     /// The accel with this name or handle.
     pub fn accel(&self, by_name: Option<&str>, by_handle: Option<&str>) -> ServiceResult<AccelEntry> {
         self.accels.get(by_handle, by_name)
+    }
+
+    /// Checks that `more` bytes of accels stay within `max_total_accel_bytes` with the tenant's accels.
+    fn check_total_accel_bytes(&self, more: u64) -> ServiceResult<()> {
+        let held: u64 = self.accels.values().iter().map(|e| e.accel.info().size_bytes).sum();
+        ServiceError::check_limit(
+            || format!("accel bytes of this tenant ({held} held, up to {more} more)"),
+            held.saturating_add(more),
+            "max_total_accel_bytes",
+            self.limits.max_total_accel_bytes,
+        )
     }
 
     /// Every accel, in creation order.
@@ -306,6 +327,13 @@ impl Tenant {
             self.buffers.check_free(name)?;
         }
         ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
+        let held: u64 = self.buffers.values().iter().map(|b| b.size_bytes).sum();
+        ServiceError::check_limit(
+            || format!("buffer bytes of this tenant ({held} held, {size} more)"),
+            held.saturating_add(size),
+            "max_total_buffer_bytes",
+            self.limits.max_total_buffer_bytes,
+        )?;
         let count = self.buffers.len() as u64 + 1;
         ServiceError::check_limit(
             || "buffers of this tenant".into(),
@@ -365,6 +393,8 @@ impl Tenant {
             "max_rays_per_batch",
             self.limits.max_rays_per_batch,
         )?;
+        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
+        self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
         let mut hits = vec![0u8; layout.hits];
         let mut counts = vec![0u8; layout.counts];
         let start = Instant::now();
