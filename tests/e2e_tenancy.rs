@@ -178,6 +178,25 @@ async fn every_call_answers_by_key_role_and_tenant() {
     assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
     assert!(error.to_string().contains("max_accels = 3"), "{error}");
     assert!(dir.join("data/tenants/acme/accels").is_dir() && dir.join("data/tenants/beta/accels").is_dir());
+
+    // Usage against quotas: admin keys only, through the API and `rayctl stats`; metrics carry the tenant.
+    assert_eq!(acme.tenants().await.unwrap_err().code(), Code::PermissionDenied, "a write key may not list tenants");
+    let tenants = beta.tenants().await.unwrap();
+    let names: Vec<&str> = tenants.iter().map(|t| t.name.as_str()).collect();
+    assert_eq!(names, ["acme", "beta"]);
+    let (usage, limits) = (tenants[0].usage.unwrap(), tenants[0].limits.unwrap());
+    assert_eq!((usage.accels, limits.max_accels), (acme.accels().await.unwrap().len() as u32, 3));
+    let stats = std::process::Command::new(daemon::binary("rayctl"))
+        .args(["--server", &daemon.url(), "--token", BETA_ADMIN, "--json", "stats"])
+        .output()
+        .unwrap();
+    assert!(stats.status.success(), "{}", String::from_utf8_lossy(&stats.stderr));
+    let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
+    assert_eq!(stats["tenants"][0]["name"], "acme", "{stats}");
+    assert_eq!(stats["tenants"][0]["max_accels"], 3, "{stats}");
+    let traced = |tenant: &str| daemon.metric("rayd_rays_traced_total", &[&format!("tenant=\"{tenant}\"")]);
+    assert!(traced("acme").is_some_and(|rays| rays >= 1.0), "acme's rays are counted under its name");
+    assert_eq!(traced("beta"), None, "beta traced nothing");
     let _ = std::fs::remove_dir_all(&dir);
 }
 

@@ -106,6 +106,11 @@ impl Client {
         &self.options
     }
 
+    /// Every tenant's usage against its quotas (needs an admin key where tenants are configured).
+    pub async fn tenants(&self) -> Result<Vec<proto::TenantInfo>> {
+        Ok(self.rpc.clone().list_tenants(proto::ListTenantsRequest {}).await?.into_inner().tenants)
+    }
+
     /// The server's version and the limits it holds requests to.
     pub async fn server_info(&self) -> Result<proto::ServerInfo> {
         Ok(self.rpc.clone().get_server_info(proto::GetServerInfoRequest {}).await?.into_inner())

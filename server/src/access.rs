@@ -30,6 +30,17 @@ impl Tenants {
         Tenants { keys, open: None }
     }
 
+    /// Every tenant, once each, in configuration order.
+    pub fn all(&self) -> Vec<Arc<Tenant>> {
+        let mut all: Vec<Arc<Tenant>> = self.open.iter().cloned().collect();
+        for (_, _, tenant) in &self.keys {
+            if !all.iter().any(|t| Arc::ptr_eq(t, tenant)) {
+                all.push(Arc::clone(tenant));
+            }
+        }
+        all
+    }
+
     /// The tenant `request` acts for, if its key's role allows `call`, which needs `needs`: UNAUTHENTICATED
     /// without a key or with an unknown one, PERMISSION_DENIED when the role is not enough.
     pub fn caller<T>(&self, request: &Request<T>, call: &str, needs: Role) -> Result<Arc<Tenant>, Status> {

@@ -181,6 +181,9 @@ pub fn usage(usage: &crate::tenant::Usage) -> pb::Usage {
         object_bytes: usage.object_bytes,
         streams: usage.streams,
         stream_bytes: usage.stream_bytes,
+        accel_bytes: usage.accel_bytes,
+        buffer_bytes: usage.buffer_bytes,
+        operations: usage.operations,
     }
 }
 

@@ -47,18 +47,20 @@ pub async fn observe<T>(
     result.map(Response::new)
 }
 
-/// Counts a finished trace.
-pub fn traced(stats: &TraceStats) {
-    counter!("rayd_rays_traced_total").increment(stats.rays);
-    counter!("rayd_rays_hit_total").increment(stats.rays_hit);
-    counter!("rayd_trace_batches_total").increment(1);
+/// Counts a finished trace of `tenant` (labels are bounded: tenants come from the configuration).
+pub fn traced(tenant: &str, stats: &TraceStats) {
+    let tenant = tenant.to_owned();
+    counter!("rayd_rays_traced_total", "tenant" => tenant.clone()).increment(stats.rays);
+    counter!("rayd_rays_hit_total", "tenant" => tenant.clone()).increment(stats.rays_hit);
+    counter!("rayd_trace_batches_total", "tenant" => tenant).increment(1);
 }
 
-/// Counts a new accel.
-pub fn accel_built(entry: &AccelEntry) {
-    gauge!("rayd_accels").increment(1.0);
-    gauge!("rayd_accel_bytes").increment(entry.accel.info().size_bytes as f64);
+/// Counts a new accel of `tenant`.
+pub fn accel_built(tenant: &str, entry: &AccelEntry) {
+    gauge!("rayd_accels", "tenant" => tenant.to_owned()).increment(1.0);
+    gauge!("rayd_accel_bytes", "tenant" => tenant.to_owned()).increment(entry.accel.info().size_bytes as f64);
     tracing::info!(
+        tenant,
         name = entry.name,
         handle = entry.handle,
         bytes = entry.accel.info().size_bytes,
@@ -67,11 +69,11 @@ pub fn accel_built(entry: &AccelEntry) {
     );
 }
 
-/// Counts a destroyed accel.
-pub fn accel_destroyed(entry: &AccelEntry) {
-    gauge!("rayd_accels").decrement(1.0);
-    gauge!("rayd_accel_bytes").decrement(entry.accel.info().size_bytes as f64);
-    tracing::info!(name = entry.name, handle = entry.handle, "accel destroyed");
+/// Counts a destroyed accel of `tenant`.
+pub fn accel_destroyed(tenant: &str, entry: &AccelEntry) {
+    gauge!("rayd_accels", "tenant" => tenant.to_owned()).decrement(1.0);
+    gauge!("rayd_accel_bytes", "tenant" => tenant.to_owned()).decrement(entry.accel.info().size_bytes as f64);
+    tracing::info!(tenant, name = entry.name, handle = entry.handle, "accel destroyed");
 }
 
 /// Counts one finished stream operation.

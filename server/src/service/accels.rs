@@ -40,7 +40,6 @@ pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> Servi
         )
     })
     .await?;
-    crate::metrics::accel_built(&entry);
     Ok(info(&entry))
 }
 
@@ -48,7 +47,6 @@ pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> Servi
 pub fn destroy(tenant: &Tenant, request: &pb::DestroyAccelRequest) -> ServiceResult<()> {
     let entry = resolve(tenant, request.accel.as_ref(), "accel")?;
     tenant.destroy_accel(&entry)?;
-    crate::metrics::accel_destroyed(&entry);
     Ok(())
 }
 
@@ -65,7 +63,6 @@ pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> Service
         )
     })
     .await?;
-    crate::metrics::accel_built(&entry);
     Ok(info(&entry))
 }
 
@@ -94,8 +91,5 @@ pub async fn load(tenant: Arc<Tenant>, request: pb::LoadAccelRequest) -> Service
     let blob = inputs::data(&tenant, request.blob.as_ref(), "blob")?
         .ok_or_else(|| ServiceError::invalid("blob", "a blob is required"))?;
     let entries = blocking(move || tenant.load_accels(&request.name, &request.device, &blob)).await?;
-    for entry in &entries {
-        crate::metrics::accel_built(entry);
-    }
     Ok(pb::LoadAccelResponse { accels: entries.iter().map(info).collect() })
 }

@@ -37,7 +37,7 @@ impl RaydService {
     /// cannot be restored is logged and skipped) and persisted there from now on.
     pub fn new(devices: Vec<Device>, config: &Config) -> Result<RaydService, ServiceError> {
         let make = |name: &str, limits: Limits| -> Result<Arc<Tenant>, ServiceError> {
-            let mut tenant = Tenant::new(limits, &devices);
+            let mut tenant = Tenant::new(name, limits, &devices);
             if let Some(dir) = &config.data_dir {
                 let store = Store::open(dir, name)
                     .map_err(|e| ServiceError::storage(format!("tenant {name:?}'s directory"), e))?;
@@ -119,6 +119,27 @@ impl Rayd for RaydService {
         observe("ListDevices", async {
             let devices = self.devices.iter().map(|d| convert::device(d.info())).collect();
             Ok(pb::ListDevicesResponse { devices })
+        })
+        .await
+    }
+
+    async fn list_tenants(
+        &self,
+        request: Request<pb::ListTenantsRequest>,
+    ) -> Result<Response<pb::ListTenantsResponse>, Status> {
+        self.caller(&request, "ListTenants", Role::Admin)?;
+        observe("ListTenants", async {
+            let tenants = self
+                .tenants
+                .all()
+                .iter()
+                .map(|tenant| pb::TenantInfo {
+                    name: tenant.name().into(),
+                    usage: Some(convert::usage(&tenant.usage())),
+                    limits: Some(convert::limits(tenant.limits())),
+                })
+                .collect();
+            Ok(pb::ListTenantsResponse { tenants })
         })
         .await
     }

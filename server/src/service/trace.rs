@@ -54,7 +54,7 @@ async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Byte
         let tenant = Arc::clone(tenant);
         blocking(move || tenant.trace(&accel, &query, &rays)).await?
     };
-    crate::metrics::traced(&result.stats);
+    crate::metrics::traced(tenant.name(), &result.stats);
     Ok(result)
 }
 

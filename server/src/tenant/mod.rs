@@ -71,6 +71,8 @@ pub struct TraceResult {
 /// Everything one tenant has built, and the limits it is held to.
 #[derive(Debug)]
 pub struct Tenant {
+    /// Its name (`default` without configured tenants).
+    name: String,
     /// The limits of every request.
     limits: Limits,
     /// One context per device, by device id.
@@ -102,6 +104,12 @@ pub struct Usage {
     pub streams: u32,
     /// Bytes the streams hold.
     pub stream_bytes: u64,
+    /// Bytes of its accels.
+    pub accel_bytes: u64,
+    /// Bytes of its buffers.
+    pub buffer_bytes: u64,
+    /// Operations running now.
+    pub operations: u32,
 }
 
 /// Checks an accel or buffer name: 1 to 128 characters of `[A-Za-z0-9._-]`.
@@ -115,9 +123,10 @@ pub fn check_name(field: &str, name: &str) -> ServiceResult<()> {
 }
 
 impl Tenant {
-    /// A tenant with a context on each device.
-    pub fn new(limits: Limits, devices: &[Device]) -> Tenant {
+    /// A tenant called `name` with a context on each device.
+    pub fn new(name: &str, limits: Limits, devices: &[Device]) -> Tenant {
         Tenant {
+            name: name.into(),
             limits,
             contexts: devices.iter().map(|d| (d.info().id.clone(), Context::new(d.clone()))).collect(),
             accels: Registry::new("accel"),
@@ -134,6 +143,11 @@ impl Tenant {
         &self.streams
     }
 
+    /// Its name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
     /// What the tenant holds now.
     pub fn usage(&self) -> Usage {
         Usage {
@@ -142,6 +156,9 @@ impl Tenant {
             object_bytes: self.contexts.values().map(Context::memory_in_use).sum(),
             streams: self.streams.open_count(),
             stream_bytes: self.streams.held_bytes(),
+            accel_bytes: self.accels.values().iter().map(|e| e.accel.info().size_bytes).sum(),
+            buffer_bytes: self.buffers.values().iter().map(|b| b.size_bytes).sum(),
+            operations: self.quotas.running(),
         }
     }
 
@@ -206,6 +223,7 @@ impl Tenant {
             context.destroy_accel(entry.accel.handle())?;
             return Err(unsaved);
         }
+        crate::metrics::accel_built(&self.name, &entry);
         Ok(entry)
     }
 
@@ -263,6 +281,9 @@ impl Tenant {
                 return Err(failed);
             }
         }
+        for entry in &entries {
+            crate::metrics::accel_built(&self.name, entry);
+        }
         Ok(entries)
     }
 
@@ -291,7 +312,7 @@ impl Tenant {
 
     /// Checks that `more` bytes of accels stay within `max_total_accel_bytes` with the tenant's accels.
     fn check_total_accel_bytes(&self, more: u64) -> ServiceResult<()> {
-        let held: u64 = self.accels.values().iter().map(|e| e.accel.info().size_bytes).sum();
+        let held = self.usage().accel_bytes;
         ServiceError::check_limit(
             || format!("accel bytes of this tenant ({held} held, up to {more} more)"),
             held.saturating_add(more),
@@ -311,7 +332,9 @@ impl Tenant {
     /// refused (FAILED_PRECONDITION) and stays.
     pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
         self.context(&entry.device)?.1.destroy_accel(entry.accel.handle())?;
-        self.forget_accel(entry)
+        self.forget_accel(entry)?;
+        crate::metrics::accel_destroyed(&self.name, entry);
+        Ok(())
     }
 
     /// Drops `entry` from the registry and the store (its accel is destroyed by the caller).
@@ -327,7 +350,7 @@ impl Tenant {
             self.buffers.check_free(name)?;
         }
         ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
-        let held: u64 = self.buffers.values().iter().map(|b| b.size_bytes).sum();
+        let held = self.usage().buffer_bytes;
         ServiceError::check_limit(
             || format!("buffer bytes of this tenant ({held} held, {size} more)"),
             held.saturating_add(size),

@@ -177,6 +177,7 @@ impl Tenant {
         self.accels.insert(record.handle.clone(), &record.name, entry.clone()).inspect_err(|_| {
             let _ = context.destroy_accel(entry.accel.handle());
         })?;
+        crate::metrics::accel_built(&self.name, &entry);
         Ok((entry, stale))
     }
 }

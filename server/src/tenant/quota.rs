@@ -36,6 +36,11 @@ impl Quotas {
         Quotas { running: AtomicU32::new(0), rays: Mutex::new((rays_per_second as f64, Instant::now())) }
     }
 
+    /// Operations running now.
+    pub fn running(&self) -> u32 {
+        self.running.load(Ordering::Acquire)
+    }
+
     /// Starts an operation, unless `limit` are running (RESOURCE_EXHAUSTED naming `max_concurrent_operations`).
     pub fn start(&self, limit: u32) -> ServiceResult<Running<'_>> {
         let now = self.running.fetch_add(1, Ordering::AcqRel) + 1;

@@ -107,6 +107,8 @@ pub enum Command {
     },
     /// List the server-side buffers (uploads left behind, trace outputs).
     Buffers,
+    /// Show every tenant's usage against its quotas (an admin key where tenants are configured).
+    Stats,
     /// Write a file of packed rays: a camera's (framing the accel by default) or random rays in its box.
     Rays(RaysArgs),
     /// Trace a file of packed rays.

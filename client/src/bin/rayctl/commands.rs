@@ -58,6 +58,7 @@ pub async fn run(cli: &Cli) -> Result<Output> {
             Ok(Output { json: json!({ "destroyed": name }), text: format!("destroyed {name}") })
         }
         Command::Buffers => Ok(show::buffers(&client.buffers().await?)),
+        Command::Stats => Ok(show::stats(&client.tenants().await?)),
         Command::Rays(args) => rays(&client, args).await,
         Command::Trace(args) => trace(&client, args).await,
         Command::Render(args) => render(&client, args).await,

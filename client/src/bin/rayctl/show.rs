@@ -5,7 +5,7 @@ use rayd_client::convert::{
     backend_name, bounds, build_flag_names, build_flags_from_proto, hit_format_from_proto, query_kind_from_proto,
     ray_format_from_proto,
 };
-use rayd_client::proto::{self, AccelInfo, BufferInfo, Device};
+use rayd_client::proto::{self, AccelInfo, BufferInfo, Device, TenantInfo};
 use serde_json::{Value, json};
 
 /// What a command prints: the same result for scripts and for people.
@@ -207,6 +207,41 @@ pub fn buffers(buffers: &[BufferInfo]) -> Output {
     let rows: Vec<Vec<String>> =
         buffers.iter().map(|b| vec![b.id.clone(), b.name.clone(), bytes(b.size_bytes)]).collect();
     Output { json: json!({ "buffers": json.collect::<Vec<_>>() }), text: table(&["ID", "NAME", "SIZE"], &rows) }
+}
+
+/// `rayctl stats`: each tenant's usage against its quotas.
+pub fn stats(tenants: &[TenantInfo]) -> Output {
+    let of = |used: String, limit: String| format!("{used} / {limit}");
+    let rows: Vec<Vec<String>> = tenants
+        .iter()
+        .map(|t| {
+            let (u, l) = (t.usage.unwrap_or_default(), t.limits.unwrap_or_default());
+            vec![
+                t.name.clone(),
+                of(u.accels.to_string(), l.max_accels.to_string()),
+                of(bytes(u.accel_bytes), bytes(l.max_total_accel_bytes)),
+                of(u.buffers.to_string(), l.max_buffers.to_string()),
+                of(bytes(u.buffer_bytes), bytes(l.max_total_buffer_bytes)),
+                of(u.streams.to_string(), l.max_streams.to_string()),
+                of(u.operations.to_string(), l.max_concurrent_operations.to_string()),
+            ]
+        })
+        .collect();
+    let json = tenants.iter().map(|t| {
+        let (u, l) = (t.usage.unwrap_or_default(), t.limits.unwrap_or_default());
+        json!({
+            "name": t.name,
+            "accels": u.accels, "max_accels": l.max_accels,
+            "accel_bytes": u.accel_bytes, "max_total_accel_bytes": l.max_total_accel_bytes,
+            "buffers": u.buffers, "max_buffers": l.max_buffers,
+            "buffer_bytes": u.buffer_bytes, "max_total_buffer_bytes": l.max_total_buffer_bytes,
+            "streams": u.streams, "max_streams": l.max_streams,
+            "operations": u.operations, "max_concurrent_operations": l.max_concurrent_operations,
+            "max_rays_per_second": l.max_rays_per_second,
+        })
+    });
+    let header = ["TENANT", "ACCELS", "ACCEL BYTES", "BUFFERS", "BUFFER BYTES", "STREAMS", "OPERATIONS"];
+    Output { json: json!({ "tenants": json.collect::<Vec<_>>() }), text: table(&header, &rows) }
 }
 
 #[cfg(test)]
