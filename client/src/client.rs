@@ -4,7 +4,7 @@
 use rayd_proto as proto;
 use rayd_proto::rayd_client::RaydClient;
 use tonic::service::interceptor::InterceptedService;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use crate::auth::Auth;
 use crate::convert::{accel_ref, buffer_ref};
@@ -40,6 +40,32 @@ pub struct ClientOptions {
     /// Bytes of a [`Stream`](crate::Stream)'s operations sent and not yet answered, at most: enqueueing waits
     /// beyond it (an operation larger than this waits until it is alone in flight).
     pub stream_bytes_in_flight: usize,
+    /// TLS for `https://` servers: the CA to trust (else the platform's are not used: give one) and, for mutual
+    /// TLS, the client's certificate and key.
+    pub tls: Option<ClientTls>,
+}
+
+/// The PEM files of a TLS connection.
+#[derive(Debug, Clone, Default)]
+pub struct ClientTls {
+    /// The CA certificate(s) that signed the server's certificate, PEM.
+    pub ca_cert: Option<Vec<u8>>,
+    /// The client's certificate chain and private key, PEM, for servers that require one.
+    pub identity: Option<(Vec<u8>, Vec<u8>)>,
+}
+
+impl ClientTls {
+    /// tonic's configuration of it.
+    fn config(&self) -> ClientTlsConfig {
+        let mut config = ClientTlsConfig::new();
+        if let Some(ca) = &self.ca_cert {
+            config = config.ca_certificate(Certificate::from_pem(ca));
+        }
+        if let Some((cert, key)) = &self.identity {
+            config = config.identity(Identity::from_pem(cert, key));
+        }
+        config
+    }
 }
 
 impl Default for ClientOptions {
@@ -54,6 +80,7 @@ impl Default for ClientOptions {
             inline_mesh_bytes: 8 * MIB,
             upload_chunk_bytes: MIB,
             stream_bytes_in_flight: 64 * MIB,
+            tls: None,
         }
     }
 }
@@ -87,8 +114,11 @@ impl Client {
     pub async fn connect(url: &str, mut options: ClientOptions) -> Result<Client> {
         let connect_error = |reason: String| Error::Connect { url: url.to_owned(), reason };
         let auth = Auth::new(options.token.as_deref())?;
-        let endpoint = Endpoint::from_shared(url.to_owned())
+        let mut endpoint = Endpoint::from_shared(url.to_owned())
             .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
+        if let Some(tls) = &options.tls {
+            endpoint = endpoint.tls_config(tls.config()).map_err(|e| connect_error(chain(&e)))?;
+        }
         let channel = endpoint.tcp_nodelay(true).connect().await.map_err(|e| connect_error(chain(&e)))?;
         let mut rpc = RaydClient::with_interceptor(channel, auth);
         let info = rpc.get_server_info(proto::GetServerInfoRequest {}).await?.into_inner();

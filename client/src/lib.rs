@@ -38,7 +38,7 @@ mod upload;
 mod view;
 
 pub use bench::{BenchOptions, BenchReport};
-pub use client::{Client, ClientOptions, DEFAULT_SERVER};
+pub use client::{Client, ClientOptions, ClientTls, DEFAULT_SERVER};
 pub use error::{Error, Result};
 pub use mesh::load_mesh;
 pub use rayd_proto as proto;

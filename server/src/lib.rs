@@ -65,7 +65,11 @@ pub async fn run(
         health.set_not_serving::<RaydServer<RaydService>>().await;
         let _ = stop.send(true);
     });
-    let server = tonic::transport::Server::builder()
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = &config.tls {
+        builder = builder.tls_config(server_tls(tls)?)?;
+    }
+    let server = builder
         .add_service(health_service)
         .add_service(reflection)
         .add_service(rayd)
@@ -79,4 +83,19 @@ pub async fn run(
     }
     tracing::info!("stopped");
     Ok(())
+}
+
+/// The rustls configuration of `tls`: the server's identity and, for mutual TLS, the CAs of client certificates.
+fn server_tls(
+    tls: &config::TlsConfig,
+) -> Result<tonic::transport::ServerTlsConfig, Box<dyn std::error::Error + Send + Sync>> {
+    let read = |path: &std::path::Path, what: &str| {
+        std::fs::read(path).map_err(|e| format!("tls.{what} {}: {e}", path.display()))
+    };
+    let identity = tonic::transport::Identity::from_pem(read(&tls.cert, "cert")?, read(&tls.key, "key")?);
+    let mut server = tonic::transport::ServerTlsConfig::new().identity(identity);
+    if let Some(ca) = &tls.client_ca {
+        server = server.client_ca_root(tonic::transport::Certificate::from_pem(read(ca, "client_ca")?));
+    }
+    Ok(server)
 }

@@ -28,6 +28,9 @@ struct Cli {
     /// Directory for persisted state.
     #[arg(long, env = "RAYD_DATA_DIR")]
     data_dir: Option<PathBuf>,
+    /// Allow listening on a non-loopback address without authentication (no tenants configured).
+    #[arg(long, env = "RAYD_INSECURE")]
+    insecure: bool,
 }
 
 /// Loads the configuration: defaults, file, environment, then flags.
@@ -46,6 +49,8 @@ fn configure(cli: Cli) -> Result<Config, Box<dyn std::error::Error + Send + Sync
     if cli.data_dir.is_some() {
         config.data_dir = cli.data_dir;
     }
+    config.insecure |= cli.insecure;
+    config.check_exposure()?;
     Ok(config)
 }
 

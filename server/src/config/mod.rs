@@ -33,6 +33,22 @@ pub struct Config {
     pub limits: Limits,
     /// Tenants and their API keys. None: one default tenant, no authentication (for loopback use).
     pub tenants: Vec<TenantConfig>,
+    /// TLS for the gRPC service; none serves plaintext.
+    pub tls: Option<TlsConfig>,
+    /// Allow a non-loopback `listen` without authentication (`--insecure`).
+    pub insecure: bool,
+}
+
+/// TLS of the gRPC service (rustls).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsConfig {
+    /// The server's certificate chain, PEM.
+    pub cert: PathBuf,
+    /// Its private key, PEM.
+    pub key: PathBuf,
+    /// With it, clients must present a certificate signed by one of these CAs (mutual TLS), PEM.
+    pub client_ca: Option<PathBuf>,
 }
 
 impl Default for Config {
@@ -45,6 +61,8 @@ impl Default for Config {
             shutdown_grace_seconds: 30,
             limits: Limits::default(),
             tenants: Vec::new(),
+            tls: None,
+            insecure: false,
         }
     }
 }
@@ -169,6 +187,20 @@ impl Config {
         }
         tenants::check(&config.tenants).map_err(ConfigError::Invalid)?;
         Ok(config)
+    }
+}
+
+impl Config {
+    /// Refuses a non-loopback `listen` without authentication (no tenants) unless `insecure` is set.
+    pub fn check_exposure(&self) -> Result<(), ConfigError> {
+        if !self.listen.ip().is_loopback() && self.tenants.is_empty() && !self.insecure {
+            return Err(ConfigError::Invalid(format!(
+                "refusing to listen on {} without authentication: configure [[tenants]] with keys, or pass \
+                 --insecure (RAYD_INSECURE=true) to serve anyone who can reach it",
+                self.listen
+            )));
+        }
+        Ok(())
     }
 }
 

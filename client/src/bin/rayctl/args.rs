@@ -22,6 +22,15 @@ pub struct Cli {
     /// Sent as `authorization: Bearer <T>` with every call.
     #[arg(long, value_name = "T", global = true, env = "RAYD_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
+    /// For an https:// server: the CA certificate (PEM) that signed its certificate.
+    #[arg(long, value_name = "FILE", global = true, env = "RAYD_CA_CERT")]
+    pub ca_cert: Option<PathBuf>,
+    /// For a server that requires client certificates (mutual TLS): this client's certificate (PEM).
+    #[arg(long, value_name = "FILE", global = true, env = "RAYD_CLIENT_CERT", requires = "client_key")]
+    pub client_cert: Option<PathBuf>,
+    /// The private key (PEM) of --client-cert.
+    #[arg(long, value_name = "FILE", global = true, env = "RAYD_CLIENT_KEY", requires = "client_cert")]
+    pub client_key: Option<PathBuf>,
     /// Print one JSON object instead of text.
     #[arg(long, global = true)]
     pub json: bool,

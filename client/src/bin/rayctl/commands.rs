@@ -1,13 +1,13 @@
 //! What each rayctl command does: read local files, call the library, and shape the answer for [`show`].
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
-use rayd_client::{BenchOptions, Client, ClientOptions, Error, Result, Scene, load_mesh};
+use rayd_client::{BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, load_mesh};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::raygen::{Camera, random_rays, uniform};
 use serde_json::json;
@@ -18,8 +18,17 @@ use crate::show::{self, Output, ms};
 /// Connects to the server and runs the command.
 pub async fn run(cli: &Cli) -> Result<Output> {
     let max_message_bytes = usize::try_from(cli.max_message_bytes).unwrap_or(usize::MAX);
+    let read = |path: &PathBuf| std::fs::read(path).map_err(|e| Error::io(path, e));
+    let identity = match (&cli.client_cert, &cli.client_key) {
+        (Some(cert), Some(key)) => Some((read(cert)?, read(key)?)),
+        _ => None,
+    };
+    let tls = (cli.ca_cert.is_some() || identity.is_some())
+        .then(|| Ok::<_, Error>(ClientTls { ca_cert: cli.ca_cert.as_ref().map(read).transpose()?, identity }))
+        .transpose()?;
     let options = ClientOptions {
         token: cli.token.clone(),
+        tls,
         max_message_bytes,
         batch_limit_bytes: max_message_bytes / 2,
         ..ClientOptions::default()
