@@ -1,7 +1,8 @@
-//! End to end against the real `rayd` with configured tenants: every kind of call × {no key, an unknown key, a
-//! read key, a write key, an admin key of another tenant}, each with its expected code; another tenant's objects
-//! answer NOT_FOUND exactly as missing ones do; a rotated pair of keys both work; per-tenant limits; and persisted
-//! tenants in separate directories.
+//! End to end against the real `rayd` with configured tenants: every call of the contract × {no key, an unknown
+//! key, a read key, a write key, an admin key} against the role it needs; the client's calls on one tenant's
+//! objects × {a read key, a write key, an admin key of another tenant}, each with its expected code; another
+//! tenant's objects answer NOT_FOUND exactly as missing ones do; both rotated keys work; per-tenant limits and
+//! quotas; usage through ListTenants, `rayctl stats` and metric labels; persisted tenants in separate directories.
 
 mod common;
 mod daemon;
@@ -92,9 +93,18 @@ async fn codes(caller: &Client, accel: &str, buffer: &str, fresh: &str) -> Vec<C
     ]
 }
 
-/// The codes of the calls [`codes`] makes, made with the generated stub (so that they get as far as the server
-/// without a usable key), sending `token` if any.
-async fn raw_codes(daemon: &Daemon, token: Option<&str>, accel: &str, buffer: &str) -> Vec<Code> {
+/// The roles of keys, as the server orders them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+enum Role {
+    Read,
+    Write,
+    Admin,
+}
+
+/// Every call of the contract, made with the generated stub (so that it reaches the server whatever the key), with
+/// the role it needs and the code it ended with. Requests are minimal: past the key check most fail validation,
+/// which is not what is looked at here.
+async fn every_call(daemon: &Daemon, token: Option<&str>) -> Vec<(&'static str, Role, Code)> {
     use rayd_client::proto::{self, rayd_client::RaydClient};
     let header: Option<tonic::metadata::MetadataValue<_>> = token.map(|t| format!("Bearer {t}").parse().unwrap());
     let channel = tonic::transport::Endpoint::from_shared(daemon.url()).unwrap().connect().await.unwrap();
@@ -104,24 +114,65 @@ async fn raw_codes(daemon: &Daemon, token: Option<&str>, accel: &str, buffer: &s
         }
         Ok(request)
     });
-    let accel_ref = || Some(rayd_client::convert::accel_ref(accel));
-    let buffer_ref = || Some(rayd_client::convert::buffer_ref(buffer));
+    let accel = || Some(rayd_client::convert::accel_ref("tri"));
+    let buffer = || Some(rayd_client::convert::buffer_ref("buf-1"));
     vec![
-        of(rpc.get_server_info(proto::GetServerInfoRequest {}).await),
-        of(rpc.list_devices(proto::ListDevicesRequest {}).await),
-        of(rpc.list_accels(proto::ListAccelsRequest {}).await),
-        of(rpc.get_accel(proto::GetAccelRequest { accel: accel_ref() }).await),
-        of(rpc.list_buffers(proto::ListBuffersRequest {}).await),
-        of(rpc.download_buffer(proto::DownloadBufferRequest { buffer: buffer_ref(), ..Default::default() }).await),
-        of(rpc.trace_batch(proto::TraceBatchRequest::default()).await),
-        of(rpc.build_accel(proto::BuildAccelRequest::default()).await),
-        of(rpc.copy_accel(proto::CopyAccelRequest { accel: accel_ref(), ..Default::default() }).await),
-        of(rpc.save_accel(proto::SaveAccelRequest { accel: accel_ref(), ..Default::default() }).await),
-        of(rpc.open_stream(tokio_stream::iter(Vec::<proto::StreamRequest>::new())).await),
-        of(rpc.destroy_accel(proto::DestroyAccelRequest { accel: accel_ref() }).await),
-        of(rpc.delete_buffer(proto::DeleteBufferRequest { buffer: buffer_ref() }).await),
-        of(rpc.upload_buffer(tokio_stream::iter(Vec::<proto::UploadBufferRequest>::new())).await),
+        ("GetServerInfo", Role::Read, of(rpc.get_server_info(proto::GetServerInfoRequest {}).await)),
+        ("ListDevices", Role::Read, of(rpc.list_devices(proto::ListDevicesRequest {}).await)),
+        ("ListAccels", Role::Read, of(rpc.list_accels(proto::ListAccelsRequest {}).await)),
+        ("GetAccel", Role::Read, of(rpc.get_accel(proto::GetAccelRequest { accel: accel() }).await)),
+        ("ListBuffers", Role::Read, of(rpc.list_buffers(proto::ListBuffersRequest {}).await)),
+        (
+            "DownloadBuffer",
+            Role::Read,
+            of(rpc.download_buffer(proto::DownloadBufferRequest { buffer: buffer(), ..Default::default() }).await),
+        ),
+        (
+            "ComputeMemoryUsage",
+            Role::Read,
+            of(rpc.compute_memory_usage(proto::ComputeMemoryUsageRequest::default()).await),
+        ),
+        ("TraceBatch", Role::Read, of(rpc.trace_batch(proto::TraceBatchRequest::default()).await)),
+        (
+            "TraceStream",
+            Role::Read,
+            of(rpc.trace_stream(tokio_stream::iter(Vec::<proto::TraceStreamRequest>::new())).await),
+        ),
+        ("BuildAccel", Role::Write, of(rpc.build_accel(proto::BuildAccelRequest::default()).await)),
+        ("UpdateAccel", Role::Write, of(rpc.update_accel(proto::UpdateAccelRequest::default()).await)),
+        ("CopyAccel", Role::Write, of(rpc.copy_accel(proto::CopyAccelRequest::default()).await)),
+        ("SaveAccel", Role::Write, of(rpc.save_accel(proto::SaveAccelRequest::default()).await)),
+        ("LoadAccel", Role::Write, of(rpc.load_accel(proto::LoadAccelRequest::default()).await)),
+        ("DestroyAccel", Role::Write, of(rpc.destroy_accel(proto::DestroyAccelRequest::default()).await)),
+        (
+            "UploadBuffer",
+            Role::Write,
+            of(rpc.upload_buffer(tokio_stream::iter(Vec::<proto::UploadBufferRequest>::new())).await),
+        ),
+        ("DeleteBuffer", Role::Write, of(rpc.delete_buffer(proto::DeleteBufferRequest::default()).await)),
+        ("OpenStream", Role::Write, of(rpc.open_stream(tokio_stream::iter(Vec::<proto::StreamRequest>::new())).await)),
+        ("CancelStream", Role::Write, of(rpc.cancel_stream(proto::CancelStreamRequest { stream_id: 1 }).await)),
+        ("ListTenants", Role::Admin, of(rpc.list_tenants(proto::ListTenantsRequest {}).await)),
     ]
+}
+
+/// Checks that each call of `answers` was refused for its key (`UNAUTHENTICATED` without one, or with an unknown
+/// one; `PERMISSION_DENIED` when `role` is below what the call needs) or let through otherwise.
+fn check_key(answers: &[(&str, Role, Code)], role: Option<Role>, case: &str) {
+    for &(call, needs, code) in answers {
+        let expected = match role {
+            None => Some(Code::Unauthenticated),
+            Some(role) if role < needs => Some(Code::PermissionDenied),
+            Some(_) => None,
+        };
+        match expected {
+            Some(refusal) => assert_eq!(code, refusal, "{case}: {call}"),
+            None => assert!(
+                ![Code::Unauthenticated, Code::PermissionDenied].contains(&code),
+                "{case}: {call} must get past the key check, got {code:?}"
+            ),
+        }
+    }
 }
 
 /// The code a call of the generated stub ended with.
@@ -144,10 +195,11 @@ async fn every_call_answers_by_key_role_and_tenant() {
     acme.build_mesh("tri", &triangle, "", BuildFlags::empty()).await.unwrap();
     let buffer = acme.upload_buffer("data", Bytes::from_static(b"acme's bytes")).await.unwrap();
 
-    let unauthenticated = vec![Code::Unauthenticated; CALLS];
-    assert_eq!(raw_codes(&daemon, None, "tri", &buffer.id).await, unauthenticated, "no key");
-    let unknown = raw_codes(&daemon, Some("no-such-key-at-all-000000"), "tri", &buffer.id).await;
-    assert_eq!(unknown, unauthenticated, "an unknown key");
+    check_key(&every_call(&daemon, None).await, None, "no key");
+    check_key(&every_call(&daemon, Some("no-such-key-at-all-000000")).await, None, "an unknown key");
+    check_key(&every_call(&daemon, Some(ACME_READ)).await, Some(Role::Read), "a read key");
+    check_key(&every_call(&daemon, Some(ACME_WRITE)).await, Some(Role::Write), "a write key");
+    check_key(&every_call(&daemon, Some(BETA_ADMIN)).await, Some(Role::Admin), "an admin key");
     let error = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap_err();
     assert_eq!(error.code(), Code::Unauthenticated, "the client reports it at once: {error}");
 
