@@ -5,6 +5,7 @@ use std::sync::Arc;
 
 use glam::{Affine3A, Mat3A, Vec3, Vec3A};
 
+use super::motion::map_bounds;
 use crate::context::Accel;
 use crate::error::{Error, Result};
 
@@ -94,19 +95,8 @@ impl Placement {
     }
 
     /// The box around `bounds` (min, max) once placed; an empty box (`min > max`) stays empty.
-    pub fn place_bounds(&self, (min, max): (Vec3, Vec3)) -> (Vec3, Vec3) {
-        if min.cmpgt(max).any() {
-            return (min, max);
-        }
-        let corner = |i: u32| {
-            let pick = |bit: u32, lo: f32, hi: f32| if i & bit == 0 { lo } else { hi };
-            Vec3::from(self.object_to_world.transform_point3a(Vec3A::new(
-                pick(1, min.x, max.x),
-                pick(2, min.y, max.y),
-                pick(4, min.z, max.z),
-            )))
-        };
-        (0..8).map(corner).fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(lo, hi), p| (lo.min(p), hi.max(p)))
+    pub fn place_bounds(&self, bounds: (Vec3, Vec3)) -> (Vec3, Vec3) {
+        map_bounds(&self.object_to_world, bounds)
     }
 }
 

@@ -9,7 +9,7 @@
 //! holds (or, with [`MotionFlags::START_VANISH`], the object is not there); after `end` the last key holds (or,
 //! with [`MotionFlags::END_VANISH`], it is gone). One key means static: range and flags are then ignored.
 
-use glam::Vec3;
+use glam::{Affine3A, Vec3};
 
 use crate::error::{Error, Result};
 
@@ -60,6 +60,25 @@ pub fn union(a: Bounds, b: Bounds) -> Bounds {
 /// Whether the box holds nothing.
 pub fn is_empty(b: &Bounds) -> bool {
     b.0.cmpgt(b.1).any()
+}
+
+/// The eight corners of a box.
+pub(crate) fn corners((min, max): Bounds) -> [Vec3; 8] {
+    std::array::from_fn(|i| {
+        Vec3::new(
+            if i & 1 == 0 { min.x } else { max.x },
+            if i & 2 == 0 { min.y } else { max.y },
+            if i & 4 == 0 { min.z } else { max.z },
+        )
+    })
+}
+
+/// The box around `inner` mapped by `map` (empty stays empty).
+pub(crate) fn map_bounds(map: &Affine3A, inner: Bounds) -> Bounds {
+    if is_empty(&inner) {
+        return inner;
+    }
+    corners(inner).iter().map(|&p| map.transform_point3(p)).fold(EMPTY, |acc, p| union(acc, (p, p)))
 }
 
 /// `(1 − f)·a + f·b`, the interpolation between two keys (exact at `f` = 0 and 1).

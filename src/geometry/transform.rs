@@ -5,7 +5,7 @@
 use glam::{Affine3A, Mat3A, Quat, Vec3, Vec3A};
 
 use super::instance::Placement;
-use super::motion::{Bounds, EMPTY, MotionOptions, Piece, TimeSpan, is_empty, lerp, pad, union};
+use super::motion::{Bounds, EMPTY, MotionOptions, Piece, TimeSpan, corners, is_empty, lerp, map_bounds, pad, union};
 use crate::error::{Error, Result};
 
 /// Floats of one SRT key.
@@ -270,25 +270,6 @@ fn interpolate_affine(a: &Affine3A, b: &Affine3A, f: f32) -> Affine3A {
         ),
         translation: a.translation * (1.0 - f) + b.translation * f,
     }
-}
-
-/// The eight corners of a box.
-fn corners((min, max): Bounds) -> [Vec3; 8] {
-    std::array::from_fn(|i| {
-        Vec3::new(
-            if i & 1 == 0 { min.x } else { max.x },
-            if i & 2 == 0 { min.y } else { max.y },
-            if i & 4 == 0 { min.z } else { max.z },
-        )
-    })
-}
-
-/// The box around `inner` mapped by `map` (empty stays empty).
-fn map_bounds(map: &Affine3A, inner: Bounds) -> Bounds {
-    if is_empty(&inner) {
-        return inner;
-    }
-    corners(inner).iter().map(|&p| map.transform_point3(p)).fold(EMPTY, |acc, p| union(acc, (p, p)))
 }
 
 #[cfg(test)]

@@ -148,6 +148,16 @@ impl Tenant {
         &self.name
     }
 
+    /// Bytes of the tenant's accels.
+    fn accel_bytes(&self) -> u64 {
+        self.accels.values().iter().map(|e| e.accel.info().size_bytes).sum()
+    }
+
+    /// Bytes of the tenant's buffers.
+    fn buffer_bytes(&self) -> u64 {
+        self.buffers.values().iter().map(|b| b.size_bytes).sum()
+    }
+
     /// What the tenant holds now.
     pub fn usage(&self) -> Usage {
         Usage {
@@ -156,8 +166,8 @@ impl Tenant {
             object_bytes: self.contexts.values().map(Context::memory_in_use).sum(),
             streams: self.streams.open_count(),
             stream_bytes: self.streams.held_bytes(),
-            accel_bytes: self.accels.values().iter().map(|e| e.accel.info().size_bytes).sum(),
-            buffer_bytes: self.buffers.values().iter().map(|b| b.size_bytes).sum(),
+            accel_bytes: self.accel_bytes(),
+            buffer_bytes: self.buffer_bytes(),
             operations: self.quotas.running(),
         }
     }
@@ -312,7 +322,7 @@ impl Tenant {
 
     /// Checks that `more` bytes of accels stay within `max_total_accel_bytes` with the tenant's accels.
     fn check_total_accel_bytes(&self, more: u64) -> ServiceResult<()> {
-        let held = self.usage().accel_bytes;
+        let held = self.accel_bytes();
         ServiceError::check_limit(
             || format!("accel bytes of this tenant ({held} held, up to {more} more)"),
             held.saturating_add(more),
@@ -350,7 +360,7 @@ impl Tenant {
             self.buffers.check_free(name)?;
         }
         ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
-        let held = self.usage().buffer_bytes;
+        let held = self.buffer_bytes();
         ServiceError::check_limit(
             || format!("buffer bytes of this tenant ({held} held, {size} more)"),
             held.saturating_add(size),
