@@ -26,7 +26,7 @@ const ACME_WRITE_NEXT: &str = "acme-write-key-rotated-9876";
 const ACME_READ: &str = "acme-read-key-0123456789";
 const BETA_ADMIN: &str = "beta-admin-key-0123456789";
 
-/// A configuration file with tenants `acme` (two write keys, a read key, at most 3 accels) and `beta` (an admin
+/// A configuration file with tenants `acme` (two write keys, a read key, share 3, at most 3 accels) and `beta` (an admin
 /// key), and a data directory.
 fn config(dir: &Path) -> PathBuf {
     std::fs::create_dir_all(dir).unwrap();
@@ -40,6 +40,7 @@ keys = [
   {{ key = "{ACME_WRITE_NEXT}", role = "write" }},
   {{ key = "{ACME_READ}", role = "read" }},
 ]
+share = 3
 limits = {{ max_accels = 3 }}
 
 [[tenants]]
@@ -246,6 +247,7 @@ async fn every_call_answers_by_key_role_and_tenant() {
     let stats: serde_json::Value = serde_json::from_slice(&stats.stdout).unwrap();
     assert_eq!(stats["tenants"][0]["name"], "acme", "{stats}");
     assert_eq!(stats["tenants"][0]["max_accels"], 3, "{stats}");
+    assert_eq!((stats["tenants"][0]["share"].as_u64(), stats["tenants"][1]["share"].as_u64()), (Some(3), Some(1)));
     let traced = |tenant: &str| daemon.metric("rayd_rays_traced_total", &[&format!("tenant=\"{tenant}\"")]);
     assert!(traced("acme").is_some_and(|rays| rays >= 1.0), "acme's rays are counted under its name");
     assert_eq!(traced("beta"), None, "beta traced nothing");

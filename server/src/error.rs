@@ -47,6 +47,9 @@ pub enum ServiceError {
         /// The I/O error.
         source: std::io::Error,
     },
+    /// A bug: something that must not fail did (a panic caught at the edge of a worker's task).
+    #[error("internal error: {0}")]
+    Internal(String),
     /// A configured limit.
     #[error("{what}: {requested} exceeds limits.{limit} = {allowed}")]
     Limit {
@@ -104,7 +107,7 @@ impl From<ServiceError> for Status {
             ServiceError::Storage { source, .. } if source.kind() == std::io::ErrorKind::StorageFull => {
                 Code::ResourceExhausted
             }
-            ServiceError::Storage { .. } => Code::Internal,
+            ServiceError::Storage { .. } | ServiceError::Internal(_) => Code::Internal,
         };
         Status::new(code, error.to_string())
     }

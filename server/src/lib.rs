@@ -11,6 +11,7 @@ mod error;
 mod metrics;
 mod persist;
 mod registry;
+mod schedule;
 mod service;
 mod streams;
 mod tenant;

@@ -55,6 +55,11 @@ pub fn traced(tenant: &str, stats: &TraceStats) {
     counter!("rayd_trace_batches_total", "tenant" => tenant).increment(1);
 }
 
+/// Records how long a trace of `tenant` waited in its device's queue before its first piece started.
+pub fn queued(tenant: &str, waited: std::time::Duration) {
+    histogram!("rayd_trace_queue_seconds", "tenant" => tenant.to_owned()).record(waited.as_secs_f64());
+}
+
 /// Counts a new accel of `tenant`.
 pub fn accel_built(tenant: &str, entry: &AccelEntry) {
     gauge!("rayd_accels", "tenant" => tenant.to_owned()).increment(1.0);

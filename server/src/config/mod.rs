@@ -13,6 +13,9 @@ use rayd_engine::geometry::motion::MAX_MOTION_KEYS;
 use serde::{Deserialize, Serialize};
 pub use tenants::{KeyConfig, MIN_KEY_CHARS, Role, TenantConfig};
 
+/// The most worker threads a device's scheduler may be given.
+pub const MAX_WORKERS: u32 = 1024;
+
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -37,6 +40,16 @@ pub struct Config {
     pub tls: Option<TlsConfig>,
     /// Allow a non-loopback `listen` without authentication (`--insecure`).
     pub insecure: bool,
+    /// How device work is scheduled.
+    pub scheduler: SchedulerConfig,
+}
+
+/// The fair schedulers of the devices (traces are queued per tenant and served by share; see `tenants.share`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct SchedulerConfig {
+    /// Threads that trace on the CPU device, 0 to 1024; 0: one per core.
+    pub workers: u32,
 }
 
 /// TLS of the gRPC service (rustls).
@@ -63,6 +76,7 @@ impl Default for Config {
             tenants: Vec::new(),
             tls: None,
             insecure: false,
+            scheduler: SchedulerConfig::default(),
         }
     }
 }
@@ -182,6 +196,12 @@ impl Config {
         inherit_limits(&mut table);
         let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
         config.limits.check("limits").map_err(ConfigError::Invalid)?;
+        if config.scheduler.workers > MAX_WORKERS {
+            return Err(ConfigError::Invalid(format!(
+                "scheduler.workers = {} must be 0 (one per core) to {MAX_WORKERS}",
+                config.scheduler.workers
+            )));
+        }
         for (i, tenant) in config.tenants.iter().enumerate() {
             tenant.limits.check(&format!("tenants[{i}].limits")).map_err(ConfigError::Invalid)?;
         }
@@ -300,12 +320,14 @@ mod tests {
         let acme = &config.tenants[0];
         assert_eq!((acme.limits.max_accels, acme.limits.max_buffers), (3, 7), "its own, then the server's");
         assert_eq!(acme.keys[1].role, Role::Read);
+        assert_eq!(acme.share, 1, "the default share");
         for (bad, why) in [
             (good.replace("fedcba9876543210", "0123456789abcdef"), "unique"),
             (good.replace("\"fedcba9876543210\"", "\"short\""), "shorter than 16"),
             (good.replace("\"acme\"", "\"a/b\""), "[A-Za-z0-9._-]"),
             (good.replace("role = \"read\"", "role = \"root\""), "root"),
             (good.replace("max_accels = 3", "max_graph_depth = 9"), "tenants[0].limits.max_graph_depth"),
+            (good.replace("name = \"acme\"", "name = \"acme\"\nshare = 0"), "tenants[0].share = 0 must be 1 to 1000"),
         ] {
             std::fs::write(&path, bad).unwrap();
             let error = Config::load(Some(&path), env(&[])).unwrap_err().to_string();

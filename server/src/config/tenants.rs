@@ -8,6 +8,7 @@
 //!   { key = "acme-pipeline-2f9c0d1e7b6a", role = "write" },
 //!   { key = "acme-renderer-8e1a44c09d3f", role = "read" },
 //! ]
+//! share = 2
 //! limits = { max_accels = 100 }
 //! ```
 
@@ -59,13 +60,25 @@ pub struct TenantConfig {
     pub name: String,
     /// Its keys, at least one; several may be active at once (to rotate them without downtime).
     pub keys: Vec<KeyConfig>,
+    /// Its weight in the devices' fair schedulers, 1 to 1000: while several tenants have traces queued on a device,
+    /// each is served rays in proportion to its share.
+    #[serde(default = "default_share")]
+    pub share: u32,
     /// Its limits: the server's `[limits]` with the keys set here replaced (filled in when the configuration is
     /// loaded).
     #[serde(default)]
     pub limits: Limits,
 }
 
-/// Checks the tenants: valid, unique names; at least one key each; keys long enough and unique across tenants.
+/// The share of a tenant that sets none.
+fn default_share() -> u32 {
+    1
+}
+
+/// The largest share.
+pub const MAX_SHARE: u32 = 1000;
+
+/// Checks the tenants: valid, unique names; shares in range; at least one key each; keys long enough and unique across tenants.
 pub fn check(tenants: &[TenantConfig]) -> Result<(), String> {
     let mut keys: Vec<&str> = Vec::new();
     for (i, tenant) in tenants.iter().enumerate() {
@@ -79,6 +92,9 @@ pub fn check(tenants: &[TenantConfig]) -> Result<(), String> {
         }
         if tenants[..i].iter().any(|t| t.name == *name) {
             return Err(format!("tenants[{i}].name {name:?} is used twice"));
+        }
+        if !(1..=MAX_SHARE).contains(&tenant.share) {
+            return Err(format!("tenants[{i}].share = {} must be 1 to {MAX_SHARE}", tenant.share));
         }
         if tenant.keys.is_empty() {
             return Err(format!("tenants[{i}] ({name}) has no keys"));

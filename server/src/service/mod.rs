@@ -20,6 +20,7 @@ use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::metrics::observe;
 use crate::persist::Store;
+use crate::schedule::Schedulers;
 use crate::tenant::Tenant;
 
 /// Shared state of every call.
@@ -36,8 +37,9 @@ impl RaydService {
     /// held to its limits; with a data directory, each tenant's objects are restored from its directory (what
     /// cannot be restored is logged and skipped) and persisted there from now on.
     pub fn new(devices: Vec<Device>, config: &Config) -> Result<RaydService, ServiceError> {
-        let make = |name: &str, limits: Limits| -> Result<Arc<Tenant>, ServiceError> {
-            let mut tenant = Tenant::new(name, limits, &devices);
+        let schedulers = Arc::new(Schedulers::new(&devices, config.scheduler.workers as usize));
+        let make = |name: &str, limits: Limits, share: u32| -> Result<Arc<Tenant>, ServiceError> {
+            let mut tenant = Tenant::new(name, limits, share, &devices, Arc::clone(&schedulers));
             if let Some(dir) = &config.data_dir {
                 let store = Store::open(dir, name)
                     .map_err(|e| ServiceError::storage(format!("tenant {name:?}'s directory"), e))?;
@@ -47,11 +49,11 @@ impl RaydService {
             Ok(Arc::new(tenant))
         };
         let tenants = if config.tenants.is_empty() {
-            Tenants::open(make("default", config.limits)?)
+            Tenants::open(make("default", config.limits, 1)?)
         } else {
             let mut keys = Vec::new();
             for configured in &config.tenants {
-                let tenant = make(&configured.name, configured.limits)?;
+                let tenant = make(&configured.name, configured.limits, configured.share)?;
                 keys.extend(configured.keys.iter().map(|k| (k.key.clone(), k.role, Arc::clone(&tenant))));
             }
             Tenants::with_keys(keys)
@@ -84,7 +86,7 @@ fn restore_logged(name: &str, tenant: &Tenant) -> Result<(), ServiceError> {
     Ok(())
 }
 
-/// Runs blocking work (builds, traces) on tokio's blocking pool so the async runtime keeps serving.
+/// Runs blocking work (builds, loads, writes to the data directory) on tokio's blocking pool so the async runtime keeps serving.
 async fn blocking<T: Send + 'static>(work: impl FnOnce() -> ServiceResult<T> + Send + 'static) -> ServiceResult<T> {
     tokio::task::spawn_blocking(work).await.expect("blocking work does not panic")
 }
@@ -137,6 +139,7 @@ impl Rayd for RaydService {
                     name: tenant.name().into(),
                     usage: Some(convert::usage(&tenant.usage())),
                     limits: Some(convert::limits(tenant.limits())),
+                    share: tenant.share(),
                 })
                 .collect();
             Ok(pb::ListTenantsResponse { tenants })

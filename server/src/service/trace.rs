@@ -4,7 +4,7 @@ use std::pin::Pin;
 use std::sync::Arc;
 
 use bytes::Bytes;
-use rayd_engine::query::{CHUNK_RAYS, Query};
+use rayd_engine::query::Query;
 use rayd_proto as pb;
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
@@ -45,15 +45,9 @@ fn check_reply_size(tenant: &Tenant, query: &Query, rays: usize) -> ServiceResul
     )
 }
 
-/// Traces `rays` and counts them in the metrics. A batch of at most one engine chunk (microseconds of work) is
-/// traced right here; larger ones go off the async runtime so they never stall other calls.
+/// Traces `rays` (through the fair scheduler of the accel's device) and counts them in the metrics.
 async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Bytes) -> ServiceResult<TraceResult> {
-    let result = if rays.len() <= CHUNK_RAYS * query.ray_format.size() {
-        tenant.trace(&accel, &query, &rays)?
-    } else {
-        let tenant = Arc::clone(tenant);
-        blocking(move || tenant.trace(&accel, &query, &rays)).await?
-    };
+    let result = tenant.trace(&accel, &query, rays).await?;
     crate::metrics::traced(tenant.name(), &result.stats);
     Ok(result)
 }

@@ -4,6 +4,7 @@
 
 mod persistence;
 mod quota;
+mod trace;
 
 use std::collections::HashMap;
 use std::sync::Arc;
@@ -12,13 +13,14 @@ use std::time::Instant;
 
 use bytes::Bytes;
 use rayd_engine::accel::MemoryUsage;
-use rayd_engine::query::{Query, TraceOutput, TraceStats};
+use rayd_engine::query::TraceStats;
 use rayd_engine::{Accel, BufferHandle, Context, Device};
 
 use crate::config::Limits;
 use crate::error::{ServiceError, ServiceResult};
 use crate::persist::Store;
 use crate::registry::Registry;
+use crate::schedule::{Flow, Schedulers};
 use crate::streams::Streams;
 use quota::Quotas;
 
@@ -89,6 +91,10 @@ pub struct Tenant {
     store: Option<Store>,
     /// Operations running and rays allowed.
     quotas: Quotas,
+    /// Its queue in the devices' schedulers, and its share of them.
+    flow: Flow,
+    /// The fair schedulers of the server's devices, shared with every tenant.
+    schedulers: Arc<Schedulers>,
 }
 
 /// What a tenant holds now.
@@ -123,8 +129,8 @@ pub fn check_name(field: &str, name: &str) -> ServiceResult<()> {
 }
 
 impl Tenant {
-    /// A tenant called `name` with a context on each device.
-    pub fn new(name: &str, limits: Limits, devices: &[Device]) -> Tenant {
+    /// A tenant called `name` with a context on each device, whose traces get `share` of the devices' `schedulers`.
+    pub fn new(name: &str, limits: Limits, share: u32, devices: &[Device], schedulers: Arc<Schedulers>) -> Tenant {
         Tenant {
             name: name.into(),
             limits,
@@ -135,6 +141,8 @@ impl Tenant {
             streams: Arc::default(),
             store: None,
             quotas: Quotas::new(limits.max_rays_per_second),
+            flow: Flow { name: name.into(), share },
+            schedulers,
         }
     }
 
@@ -146,6 +154,11 @@ impl Tenant {
     /// Its name.
     pub fn name(&self) -> &str {
         &self.name
+    }
+
+    /// Its weight in the devices' fair schedulers.
+    pub fn share(&self) -> u32 {
+        self.flow.share
     }
 
     /// Bytes of the tenant's accels.
@@ -415,25 +428,5 @@ impl Tenant {
         self.buffers.remove(&entry.id, &entry.name)?;
         self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
         self.unpersist_buffer(&entry.id)
-    }
-
-    /// Traces `rays` against `accel` into fresh reply buffers. Blocks: call it off the async runtime.
-    pub fn trace(&self, accel: &AccelEntry, query: &Query, rays: &[u8]) -> ServiceResult<TraceResult> {
-        let layout = query.output_layout(rays.len())?;
-        ServiceError::check_limit(
-            || "rays in one batch".into(),
-            layout.rays as u64,
-            "max_rays_per_batch",
-            self.limits.max_rays_per_batch,
-        )?;
-        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
-        self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
-        let mut hits = vec![0u8; layout.hits];
-        let mut counts = vec![0u8; layout.counts];
-        let start = Instant::now();
-        let context = self.context(&accel.device)?.1;
-        let stats = context.trace(&accel.accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
-        let trace_ns = start.elapsed().as_nanos() as u64;
-        Ok(TraceResult { hits: Bytes::from(hits), counts: Bytes::from(counts), stats, trace_ns })
     }
 }

@@ -1,0 +1,237 @@
+//! Device work, queued per tenant and served fairly. Each device has a [`Scheduler`]: a few worker threads that take
+//! tasks from a [`FairQueue`] in which every tenant has its own queue, weighted by its share. A trace is cut into
+//! pieces of at most [`CHUNK_RAYS`] rays (on the CPU, well under a millisecond each), so a tenant that floods the
+//! device with million-ray batches holds a worker for one piece at a time, and another tenant's ray waits for at
+//! most one piece per worker.
+//!
+//! A task that fits in one piece runs on the caller's thread when a worker slot is free and nothing is queued: an
+//! idle server answers a small trace without a hop to another thread, and a busy one queues it like any other.
+
+mod fair;
+
+use std::collections::HashMap;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+
+pub use fair::{FairQueue, Flow};
+use rayd_engine::Device;
+use rayd_engine::backend::BackendKind;
+use rayd_engine::query::CHUNK_RAYS;
+
+/// Work the scheduler runs; it reports its own results.
+pub type Task = Box<dyn FnOnce() + Send>;
+
+/// The fair scheduler of one device.
+#[derive(Debug)]
+pub struct Scheduler {
+    /// What the workers share with the callers.
+    shared: Arc<Shared>,
+    /// Rays per piece on this device.
+    piece_rays: usize,
+}
+
+/// The queue and the slots, behind one lock.
+#[derive(Debug)]
+struct Shared {
+    /// Tasks waiting, the slots taken and whether the scheduler was dropped.
+    state: Mutex<State>,
+    /// Signalled when a task is queued, a slot is given back or the scheduler closes.
+    changed: Condvar,
+    /// Tasks that may run at once (worker threads, and callers running a small task themselves).
+    slots: usize,
+}
+
+/// The state under [`Shared::state`].
+#[derive(Default)]
+struct State {
+    /// Tasks waiting.
+    queue: FairQueue<Task>,
+    /// Slots taken by running tasks.
+    busy: usize,
+    /// Set when the scheduler is dropped: the workers finish what is queued and exit.
+    closed: bool,
+}
+
+impl std::fmt::Debug for State {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("State").field("queued", &self.queue.len()).field("busy", &self.busy).finish()
+    }
+}
+
+/// A slot taken by a caller running a task itself; given back when dropped.
+#[derive(Debug)]
+pub struct Slot<'a> {
+    /// The scheduler's shared state.
+    shared: &'a Shared,
+}
+
+impl Drop for Slot<'_> {
+    fn drop(&mut self) {
+        self.shared.lock().busy -= 1;
+        self.shared.changed.notify_one();
+    }
+}
+
+impl Shared {
+    /// The state; a panic elsewhere while it was held leaves nothing half-done in it, so poisoning is ignored.
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|poisoned| poisoned.into_inner())
+    }
+
+    /// One worker: takes the next task whenever a slot is free, until the scheduler closes and the queue is empty.
+    fn work(&self) {
+        loop {
+            let task = {
+                let mut state = self.lock();
+                loop {
+                    if state.busy < self.slots
+                        && let Some(task) = state.queue.pop()
+                    {
+                        state.busy += 1;
+                        break task;
+                    }
+                    if state.closed && state.queue.is_empty() {
+                        return;
+                    }
+                    state = self.changed.wait(state).unwrap_or_else(|poisoned| poisoned.into_inner());
+                }
+            };
+            task();
+            self.lock().busy -= 1;
+            self.changed.notify_one();
+        }
+    }
+}
+
+impl Scheduler {
+    /// A scheduler with `workers` threads (at least one) named after `device`, cutting traces into pieces of
+    /// `piece_rays` rays.
+    pub fn new(device: &str, workers: usize, piece_rays: usize) -> Scheduler {
+        let slots = workers.max(1);
+        let shared = Arc::new(Shared { state: Mutex::default(), changed: Condvar::new(), slots });
+        for worker in 0..slots {
+            let shared = Arc::clone(&shared);
+            std::thread::Builder::new()
+                .name(format!("rayd-{device}-{worker}"))
+                .spawn(move || shared.work())
+                .expect("a worker thread can be started");
+        }
+        Scheduler { shared, piece_rays: piece_rays.max(1) }
+    }
+
+    /// The scheduler of `device`: on the CPU one worker per core (`workers` 0) or `workers`, and pieces of one
+    /// engine chunk.
+    pub fn for_device(device: &Device, workers: usize) -> Scheduler {
+        let info = device.info();
+        let (workers, piece_rays) = match info.kind {
+            BackendKind::Cpu => {
+                let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+                (if workers == 0 { cores } else { workers }, CHUNK_RAYS)
+            }
+        };
+        Scheduler::new(&info.id, workers, piece_rays)
+    }
+
+    /// Rays per piece: a trace of more rays is cut into pieces of this many.
+    pub fn piece_rays(&self) -> usize {
+        self.piece_rays
+    }
+
+    /// A slot for the caller to run one small task itself, if one is free and no task is waiting (so it never
+    /// overtakes queued work).
+    pub fn try_slot(&self) -> Option<Slot<'_>> {
+        let mut state = self.shared.lock();
+        if state.busy < self.shared.slots && state.queue.is_empty() {
+            state.busy += 1;
+            return Some(Slot { shared: &self.shared });
+        }
+        None
+    }
+
+    /// Queues `tasks` of `flow`, each with its cost in rays, in order.
+    pub fn submit(&self, flow: &Flow, tasks: impl IntoIterator<Item = (u64, Task)>) {
+        let mut state = self.shared.lock();
+        for (cost, task) in tasks {
+            state.queue.push(flow, cost, task);
+        }
+        drop(state);
+        self.shared.changed.notify_all();
+    }
+}
+
+impl Drop for Scheduler {
+    fn drop(&mut self) {
+        self.shared.lock().closed = true;
+        self.shared.changed.notify_all();
+    }
+}
+
+/// The schedulers of a server's devices, by device id.
+#[derive(Debug, Default)]
+pub struct Schedulers {
+    /// One per device.
+    by_device: HashMap<String, Scheduler>,
+}
+
+impl Schedulers {
+    /// One scheduler per device; `cpu_workers` threads on the CPU (0: one per core).
+    pub fn new(devices: &[Device], cpu_workers: usize) -> Schedulers {
+        let by_device = devices.iter().map(|d| (d.info().id.clone(), Scheduler::for_device(d, cpu_workers))).collect();
+        Schedulers { by_device }
+    }
+
+    /// The scheduler of device `id`, if the server has it.
+    pub fn get(&self, id: &str) -> Option<&Scheduler> {
+        self.by_device.get(id)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::mpsc;
+
+    #[test]
+    fn queued_tasks_of_a_newcomer_overtake_a_flood() {
+        // One worker, held by a task until released, so the order of the rest is the queue's alone.
+        let scheduler = Scheduler::new("test", 1, 8);
+        let (release, gate) = mpsc::channel::<()>();
+        let (done, finished) = mpsc::channel::<&'static str>();
+        let flood = Flow { name: "a".into(), share: 1 };
+        scheduler.submit(&flood, [(8, Box::new(move || gate.recv().unwrap()) as Task)]);
+        let tasks = (0..100).map(|_| {
+            let done = done.clone();
+            (8, Box::new(move || done.send("a").unwrap()) as Task)
+        });
+        scheduler.submit(&flood, tasks.collect::<Vec<_>>());
+        let late = done.clone();
+        scheduler
+            .submit(&Flow { name: "b".into(), share: 1 }, [(1, Box::new(move || late.send("b").unwrap()) as Task)]);
+        assert!(scheduler.try_slot().is_none(), "work is queued: a caller may not run its own ahead of it");
+        release.send(()).unwrap();
+        let order: Vec<_> = (0..101).map(|_| finished.recv().unwrap()).collect();
+        let b_at = order.iter().position(|&n| n == "b").unwrap();
+        assert!(b_at <= 1, "b was served {b_at}th: {order:?}");
+    }
+
+    #[test]
+    fn an_idle_scheduler_lends_its_slots_to_callers() {
+        let scheduler = Scheduler::new("test", 2, 8);
+        let first = scheduler.try_slot().expect("idle");
+        let second = scheduler.try_slot().expect("two slots");
+        assert!(scheduler.try_slot().is_none(), "both slots taken");
+        drop(first);
+        assert!(scheduler.try_slot().is_some());
+        drop(second);
+    }
+
+    #[test]
+    fn workers_wait_for_slots_that_callers_hold() {
+        let scheduler = Scheduler::new("test", 1, 8);
+        let slot = scheduler.try_slot().expect("idle");
+        let (done, finished) = mpsc::channel();
+        scheduler.submit(&Flow { name: "a".into(), share: 1 }, [(1, Box::new(move || done.send(()).unwrap()) as Task)]);
+        assert!(finished.recv_timeout(std::time::Duration::from_millis(50)).is_err(), "ran beside a held slot");
+        drop(slot);
+        finished.recv_timeout(std::time::Duration::from_secs(10)).expect("runs once the slot is back");
+    }
+}

@@ -1,0 +1,233 @@
+//! A tenant's traces: checked against its limits, then cut into pieces that the fair scheduler of the accel's
+//! device serves among every tenant's pieces ([`crate::schedule`]). Each piece writes in place into its share of
+//! one hit buffer and one counts buffer, which are handed back whole, without copying, when the last piece is done.
+
+use std::panic::AssertUnwindSafe;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use bytes::{Bytes, BytesMut};
+use rayd_engine::Accel;
+use rayd_engine::query::{Query, TraceOutput, TraceStats};
+use tokio::sync::oneshot;
+
+use super::{AccelEntry, Tenant, TraceResult};
+use crate::error::{ServiceError, ServiceResult};
+use crate::schedule::{Scheduler, Task};
+
+impl Tenant {
+    /// Traces `rays` against `accel` into fresh reply buffers, once the limits allow it, through the fair scheduler
+    /// of the accel's device. A trace of at most one piece runs right here when the device has a free slot and
+    /// nothing queued.
+    pub async fn trace(self: &Arc<Self>, accel: &AccelEntry, query: &Query, rays: Bytes) -> ServiceResult<TraceResult> {
+        let layout = query.output_layout(rays.len())?;
+        ServiceError::check_limit(
+            || "rays in one batch".into(),
+            layout.rays as u64,
+            "max_rays_per_batch",
+            self.limits.max_rays_per_batch,
+        )?;
+        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
+        self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
+        // Checked on the whole batch, so that the error names the ray by its index in the batch.
+        query.check_times(&rays)?;
+        let scheduler = self
+            .schedulers
+            .get(&accel.device)
+            .ok_or_else(|| ServiceError::NotFound { what: "device", name: accel.device.clone() })?;
+        if layout.rays <= scheduler.piece_rays()
+            && let Some(_slot) = scheduler.try_slot()
+        {
+            let (mut hits, mut counts) = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
+            let start = Instant::now();
+            let stats = self.trace_piece(&accel.device, &accel.accel, query, &rays, &mut hits, &mut counts)?;
+            let trace_ns = start.elapsed().as_nanos() as u64;
+            return Ok(TraceResult { hits: hits.freeze(), counts: counts.freeze(), stats, trace_ns });
+        }
+        let (reply, result) = oneshot::channel();
+        let job = Arc::new(TraceJob {
+            tenant: Arc::clone(self),
+            accel: Arc::clone(&accel.accel),
+            device: accel.device.clone(),
+            query: *query,
+            rays,
+            abandoned: AtomicBool::new(false),
+            progress: Mutex::new(Progress::default()),
+        });
+        let _abandon_if_dropped = Abandon(Arc::clone(&job));
+        let queued = Instant::now();
+        job.submit(scheduler, layout.hits, layout.counts, reply);
+        let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
+        crate::metrics::queued(&self.name, result.trace_start.duration_since(queued));
+        Ok(result.trace)
+    }
+
+    /// Traces `rays` on device `device` into `hits` and `counts`, which fit them exactly.
+    fn trace_piece(
+        &self,
+        device: &str,
+        accel: &Accel,
+        query: &Query,
+        rays: &[u8],
+        hits: &mut [u8],
+        counts: &mut [u8],
+    ) -> ServiceResult<TraceStats> {
+        let context = self.context(device)?.1;
+        Ok(context.trace(accel, query, rays, TraceOutput { hits, counts })?)
+    }
+}
+
+/// A trace cut into pieces; the worker that finishes its last piece answers the caller.
+struct TraceJob {
+    /// Whose trace it is.
+    tenant: Arc<Tenant>,
+    /// What is traced (kept alive while pieces wait).
+    accel: Arc<Accel>,
+    /// The device the accel lives on.
+    device: String,
+    /// What is asked of every ray.
+    query: Query,
+    /// Every ray of the trace.
+    rays: Bytes,
+    /// Set when the caller went away or a piece failed: the pieces not started yet are skipped.
+    abandoned: AtomicBool,
+    /// What the pieces finished so far.
+    progress: Mutex<Progress>,
+}
+
+/// The pieces' results, gathered.
+#[derive(Default)]
+struct Progress {
+    /// Each piece's hits and counts, once traced.
+    outputs: Vec<Option<(BytesMut, BytesMut)>>,
+    /// Pieces not finished (or skipped) yet.
+    remaining: usize,
+    /// The sum of the finished pieces' statistics.
+    stats: TraceStats,
+    /// The first failure of a piece: the answer.
+    failure: Option<ServiceError>,
+    /// When the first piece started.
+    started: Option<Instant>,
+    /// Where the answer goes.
+    reply: Option<oneshot::Sender<ServiceResult<Finished>>>,
+}
+
+/// A finished trace and when its first piece started.
+struct Finished {
+    /// The whole trace's result.
+    trace: TraceResult,
+    /// When its first piece started (the end of its wait in the queue).
+    trace_start: Instant,
+}
+
+/// Abandons the job when the caller's future is dropped (the client went away or its deadline passed).
+struct Abandon(Arc<TraceJob>);
+
+impl Drop for Abandon {
+    fn drop(&mut self) {
+        self.0.abandoned.store(true, Ordering::Release);
+    }
+}
+
+impl TraceJob {
+    /// Cuts the output buffers (`hit_bytes`, `count_bytes` long) into the pieces' shares and queues every piece.
+    fn submit(
+        self: &Arc<Self>,
+        scheduler: &Scheduler,
+        hit_bytes: usize,
+        count_bytes: usize,
+        reply: oneshot::Sender<ServiceResult<Finished>>,
+    ) {
+        let ray_size = self.query.ray_format.size();
+        let piece_bytes = scheduler.piece_rays() * ray_size;
+        let pieces = self.rays.len().div_ceil(piece_bytes);
+        {
+            let mut progress = self.progress.lock().expect("not poisoned");
+            progress.outputs = (0..pieces).map(|_| None).collect();
+            progress.remaining = pieces;
+            progress.reply = Some(reply);
+        }
+        let (mut hits, mut counts) = (BytesMut::zeroed(hit_bytes), BytesMut::zeroed(count_bytes));
+        let tasks: Vec<(u64, Task)> = (0..pieces)
+            .map(|index| {
+                let start = index * piece_bytes;
+                let len = piece_bytes.min(self.rays.len() - start);
+                let layout = self.query.output_layout(len).expect("a whole number of rays");
+                let output = (hits.split_to(layout.hits), counts.split_to(layout.counts));
+                let job = Arc::clone(self);
+                let task: Task = Box::new(move || job.run(index, start..start + len, output));
+                (layout.rays as u64, task)
+            })
+            .collect();
+        let flow = &self.tenant.flow;
+        scheduler.submit(flow, tasks);
+    }
+
+    /// Traces piece `index` (the rays in bytes `rays`) into `output`, unless the job was abandoned, and answers
+    /// when it was the last.
+    fn run(&self, index: usize, rays: std::ops::Range<usize>, (mut hits, mut counts): (BytesMut, BytesMut)) {
+        let traced = if self.abandoned.load(Ordering::Acquire) {
+            None
+        } else {
+            let start = Instant::now();
+            self.progress.lock().expect("not poisoned").started.get_or_insert(start);
+            let first_ray = rays.start / self.query.ray_format.size();
+            let piece = &self.rays[rays];
+            let trace =
+                || self.tenant.trace_piece(&self.device, &self.accel, &self.query, piece, &mut hits, &mut counts);
+            // A bug in the engine fails this trace, not the worker or the other pieces waiting on it.
+            Some(std::panic::catch_unwind(AssertUnwindSafe(trace)).unwrap_or_else(|_| {
+                Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked")))
+            }))
+        };
+        let mut progress = self.progress.lock().expect("not poisoned");
+        match traced {
+            Some(Ok(stats)) => {
+                progress.stats.add(&stats);
+                progress.outputs[index] = Some((hits, counts));
+            }
+            Some(Err(error)) => {
+                self.abandoned.store(true, Ordering::Release);
+                progress.failure.get_or_insert(error);
+            }
+            None => {}
+        }
+        progress.remaining -= 1;
+        if progress.remaining == 0 {
+            let answer = progress.finish();
+            if let Some(reply) = progress.reply.take() {
+                // The caller may have gone: then nobody wants the answer.
+                let _ = reply.send(answer);
+            }
+        }
+    }
+}
+
+impl Progress {
+    /// The answer once every piece is done: the first failure, or the outputs joined back into whole buffers.
+    fn finish(&mut self) -> ServiceResult<Finished> {
+        if let Some(failure) = self.failure.take() {
+            return Err(failure);
+        }
+        let trace_start = self.started.unwrap_or_else(Instant::now);
+        let trace_ns = trace_start.elapsed().as_nanos() as u64;
+        let mut outputs = std::mem::take(&mut self.outputs).into_iter();
+        let Some(Some((mut hits, mut counts))) = outputs.next() else {
+            return Err(abandoned());
+        };
+        for output in outputs {
+            let Some((more_hits, more_counts)) = output else { return Err(abandoned()) };
+            // The pieces were split off one buffer in order, so joining them back copies nothing.
+            hits.unsplit(more_hits);
+            counts.unsplit(more_counts);
+        }
+        let trace = TraceResult { hits: hits.freeze(), counts: counts.freeze(), stats: self.stats, trace_ns };
+        Ok(Finished { trace, trace_start })
+    }
+}
+
+/// The answer of a trace whose caller went away (nobody reads it).
+fn abandoned() -> ServiceError {
+    ServiceError::Transport(tonic::Status::cancelled("the caller went away before the trace finished"))
+}
