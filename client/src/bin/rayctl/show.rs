@@ -218,6 +218,7 @@ pub fn stats(tenants: &[TenantInfo]) -> Output {
             let (u, l) = (t.usage.unwrap_or_default(), t.limits.unwrap_or_default());
             vec![
                 t.name.clone(),
+                t.share.to_string(),
                 of(u.accels.to_string(), l.max_accels.to_string()),
                 of(bytes(u.accel_bytes), bytes(l.max_total_accel_bytes)),
                 of(u.buffers.to_string(), l.max_buffers.to_string()),
@@ -231,6 +232,7 @@ pub fn stats(tenants: &[TenantInfo]) -> Output {
         let (u, l) = (t.usage.unwrap_or_default(), t.limits.unwrap_or_default());
         json!({
             "name": t.name,
+            "share": t.share,
             "accels": u.accels, "max_accels": l.max_accels,
             "accel_bytes": u.accel_bytes, "max_total_accel_bytes": l.max_total_accel_bytes,
             "buffers": u.buffers, "max_buffers": l.max_buffers,
@@ -240,7 +242,7 @@ pub fn stats(tenants: &[TenantInfo]) -> Output {
             "max_rays_per_second": l.max_rays_per_second,
         })
     });
-    let header = ["TENANT", "ACCELS", "ACCEL BYTES", "BUFFERS", "BUFFER BYTES", "STREAMS", "OPERATIONS"];
+    let header = ["TENANT", "SHARE", "ACCELS", "ACCEL BYTES", "BUFFERS", "BUFFER BYTES", "STREAMS", "OPERATIONS"];
     Output { json: json!({ "tenants": json.collect::<Vec<_>>() }), text: table(&header, &rows) }
 }
 
