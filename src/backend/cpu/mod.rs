@@ -6,6 +6,7 @@ mod instances;
 mod persist;
 mod traverse;
 mod triangles;
+mod wide;
 
 use std::any::Any;
 use std::sync::Arc;
@@ -53,7 +54,7 @@ impl CpuAccel {
     /// Stack entries a trace through it needs.
     fn stack_size(&self) -> usize {
         match self {
-            CpuAccel::Triangles(bvh) => bvh.depth + 1,
+            CpuAccel::Triangles(bvh) => bvh.stack_size(),
             CpuAccel::Instances(bvh) => bvh.stack_size,
             CpuAccel::Transform(node) => node.stack_size,
         }

@@ -33,6 +33,7 @@ use super::CpuAccel;
 use super::bvh::{Node, NodeKeys};
 use super::instances::{InstanceBvh, cpu_child};
 use super::triangles::{RandomAccess, TriangleBvh, corner_bounds};
+use super::wide::WideBvh;
 use crate::accel::{AccelKind, BuildFlags, BuildOptions};
 use crate::backend::Shape;
 use crate::context::Accel;
@@ -311,9 +312,10 @@ impl TriangleBvh {
         if let Some(order) = &update_order {
             check_update_order(order, slots)?;
         }
-        Ok(TriangleBvh {
+        let mut bvh = TriangleBvh {
             nodes,
             node_keys,
+            wide: WideBvh::default(),
             motion: options.motion,
             bounds: corner_bounds(&corners),
             corners,
@@ -323,7 +325,9 @@ impl TriangleBvh {
             depth,
             update_order,
             random_access,
-        })
+        };
+        bvh.collapse_wide();
+        Ok(bvh)
     }
 }
 

@@ -41,8 +41,11 @@ impl CpuAccel {
     }
 }
 
+static AB_BINARY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+
 impl TriangleBvh {
-    /// Offers the triangles of the leaves the ray reaches, as they are at the ray's time.
+    /// Offers the triangles of the leaves the ray reaches, as they are at the ray's time: a static accel through its
+    /// wide nodes, a moving one through its binary nodes with their boxes at that time.
     fn traverse(
         &self,
         stack: &mut [StackEntry],
@@ -53,42 +56,31 @@ impl TriangleBvh {
     ) {
         let Some(at) = self.motion.locate(ray.time) else { return };
         match &self.node_keys {
-            None => self.walk_triangles(
-                static_boxes(&self.nodes),
-                |slot| self.corners[slot],
-                stack,
-                ray,
-                scope,
-                collector,
-                stats,
-            ),
+            None if *AB_BINARY.get_or_init(|| std::env::var_os("RAYD_AB_BINARY").is_some()) => walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, self.offer_leaf(|slot| self.corners[slot], ray, scope)),
+            None => self.wide.walk(stack, ray, collector, stats, self.offer_leaf(|slot| self.corners[slot], ray, scope)),
             Some(keys) => {
                 let stride = keys.keys;
-                let corners = |slot: usize| {
+                let corners = move |slot: usize| {
                     let (a, b) =
                         (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
                     std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
                 };
-                self.walk_triangles(|node| keys.at(node, at), corners, stack, ray, scope, collector, stats)
+                let leaf = self.offer_leaf(corners, ray, scope);
+                walk(&self.nodes, |node| keys.at(node, at), stack, ray, collector, stats, leaf)
             }
         }
     }
 
-    /// Walks the nodes with their boxes from `node_box` and offers each reached triangle, with its corners from
-    /// `corners` (by slot).
-    #[allow(clippy::too_many_arguments)]
+    /// What a walk does at a leaf: offers each of its triangles, with its corners from `corners` (by slot), and
+    /// says whether the collector is done.
     #[inline(always)]
-    fn walk_triangles(
-        &self,
-        node_box: impl Fn(u32) -> (Vec3A, Vec3A),
-        corners: impl Fn(usize) -> [Vec3; 3],
-        stack: &mut [StackEntry],
-        ray: &PreparedRay,
-        scope: &InstanceScope,
-        collector: &mut Collector<'_>,
-        stats: &mut TraceStats,
-    ) {
-        walk(&self.nodes, node_box, stack, ray, collector, stats, |slots, _, collector, stats| {
+    fn offer_leaf<'a>(
+        &'a self,
+        corners: impl Fn(usize) -> [Vec3; 3] + 'a,
+        ray: &'a PreparedRay,
+        scope: &'a InstanceScope,
+    ) -> impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
+        move |slots, _, collector, stats| {
             for slot in slots {
                 stats.triangle_tests += 1;
                 let id = self.refs[slot];
@@ -104,7 +96,7 @@ impl TriangleBvh {
                 }
             }
             false
-        });
+        }
     }
 }
 

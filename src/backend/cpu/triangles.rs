@@ -5,6 +5,7 @@ use glam::Vec3;
 use obvhs::aabb::Aabb;
 
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
+use super::wide::{WIDTH, WideBvh, WideNode};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, union};
 use crate::geometry::{GatheredTriangles, GeometryFlags, MotionOptions, TriangleRef, is_degenerate};
@@ -23,6 +24,8 @@ pub struct TriangleBvh {
     pub(super) nodes: Vec<Node>,
     /// With motion: each node's box at each key.
     pub(super) node_keys: Option<NodeKeys>,
+    /// Without motion: the nodes collapsed to 8 children a node, which traversal uses (empty with motion).
+    pub(super) wide: WideBvh,
     /// The motion options (static without motion).
     pub(super) motion: MotionOptions,
     /// Triangle corners, `motion.keys` sets a triangle (slot `i`'s at key `k` at `i·keys + k`): first those of the
@@ -62,12 +65,16 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     let node_count = (2 * n).saturating_sub(1);
     let node_keys = if keys > 1 { keys * size_of::<Bounds>() as u64 } else { 0 };
     let nodes = node_count * (size_of::<Node>() as u64 + node_keys);
+    // Static accels also collapse their nodes to wide ones: every wide node with an inner lane has all WIDTH lanes
+    // and every other has at least 2 leaves, so there are at most 4/7 as many as leaves (plus the root).
+    let wide_nodes = if keys > 1 { 0 } else { (4 * n).div_ceil(WIDTH as u64 - 1) + 1 };
+    let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1);
     let per_triangle =
         (keys as usize * size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
     let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
     let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
     let update_order = if updatable { 4 * n } else { 0 };
-    let output_bytes = FIXED_BYTES + nodes + n * per_triangle + 4 * g + random_access + update_order;
+    let output_bytes = FIXED_BYTES + nodes + wide + n * per_triangle + 4 * g + random_access + update_order;
     let temp_bytes = BUILD_TEMP_FIXED_BYTES + n * BUILD_TEMP_BYTES_PER_TRIANGLE;
     // An update gathers the new triangles (corners, ids, masks) and writes a refitted copy of the accel.
     let gathered = n * (per_triangle + 4) + 4 * g;
@@ -97,7 +104,18 @@ impl TriangleBvh {
             bvh.node_keys = Some(NodeKeys::new(bvh.nodes.len(), triangles.keys));
             bvh.refit_nodes();
         }
+        bvh.collapse_wide();
         bvh
+    }
+
+    /// Derives the wide nodes from the binary ones (static accels only).
+    pub(super) fn collapse_wide(&mut self) {
+        self.wide = if self.node_keys.is_none() { WideBvh::collapse(&self.nodes) } else { WideBvh::default() };
+    }
+
+    /// Stack entries a traversal needs.
+    pub(super) fn stack_size(&self) -> usize {
+        (self.depth + 1).max(self.wide.stack_size())
     }
 
     /// Recomputes the nodes' boxes (and key boxes) from the corners.
@@ -142,6 +160,7 @@ impl TriangleBvh {
         TriangleBvh {
             nodes,
             node_keys: None,
+            wide: WideBvh::default(),
             motion: options.motion,
             bounds: corner_bounds(&corners),
             corners,
@@ -169,6 +188,7 @@ impl TriangleBvh {
             }
         }
         next.refit_nodes();
+        next.collapse_wide();
         next.bounds = corner_bounds(&next.corners);
         Some(next)
     }
@@ -180,6 +200,7 @@ impl TriangleBvh {
         let update_order = self.update_order.as_ref().map_or(0, |o| bytes(o, 4));
         FIXED_BYTES
             + bytes(&self.nodes, size_of::<Node>())
+            + self.wide.size_bytes(footprint)
             + self.node_keys.as_ref().map_or(0, |k| bytes(&k.boxes, size_of::<Bounds>()))
             + bytes(&self.corners, size_of::<[Vec3; 3]>())
             + bytes(&self.refs, size_of::<TriangleRef>())
