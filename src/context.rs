@@ -11,6 +11,8 @@ use glam::Vec3;
 
 use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
+#[cfg(feature = "wgpu")]
+use crate::backend::wgpu::WgpuOptions;
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, Shape};
 use crate::error::{Error, Result};
 use crate::geometry::motion::TimeSpan;
@@ -41,9 +43,27 @@ impl Device {
         Device { info: backend.info(), backend }
     }
 
-    /// Every device of this machine; the CPU comes first.
+    /// Every device of this machine: the CPU first, then (with the `wgpu` feature) every wgpu adapter as
+    /// `wgpu:0`, `wgpu:1`, … ([`Device::wgpu`]).
     pub fn all() -> Vec<Device> {
-        vec![Device::cpu()]
+        let mut devices = vec![Device::cpu()];
+        #[cfg(feature = "wgpu")]
+        devices.extend(Device::wgpu(WgpuOptions::default()));
+        devices
+    }
+
+    /// A device for every adapter that wgpu enumerates on the backends of `WGPU_BACKEND` (Vulkan when unset), with
+    /// `options`; none on a machine without one. Adapters are enumerated once a process, and each adapter's wgpu
+    /// device is opened once, on first use, and shared by every device made for it.
+    #[cfg(feature = "wgpu")]
+    pub fn wgpu(options: WgpuOptions) -> Vec<Device> {
+        crate::backend::wgpu::backends(options)
+            .into_iter()
+            .map(|backend| {
+                let backend: Arc<dyn Backend> = Arc::new(backend);
+                Device { info: backend.info(), backend }
+            })
+            .collect()
     }
 
     /// What the device is.

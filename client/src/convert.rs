@@ -144,10 +144,11 @@ pub fn bounds(info: &proto::AccelInfo) -> Option<(Vec3, Vec3)> {
     lo.cmple(hi).all().then_some((lo, hi))
 }
 
-/// A device backend's name in lower case (`cpu`), or `unknown`.
+/// A device backend's name in lower case (`cpu`, `wgpu`), or `unknown`.
 pub fn backend_name(backend: i32) -> &'static str {
     match proto::Backend::try_from(backend) {
         Ok(proto::Backend::Cpu) => "cpu",
+        Ok(proto::Backend::Wgpu) => "wgpu",
         _ => "unknown",
     }
 }

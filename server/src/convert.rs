@@ -193,6 +193,7 @@ pub fn device(info: &DeviceInfo) -> pb::Device {
         id: info.id.clone(),
         backend: match info.kind {
             BackendKind::Cpu => pb::Backend::Cpu as i32,
+            BackendKind::Wgpu => pb::Backend::Wgpu as i32,
         },
         name: info.name.clone(),
         memory_bytes: info.memory_bytes,

@@ -2,6 +2,8 @@
 //! go through [`crate::Context`] and never see which backend runs their work.
 
 pub mod cpu;
+#[cfg(feature = "wgpu")]
+pub mod wgpu;
 
 use std::any::Any;
 use std::sync::Arc;
@@ -20,6 +22,9 @@ use crate::query::{Query, TraceOutput, TraceStats};
 pub enum BackendKind {
     /// `obvhs`-built BVHs traced on the host's cores with rayon.
     Cpu,
+    /// The same BVHs, built on the host and traced by WGSL compute kernels on a wgpu (Vulkan) adapter; geometry
+    /// accels only for now (see [`wgpu`](crate::backend::wgpu)). Listed only in builds with the `wgpu` feature.
+    Wgpu,
 }
 
 /// What a device is and can do.

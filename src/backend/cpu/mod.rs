@@ -1,7 +1,7 @@
 //! The CPU backend: BVHs built by `obvhs` ([`bvh`]) over triangles ([`triangles`]) or placed instances
 //! ([`instances`]), traced by [`traverse`] over rayon chunks.
 
-mod bvh;
+pub(crate) mod bvh;
 mod instances;
 mod persist;
 mod traverse;
@@ -182,7 +182,7 @@ impl Backend for CpuBackend {
 }
 
 /// The CPU structure of `accel`; FAILED_PRECONDITION for an accel of another device.
-fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
+pub(crate) fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
     accel
         .as_any()
         .downcast_ref::<CpuAccel>()
@@ -190,7 +190,7 @@ fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
 }
 
 /// Total host memory, from `/proc/meminfo` where there is one.
-fn host_memory_bytes() -> u64 {
+pub(crate) fn host_memory_bytes() -> u64 {
     std::fs::read_to_string("/proc/meminfo")
         .ok()
         .and_then(|text| {
