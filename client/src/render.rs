@@ -3,10 +3,9 @@
 
 use std::path::Path;
 
-use bytes::Bytes;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::query::Query;
-use rayd_engine::raygen::Camera;
+use rayd_engine::raygen::{Camera, Generator, PixelSampling};
 
 use crate::client::Client;
 use crate::error::{Error, Result};
@@ -58,10 +57,12 @@ impl Image {
 }
 
 impl Client {
-    /// Renders the accel called `accel` as `camera` sees it (one closest-hit ray a pixel).
+    /// Renders the accel called `accel` as `camera` sees it (one closest-hit ray through each pixel's centre,
+    /// made by the server from the camera: no ray crosses the network).
     pub async fn render(&self, accel: &str, camera: &Camera, shading: Shading) -> Result<Image> {
         let query = Query::closest(RayFormat::OriginDirection, shading.hit_format());
-        let traced = self.trace(accel, &query, Bytes::from(camera.rays(query.ray_format))).await?;
+        let centres = PixelSampling { samples: 1, jitter_seed: None };
+        let traced = self.trace_generated(accel, &query, &Generator::Pinhole(*camera, centres)).await?;
         Ok(shade(&traced.hit_view(), camera.width, camera.height, shading))
     }
 }

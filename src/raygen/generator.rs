@@ -189,11 +189,13 @@ impl Generator {
         }
     }
 
-    /// Rays it makes.
+    /// Rays it makes (saturating: a count beyond `u64` is refused by any limit anyway).
     pub fn count(&self) -> u64 {
         match self {
-            Generator::Pinhole(c, s) => u64::from(c.width) * u64::from(c.height) * u64::from(s.samples),
-            Generator::Orthographic(c, s) => u64::from(c.width) * u64::from(c.height) * u64::from(s.samples),
+            Generator::Pinhole(Camera { width, height, .. }, s)
+            | Generator::Orthographic(Orthographic { width, height, .. }, s) => {
+                (u64::from(*width) * u64::from(*height)).saturating_mul(u64::from(s.samples))
+            }
             Generator::Lidar(l) => u64::from(l.steps) * l.elevations_degrees.len() as u64,
             Generator::Sphere(s) => s.points.len() as u64 * u64::from(s.samples),
         }

@@ -17,6 +17,11 @@ use rayd_engine::Device;
 use rayd_engine::backend::BackendKind;
 use rayd_engine::query::CHUNK_RAYS;
 
+/// Rays per piece on a GPU: large enough for the backend to overlap its transfers with tracing within a piece
+/// (several of its chunks), small enough that another tenant's trace waits for milliseconds, not for a whole
+/// batch.
+pub const GPU_PIECE_RAYS: usize = 1 << 20;
+
 /// Work the scheduler runs; it reports its own results.
 pub type Task = Box<dyn FnOnce() + Send>;
 
@@ -118,15 +123,17 @@ impl Scheduler {
         Scheduler { shared, piece_rays: piece_rays.max(1) }
     }
 
-    /// The scheduler of `device`: on the CPU one worker per core (`workers` 0) or `workers`, and pieces of one
-    /// engine chunk.
-    pub fn for_device(device: &Device, workers: usize) -> Scheduler {
+    /// The scheduler of `device`: on the CPU one worker per core (`cpu_workers` 0) or `cpu_workers`, and pieces
+    /// of one engine chunk; on a GPU one worker (the device runs one trace at a time anyway) and pieces of
+    /// [`GPU_PIECE_RAYS`].
+    pub fn for_device(device: &Device, cpu_workers: usize) -> Scheduler {
         let info = device.info();
         let (workers, piece_rays) = match info.kind {
             BackendKind::Cpu => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-                (if workers == 0 { cores } else { workers }, CHUNK_RAYS)
+                (if cpu_workers == 0 { cores } else { cpu_workers }, CHUNK_RAYS)
             }
+            BackendKind::Wgpu => (1, GPU_PIECE_RAYS),
         };
         Scheduler::new(&info.id, workers, piece_rays)
     }

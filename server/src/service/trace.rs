@@ -14,7 +14,7 @@ use tonic::{Status, Streaming};
 use super::{accels, blocking, buffers};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
-use crate::tenant::{AccelEntry, Tenant, TraceResult};
+use crate::tenant::{AccelEntry, Rays, Tenant, TraceResult};
 
 /// The response stream of `TraceStream`.
 pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::TraceStreamResponse, Status>> + Send>>;
@@ -29,9 +29,9 @@ fn resolve_query(tenant: &Tenant, query: Option<&pb::TraceQuery>) -> ServiceResu
     Ok((accel, convert::query(query, tenant.limits().max_hits_per_ray)?))
 }
 
-/// Checks that the hits and counts of `rays` bytes fit in one reply message.
-fn check_reply_size(tenant: &Tenant, query: &Query, rays: usize) -> ServiceResult<()> {
-    let layout = query.output_layout(rays)?;
+/// Checks that the hits and counts of `rays` rays fit in one reply message.
+fn check_reply_size(tenant: &Tenant, query: &Query, rays: u64) -> ServiceResult<()> {
+    let layout = query.output_layout(rays as usize * query.ray_format.size())?;
     ServiceError::check_limit(
         || {
             format!(
@@ -46,7 +46,7 @@ fn check_reply_size(tenant: &Tenant, query: &Query, rays: usize) -> ServiceResul
 }
 
 /// Traces `rays` (through the fair scheduler of the accel's device) and counts them in the metrics.
-async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Bytes) -> ServiceResult<TraceResult> {
+async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Rays) -> ServiceResult<TraceResult> {
     let result = tenant.trace(&accel, &query, rays).await?;
     crate::metrics::traced(tenant.name(), &result.stats);
     Ok(result)
@@ -56,18 +56,24 @@ async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Byte
 pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> ServiceResult<pb::TraceBatchResponse> {
     let (accel, query) = resolve_query(&tenant, request.query.as_ref())?;
     let rays = match request.rays {
-        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => bytes,
+        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => Rays::Packed(bytes),
         Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => {
-            buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1
+            Rays::Packed(buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1)
         }
-        None => return Err(ServiceError::invalid("rays", "rays_inline or rays_buffer is required")),
+        Some(pb::trace_batch_request::Rays::RaysGenerator(generator)) => {
+            let (generator, range) = convert::generator(&generator)?;
+            Rays::Generated(Arc::new(generator), range)
+        }
+        None => return Err(ServiceError::invalid("rays", "rays_inline, rays_buffer or rays_generator is required")),
     };
+    let ray_count = rays.count(query.ray_format.size());
+    tenant.check_batch_rays(ray_count)?;
     let to_buffer = !request.hits_buffer_name.is_empty();
     if to_buffer {
-        let layout = query.output_layout(rays.len())?;
+        let layout = query.output_layout(ray_count as usize * query.ray_format.size())?;
         tenant.check_new_buffer(&request.hits_buffer_name, layout.hits as u64)?;
     } else {
-        check_reply_size(&tenant, &query, rays.len())?;
+        check_reply_size(&tenant, &query, ray_count)?;
     }
     let result = trace(&tenant, accel, query, rays).await?;
     let stats = Some(convert::trace_stats(&result.stats, result.trace_ns));
@@ -147,7 +153,8 @@ async fn answer_chunk(
     rays: Bytes,
     first_ray: u64,
 ) -> ServiceResult<pb::TraceStreamResponse> {
-    check_reply_size(tenant, &query, rays.len())?;
+    let rays = Rays::Packed(rays);
+    check_reply_size(tenant, &query, rays.count(query.ray_format.size()))?;
     let result = trace(tenant, accel.clone(), query, rays).await?;
     Ok(pb::TraceStreamResponse {
         first_ray,

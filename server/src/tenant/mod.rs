@@ -6,6 +6,8 @@ mod persistence;
 mod quota;
 mod trace;
 
+pub use trace::Rays;
+
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};

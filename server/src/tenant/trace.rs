@@ -10,28 +10,80 @@ use std::time::Instant;
 use bytes::{Bytes, BytesMut};
 use rayd_engine::Accel;
 use rayd_engine::query::{Query, TraceOutput, TraceStats};
+use rayd_engine::raygen::Generator;
 use tokio::sync::oneshot;
 
 use super::{AccelEntry, Tenant, TraceResult};
 use crate::error::{ServiceError, ServiceResult};
 use crate::schedule::{Scheduler, Task};
 
+/// The rays of a trace.
+#[derive(Debug, Clone)]
+pub enum Rays {
+    /// Packed in the query's ray format, as sent.
+    Packed(Bytes),
+    /// Made by a checked generator, piece by piece, where they are traced: its rays in the range (non-empty,
+    /// within the generator).
+    Generated(Arc<Generator>, std::ops::Range<u64>),
+}
+
+impl Rays {
+    /// Rays in the batch, for records of `ray_size` bytes.
+    pub fn count(&self, ray_size: usize) -> u64 {
+        match self {
+            Rays::Packed(bytes) => (bytes.len() / ray_size) as u64,
+            Rays::Generated(_, range) => range.end - range.start,
+        }
+    }
+
+    /// Bytes the rays take packed (whole records only for a generator).
+    fn byte_len(&self, ray_size: usize) -> usize {
+        match self {
+            Rays::Packed(bytes) => bytes.len(),
+            Rays::Generated(_, range) => (range.end - range.start) as usize * ray_size,
+        }
+    }
+
+    /// The rays in bytes `range` of the packed batch: a slice of the sent bytes, or made by the generator into
+    /// `scratch`.
+    fn piece<'a>(&'a self, query: &Query, range: std::ops::Range<usize>, scratch: &'a mut Vec<u8>) -> &'a [u8] {
+        match self {
+            Rays::Packed(bytes) => &bytes[range],
+            Rays::Generated(generator, rays) => {
+                scratch.clear();
+                scratch.resize(range.len(), 0);
+                let first = rays.start + (range.start / query.ray_format.size()) as u64;
+                generator.fill(query.ray_format, first, scratch);
+                scratch
+            }
+        }
+    }
+}
+
 impl Tenant {
+    /// Fails with RESOURCE_EXHAUSTED naming `max_rays_per_batch` if a batch of `rays` rays is too large.
+    pub fn check_batch_rays(&self, rays: u64) -> ServiceResult<()> {
+        ServiceError::check_limit(
+            || "rays in one batch".into(),
+            rays,
+            "max_rays_per_batch",
+            self.limits.max_rays_per_batch,
+        )
+    }
+
     /// Traces `rays` against `accel` into fresh reply buffers, once the limits allow it, through the fair scheduler
     /// of the accel's device. A trace of at most one piece runs right here when the device has a free slot and
     /// nothing queued.
-    pub async fn trace(self: &Arc<Self>, accel: &AccelEntry, query: &Query, rays: Bytes) -> ServiceResult<TraceResult> {
-        let layout = query.output_layout(rays.len())?;
-        ServiceError::check_limit(
-            || "rays in one batch".into(),
-            layout.rays as u64,
-            "max_rays_per_batch",
-            self.limits.max_rays_per_batch,
-        )?;
+    pub async fn trace(self: &Arc<Self>, accel: &AccelEntry, query: &Query, rays: Rays) -> ServiceResult<TraceResult> {
+        let ray_size = query.ray_format.size();
+        self.check_batch_rays(rays.count(ray_size))?;
+        let layout = query.output_layout(rays.byte_len(ray_size))?;
         let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
         self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
-        // Checked on the whole batch, so that the error names the ray by its index in the batch.
-        query.check_times(&rays)?;
+        if let Rays::Packed(bytes) = &rays {
+            // Checked on the whole batch, so that the error names the ray by its index in the batch.
+            query.check_times(bytes)?;
+        }
         let scheduler = self
             .schedulers
             .get(&accel.device)
@@ -41,7 +93,9 @@ impl Tenant {
         {
             let (mut hits, mut counts) = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
             let start = Instant::now();
-            let stats = self.trace_piece(&accel.device, &accel.accel, query, &rays, &mut hits, &mut counts)?;
+            let mut scratch = Vec::new();
+            let rays = rays.piece(query, 0..rays.byte_len(ray_size), &mut scratch);
+            let stats = self.trace_piece(&accel.device, &accel.accel, query, rays, &mut hits, &mut counts)?;
             let trace_ns = start.elapsed().as_nanos() as u64;
             return Ok(TraceResult { hits: hits.freeze(), counts: counts.freeze(), stats, trace_ns });
         }
@@ -89,7 +143,7 @@ struct TraceJob {
     /// What is asked of every ray.
     query: Query,
     /// Every ray of the trace.
-    rays: Bytes,
+    rays: Rays,
     /// Set when the caller went away or a piece failed: the pieces not started yet are skipped.
     abandoned: AtomicBool,
     /// What the pieces finished so far.
@@ -141,7 +195,8 @@ impl TraceJob {
     ) {
         let ray_size = self.query.ray_format.size();
         let piece_bytes = scheduler.piece_rays() * ray_size;
-        let pieces = self.rays.len().div_ceil(piece_bytes);
+        let total = self.rays.byte_len(ray_size);
+        let pieces = total.div_ceil(piece_bytes);
         {
             let mut progress = self.progress.lock().expect("not poisoned");
             progress.outputs = (0..pieces).map(|_| None).collect();
@@ -152,7 +207,7 @@ impl TraceJob {
         let tasks: Vec<(u64, Task)> = (0..pieces)
             .map(|index| {
                 let start = index * piece_bytes;
-                let len = piece_bytes.min(self.rays.len() - start);
+                let len = piece_bytes.min(total - start);
                 let layout = self.query.output_layout(len).expect("a whole number of rays");
                 let output = (hits.split_to(layout.hits), counts.split_to(layout.counts));
                 let job = Arc::clone(self);
@@ -173,7 +228,8 @@ impl TraceJob {
             let start = Instant::now();
             self.progress.lock().expect("not poisoned").started.get_or_insert(start);
             let first_ray = rays.start / self.query.ray_format.size();
-            let piece = &self.rays[rays];
+            let mut scratch = Vec::new();
+            let piece = self.rays.piece(&self.query, rays, &mut scratch);
             let trace =
                 || self.tenant.trace_piece(&self.device, &self.accel, &self.query, piece, &mut hits, &mut counts);
             // A bug in the engine fails this trace, not the worker or the other pieces waiting on it.

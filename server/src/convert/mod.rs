@@ -10,6 +10,9 @@ use rayd_proto as pb;
 
 use crate::error::{ServiceError, ServiceResult};
 
+mod generator;
+pub use generator::generator;
+
 /// The engine value numbered `value` in the contract, whose enums number the engine's `ALL` lists from 1 (0 is
 /// UNSPECIFIED); the test below checks that the names agree.
 fn numbered<T: Copy>(all: &[T], value: i32, field: &str, what: &str) -> ServiceResult<T> {

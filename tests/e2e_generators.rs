@@ -1,0 +1,100 @@
+//! End to end: ray generators expanded by the server. For each kind (pinhole with jittered samples, orthographic,
+//! lidar with per-ray time, hemisphere sampling around surface points) and each query kind, the hits of a
+//! `TraceBatch` carrying only the generator are byte for byte those of the same rays expanded on the client
+//! (`Generator::rays`) and sent; bad numbers answer INVALID_ARGUMENT naming the field, too many rays
+//! RESOURCE_EXHAUSTED naming the limit.
+
+mod common;
+mod daemon;
+
+use bytes::Bytes;
+use daemon::Daemon;
+use rayd_client::{Client, ClientOptions, Error};
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::glam::Vec3;
+use rayd_engine::query::{Query, QueryKind};
+use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, PixelSampling, SphereSampling};
+use tonic::Code;
+
+/// One generator of each kind, aimed at the box `[lo, hi]`, with surface points from `mesh`.
+fn generators(mesh: &rayd_engine::mesh::Mesh) -> Vec<Generator> {
+    let (lo, hi) = mesh.bounds();
+    let centre = (lo + hi) * 0.5;
+    let camera = Camera::framing(lo, hi, 40, 30);
+    let jittered = PixelSampling { samples: 3, jitter_seed: Some(11) };
+    let orthographic = Orthographic {
+        eye: centre + Vec3::Z * (hi - lo).length(),
+        target: centre,
+        up: Vec3::Y,
+        view_height: (hi - lo).y * 1.2,
+        width: 32,
+        height: 32,
+    };
+    let lidar = Lidar {
+        origin: centre + Vec3::new(0.0, 0.0, (hi - lo).z),
+        forward: Vec3::NEG_Z,
+        up: Vec3::Y,
+        elevations_degrees: vec![-20.0, -10.0, 0.0, 10.0, 20.0],
+        steps: 180,
+        min_range: 0.001,
+        max_range: 10.0,
+        time: (0.0, 0.1),
+    };
+    let triangles = &mesh.triangles[..50];
+    let corners = |t: &[u32; 3]| t.map(|i| mesh.positions[i as usize]);
+    let points = triangles.iter().map(|t| corners(t).iter().sum::<Vec3>() / 3.0).collect();
+    let normals = triangles.iter().map(|t| {
+        let [a, b, c] = corners(t);
+        (b - a).cross(c - a)
+    });
+    let sphere = SphereSampling {
+        points,
+        normals: normals.collect(),
+        samples: 16,
+        min_distance: 1e-4,
+        max_distance: 0.05,
+        seed: 5,
+    };
+    vec![
+        Generator::Pinhole(camera, jittered),
+        Generator::Orthographic(orthographic, PixelSampling { samples: 1, jitter_seed: None }),
+        Generator::Lidar(lidar),
+        Generator::Sphere(sphere),
+    ]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn generated_rays_trace_as_the_same_rays_sent() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    for generator in generators(&bunny) {
+        generator.check().unwrap();
+        for kind in [QueryKind::Closest, QueryKind::Any, QueryKind::All, QueryKind::Count] {
+            let query = Query {
+                kind,
+                max_hits_per_ray: 4,
+                ..Query::closest(RayFormat::OriginTminDirectionTmaxTime, HitFormat::TTriidUV)
+            };
+            let what = format!("{kind:?} of {generator:?}");
+            let generated = client.trace_generated("bunny", &query, &generator).await.expect(&what);
+            let sent = client.trace("bunny", &query, Bytes::from(generator.rays(query.ray_format))).await.unwrap();
+            assert_eq!(generated.rays() as u64, generator.count(), "{what}");
+            assert!(generated.hits() == sent.hits() && generated.counts() == sent.counts(), "{what}");
+            assert!(generated.stats().rays_hit > 0, "{what}: something is hit");
+        }
+    }
+
+    let bad_fov = Camera { fov_y_degrees: 0.0, ..Camera::framing(Vec3::ZERO, Vec3::ONE, 4, 4) };
+    let centres = PixelSampling { samples: 1, jitter_seed: None };
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+    let error = client.trace_generated("bunny", &query, &Generator::Pinhole(bad_fov, centres)).await.unwrap_err();
+    assert_eq!(error.code(), Code::InvalidArgument, "{error}");
+    assert!(error.to_string().contains("generator.fov_y_degrees"), "{error}");
+    let huge = Camera::framing(Vec3::ZERO, Vec3::ONE, 8192, 8192);
+    let error: Error = client.trace_generated("bunny", &query, &Generator::Pinhole(huge, centres)).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("max_rays_per_batch"), "{error}");
+}
