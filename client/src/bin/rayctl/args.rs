@@ -126,6 +126,16 @@ pub enum Command {
     Render(RenderArgs),
     /// Load the server with concurrent batches of random rays and report throughput and latency.
     Bench(BenchArgs),
+    /// Ask the server's gRPC health service (`grpc.health.v1.Health/Check`, no token needed); exits with 0 only
+    /// when the service is SERVING (a container health check).
+    Health {
+        /// The service to ask about; "" for the server as a whole.
+        #[arg(long, value_name = "NAME", default_value = rayd_client::RAYD_SERVICE)]
+        service: String,
+        /// Seconds to connect and answer.
+        #[arg(long, value_name = "S", default_value = "5", value_parser = parse_seconds)]
+        timeout: Duration,
+    },
 }
 
 /// `rayctl build`.
