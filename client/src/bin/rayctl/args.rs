@@ -494,4 +494,14 @@ mod tests {
         assert!(parse(&["bench", "--accel", "a", "--duration", "0"]).is_err());
         assert!(parse(&["bench", "--accel", "a", "--concurrency", "0"]).is_err());
     }
+
+    #[test]
+    fn health_asks_about_rayd_within_five_seconds_by_default() {
+        let Command::Health { service, timeout } = parse(&["health"]).unwrap().command else { panic!("not health") };
+        assert_eq!((service.as_str(), timeout), ("rayd.v1.Rayd", Duration::from_secs(5)));
+        let Command::Health { service, .. } = parse(&["health", "--service", ""]).unwrap().command else {
+            panic!("not health")
+        };
+        assert_eq!(service, "", "the server as a whole");
+    }
 }
