@@ -44,7 +44,7 @@ if [[ ! -f $tools/compose_spec.json ]]; then
   rm -rf "$scratch"
 fi
 export PATH="$tools/venv/bin:$tools:$PATH"
-echo "-- $(helm version --short), envoy $(envoy --version | grep -o 'version: [^ ]*' | cut -d/ -f2), $(yamllint --version)"
+echo "-- helm $(helm version --short), envoy $(envoy --version | grep -o 'version: [^ ]*' | cut -d/ -f2), $(yamllint --version)"
 
 rendered=$(mktemp -d)
 trap 'rm -rf "$rendered"' EXIT
