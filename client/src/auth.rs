@@ -30,9 +30,9 @@ impl Auth {
         Ok(Auth { header, route: None })
     }
 
-    /// The same token, with the routing header of accel `accel`'s scene (none for an empty name).
+    /// The same token, with the routing header of accel `accel`'s scene (for an empty name, the scene it had).
     pub fn routed(&self, accel: &str) -> Auth {
-        Auth { header: self.header.clone(), route: route_header(accel) }
+        Auth { header: self.header.clone(), route: route_header(accel).or_else(|| self.route.clone()) }
     }
 }
 
@@ -69,6 +69,9 @@ mod tests {
         assert_eq!(request.metadata().get(ROUTE_HEADER).unwrap(), "farm");
         assert_eq!(request.metadata().get("authorization").unwrap(), "Bearer s3cret");
         let request = auth.routed("farm").routed("").call(Request::new(())).unwrap();
-        assert!(request.metadata().get(ROUTE_HEADER).is_none());
+        assert_eq!(request.metadata().get(ROUTE_HEADER).unwrap(), "farm", "an empty name keeps the scene");
+        let request = auth.routed("farm").routed("barn.1").call(Request::new(())).unwrap();
+        assert_eq!(request.metadata().get(ROUTE_HEADER).unwrap(), "barn", "a named accel's scene wins");
+        assert!(auth.routed("").call(Request::new(())).unwrap().metadata().get(ROUTE_HEADER).is_none());
     }
 }
