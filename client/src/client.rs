@@ -104,6 +104,10 @@ pub(crate) type RpcClient = RaydClient<InterceptedService<Channel, Auth>>;
 pub struct Client {
     /// The generated stub, with the token interceptor and the message limits applied.
     pub(crate) rpc: RpcClient,
+    /// The connection under `rpc`, for stubs that carry a scene's routing header.
+    channel: Channel,
+    /// The interceptor of `rpc` (token, and the scene of [`Client::for_scene`]), for making routed ones.
+    auth: Auth,
     /// Thresholds that pick between call shapes (inline or buffer, batch or stream).
     pub(crate) options: ClientOptions,
 }
@@ -112,23 +116,34 @@ impl Client {
     /// Connects to `url` (e.g. [`DEFAULT_SERVER`]) now, so that an unreachable server is reported here, and
     /// lowers the options' message size, rays per call and stream window to the server's limits.
     pub async fn connect(url: &str, mut options: ClientOptions) -> Result<Client> {
-        let connect_error = |reason: String| Error::Connect { url: url.to_owned(), reason };
         let auth = Auth::new(options.token.as_deref())?;
-        let mut endpoint = Endpoint::from_shared(url.to_owned())
-            .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
-        if let Some(tls) = &options.tls {
-            endpoint = endpoint.tls_config(tls.config()).map_err(|e| connect_error(chain(&e)))?;
-        }
-        let channel = endpoint.tcp_nodelay(true).connect().await.map_err(|e| connect_error(chain(&e)))?;
-        let mut rpc = RaydClient::with_interceptor(channel, auth);
+        let channel = connect_channel(endpoint(url, options.tls.as_ref())?, url).await?;
+        let mut rpc = RaydClient::with_interceptor(channel.clone(), auth.clone());
         let info = rpc.get_server_info(proto::GetServerInfoRequest {}).await?.into_inner();
         if let Some(limits) = info.limits {
             options.fit_to(&limits);
         }
-        let rpc = rpc
-            .max_decoding_message_size(options.max_message_bytes)
-            .max_encoding_message_size(options.max_message_bytes);
-        Ok(Client { rpc, options })
+        let rpc = stub(&channel, auth.clone(), &options);
+        Ok(Client { rpc, channel, auth, options })
+    }
+
+    /// This client with every call — buffers, streams and listings included — sent for accel `accel`'s scene (its
+    /// name up to the first `.`): behind a proxy that hashes [`ROUTE_HEADER`](crate::ROUTE_HEADER), they all reach
+    /// the node that holds the scene. Calls that name an accel always carry that accel's scene by themselves; this
+    /// is for the others, e.g. uploading a buffer that a build of the scene will use, or opening a stream for it.
+    pub fn for_scene(&self, accel: &str) -> Client {
+        let auth = self.auth.routed(accel);
+        Client {
+            rpc: stub(&self.channel, auth.clone(), &self.options),
+            channel: self.channel.clone(),
+            auth,
+            ..self.clone()
+        }
+    }
+
+    /// A stub whose calls carry accel `accel`'s routing header.
+    pub(crate) fn rpc_for(&self, accel: &str) -> RpcClient {
+        stub(&self.channel, self.auth.routed(accel), &self.options)
     }
 
     /// The options this client was made with.
@@ -154,7 +169,7 @@ impl Client {
     /// The accel called `name`.
     pub async fn accel(&self, name: &str) -> Result<proto::AccelInfo> {
         let request = proto::GetAccelRequest { accel: Some(accel_ref(name)) };
-        Ok(self.rpc.clone().get_accel(request).await?.into_inner())
+        Ok(self.rpc_for(name).get_accel(request).await?.into_inner())
     }
 
     /// Every accel of this tenant, in creation order.
@@ -163,16 +178,17 @@ impl Client {
     }
 
     /// Copies the accel called `source` to a new accel `name` on `device` (empty: the source's); with `compact`, a
-    /// compacted copy (the source must allow compaction).
+    /// compacted copy (the source must allow compaction). The copy is made on the source's node: behind a router,
+    /// give it a name of the same scene (`farm.copy`), else calls naming it are sent to another node.
     pub async fn copy_accel(&self, source: &str, name: &str, device: &str, compact: bool) -> Result<proto::AccelInfo> {
         let request = copy_request(accel_ref(source), name, device, compact);
-        Ok(self.rpc.clone().copy_accel(request).await?.into_inner())
+        Ok(self.rpc_for(source).copy_accel(request).await?.into_inner())
     }
 
     /// Destroys the accel called `name` (traces already running on it finish first).
     pub async fn destroy_accel(&self, name: &str) -> Result<()> {
         let request = proto::DestroyAccelRequest { accel: Some(accel_ref(name)) };
-        self.rpc.clone().destroy_accel(request).await?;
+        self.rpc_for(name).destroy_accel(request).await?;
         Ok(())
     }
 
@@ -187,6 +203,31 @@ impl Client {
         self.rpc.clone().delete_buffer(request).await?;
         Ok(())
     }
+}
+
+/// The endpoint of `url`, with `tls` when given.
+pub(crate) fn endpoint(url: &str, tls: Option<&ClientTls>) -> Result<Endpoint> {
+    let endpoint = Endpoint::from_shared(url.to_owned())
+        .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
+    match tls {
+        Some(tls) => {
+            endpoint.tls_config(tls.config()).map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
+        }
+        None => Ok(endpoint),
+    }
+}
+
+/// Connects to `endpoint` now (the server at `url`).
+pub(crate) async fn connect_channel(endpoint: Endpoint, url: &str) -> Result<Channel> {
+    let connected = endpoint.tcp_nodelay(true).connect().await;
+    connected.map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
+}
+
+/// The generated stub over `channel` with interceptor `auth` and `options`' message limits.
+fn stub(channel: &Channel, auth: Auth, options: &ClientOptions) -> RpcClient {
+    RaydClient::with_interceptor(channel.clone(), auth)
+        .max_decoding_message_size(options.max_message_bytes)
+        .max_encoding_message_size(options.max_message_bytes)
 }
 
 /// A `CopyAccel` request.

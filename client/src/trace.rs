@@ -155,7 +155,7 @@ impl Client {
     async fn trace_batch(&self, accel: &str, query: &Query, rays: Bytes) -> Result<TraceResult> {
         let ray_bytes = rays.len();
         let request = inline_trace(trace_query(accel, query), rays);
-        let response = self.rpc.clone().trace_batch(request).await?.into_inner();
+        let response = self.rpc_for(accel).trace_batch(request).await?.into_inner();
         TraceResult::from_batch(query, ray_bytes, response)
     }
 
@@ -184,7 +184,7 @@ impl Client {
         let requests = futures_util::stream::once(async { first })
             .chain(paced)
             .map(|part| proto::TraceStreamRequest { part: Some(part) });
-        let mut responses = self.rpc.clone().trace_stream(requests).await?.into_inner();
+        let mut responses = self.rpc_for(accel).trace_stream(requests).await?.into_inner();
 
         let mut stats = proto::TraceStats::default();
         let (mut hits, mut counts) = (BytesMut::with_capacity(layout.hits), BytesMut::with_capacity(layout.counts));

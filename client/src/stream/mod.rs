@@ -123,7 +123,8 @@ pub struct Stream {
 }
 
 impl Client {
-    /// Opens a stream (one `OpenStream` call).
+    /// Opens a stream (one `OpenStream` call). Its operations may name any accel, so it carries no scene of its
+    /// own: open it on [`Client::for_scene`] to send it to a scene's node behind a router.
     pub async fn create_stream(&self) -> Result<Stream> {
         let (sender, requests) = mpsc::channel(REQUEST_QUEUE);
         let mut responses = self.rpc.clone().open_stream(ReceiverStream::new(requests)).await?.into_inner();

@@ -126,6 +126,16 @@ pub enum Command {
     Render(RenderArgs),
     /// Load the server with concurrent batches of random rays and report throughput and latency.
     Bench(BenchArgs),
+    /// Ask the server's gRPC health service (`grpc.health.v1.Health/Check`, no token needed); exits with 0 only
+    /// when the service is SERVING (a container health check).
+    Health {
+        /// The service to ask about; "" for the server as a whole.
+        #[arg(long, value_name = "NAME", default_value = rayd_client::RAYD_SERVICE)]
+        service: String,
+        /// Seconds to connect and answer.
+        #[arg(long, value_name = "S", default_value = "5", value_parser = parse_seconds)]
+        timeout: Duration,
+    },
 }
 
 /// `rayctl build`.
@@ -483,5 +493,15 @@ mod tests {
         assert_eq!(bench.query.query, QueryKind::Closest);
         assert!(parse(&["bench", "--accel", "a", "--duration", "0"]).is_err());
         assert!(parse(&["bench", "--accel", "a", "--concurrency", "0"]).is_err());
+    }
+
+    #[test]
+    fn health_asks_about_rayd_within_five_seconds_by_default() {
+        let Command::Health { service, timeout } = parse(&["health"]).unwrap().command else { panic!("not health") };
+        assert_eq!((service.as_str(), timeout), ("rayd.v1.Rayd", Duration::from_secs(5)));
+        let Command::Health { service, .. } = parse(&["health", "--service", ""]).unwrap().command else {
+            panic!("not health")
+        };
+        assert_eq!(service, "", "the server as a whole");
     }
 }

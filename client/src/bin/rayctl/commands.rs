@@ -7,7 +7,9 @@ use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
-use rayd_client::{BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, load_mesh};
+use rayd_client::{
+    BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, check_health, load_mesh,
+};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::raygen::{Camera, random_rays, uniform};
 use serde_json::json;
@@ -26,6 +28,9 @@ pub async fn run(cli: &Cli) -> Result<Output> {
     let tls = (cli.ca_cert.is_some() || identity.is_some())
         .then(|| Ok::<_, Error>(ClientTls { ca_cert: cli.ca_cert.as_ref().map(read).transpose()?, identity }))
         .transpose()?;
+    if let Command::Health { service, timeout } = &cli.command {
+        return health(&cli.server, tls.as_ref(), service, *timeout).await;
+    }
     let options = ClientOptions {
         token: cli.token.clone(),
         tls,
@@ -72,7 +77,21 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         Command::Trace(args) => trace(&client, args).await,
         Command::Render(args) => render(&client, args).await,
         Command::Bench(args) => bench(&client, args, cli.json).await,
+        Command::Health { .. } => unreachable!("answered before connecting"),
     }
+}
+
+/// `rayctl health`: the status, or an `UNAVAILABLE` error naming it when it is not SERVING.
+async fn health(url: &str, tls: Option<&ClientTls>, service: &str, timeout: Duration) -> Result<Output> {
+    let status = check_health(url, tls, service, timeout).await?;
+    if status != ServingStatus::Serving {
+        let what = if service.is_empty() { "the server" } else { service };
+        return Err(Error::Status(tonic::Status::unavailable(format!("{what}: {}", status.as_str_name()))));
+    }
+    Ok(Output {
+        json: json!({ "service": service, "status": status.as_str_name() }),
+        text: status.as_str_name().into(),
+    })
 }
 
 /// `rayctl build`: the accel is named after the file unless `--name` says otherwise.
