@@ -9,7 +9,7 @@ ARG RUST_VERSION=1.95
 ARG DEBIAN=bookworm
 
 FROM rust:${RUST_VERSION}-slim-${DEBIAN} AS build
-# Cargo features of rayd (e.g. the wgpu backend's, once it is a feature); empty builds the default (CPU) backend.
+# Extra cargo features of rayd; empty builds the defaults (the CPU backend and the wgpu backend, feature `wgpu`).
 ARG CARGO_FEATURES=""
 WORKDIR /src
 COPY . .
@@ -19,8 +19,9 @@ RUN --mount=type=cache,target=/usr/local/cargo/registry \
     CARGO_FEATURES="${CARGO_FEATURES}" PROFILE=release deploy/docker/build.sh /out
 
 FROM debian:${DEBIAN}-slim AS run
-# cpu: the CPU backend only. gpu: also the Vulkan loader and the NVIDIA ICD file, for the wgpu backend under the
-# NVIDIA container runtime (which mounts the driver's libraries when the capabilities include `graphics`).
+# cpu: no Vulkan loader, so rayd lists only cpu:0. gpu: also the Vulkan loader and the NVIDIA ICD file, for the
+# wgpu backend under the NVIDIA container runtime (which mounts the driver's libraries when the capabilities
+# include `graphics`).
 ARG VARIANT=cpu
 RUN set -eux; \
     case "$VARIANT" in \

@@ -1,20 +1,23 @@
 //! End to end: ray generators expanded by the server. For each kind (pinhole with jittered samples, orthographic,
 //! lidar with per-ray time, hemisphere sampling around surface points) and each query kind, the hits of a
 //! `TraceBatch` carrying only the generator are byte for byte those of the same rays expanded on the client
-//! (`Generator::rays`) and sent; bad numbers answer INVALID_ARGUMENT naming the field, too many rays
-//! RESOURCE_EXHAUSTED naming the limit.
+//! (`Generator::rays`) and sent; bad numbers answer INVALID_ARGUMENT naming the field, too many rays in one call
+//! RESOURCE_EXHAUSTED naming the limit, and a range of a generator traces as the same rays sent.
 
 mod common;
 mod daemon;
 
 use bytes::Bytes;
 use daemon::Daemon;
-use rayd_client::{Client, ClientOptions, Error};
+use rayd_client::convert::{generator_to_proto, trace_query};
+use rayd_client::{Client, ClientOptions};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::glam::Vec3;
 use rayd_engine::query::{Query, QueryKind};
 use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, PixelSampling, SphereSampling};
+use rayd_proto::rayd_client::RaydClient;
+use rayd_proto::{self as proto, trace_batch_request};
 use tonic::Code;
 
 /// One generator of each kind, aimed at the box `[lo, hi]`, with surface points from `mesh`.
@@ -93,8 +96,26 @@ async fn generated_rays_trace_as_the_same_rays_sent() {
     let error = client.trace_generated("bunny", &query, &Generator::Pinhole(bad_fov, centres)).await.unwrap_err();
     assert_eq!(error.code(), Code::InvalidArgument, "{error}");
     assert!(error.to_string().contains("generator.fov_y_degrees"), "{error}");
-    let huge = Camera::framing(Vec3::ZERO, Vec3::ONE, 8192, 8192);
-    let error: Error = client.trace_generated("bunny", &query, &Generator::Pinhole(huge, centres)).await.unwrap_err();
-    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
-    assert!(error.to_string().contains("max_rays_per_batch"), "{error}");
+
+    // One call for more rays than a batch may hold (the client would split it into ranges that fit).
+    let mut raw = RaydClient::connect(daemon.url()).await.unwrap();
+    let request = |generator: proto::RayGenerator| proto::TraceBatchRequest {
+        query: Some(trace_query("bunny", &query)),
+        rays: Some(trace_batch_request::Rays::RaysGenerator(generator)),
+        hits_buffer_name: String::new(),
+    };
+    let huge = Generator::Pinhole(Camera::framing(Vec3::ZERO, Vec3::ONE, 8192, 8192), centres);
+    let Err(status) = raw.trace_batch(request(generator_to_proto(&huge))).await else { panic!("too many rays traced") };
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status}");
+    assert!(status.message().contains("max_rays_per_batch"), "{status}");
+    let past_the_end = proto::RayGenerator { first_ray: 8192 * 8192, ..generator_to_proto(&huge) };
+    let Err(status) = raw.trace_batch(request(past_the_end)).await else { panic!("a range past the end traced") };
+    assert_eq!(status.code(), Code::InvalidArgument, "{status}");
+    assert!(status.message().contains("generator.first_ray"), "{status}");
+    let range = proto::RayGenerator { first_ray: 100, ray_count: 20, ..generator_to_proto(&huge) };
+    let hits = raw.trace_batch(request(range)).await.unwrap().into_inner().hits;
+    let mut rays = vec![0u8; 20 * query.ray_format.size()];
+    huge.fill(query.ray_format, 100, &mut rays);
+    let expected = client.trace("bunny", &query, Bytes::from(rays)).await.unwrap();
+    assert!(hits == expected.hits(), "a range traces as the same rays sent");
 }

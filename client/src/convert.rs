@@ -155,6 +155,57 @@ pub fn backend_name(backend: i32) -> &'static str {
     }
 }
 
+/// The contract's form of an engine ray generator (all of its rays).
+pub fn generator_to_proto(generator: &Generator) -> proto::RayGenerator {
+    use proto::ray_generator::Kind;
+    let vec3 = |v: Vec3| Some(proto::Vec3 { x: v.x, y: v.y, z: v.z });
+    let packed = |points: &[Vec3]| -> Bytes {
+        points.iter().flat_map(|p| p.to_array()).flat_map(f32::to_le_bytes).collect::<Vec<u8>>().into()
+    };
+    let sampling =
+        |s: &PixelSampling| Some(proto::PixelSampling { samples_per_pixel: s.samples, jitter_seed: s.jitter_seed });
+    let kind = match generator {
+        Generator::Pinhole(c, s) => Kind::Pinhole(proto::PinholeCamera {
+            eye: vec3(c.eye),
+            target: vec3(c.target),
+            up: vec3(c.up),
+            fov_y_degrees: c.fov_y_degrees,
+            width: c.width,
+            height: c.height,
+            sampling: sampling(s),
+        }),
+        Generator::Orthographic(c, s) => Kind::Orthographic(proto::OrthographicCamera {
+            eye: vec3(c.eye),
+            target: vec3(c.target),
+            up: vec3(c.up),
+            view_height: c.view_height,
+            width: c.width,
+            height: c.height,
+            sampling: sampling(s),
+        }),
+        Generator::Lidar(l) => Kind::Lidar(proto::LidarScan {
+            origin: vec3(l.origin),
+            forward: vec3(l.forward),
+            up: vec3(l.up),
+            elevations_degrees: l.elevations_degrees.clone(),
+            steps: l.steps,
+            min_range: l.min_range,
+            max_range: l.max_range,
+            time_begin: l.time.0,
+            time_end: l.time.1,
+        }),
+        Generator::Sphere(s) => Kind::Sphere(proto::SphereSampling {
+            points: packed(&s.points),
+            normals: packed(&s.normals),
+            samples: s.samples,
+            min_distance: s.min_distance,
+            max_distance: s.max_distance,
+            seed: s.seed,
+        }),
+    };
+    proto::RayGenerator { kind: Some(kind), ..Default::default() }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -219,56 +270,4 @@ mod tests {
         info.bounds = Some(proto::Bounds { min: v(-1.0), max: v(1.0) });
         assert_eq!(bounds(&info), Some((Vec3::new(-1.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0))));
     }
-}
-
-/// The contract's form of an engine ray generator (all of its rays).
-pub fn generator_to_proto(generator: &Generator) -> proto::RayGenerator {
-    use proto::ray_generator::Kind;
-    let vec3 = |v: Vec3| Some(proto::Vec3 { x: v.x, y: v.y, z: v.z });
-    let packed = |points: &[Vec3]| -> Bytes {
-        points.iter().flat_map(|p| p.to_array()).flat_map(f32::to_le_bytes).collect::<Vec<u8>>().into()
-    };
-    let sampling = |s: &PixelSampling| {
-        Some(proto::PixelSampling { samples_per_pixel: s.samples, jitter_seed: s.jitter_seed })
-    };
-    let kind = match generator {
-        Generator::Pinhole(c, s) => Kind::Pinhole(proto::PinholeCamera {
-            eye: vec3(c.eye),
-            target: vec3(c.target),
-            up: vec3(c.up),
-            fov_y_degrees: c.fov_y_degrees,
-            width: c.width,
-            height: c.height,
-            sampling: sampling(s),
-        }),
-        Generator::Orthographic(c, s) => Kind::Orthographic(proto::OrthographicCamera {
-            eye: vec3(c.eye),
-            target: vec3(c.target),
-            up: vec3(c.up),
-            view_height: c.view_height,
-            width: c.width,
-            height: c.height,
-            sampling: sampling(s),
-        }),
-        Generator::Lidar(l) => Kind::Lidar(proto::LidarScan {
-            origin: vec3(l.origin),
-            forward: vec3(l.forward),
-            up: vec3(l.up),
-            elevations_degrees: l.elevations_degrees.clone(),
-            steps: l.steps,
-            min_range: l.min_range,
-            max_range: l.max_range,
-            time_begin: l.time.0,
-            time_end: l.time.1,
-        }),
-        Generator::Sphere(s) => Kind::Sphere(proto::SphereSampling {
-            points: packed(&s.points),
-            normals: packed(&s.normals),
-            samples: s.samples,
-            min_distance: s.min_distance,
-            max_distance: s.max_distance,
-            seed: s.seed,
-        }),
-    };
-    proto::RayGenerator { kind: Some(kind), ..Default::default() }
 }

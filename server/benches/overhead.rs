@@ -1,6 +1,7 @@
 //! What the service costs over the engine: 1M-ray batches traced in-process and through `rayd` over loopback,
-//! and the round-trip latency of a 1-ray trace. Prints one table; run with `cargo bench -p rayd-server --bench
-//! overhead`. The server runs in this process (its own runtime threads), the client talks to it over TCP.
+//! the same rays made by the server from a camera generator (only hits cross the wire), and the round-trip latency
+//! of a 1-ray trace. Prints one table; run with `cargo bench -p rayd-server --bench overhead`. The server runs in
+//! this process (its own runtime threads), the client talks to it over TCP.
 
 use std::time::{Duration, Instant};
 
@@ -10,7 +11,7 @@ use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::BuildInput;
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, TraceOutput};
-use rayd_engine::raygen::Camera;
+use rayd_engine::raygen::{Camera, Generator, PixelSampling};
 use rayd_engine::{Context, Device};
 use rayd_proto as pb;
 use rayd_proto::rayd_client::RaydClient;
@@ -108,6 +109,26 @@ fn main() {
             }
         }
 
+        // The same camera as a generator: the server makes the rays, only hits cross the wire.
+        let camera = Camera::framing(lo, hi, 1024, 1024);
+        let generated = pb::TraceBatchRequest {
+            query: Some(trace_query.clone()),
+            rays: Some(pb::trace_batch_request::Rays::RaysGenerator(rayd_client::convert::generator_to_proto(
+                &Generator::Pinhole(camera, PixelSampling { samples: 1, jitter_seed: None }),
+            ))),
+            ..Default::default()
+        };
+        let mut generated_times = Vec::new();
+        for run in 0..=BATCH_RUNS {
+            let start = Instant::now();
+            let reply = client.trace_batch(generated.clone()).await.unwrap().into_inner();
+            let elapsed = start.elapsed().as_secs_f64();
+            assert_eq!(reply.hits, engine_hits, "the generated rays are the camera's");
+            if run > 0 {
+                generated_times.push(elapsed);
+            }
+        }
+
         let one_ray = rays.slice(0..32);
         let mut latencies = Vec::with_capacity(LATENCY_CALLS);
         for call in 0..2 * LATENCY_CALLS {
@@ -130,6 +151,13 @@ fn main() {
             server * 1e3
         );
         println!("service / in-process      {:7.1} %", 100.0 * engine / service);
+        let generated = median(generated_times);
+        println!(
+            "rayd TraceBatch, rays made by the server (RayGenerator) {:7.2} Mrays/s ({:.1} ms), {:.1} % of in-process",
+            mrays(generated),
+            generated * 1e3,
+            100.0 * engine / generated
+        );
         println!(
             "1-ray TraceBatch round trip: p50 {:.0} µs, p90 {:.0} µs, p99 {:.0} µs ({LATENCY_CALLS} calls)",
             percentile(&latencies, 0.5).as_secs_f64() * 1e6,

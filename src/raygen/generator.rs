@@ -350,7 +350,14 @@ mod tests {
     use super::*;
 
     fn camera() -> Camera {
-        Camera { eye: Vec3::new(0.0, 0.0, 5.0), target: Vec3::ZERO, up: Vec3::Y, fov_y_degrees: 45.0, width: 8, height: 6 }
+        Camera {
+            eye: Vec3::new(0.0, 0.0, 5.0),
+            target: Vec3::ZERO,
+            up: Vec3::Y,
+            fov_y_degrees: 45.0,
+            width: 8,
+            height: 6,
+        }
     }
 
     const CENTRES: PixelSampling = PixelSampling { samples: 1, jitter_seed: None };
