@@ -45,11 +45,20 @@ pub struct Config {
 }
 
 /// The fair schedulers of the devices (traces are queued per tenant and served by share; see `tenants.share`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SchedulerConfig {
     /// Threads that trace on the CPU device, 0 to 1024; 0: one per core.
     pub workers: u32,
+    /// The tracing threads' nice value, 0 to 19 (Linux): above the threads that receive calls and send answers, so
+    /// those get a core at once and small traces are not held up behind large ones on a busy machine.
+    pub worker_nice: u32,
+}
+
+impl Default for SchedulerConfig {
+    fn default() -> Self {
+        SchedulerConfig { workers: 0, worker_nice: 10 }
+    }
 }
 
 /// TLS of the gRPC service (rustls).
@@ -196,6 +205,12 @@ impl Config {
         inherit_limits(&mut table);
         let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
         config.limits.check("limits").map_err(ConfigError::Invalid)?;
+        if config.scheduler.worker_nice > 19 {
+            return Err(ConfigError::Invalid(format!(
+                "scheduler.worker_nice = {} must be 0 to 19",
+                config.scheduler.worker_nice
+            )));
+        }
         if config.scheduler.workers > MAX_WORKERS {
             return Err(ConfigError::Invalid(format!(
                 "scheduler.workers = {} must be 0 (one per core) to {MAX_WORKERS}",
