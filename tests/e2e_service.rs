@@ -689,12 +689,13 @@ async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
 
     let metrics = daemon.admin_get("/metrics");
     assert_eq!(sample(&metrics, "rayd_rays_traced_total", &[]), Some(1500.0), "{metrics}");
-    assert_eq!(sample(&metrics, "rayd_requests_total", &["method=\"TraceBatch\""]), Some(1.0), "{metrics}");
+    let labels = ["method=\"TraceBatch\"", "tenant=\"default\""];
+    assert_eq!(sample(&metrics, "rayd_requests_total", &labels), Some(1.0), "{metrics}");
     assert!(!metrics.contains("rayd_errors_total"), "no error yet:\n{metrics}");
     let result = client.get_accel(pb::GetAccelRequest { accel: by_name("missing") }).await;
     assert_refused(&mut client, result, Code::NotFound, "missing").await;
     let metrics = daemon.admin_get("/metrics");
-    let labels = ["method=\"GetAccel\"", "code=\"NotFound\""];
+    let labels = ["method=\"GetAccel\"", "tenant=\"default\"", "code=\"NotFound\""];
     assert_eq!(sample(&metrics, "rayd_errors_total", &labels), Some(1.0), "{metrics}");
     assert_eq!(daemon.admin_get("/healthz"), "ok\n");
 }

@@ -1,4 +1,4 @@
-//! Prometheus metrics: calls, latency and errors per method, rays traced, accels and their bytes. Rendered at
+//! Prometheus metrics: calls, latency and errors per method and tenant, rays traced, accels and their bytes. Rendered at
 //! the admin endpoint's `/metrics`.
 
 use std::future::Future;
@@ -31,18 +31,22 @@ pub fn install() -> PrometheusHandle {
         .clone()
 }
 
-/// Runs one call's logic, records its latency and outcome, and turns its error into a status.
+/// Runs one call's logic for `tenant` (labels are bounded: tenants come from the configuration), records its latency
+/// and outcome, and turns its error into a status.
 pub async fn observe<T>(
     method: &'static str,
+    tenant: String,
     call: impl Future<Output = Result<T, ServiceError>>,
 ) -> Result<Response<T>, Status> {
     let start = Instant::now();
     let result = call.await.map_err(Status::from);
-    histogram!("rayd_request_duration_seconds", "method" => method).record(start.elapsed().as_secs_f64());
-    counter!("rayd_requests_total", "method" => method).increment(1);
+    let labels = [("method", method.to_owned()), ("tenant", tenant)];
+    histogram!("rayd_request_duration_seconds", &labels).record(start.elapsed().as_secs_f64());
+    counter!("rayd_requests_total", &labels).increment(1);
     if let Err(status) = &result {
-        counter!("rayd_errors_total", "method" => method, "code" => format!("{:?}", status.code())).increment(1);
-        tracing::info!(method, code = ?status.code(), message = status.message(), "request failed");
+        let code = ("code", format!("{:?}", status.code()));
+        counter!("rayd_errors_total", &[labels[0].clone(), labels[1].clone(), code]).increment(1);
+        tracing::info!(method, tenant = labels[1].1, code = ?status.code(), message = status.message(), "request failed");
     }
     result.map(Response::new)
 }
