@@ -102,7 +102,7 @@ async fn generated_rays_trace_as_the_same_rays_sent() {
     let request = |generator: proto::RayGenerator| proto::TraceBatchRequest {
         query: Some(trace_query("bunny", &query)),
         rays: Some(trace_batch_request::Rays::RaysGenerator(generator)),
-        hits_buffer_name: String::new(),
+        ..Default::default()
     };
     let huge = Generator::Pinhole(Camera::framing(Vec3::ZERO, Vec3::ONE, 8192, 8192), centres);
     let Err(status) = raw.trace_batch(request(generator_to_proto(&huge))).await else { panic!("too many rays traced") };

@@ -351,6 +351,7 @@ async fn stream_chunks_and_hit_buffers_hold_the_engines_bytes() {
         query: Some(trace_query("bunny", &query)),
         rays: Some(pb::trace_batch_request::Rays::RaysInline(rays.into())),
         hits_buffer_name: "bunny.hits".into(),
+        ..Default::default()
     };
     let response = client.trace_batch(request).await.expect("a trace into buffers").into_inner();
     assert!(response.hits.is_empty() && response.counts.is_empty(), "nothing inline");
@@ -586,6 +587,7 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
         query: Some(trace_query("tri", query)),
         rays: Some(pb::trace_batch_request::Rays::RaysInline(down_rays(rays).into())),
         hits_buffer_name: "hits".into(),
+        ..Default::default()
     };
     let closest = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
     let result = client.trace_batch(into_buffers(&closest, 1000)).await;

@@ -250,7 +250,7 @@ fn trace_op(accel: &str, rays: Bytes) -> proto::stream_request::Op {
     proto::stream_request::Op::Trace(proto::TraceBatchRequest {
         query: Some(rayd_client::convert::trace_query(accel, &closest())),
         rays: Some(proto::trace_batch_request::Rays::RaysInline(rays)),
-        hits_buffer_name: String::new(),
+        ..Default::default()
     })
 }
 

@@ -8,6 +8,7 @@ use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::{IndexFormat, MotionFlags, MotionOptions, VertexFormat};
 use rayd_engine::query::{Query, QueryKind};
 use rayd_engine::raygen::{Generator, PixelSampling};
+use rayd_engine::reduce::{IdKind, ImageChannel, PixelEncoding, PointEncoding, Reduction};
 use rayd_proto as proto;
 
 /// Defines, from one table of variant pairs, the conversion of an engine enum to the contract's enum and back
@@ -204,6 +205,52 @@ pub fn generator_to_proto(generator: &Generator) -> proto::RayGenerator {
         }),
     };
     proto::RayGenerator { kind: Some(kind), ..Default::default() }
+}
+
+/// The contract's form of an engine reduction.
+pub fn reduction_to_proto(reduction: &Reduction) -> proto::Reduction {
+    use proto::reduction::Kind;
+    let kind = match reduction {
+        Reduction::Counts => Kind::Counts(proto::HitCountsReduction {}),
+        Reduction::Image(image) => Kind::Image(proto::ImageReduction {
+            width: image.width,
+            rays_per_pixel: image.rays_per_pixel,
+            channel: match image.channel {
+                ImageChannel::Depth => proto::ImageChannel::Depth,
+                ImageChannel::Normal => proto::ImageChannel::Normal,
+            } as i32,
+            encoding: match image.encoding {
+                PixelEncoding::Float32 => proto::PixelEncoding::Float32,
+                PixelEncoding::Unorm16 => proto::PixelEncoding::Unorm16,
+                PixelEncoding::Png => proto::PixelEncoding::Png,
+            } as i32,
+            near: image.near,
+            far: image.far,
+        }),
+        Reduction::Histogram { bins, t_min, t_max } => {
+            Kind::Histogram(proto::HistogramReduction { bins: *bins, t_min: *t_min, t_max: *t_max })
+        }
+        Reduction::IdCounts(by) => Kind::IdCounts(proto::IdCountsReduction {
+            by: match by {
+                IdKind::Instance => proto::IdKind::Instance,
+                IdKind::Geometry => proto::IdKind::Geometry,
+                IdKind::Primitive => proto::IdKind::Primitive,
+            } as i32,
+        }),
+        Reduction::NearestPerGroup { group } => Kind::Nearest(proto::NearestPerGroupReduction { group: *group }),
+        Reduction::PointCloud(cloud) => Kind::PointCloud(proto::PointCloudReduction {
+            encoding: match cloud.encoding {
+                PointEncoding::Float32 => proto::PointEncoding::Float32,
+                PointEncoding::Int32 => proto::PointEncoding::Int32,
+                PointEncoding::Int16 => proto::PointEncoding::Int16,
+            } as i32,
+            step: cloud.step,
+            origin: Some(proto::Vec3 { x: cloud.origin.x, y: cloud.origin.y, z: cloud.origin.z }),
+            ray_indices: cloud.ray_indices,
+        }),
+        Reduction::CompactHits { t_far } => Kind::Compact(proto::CompactHitsReduction { t_far: *t_far }),
+    };
+    proto::Reduction { kind: Some(kind) }
 }
 
 #[cfg(test)]

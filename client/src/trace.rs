@@ -124,7 +124,7 @@ impl Client {
             let request = proto::TraceBatchRequest {
                 query: Some(trace_query(accel, query)),
                 rays: Some(trace_batch_request::Rays::RaysGenerator(range)),
-                hits_buffer_name: String::new(),
+                ..Default::default()
             };
             let mut rpc = self.rpc.clone();
             async move {
@@ -217,7 +217,7 @@ pub(crate) fn inline_trace(query: proto::TraceQuery, rays: Bytes) -> proto::Trac
     proto::TraceBatchRequest {
         query: Some(query),
         rays: Some(trace_batch_request::Rays::RaysInline(rays)),
-        hits_buffer_name: String::new(),
+        ..Default::default()
     }
 }
 

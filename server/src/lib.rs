@@ -22,6 +22,7 @@ use rayd_engine::Device;
 use rayd_proto::rayd_server::RaydServer;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
+use tonic::codec::CompressionEncoding;
 use tonic::transport::server::TcpIncoming;
 
 pub use config::{Config, Limits};
@@ -38,9 +39,14 @@ pub async fn run(
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let metrics = metrics::install();
     let max_message = usize::try_from(config.limits.max_message_bytes).unwrap_or(usize::MAX);
+    // Compressed messages are accepted, and replies compressed for clients that ask (grpc-accept-encoding).
     let rayd = RaydServer::new(RaydService::new(Device::all(), &config)?)
         .max_decoding_message_size(max_message)
-        .max_encoding_message_size(max_message);
+        .max_encoding_message_size(max_message)
+        .accept_compressed(CompressionEncoding::Zstd)
+        .accept_compressed(CompressionEncoding::Gzip)
+        .send_compressed(CompressionEncoding::Zstd)
+        .send_compressed(CompressionEncoding::Gzip);
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<RaydServer<RaydService>>().await;
     let reflection = tonic_reflection::server::Builder::configure()

@@ -11,7 +11,9 @@ use rayd_proto as pb;
 use crate::error::{ServiceError, ServiceResult};
 
 mod generator;
+mod reduction;
 pub use generator::generator;
+pub use reduction::reduction;
 
 /// The engine value numbered `value` in the contract, whose enums number the engine's `ALL` lists from 1 (0 is
 /// UNSPECIFIED); the test below checks that the names agree.

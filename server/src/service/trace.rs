@@ -5,6 +5,7 @@ use std::sync::Arc;
 
 use bytes::Bytes;
 use rayd_engine::query::Query;
+use rayd_engine::reduce::Reduction;
 use rayd_proto as pb;
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
@@ -45,9 +46,16 @@ fn check_reply_size(tenant: &Tenant, query: &Query, rays: u64) -> ServiceResult<
     )
 }
 
-/// Traces `rays` (through the fair scheduler of the accel's device) and counts them in the metrics.
-async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Rays) -> ServiceResult<TraceResult> {
-    let result = tenant.trace(&accel, &query, rays).await?;
+/// Traces `rays` (through the fair scheduler of the accel's device), reduced by `reduction` if given, and counts
+/// them in the metrics.
+async fn trace(
+    tenant: &Arc<Tenant>,
+    accel: AccelEntry,
+    query: Query,
+    rays: Rays,
+    reduction: Option<Arc<Reduction>>,
+) -> ServiceResult<TraceResult> {
+    let result = tenant.trace(&accel, &query, rays, reduction).await?;
     crate::metrics::traced(tenant.name(), &result.stats);
     Ok(result)
 }
@@ -69,13 +77,25 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     let ray_count = rays.count(query.ray_format.size());
     tenant.check_batch_rays(ray_count)?;
     let to_buffer = !request.hits_buffer_name.is_empty();
+    if let Some(reduction) = &request.reduction {
+        if to_buffer {
+            return Err(ServiceError::invalid("hits_buffer_name", "cannot be combined with a reduction"));
+        }
+        let generator = match &rays {
+            Rays::Generated(generator, _) => Some(generator.as_ref()),
+            Rays::Packed(_) => None,
+        };
+        let reduction = convert::reduction(reduction, generator)?;
+        reduction.check(&query, ray_count)?;
+        return reduced(&tenant, accel, query, rays, reduction).await;
+    }
     if to_buffer {
         let layout = query.output_layout(ray_count as usize * query.ray_format.size())?;
         tenant.check_new_buffer(&request.hits_buffer_name, layout.hits as u64)?;
     } else {
         check_reply_size(&tenant, &query, ray_count)?;
     }
-    let result = trace(&tenant, accel, query, rays).await?;
+    let result = trace(&tenant, accel, query, rays, None).await?;
     let stats = Some(convert::trace_stats(&result.stats, result.trace_ns));
     if !to_buffer {
         return Ok(pb::TraceBatchResponse { hits: result.hits, counts: result.counts, stats, ..Default::default() });
@@ -104,6 +124,29 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
         })
     })
     .await
+}
+
+/// One batch reduced by `reduction` (checked): only the reduction comes back, if it fits a message.
+async fn reduced(
+    tenant: &Arc<Tenant>,
+    accel: AccelEntry,
+    query: Query,
+    rays: Rays,
+    reduction: Reduction,
+) -> ServiceResult<pb::TraceBatchResponse> {
+    let result = trace(tenant, accel, query, rays, Some(Arc::new(reduction))).await?;
+    let reduced = result.reduced.expect("a reduced trace has a reduction");
+    ServiceError::check_limit(
+        || format!("the reduction's {} bytes; reduce ranges of the batch in several calls", reduced.bytes.len()),
+        reduced.bytes.len() as u64 + REPLY_OVERHEAD_BYTES,
+        "max_message_bytes",
+        tenant.limits().max_message_bytes,
+    )?;
+    Ok(pb::TraceBatchResponse {
+        reduced: Some(pb::ReducedHits { data: reduced.bytes, dropped: reduced.dropped }),
+        stats: Some(convert::trace_stats(&result.stats, result.trace_ns)),
+        ..Default::default()
+    })
 }
 
 /// Ordered chunks: each ray chunk is traced and answered in turn; at most `stream_window` answers wait to be sent,
@@ -155,7 +198,7 @@ async fn answer_chunk(
 ) -> ServiceResult<pb::TraceStreamResponse> {
     let rays = Rays::Packed(rays);
     check_reply_size(tenant, &query, rays.count(query.ray_format.size()))?;
-    let result = trace(tenant, accel.clone(), query, rays).await?;
+    let result = trace(tenant, accel.clone(), query, rays, None).await?;
     Ok(pb::TraceStreamResponse {
         first_ray,
         hits: result.hits,

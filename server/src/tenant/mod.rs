@@ -60,12 +60,14 @@ pub struct BufferEntry {
 }
 
 /// The results of one trace, ready to be put in a reply without copying.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 pub struct TraceResult {
-    /// Hit records.
+    /// Hit records (empty for a reduced trace).
     pub hits: Bytes,
     /// Counts (`all` and `count` queries), else empty.
     pub counts: Bytes,
+    /// The reduction's result, for a reduced trace.
+    pub reduced: Option<rayd_engine::reduce::Reduced>,
     /// What the engine did.
     pub stats: TraceStats,
     /// Time spent in the engine.

@@ -9,8 +9,9 @@ use std::time::Instant;
 
 use bytes::{Bytes, BytesMut};
 use rayd_engine::Accel;
-use rayd_engine::query::{Query, TraceOutput, TraceStats};
+use rayd_engine::query::{OutputLayout, Query, TraceOutput, TraceStats};
 use rayd_engine::raygen::Generator;
+use rayd_engine::reduce::{Partial, Reduction};
 use tokio::sync::oneshot;
 
 use super::{AccelEntry, Tenant, TraceResult};
@@ -71,13 +72,22 @@ impl Tenant {
         )
     }
 
-    /// Traces `rays` against `accel` into fresh reply buffers, once the limits allow it, through the fair scheduler
-    /// of the accel's device. A trace of at most one piece runs right here when the device has a free slot and
-    /// nothing queued.
-    pub async fn trace(self: &Arc<Self>, accel: &AccelEntry, query: &Query, rays: Rays) -> ServiceResult<TraceResult> {
+    /// Traces `rays` against `accel` into fresh reply buffers — or, with a `reduction` (checked by the caller),
+    /// into its result — once the limits allow it, through the fair scheduler of the accel's device. A trace of at
+    /// most one piece runs right here when the device has a free slot and nothing queued.
+    pub async fn trace(
+        self: &Arc<Self>,
+        accel: &AccelEntry,
+        query: &Query,
+        rays: Rays,
+        reduction: Option<Arc<Reduction>>,
+    ) -> ServiceResult<TraceResult> {
         let ray_size = query.ray_format.size();
         self.check_batch_rays(rays.count(ray_size))?;
-        let layout = query.output_layout(rays.byte_len(ray_size))?;
+        let layout = match &reduction {
+            None => query.output_layout(rays.byte_len(ray_size))?,
+            Some(_) => OutputLayout { rays: rays.count(ray_size) as usize, hits: 0, counts: 0 },
+        };
         let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
         self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
         if let Rays::Packed(bytes) = &rays {
@@ -88,47 +98,36 @@ impl Tenant {
             .schedulers
             .get(&accel.device)
             .ok_or_else(|| ServiceError::NotFound { what: "device", name: accel.device.clone() })?;
-        if layout.rays <= scheduler.piece_rays()
-            && let Some(_slot) = scheduler.try_slot()
-        {
-            let (mut hits, mut counts) = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
-            let start = Instant::now();
-            let mut scratch = Vec::new();
-            let rays = rays.piece(query, 0..rays.byte_len(ray_size), &mut scratch);
-            let stats = self.trace_piece(&accel.device, &accel.accel, query, rays, &mut hits, &mut counts)?;
-            let trace_ns = start.elapsed().as_nanos() as u64;
-            return Ok(TraceResult { hits: hits.freeze(), counts: counts.freeze(), stats, trace_ns });
-        }
-        let (reply, result) = oneshot::channel();
+        // Rays that reduce together stay in one piece.
+        let group = reduction.as_ref().map_or(1, |r| r.group_rays());
+        let piece_rays = (scheduler.piece_rays() / group).max(1) * group;
         let job = Arc::new(TraceJob {
             tenant: Arc::clone(self),
             accel: Arc::clone(&accel.accel),
             device: accel.device.clone(),
             query: *query,
+            reduction,
             rays,
             abandoned: AtomicBool::new(false),
             progress: Mutex::new(Progress::default()),
         });
+        if layout.rays <= piece_rays
+            && let Some(_slot) = scheduler.try_slot()
+        {
+            let output = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
+            let start = Instant::now();
+            let (output, stats) = job.trace_piece(0..job.rays.byte_len(ray_size), output)?;
+            let mut progress =
+                Progress { outputs: vec![Some(output)], stats, started: Some(start), ..Default::default() };
+            return Ok(progress.finish(&job)?.trace);
+        }
+        let (reply, result) = oneshot::channel();
         let _abandon_if_dropped = Abandon(Arc::clone(&job));
         let queued = Instant::now();
-        job.submit(scheduler, layout.hits, layout.counts, reply);
+        job.submit(scheduler, piece_rays, layout, reply);
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
         crate::metrics::queued(&self.name, result.trace_start.duration_since(queued));
         Ok(result.trace)
-    }
-
-    /// Traces `rays` on device `device` into `hits` and `counts`, which fit them exactly.
-    fn trace_piece(
-        &self,
-        device: &str,
-        accel: &Accel,
-        query: &Query,
-        rays: &[u8],
-        hits: &mut [u8],
-        counts: &mut [u8],
-    ) -> ServiceResult<TraceStats> {
-        let context = self.context(device)?.1;
-        Ok(context.trace(accel, query, rays, TraceOutput { hits, counts })?)
     }
 }
 
@@ -142,6 +141,8 @@ struct TraceJob {
     device: String,
     /// What is asked of every ray.
     query: Query,
+    /// What the hits are reduced to, if not returned.
+    reduction: Option<Arc<Reduction>>,
     /// Every ray of the trace.
     rays: Rays,
     /// Set when the caller went away or a piece failed: the pieces not started yet are skipped.
@@ -153,8 +154,8 @@ struct TraceJob {
 /// The pieces' results, gathered.
 #[derive(Default)]
 struct Progress {
-    /// Each piece's hits and counts, once traced.
-    outputs: Vec<Option<(BytesMut, BytesMut)>>,
+    /// Each piece's output, once traced.
+    outputs: Vec<Option<PieceOutput>>,
     /// Pieces not finished (or skipped) yet.
     remaining: usize,
     /// The sum of the finished pieces' statistics.
@@ -165,6 +166,14 @@ struct Progress {
     started: Option<Instant>,
     /// Where the answer goes.
     reply: Option<oneshot::Sender<ServiceResult<Finished>>>,
+}
+
+/// What a piece leaves: its share of the hit and counts buffers, or its reduction.
+enum PieceOutput {
+    /// Hit records and counts, written in place.
+    Hits(BytesMut, BytesMut),
+    /// The piece's hits, reduced.
+    Reduced(Partial),
 }
 
 /// A finished trace and when its first piece started.
@@ -185,16 +194,17 @@ impl Drop for Abandon {
 }
 
 impl TraceJob {
-    /// Cuts the output buffers (`hit_bytes`, `count_bytes` long) into the pieces' shares and queues every piece.
+    /// Cuts the output buffers (sized by `layout`; empty for a reduction) into the shares of pieces of
+    /// `piece_rays` rays and queues every piece.
     fn submit(
         self: &Arc<Self>,
         scheduler: &Scheduler,
-        hit_bytes: usize,
-        count_bytes: usize,
+        piece_rays: usize,
+        layout: OutputLayout,
         reply: oneshot::Sender<ServiceResult<Finished>>,
     ) {
         let ray_size = self.query.ray_format.size();
-        let piece_bytes = scheduler.piece_rays() * ray_size;
+        let piece_bytes = piece_rays * ray_size;
         let total = self.rays.byte_len(ray_size);
         let pieces = total.div_ceil(piece_bytes);
         {
@@ -203,45 +213,69 @@ impl TraceJob {
             progress.remaining = pieces;
             progress.reply = Some(reply);
         }
-        let (mut hits, mut counts) = (BytesMut::zeroed(hit_bytes), BytesMut::zeroed(count_bytes));
+        let (mut hits, mut counts) = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
         let tasks: Vec<(u64, Task)> = (0..pieces)
             .map(|index| {
                 let start = index * piece_bytes;
                 let len = piece_bytes.min(total - start);
-                let layout = self.query.output_layout(len).expect("a whole number of rays");
-                let output = (hits.split_to(layout.hits), counts.split_to(layout.counts));
+                let output = match self.reduction {
+                    Some(_) => (BytesMut::new(), BytesMut::new()),
+                    None => {
+                        let piece = self.query.output_layout(len).expect("a whole number of rays");
+                        (hits.split_to(piece.hits), counts.split_to(piece.counts))
+                    }
+                };
                 let job = Arc::clone(self);
                 let task: Task = Box::new(move || job.run(index, start..start + len, output));
-                (layout.rays as u64, task)
+                ((len / ray_size) as u64, task)
             })
             .collect();
         let flow = &self.tenant.flow;
         scheduler.submit(flow, tasks);
     }
 
+    /// Traces the rays in bytes `rays` of the batch into `output` (its share of the reply buffers), or into a
+    /// scratch buffer that the job's reduction reduces.
+    fn trace_piece(
+        &self,
+        rays: std::ops::Range<usize>,
+        (mut hits, mut counts): (BytesMut, BytesMut),
+    ) -> ServiceResult<(PieceOutput, TraceStats)> {
+        let context = self.tenant.context(&self.device)?.1;
+        let first_ray = (rays.start / self.query.ray_format.size()) as u64;
+        let mut scratch = Vec::new();
+        let rays = self.rays.piece(&self.query, rays, &mut scratch);
+        let Some(reduction) = &self.reduction else {
+            let stats =
+                context.trace(&self.accel, &self.query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
+            return Ok((PieceOutput::Hits(hits, counts), stats));
+        };
+        let traced = reduction.traced_query(&self.query);
+        let layout = traced.output_layout(rays.len())?;
+        let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
+        let stats = context.trace(&self.accel, &traced, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
+        Ok((PieceOutput::Reduced(reduction.reduce_piece(&traced, first_ray, rays, &hits, &counts)), stats))
+    }
+
     /// Traces piece `index` (the rays in bytes `rays`) into `output`, unless the job was abandoned, and answers
     /// when it was the last.
-    fn run(&self, index: usize, rays: std::ops::Range<usize>, (mut hits, mut counts): (BytesMut, BytesMut)) {
+    fn run(&self, index: usize, rays: std::ops::Range<usize>, output: (BytesMut, BytesMut)) {
         let traced = if self.abandoned.load(Ordering::Acquire) {
             None
         } else {
             let start = Instant::now();
             self.progress.lock().expect("not poisoned").started.get_or_insert(start);
             let first_ray = rays.start / self.query.ray_format.size();
-            let mut scratch = Vec::new();
-            let piece = self.rays.piece(&self.query, rays, &mut scratch);
-            let trace =
-                || self.tenant.trace_piece(&self.device, &self.accel, &self.query, piece, &mut hits, &mut counts);
             // A bug in the engine fails this trace, not the worker or the other pieces waiting on it.
-            Some(std::panic::catch_unwind(AssertUnwindSafe(trace)).unwrap_or_else(|_| {
+            Some(std::panic::catch_unwind(AssertUnwindSafe(|| self.trace_piece(rays, output))).unwrap_or_else(|_| {
                 Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked")))
             }))
         };
         let mut progress = self.progress.lock().expect("not poisoned");
         match traced {
-            Some(Ok(stats)) => {
+            Some(Ok((output, stats))) => {
                 progress.stats.add(&stats);
-                progress.outputs[index] = Some((hits, counts));
+                progress.outputs[index] = Some(output);
             }
             Some(Err(error)) => {
                 self.abandoned.store(true, Ordering::Release);
@@ -251,7 +285,7 @@ impl TraceJob {
         }
         progress.remaining -= 1;
         if progress.remaining == 0 {
-            let answer = progress.finish();
+            let answer = progress.finish(self);
             if let Some(reply) = progress.reply.take() {
                 // The caller may have gone: then nobody wants the answer.
                 let _ = reply.send(answer);
@@ -261,24 +295,39 @@ impl TraceJob {
 }
 
 impl Progress {
-    /// The answer once every piece is done: the first failure, or the outputs joined back into whole buffers.
-    fn finish(&mut self) -> ServiceResult<Finished> {
+    /// The answer once every piece of `job` is done: the first failure, or the outputs joined back into whole
+    /// buffers, or the pieces' reductions folded in ray order.
+    fn finish(&mut self, job: &TraceJob) -> ServiceResult<Finished> {
         if let Some(failure) = self.failure.take() {
             return Err(failure);
         }
         let trace_start = self.started.unwrap_or_else(Instant::now);
-        let trace_ns = trace_start.elapsed().as_nanos() as u64;
         let mut outputs = std::mem::take(&mut self.outputs).into_iter();
-        let Some(Some((mut hits, mut counts))) = outputs.next() else {
-            return Err(abandoned());
-        };
-        for output in outputs {
-            let Some((more_hits, more_counts)) = output else { return Err(abandoned()) };
-            // The pieces were split off one buffer in order, so joining them back copies nothing.
-            hits.unsplit(more_hits);
-            counts.unsplit(more_counts);
+        let mut trace = TraceResult { stats: self.stats, ..Default::default() };
+        match &job.reduction {
+            None => {
+                let Some(Some(PieceOutput::Hits(mut hits, mut counts))) = outputs.next() else {
+                    return Err(abandoned());
+                };
+                for output in outputs {
+                    let Some(PieceOutput::Hits(more_hits, more_counts)) = output else { return Err(abandoned()) };
+                    // The pieces were split off one buffer in order, so joining them back copies nothing.
+                    hits.unsplit(more_hits);
+                    counts.unsplit(more_counts);
+                }
+                (trace.hits, trace.counts) = (hits.freeze(), counts.freeze());
+            }
+            Some(reduction) => {
+                let mut folded = reduction.empty();
+                for output in outputs {
+                    let Some(PieceOutput::Reduced(partial)) = output else { return Err(abandoned()) };
+                    folded.merge(partial);
+                }
+                let rays = job.rays.count(job.query.ray_format.size());
+                trace.reduced = Some(reduction.finish(folded, rays)?);
+            }
         }
-        let trace = TraceResult { hits: hits.freeze(), counts: counts.freeze(), stats: self.stats, trace_ns };
+        trace.trace_ns = trace_start.elapsed().as_nanos() as u64;
         Ok(Finished { trace, trace_start })
     }
 }

@@ -124,6 +124,8 @@ pub enum Command {
     Trace(TraceArgs),
     /// Render a PNG picture of an accel through the trace API.
     Render(RenderArgs),
+    /// Scan an accel with a spinning lidar made by the server and write the returns as a PLY point cloud.
+    Lidar(LidarArgs),
     /// Load the server with concurrent batches of random rays and report throughput and latency.
     Bench(BenchArgs),
     /// Ask the server's gRPC health service (`grpc.health.v1.Health/Check`, no token needed); exits with 0 only
@@ -282,7 +284,7 @@ fn parse_times(text: &str) -> Result<(f32, f32), String> {
     match values[..] {
         [t] if t.is_finite() => Ok((t, t)),
         [start, end] if start.is_finite() && end.is_finite() && start <= end => Ok((start, end)),
-        _ => Err(format!("expected a finite time T or a span T0,T1 with T0 <= T1, got {text:?}")),
+        _ => Err(format!("expected a finite number T or a span T0,T1 with T0 <= T1, got {text:?}")),
     }
 }
 
@@ -308,6 +310,53 @@ pub struct RenderArgs {
     /// The PNG file to write.
     #[arg(short = 'o', long = "output", value_name = "FILE.png")]
     pub output: PathBuf,
+}
+
+/// `rayctl lidar`.
+#[derive(Debug, Args)]
+pub struct LidarArgs {
+    /// The accel's name.
+    #[arg(long, value_name = "NAME")]
+    pub accel: String,
+    /// The sensor's position (default: above the middle of the accel's box's front face, +z).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub origin: Option<Vec3>,
+    /// Azimuth 0 (default −z).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true, default_value = "0,0,-1")]
+    pub forward: Vec3,
+    /// The rotation axis (default +y).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true, default_value = "0,1,0")]
+    pub up: Vec3,
+    /// Channels, their elevations spread evenly over `--elevations`.
+    #[arg(long, value_name = "N", default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub channels: u32,
+    /// Lowest and highest channel elevation in degrees.
+    #[arg(long, value_name = "LO,HI", default_value = "-25,15", value_parser = parse_times, allow_hyphen_values = true)]
+    pub elevations: (f32, f32),
+    /// Azimuth steps a revolution.
+    #[arg(long, value_name = "N", default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..))]
+    pub steps: u32,
+    /// Nearest range (the rays' tmin).
+    #[arg(long, value_name = "R", default_value_t = 0.0)]
+    pub min_range: f32,
+    /// Farthest range (the rays' tmax; default unlimited).
+    #[arg(long, value_name = "R", default_value_t = f32::INFINITY)]
+    pub max_range: f32,
+    /// The PLY file to write.
+    #[arg(short = 'o', long = "output", value_name = "FILE.ply")]
+    pub output: PathBuf,
+}
+
+/// Parses `x,y,z`.
+fn parse_vec3(text: &str) -> Result<Vec3, String> {
+    let numbers: Vec<f32> = text
+        .split(',')
+        .map(|n| n.trim().parse::<f32>().map_err(|e| format!("{n:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    match numbers[..] {
+        [x, y, z] if numbers.iter().all(|n| n.is_finite()) => Ok(Vec3::new(x, y, z)),
+        _ => Err(format!("expected 3 finite comma-separated numbers, got {text:?}")),
+    }
 }
 
 /// `--shading`'s choices.

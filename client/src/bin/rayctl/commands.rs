@@ -5,16 +5,17 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
+use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
 use rayd_client::{
     BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, check_health, load_mesh,
 };
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::raygen::{Camera, random_rays, uniform};
+use rayd_engine::raygen::{Camera, Lidar, random_rays, uniform};
 use serde_json::json;
 
-use crate::args::{BenchArgs, BuildArgs, Cli, Command, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
+use crate::args::{BenchArgs, BuildArgs, Cli, Command, LidarArgs, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -76,6 +77,7 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         Command::Rays(args) => rays(&client, args).await,
         Command::Trace(args) => trace(&client, args).await,
         Command::Render(args) => render(&client, args).await,
+        Command::Lidar(args) => lidar(&client, args).await,
         Command::Bench(args) => bench(&client, args, cli.json).await,
         Command::Health { .. } => unreachable!("answered before connecting"),
     }
@@ -197,6 +199,39 @@ async fn render(client: &Client, args: &RenderArgs) -> Result<Output> {
     Ok(Output {
         json: json!({ "file": file, "width": image.width, "height": image.height, "wall_ms": wall_ms }),
         text: format!("wrote {file} ({}×{}, traced in {wall_ms:.1} ms)", image.width, image.height),
+    })
+}
+
+/// `rayctl lidar`: one revolution, the returns written as PLY.
+async fn lidar(client: &Client, args: &LidarArgs) -> Result<Output> {
+    let origin = match args.origin {
+        Some(origin) => origin,
+        None => {
+            let (lo, hi) = accel_bounds(client, &args.accel).await?;
+            Vec3::new((lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z)
+        }
+    };
+    let (low, high) = args.elevations;
+    let spread =
+        |c: u32| if args.channels == 1 { low } else { low + (high - low) * c as f32 / (args.channels - 1) as f32 };
+    let lidar = Lidar {
+        origin,
+        forward: args.forward,
+        up: args.up,
+        elevations_degrees: (0..args.channels).map(spread).collect(),
+        steps: args.steps,
+        min_range: args.min_range,
+        max_range: args.max_range,
+        time: (0.0, 0.0),
+    };
+    let start = Instant::now();
+    let scan = client.lidar(&args.accel, &lidar).await?;
+    let wall_ms = start.elapsed().as_secs_f64() * 1e3;
+    scan.write_ply(&args.output)?;
+    let file = args.output.display().to_string();
+    Ok(Output {
+        json: json!({ "file": file, "rays": scan.rays, "points": scan.len(), "wall_ms": wall_ms }),
+        text: format!("wrote {file} ({} returns of {} rays, in {wall_ms:.1} ms)", scan.len(), scan.rays),
     })
 }
 

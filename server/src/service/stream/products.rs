@@ -212,7 +212,7 @@ mod tests {
         Op::Trace(pb::TraceBatchRequest {
             query: Some(pb::TraceQuery { accel: Some(pb::AccelRef { r#ref: Some(accel) }), ..Default::default() }),
             rays: Some(pb::trace_batch_request::Rays::RaysBuffer(pb::BufferRef { r#ref: Some(rays) })),
-            hits_buffer_name: String::new(),
+            ..Default::default()
         })
     }
 
