@@ -192,6 +192,16 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
         let stats = (count("rays"), count("hits"));
         expected.assert_answer(&read(&hits_file), &counts, stats, &format!("{kind}: the files and the report"));
     }
+    // The same camera's rays made by the server (`--pixels`): the same hits, and no ray file.
+    let pixels = format!("{width}x{height}");
+    let generated_file = scratch.path("generated.hits");
+    let formats = ["--ray-format", "origin_tmin_direction_tmax", "--hit-format", "t_triid_u_v"];
+    let mut args = vec!["trace", "--accel", "bunny", "--pixels", pixels.as_str(), "--out", generated_file.as_str()];
+    args.extend(formats);
+    let report = json(&server, &args);
+    let expected = bunny.trace(&closest, &rays);
+    let stats = (report["rays"].as_u64().unwrap_or(0), report["hits"].as_u64().unwrap_or(0));
+    expected.assert_answer(&read(&generated_file), &[], stats, "--pixels: the file and the report");
 
     let (width, height) = PICTURE;
     let png_file = scratch.path("bunny.png");

@@ -1,7 +1,8 @@
 //! End to end: reductions made by the server. For every kind (counts, depth and normal images in each encoding,
 //! histogram, per-id counts, nearest per group, point clouds) over generated rays cut into several pieces, the
 //! reduction that comes back is byte for byte the engine's reduction of the full hits of the same rays traced and
-//! returned whole; a reduction over packed rays likewise; bad combinations answer INVALID_ARGUMENT naming the field.
+//! returned whole; a reduction over packed rays likewise; bad combinations answer INVALID_ARGUMENT naming the field;
+//! calls compressed with zstd or gzip answer the same bytes.
 
 mod common;
 mod daemon;
@@ -16,6 +17,7 @@ use rayd_engine::query::{Query, QueryKind};
 use rayd_engine::raygen::{Camera, Generator, Lidar, PixelSampling};
 use rayd_engine::reduce::{IdKind, Image, ImageChannel, PixelEncoding, PointCloud, PointEncoding, Reduction};
 use tonic::Code;
+use tonic::codec::CompressionEncoding;
 
 /// Every reduction kind, with the generator it is tried on: a jittered camera of 3 rays a pixel (3,600 rays, so
 /// pieces of the server's 1,024-ray kind end on pixel boundaries only if it aligns them) and a lidar.
@@ -136,4 +138,22 @@ async fn bad_reductions_name_their_field() {
     let generated = Generator::Pinhole(camera, centres);
     let depths = client.trace_generated_reduced("bunny", &query, &generated, &Reduction::Image(image)).await.unwrap();
     assert_eq!(depths.data.len(), 8 * 8 * 4);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn compressed_calls_answer_the_same_bytes() {
+    let daemon = Daemon::start(&[]);
+    let plain = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    plain.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let (lo, hi) = bunny.bounds();
+    let rays = Bytes::from(Camera::framing(lo, hi, 64, 64).rays(RayFormat::OriginDirection));
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
+    let expected = plain.trace("bunny", &query, rays.clone()).await.unwrap();
+    for encoding in [CompressionEncoding::Zstd, CompressionEncoding::Gzip] {
+        let options = ClientOptions { compression: Some(encoding), ..ClientOptions::default() };
+        let compressed = Client::connect(&daemon.url(), options).await.unwrap();
+        let traced = compressed.trace("bunny", &query, rays.clone()).await.expect("a compressed trace");
+        assert!(traced.hits() == expected.hits(), "{encoding:?}: the same hits");
+    }
 }

@@ -225,9 +225,17 @@ pub struct TraceArgs {
     #[arg(long, value_name = "NAME")]
     pub accel: String,
     /// A file of packed rays, no header.
-    #[arg(long, value_name = "FILE")]
-    pub rays: PathBuf,
-    /// How the rays are packed.
+    #[arg(long, value_name = "FILE", required_unless_present = "pixels")]
+    pub rays: Option<PathBuf>,
+    /// Instead of a ray file: a pinhole camera of W×H pixels whose rays the server makes itself (no ray crosses
+    /// the network), framing the accel's box or placed by `--camera`.
+    #[arg(long, value_name = "WxH", value_parser = parse_pixels, conflicts_with = "rays")]
+    pub pixels: Option<(u32, u32)>,
+    /// The camera of `--pixels`, as for `render`.
+    #[arg(long, value_name = "EYE,TARGET,UP,FOVY", value_parser = parse_view, allow_hyphen_values = true,
+          requires = "pixels")]
+    pub camera: Option<View>,
+    /// How the rays are packed (or made, with `--pixels`).
     #[arg(long, value_name = "FMT", value_parser = named(&RayFormat::ALL, RayFormat::name))]
     pub ray_format: RayFormat,
     /// How hits are packed.
@@ -345,6 +353,15 @@ pub struct LidarArgs {
     /// The PLY file to write.
     #[arg(short = 'o', long = "output", value_name = "FILE.ply")]
     pub output: PathBuf,
+}
+
+/// Parses `WxH`: pixels a row and rows, each 1 to 16,384.
+fn parse_pixels(text: &str) -> Result<(u32, u32), String> {
+    let size = |n: &str| n.trim().parse::<u32>().ok().filter(|n| (1..=16384).contains(n));
+    match text.split_once('x').map(|(w, h)| (size(w), size(h))) {
+        Some((Some(width), Some(height))) => Ok((width, height)),
+        _ => Err(format!("expected WxH with each from 1 to 16384, got {text:?}")),
+    }
 }
 
 /// Parses `x,y,z`.
@@ -504,6 +521,19 @@ mod tests {
         let error = error.unwrap_err();
         assert_eq!(error.kind(), clap::error::ErrorKind::InvalidValue);
         assert!(error.to_string().contains("origin_direction"), "the error lists the valid names");
+    }
+
+    #[test]
+    fn trace_takes_a_ray_file_or_pixels_made_by_the_server() {
+        let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
+        let with = |extra: &[&str]| parse(&[&["trace", "--accel", "a"], extra, &formats[..]].concat());
+        let cli = with(&["--pixels", "64x48", "--camera", "0,0,5,0,0,0,0,1,0,40"]).unwrap();
+        let Command::Trace(trace) = cli.command else { panic!("not trace") };
+        assert_eq!((trace.pixels, trace.rays), (Some((64, 48)), None));
+        assert!(with(&[]).is_err(), "--rays or --pixels is required");
+        assert!(with(&["--rays", "r.bin", "--pixels", "4x4"]).is_err(), "not both");
+        assert!(with(&["--pixels", "0x4"]).is_err() && with(&["--pixels", "4"]).is_err(), "sane sizes");
+        assert!(with(&["--rays", "r.bin", "--camera", "0,0,5,0,0,0,0,1,0,40"]).is_err(), "a camera needs --pixels");
     }
 
     #[test]

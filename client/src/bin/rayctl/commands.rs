@@ -12,7 +12,7 @@ use rayd_client::{
     BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, check_health, load_mesh,
 };
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::raygen::{Camera, Lidar, random_rays, uniform};
+use rayd_engine::raygen::{Camera, Generator, Lidar, PixelSampling, random_rays, uniform};
 use serde_json::json;
 
 use crate::args::{BenchArgs, BuildArgs, Cli, Command, LidarArgs, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
@@ -113,10 +113,21 @@ async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
 
 /// `rayctl trace`: `wall_ms` times the trace call alone, from sending the rays to holding every hit.
 async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
-    let rays = std::fs::read(&args.rays).map_err(|e| Error::io(&args.rays, e))?;
     let query = args.query.query(args.ray_format, args.hit_format);
-    let start = Instant::now();
-    let traced = client.trace(&args.accel, &query, rays.into()).await?;
+    let (start, traced) = match (&args.rays, args.pixels) {
+        (Some(file), _) => {
+            let rays = std::fs::read(file).map_err(|e| Error::io(file, e))?;
+            let start = Instant::now();
+            (start, client.trace(&args.accel, &query, rays.into()).await?)
+        }
+        (None, Some((width, height))) => {
+            let camera = camera(client, &args.accel, args.camera, width, height).await?;
+            let generator = Generator::Pinhole(camera, PixelSampling { samples: 1, jitter_seed: None });
+            let start = Instant::now();
+            (start, client.trace_generated(&args.accel, &query, &generator).await?)
+        }
+        (None, None) => unreachable!("clap requires --rays or --pixels"),
+    };
     let wall = start.elapsed();
     if let Some(out) = &args.out {
         std::fs::write(out, traced.hits()).map_err(|e| Error::io(out, e))?;
