@@ -9,6 +9,9 @@
 //! (summed over the batch's chunks), and the trace call's time end to end (rays from host memory to hits in host
 //! memory: staging copies, transfers, dispatches and readback included). Printed as a Markdown table.
 //!
+//! Then the flat scene's closest hits again with chunks (one dispatch each) of 2^16, 2^18 (the default) and 2^20
+//! rays: fewer, larger dispatches against less overlap of copies with tracing.
+//!
 //! `cargo bench --bench wgpu` (no adapter: a notice and nothing measured).
 
 // The bench uses the shared scenes, not the CPU benches' thread helpers.
@@ -48,7 +51,7 @@ const RANDOM_SEED: u64 = 7;
 /// One scene built on the CPU (the reference) and on the GPU.
 struct Built {
     /// Its name in the table.
-    name: &'static str,
+    name: String,
     /// Triangles in it.
     triangles: usize,
     /// The CPU's context and accel.
@@ -93,7 +96,7 @@ fn instanced(context: &Context, meshes: &[Mesh]) -> Arc<Accel> {
 }
 
 /// Builds `build` on the CPU and on `device`, timing the GPU's.
-fn built(name: &'static str, triangles: usize, device: &Device, build: impl Fn(&Context) -> Arc<Accel>) -> Built {
+fn built(name: String, triangles: usize, device: &Device, build: impl Fn(&Context) -> Arc<Accel>) -> Built {
     let cpu = Context::new(Device::cpu());
     let cpu_accel = build(&cpu);
     let gpu = Context::new(device.clone());
@@ -163,8 +166,13 @@ fn run(scene: &Built, rays_name: &str, rays: &[u8], kind: QueryKind) {
     );
 }
 
+/// The first wgpu adapter as a device with `options`.
+fn gpu(options: WgpuOptions) -> Option<Device> {
+    Device::wgpu(options).into_iter().next()
+}
+
 fn main() {
-    let Some(device) = Device::wgpu(WgpuOptions::default()).into_iter().next() else {
+    let Some(device) = gpu(WgpuOptions::default()) else {
         eprintln!("skipped: no wgpu adapter");
         return;
     };
@@ -172,27 +180,38 @@ fn main() {
     let tiled = scenes().pop().expect("the tiled scene");
     let meshes = tiled_meshes();
     let triangles = tiled.mesh.triangles.len();
-    let flat = built("tiled", triangles, &device, |context| {
+    let flat = |context: &Context| {
         context.build_accel(&[BuildInput::Triangles(tiled.packed.input())], &BuildOptions::default()).expect("builds")
-    });
-    let instanced = built("tiled, instanced", triangles, &device, |context| instanced(context, &meshes));
-    for scene in [&flat, &instanced] {
+    };
+    let scenes = [
+        built("tiled".into(), triangles, &device, flat),
+        built("tiled, instanced".into(), triangles, &device, |context| instanced(context, &meshes)),
+    ];
+    for scene in &scenes {
         println!("GPU build of {}: {:.2} s (host build and upload)", scene.name, scene.gpu_build);
     }
-    println!(
-        "\n| scene | rays | query | hit rate | rays differing from the CPU | kernel G rays/s | end-to-end G rays/s | \
-         kernel ms | end-to-end ms | not in kernels |\n|---|---|---|---|---|---|---|---|---|---|"
-    );
+    let header = "| scene | rays | query | hit rate | rays differing from the CPU | kernel G rays/s | end-to-end G rays/s | \
+                  kernel ms | end-to-end ms | not in kernels |\n|---|---|---|---|---|---|---|---|---|---|";
+    println!("\n{header}");
     let (lo, hi) = tiled.mesh.bounds();
     let batches = [
         ("camera", Camera::framing(lo, hi, CAMERA_SIDE, CAMERA_SIDE).rays(RAY_FORMAT)),
         ("random", random_rays(lo, hi, RANDOM_RAYS, RANDOM_SEED, RAY_FORMAT)),
     ];
-    for scene in [&flat, &instanced] {
+    for scene in &scenes {
         for (rays_name, rays) in &batches {
             for kind in [QueryKind::Closest, QueryKind::Any] {
                 run(scene, rays_name, rays, kind);
             }
+        }
+    }
+    println!("\n{header}");
+    for shift in [16, 18, 20] {
+        let options = WgpuOptions { max_chunk_rays: Some(1 << shift), ..WgpuOptions::default() };
+        let device = gpu(options).expect("the adapter is still there");
+        let scene = built(format!("tiled, chunks of 2^{shift} rays"), triangles, &device, flat);
+        for (rays_name, rays) in &batches {
+            run(&scene, rays_name, rays, QueryKind::Closest);
         }
     }
 }

@@ -263,7 +263,9 @@ fn large_batches_agree_for_closest_and_any() {
 fn batches_larger_than_one_binding_are_split_into_chunks() {
     // 8 KiB bindings: 170 full rays a chunk at most (32 for `all`, whose 5 sorted hits a ray take 240 bytes of
     // scratch), so 5,000 rays take dozens of chunks through both slots.
-    let Some(device) = gpu_with(WgpuOptions { max_binding_bytes: Some(8192) }) else { return };
+    let Some(device) = gpu_with(WgpuOptions { max_binding_bytes: Some(8192), ..WgpuOptions::default() }) else {
+        return;
+    };
     let mesh = bunny().pack();
     let scene = Scene::new(&device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default());
     let mut rays = rays(2500, 5);

@@ -24,7 +24,10 @@
 //!   the 16 bytes it resolves into (two u64 ticks); without them the readback's last 16 bytes stay unused.
 
 use std::sync::mpsc::{Receiver, TryRecvError, channel};
+use std::time::{Duration, Instant};
 
+#[cfg(doc)]
+use super::WgpuOptions;
 use super::device::Opened;
 use super::kernel::{Params, WORKGROUP_SIZE};
 use super::layout::GpuGraph;
@@ -42,9 +45,9 @@ const TALLY_BYTES: u64 = 4 * TALLY_WORDS as u64;
 const TIMESTAMP_BYTES: u64 = 16;
 /// Bytes of one `all` scratch entry.
 const SCRATCH_ENTRY_BYTES: u64 = 48;
-/// Rays of a chunk at most, whatever the limits: large enough to keep a GPU busy, small enough that copying
-/// one chunk out overlaps tracing the next.
-const MAX_CHUNK_RAYS: usize = 1 << 18;
+/// Rays of a chunk at most unless [`WgpuOptions::max_chunk_rays`] says otherwise: large enough to keep a GPU busy,
+/// small enough that copying one chunk out overlaps tracing the next.
+pub(super) const MAX_CHUNK_RAYS: usize = 1 << 18;
 /// Rays one dispatch can cover: 65,535 workgroups (WebGPU's per-dimension limit) of [`WORKGROUP_SIZE`].
 const MAX_DISPATCH_RAYS: usize = 65_535 * WORKGROUP_SIZE as usize;
 /// Chunks start at multiples of this many rays, so that bitmask chunks start on word boundaries.
@@ -112,11 +115,11 @@ pub(super) struct Plan {
 }
 
 impl Plan {
-    /// The largest chunks (up to [`MAX_CHUNK_RAYS`]) whose every buffer fits `binding_limit` bytes and whose
+    /// The largest chunks (up to `max_chunk_rays`) whose every buffer fits `binding_limit` bytes and whose
     /// workgroups fit one dispatch; RESOURCE_EXHAUSTED if even [`CHUNK_ALIGN`] rays do not fit.
-    pub fn new(query: &Query, rays: usize, binding_limit: u64) -> Result<Plan> {
-        let mut chunk_rays =
-            rays.next_multiple_of(CHUNK_ALIGN).clamp(CHUNK_ALIGN, MAX_CHUNK_RAYS.min(MAX_DISPATCH_RAYS));
+    pub fn new(query: &Query, rays: usize, binding_limit: u64, max_chunk_rays: usize) -> Result<Plan> {
+        let most = max_chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS);
+        let mut chunk_rays = rays.next_multiple_of(CHUNK_ALIGN).clamp(CHUNK_ALIGN, most);
         loop {
             let need = Capacity::for_chunk(query, chunk_rays);
             if need.largest() <= binding_limit {
@@ -277,6 +280,7 @@ pub(super) fn trace(
     if plan.rays == 0 {
         return Ok(TraceStats::default());
     }
+    let started = Instant::now();
     for index in 0..SLOTS {
         match slots.get(index) {
             Some(slot) if slot.capacity.holds(&plan.need) => {}
@@ -285,14 +289,14 @@ pub(super) fn trace(
         }
     }
     let params = Params { root: accel.root, ..Params::for_query(query) };
-    let traced = run_chunks(opened, accel, query, plan, &params, rays, out, slots);
+    let traced = run_chunks(opened, accel, query, plan, &params, rays, out, slots, started);
     if traced.is_err() {
         slots.clear();
     }
     traced
 }
 
-/// The chunk loop of [`trace`].
+/// The chunk loop of [`trace`] (which started at `started`); logs its timings at debug level.
 #[allow(clippy::too_many_arguments)]
 fn run_chunks(
     opened: &Opened,
@@ -303,24 +307,44 @@ fn run_chunks(
     rays: &[u8],
     out: TraceOutput<'_>,
     slots: &[Slot],
+    started: Instant,
 ) -> Result<TraceStats> {
     let TraceOutput { hits, counts } = out;
     let mut stats = TraceStats::default();
+    // Host time submitting (rays copied into staging) and finishing (waiting, hits copied out), for the log.
+    let (mut submitting, mut finishing) = (Duration::ZERO, Duration::ZERO);
+    let mut finish_one = |slot: usize, flight: InFlight, stats: &mut TraceStats| {
+        let start = Instant::now();
+        let finished = finish(opened, &slots[slot], flight, query, hits, counts, stats);
+        finishing += start.elapsed();
+        finished
+    };
     let mut in_flight: [Option<InFlight>; SLOTS] = Default::default();
     for (index, first) in (0..plan.rays).step_by(plan.chunk_rays).enumerate() {
         let slot = index % SLOTS;
         if let Some(flight) = in_flight[slot].take() {
-            finish(opened, &slots[slot], flight, query, hits, counts, &mut stats)?;
+            finish_one(slot, flight, &mut stats)?;
         }
         let chunk = Chunk { first, rays: plan.chunk_rays.min(plan.rays - first) };
+        let start = Instant::now();
         in_flight[slot] = Some(submit(opened, accel, &slots[slot], query, params, chunk, rays)?);
+        submitting += start.elapsed();
     }
     let mut rest: Vec<(usize, InFlight)> =
         in_flight.into_iter().enumerate().filter_map(|(slot, flight)| Some((slot, flight?))).collect();
     rest.sort_by_key(|(_, flight)| flight.chunk.first);
     for (slot, flight) in rest {
-        finish(opened, &slots[slot], flight, query, hits, counts, &mut stats)?;
+        finish_one(slot, flight, &mut stats)?;
     }
+    tracing::debug!(
+        rays = plan.rays,
+        chunk_rays = plan.chunk_rays,
+        kernel_ms = stats.device_nanos as f64 * 1e-6,
+        submitting_ms = submitting.as_secs_f64() * 1e3,
+        finishing_ms = finishing.as_secs_f64() * 1e3,
+        total_ms = started.elapsed().as_secs_f64() * 1e3,
+        "wgpu trace"
+    );
     Ok(stats)
 }
 

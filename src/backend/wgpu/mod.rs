@@ -44,6 +44,9 @@ pub struct WgpuOptions {
     /// adapter's `max_storage_buffer_binding_size`; `None` uses the adapter's limit. Smaller chunks mean more
     /// dispatches: tests use it to split small batches.
     pub max_binding_bytes: Option<u64>,
+    /// Caps the rays of a chunk (2^18 when `None`; the bindings and a dispatch's workgroups cap it too). Larger
+    /// chunks mean fewer dispatches but less overlap of copies with tracing: benches sweep it.
+    pub max_chunk_rays: Option<usize>,
 }
 
 /// One wgpu adapter as a device.
@@ -200,7 +203,9 @@ impl Backend for WgpuBackend {
         let layout = query.output_layout(rays.len())?;
         out.check(&layout)?;
         let opened = self.opened()?;
-        let plan = batch::Plan::new(query, layout.rays, opened.binding_limit(self.options.max_binding_bytes))?;
+        let binding_limit = opened.binding_limit(self.options.max_binding_bytes);
+        let max_chunk_rays = self.options.max_chunk_rays.unwrap_or(batch::MAX_CHUNK_RAYS);
+        let plan = batch::Plan::new(query, layout.rays, binding_limit, max_chunk_rays)?;
         let mut slots = self.take_slots();
         let traced = batch::trace(opened, &accel.device, query, &plan, rays, out, &mut slots);
         self.slots.lock().unwrap_or_else(|e| e.into_inner()).extend(slots);
