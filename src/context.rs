@@ -268,8 +268,9 @@ pub struct Context {
     accels: DashMap<AccelHandle, Arc<Accel>>,
     /// Live buffers by handle.
     buffers: DashMap<BufferHandle, Buffer>,
-    /// The next handle to give out (accels and buffers share the sequence, so a handle is never reused).
-    next_handle: AtomicU64,
+    /// The next handle to give out (accels and buffers share the sequence, so a handle is never reused; contexts
+    /// made by [`Context::sharing_handles`] share it too, so their handles never collide).
+    next_handle: Arc<AtomicU64>,
     /// Bytes held by live accels and buffers.
     bytes_in_use: Arc<AtomicU64>,
 }
@@ -281,9 +282,15 @@ impl Context {
             device,
             accels: DashMap::new(),
             buffers: DashMap::new(),
-            next_handle: AtomicU64::new(1),
+            next_handle: Arc::new(AtomicU64::new(1)),
             bytes_in_use: Arc::new(AtomicU64::new(0)),
         }
+    }
+
+    /// An empty context on `device` that takes its handles from `other`'s sequence: one user's contexts on several
+    /// devices then never give out the same handle.
+    pub fn sharing_handles(device: Device, other: &Context) -> Context {
+        Context { next_handle: Arc::clone(&other.next_handle), ..Context::new(device) }
     }
 
     /// The device the context runs on.

@@ -19,7 +19,7 @@ use rayd_engine::query::Query;
 use rayd_proto as proto;
 
 #[tokio::test]
-async fn rayd_lists_wgpu_devices_and_traces_a_geometry_accel_on_one() {
+async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one() {
     let daemon = Daemon::start(&[]);
     let client = Client::connect(&daemon.url(), ClientOptions::default()).await.expect("the client connects");
     let devices = client.devices().await.unwrap();
