@@ -132,13 +132,26 @@ pub fn check_name(field: &str, name: &str) -> ServiceResult<()> {
     Ok(())
 }
 
+/// A context on each device, by device id, sharing one sequence of handles (accel ids are their handles, so two
+/// devices' accels must never get the same one).
+fn contexts(devices: &[Device]) -> HashMap<String, Context> {
+    let Some((first, rest)) = devices.split_first() else { return HashMap::new() };
+    let first_context = Context::new(first.clone());
+    let mut contexts: HashMap<String, Context> = rest
+        .iter()
+        .map(|device| (device.info().id.clone(), Context::sharing_handles(device.clone(), &first_context)))
+        .collect();
+    contexts.insert(first.info().id.clone(), first_context);
+    contexts
+}
+
 impl Tenant {
     /// A tenant called `name` with a context on each device, whose traces get `share` of the devices' `schedulers`.
     pub fn new(name: &str, limits: Limits, share: u32, devices: &[Device], schedulers: Arc<Schedulers>) -> Tenant {
         Tenant {
             name: name.into(),
             limits,
-            contexts: devices.iter().map(|d| (d.info().id.clone(), Context::new(d.clone()))).collect(),
+            contexts: contexts(devices),
             accels: Registry::new("accel"),
             buffers: Registry::new("buffer"),
             next_buffer: AtomicU64::new(1),

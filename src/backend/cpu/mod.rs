@@ -21,6 +21,7 @@ use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_co
 use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, trace_batch};
 
 use bvh::Footprint;
+pub(crate) use instances::cpu_child;
 pub use instances::{InstanceBvh, TransformNode};
 pub use triangles::TriangleBvh;
 
@@ -91,6 +92,10 @@ impl BackendAccel for CpuAccel {
 
     fn encode(&self, children: &[Arc<Accel>], out: &mut Vec<u8>) -> Result<()> {
         self.encode_payload(children, out)
+    }
+
+    fn host(&self) -> Option<&CpuAccel> {
+        Some(self)
     }
 
     fn as_any(&self) -> &dyn Any {
@@ -167,6 +172,11 @@ impl Backend for CpuBackend {
         children: &[Arc<Accel>],
     ) -> Result<Box<dyn BackendAccel>> {
         Ok(Box::new(CpuAccel::decode_payload(shape, options, payload, children)?))
+    }
+
+    /// An exact-size copy of the host structure.
+    fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>> {
+        Ok(Box::new(host.clone()))
     }
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {

@@ -13,17 +13,24 @@
 //! - `tallies`: [`TALLY_WORDS`] words of statistics (`0 rays_hit | 4 nodes_visited low | 8 nodes_visited high |
 //!   12 triangle_tests low | 16 triangle_tests high | 20..32 zero`), cleared before the dispatch, then, for the
 //!   counting kinds, one count a ray.
-//! - `scratch`: for `all` queries, `records_per_ray` sorted hits a ray, 16 bytes each: `0 t f32 | 4 slot u32
-//!   (bit 31: back face) | 8 u f32 | 12 v f32`; 16 unused bytes for the other kinds.
-//! - `upload` (mappable, copied to `rays`) and `readback` (mappable, `hits` then `tallies` copied into it): the
-//!   staging buffers. An idle slot's `upload` is mapped, ready for the next chunk's rays.
+//! - `scratch`: for `all` queries, `records_per_ray` sorted hits a ray, 48 bytes each: `0 t f32 | 4 slot u32
+//!   (bit 31: back face) | 8 u f32 | 12 v f32 | 16 levels u32 | 20 records u32×7` (what entered each instance
+//!   level below the root, top to bottom: an instance record's offset in `graph`, or bit 31 and a transform's
+//!   object offset); 48 unused bytes for the other kinds.
+//! - `upload` (mappable, copied to `rays`) and `readback` (mappable, `hits`, `tallies`, then the kernel's start
+//!   and end timestamps copied into it): the staging buffers. An idle slot's `upload` is mapped, ready for the
+//!   next chunk's rays.
+//! - `timestamps`, where the adapter has timestamp queries: a query set of 2 (the trace pass's start and end) and
+//!   the 16 bytes it resolves into (two u64 ticks); without them the readback's last 16 bytes stay unused.
 
 use std::sync::mpsc::{Receiver, TryRecvError, channel};
+use std::time::{Duration, Instant};
 
+#[cfg(doc)]
+use super::WgpuOptions;
 use super::device::Opened;
 use super::kernel::{Params, WORKGROUP_SIZE};
-use super::layout::GpuTriangles;
-use crate::backend::cpu::TriangleBvh;
+use super::layout::GpuGraph;
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, read_u32};
 use crate::query::{Query, QueryKind, TraceOutput, TraceStats};
@@ -34,11 +41,13 @@ pub(super) const SLOTS: usize = 2;
 const TALLY_WORDS: usize = 8;
 /// Bytes of those words.
 const TALLY_BYTES: u64 = 4 * TALLY_WORDS as u64;
+/// Bytes of the two resolved timestamps.
+const TIMESTAMP_BYTES: u64 = 16;
 /// Bytes of one `all` scratch entry.
-const SCRATCH_ENTRY_BYTES: u64 = 16;
-/// Rays of a chunk at most, whatever the limits: large enough to keep a GPU busy, small enough that copying
-/// one chunk out overlaps tracing the next.
-const MAX_CHUNK_RAYS: usize = 1 << 18;
+const SCRATCH_ENTRY_BYTES: u64 = 48;
+/// Rays of a chunk at most unless [`WgpuOptions::max_chunk_rays`] says otherwise: large enough to keep a GPU busy,
+/// small enough that copying one chunk out overlaps tracing the next.
+pub(super) const MAX_CHUNK_RAYS: usize = 1 << 18;
 /// Rays one dispatch can cover: 65,535 workgroups (WebGPU's per-dimension limit) of [`WORKGROUP_SIZE`].
 const MAX_DISPATCH_RAYS: usize = 65_535 * WORKGROUP_SIZE as usize;
 /// Chunks start at multiples of this many rays, so that bitmask chunks start on word boundaries.
@@ -106,11 +115,11 @@ pub(super) struct Plan {
 }
 
 impl Plan {
-    /// The largest chunks (up to [`MAX_CHUNK_RAYS`]) whose every buffer fits `binding_limit` bytes and whose
+    /// The largest chunks (up to `max_chunk_rays`) whose every buffer fits `binding_limit` bytes and whose
     /// workgroups fit one dispatch; RESOURCE_EXHAUSTED if even [`CHUNK_ALIGN`] rays do not fit.
-    pub fn new(query: &Query, rays: usize, binding_limit: u64) -> Result<Plan> {
-        let mut chunk_rays =
-            rays.next_multiple_of(CHUNK_ALIGN).clamp(CHUNK_ALIGN, MAX_CHUNK_RAYS.min(MAX_DISPATCH_RAYS));
+    pub fn new(query: &Query, rays: usize, binding_limit: u64, max_chunk_rays: usize) -> Result<Plan> {
+        let most = max_chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS);
+        let mut chunk_rays = rays.next_multiple_of(CHUNK_ALIGN).clamp(CHUNK_ALIGN, most);
         loop {
             let need = Capacity::for_chunk(query, chunk_rays);
             if need.largest() <= binding_limit {
@@ -142,8 +151,10 @@ pub(super) struct Slot {
     hits: wgpu::Buffer,
     /// Statistics and counts the kernel writes.
     tallies: wgpu::Buffer,
-    /// Staging for `hits` then `tallies`.
+    /// Staging for `hits`, `tallies` and the timestamps.
     readback: wgpu::Buffer,
+    /// The kernel's timestamp queries and the buffer they resolve into, where the adapter has them.
+    timestamps: Option<(wgpu::QuerySet, wgpu::Buffer)>,
     /// Bind group 1 over the slot's buffers (it keeps `scratch`, which nothing else uses, alive).
     bind_group: wgpu::BindGroup,
 }
@@ -166,7 +177,16 @@ impl Slot {
         let hits = buffer("rayd hits", capacity.hits, U::STORAGE | U::COPY_SRC | U::COPY_DST, false);
         let tallies = buffer("rayd tallies", capacity.tallies, U::STORAGE | U::COPY_SRC | U::COPY_DST, false);
         let scratch = buffer("rayd scratch", capacity.scratch, U::STORAGE, false);
-        let readback = buffer("rayd readback", capacity.hits + capacity.tallies, U::MAP_READ | U::COPY_DST, false);
+        let readback_bytes = capacity.hits + capacity.tallies + TIMESTAMP_BYTES;
+        let readback = buffer("rayd readback", readback_bytes, U::MAP_READ | U::COPY_DST, false);
+        let timestamps = opened.timestamp_period.map(|_| {
+            let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("rayd kernel time"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            });
+            (queries, buffer("rayd timestamps", TIMESTAMP_BYTES, U::QUERY_RESOLVE | U::COPY_SRC, false))
+        });
         let bind_group = opened.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("rayd batch"),
             layout: &opened.kernel.batch_layout,
@@ -179,7 +199,7 @@ impl Slot {
                 })
                 .collect::<Vec<_>>(),
         });
-        Slot { capacity, params, upload, rays, hits, tallies, readback, bind_group }
+        Slot { capacity, params, upload, rays, hits, tallies, readback, timestamps, bind_group }
     }
 }
 
@@ -204,6 +224,11 @@ struct InFlight {
     read: Receiver<Result<(), wgpu::BufferAsyncError>>,
     /// Reports the upload buffer mapped again.
     write: Receiver<Result<(), wgpu::BufferAsyncError>>,
+}
+
+/// The little-endian u64 at byte `at` of `bytes`.
+fn u64_at(bytes: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"))
 }
 
 /// The error of a device that failed mid-trace.
@@ -241,14 +266,11 @@ fn wait_mapped(
     }
 }
 
-/// Traces the batch `rays` of `query` against `accel` (whose host BVH is `bvh`) in `plan`'s chunks and writes
-/// `out`, through `slots` (made or grown to [`SLOTS`] slots of the plan's needs; emptied if the trace fails, since
+/// Traces the batch `rays` of `query` against `accel` in `plan`'s chunks and writes `out`, through `slots` (made or grown to [`SLOTS`] slots of the plan's needs; emptied if the trace fails, since
 /// their state is then unknown).
-#[allow(clippy::too_many_arguments)]
 pub(super) fn trace(
     opened: &Opened,
-    accel: &GpuTriangles,
-    bvh: &TriangleBvh,
+    accel: &GpuGraph,
     query: &Query,
     plan: &Plan,
     rays: &[u8],
@@ -258,6 +280,7 @@ pub(super) fn trace(
     if plan.rays == 0 {
         return Ok(TraceStats::default());
     }
+    let started = Instant::now();
     for index in 0..SLOTS {
         match slots.get(index) {
             Some(slot) if slot.capacity.holds(&plan.need) => {}
@@ -265,51 +288,63 @@ pub(super) fn trace(
             None => slots.push(Slot::new(opened, plan.need)),
         }
     }
-    let motion = bvh.motion;
-    let params = Params {
-        keys: motion.keys,
-        motion_flags: motion.flags.bits(),
-        time_begin: motion.time_begin,
-        time_end: motion.time_end,
-        node_count: accel.node_count,
-        ..Params::for_query(query)
-    };
-    let traced = run_chunks(opened, accel, query, plan, &params, rays, out, slots);
+    let params = Params { root: accel.root, ..Params::for_query(query) };
+    let traced = run_chunks(opened, accel, query, plan, &params, rays, out, slots, started);
     if traced.is_err() {
         slots.clear();
     }
     traced
 }
 
-/// The chunk loop of [`trace`].
+/// The chunk loop of [`trace`] (which started at `started`); logs its timings at debug level.
 #[allow(clippy::too_many_arguments)]
 fn run_chunks(
     opened: &Opened,
-    accel: &GpuTriangles,
+    accel: &GpuGraph,
     query: &Query,
     plan: &Plan,
     params: &Params,
     rays: &[u8],
     out: TraceOutput<'_>,
     slots: &[Slot],
+    started: Instant,
 ) -> Result<TraceStats> {
     let TraceOutput { hits, counts } = out;
     let mut stats = TraceStats::default();
+    // Host time submitting (rays copied into staging) and finishing (waiting, hits copied out), for the log.
+    let (mut submitting, mut finishing) = (Duration::ZERO, Duration::ZERO);
+    let mut finish_one = |slot: usize, flight: InFlight, stats: &mut TraceStats| {
+        let start = Instant::now();
+        let finished = finish(opened, &slots[slot], flight, query, hits, counts, stats);
+        finishing += start.elapsed();
+        finished
+    };
     let mut in_flight: [Option<InFlight>; SLOTS] = Default::default();
     for (index, first) in (0..plan.rays).step_by(plan.chunk_rays).enumerate() {
         let slot = index % SLOTS;
         if let Some(flight) = in_flight[slot].take() {
-            finish(opened, &slots[slot], flight, query, hits, counts, &mut stats)?;
+            finish_one(slot, flight, &mut stats)?;
         }
         let chunk = Chunk { first, rays: plan.chunk_rays.min(plan.rays - first) };
+        let start = Instant::now();
         in_flight[slot] = Some(submit(opened, accel, &slots[slot], query, params, chunk, rays)?);
+        submitting += start.elapsed();
     }
     let mut rest: Vec<(usize, InFlight)> =
         in_flight.into_iter().enumerate().filter_map(|(slot, flight)| Some((slot, flight?))).collect();
     rest.sort_by_key(|(_, flight)| flight.chunk.first);
     for (slot, flight) in rest {
-        finish(opened, &slots[slot], flight, query, hits, counts, &mut stats)?;
+        finish_one(slot, flight, &mut stats)?;
     }
+    tracing::debug!(
+        rays = plan.rays,
+        chunk_rays = plan.chunk_rays,
+        kernel_ms = stats.device_nanos as f64 * 1e-6,
+        submitting_ms = submitting.as_secs_f64() * 1e3,
+        finishing_ms = finishing.as_secs_f64() * 1e3,
+        total_ms = started.elapsed().as_secs_f64() * 1e3,
+        "wgpu trace"
+    );
     Ok(stats)
 }
 
@@ -317,7 +352,7 @@ fn run_chunks(
 /// copies into the readback buffer; then asks for both staging buffers to be mapped when that work is done.
 fn submit(
     opened: &Opened,
-    accel: &GpuTriangles,
+    accel: &GpuGraph,
     slot: &Slot,
     query: &Query,
     params: &Params,
@@ -343,8 +378,13 @@ fn submit(
     }
     encoder.clear_buffer(&slot.tallies, 0, Some(TALLY_BYTES));
     {
-        let mut pass = encoder
-            .begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes: None });
+        let timestamp_writes = slot.timestamps.as_ref().map(|(queries, _)| wgpu::ComputePassTimestampWrites {
+            query_set: queries,
+            beginning_of_pass_write_index: Some(0),
+            end_of_pass_write_index: Some(1),
+        });
+        let mut pass =
+            encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes });
         pass.set_pipeline(&opened.kernel.pipeline);
         pass.set_bind_group(0, &accel.bind_group, &[]);
         pass.set_bind_group(1, &slot.bind_group, &[]);
@@ -352,8 +392,12 @@ fn submit(
     }
     encoder.copy_buffer_to_buffer(&slot.hits, 0, &slot.readback, 0, need.hits);
     encoder.copy_buffer_to_buffer(&slot.tallies, 0, &slot.readback, need.hits, need.tallies);
+    if let Some((queries, resolved)) = &slot.timestamps {
+        encoder.resolve_query_set(queries, 0..2, resolved, 0);
+        encoder.copy_buffer_to_buffer(resolved, 0, &slot.readback, need.hits + need.tallies, TIMESTAMP_BYTES);
+    }
     let submission = opened.queue.submit([encoder.finish()]);
-    let read = request_map(&slot.readback, wgpu::MapMode::Read, need.hits + need.tallies);
+    let read = request_map(&slot.readback, wgpu::MapMode::Read, need.hits + need.tallies + TIMESTAMP_BYTES);
     let write = request_map(&slot.upload, wgpu::MapMode::Write, slot.capacity.rays);
     Ok(InFlight { chunk, need, submission, read, write })
 }
@@ -375,14 +419,15 @@ fn finish(
     {
         let view = slot
             .readback
-            .slice(..need.hits + need.tallies)
+            .slice(..need.hits + need.tallies + TIMESTAMP_BYTES)
             .get_mapped_range()
             .map_err(|e| device_error("mapping the hit staging buffer", e))?;
         let per_ray = query.records_per_ray();
         let start = query.hit_format.buffer_len(chunk.first * per_ray);
         let len = query.hit_format.buffer_len(chunk.rays * per_ray);
         hits[start..start + len].copy_from_slice(&view[..len]);
-        let tallies = &view[need.hits as usize..];
+        let tallies = &view[need.hits as usize..(need.hits + need.tallies) as usize];
+        let ticks = &view[(need.hits + need.tallies) as usize..];
         if query.kind.has_counts() {
             counts[4 * chunk.first..4 * (chunk.first + chunk.rays)]
                 .copy_from_slice(&tallies[TALLY_BYTES as usize..TALLY_BYTES as usize + 4 * chunk.rays]);
@@ -394,6 +439,10 @@ fn finish(
             rays_hit: u64::from(read_u32(tallies, 0)),
             nodes_visited: wide(1),
             triangle_tests: wide(3),
+            device_nanos: opened.timestamp_period.map_or(0, |period| {
+                let (start, end) = (u64_at(ticks, 0), u64_at(ticks, 8));
+                (end.saturating_sub(start) as f64 * f64::from(period)) as u64
+            }),
         });
     }
     slot.readback.unmap();

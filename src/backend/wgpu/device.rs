@@ -27,6 +27,8 @@ pub(super) struct Opened {
     pub queue: wgpu::Queue,
     /// The trace pipeline and its bind group layouts.
     pub kernel: Kernel,
+    /// Nanoseconds a timestamp tick, where the adapter has timestamp queries (traces then time their kernels).
+    pub timestamp_period: Option<f32>,
 }
 
 impl Opened {
@@ -84,8 +86,10 @@ impl Gpu {
     pub fn open(&self) -> Result<&Opened> {
         self.opened
             .get_or_init(|| {
+                let timestamps = self.adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
                 let descriptor = wgpu::DeviceDescriptor {
                     label: Some("rayd"),
+                    required_features: timestamps,
                     required_limits: self.adapter.limits(),
                     ..wgpu::DeviceDescriptor::default()
                 };
@@ -93,7 +97,8 @@ impl Gpu {
                     Error::FailedPrecondition(format!("wgpu:{}: opening the device failed: {e}", self.index))
                 })?;
                 let kernel = Kernel::new(&device);
-                Ok(Opened { device, queue, kernel })
+                let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
+                Ok(Opened { device, queue, kernel, timestamp_period })
             })
             .as_ref()
             .map_err(Clone::clone)

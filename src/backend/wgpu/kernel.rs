@@ -9,17 +9,17 @@ use crate::query::{Query, QueryKind};
 /// The kernel's source: the shared structs, then the trace pipeline.
 const SOURCE: &str = concat!(include_str!("shaders/layout.wgsl"), include_str!("shaders/trace.wgsl"));
 
-/// Entries of the kernel's traversal stack (`STACK_SIZE` in `trace.wgsl`): an accel deeper than this is refused.
-/// A walk holds at most one pending node a level below the root, so depth 64 fits.
+/// Entries of the kernel's traversal stack (`STACK_SIZE` in `trace.wgsl`): an accel whose rays could need more is
+/// refused. A BVH walk holds at most one pending node a level below its root; each instance level adds a resume
+/// entry and a marker, each transform a marker.
 pub(super) const STACK_SIZE: usize = 64;
 
 /// Threads of a workgroup (`@workgroup_size` in `trace.wgsl`), one a ray.
 pub(super) const WORKGROUP_SIZE: u32 = 64;
 
-/// The uniform block of one chunk (`Params` in `layout.wgsl`), 48 bytes: `0 ray_count | 4 ray_format |
-/// 8 hit_format | 12 query_kind | 16 query_flags | 20 records_per_ray | 24 keys | 28 motion_flags |
-/// 32 time_begin f32 | 36 time_end f32 | 40 node_count | 44 record_words`; every field a little-endian u32
-/// unless marked f32. Formats and kinds are their indices in [`RayFormat::ALL`], [`HitFormat::ALL`] and
+/// The uniform block of one chunk (`Params` in `layout.wgsl`), 32 bytes: `0 ray_count | 4 ray_format |
+/// 8 hit_format | 12 query_kind | 16 query_flags | 20 records_per_ray | 24 record_words | 28 root`, every field a
+/// little-endian u32. Formats and kinds are their indices in [`RayFormat::ALL`], [`HitFormat::ALL`] and
 /// [`QueryKind::ALL`].
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 #[repr(C)]
@@ -36,18 +36,10 @@ pub(super) struct Params {
     pub query_flags: u32,
     /// Hit records a ray.
     pub records_per_ray: u32,
-    /// Motion keys of the accel (1: static).
-    pub keys: u32,
-    /// Motion flags of the accel.
-    pub motion_flags: u32,
-    /// Time of the first key.
-    pub time_begin: f32,
-    /// Time of the last key.
-    pub time_end: f32,
-    /// Nodes of the accel.
-    pub node_count: u32,
     /// Words a hit record (0 for the bitmask).
     pub record_words: u32,
+    /// The traced accel's object: its offset in the `graph` buffer.
+    pub root: u32,
 }
 
 /// The index of `value` in `all`.
@@ -74,7 +66,7 @@ impl Params {
 pub(super) struct Kernel {
     /// The trace pipeline.
     pub pipeline: wgpu::ComputePipeline,
-    /// Group 0: an accel's buffers (nodes, node key boxes, corners, prims).
+    /// Group 0: an accel's buffers (nodes, node key boxes, corners, prims, graph).
     pub accel_layout: wgpu::BindGroupLayout,
     /// Group 1: a chunk's buffers (params, rays, hits, tallies, scratch).
     pub batch_layout: wgpu::BindGroupLayout,
@@ -103,7 +95,7 @@ impl Kernel {
         });
         let accel_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("rayd accel"),
-            entries: &[storage(0, true), storage(1, true), storage(2, true), storage(3, true)],
+            entries: &[storage(0, true), storage(1, true), storage(2, true), storage(3, true), storage(4, true)],
         });
         let params = wgpu::BindGroupLayoutEntry {
             binding: 0,

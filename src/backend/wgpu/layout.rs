@@ -1,90 +1,101 @@
-//! A geometry accel on the device: the CPU backend's arrays, copied once into four storage buffers (bind group 0
-//! of the trace pipeline). Every value is a little-endian 32-bit word; `f32` is IEEE-754 binary32.
+//! An accel on the device: its graph flattened ([`super::graph`]) into five storage buffers (bind group 0 of the
+//! trace pipeline), uploaded once at build, update or load. Every value is a little-endian 32-bit word; `f32` is
+//! IEEE-754 binary32. An instance accel or transform holds copies of everything below it (each distinct accel
+//! once), so the kernel traverses the whole graph from its own buffers.
 //!
-//! - `nodes`: the depth-first BVH nodes, 32 bytes each, exactly [`Node`]:
-//!   `0 min.xyz f32×3 | 12 index u32 | 16 max.xyz f32×3 | 28 count u32` (with motion, each box is the node's box
-//!   over all of time). One zero node when the accel has none (`node_count` 0 tells the kernel).
-//! - `node_boxes`: with motion, node `i`'s box at key `k` at byte `(i·keys + k)·24`:
-//!   `0 min.xyz f32×3 | 12 max.xyz f32×3`. Static accels: one zero box, never read.
-//! - `corners`: triangle slot `s`'s corners at key `k` at byte `(s·keys + k)·36`: `0 v0.xyz | 12 v1.xyz |
-//!   24 v2.xyz`, f32 each (leaf order, then the never-traversed degenerate triangles, as on the host).
-//! - `prims`: per slot, 16 bytes ([`Prim`]): `0 geom_id u32 | 4 prim_id u32 | 8 mask u32 (0 without masks) |
-//!   12 geometry_flags u32`.
+//! - `nodes`: every BVH's depth-first nodes, 32 bytes each: `0 min.xyz f32×3 | 12 index u32 | 16 max.xyz f32×3 |
+//!   28 count u32` ([`Node`] with global indices): an inner node (`count` 0) has its children at `index` and
+//!   `index + 1` of this array; a geometry leaf holds the triangle slots `index .. index + count` of `prims`; an
+//!   instance leaf the instances `index .. index + count` of its object (counted from its first record). With
+//!   motion each box is the node's box over all of time.
+//! - `node_boxes`: with motion, node `i`'s box at key `k` at float `box_base + ((i − first)·keys + k)·6` of its
+//!   object: `min.xyz, max.xyz`. One zero box when no BVH moves.
+//! - `corners`: triangle slot `s`'s corners at key `k` at float `corner_base + ((s − base)·keys + k)·9` of its
+//!   object: `v0.xyz, v1.xyz, v2.xyz` (leaf order, then the never-traversed degenerate triangles, as on the host).
+//! - `prims`: per triangle slot, 16 bytes ([`Prim`]): `0 geom_id u32 | 4 prim_id u32 | 8 mask u32 (0 without
+//!   masks) | 12 geometry_flags u32`.
+//! - `graph`: words. An object (a BVH or transform, [`OBJECT_WORDS`] words at its offset): `0 kind` ([`ObjectKind`])
+//!   `| 1 keys | 2 motion_flags | 3 time_begin f32 | 4 time_end f32 | 5 first | 6 node_count | 7 box_base | 8 base |
+//!   9 corner_base`, where `first` is a BVH's root node (a transform's child object) and `base` a geometry accel's
+//!   first triangle slot, an instance accel's first instance record or a transform's first key. An instance record
+//!   ([`INSTANCE_WORDS`] words): `0 world_to_object f32×12` (columns: x axis, y axis, z axis, translation) `|
+//!   12 instance_id | 13 mask | 14 flags | 15 child object`. Transform keys: a static transform's world-to-object
+//!   map (12 floats, columns); a matrix motion transform's object-to-world map a key (12 floats, columns); an SRT
+//!   motion transform's 16 floats a key (`sx a b sy c sz pvx pvy pvz qx qy qz qw tx ty tz`, unit quaternion).
 
 use bytemuck::{Pod, Zeroable};
 use wgpu::util::DeviceExt;
 
 use super::device::Opened;
+use super::graph;
 use super::kernel::STACK_SIZE;
-use crate::backend::cpu::TriangleBvh;
+use crate::backend::cpu::CpuAccel;
+#[cfg(doc)]
 use crate::backend::cpu::bvh::Node;
 use crate::error::{Error, Result};
 
 /// The ids and acceptance data of one triangle slot (`Prim` in `layout.wgsl`).
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 #[repr(C)]
-struct Prim {
+pub(super) struct Prim {
     /// Geometry id.
-    geom_id: u32,
+    pub geom_id: u32,
     /// Primitive id.
-    prim_id: u32,
+    pub prim_id: u32,
     /// Prime mask.
-    mask: u32,
+    pub mask: u32,
     /// Flags of the triangle's geometry.
-    geometry_flags: u32,
+    pub geometry_flags: u32,
+}
+
+/// Words of an object record in `graph` (`OBJECT_WORDS` in `layout.wgsl`).
+pub(super) const OBJECT_WORDS: usize = 10;
+/// Words of an instance record in `graph` (`INSTANCE_WORDS` in `layout.wgsl`).
+pub(super) const INSTANCE_WORDS: usize = 16;
+
+/// What an object is (`OBJECT_*` in `layout.wgsl`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum ObjectKind {
+    /// A geometry accel's BVH.
+    Triangles = 0,
+    /// An instance accel's BVH.
+    Instances = 1,
+    /// A static transform.
+    StaticTransform = 2,
+    /// A matrix motion transform.
+    MatrixTransform = 3,
+    /// An SRT motion transform.
+    SrtTransform = 4,
 }
 
 /// An accel's buffers on the device.
 #[derive(Debug)]
-pub(super) struct GpuTriangles {
-    /// Bind group 0 over the four buffers (which it keeps alive).
+pub(super) struct GpuGraph {
+    /// Bind group 0 over the five buffers (which it keeps alive).
     pub bind_group: wgpu::BindGroup,
-    /// Nodes in `nodes` (0 when no triangle can be hit).
-    pub node_count: u32,
-    /// Bytes of the four buffers.
+    /// The root object's offset in `graph`.
+    pub root: u32,
+    /// Bytes of the five buffers.
     bytes: u64,
 }
 
-/// The words of `node`.
-fn node_words(node: &Node) -> [u32; 8] {
-    let (min, max) = (node.min.to_array().map(f32::to_bits), node.max.to_array().map(f32::to_bits));
-    [min[0], min[1], min[2], node.index, max[0], max[1], max[2], node.count]
-}
-
-impl GpuTriangles {
-    /// Uploads `bvh`'s arrays. FAILED_PRECONDITION if the BVH is deeper than the kernel's stack; RESOURCE_EXHAUSTED
-    /// if an array exceeds what the adapter can bind.
-    pub fn upload(opened: &Opened, bvh: &TriangleBvh) -> Result<GpuTriangles> {
-        if bvh.depth > STACK_SIZE {
+impl GpuGraph {
+    /// Flattens and uploads the graph under `host`. FAILED_PRECONDITION if a ray through it could need more stack
+    /// than the kernel's; RESOURCE_EXHAUSTED if an array exceeds what the adapter can bind.
+    pub fn upload(opened: &Opened, host: &CpuAccel) -> Result<GpuGraph> {
+        let flat = graph::flatten(host)?;
+        if flat.stack > STACK_SIZE {
             return Err(Error::FailedPrecondition(format!(
-                "the accel's BVH is {} levels deep; the wgpu kernel's stack holds {STACK_SIZE}",
-                bvh.depth
+                "a ray through the accel's BVHs and instance levels needs {} stack entries; the wgpu kernel's stack \
+                 holds {STACK_SIZE}",
+                flat.stack
             )));
-        }
-        let mut nodes: Vec<u32> = bvh.nodes.iter().flat_map(node_words).collect();
-        let boxes: Vec<f32> = bvh.node_keys.as_ref().map_or(Vec::new(), |keys| {
-            keys.boxes.iter().flat_map(|(min, max)| min.to_array().into_iter().chain(max.to_array())).collect()
-        });
-        let corners: Vec<f32> = bvh.corners.iter().flat_map(|c| c.iter().flat_map(|v| v.to_array())).collect();
-        let prims: Vec<Prim> = bvh
-            .refs
-            .iter()
-            .enumerate()
-            .map(|(slot, r)| Prim {
-                geom_id: r.geom_id,
-                prim_id: r.prim_id,
-                mask: bvh.masks.as_ref().map_or(0, |m| m[slot]),
-                geometry_flags: bvh.geometry_flags[r.geom_id as usize].bits(),
-            })
-            .collect();
-        if nodes.is_empty() {
-            nodes.resize(8, 0);
         }
         let limit = opened.binding_limit(None);
         let mut bytes = 0;
         let mut buffer = |name: &str, contents: &[u8]| -> Result<wgpu::Buffer> {
-            // Bindings must not be empty: an empty array gets one zero word.
-            let contents = if contents.is_empty() { &[0u8; 16][..] } else { contents };
+            // Bindings must not be empty: an empty array gets zero words.
+            let contents = if contents.is_empty() { &[0u8; 32][..] } else { contents };
             if contents.len() as u64 > limit {
                 return Err(Error::TooLarge {
                     what: "the accel's device arrays",
@@ -100,10 +111,11 @@ impl GpuTriangles {
             }))
         };
         let buffers = [
-            buffer("rayd nodes", bytemuck::cast_slice(&nodes))?,
-            buffer("rayd node boxes", bytemuck::cast_slice(&boxes))?,
-            buffer("rayd corners", bytemuck::cast_slice(&corners))?,
-            buffer("rayd prims", bytemuck::cast_slice(&prims))?,
+            buffer("rayd nodes", bytemuck::cast_slice(&flat.nodes))?,
+            buffer("rayd node boxes", bytemuck::cast_slice(&flat.boxes))?,
+            buffer("rayd corners", bytemuck::cast_slice(&flat.corners))?,
+            buffer("rayd prims", bytemuck::cast_slice(&flat.prims))?,
+            buffer("rayd graph", bytemuck::cast_slice(&flat.graph))?,
         ];
         let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
             .iter()
@@ -118,7 +130,7 @@ impl GpuTriangles {
             layout: &opened.kernel.accel_layout,
             entries: &entries,
         });
-        Ok(GpuTriangles { bind_group, node_count: bvh.nodes.len() as u32, bytes })
+        Ok(GpuGraph { bind_group, root: flat.root, bytes })
     }
 
     /// Bytes the accel occupies on the device.

@@ -1,11 +1,13 @@
-//! The wgpu backend: accels built on the host by the CPU backend's builder, uploaded once ([`layout`]), traced by
-//! a WGSL compute kernel ([`kernel`], `shaders/`) in chunks that fit the adapter's limits ([`batch`]), on every
-//! Vulkan adapter that wgpu enumerates ([`device`]).
+//! The wgpu backend: accels built on the host by the CPU backend's builders, their graphs flattened ([`graph`]) and
+//! uploaded once ([`layout`]), traced by a WGSL compute kernel ([`kernel`], `shaders/`) in chunks that fit the
+//! adapter's limits ([`batch`]), on every Vulkan adapter that wgpu enumerates ([`device`]).
 //!
-//! What runs on the GPU: traversal and hit collection for geometry accels, static or with vertex motion (per-ray
-//! time), in every ray format, hit format and query kind, with ray flags and Prime masks. Not yet: instance accels
-//! and transforms (their builds fail with FAILED_PRECONDITION naming what is missing; nothing falls back to the
-//! CPU).
+//! What runs on the GPU: traversal and hit collection for every accel kind — geometry accels (static or with
+//! vertex motion), instance accels (visibility masks, instance flags, motion keys) and static, matrix motion and
+//! SRT motion transforms, in graphs as deep as the engine allows — at per-ray times, in every ray format, hit
+//! format and query kind, with ray flags and Prime masks. One kernel walks every level: entering an instance or
+//! transform it carries the ray into the child's space and pushes a marker that restores it. Refused
+//! (FAILED_PRECONDITION): graphs whose rays could need more than the kernel's 64 stack entries.
 //!
 //! Results agree with the CPU backend up to rounding: the kernel runs the same watertight test, edge rule, tie
 //! rule and traversal order, but a GPU may fuse multiplies and adds (and divides less exactly), so `t` can differ
@@ -13,6 +15,7 @@
 
 mod batch;
 mod device;
+mod graph;
 mod kernel;
 mod layout;
 
@@ -22,7 +25,7 @@ use std::sync::{Arc, Mutex};
 use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
-use crate::backend::cpu::{CpuAccel, CpuBackend, TriangleBvh, cpu};
+use crate::backend::cpu::{CpuAccel, CpuBackend, cpu};
 use crate::backend::{Backend, BackendAccel, DeviceInfo, Shape};
 use crate::context::Accel;
 use crate::error::{Error, Result};
@@ -32,7 +35,7 @@ use crate::query::{Query, TraceOutput, TraceStats};
 
 use batch::Slot;
 use device::{Gpu, Opened};
-use layout::GpuTriangles;
+use layout::GpuGraph;
 
 /// Settings of a wgpu device.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -41,6 +44,9 @@ pub struct WgpuOptions {
     /// adapter's `max_storage_buffer_binding_size`; `None` uses the adapter's limit. Smaller chunks mean more
     /// dispatches: tests use it to split small batches.
     pub max_binding_bytes: Option<u64>,
+    /// Caps the rays of a chunk (2^18 when `None`; the bindings and a dispatch's workgroups cap it too). Larger
+    /// chunks mean fewer dispatches but less overlap of copies with tracing: benches sweep it.
+    pub max_chunk_rays: Option<usize>,
 }
 
 /// One wgpu adapter as a device.
@@ -69,29 +75,19 @@ pub fn backends(options: WgpuOptions) -> Vec<WgpuBackend> {
         .collect()
 }
 
-/// A geometry accel of the wgpu backend: the host's structure (which builds, updates, bounds, vertex access and
-/// serialization use) and its copy on the device (which traces use).
+/// An accel of the wgpu backend: the host's structure (which builds, updates, bounds, vertex access,
+/// serialization and parents use) and its graph on the device (which traces use).
 #[derive(Debug, Clone)]
 pub struct WgpuAccel {
-    /// The CPU backend's accel, always [`CpuAccel::Triangles`].
+    /// The CPU backend's accel.
     host: CpuAccel,
-    /// The same arrays on the device; immutable, so copies of the accel share them.
-    device: Arc<GpuTriangles>,
-}
-
-impl WgpuAccel {
-    /// The host's BVH.
-    fn triangles(&self) -> &TriangleBvh {
-        match &self.host {
-            CpuAccel::Triangles(bvh) => bvh,
-            CpuAccel::Instances(_) | CpuAccel::Transform(_) => unreachable!("a wgpu accel holds triangles"),
-        }
-    }
+    /// Its graph's arrays on the device; immutable, so copies of the accel share them.
+    device: Arc<GpuGraph>,
 }
 
 impl BackendAccel for WgpuAccel {
-    /// The host's arrays as allocated plus the device's buffers (copies of an accel share the device buffers but
-    /// each counts them).
+    /// The host's arrays as allocated plus the device's buffers, which hold the arrays of every accel below it too
+    /// (copies of an accel share the device buffers but each counts them).
     fn size_bytes(&self) -> u64 {
         self.host.size_bytes() + self.device.bytes()
     }
@@ -116,16 +112,13 @@ impl BackendAccel for WgpuAccel {
         self.host.encode(children, out)
     }
 
+    fn host(&self) -> Option<&CpuAccel> {
+        Some(&self.host)
+    }
+
     fn as_any(&self) -> &dyn Any {
         self
     }
-}
-
-/// The error of what this phase of the backend does not run.
-fn not_yet(what: &str) -> Error {
-    Error::FailedPrecondition(format!(
-        "{what} are not supported on wgpu devices yet (geometry accels are): build them on cpu:0"
-    ))
 }
 
 impl WgpuBackend {
@@ -134,14 +127,9 @@ impl WgpuBackend {
         self.gpu.open()
     }
 
-    /// Uploads a host accel; FAILED_PRECONDITION for instance accels and transforms.
+    /// Uploads the graph of a host accel the CPU backend made.
     fn upload(&self, host: Box<dyn BackendAccel>) -> Result<Box<dyn BackendAccel>> {
-        let host = cpu(host.as_ref())?.clone();
-        let CpuAccel::Triangles(bvh) = &host else {
-            return Err(not_yet("instance accels and transforms"));
-        };
-        let device = Arc::new(GpuTriangles::upload(self.opened()?, bvh)?);
-        Ok(Box::new(WgpuAccel { host, device }))
+        self.adopt(cpu(host.as_ref())?)
     }
 }
 
@@ -162,12 +150,15 @@ impl Backend for WgpuBackend {
         self.upload(self.host.build(inputs, options)?)
     }
 
-    fn compute_instance_memory_usage(&self, _instances: usize, _options: &BuildOptions) -> Result<MemoryUsage> {
-        Err(not_yet("instance accels"))
+    /// The host's bound, twice for the instance accel's own arrays on the device. The device copies of its
+    /// children's arrays are not in it (only their count is known here): they are counted in its `size_bytes`.
+    fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
+        let host = self.host.compute_instance_memory_usage(instances, options)?;
+        Ok(MemoryUsage { output_bytes: 2 * host.output_bytes, ..host })
     }
 
-    fn build_instances(&self, _instances: &[PlacedInstance], _options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
-        Err(not_yet("instance accels"))
+    fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.build_instances(instances, options)?)
     }
 
     fn update(&self, accel: &dyn BackendAccel, inputs: &[BuildInput<'_>]) -> Result<Box<dyn BackendAccel>> {
@@ -176,14 +167,14 @@ impl Backend for WgpuBackend {
 
     fn update_instances(
         &self,
-        _accel: &dyn BackendAccel,
-        _instances: &[PlacedInstance],
+        accel: &dyn BackendAccel,
+        instances: &[PlacedInstance],
     ) -> Result<Box<dyn BackendAccel>> {
-        Err(not_yet("instance accels"))
+        self.upload(self.host.update_instances(&wgpu_accel(accel)?.host, instances)?)
     }
 
-    fn build_transform(&self, _transform: &Transform, _child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>> {
-        Err(not_yet("transforms"))
+    fn build_transform(&self, transform: &Transform, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.build_transform(transform, child)?)
     }
 
     /// The CPU backend's payload layout: a wgpu accel serializes its host structure.
@@ -201,14 +192,22 @@ impl Backend for WgpuBackend {
         self.upload(self.host.decode(shape, options, payload, children)?)
     }
 
+    /// Uploads the host structure's graph.
+    fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>> {
+        let device = Arc::new(GpuGraph::upload(self.opened()?, host)?);
+        Ok(Box::new(WgpuAccel { host: host.clone(), device }))
+    }
+
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
         let accel = wgpu_accel(accel)?;
         let layout = query.output_layout(rays.len())?;
         out.check(&layout)?;
         let opened = self.opened()?;
-        let plan = batch::Plan::new(query, layout.rays, opened.binding_limit(self.options.max_binding_bytes))?;
+        let binding_limit = opened.binding_limit(self.options.max_binding_bytes);
+        let max_chunk_rays = self.options.max_chunk_rays.unwrap_or(batch::MAX_CHUNK_RAYS);
+        let plan = batch::Plan::new(query, layout.rays, binding_limit, max_chunk_rays)?;
         let mut slots = self.take_slots();
-        let traced = batch::trace(opened, &accel.device, accel.triangles(), query, &plan, rays, out, &mut slots);
+        let traced = batch::trace(opened, &accel.device, query, &plan, rays, out, &mut slots);
         self.slots.lock().unwrap_or_else(|e| e.into_inner()).extend(slots);
         traced
     }
