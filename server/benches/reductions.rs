@@ -2,7 +2,8 @@
 //! loopback, with every hit returned (plain, gRPC zstd, compact encoding) and with reductions (depth and normal
 //! images, counts), against the engine tracing the same rays in-process. Prints one table with rays/s, the share
 //! of the in-process rate, and the bytes a ray puts on the wire (and what zstd/gzip would make of them). Run with
-//! `cargo bench -p rayd-server --bench reductions`.
+//! `cargo bench -p rayd-server --bench reductions`; `RAYD_BENCH_DEVICE=wgpu:0` measures on a GPU device instead of
+//! `cpu:0` (the in-process reference then traces on that device too).
 
 use std::time::Instant;
 
@@ -62,7 +63,10 @@ fn main() {
     let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
 
     // In-process: the engine alone on the same rays, made beforehand, into a reused hit buffer.
-    let context = Context::new(Device::cpu());
+    let device_id = std::env::var("RAYD_BENCH_DEVICE").unwrap_or_else(|_| "cpu:0".into());
+    let device =
+        Device::all().into_iter().find(|d| d.info().id == device_id).expect("the device RAYD_BENCH_DEVICE names");
+    let context = Context::new(device);
     let packed = bunny.pack();
     let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
     let rays = generator.rays(query.ray_format);
@@ -83,13 +87,13 @@ fn main() {
         let url = format!("http://{}", listener.local_addr().unwrap());
         tokio::spawn(rayd_server::run(rayd_server::Config::default(), listener, None, std::future::pending()));
         let client = Client::connect(&url, ClientOptions::default()).await.unwrap();
-        client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+        client.build_mesh("bunny", &bunny, &device_id, BuildFlags::empty()).await.unwrap();
         let zstd_options = ClientOptions { compression: Some(CompressionEncoding::Zstd), ..ClientOptions::default() };
         let zstd_client = Client::connect(&url, zstd_options).await.unwrap();
 
         let mrays = |seconds: f64| rays_per_call / seconds / 1e6;
         println!(
-            "bunny, {SIDE}×{SIDE} camera ({} rays), closest, {} threads",
+            "bunny, {SIDE}×{SIDE} camera ({} rays), closest, on {device_id}, {} CPU threads",
             rays_per_call,
             rayon::current_num_threads()
         );

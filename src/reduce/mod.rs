@@ -18,10 +18,14 @@ pub use image::{Image, ImageChannel, PixelEncoding};
 pub use partial::Partial;
 
 use bytes::Bytes;
+use rayon::prelude::*;
 
 use crate::error::{Error, Result};
 use crate::format::{Hit, HitFormat};
 use crate::query::{Query, QueryKind};
+
+/// Rays of the parts a large piece is split into, to be generated and reduced across the rayon pool.
+pub const PARALLEL_SPLIT_RAYS: usize = 1 << 14;
 
 /// Most rays a group (an image's pixel, a nearest-hit group) may have.
 pub const MAX_GROUP_RAYS: u32 = 1 << 16;
@@ -214,6 +218,41 @@ impl Reduction {
         }
     }
 
+    /// [`Reduction::reduce_piece`] of a large piece, split into parts of about [`PARALLEL_SPLIT_RAYS`] rays (whole
+    /// groups) reduced on the rayon pool and folded in order: the same partial, sooner.
+    pub fn reduce_piece_parallel(
+        &self,
+        traced: &Query,
+        first_ray: u64,
+        rays: &[u8],
+        hits: &[u8],
+        counts: &[u8],
+    ) -> Partial {
+        let group = self.group_rays();
+        let split = (PARALLEL_SPLIT_RAYS / group).max(1) * group;
+        let (ray_size, records) = (traced.ray_format.size(), traced.records_per_ray());
+        let hit_size = traced.hit_format.size().expect("reductions trace records with a size");
+        let count_size = if counts.is_empty() { 0 } else { 4 };
+        let ray_count = rays.len() / ray_size;
+        let parts: Vec<Partial> = (0..ray_count.div_ceil(split))
+            .into_par_iter()
+            .map(|part| {
+                let range = part * split..((part + 1) * split).min(ray_count);
+                self.reduce_piece(
+                    traced,
+                    first_ray + range.start as u64,
+                    &rays[range.start * ray_size..range.end * ray_size],
+                    &hits[range.start * records * hit_size..range.end * records * hit_size],
+                    &counts[range.start * count_size..range.end * count_size],
+                )
+            })
+            .collect();
+        parts.into_iter().fold(self.empty(), |mut folded, part| {
+            folded.merge(part);
+            folded
+        })
+    }
+
     /// The reduction's answer from every piece's partial folded in ray order, for a batch of `rays` rays.
     pub fn finish(&self, folded: Partial, rays: u64) -> Result<Reduced> {
         let (bytes, dropped) = match folded {
@@ -245,7 +284,7 @@ impl Reduction {
     /// trace compute together): for tests and for callers that hold every hit.
     pub fn reduce_all(&self, traced: &Query, rays: &[u8], hits: &[u8], counts: &[u8]) -> Result<Reduced> {
         let ray_count = (rays.len() / traced.ray_format.size()) as u64;
-        self.finish(self.reduce_piece(traced, 0, rays, hits, counts), ray_count)
+        self.finish(self.reduce_piece_parallel(traced, 0, rays, hits, counts), ray_count)
     }
 }
 

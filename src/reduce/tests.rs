@@ -224,7 +224,13 @@ fn compact_hits_decode_to_the_hits_within_their_quantization() {
             },
         })
         .collect();
-    let (query, ray_bytes, hit_bytes) = batch(HitFormat::TTriidInstidUV, &rays, &hits);
+    let (query, _, hit_bytes) = batch(HitFormat::TTriidInstidUV, &rays, &hits);
+    // A ray format that carries each ray's range.
+    let query = Query { ray_format: RayFormat::OriginTminDirectionTmax, ..query };
+    let mut ray_bytes = vec![0u8; count * query.ray_format.size()];
+    for (ray, slot) in rays.iter().zip(ray_bytes.chunks_exact_mut(query.ray_format.size())) {
+        query.ray_format.encode(ray, slot);
+    }
     let t_far = 3.0;
     let compact = Reduction::CompactHits { t_far };
     compact.check(&query, count as u64).unwrap();
@@ -258,4 +264,25 @@ fn compact_hits_decode_to_the_hits_within_their_quantization() {
     let full = Query { hit_format: HitFormat::Full, ..query };
     assert!(compact.check(&full, 1).is_err(), "FULL has no compact form");
     assert!(Reduction::CompactHits { t_far: f32::INFINITY }.check(&query, 1).is_err());
+}
+
+#[test]
+fn a_piece_reduced_in_parallel_parts_equals_it_reduced_at_once() {
+    let count = 3 * PARALLEL_SPLIT_RAYS + 123 * 3;
+    let hits: Vec<Hit> = (0..count)
+        .map(|i| if i % 7 == 3 { Hit::MISS } else { hit((i * 37 % 23) as f32, i as u32 % 5, 0, 0) })
+        .collect();
+    let rays: Vec<Ray> = (0..count).map(|i| along_x([i as f32, 0.0, 0.0])).collect();
+    let (query, ray_bytes, hit_bytes) = batch(HitFormat::TTriid, &rays, &hits);
+    let cloud = PointCloud { encoding: PointEncoding::Float32, step: 0.0, origin: Vec3::ZERO, ray_indices: true };
+    for reduction in [
+        Reduction::Histogram { bins: 7, t_min: 1.0, t_max: 20.0 },
+        Reduction::NearestPerGroup { group: 3 },
+        Reduction::PointCloud(cloud),
+        Reduction::CompactHits { t_far: 30.0 },
+    ] {
+        let at_once = reduction.reduce_piece(&query, 1 << 20, &ray_bytes, &hit_bytes, &[]);
+        let parallel = reduction.reduce_piece_parallel(&query, 1 << 20, &ray_bytes, &hit_bytes, &[]);
+        assert!(at_once == parallel, "{reduction:?}");
+    }
 }

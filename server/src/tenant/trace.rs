@@ -11,7 +11,8 @@ use bytes::{Bytes, BytesMut};
 use rayd_engine::Accel;
 use rayd_engine::query::{OutputLayout, Query, TraceOutput, TraceStats};
 use rayd_engine::raygen::Generator;
-use rayd_engine::reduce::{Partial, Reduction};
+use rayd_engine::reduce::{PARALLEL_SPLIT_RAYS, Partial, Reduction};
+use rayon::prelude::*;
 use tokio::sync::oneshot;
 
 use super::{AccelEntry, Tenant, TraceResult};
@@ -53,8 +54,12 @@ impl Rays {
             Rays::Generated(generator, rays) => {
                 scratch.clear();
                 scratch.resize(range.len(), 0);
-                let first = rays.start + (range.start / query.ray_format.size()) as u64;
-                generator.fill(query.ray_format, first, scratch);
+                let size = query.ray_format.size();
+                let first = rays.start + (range.start / size) as u64;
+                // A large piece (a GPU's) is made across the rayon pool, in parts of its own.
+                scratch.par_chunks_mut(PARALLEL_SPLIT_RAYS * size).enumerate().for_each(|(part, out)| {
+                    generator.fill(query.ray_format, first + (part * PARALLEL_SPLIT_RAYS) as u64, out)
+                });
                 scratch
             }
         }
@@ -254,7 +259,8 @@ impl TraceJob {
         let layout = traced.output_layout(rays.len())?;
         let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
         let stats = context.trace(&self.accel, &traced, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
-        Ok((PieceOutput::Reduced(reduction.reduce_piece(&traced, first_ray, rays, &hits, &counts)), stats))
+        let reduced = reduction.reduce_piece_parallel(&traced, first_ray, rays, &hits, &counts);
+        Ok((PieceOutput::Reduced(reduced), stats))
     }
 
     /// Traces piece `index` (the rays in bytes `rays`) into `output`, unless the job was abandoned, and answers
