@@ -122,7 +122,7 @@ async fn client_loop(
                 )
             }
         };
-        let mut tallies = std::mem::take(&mut *tallies.lock().unwrap());
+        let mut tallies = tallies.lock().unwrap();
         let tally = tallies.entry(kind).or_default();
         match outcome {
             Ok(()) => tally.latencies.push(start.elapsed()),
