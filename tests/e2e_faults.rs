@@ -111,6 +111,7 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
     let (traced, skipped) = pieces_when(&daemon, "after the deadline", |t, s| t + s >= total).await;
     assert_eq!(traced + skipped, total, "every piece traced or skipped, once");
     assert!(skipped > 0, "the pieces after the deadline were skipped (traced {traced} of {total})");
+    println!("deadline: {traced} of {total} pieces traced, {skipped} skipped");
 
     // A client that vanishes in the middle of a trace: its connection is cut once a piece has been traced.
     let (channel, connection) = daemon.cuttable_channel().await;
@@ -122,6 +123,7 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
     let (traced_now, skipped_now) = pieces_when(&daemon, "after the cut", |t, s| t + s >= 2 * total).await;
     assert_eq!(traced_now + skipped_now, 2 * total);
     assert!(skipped_now > skipped, "the pieces after the cut were skipped");
+    println!("cut: {} of {total} pieces traced, {} skipped", traced_now - traced, skipped_now - skipped);
 
     let usage = client.server_info().await.unwrap().usage.unwrap();
     assert_eq!(usage.operations, 0, "nothing is left running");
@@ -192,6 +194,7 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     let traced = batches() - batches_before;
     // Answers waiting to be sent (the window), the one being sent, and what HTTP/2's flow-control windows take.
     assert!(traced <= window + 8, "{traced} chunks were traced for a client that read none of them");
+    println!("stalled reader: {traced} of 1000 chunks traced");
     still_right(&client).await;
     tokio::time::sleep(Duration::from_secs(1)).await;
     assert_eq!(batches() - batches_before - 1, traced, "nothing more was traced for the stalled stream");

@@ -37,9 +37,9 @@ fuzz_target!(|data: &[u8]| {
     let query = Query { kind, max_hits_per_ray: 4, ..Query::closest(ray_format, hit_format) };
     let Ok(layout) = query.output_layout(rays.len()) else { return };
     let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
-    let traced = query.check_times(rays).and_then(|()| {
-        context.trace(accel, &query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })
-    });
+    let traced = query
+        .check_times(rays)
+        .and_then(|()| context.trace(accel, &query, rays, TraceOutput { hits: &mut hits, counts: &mut counts }));
     if traced.is_ok() && hit_format != HitFormat::Bitmask {
         let per_ray = query.records_per_ray();
         for record in 0..layout.rays * per_ray {
