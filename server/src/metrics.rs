@@ -59,6 +59,12 @@ pub fn traced(tenant: &str, stats: &TraceStats) {
     counter!("rayd_trace_batches_total", "tenant" => tenant).increment(1);
 }
 
+/// Counts a piece of a queued trace of `tenant` by its `outcome`: `traced`, `failed`, or `skipped` because its trace
+/// was abandoned (the caller went away, its deadline passed, or another piece failed).
+pub fn piece(tenant: &str, outcome: &'static str) {
+    counter!("rayd_trace_pieces_total", "tenant" => tenant.to_owned(), "outcome" => outcome).increment(1);
+}
+
 /// Records how long a trace of `tenant` waited in its device's queue before its first piece started.
 pub fn queued(tenant: &str, waited: std::time::Duration) {
     histogram!("rayd_trace_queue_seconds", "tenant" => tenant.to_owned()).record(waited.as_secs_f64());

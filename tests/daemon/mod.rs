@@ -110,9 +110,40 @@ impl Daemon {
         Daemon { child, _stdout: stdout, grpc, admin, log }
     }
 
+    /// The process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Resident memory of the process now (`VmRSS` of `/proc/PID/status`), in bytes.
+    pub fn resident_bytes(&self) -> u64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).expect("/proc/PID/status");
+        let line = status.lines().find(|l| l.starts_with("VmRSS:")).expect("a VmRSS line");
+        let kib: u64 = line.split_whitespace().nth(1).and_then(|v| v.parse().ok()).expect("VmRSS in kB");
+        kib * 1024
+    }
+
     /// The gRPC address.
     pub fn grpc_addr(&self) -> SocketAddr {
         self.grpc
+    }
+
+    /// A channel over one TCP connection to the gRPC service, and a handle on that connection to cut it as a
+    /// vanishing client would.
+    pub async fn cuttable_channel(&self) -> (tonic::transport::Channel, TcpStream) {
+        let connection = TcpStream::connect(self.grpc).expect("rayd accepts connections");
+        let kept = connection.try_clone().expect("the connection can be shared");
+        connection.set_nonblocking(true).expect("a non-blocking connection");
+        let mut connection = Some(connection);
+        let connector = tower::service_fn(move |_| {
+            let taken = connection.take().ok_or_else(|| std::io::Error::other("one connection only"));
+            async move {
+                let stream = tokio::net::TcpStream::from_std(taken?)?;
+                Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(stream))
+            }
+        });
+        let channel = tonic::transport::Channel::from_shared(self.url()).expect("a valid URL");
+        (channel.connect_with_connector(connector).await.expect("the channel connects"), kept)
     }
 
     /// The gRPC endpoint as a URL, `http://IP:PORT`, for tonic clients and `rayctl --server`.

@@ -5,6 +5,7 @@
 //! `RAYD_LIMITS_MAX_RAYS_PER_BATCH=1000000`; top-level keys as `RAYD_<KEY>` (`RAYD_LISTEN`).
 
 mod tenants;
+mod transport;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -12,6 +13,7 @@ use std::path::PathBuf;
 use rayd_engine::geometry::motion::MAX_MOTION_KEYS;
 use serde::{Deserialize, Serialize};
 pub use tenants::{KeyConfig, MIN_KEY_CHARS, Role, TenantConfig};
+pub use transport::TransportConfig;
 
 /// The most worker threads a device's scheduler may be given.
 pub const MAX_WORKERS: u32 = 1024;
@@ -42,6 +44,8 @@ pub struct Config {
     pub insecure: bool,
     /// How device work is scheduled.
     pub scheduler: SchedulerConfig,
+    /// HTTP/2 limits of the gRPC connections.
+    pub transport: TransportConfig,
 }
 
 /// The fair schedulers of the devices (traces are queued per tenant and served by share; see `tenants.share`).
@@ -86,6 +90,7 @@ impl Default for Config {
             tls: None,
             insecure: false,
             scheduler: SchedulerConfig::default(),
+            transport: TransportConfig::default(),
         }
     }
 }
@@ -205,6 +210,7 @@ impl Config {
         inherit_limits(&mut table);
         let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
         config.limits.check("limits").map_err(ConfigError::Invalid)?;
+        config.transport.check().map_err(ConfigError::Invalid)?;
         if config.scheduler.worker_nice > 19 {
             return Err(ConfigError::Invalid(format!(
                 "scheduler.worker_nice = {} must be 0 to 19",

@@ -6,6 +6,7 @@ mod persistence;
 mod quota;
 mod trace;
 
+pub use quota::Reservation;
 pub use trace::Rays;
 
 use std::collections::HashMap;
@@ -390,9 +391,9 @@ impl Tenant {
             self.buffers.check_free(name)?;
         }
         ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
-        let held = self.buffer_bytes();
+        let held = self.buffer_bytes() + self.quotas.uploading();
         ServiceError::check_limit(
-            || format!("buffer bytes of this tenant ({held} held, {size} more)"),
+            || format!("buffer bytes of this tenant ({held} held or being uploaded, {size} more)"),
             held.saturating_add(size),
             "max_total_buffer_bytes",
             self.limits.max_total_buffer_bytes,
@@ -404,6 +405,13 @@ impl Tenant {
             "max_buffers",
             self.limits.max_buffers as u64,
         )
+    }
+
+    /// Checks a new buffer of `size` bytes as [`Tenant::check_new_buffer`] does, and reserves its bytes against
+    /// `max_total_buffer_bytes` while it is uploaded (until the reservation is dropped).
+    pub fn reserve_upload(&self, name: &str, size: u64) -> ServiceResult<Reservation> {
+        self.check_new_buffer(name, size)?;
+        self.quotas.reserve_upload(size, self.buffer_bytes(), self.limits.max_total_buffer_bytes)
     }
 
     /// Keeps `data` as a buffer.

@@ -277,6 +277,12 @@ impl TraceJob {
                 Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked")))
             }))
         };
+        let outcome = match &traced {
+            Some(Ok(_)) => "traced",
+            Some(Err(_)) => "failed",
+            None => "skipped",
+        };
+        crate::metrics::piece(&self.tenant.name, outcome);
         let mut progress = self.progress.lock().expect("not poisoned");
         match traced {
             Some(Ok((output, stats))) => {

@@ -78,6 +78,11 @@ fn is_nan(x: f32) -> bool {
     return (bitcast<u32>(x) & 0x7fffffffu) > 0x7f800000u;
 }
 
+// Whether `x` is neither infinite nor NaN (bit test: a GPU compiler may assume no NaN in float comparisons).
+fn is_finite_f32(x: f32) -> bool {
+    return (bitcast<u32>(x) & 0x7f800000u) != 0x7f800000u;
+}
+
 fn infinity() -> f32 {
     return bitcast<f32>(0x7f800000u);
 }
@@ -159,6 +164,10 @@ fn oriented(origin: vec3<f32>, direction: vec3<f32>, base: PreparedRay) -> Prepa
     r.origin = origin;
     r.direction = direction;
     let d = r.direction;
+    // `intersect::PreparedRay::new`: a direction that is not finite hits nothing.
+    if !(is_finite_f32(d.x) && is_finite_f32(d.y) && is_finite_f32(d.z)) {
+        r.tmax = -infinity();
+    }
     let a = abs(d);
     var kz = 2u;
     if a.x >= a.y && a.x >= a.z {
@@ -469,7 +478,7 @@ fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit
         return NO_TRIANGLE_HIT;
     }
     let det = u + v + w;
-    if det == 0.0 || is_nan(det) {
+    if det == 0.0 || !is_finite_f32(det) {
         return NO_TRIANGLE_HIT;
     }
     if u == 0.0 || v == 0.0 || w == 0.0 {
@@ -484,8 +493,11 @@ fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit
     let az = sz * a[kz];
     let bz = sz * b[kz];
     let cz = sz * c[kz];
-    let t_scaled = u * az + v * bz + w * cz;
-    return TriangleHit(true, t_scaled / det, v / det, w / det, det < 0.0);
+    let t = (u * az + v * bz + w * cz) / det;
+    if !is_finite_f32(t) {
+        return NO_TRIANGLE_HIT;
+    }
+    return TriangleHit(true, t, v / det, w / det, det < 0.0);
 }
 
 // The collector of one ray (`query::Collector`), in private variables.
