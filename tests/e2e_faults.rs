@@ -97,7 +97,7 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
     let request = |rays: Bytes| proto::TraceBatchRequest {
         query: Some(rayd_client::convert::trace_query("pile", &closest())),
         rays: Some(proto::trace_batch_request::Rays::RaysInline(rays)),
-        hits_buffer_name: String::new(),
+        ..Default::default()
     };
 
     // A deadline that passes after the first piece started.

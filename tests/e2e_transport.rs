@@ -139,7 +139,7 @@ async fn a_unary_message_over_the_limit_is_refused_without_being_read_into_memor
             &Query::closest(RayFormat::OriginDirection, HitFormat::T),
         )),
         rays: Some(proto::trace_batch_request::Rays::RaysInline(Bytes::from(vec![0u8; oversized]))),
-        hits_buffer_name: String::new(),
+        ..Default::default()
     };
     let status = rpc.trace_batch(request).await.unwrap_err();
     assert_eq!(status.code(), Code::OutOfRange, "{status:?}");
