@@ -233,7 +233,7 @@ pub struct TraceArgs {
     pub pixels: Option<(u32, u32)>,
     /// The camera of `--pixels`, as for `render`.
     #[arg(long, value_name = "EYE,TARGET,UP,FOVY", value_parser = parse_view, allow_hyphen_values = true,
-          requires = "pixels")]
+          conflicts_with = "rays")]
     pub camera: Option<View>,
     /// How the rays are packed (or made, with `--pixels`).
     #[arg(long, value_name = "FMT", value_parser = named(&RayFormat::ALL, RayFormat::name))]
