@@ -1,5 +1,6 @@
 //! The image reduction: each pixel's nearest hit as a depth or a normal, in float32, 16-bit or a 16-bit PNG.
 
+use super::invalid;
 use crate::error::{Error, Result};
 use crate::format::{Hit, HitFormat};
 
@@ -133,9 +134,4 @@ impl Image {
             .map_err(|e| Error::InvalidQuery { field: "reduction.image", rule: format!("PNG encoding failed: {e}") })?;
         Ok(png)
     }
-}
-
-/// INVALID_ARGUMENT naming `field`.
-fn invalid(field: &'static str, rule: String) -> Error {
-    super::invalid(field, rule)
 }
