@@ -9,8 +9,8 @@ use std::process::{Child, ChildStdout, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, PoisonError};
 
-/// Each binary the tests run, and the workspace package that builds it.
-const BINARIES: [(&str, &str); 2] = [("rayd", "rayd-server"), ("rayctl", "rayd-client")];
+/// The workspace binaries the tests run.
+const BINARIES: [&str; 2] = ["rayd", "rayctl"];
 
 /// `target/<profile>`, where cargo puts the binaries: the test executable is `target/<profile>/deps/<test>`.
 fn profile_dir() -> PathBuf {
@@ -23,16 +23,15 @@ pub fn target_dir() -> PathBuf {
     profile_dir().parent().expect("target/<profile> has a parent").to_path_buf()
 }
 
-/// The path of the workspace binary `name` (`rayd` or `rayctl`). Its package is built once per test process,
-/// with the profile and target directory of this test, so a test never runs a stale binary.
+/// The path of the workspace binary `name` (`rayd` or `rayctl`). The workspace's binaries are built once per test
+/// process, with the profile and target directory of this test, so a test never runs a stale binary.
 pub fn binary(name: &str) -> PathBuf {
-    static BUILT: Mutex<Vec<&str>> = Mutex::new(Vec::new());
-    let (_, package) =
-        BINARIES.iter().find(|(binary, _)| *binary == name).unwrap_or_else(|| panic!("no workspace binary {name:?}"));
+    static BUILT: Mutex<bool> = Mutex::new(false);
+    assert!(BINARIES.contains(&name), "no workspace binary {name:?}");
     let mut built = BUILT.lock().unwrap_or_else(PoisonError::into_inner);
-    if !built.contains(package) {
-        cargo_build(package);
-        built.push(package);
+    if !*built {
+        cargo_build();
+        *built = true;
     }
     profile_dir().join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
 }
@@ -46,21 +45,24 @@ pub fn without_rayd_env(command: &mut Command) -> &mut Command {
     command
 }
 
-/// Runs `cargo build --bins -p PACKAGE` for this test's profile and target directory.
-fn cargo_build(package: &str) {
+/// Runs `cargo build --workspace --bins --tests` for this test's profile and target directory. The whole workspace
+/// with its tests resolves dependency features exactly as `cargo test --workspace` does, so after that command only
+/// the binaries themselves are compiled; a build of one package (`-p`) would rebuild many dependencies with that
+/// package's own features (minutes, in CI).
+fn cargo_build() {
     let profile_dir = profile_dir();
     let profile = profile_dir.file_name().and_then(|p| p.to_str()).expect("a UTF-8 profile directory");
     let mut cargo = Command::new(env!("CARGO"));
     cargo
         .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .args(["build", "--bins", "-p", package, "--target-dir"])
+        .args(["build", "--workspace", "--bins", "--tests", "--target-dir"])
         .arg(target_dir());
     // `debug` holds the dev profile's output; every other profile's directory is named after it.
     if profile != "debug" {
         cargo.args(["--profile", profile]);
     }
     let output = cargo.output().expect("cargo runs");
-    assert!(output.status.success(), "cargo build -p {package} failed:\n{}", String::from_utf8_lossy(&output.stderr));
+    assert!(output.status.success(), "cargo build of the binaries failed:\n{}", String::from_utf8_lossy(&output.stderr));
 }
 
 /// A running `rayd`; killed if still running when dropped, its log printed if the test failed (and deleted
