@@ -45,6 +45,18 @@ pub fn without_rayd_env(command: &mut Command) -> &mut Command {
     command
 }
 
+/// The variables cargo sets for a test process (names or name prefixes).
+const TEST_ENV_PREFIXES: [&str; 8] = [
+    "CARGO_MANIFEST_",
+    "CARGO_PKG_",
+    "CARGO_CRATE_NAME",
+    "CARGO_BIN_NAME",
+    "CARGO_PRIMARY_PACKAGE",
+    "CARGO_TARGET_TMPDIR",
+    "CARGO_RUSTC_CURRENT_DIR",
+    "OUT_DIR",
+];
+
 /// Runs `cargo build --workspace --bins --tests` for this test's profile and target directory. The whole workspace
 /// with its tests resolves dependency features exactly as `cargo test --workspace` does, so after that command only
 /// the binaries themselves are compiled; a build of one package (`-p`) would rebuild many dependencies with that
@@ -61,8 +73,20 @@ fn cargo_build() {
     if profile != "debug" {
         cargo.args(["--profile", profile]);
     }
+    // What cargo set for this test process (its package's name, manifest, …) is not the caller's environment:
+    // build scripts that watch such variables (ring's) would see a change and rebuild.
+    for (key, _) in std::env::vars_os() {
+        let key_text = key.to_string_lossy();
+        if TEST_ENV_PREFIXES.iter().any(|prefix| key_text.starts_with(prefix)) {
+            cargo.env_remove(&key);
+        }
+    }
     let output = cargo.output().expect("cargo runs");
-    assert!(output.status.success(), "cargo build of the binaries failed:\n{}", String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "cargo build of the binaries failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
 }
 
 /// A running `rayd`; killed if still running when dropped, its log printed if the test failed (and deleted
