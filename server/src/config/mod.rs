@@ -113,8 +113,8 @@ pub struct Limits {
     pub max_buffer_bytes: u64,
     /// Most buffers per tenant.
     pub max_buffers: u32,
-    /// Per `TraceStream`: chunks traced or waiting to be sent at once. Per `OpenStream` stream: messages read
-    /// ahead of the running operation, and answers waiting to be sent.
+    /// Per `TraceStream`: chunks read ahead of the one being traced, and answers waiting to be sent. Per
+    /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent.
     pub stream_window: u32,
     /// Most `OpenStream` streams open at once per tenant.
     pub max_streams: u32,

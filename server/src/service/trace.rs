@@ -149,8 +149,10 @@ async fn reduced(
     })
 }
 
-/// Ordered chunks: each ray chunk is traced and answered in turn; at most `stream_window` answers wait to be sent,
-/// and no chunk is read while they do, so memory stays bounded on both sides.
+/// Ordered chunks: each ray chunk is traced and answered in turn. A reader takes up to `stream_window` chunks off
+/// the connection ahead of the one being traced, so receiving overlaps tracing, and up to `stream_window` answers
+/// wait to be sent while the next chunk traces; past those windows nothing more is read, so memory stays bounded on
+/// both sides.
 pub async fn stream(
     tenant: Arc<Tenant>,
     mut requests: Streaming<pb::TraceStreamRequest>,
@@ -161,20 +163,33 @@ pub async fn stream(
         _ => return Err(ServiceError::invalid("query", "the first message of a trace stream must be its query")),
     };
     let (accel, query) = resolve_query(&tenant, Some(&query))?;
-    let (sender, receiver) = mpsc::channel(tenant.limits().stream_window.max(1) as usize);
+    let window = tenant.limits().stream_window.max(1) as usize;
+    let (chunk_sender, mut chunks) = mpsc::channel(window);
     tokio::spawn(async move {
-        let mut first_ray = 0u64;
         loop {
-            let reply = match requests.message().await {
+            let chunk = match requests.message().await {
                 Ok(None) => break,
                 // A chunk that could not be received (e.g. above max_message_bytes) keeps tonic's status.
                 Err(status) => Err(status),
                 Ok(Some(message)) => match message.part {
-                    Some(pb::trace_stream_request::Part::Rays(rays)) => {
-                        answer_chunk(&tenant, &accel, query, rays, first_ray).await.map_err(Status::from)
-                    }
+                    Some(pb::trace_stream_request::Part::Rays(rays)) => Ok(rays),
                     _ => Err(ServiceError::invalid("query", "only the first message may be a query").into()),
                 },
+            };
+            let failed = chunk.is_err();
+            // The tracer gone (the call ended), or a bad chunk passed on: nothing more is read.
+            if chunk_sender.send(chunk).await.is_err() || failed {
+                break;
+            }
+        }
+    });
+    let (sender, receiver) = mpsc::channel(window);
+    tokio::spawn(async move {
+        let mut first_ray = 0u64;
+        while let Some(chunk) = chunks.recv().await {
+            let reply = match chunk {
+                Ok(rays) => answer_chunk(&tenant, &accel, query, rays, first_ray).await.map_err(Status::from),
+                Err(status) => Err(status),
             };
             let failed = reply.is_err();
             if let Ok(response) = &reply {
