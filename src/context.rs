@@ -579,6 +579,13 @@ impl Context {
     /// Destroys an accel; traces already holding it finish first. An accel that live instance accels or
     /// transforms place cannot be destroyed (FAILED_PRECONDITION): destroy them first.
     pub fn destroy_accel(&self, handle: AccelHandle) -> Result<()> {
+        self.check_destroyable(handle)?;
+        self.accels.remove(&handle).map(drop).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+    }
+
+    /// What [`Context::destroy_accel`] would refuse now: an unknown accel (NOT_FOUND), or one that live instance
+    /// accels or transforms place (FAILED_PRECONDITION).
+    pub fn check_destroyable(&self, handle: AccelHandle) -> Result<()> {
         let referrers = self.accel(handle)?.referrers.load(Ordering::Acquire);
         if referrers > 0 {
             return Err(Error::FailedPrecondition(format!(
@@ -586,7 +593,7 @@ impl Context {
                 handle.0
             )));
         }
-        self.accels.remove(&handle).map(drop).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+        Ok(())
     }
 
     /// Keeps `data` in the context and returns its handle.

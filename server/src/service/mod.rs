@@ -43,7 +43,7 @@ impl RaydService {
             let mut tenant = Tenant::new(name, limits, share, &devices, Arc::clone(&schedulers));
             if let Some(dir) = &config.data_dir {
                 let store = Store::open(dir, name)
-                    .map_err(|e| ServiceError::storage(format!("tenant {name:?}'s directory"), e))?;
+                    .map_err(|e| ServiceError::storage(format!("opening tenant {name:?}'s directory"), e))?;
                 tenant = tenant.with_store(store);
                 restore_logged(name, &tenant)?;
             }

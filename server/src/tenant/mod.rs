@@ -370,10 +370,18 @@ impl Tenant {
     }
 
     /// Destroys an accel; traces holding it finish first. One that instance accels or transforms place is
-    /// refused (FAILED_PRECONDITION) and stays.
+    /// refused (FAILED_PRECONDITION) and stays. Its file goes first: when the data directory cannot be written
+    /// the accel stays, in memory and on disk, and the error says why.
     pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
-        self.context(&entry.device)?.1.destroy_accel(entry.accel.handle())?;
-        self.forget_accel(entry)?;
+        let context = self.context(&entry.device)?.1;
+        context.check_destroyable(entry.accel.handle())?;
+        self.unpersist_accel(&entry.handle)?;
+        if let Err(refused) = context.destroy_accel(entry.accel.handle()) {
+            // An instance accel came to place it since the check: it stays, so its file is written back.
+            self.persist_accel(entry)?;
+            return Err(refused.into());
+        }
+        self.accels.remove(&entry.handle, &entry.name)?;
         crate::metrics::accel_destroyed(&self.name, entry);
         Ok(())
     }
@@ -448,10 +456,11 @@ impl Tenant {
         all
     }
 
-    /// Deletes a buffer.
+    /// Deletes a buffer. Its file goes first: when the data directory cannot be written the buffer stays.
     pub fn delete_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
+        self.unpersist_buffer(&entry.id)?;
         self.buffers.remove(&entry.id, &entry.name)?;
         self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
-        self.unpersist_buffer(&entry.id)
+        Ok(())
     }
 }
