@@ -2,8 +2,9 @@
 //! that vanishes mid-trace stop the trace at its next piece (the rest are skipped, counted in
 //! `rayd_trace_pieces_total`); an upload in progress reserves its declared size against the tenant's buffer quota,
 //! and a client that vanishes mid-upload leaves nothing behind and frees the reservation; a client that never reads
-//! a `TraceStream`'s answers holds a bounded number of chunks and nothing more is traced for it; through all of
-//! it the server answers everyone else correctly.
+//! a `TraceStream`'s answers holds a bounded number of chunks and nothing more is traced for it, and past
+//! `stream_stall_seconds` its stream is failed (RESOURCE_EXHAUSTED) and the answers held dropped; through all of it
+//! the server answers everyone else correctly.
 
 mod common;
 mod daemon;
@@ -131,10 +132,11 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_reads_holds_a_bounded_window() {
-    let window = 2u64;
+async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_reads_is_bounded_then_failed() {
+    let (window, stall_seconds) = (2u64, 6u64);
     let daemon = Daemon::start(&[
         ("RAYD_LIMITS_STREAM_WINDOW", &window.to_string()),
+        ("RAYD_LIMITS_STREAM_STALL_SECONDS", &stall_seconds.to_string()),
         ("RAYD_LIMITS_MAX_TOTAL_BUFFER_BYTES", &(96u64 << 20).to_string()),
     ]);
     let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
@@ -189,7 +191,9 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     };
     let chunks = (0..1000)
         .map(move |_| proto::TraceStreamRequest { part: Some(proto::trace_stream_request::Part::Rays(rays.clone())) });
-    let answers = rpc.trace_stream(tokio_stream::iter(std::iter::once(first).chain(chunks))).await.unwrap();
+    let mut answers =
+        rpc.trace_stream(tokio_stream::iter(std::iter::once(first).chain(chunks))).await.unwrap().into_inner();
+    let stalled_at = std::time::Instant::now();
     tokio::time::sleep(Duration::from_secs(3)).await;
     let traced = batches() - batches_before;
     // Answers waiting to be sent (the window), the one being sent, and what HTTP/2's flow-control windows take.
@@ -198,8 +202,23 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     still_right(&client).await;
     tokio::time::sleep(Duration::from_secs(1)).await;
     assert_eq!(batches() - batches_before - 1, traced, "nothing more was traced for the stalled stream");
+    // Past the stall limit the answers the server held are dropped and the stream is failed: a client that reads
+    // again gets what was already on its way, then the status naming the limit.
+    tokio::time::sleep(Duration::from_secs(stall_seconds + 2).saturating_sub(stalled_at.elapsed())).await;
+    let mut delivered = 0;
+    let failure = loop {
+        match answers.message().await {
+            Ok(Some(_)) => delivered += 1,
+            Ok(None) => panic!("the stalled stream ended without a status after {delivered} answers"),
+            Err(status) => break status,
+        }
+    };
+    assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
+    assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
+    assert!(delivered < traced, "{delivered} answers delivered of {traced} traced: the held ones were dropped");
+    println!("stalled reader: failed after {stall_seconds} s; {delivered} answers were already on their way");
+    assert_eq!(batches() - batches_before - 1, traced, "nothing more was traced for the failed stream");
     connection.shutdown(std::net::Shutdown::Both).unwrap();
-    drop(answers);
 
     let after = client.server_info().await.unwrap().usage.unwrap();
     assert_eq!((after.buffers, after.object_bytes, after.operations), (before.buffers, before.object_bytes, 0));

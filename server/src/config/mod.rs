@@ -116,6 +116,9 @@ pub struct Limits {
     /// Per `TraceStream`: chunks read ahead of the one being traced, and answers waiting to be sent. Per
     /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent.
     pub stream_window: u32,
+    /// Seconds a `TraceStream` waits with its answers unread (all `stream_window` places full) before the stream is
+    /// failed with RESOURCE_EXHAUSTED and the answers it holds are dropped; 0 waits as long as the call lasts.
+    pub stream_stall_seconds: u64,
     /// Most `OpenStream` streams open at once per tenant.
     pub max_streams: u32,
     /// Deepest traversable graph an accel may head (a geometry accel is 1 level, each instance accel or transform
@@ -145,6 +148,7 @@ impl Default for Limits {
             max_buffer_bytes: 4 << 30,
             max_buffers: 4096,
             stream_window: 4,
+            stream_stall_seconds: 60,
             max_streams: 64,
             max_graph_depth: rayd_engine::geometry::MAX_GRAPH_DEPTH,
             max_motion_keys: 64,

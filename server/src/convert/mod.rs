@@ -175,6 +175,7 @@ pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
         max_total_buffer_bytes: limits.max_total_buffer_bytes,
         max_rays_per_second: limits.max_rays_per_second,
         max_concurrent_operations: limits.max_concurrent_operations,
+        stream_stall_seconds: limits.stream_stall_seconds,
     }
 }
 

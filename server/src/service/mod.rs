@@ -4,6 +4,7 @@
 mod accels;
 mod buffers;
 mod inputs;
+mod outbox;
 mod stream;
 mod trace;
 

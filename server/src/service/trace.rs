@@ -2,6 +2,7 @@
 
 use std::pin::Pin;
 use std::sync::Arc;
+use std::time::Duration;
 
 use bytes::Bytes;
 use rayd_engine::query::Query;
@@ -9,9 +10,9 @@ use rayd_engine::reduce::Reduction;
 use rayd_proto as pb;
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
-use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Status, Streaming};
 
+use super::outbox::outbox;
 use super::{accels, blocking, buffers};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
@@ -152,7 +153,7 @@ async fn reduced(
 /// Ordered chunks: each ray chunk is traced and answered in turn. A reader takes up to `stream_window` chunks off
 /// the connection ahead of the one being traced, so receiving overlaps tracing, and up to `stream_window` answers
 /// wait to be sent while the next chunk traces; past those windows nothing more is read, so memory stays bounded on
-/// both sides.
+/// both sides. A client that reads no answer for `stream_stall_seconds` gets the stream failed (the outbox).
 pub async fn stream(
     tenant: Arc<Tenant>,
     mut requests: Streaming<pb::TraceStreamRequest>,
@@ -183,7 +184,8 @@ pub async fn stream(
             }
         }
     });
-    let (sender, receiver) = mpsc::channel(window);
+    let stall = tenant.limits().stream_stall_seconds;
+    let (answers, stream) = outbox(window, (stall > 0).then(|| Duration::from_secs(stall)));
     tokio::spawn(async move {
         let mut first_ray = 0u64;
         while let Some(chunk) = chunks.recv().await {
@@ -195,12 +197,12 @@ pub async fn stream(
             if let Ok(response) = &reply {
                 first_ray += response.stats.as_ref().map_or(0, |s| s.rays);
             }
-            if sender.send(reply).await.is_err() || failed {
+            if answers.send(reply).await.is_err() || failed {
                 break;
             }
         }
     });
-    Ok(Box::pin(ReceiverStream::new(receiver)))
+    Ok(Box::pin(stream))
 }
 
 /// Traces one chunk of a stream.
