@@ -3,8 +3,8 @@
 //! `rayd_trace_pieces_total`); an upload in progress reserves its declared size against the tenant's buffer quota,
 //! and a client that vanishes mid-upload leaves nothing behind and frees the reservation; a client that never reads
 //! a `TraceStream`'s answers holds a bounded number of chunks and nothing more is traced for it, and past
-//! `stream_stall_seconds` its stream is failed (RESOURCE_EXHAUSTED) and the answers held dropped; through all of it
-//! the server answers everyone else correctly.
+//! `stream_stall_seconds` its stream is failed (RESOURCE_EXHAUSTED) and the answers held dropped, as is an
+//! `OpenStream` stream's; through all of it the server answers everyone else correctly.
 
 mod common;
 mod daemon;
@@ -218,6 +218,33 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     assert!(delivered < traced, "{delivered} answers delivered of {traced} traced: the held ones were dropped");
     println!("stalled reader: failed after {stall_seconds} s; {delivered} answers were already on their way");
     assert_eq!(batches() - batches_before - 1, traced, "nothing more was traced for the failed stream");
+    connection.shutdown(std::net::Shutdown::Both).unwrap();
+
+    // The same for an OpenStream stream whose client enqueues traces and never reads a result.
+    let (channel, connection) = daemon.cuttable_channel().await;
+    let mut rpc = RaydClient::new(channel);
+    let rays = Bytes::from(bunny().camera_rays(RayFormat::OriginTminDirectionTmax, 256, 256));
+    let trace = move |operation| proto::StreamRequest {
+        operation,
+        op: Some(proto::stream_request::Op::Trace(proto::TraceBatchRequest {
+            query: Some(rayd_client::convert::trace_query("bunny", &closest())),
+            rays: Some(proto::trace_batch_request::Rays::RaysInline(rays.clone())),
+            ..Default::default()
+        })),
+    };
+    let mut results = rpc.open_stream(tokio_stream::iter((1..=1000).map(trace))).await.unwrap().into_inner();
+    tokio::time::sleep(Duration::from_secs(stall_seconds + 2)).await;
+    let mut delivered = 0;
+    let failure = loop {
+        match results.message().await {
+            Ok(Some(_)) => delivered += 1,
+            Ok(None) => panic!("the stalled stream ended without a status after {delivered} answers"),
+            Err(status) => break status,
+        }
+    };
+    assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
+    assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
+    println!("stalled OpenStream reader: failed after {stall_seconds} s; {delivered} answers were on their way");
     connection.shutdown(std::net::Shutdown::Both).unwrap();
 
     let after = client.server_info().await.unwrap().usage.unwrap();

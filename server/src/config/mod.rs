@@ -116,8 +116,9 @@ pub struct Limits {
     /// Per `TraceStream`: chunks read ahead of the one being traced, and answers waiting to be sent. Per
     /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent.
     pub stream_window: u32,
-    /// Seconds a `TraceStream` waits with its answers unread (all `stream_window` places full) before the stream is
-    /// failed with RESOURCE_EXHAUSTED and the answers it holds are dropped; 0 waits as long as the call lasts.
+    /// Seconds a `TraceStream` or `OpenStream` stream waits with its answers unread (all `stream_window` places
+    /// full) before it is failed with RESOURCE_EXHAUSTED and the answers it holds are dropped; 0 waits as long as
+    /// the call lasts.
     pub stream_stall_seconds: u64,
     /// Most `OpenStream` streams open at once per tenant.
     pub max_streams: u32,
@@ -161,6 +162,11 @@ impl Default for Limits {
 }
 
 impl Limits {
+    /// How long a stream's answers may wait unread ([`Limits::stream_stall_seconds`]); `None` for no limit.
+    pub fn stream_stall(&self) -> Option<std::time::Duration> {
+        (self.stream_stall_seconds > 0).then(|| std::time::Duration::from_secs(self.stream_stall_seconds))
+    }
+
     /// Checks the limits that have a range; errors name the key under `section`.
     fn check(&self, section: &str) -> Result<(), String> {
         let depth = self.max_graph_depth;

@@ -5,7 +5,7 @@
 //! when it reads again), so a client that stops reading holds server memory for a bounded time only.
 
 use std::pin::Pin;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 use std::task::{Context, Poll, Waker};
 use std::time::Duration;
 
@@ -18,7 +18,7 @@ use tonic::Status;
 pub fn outbox<T>(window: usize, stall: Option<Duration>) -> (Outbox<T>, Answers<T>) {
     let (sender, receiver) = mpsc::channel(window.max(1));
     let shared = Arc::new(Mutex::new(Shared { queued: Some(receiver), failure: None, waker: None }));
-    (Outbox { sender, shared: Arc::clone(&shared), stall }, Answers { shared })
+    (Outbox { sender, shared: Arc::downgrade(&shared), stall }, Answers { shared })
 }
 
 /// The maker's end.
@@ -26,8 +26,9 @@ pub fn outbox<T>(window: usize, stall: Option<Duration>) -> (Outbox<T>, Answers<
 pub struct Outbox<T> {
     /// Into the queue.
     sender: mpsc::Sender<Result<T, Status>>,
-    /// What the response stream reads.
-    shared: Arc<Mutex<Shared<T>>>,
+    /// What the response stream reads (weak: when the call drops its response stream, the queue goes with it and
+    /// the outbox is closed).
+    shared: Weak<Mutex<Shared<T>>>,
     /// How long a send waits for room before the stream is failed.
     stall: Option<Duration>,
 }
@@ -74,9 +75,20 @@ impl<T> Outbox<T> {
         sent.map_err(|_| Undelivered)
     }
 
+    /// Queues `answer` if there is room now (the first answer of a call always has room).
+    pub fn try_send(&self, answer: Result<T, Status>) -> Result<(), Undelivered> {
+        self.sender.try_send(answer).map_err(|_| Undelivered)
+    }
+
+    /// Resolves when nothing more can be delivered: the call ended, or the stream was failed.
+    pub async fn closed(&self) {
+        self.sender.closed().await
+    }
+
     /// Drops the answers held and ends the stream with the stall's status.
     fn fail(&self, stall: Duration) {
-        let mut shared = lock(&self.shared);
+        let Some(shared) = self.shared.upgrade() else { return };
+        let mut shared = lock(&shared);
         let held = shared.queued.take().map_or(0, |queue| queue.len());
         shared.failure = Some(Status::resource_exhausted(format!(
             "the client read no answer for {} s (limits.stream_stall_seconds): the stream is failed and the {held} \
@@ -142,6 +154,15 @@ mod tests {
         assert!(failure.message().contains("the 2 answers"), "{failure:?}");
         assert!(answers.next().await.is_none(), "and the stream ends");
         assert!(outbox.send(Ok(3)).await.is_err(), "nothing more is queued");
+    }
+
+    #[tokio::test]
+    async fn dropping_the_answers_closes_the_outbox() {
+        let (outbox, answers) = outbox::<u32>(2, Some(Duration::from_secs(5)));
+        outbox.send(Ok(0)).await.unwrap();
+        drop(answers);
+        tokio::time::timeout(Duration::from_secs(5), outbox.closed()).await.expect("closed when the call ends");
+        assert!(outbox.send(Ok(1)).await.is_err());
     }
 
     #[tokio::test]

@@ -2,7 +2,6 @@
 
 use std::pin::Pin;
 use std::sync::Arc;
-use std::time::Duration;
 
 use bytes::Bytes;
 use rayd_engine::query::Query;
@@ -184,8 +183,7 @@ pub async fn stream(
             }
         }
     });
-    let stall = tenant.limits().stream_stall_seconds;
-    let (answers, stream) = outbox(window, (stall > 0).then(|| Duration::from_secs(stall)));
+    let (answers, stream) = outbox(window, tenant.limits().stream_stall());
     tokio::spawn(async move {
         let mut first_ray = 0u64;
         while let Some(chunk) = chunks.recv().await {
