@@ -87,6 +87,18 @@ async fn still_right(client: &Client) {
     );
 }
 
+/// Reads a stream's answers until it ends with a status: how many came first, and the status.
+async fn read_until_status<T>(answers: &mut tonic::Streaming<T>) -> (usize, tonic::Status) {
+    let mut delivered = 0;
+    loop {
+        match answers.message().await {
+            Ok(Some(_)) => delivered += 1,
+            Ok(None) => panic!("the stalled stream ended without a status after {delivered} answers"),
+            Err(status) => return (delivered, status),
+        }
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_piece() {
     let daemon = Daemon::start(&[("RAYD_SCHEDULER_WORKERS", "1")]);
@@ -205,17 +217,13 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     // Past the stall limit the answers the server held are dropped and the stream is failed: a client that reads
     // again gets what was already on its way, then the status naming the limit.
     tokio::time::sleep(Duration::from_secs(stall_seconds + 2).saturating_sub(stalled_at.elapsed())).await;
-    let mut delivered = 0;
-    let failure = loop {
-        match answers.message().await {
-            Ok(Some(_)) => delivered += 1,
-            Ok(None) => panic!("the stalled stream ended without a status after {delivered} answers"),
-            Err(status) => break status,
-        }
-    };
+    let (delivered, failure) = read_until_status(&mut answers).await;
     assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
     assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
-    assert!(delivered < traced, "{delivered} answers delivered of {traced} traced: the held ones were dropped");
+    assert!(
+        (delivered as u64) < traced,
+        "{delivered} answers delivered of {traced} traced: the held ones were dropped"
+    );
     println!("stalled reader: failed after {stall_seconds} s; {delivered} answers were already on their way");
     assert_eq!(batches() - batches_before - 1, traced, "nothing more was traced for the failed stream");
     connection.shutdown(std::net::Shutdown::Both).unwrap();
@@ -234,14 +242,7 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     };
     let mut results = rpc.open_stream(tokio_stream::iter((1..=1000).map(trace))).await.unwrap().into_inner();
     tokio::time::sleep(Duration::from_secs(stall_seconds + 2)).await;
-    let mut delivered = 0;
-    let failure = loop {
-        match results.message().await {
-            Ok(Some(_)) => delivered += 1,
-            Ok(None) => panic!("the stalled stream ended without a status after {delivered} answers"),
-            Err(status) => break status,
-        }
-    };
+    let (delivered, failure) = read_until_status(&mut results).await;
     assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
     assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
     println!("stalled OpenStream reader: failed after {stall_seconds} s; {delivered} answers were on their way");
