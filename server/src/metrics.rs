@@ -3,7 +3,7 @@
 
 use std::future::Future;
 use std::sync::OnceLock;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use metrics::{counter, gauge, histogram};
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
@@ -17,16 +17,34 @@ use crate::tenant::AccelEntry;
 const LATENCY_BUCKETS: [f64; 14] =
     [5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1, 0.5, 2.0, 10.0, 60.0];
 
-/// Installs the process-wide recorder once and returns its handle.
+/// How often the recorder's upkeep folds recorded latencies into their buckets.
+pub const UPKEEP_PERIOD: Duration = Duration::from_secs(5);
+
+/// Installs the process-wide recorder once, with its upkeep thread, and returns its handle.
+///
+/// The recorder keeps every recorded histogram sample until an upkeep (or a render of `/metrics`) folds them into
+/// the buckets: without the upkeep thread a server nobody scrapes grows by every call it answers (the hour soak
+/// measured +152 MiB over 2.1 M operations).
 pub fn install() -> PrometheusHandle {
     static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
     HANDLE
         .get_or_init(|| {
-            PrometheusBuilder::new()
+            let handle = PrometheusBuilder::new()
                 .set_buckets(&LATENCY_BUCKETS)
                 .expect("non-empty buckets")
                 .install_recorder()
-                .expect("the only metrics recorder of the process")
+                .expect("the only metrics recorder of the process");
+            let upkept = handle.clone();
+            std::thread::Builder::new()
+                .name("rayd-metrics-upkeep".into())
+                .spawn(move || {
+                    loop {
+                        std::thread::sleep(UPKEEP_PERIOD);
+                        upkept.run_upkeep();
+                    }
+                })
+                .expect("a thread for the metrics upkeep");
+            handle
         })
         .clone()
 }
@@ -66,7 +84,7 @@ pub fn piece(tenant: &str, outcome: &'static str) {
 }
 
 /// Records how long a trace of `tenant` waited in its device's queue before its first piece started.
-pub fn queued(tenant: &str, waited: std::time::Duration) {
+pub fn queued(tenant: &str, waited: Duration) {
     histogram!("rayd_trace_queue_seconds", "tenant" => tenant.to_owned()).record(waited.as_secs_f64());
 }
 
