@@ -46,10 +46,10 @@ impl Device {
     /// Every device of this machine: the CPU first, then (with the `wgpu` feature) every wgpu adapter as
     /// `wgpu:0`, `wgpu:1`, … ([`Device::wgpu`]).
     pub fn all() -> Vec<Device> {
-        let mut devices = vec![Device::cpu()];
+        let cpu = std::iter::once(Device::cpu());
         #[cfg(feature = "wgpu")]
-        devices.extend(Device::wgpu(WgpuOptions::default()));
-        devices
+        let cpu = cpu.chain(Device::wgpu(WgpuOptions::default()));
+        cpu.collect()
     }
 
     /// A device for every adapter that wgpu enumerates on the backends of `WGPU_BACKEND` (Vulkan when unset), with

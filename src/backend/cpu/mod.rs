@@ -21,6 +21,7 @@ use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_co
 use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, trace_batch};
 
 use bvh::Footprint;
+#[cfg(feature = "wgpu")]
 pub(crate) use instances::cpu_child;
 pub use instances::{InstanceBvh, TransformNode};
 pub use triangles::TriangleBvh;
