@@ -1,8 +1,10 @@
 //! End to end: reductions made by the server. For every kind (counts, depth and normal images in each encoding,
 //! histogram, per-id counts, nearest per group, point clouds) over generated rays cut into several pieces, the
 //! reduction that comes back is byte for byte the engine's reduction of the full hits of the same rays traced and
-//! returned whole; a reduction over packed rays likewise; bad combinations answer INVALID_ARGUMENT naming the field;
-//! calls compressed with zstd or gzip answer the same bytes.
+//! returned whole; a reduction over packed rays likewise; bad combinations answer INVALID_ARGUMENT naming the field,
+//! a reduction larger than a message RESOURCE_EXHAUSTED naming the limit;
+//! calls compressed with zstd or gzip answer the same bytes; generated and reduced traces on an `OpenStream` stream
+//! answer what single calls do.
 
 mod common;
 mod daemon;
@@ -138,6 +140,84 @@ async fn bad_reductions_name_their_field() {
     let generated = Generator::Pinhole(camera, centres);
     let depths = client.trace_generated_reduced("bunny", &query, &generated, &Reduction::Image(image)).await.unwrap();
     assert_eq!(depths.data.len(), 8 * 8 * 4);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reduction_larger_than_a_message_is_refused_by_the_limit() {
+    // 1 MiB: the bunny's 1.25 MB of vertices and indices are uploaded in chunks the client fits to the limit.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "1048576")]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let (lo, hi) = bunny.bounds();
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+    let depth = |side: u32| {
+        let camera =
+            Generator::Pinhole(Camera::framing(lo, hi, side, side), PixelSampling { samples: 1, jitter_seed: None });
+        let image = Image {
+            width: 0,
+            rays_per_pixel: 0,
+            channel: ImageChannel::Depth,
+            encoding: PixelEncoding::Float32,
+            near: 0.0,
+            far: 1.0,
+        };
+        (camera, Reduction::Image(image))
+    };
+    // 600 × 600 float32 depths are 1,440,000 bytes: more than a 1 MiB message.
+    let (camera, image) = depth(600);
+    let error = client.trace_generated_reduced("bunny", &query, &camera, &image).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("the reduction's 1440000 bytes"), "{error}");
+    assert!(error.to_string().contains("max_message_bytes"), "{error}");
+    // 500 × 500 are 1,000,000 bytes: they fit.
+    let (camera, image) = depth(500);
+    let fits = client.trace_generated_reduced("bunny", &query, &camera, &image).await.unwrap();
+    assert_eq!(fits.data.len(), 500 * 500 * 4);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn generators_and_reductions_on_a_stream_answer_what_single_calls_do() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);
+    let all = Query { kind: QueryKind::All, max_hits_per_ray: 3, ..query };
+    let cases = cases(&bunny);
+
+    // Every case enqueued on one stream: generated and reduced; the same rays sent and reduced (with an `all`
+    // query where the reduction takes one); the generated rays' full hits.
+    let stream = client.create_stream().await.unwrap();
+    let mut enqueued = Vec::new();
+    for (generator, reduction) in &cases {
+        let generated = stream.trace_generated_reduced("bunny", &query, generator, reduction).await.unwrap();
+        let sent_query = if reduction.check(&all, generator.count()).is_ok() { all } else { query };
+        let rays = Bytes::from(generator.rays(sent_query.ray_format));
+        let sent = stream.trace_reduced("bunny", &sent_query, rays.clone(), reduction).await.unwrap();
+        let full = stream.trace_generated("bunny", &query, generator).await.unwrap();
+        enqueued.push((generated, (sent_query, rays, sent), full));
+    }
+    stream.synchronize().await.unwrap();
+
+    for ((generator, reduction), (generated, (sent_query, rays, sent), full)) in cases.iter().zip(enqueued) {
+        let what = format!("{reduction:?} of {generator:?} on a stream");
+        let expected = client.trace_generated_reduced("bunny", &query, generator, reduction).await.unwrap();
+        let generated = generated.wait().await.expect(&what);
+        assert!(
+            generated.data == expected.data,
+            "{what}: {} bytes, {} expected",
+            generated.data.len(),
+            expected.data.len()
+        );
+        assert_eq!((generated.dropped, generated.stats.rays), (expected.dropped, generator.count()), "{what}");
+        let expected = client.trace_reduced("bunny", &sent_query, rays, reduction).await.unwrap();
+        assert!(sent.wait().await.expect(&what).data == expected.data, "{what}: rays sent, {:?}", sent_query.kind);
+        let expected = client.trace_generated("bunny", &query, generator).await.unwrap();
+        let full = full.wait().await.expect(&what);
+        assert!(full.hits() == expected.hits() && full.hits().len() as u64 == generator.count() * 8, "{what}: hits");
+    }
+    stream.finish().await.unwrap();
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -95,7 +95,11 @@ impl ClientOptions {
     fn fit_to(&mut self, limits: &proto::Limits) {
         let server = |value: u64| usize::try_from(value).unwrap_or(usize::MAX);
         self.max_message_bytes = self.max_message_bytes.min(server(limits.max_message_bytes));
-        self.batch_limit_bytes = self.batch_limit_bytes.min(self.max_message_bytes / 2);
+        // Half a message: room for the request's other fields (an over-limit request fails as an opaque h2 reset).
+        let half_message = self.max_message_bytes / 2;
+        self.batch_limit_bytes = self.batch_limit_bytes.min(half_message);
+        self.inline_mesh_bytes = self.inline_mesh_bytes.min(half_message);
+        self.upload_chunk_bytes = self.upload_chunk_bytes.min(half_message).max(1);
         self.max_rays_per_call = self.max_rays_per_call.min(server(limits.max_rays_per_batch)).max(1);
         self.stream_window = self.stream_window.min(limits.stream_window as usize).max(1);
     }

@@ -63,8 +63,14 @@ impl Client {
             ..Default::default()
         };
         let response = self.rpc_for(accel).trace_batch(request).await?.into_inner();
-        let reduced =
-            response.reduced.ok_or_else(|| Error::Protocol("a reduced trace answered without its reduction".into()))?;
+        ReducedTrace::from_response(response).map_err(Error::Protocol)
+    }
+}
+
+impl ReducedTrace {
+    /// The reduction a `TraceBatch` answer (or a stream's trace operation) carries; an error when it has none.
+    pub(crate) fn from_response(response: proto::TraceBatchResponse) -> std::result::Result<ReducedTrace, String> {
+        let reduced = response.reduced.ok_or("a reduced trace answered without its reduction")?;
         Ok(ReducedTrace { data: reduced.data, dropped: reduced.dropped, stats: response.stats.unwrap_or_default() })
     }
 }
