@@ -2,7 +2,9 @@
 //! lidar with per-ray time, hemisphere sampling around surface points) and each query kind, the hits of a
 //! `TraceBatch` carrying only the generator are byte for byte those of the same rays expanded on the client
 //! (`Generator::rays`) and sent; bad numbers answer INVALID_ARGUMENT naming the field, too many rays in one call
-//! RESOURCE_EXHAUSTED naming the limit, and a range of a generator traces as the same rays sent.
+//! RESOURCE_EXHAUSTED naming the limit, and a range of a generator traces as the same rays sent. Secondary rays
+//! (reflections, shadow rays) made by the server from a hits buffer trace as the same rays made on the client from
+//! the downloaded hits.
 
 mod common;
 mod daemon;
@@ -10,12 +12,14 @@ mod daemon;
 use bytes::Bytes;
 use daemon::Daemon;
 use rayd_client::convert::{generator_to_proto, trace_query};
-use rayd_client::{Client, ClientOptions};
+use rayd_client::{Client, ClientOptions, PrimaryRays, SecondaryRays};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::glam::Vec3;
 use rayd_engine::query::{Query, QueryKind};
-use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, PixelSampling, SphereSampling};
+use rayd_engine::raygen::{
+    Bounce, Camera, Generator, Lidar, Orthographic, PixelSampling, Primary, Secondary, SphereSampling,
+};
 use rayd_proto::rayd_client::RaydClient;
 use rayd_proto::{self as proto, trace_batch_request};
 use tonic::Code;
@@ -118,4 +122,71 @@ async fn generated_rays_trace_as_the_same_rays_sent() {
     huge.fill(query.ray_format, 100, &mut rays);
     let expected = client.trace("bunny", &query, Bytes::from(rays)).await.unwrap();
     assert!(hits == expected.hits(), "a range traces as the same rays sent");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn secondary_rays_from_a_hits_buffer_trace_as_the_same_rays_made_on_the_client() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let (lo, hi) = bunny.bounds();
+    let camera =
+        Generator::Pinhole(Camera::framing(lo, hi, 48, 36), PixelSampling { samples: 2, jitter_seed: Some(9) });
+    let format = RayFormat::OriginTminDirectionTmaxTime;
+    let buffer = |name: &str| proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Name(name.into())) };
+
+    // The primary trace leaves its hits (with normals) on the server; its rays are also uploaded, for the variant
+    // whose primaries are a rays buffer.
+    let mut raw = RaydClient::connect(daemon.url()).await.unwrap();
+    let primary_query = Query::closest(format, HitFormat::Full);
+    let request = proto::TraceBatchRequest {
+        query: Some(trace_query("bunny", &primary_query)),
+        rays: Some(trace_batch_request::Rays::RaysGenerator(generator_to_proto(&camera))),
+        hits_buffer_name: "primary-hits".into(),
+        ..Default::default()
+    };
+    let written = raw.trace_batch(request).await.unwrap().into_inner();
+    let hits = client.download_buffer(&written.hits_buffer.unwrap().id).await.unwrap();
+    client.upload_buffer("primary-rays", Bytes::from(camera.rays(format))).await.unwrap();
+
+    let light = hi + (hi - lo);
+    for (bounce, kind) in [(Bounce::Reflect, QueryKind::Closest), (Bounce::TowardsLight(light), QueryKind::Any)] {
+        let query = Query { kind, ..Query::closest(format, HitFormat::TTriid) };
+        let offset = 1e-4;
+        // The client's expansion of the same rays, from the downloaded hits, traced as rays sent.
+        let made_here = Generator::Secondary(Secondary {
+            primary: Primary::Generated(Box::new(camera.clone())),
+            hits: hits.clone(),
+            bounce,
+            offset,
+        });
+        let sent = client.trace("bunny", &query, Bytes::from(made_here.rays(format))).await.unwrap();
+        assert!(sent.stats().rays_hit > 0 && sent.stats().rays_hit < camera.count(), "{bounce:?}: some rays hit");
+        for primary in [PrimaryRays::Generated(camera.clone()), PrimaryRays::Buffer(buffer("primary-rays"), format)] {
+            let what = format!("{bounce:?} of {primary:?}");
+            let secondary = SecondaryRays { primary, hits_buffer: buffer("primary-hits"), bounce, offset };
+            let traced = client.trace_secondary("bunny", &query, &secondary).await.expect(&what);
+            assert_eq!(traced.rays() as u64, camera.count(), "{what}");
+            assert!(traced.hits() == sent.hits(), "{what}: the hits of the rays made on the client");
+        }
+        // The same generator with its primaries and hits inline.
+        let inline = client.trace_generated("bunny", &query, &made_here).await.unwrap();
+        assert!(inline.hits() == sent.hits(), "{bounce:?} inline");
+    }
+
+    // Hits that are not one record a primary ray, and a buffer that does not exist.
+    let short = client.upload_buffer("short-hits", hits.slice(..80 * 10)).await.unwrap();
+    let query = Query::closest(format, HitFormat::T);
+    let refused = |hits_buffer| SecondaryRays {
+        primary: PrimaryRays::Generated(camera.clone()),
+        hits_buffer,
+        bounce: Bounce::Reflect,
+        offset: 0.0,
+    };
+    let error = client.trace_secondary("bunny", &query, &refused(buffer(&short.name))).await.unwrap_err();
+    assert_eq!(error.code(), Code::InvalidArgument, "{error}");
+    assert!(error.to_string().contains("generator.secondary.primary_hits"), "{error}");
+    let error = client.trace_secondary("bunny", &query, &refused(buffer("no-such-hits"))).await.unwrap_err();
+    assert_eq!(error.code(), Code::NotFound, "{error}");
 }

@@ -7,7 +7,7 @@ use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::{IndexFormat, MotionFlags, MotionOptions, VertexFormat};
 use rayd_engine::query::{Query, QueryKind};
-use rayd_engine::raygen::{Generator, PixelSampling};
+use rayd_engine::raygen::{Bounce, Generator, PixelSampling, Primary, Secondary};
 use rayd_engine::reduce::{IdKind, ImageChannel, PixelEncoding, PointEncoding, Reduction};
 use rayd_proto as proto;
 
@@ -203,8 +203,34 @@ pub fn generator_to_proto(generator: &Generator) -> proto::RayGenerator {
             max_distance: s.max_distance,
             seed: s.seed,
         }),
+        Generator::Secondary(s) => Kind::Secondary(Box::new(secondary_to_proto(s))),
     };
     proto::RayGenerator { kind: Some(kind), ..Default::default() }
+}
+
+/// The contract's form of engine secondary rays: their primary rays and hits inline (or the primary generator).
+fn secondary_to_proto(s: &Secondary) -> proto::SecondaryRays {
+    use proto::secondary_rays::{Primary as P, PrimaryHits};
+    let (primary, format) = match &s.primary {
+        Primary::Packed(format, bytes) => (P::PrimaryRaysInline(bytes.clone()), ray_format_to_proto(*format).into()),
+        Primary::Generated(generator) => (P::PrimaryGenerator(Box::new(generator_to_proto(generator))), 0),
+    };
+    proto::SecondaryRays {
+        primary: Some(primary),
+        primary_ray_format: format,
+        primary_hits: Some(PrimaryHits::PrimaryHitsInline(s.hits.clone())),
+        bounce: Some(bounce_to_proto(s.bounce)),
+        offset: s.offset,
+    }
+}
+
+/// The contract's form of what a secondary ray does.
+pub fn bounce_to_proto(bounce: Bounce) -> proto::secondary_rays::Bounce {
+    use proto::secondary_rays::Bounce as B;
+    match bounce {
+        Bounce::Reflect => B::Reflect(proto::Reflect {}),
+        Bounce::TowardsLight(l) => B::TowardsLight(proto::Vec3 { x: l.x, y: l.y, z: l.z }),
+    }
 }
 
 /// The contract's form of an engine reduction.

@@ -8,7 +8,7 @@ use std::f32::consts::TAU;
 
 use glam::{Vec3, Vec3A};
 
-use super::{Camera, uniform};
+use super::{Camera, Secondary, uniform};
 use crate::error::{Error, Result};
 use crate::format::{Ray, RayFormat};
 
@@ -95,10 +95,12 @@ pub enum Generator {
     Lidar(Lidar),
     /// Rays around points.
     Sphere(SphereSampling),
+    /// Rays that continue an earlier trace from its hits.
+    Secondary(Secondary),
 }
 
 /// Fails with INVALID_ARGUMENT naming `field` unless `ok`.
-fn require(ok: bool, field: &'static str, rule: impl FnOnce() -> String) -> Result<()> {
+pub(super) fn require(ok: bool, field: &'static str, rule: impl FnOnce() -> String) -> Result<()> {
     if ok { Ok(()) } else { Err(Error::InvalidQuery { field, rule: rule() }) }
 }
 
@@ -186,6 +188,7 @@ impl Generator {
                 require(sphere.samples > 0, "generator.samples", || "must be at least 1".into())?;
                 check_range("generator.min_distance", sphere.min_distance, sphere.max_distance)
             }
+            Generator::Secondary(secondary) => secondary.check(),
         }
     }
 
@@ -198,6 +201,7 @@ impl Generator {
             }
             Generator::Lidar(l) => u64::from(l.steps) * l.elevations_degrees.len() as u64,
             Generator::Sphere(s) => s.points.len() as u64 * u64::from(s.samples),
+            Generator::Secondary(s) => s.count(),
         }
     }
 
@@ -270,6 +274,7 @@ impl Generator {
                     format.encode(&ray, slot);
                 }
             }
+            Generator::Secondary(secondary) => secondary.fill(format, first, out),
         }
     }
 

@@ -69,7 +69,9 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
             Rays::Packed(buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1)
         }
         Some(pb::trace_batch_request::Rays::RaysGenerator(generator)) => {
-            let (generator, range) = convert::generator(&generator)?;
+            let buffer =
+                |reference: &pb::BufferRef, field: &str| Ok(buffers::resolve(&tenant, Some(reference), field)?.1);
+            let (generator, range) = convert::generator(&generator, &buffer)?;
             Rays::Generated(Arc::new(generator), range)
         }
         None => return Err(ServiceError::invalid("rays", "rays_inline, rays_buffer or rays_generator is required")),
