@@ -11,6 +11,8 @@ use glam::Vec3;
 
 use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
+#[cfg(feature = "wgpu")]
+use crate::backend::wgpu::WgpuOptions;
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, Shape};
 use crate::error::{Error, Result};
 use crate::geometry::motion::TimeSpan;
@@ -41,9 +43,27 @@ impl Device {
         Device { info: backend.info(), backend }
     }
 
-    /// Every device of this machine; the CPU comes first.
+    /// Every device of this machine: the CPU first, then (with the `wgpu` feature) every wgpu adapter as
+    /// `wgpu:0`, `wgpu:1`, … ([`Device::wgpu`]).
     pub fn all() -> Vec<Device> {
-        vec![Device::cpu()]
+        let cpu = std::iter::once(Device::cpu());
+        #[cfg(feature = "wgpu")]
+        let cpu = cpu.chain(Device::wgpu(WgpuOptions::default()));
+        cpu.collect()
+    }
+
+    /// A device for every adapter that wgpu enumerates on the backends of `WGPU_BACKEND` (Vulkan when unset), with
+    /// `options`; none on a machine without one. Adapters are enumerated once a process, and each adapter's wgpu
+    /// device is opened once, on first use, and shared by every device made for it.
+    #[cfg(feature = "wgpu")]
+    pub fn wgpu(options: WgpuOptions) -> Vec<Device> {
+        crate::backend::wgpu::backends(options)
+            .into_iter()
+            .map(|backend| {
+                let backend: Arc<dyn Backend> = Arc::new(backend);
+                Device { info: backend.info(), backend }
+            })
+            .collect()
     }
 
     /// What the device is.
@@ -248,8 +268,9 @@ pub struct Context {
     accels: DashMap<AccelHandle, Arc<Accel>>,
     /// Live buffers by handle.
     buffers: DashMap<BufferHandle, Buffer>,
-    /// The next handle to give out (accels and buffers share the sequence, so a handle is never reused).
-    next_handle: AtomicU64,
+    /// The next handle to give out (accels and buffers share the sequence, so a handle is never reused; contexts
+    /// made by [`Context::sharing_handles`] share it too, so their handles never collide).
+    next_handle: Arc<AtomicU64>,
     /// Bytes held by live accels and buffers.
     bytes_in_use: Arc<AtomicU64>,
 }
@@ -261,9 +282,15 @@ impl Context {
             device,
             accels: DashMap::new(),
             buffers: DashMap::new(),
-            next_handle: AtomicU64::new(1),
+            next_handle: Arc::new(AtomicU64::new(1)),
             bytes_in_use: Arc::new(AtomicU64::new(0)),
         }
+    }
+
+    /// An empty context on `device` that takes its handles from `other`'s sequence: one user's contexts on several
+    /// devices then never give out the same handle.
+    pub fn sharing_handles(device: Device, other: &Context) -> Context {
+        Context { next_handle: Arc::clone(&other.next_handle), ..Context::new(device) }
     }
 
     /// The device the context runs on.
@@ -375,6 +402,9 @@ impl Context {
         options.validate()?;
         let placed: Vec<PlacedInstance> =
             instances.iter().enumerate().map(|(index, instance)| place(index, instance)).collect::<Result<_>>()?;
+        for instance in &placed {
+            self.check_device(&instance.child)?;
+        }
         let data = self.device.backend.build_instances(&placed, options)?;
         let shape = Shape {
             kind: AccelKind::Instances,
@@ -392,6 +422,7 @@ impl Context {
     pub fn build_transform(&self, transform: &TransformInput, child: &Arc<Accel>) -> Result<Arc<Accel>> {
         let checked: Transform = transform.check()?;
         check_depth(child.info.depth, "child", None)?;
+        self.check_device(child)?;
         let data = self.device.backend.build_transform(&checked, child)?;
         let shape = Shape { kind: transform_kind(transform), triangle_count: 0, geometry_count: 0, instance_count: 0 };
         let options = BuildOptions { motion: checked.motion(), ..BuildOptions::default() };
@@ -399,28 +430,47 @@ impl Context {
         Ok(self.register(shape, &options, data, vec![Arc::clone(child)], retained))
     }
 
-    /// Copies `source` (an accel of this context's device, from this or another context) into this context, as
-    /// `rtpModelCopy` does; with `compact`, as `optixAccelCompact` does: the copy then occupies at most the source's
-    /// `compacted_size_bytes`, and the source must allow compaction. The copy traces as the source does, has its
-    /// options and places the same children. (Every copy is exact-size on the CPU backend.)
+    /// Copies `source` (from this or another context) into this context, as `rtpModelCopy` does; with `compact`, as
+    /// `optixAccelCompact` does: the copy then occupies at most the source's `compacted_size_bytes`, and the source
+    /// must allow compaction. The copy traces as the source does, has its options and places the same children.
+    /// (Every copy is exact-size on the CPU backend.) A geometry accel may be copied from a device of another
+    /// backend (its host structure is copied, or uploaded); an instance accel or transform only within a backend,
+    /// since its children stay where they are (FAILED_PRECONDITION: copy the children, then build it there).
     pub fn copy_accel(&self, source: &Accel, compact: bool) -> Result<Arc<Accel>> {
-        if source.backend != self.device.info.kind {
-            return Err(Error::FailedPrecondition(format!(
-                "copying a {:?} accel to a {:?} device is not supported",
-                source.backend, self.device.info.kind
-            )));
-        }
         if compact && !source.info.options.flags.contains(BuildFlags::ALLOW_COMPACTION) {
             return Err(Error::FailedPrecondition("compaction needs an accel built with ALLOW_COMPACTION".into()));
         }
+        let data = if source.backend == self.device.info.kind {
+            source.data.duplicate()
+        } else {
+            let host = source.data.host().filter(|_| source.info.kind == AccelKind::Triangles).ok_or_else(|| {
+                Error::FailedPrecondition(format!(
+                    "copying a {:?} {:?} accel to a {:?} device is not supported (geometry accels are): copy its \
+                     children and build it there",
+                    source.backend, source.info.kind, self.device.info.kind
+                ))
+            })?;
+            self.device.backend.adopt(host)?
+        };
         let shape = Shape {
             kind: source.info.kind,
             triangle_count: source.info.triangle_count,
             geometry_count: source.info.geometry_count,
             instance_count: source.info.instance_count,
         };
-        let data = source.data.duplicate();
         Ok(self.register(shape, &source.info.options, data, source.children.clone(), source.retained.clone()))
+    }
+
+    /// FAILED_PRECONDITION unless `child` was built by this context's backend (an instance accel or transform
+    /// places accels of its own device).
+    fn check_device(&self, child: &Accel) -> Result<()> {
+        if child.backend != self.device.info.kind {
+            return Err(Error::FailedPrecondition(format!(
+                "accel {} is a {:?} accel: a {:?} device places accels of its own device only",
+                child.handle.0, child.backend, self.device.info.kind
+            )));
+        }
+        Ok(())
     }
 
     /// Gives a built (or deserialized) structure a handle, its description and its memory charge; counts it as a
@@ -529,6 +579,13 @@ impl Context {
     /// Destroys an accel; traces already holding it finish first. An accel that live instance accels or
     /// transforms place cannot be destroyed (FAILED_PRECONDITION): destroy them first.
     pub fn destroy_accel(&self, handle: AccelHandle) -> Result<()> {
+        self.check_destroyable(handle)?;
+        self.accels.remove(&handle).map(drop).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+    }
+
+    /// What [`Context::destroy_accel`] would refuse now: an unknown accel (NOT_FOUND), or one that live instance
+    /// accels or transforms place (FAILED_PRECONDITION).
+    pub fn check_destroyable(&self, handle: AccelHandle) -> Result<()> {
         let referrers = self.accel(handle)?.referrers.load(Ordering::Acquire);
         if referrers > 0 {
             return Err(Error::FailedPrecondition(format!(
@@ -536,7 +593,7 @@ impl Context {
                 handle.0
             )));
         }
-        self.accels.remove(&handle).map(drop).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+        Ok(())
     }
 
     /// Keeps `data` in the context and returns its handle.

@@ -31,6 +31,7 @@ pub mod mesh;
 pub mod oracle;
 pub mod query;
 pub mod raygen;
+pub mod reduce;
 pub mod serialize;
 
 pub use context::{Accel, AccelHandle, BufferHandle, Context, Device};

@@ -243,3 +243,109 @@ async fn a_saved_scene_loads_back_under_a_new_name_and_bad_blobs_are_refused() {
     assert_eq!(error.code(), Code::InvalidArgument, "{error}");
     assert!(client.accel("other").await.is_err(), "nothing of a refused blob stays");
 }
+
+/// A tmpfs of a few MiB mounted on a fresh directory, to fill up and to make read-only (the tests run as root, as
+/// in CI); unmounted when dropped.
+struct SmallDisk {
+    /// Where it is mounted.
+    dir: PathBuf,
+}
+
+impl SmallDisk {
+    /// Mounts a tmpfs of `mib` MiB.
+    fn mount(name: &str, mib: u32) -> SmallDisk {
+        let dir = data_dir(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        let disk = SmallDisk { dir };
+        disk.mount_command(&["-t", "tmpfs", "-o", &format!("size={mib}m"), "tmpfs"]);
+        disk
+    }
+
+    /// Remounts it read-only (`ro`) or writable (`rw`).
+    fn remount(&self, mode: &str) {
+        self.mount_command(&["-o", &format!("remount,{mode}")]);
+    }
+
+    /// Runs `mount ARGS DIR`.
+    fn mount_command(&self, args: &[&str]) {
+        let output = std::process::Command::new("mount").args(args).arg(&self.dir).output().expect("mount runs");
+        assert!(
+            output.status.success(),
+            "mount {args:?} failed (needs root, as CI has): {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg("-l").arg(&self.dir).status();
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+}
+
+/// The ids of the tenant's buffers, in creation order.
+async fn buffer_ids(client: &Client) -> Vec<String> {
+    client.buffers().await.unwrap().into_iter().map(|b| b.id).collect()
+}
+
+/// Uploads blocks of `size` bytes until the server refuses one; returns the ids stored and the refusal.
+async fn upload_until_refused(client: &Client, size: usize, ids: &mut Vec<String>) -> rayd_client::Error {
+    let block = Bytes::from(vec![7u8; size]);
+    for _ in 0..64 {
+        match client.upload_buffer(&format!("block{}", ids.len()), block.clone()).await {
+            Ok(info) => ids.push(info.id),
+            Err(refused) => return refused,
+        }
+    }
+    panic!("64 blocks of {size} bytes fitted on a small disk");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_or_read_only_data_directory_refuses_writes_by_code_and_serving_goes_on() {
+    let disk = SmallDisk::mount("small-disk", 48);
+    let (mut daemon, client) = start(&disk.dir).await;
+    let bunny = shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let rays = rays();
+    let expected = answers(&client, "bunny", &rays).await;
+
+    // Full: 4 MiB blocks, then 64 KiB ones, until the disk has less than 64 KiB left.
+    let mut stored = Vec::new();
+    for size in [4 << 20, 64 << 10] {
+        let full = upload_until_refused(&client, size, &mut stored).await;
+        assert_eq!(full.code(), Code::ResourceExhausted, "{full}");
+        assert!(full.to_string().contains("storing buffer") && full.to_string().contains("No space left"), "{full}");
+    }
+    assert_eq!(buffer_ids(&client).await, stored, "refused buffers are not kept");
+    let full = client.build_mesh("bunny2", &bunny, "", BuildFlags::empty()).await.expect_err("no room for an accel");
+    assert_eq!(full.code(), Code::ResourceExhausted, "{full}");
+    assert!(full.to_string().contains(r#"storing accel "bunny2""#), "{full}");
+    assert_eq!(listing(&client).await.len(), 1, "the refused accel is not kept");
+    assert_eq!(answers(&client, "bunny", &rays).await, expected, "tracing goes on with a full disk");
+    client.delete_buffer(&stored.remove(0)).await.unwrap();
+    stored.push(client.upload_buffer("after", Bytes::from(vec![1u8; 1 << 20])).await.unwrap().id);
+
+    // Read-only: nothing can be stored or removed, and nothing changes; tracing goes on.
+    disk.remount("ro");
+    let read_only = client.build_mesh("bunny3", &bunny, "", BuildFlags::empty()).await.expect_err("read-only");
+    assert_eq!(read_only.code(), Code::FailedPrecondition, "{read_only}");
+    assert!(read_only.to_string().contains("Read-only file system"), "{read_only}");
+    let read_only = client.destroy_accel("bunny").await.expect_err("its file cannot be removed");
+    assert_eq!(read_only.code(), Code::FailedPrecondition, "{read_only}");
+    assert!(read_only.to_string().contains("removing the file of accel"), "{read_only}");
+    let read_only = client.delete_buffer(&stored[0]).await.expect_err("its file cannot be removed");
+    assert_eq!(read_only.code(), Code::FailedPrecondition, "{read_only}");
+    let before = listing(&client).await;
+    assert_eq!(before.len(), 1, "the accel whose destroy failed stays");
+    assert_eq!(buffer_ids(&client).await, stored, "the buffer whose delete failed stays");
+    assert_eq!(answers(&client, "bunny", &rays).await, expected, "tracing goes on with a read-only disk");
+
+    // What was acknowledged is what comes back.
+    disk.remount("rw");
+    daemon.stop();
+    let (_daemon, client) = start(&disk.dir).await;
+    assert_eq!(listing(&client).await, before);
+    assert_eq!(buffer_ids(&client).await, stored);
+    assert_eq!(answers(&client, "bunny", &rays).await, expected);
+}

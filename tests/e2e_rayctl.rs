@@ -13,9 +13,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use daemon::Daemon;
-use rayd_client::{HitView, Shading, shade};
+use rayd_client::{Shading, shade};
 use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::glam::Vec3;
 use rayd_engine::query::{Query, QueryKind};
+use rayd_engine::raygen::{Generator, Lidar};
+use rayd_engine::reduce::{Image, PixelEncoding, PointCloud, PointEncoding, Reduction};
 use reference::{BUNNY_TRIANGLES, assert_same_bytes, bunny};
 use serde_json::Value;
 
@@ -189,6 +192,16 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
         let stats = (count("rays"), count("hits"));
         expected.assert_answer(&read(&hits_file), &counts, stats, &format!("{kind}: the files and the report"));
     }
+    // The same camera's rays made by the server (`--pixels`): the same hits, and no ray file.
+    let pixels = format!("{width}x{height}");
+    let generated_file = scratch.path("generated.hits");
+    let formats = ["--ray-format", "origin_tmin_direction_tmax", "--hit-format", "t_triid_u_v"];
+    let mut args = vec!["trace", "--accel", "bunny", "--pixels", pixels.as_str(), "--out", generated_file.as_str()];
+    args.extend(formats);
+    let report = json(&server, &args);
+    let expected = bunny.trace(&closest, &rays);
+    let stats = (report["rays"].as_u64().unwrap_or(0), report["hits"].as_u64().unwrap_or(0));
+    expected.assert_answer(&read(&generated_file), &[], stats, "--pixels: the file and the report");
 
     let (width, height) = PICTURE;
     let png_file = scratch.path("bunny.png");
@@ -204,11 +217,56 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     assert_eq!((png_width, png_height, colour), (width, height, png::ColorType::Rgb));
     let colours: HashSet<&[u8]> = pixels.chunks_exact(3).collect();
     assert!(colours.len() > 1, "not one flat colour: {colours:?}");
-    // The default shading colours the normal of the closest hit of one ray a pixel, rays as in `Bunny::camera_rays`.
-    let query = Query::closest(RayFormat::OriginDirection, Shading::Normal.hit_format());
-    let expected = bunny.trace(&query, &bunny.camera_rays(query.ray_format, width, height));
-    let hits = HitView::new(&expected.hits, query.hit_format, (width * height) as usize).expect("a hit per pixel");
-    assert_same_bytes(&pixels, &shade(&hits, width, height, Shading::Normal).rgb, "the picture's pixels");
+    // The default shading colours the normal of the closest hit of one ray a pixel, rays as in `Bunny::camera_rays`,
+    // reduced to an image of normals as the engine reduces a whole batch at once.
+    let image = Image {
+        width,
+        rays_per_pixel: 1,
+        channel: Shading::Normal.channel(),
+        encoding: PixelEncoding::Float32,
+        near: 0.0,
+        far: 0.0,
+    };
+    let reduction = Reduction::Image(image);
+    let query = reduction.traced_query(&Query::closest(RayFormat::OriginDirection, HitFormat::T));
+    let rays = bunny.camera_rays(query.ray_format, width, height);
+    let expected = bunny.trace(&query, &rays);
+    let normals = reduction.reduce_all(&query, &rays, &expected.hits, &expected.counts).expect("an image");
+    assert_same_bytes(&pixels, &shade(&normals.bytes, width, height, Shading::Normal).rgb, "the picture's pixels");
+
+    // A lidar scan: the returns of the same rays traced in-process, as PLY vertices.
+    let ply_file = scratch.path("scan.ply");
+    let (lo, hi) = bunny.mesh.bounds();
+    let origin = [(lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z].map(|c| c.to_string()).join(",");
+    let args = ["lidar", "--accel", "bunny", "--channels", "16", "--steps", "90", "--origin", &origin, "-o", &ply_file];
+    let scanned = json(&server, &args);
+    let lidar = Lidar {
+        origin: Vec3::new((lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z),
+        forward: Vec3::NEG_Z,
+        up: Vec3::Y,
+        elevations_degrees: (0..16).map(|c| -25.0 + 40.0 * c as f32 / 15.0).collect(),
+        steps: 90,
+        min_range: 0.0,
+        max_range: f32::INFINITY,
+        time: (0.0, 0.0),
+    };
+    let query = Query::closest(RayFormat::OriginTminDirectionTmaxTime, HitFormat::T);
+    let rays = Generator::Lidar(lidar).rays(query.ray_format);
+    let returns = bunny.trace(&query, &rays);
+    let points = Reduction::PointCloud(PointCloud {
+        encoding: PointEncoding::Float32,
+        step: 0.0,
+        origin: Vec3::ZERO,
+        ray_indices: false,
+    });
+    let expected = points.reduce_all(&query, &rays, &returns.hits, &[]).expect("a point cloud");
+    assert_eq!(scanned["points"].as_u64(), Some(expected.bytes.len() as u64 / 12), "{scanned}");
+    assert!(expected.bytes.len() > 12 * 100, "the scan sees the bunny");
+    let ply = read(&ply_file);
+    let header_end = ply.windows(11).position(|w| w == b"end_header\n").expect("a PLY header") + 11;
+    let header = String::from_utf8_lossy(&ply[..header_end]);
+    assert!(header.contains(&format!("element vertex {}\n", expected.bytes.len() / 12)), "{header}");
+    assert_same_bytes(&ply[header_end..], &expected.bytes, "the scan's points");
 
     let args = ["bench", "--accel", "bunny", "--batch", "1000", "--concurrency", "2", "--duration", "1"];
     let report = json(&server, &args);

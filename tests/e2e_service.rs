@@ -351,6 +351,7 @@ async fn stream_chunks_and_hit_buffers_hold_the_engines_bytes() {
         query: Some(trace_query("bunny", &query)),
         rays: Some(pb::trace_batch_request::Rays::RaysInline(rays.into())),
         hits_buffer_name: "bunny.hits".into(),
+        ..Default::default()
     };
     let response = client.trace_batch(request).await.expect("a trace into buffers").into_inner();
     assert!(response.hits.is_empty() && response.counts.is_empty(), "nothing inline");
@@ -586,6 +587,7 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
         query: Some(trace_query("tri", query)),
         rays: Some(pb::trace_batch_request::Rays::RaysInline(down_rays(rays).into())),
         hits_buffer_name: "hits".into(),
+        ..Default::default()
     };
     let closest = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
     let result = client.trace_batch(into_buffers(&closest, 1000)).await;
@@ -689,12 +691,13 @@ async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
 
     let metrics = daemon.admin_get("/metrics");
     assert_eq!(sample(&metrics, "rayd_rays_traced_total", &[]), Some(1500.0), "{metrics}");
-    assert_eq!(sample(&metrics, "rayd_requests_total", &["method=\"TraceBatch\""]), Some(1.0), "{metrics}");
+    let labels = ["method=\"TraceBatch\"", "tenant=\"default\""];
+    assert_eq!(sample(&metrics, "rayd_requests_total", &labels), Some(1.0), "{metrics}");
     assert!(!metrics.contains("rayd_errors_total"), "no error yet:\n{metrics}");
     let result = client.get_accel(pb::GetAccelRequest { accel: by_name("missing") }).await;
     assert_refused(&mut client, result, Code::NotFound, "missing").await;
     let metrics = daemon.admin_get("/metrics");
-    let labels = ["method=\"GetAccel\"", "code=\"NotFound\""];
+    let labels = ["method=\"GetAccel\"", "tenant=\"default\"", "code=\"NotFound\""];
     assert_eq!(sample(&metrics, "rayd_errors_total", &labels), Some(1.0), "{metrics}");
     assert_eq!(daemon.admin_get("/healthz"), "ok\n");
 }

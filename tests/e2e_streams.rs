@@ -12,7 +12,6 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use daemon::Daemon;
-use hyper_util::rt::TokioIo;
 use rayd_client::proto::rayd_client::RaydClient;
 use rayd_client::{Client, ClientOptions, Error, EventId, Operation, TraceResult, proto};
 use rayd_engine::accel::BuildFlags;
@@ -215,20 +214,6 @@ async fn open_raw(channel: &Channel) -> RawStream {
     RawStream { sender, answers, id: opened.stream_id }
 }
 
-/// A channel over one TCP connection, and a handle on that connection to cut it as a vanishing client would.
-async fn cuttable_channel(daemon: &Daemon) -> (Channel, std::net::TcpStream) {
-    let connection = std::net::TcpStream::connect(daemon.grpc_addr()).unwrap();
-    let kept = connection.try_clone().unwrap();
-    connection.set_nonblocking(true).unwrap();
-    let mut connection = Some(connection);
-    let connector = tower::service_fn(move |_| {
-        let taken = connection.take().ok_or_else(|| std::io::Error::other("one connection only"));
-        async move { Ok::<_, std::io::Error>(TokioIo::new(tokio::net::TcpStream::from_std(taken?)?)) }
-    });
-    let channel = Channel::from_shared(daemon.url()).unwrap().connect_with_connector(connector).await.unwrap();
-    (channel, kept)
-}
-
 /// Sends `messages` from a task of their own (sending blocks once the server stops reading), which keeps the
 /// request side open until it is aborted or the sender is dropped after the last message.
 fn send_all(
@@ -250,7 +235,7 @@ fn trace_op(accel: &str, rays: Bytes) -> proto::stream_request::Op {
     proto::stream_request::Op::Trace(proto::TraceBatchRequest {
         query: Some(rayd_client::convert::trace_query(accel, &closest())),
         rays: Some(proto::trace_batch_request::Rays::RaysInline(rays)),
-        hits_buffer_name: String::new(),
+        ..Default::default()
     })
 }
 
@@ -274,7 +259,7 @@ async fn cancelling_a_stream_frees_what_it_held_and_its_buffering_is_bounded() {
     let channel = Channel::from_shared(daemon.url()).unwrap().connect_lazy();
     let x = open_raw(&channel).await;
     // y, on a connection of its own, waits for x's operation 1, then 16 traces of 1 MiB of rays queue behind it.
-    let (y_channel, y_connection) = cuttable_channel(&daemon).await;
+    let (y_channel, y_connection) = daemon.cuttable_channel().await;
     let y = open_raw(&y_channel).await;
     let ray = 1 << 20;
     let wait = proto::stream_request::Op::WaitEvent(proto::WaitEvent { stream_id: x.id, operation: 1 });

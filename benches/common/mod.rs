@@ -47,9 +47,14 @@ fn load(name: &str) -> Mesh {
     Mesh::load_obj(&path).unwrap_or_else(|e| panic!("cannot load a bench mesh: {e}"))
 }
 
+/// The shared meshes of [`TILED_MESHES`], in that order.
+pub fn tiled_meshes() -> Vec<Mesh> {
+    TILED_MESHES.iter().map(|name| load(name)).collect()
+}
+
 /// The bunny, then the tiled scene.
 pub fn scenes() -> Vec<Scene> {
-    let meshes: Vec<Mesh> = TILED_MESHES.iter().map(|name| load(name)).collect();
+    let meshes = tiled_meshes();
     let bunny = meshes[TILED_MESHES.iter().position(|&n| n == "stanford-bunny").expect("bunny listed")].clone();
     let tiled = Mesh::tiled(&meshes, TILED_MIN_TRIANGLES);
     vec![Scene::new("bunny", bunny), Scene::new("tiled", tiled)]

@@ -14,9 +14,11 @@ use crate::convert::{
 use crate::error::Result;
 
 impl Client {
-    /// Builds an accel from a request made by hand.
+    /// Builds an accel from a request made by hand (sent for the scene of its name: buffers it uses must have been
+    /// uploaded through [`Client::for_scene`] where a router places scenes).
     pub async fn build(&self, request: proto::BuildAccelRequest) -> Result<proto::AccelInfo> {
-        Ok(self.rpc.clone().build_accel(request).await?.into_inner())
+        let mut rpc = self.rpc_for(&request.name);
+        Ok(rpc.build_accel(request).await?.into_inner())
     }
 
     /// Builds an accel called `name` on `device` (empty means `cpu:0`) from one mesh (geometry 0). Meshes of at
@@ -43,25 +45,31 @@ impl Client {
         flags: BuildFlags,
         motion: &MotionOptions,
     ) -> Result<proto::AccelInfo> {
-        self.with_meshes(keys, |vertices, indices| {
+        let node = self.for_scene(name);
+        node.with_meshes(keys, |vertices, indices| {
             let mut request = mesh_request(name, device, flags, vertices, indices);
             request.options.get_or_insert_default().motion = motion_to_proto(motion);
-            self.build(request)
+            node.build(request)
         })
         .await
     }
 
-    /// Updates (refits) an accel in place from a request made by hand.
+    /// Updates (refits) an accel in place from a request made by hand (sent for the accel's scene when it is named).
     pub async fn update(&self, request: proto::UpdateAccelRequest) -> Result<proto::AccelInfo> {
-        Ok(self.rpc.clone().update_accel(request).await?.into_inner())
+        let mut rpc = match request.accel.as_ref().and_then(|accel| accel.r#ref.as_ref()) {
+            Some(proto::accel_ref::Ref::Name(name)) => self.rpc_for(name),
+            _ => self.rpc.clone(),
+        };
+        Ok(rpc.update_accel(request).await?.into_inner())
     }
 
     /// Updates (refits) the accel called `name`, built with `allow_update` from a mesh of the same topology, with
     /// `mesh`'s vertex positions. Large meshes go through temporary buffers as in [`Client::build_mesh`].
     pub async fn update_mesh(&self, name: &str, mesh: &Mesh) -> Result<proto::AccelInfo> {
-        self.with_meshes(std::slice::from_ref(mesh), |vertices, indices| {
+        let node = self.for_scene(name);
+        node.with_meshes(std::slice::from_ref(mesh), |vertices, indices| {
             let inputs = mesh_request(name, "", BuildFlags::empty(), vertices, indices).inputs;
-            self.update(proto::UpdateAccelRequest { accel: Some(accel_ref(name)), inputs })
+            node.update(proto::UpdateAccelRequest { accel: Some(accel_ref(name)), inputs })
         })
         .await
     }

@@ -3,6 +3,7 @@
 
 use rayd_proto as proto;
 use rayd_proto::rayd_client::RaydClient;
+use tonic::codec::CompressionEncoding;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
@@ -43,6 +44,9 @@ pub struct ClientOptions {
     /// TLS for `https://` servers: the CA to trust (else the platform's are not used: give one) and, for mutual
     /// TLS, the client's certificate and key.
     pub tls: Option<ClientTls>,
+    /// Compress the messages sent, and ask the server to compress its replies, with this encoding (rayd accepts
+    /// and sends zstd and gzip). Worth it on slow links; on loopback it costs more CPU than it saves.
+    pub compression: Option<CompressionEncoding>,
 }
 
 /// The PEM files of a TLS connection.
@@ -81,6 +85,7 @@ impl Default for ClientOptions {
             upload_chunk_bytes: MIB,
             stream_bytes_in_flight: 64 * MIB,
             tls: None,
+            compression: None,
         }
     }
 }
@@ -90,7 +95,11 @@ impl ClientOptions {
     fn fit_to(&mut self, limits: &proto::Limits) {
         let server = |value: u64| usize::try_from(value).unwrap_or(usize::MAX);
         self.max_message_bytes = self.max_message_bytes.min(server(limits.max_message_bytes));
-        self.batch_limit_bytes = self.batch_limit_bytes.min(self.max_message_bytes / 2);
+        // Half a message: room for the request's other fields (an over-limit request fails as an opaque h2 reset).
+        let half_message = self.max_message_bytes / 2;
+        self.batch_limit_bytes = self.batch_limit_bytes.min(half_message);
+        self.inline_mesh_bytes = self.inline_mesh_bytes.min(half_message);
+        self.upload_chunk_bytes = self.upload_chunk_bytes.min(half_message).max(1);
         self.max_rays_per_call = self.max_rays_per_call.min(server(limits.max_rays_per_batch)).max(1);
         self.stream_window = self.stream_window.min(limits.stream_window as usize).max(1);
     }
@@ -104,6 +113,10 @@ pub(crate) type RpcClient = RaydClient<InterceptedService<Channel, Auth>>;
 pub struct Client {
     /// The generated stub, with the token interceptor and the message limits applied.
     pub(crate) rpc: RpcClient,
+    /// The connection under `rpc`, for stubs that carry a scene's routing header.
+    channel: Channel,
+    /// The interceptor of `rpc` (token, and the scene of [`Client::for_scene`]), for making routed ones.
+    auth: Auth,
     /// Thresholds that pick between call shapes (inline or buffer, batch or stream).
     pub(crate) options: ClientOptions,
 }
@@ -112,23 +125,34 @@ impl Client {
     /// Connects to `url` (e.g. [`DEFAULT_SERVER`]) now, so that an unreachable server is reported here, and
     /// lowers the options' message size, rays per call and stream window to the server's limits.
     pub async fn connect(url: &str, mut options: ClientOptions) -> Result<Client> {
-        let connect_error = |reason: String| Error::Connect { url: url.to_owned(), reason };
         let auth = Auth::new(options.token.as_deref())?;
-        let mut endpoint = Endpoint::from_shared(url.to_owned())
-            .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
-        if let Some(tls) = &options.tls {
-            endpoint = endpoint.tls_config(tls.config()).map_err(|e| connect_error(chain(&e)))?;
-        }
-        let channel = endpoint.tcp_nodelay(true).connect().await.map_err(|e| connect_error(chain(&e)))?;
-        let mut rpc = RaydClient::with_interceptor(channel, auth);
+        let channel = connect_channel(endpoint(url, options.tls.as_ref())?, url).await?;
+        let mut rpc = RaydClient::with_interceptor(channel.clone(), auth.clone());
         let info = rpc.get_server_info(proto::GetServerInfoRequest {}).await?.into_inner();
         if let Some(limits) = info.limits {
             options.fit_to(&limits);
         }
-        let rpc = rpc
-            .max_decoding_message_size(options.max_message_bytes)
-            .max_encoding_message_size(options.max_message_bytes);
-        Ok(Client { rpc, options })
+        let rpc = stub(&channel, auth.clone(), &options);
+        Ok(Client { rpc, channel, auth, options })
+    }
+
+    /// This client with every call — buffers, streams and listings included — sent for accel `accel`'s scene (its
+    /// name up to the first `.`): behind a proxy that hashes [`ROUTE_HEADER`](crate::ROUTE_HEADER), they all reach
+    /// the node that holds the scene. Calls that name an accel always carry that accel's scene by themselves; this
+    /// is for the others, e.g. uploading a buffer that a build of the scene will use, or opening a stream for it.
+    pub fn for_scene(&self, accel: &str) -> Client {
+        let auth = self.auth.routed(accel);
+        Client {
+            rpc: stub(&self.channel, auth.clone(), &self.options),
+            channel: self.channel.clone(),
+            auth,
+            ..self.clone()
+        }
+    }
+
+    /// A stub whose calls carry accel `accel`'s routing header.
+    pub(crate) fn rpc_for(&self, accel: &str) -> RpcClient {
+        stub(&self.channel, self.auth.routed(accel), &self.options)
     }
 
     /// The options this client was made with.
@@ -154,7 +178,7 @@ impl Client {
     /// The accel called `name`.
     pub async fn accel(&self, name: &str) -> Result<proto::AccelInfo> {
         let request = proto::GetAccelRequest { accel: Some(accel_ref(name)) };
-        Ok(self.rpc.clone().get_accel(request).await?.into_inner())
+        Ok(self.rpc_for(name).get_accel(request).await?.into_inner())
     }
 
     /// Every accel of this tenant, in creation order.
@@ -163,16 +187,17 @@ impl Client {
     }
 
     /// Copies the accel called `source` to a new accel `name` on `device` (empty: the source's); with `compact`, a
-    /// compacted copy (the source must allow compaction).
+    /// compacted copy (the source must allow compaction). The copy is made on the source's node: behind a router,
+    /// give it a name of the same scene (`farm.copy`), else calls naming it are sent to another node.
     pub async fn copy_accel(&self, source: &str, name: &str, device: &str, compact: bool) -> Result<proto::AccelInfo> {
         let request = copy_request(accel_ref(source), name, device, compact);
-        Ok(self.rpc.clone().copy_accel(request).await?.into_inner())
+        Ok(self.rpc_for(source).copy_accel(request).await?.into_inner())
     }
 
     /// Destroys the accel called `name` (traces already running on it finish first).
     pub async fn destroy_accel(&self, name: &str) -> Result<()> {
         let request = proto::DestroyAccelRequest { accel: Some(accel_ref(name)) };
-        self.rpc.clone().destroy_accel(request).await?;
+        self.rpc_for(name).destroy_accel(request).await?;
         Ok(())
     }
 
@@ -186,6 +211,35 @@ impl Client {
         let request = proto::DeleteBufferRequest { buffer: Some(buffer_ref(id)) };
         self.rpc.clone().delete_buffer(request).await?;
         Ok(())
+    }
+}
+
+/// The endpoint of `url`, with `tls` when given.
+pub(crate) fn endpoint(url: &str, tls: Option<&ClientTls>) -> Result<Endpoint> {
+    let endpoint = Endpoint::from_shared(url.to_owned())
+        .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
+    match tls {
+        Some(tls) => {
+            endpoint.tls_config(tls.config()).map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
+        }
+        None => Ok(endpoint),
+    }
+}
+
+/// Connects to `endpoint` now (the server at `url`).
+pub(crate) async fn connect_channel(endpoint: Endpoint, url: &str) -> Result<Channel> {
+    let connected = endpoint.tcp_nodelay(true).connect().await;
+    connected.map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
+}
+
+/// The generated stub over `channel` with interceptor `auth` and `options`' message limits.
+fn stub(channel: &Channel, auth: Auth, options: &ClientOptions) -> RpcClient {
+    let stub = RaydClient::with_interceptor(channel.clone(), auth)
+        .max_decoding_message_size(options.max_message_bytes)
+        .max_encoding_message_size(options.max_message_bytes);
+    match options.compression {
+        Some(encoding) => stub.send_compressed(encoding).accept_compressed(encoding),
+        None => stub,
     }
 }
 

@@ -1,11 +1,14 @@
 //! The one place where the contract's enums and messages meet the engine's types. Names on the command line and
 //! in JSON output are the engine's (`RayFormat::name` and friends); numbers on the wire are the contract's.
 
+use bytes::Bytes;
 use glam::Vec3;
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::{IndexFormat, MotionFlags, MotionOptions, VertexFormat};
 use rayd_engine::query::{Query, QueryKind};
+use rayd_engine::raygen::{Bounce, Generator, PixelSampling, Primary, Secondary};
+use rayd_engine::reduce::{IdKind, ImageChannel, PixelEncoding, PointEncoding, Reduction};
 use rayd_proto as proto;
 
 /// Defines, from one table of variant pairs, the conversion of an engine enum to the contract's enum and back
@@ -144,12 +147,136 @@ pub fn bounds(info: &proto::AccelInfo) -> Option<(Vec3, Vec3)> {
     lo.cmple(hi).all().then_some((lo, hi))
 }
 
-/// A device backend's name in lower case (`cpu`), or `unknown`.
+/// A device backend's name in lower case (`cpu`, `wgpu`), or `unknown`.
 pub fn backend_name(backend: i32) -> &'static str {
     match proto::Backend::try_from(backend) {
         Ok(proto::Backend::Cpu) => "cpu",
+        Ok(proto::Backend::Wgpu) => "wgpu",
         _ => "unknown",
     }
+}
+
+/// The contract's form of an engine ray generator (all of its rays).
+pub fn generator_to_proto(generator: &Generator) -> proto::RayGenerator {
+    use proto::ray_generator::Kind;
+    let vec3 = |v: Vec3| Some(proto::Vec3 { x: v.x, y: v.y, z: v.z });
+    let packed = |points: &[Vec3]| -> Bytes {
+        points.iter().flat_map(|p| p.to_array()).flat_map(f32::to_le_bytes).collect::<Vec<u8>>().into()
+    };
+    let sampling =
+        |s: &PixelSampling| Some(proto::PixelSampling { samples_per_pixel: s.samples, jitter_seed: s.jitter_seed });
+    let kind = match generator {
+        Generator::Pinhole(c, s) => Kind::Pinhole(proto::PinholeCamera {
+            eye: vec3(c.eye),
+            target: vec3(c.target),
+            up: vec3(c.up),
+            fov_y_degrees: c.fov_y_degrees,
+            width: c.width,
+            height: c.height,
+            sampling: sampling(s),
+        }),
+        Generator::Orthographic(c, s) => Kind::Orthographic(proto::OrthographicCamera {
+            eye: vec3(c.eye),
+            target: vec3(c.target),
+            up: vec3(c.up),
+            view_height: c.view_height,
+            width: c.width,
+            height: c.height,
+            sampling: sampling(s),
+        }),
+        Generator::Lidar(l) => Kind::Lidar(proto::LidarScan {
+            origin: vec3(l.origin),
+            forward: vec3(l.forward),
+            up: vec3(l.up),
+            elevations_degrees: l.elevations_degrees.clone(),
+            steps: l.steps,
+            min_range: l.min_range,
+            max_range: l.max_range,
+            time_begin: l.time.0,
+            time_end: l.time.1,
+        }),
+        Generator::Sphere(s) => Kind::Sphere(proto::SphereSampling {
+            points: packed(&s.points),
+            normals: packed(&s.normals),
+            samples: s.samples,
+            min_distance: s.min_distance,
+            max_distance: s.max_distance,
+            seed: s.seed,
+        }),
+        Generator::Secondary(s) => Kind::Secondary(Box::new(secondary_to_proto(s))),
+    };
+    proto::RayGenerator { kind: Some(kind), ..Default::default() }
+}
+
+/// The contract's form of engine secondary rays: their primary rays and hits inline (or the primary generator).
+fn secondary_to_proto(s: &Secondary) -> proto::SecondaryRays {
+    use proto::secondary_rays::{Primary as P, PrimaryHits};
+    let (primary, format) = match &s.primary {
+        Primary::Packed(format, bytes) => (P::PrimaryRaysInline(bytes.clone()), ray_format_to_proto(*format).into()),
+        Primary::Generated(generator) => (P::PrimaryGenerator(Box::new(generator_to_proto(generator))), 0),
+    };
+    proto::SecondaryRays {
+        primary: Some(primary),
+        primary_ray_format: format,
+        primary_hits: Some(PrimaryHits::PrimaryHitsInline(s.hits.clone())),
+        bounce: Some(bounce_to_proto(s.bounce)),
+        offset: s.offset,
+    }
+}
+
+/// The contract's form of what a secondary ray does.
+pub fn bounce_to_proto(bounce: Bounce) -> proto::secondary_rays::Bounce {
+    use proto::secondary_rays::Bounce as B;
+    match bounce {
+        Bounce::Reflect => B::Reflect(proto::Reflect {}),
+        Bounce::TowardsLight(l) => B::TowardsLight(proto::Vec3 { x: l.x, y: l.y, z: l.z }),
+    }
+}
+
+/// The contract's form of an engine reduction.
+pub fn reduction_to_proto(reduction: &Reduction) -> proto::Reduction {
+    use proto::reduction::Kind;
+    let kind = match reduction {
+        Reduction::Counts => Kind::Counts(proto::HitCountsReduction {}),
+        Reduction::Image(image) => Kind::Image(proto::ImageReduction {
+            width: image.width,
+            rays_per_pixel: image.rays_per_pixel,
+            channel: match image.channel {
+                ImageChannel::Depth => proto::ImageChannel::Depth,
+                ImageChannel::Normal => proto::ImageChannel::Normal,
+            } as i32,
+            encoding: match image.encoding {
+                PixelEncoding::Float32 => proto::PixelEncoding::Float32,
+                PixelEncoding::Unorm16 => proto::PixelEncoding::Unorm16,
+                PixelEncoding::Png => proto::PixelEncoding::Png,
+            } as i32,
+            near: image.near,
+            far: image.far,
+        }),
+        Reduction::Histogram { bins, t_min, t_max } => {
+            Kind::Histogram(proto::HistogramReduction { bins: *bins, t_min: *t_min, t_max: *t_max })
+        }
+        Reduction::IdCounts(by) => Kind::IdCounts(proto::IdCountsReduction {
+            by: match by {
+                IdKind::Instance => proto::IdKind::Instance,
+                IdKind::Geometry => proto::IdKind::Geometry,
+                IdKind::Primitive => proto::IdKind::Primitive,
+            } as i32,
+        }),
+        Reduction::NearestPerGroup { group } => Kind::Nearest(proto::NearestPerGroupReduction { group: *group }),
+        Reduction::PointCloud(cloud) => Kind::PointCloud(proto::PointCloudReduction {
+            encoding: match cloud.encoding {
+                PointEncoding::Float32 => proto::PointEncoding::Float32,
+                PointEncoding::Int32 => proto::PointEncoding::Int32,
+                PointEncoding::Int16 => proto::PointEncoding::Int16,
+            } as i32,
+            step: cloud.step,
+            origin: Some(proto::Vec3 { x: cloud.origin.x, y: cloud.origin.y, z: cloud.origin.z }),
+            ray_indices: cloud.ray_indices,
+        }),
+        Reduction::CompactHits { t_far } => Kind::Compact(proto::CompactHitsReduction { t_far: *t_far }),
+    };
+    proto::Reduction { kind: Some(kind) }
 }
 
 #[cfg(test)]

@@ -1,16 +1,16 @@
-//! Pictures of a scene for a person to look at, made through the trace API: one primary ray a pixel, shaded by
-//! the surface normal or by depth, written as PNG.
+//! Pictures of a scene for a person to look at, made through the trace API: one primary ray a pixel, made by the
+//! server from a camera and reduced by it to an image of depths or normals (neither rays nor hits cross the
+//! network), shaded here and written as PNG.
 
 use std::path::Path;
 
-use bytes::Bytes;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::query::Query;
-use rayd_engine::raygen::Camera;
+use rayd_engine::raygen::{Camera, Generator, PixelSampling};
+use rayd_engine::reduce::{ImageChannel, PixelEncoding, Reduction};
 
 use crate::client::Client;
 use crate::error::{Error, Result};
-use crate::view::HitView;
 
 /// Colour of pixels whose ray hit nothing (dark grey).
 const BACKGROUND: [u8; 3] = [40, 40, 40];
@@ -25,11 +25,11 @@ pub enum Shading {
 }
 
 impl Shading {
-    /// The hit format that carries what this shading needs.
-    pub fn hit_format(self) -> HitFormat {
+    /// The image channel this shading colours.
+    pub fn channel(self) -> ImageChannel {
         match self {
-            Shading::Normal => HitFormat::Full,
-            Shading::Depth => HitFormat::T,
+            Shading::Normal => ImageChannel::Normal,
+            Shading::Depth => ImageChannel::Depth,
         }
     }
 }
@@ -58,62 +58,74 @@ impl Image {
 }
 
 impl Client {
-    /// Renders the accel called `accel` as `camera` sees it (one closest-hit ray a pixel).
+    /// Renders the accel called `accel` as `camera` sees it: one closest-hit ray through each pixel's centre, made
+    /// by the server from the camera and reduced by it to a float32 image of depths or normals.
     pub async fn render(&self, accel: &str, camera: &Camera, shading: Shading) -> Result<Image> {
-        let query = Query::closest(RayFormat::OriginDirection, shading.hit_format());
-        let traced = self.trace(accel, &query, Bytes::from(camera.rays(query.ray_format))).await?;
-        Ok(shade(&traced.hit_view(), camera.width, camera.height, shading))
+        let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+        let centres = PixelSampling { samples: 1, jitter_seed: None };
+        let image = rayd_engine::reduce::Image {
+            width: camera.width,
+            rays_per_pixel: 1,
+            channel: shading.channel(),
+            encoding: PixelEncoding::Float32,
+            near: 0.0,
+            far: 0.0,
+        };
+        let generator = Generator::Pinhole(*camera, centres);
+        let traced = self.trace_generated_reduced(accel, &query, &generator, &Reduction::Image(image)).await?;
+        let expected = camera.width as usize * camera.height as usize * if shading == Shading::Normal { 12 } else { 4 };
+        if traced.data.len() != expected {
+            let got = traced.data.len();
+            return Err(Error::Protocol(format!("an image of {got} bytes, {expected} expected")));
+        }
+        Ok(shade(&traced.data, camera.width, camera.height, shading))
     }
 }
 
-/// Colours one hit record a pixel (hits in `shading.hit_format()`).
-pub fn shade(hits: &HitView, width: u32, height: u32, shading: Shading) -> Image {
-    let (near, far) = hits
-        .iter()
-        .filter(|h| h.is_hit())
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(near, far), h| (near.min(h.t), far.max(h.t)));
-    let rgb = hits
-        .iter()
-        .flat_map(|hit| {
-            if !hit.is_hit() {
-                return BACKGROUND;
-            }
-            let unit = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-            match shading {
-                Shading::Normal => {
-                    let facing = if hit.back_face { -hit.normal } else { hit.normal };
-                    facing.to_array().map(|n| unit(0.5 + 0.5 * n))
+/// Colours a float32 image of the reduction's channel for `shading` (depth: 4 bytes a pixel, +∞ for a miss;
+/// normal: 12 bytes, the normal facing the ray, zero for a miss).
+pub fn shade(pixels: &[u8], width: u32, height: u32, shading: Shading) -> Image {
+    let floats: Vec<f32> = pixels.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4 bytes"))).collect();
+    let unit = |v: f32| (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+    let rgb = match shading {
+        Shading::Normal => floats
+            .chunks_exact(3)
+            .flat_map(|n| {
+                if n == [0.0; 3] {
+                    BACKGROUND
+                } else {
+                    [unit(0.5 + 0.5 * n[0]), unit(0.5 + 0.5 * n[1]), unit(0.5 + 0.5 * n[2])]
                 }
-                Shading::Depth => [unit(1.0 - 0.8 * (hit.t - near) / (far - near).max(f32::MIN_POSITIVE)); 3],
-            }
-        })
-        .collect();
+            })
+            .collect(),
+        Shading::Depth => {
+            let hits = || floats.iter().copied().filter(|t| t.is_finite());
+            let (near, far) =
+                hits().fold((f32::INFINITY, f32::NEG_INFINITY), |(near, far), t| (near.min(t), far.max(t)));
+            floats
+                .iter()
+                .flat_map(|&t| match t.is_finite() {
+                    true => [unit(1.0 - 0.8 * (t - near) / (far - near).max(f32::MIN_POSITIVE)); 3],
+                    false => BACKGROUND,
+                })
+                .collect()
+        }
+    };
     Image { width, height, rgb }
 }
 
 #[cfg(test)]
 mod tests {
-    use glam::Vec3A;
-    use rayd_engine::format::Hit;
-
     use super::*;
 
     #[test]
-    fn misses_are_background_normals_face_the_camera_and_depth_brightens_near_hits() {
-        let format = HitFormat::Full;
-        let hits = [
-            Hit::MISS,
-            Hit { t: 1.0, normal: Vec3A::X, ..Hit::MISS },
-            Hit { t: 3.0, normal: Vec3A::X, back_face: true, ..Hit::MISS },
-        ];
-        let mut bytes = vec![0u8; format.buffer_len(3)];
-        for (i, hit) in hits.iter().enumerate() {
-            format.write(&mut bytes, i, hit);
-        }
-        let view = HitView::new(&bytes, format, 3).unwrap();
-        let image = shade(&view, 3, 1, Shading::Normal);
+    fn misses_are_background_normals_are_colours_and_depth_brightens_near_hits() {
+        let floats = |values: &[f32]| values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>();
+        let normals = floats(&[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, -1.0, 0.0, 0.0]);
+        let image = shade(&normals, 3, 1, Shading::Normal);
         assert_eq!(image.rgb, [40, 40, 40, 255, 128, 128, 0, 128, 128]);
-        let image = shade(&view, 3, 1, Shading::Depth);
+        let depths = floats(&[f32::INFINITY, 1.0, 3.0]);
+        let image = shade(&depths, 3, 1, Shading::Depth);
         assert_eq!(image.rgb, [40, 40, 40, 255, 255, 255, 51, 51, 51]);
     }
 

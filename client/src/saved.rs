@@ -26,10 +26,11 @@ impl Client {
     /// held it is deleted again, whatever the outcome.
     pub async fn save_accel(&self, name: &str) -> Result<Bytes> {
         let request = proto::SaveAccelRequest { accel: Some(accel_ref(name)), buffer_name: String::new() };
-        let buffer = self.rpc.clone().save_accel(request).await?.into_inner();
-        let blob = self.download_buffer(&buffer.id).await;
+        let node = self.for_scene(name);
+        let buffer = node.rpc.clone().save_accel(request).await?.into_inner();
+        let blob = node.download_buffer(&buffer.id).await;
         // Best effort: a buffer left behind only counts against the tenant's limits.
-        let _ = self.delete_buffer(&buffer.id).await;
+        let _ = node.delete_buffer(&buffer.id).await;
         blob
     }
 
@@ -42,13 +43,14 @@ impl Client {
             device: device.to_owned(),
             blob: Some(proto::DataSource { source: Some(source) }),
         };
+        let node = self.for_scene(name);
         if blob.len() < self.options.inline_mesh_bytes {
-            return Ok(self.rpc.clone().load_accel(load(Source::Inline(blob))).await?.into_inner().accels);
+            return Ok(node.rpc.clone().load_accel(load(Source::Inline(blob))).await?.into_inner().accels);
         }
-        let buffer = self.upload_buffer("", blob).await?;
-        let loaded = self.rpc.clone().load_accel(load(Source::Buffer(buffer_ref(&buffer.id)))).await;
+        let buffer = node.upload_buffer("", blob).await?;
+        let loaded = node.rpc.clone().load_accel(load(Source::Buffer(buffer_ref(&buffer.id)))).await;
         // Best effort, as above.
-        let _ = self.delete_buffer(&buffer.id).await;
+        let _ = node.delete_buffer(&buffer.id).await;
         Ok(loaded?.into_inner().accels)
     }
 }

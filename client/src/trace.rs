@@ -5,13 +5,15 @@ use std::sync::Arc;
 
 use bytes::{Bytes, BytesMut};
 use futures_util::StreamExt;
+use rayd_engine::format::RayFormat;
 use rayd_engine::query::{OutputLayout, Query};
+use rayd_engine::raygen::Generator;
 use rayd_proto as proto;
 use rayd_proto::{trace_batch_request, trace_stream_request};
 use tokio::sync::Semaphore;
 
 use crate::client::Client;
-use crate::convert::trace_query;
+use crate::convert::{generator_to_proto, trace_query};
 use crate::error::{Error, Result};
 use crate::view::HitView;
 
@@ -98,11 +100,62 @@ impl Client {
         }
     }
 
+    /// Traces the rays of `generator`, which the server makes itself (no ray crosses the network), against the
+    /// accel called `accel`; the hits come back in the generator's ray order. The rays are made in
+    /// `query.ray_format` (a format with time keeps a lidar's times). One `TraceBatch` call when the hits fit in
+    /// [`ClientOptions::batch_limit_bytes`](crate::ClientOptions::batch_limit_bytes), else one per range of rays
+    /// whose hits do, `stream_window` of them at once.
+    pub async fn trace_generated(&self, accel: &str, query: &Query, generator: &Generator) -> Result<TraceResult> {
+        let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        let ray_size = query.ray_format.size();
+        let layout =
+            query.output_layout(total.saturating_mul(ray_size)).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let (limit, max_rays) = (self.options.batch_limit_bytes, self.options.max_rays_per_call);
+        let per_call = if layout.hits + layout.counts <= limit && total <= max_rays {
+            total
+        } else {
+            // Generated rays cost nothing on the wire: only the hits and counts must fit.
+            chunk_rays(&Query { ray_format: RayFormat::OriginDirection, ..*query }, limit, max_rays)
+        };
+        let generator = generator_to_proto(generator);
+        let calls = (0..total).step_by(per_call.max(1)).map(|first| {
+            let count = per_call.min(total - first);
+            let range = proto::RayGenerator { first_ray: first as u64, ray_count: count as u64, ..generator.clone() };
+            let request = proto::TraceBatchRequest {
+                query: Some(trace_query(accel, query)),
+                rays: Some(trace_batch_request::Rays::RaysGenerator(range)),
+                ..Default::default()
+            };
+            let mut rpc = self.rpc.clone();
+            async move {
+                let response = rpc.trace_batch(request).await?.into_inner();
+                TraceResult::from_batch(query, count * ray_size, response)
+            }
+        });
+        let mut parts = futures_util::stream::iter(calls).buffered(self.options.stream_window.max(1));
+        let Some(first) = parts.next().await.transpose()? else {
+            return TraceResult::from_batch(query, 0, proto::TraceBatchResponse::default());
+        };
+        if per_call >= total {
+            return Ok(first);
+        }
+        let (mut hits, mut counts) = (BytesMut::with_capacity(layout.hits), BytesMut::with_capacity(layout.counts));
+        let mut stats = proto::TraceStats::default();
+        let mut part = Some(first);
+        while let Some(result) = part {
+            hits.extend_from_slice(&result.hits);
+            counts.extend_from_slice(&result.counts);
+            add_stats(&mut stats, &result.stats);
+            part = parts.next().await.transpose()?;
+        }
+        Ok(TraceResult { query: *query, rays: total, hits: hits.freeze(), counts: counts.freeze(), stats })
+    }
+
     /// One `TraceBatch` call; the result's buffers are the response's own, not copies.
     async fn trace_batch(&self, accel: &str, query: &Query, rays: Bytes) -> Result<TraceResult> {
         let ray_bytes = rays.len();
         let request = inline_trace(trace_query(accel, query), rays);
-        let response = self.rpc.clone().trace_batch(request).await?.into_inner();
+        let response = self.rpc_for(accel).trace_batch(request).await?.into_inner();
         TraceResult::from_batch(query, ray_bytes, response)
     }
 
@@ -131,7 +184,7 @@ impl Client {
         let requests = futures_util::stream::once(async { first })
             .chain(paced)
             .map(|part| proto::TraceStreamRequest { part: Some(part) });
-        let mut responses = self.rpc.clone().trace_stream(requests).await?.into_inner();
+        let mut responses = self.rpc_for(accel).trace_stream(requests).await?.into_inner();
 
         let mut stats = proto::TraceStats::default();
         let (mut hits, mut counts) = (BytesMut::with_capacity(layout.hits), BytesMut::with_capacity(layout.counts));
@@ -164,7 +217,7 @@ pub(crate) fn inline_trace(query: proto::TraceQuery, rays: Bytes) -> proto::Trac
     proto::TraceBatchRequest {
         query: Some(query),
         rays: Some(trace_batch_request::Rays::RaysInline(rays)),
-        hits_buffer_name: String::new(),
+        ..Default::default()
     }
 }
 

@@ -1,6 +1,9 @@
-//! What the service costs over the engine: 1M-ray batches traced in-process and through `rayd` over loopback,
-//! and the round-trip latency of a 1-ray trace. Prints one table; run with `cargo bench -p rayd-server --bench
-//! overhead`. The server runs in this process (its own runtime threads), the client talks to it over TCP.
+//! What the service costs over the engine: 1M-ray batches traced in-process and through `rayd` over loopback (in
+//! one `TraceBatch`, and streamed in chunks by `rayd-client`), the same rays made by the server from a camera
+//! generator (only hits cross the wire), and the round-trip latency of a 1-ray trace. Each row also gives the CPU
+//! time of the process per batch: client and server share the cores, so what the transport costs in CPU is what
+//! tracing cannot use. Prints one table; run with `cargo bench -p rayd-server --bench overhead`. The server runs in
+//! this process (its own runtime threads), the client talks to it over TCP.
 
 use std::time::{Duration, Instant};
 
@@ -10,7 +13,7 @@ use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::BuildInput;
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, TraceOutput};
-use rayd_engine::raygen::Camera;
+use rayd_engine::raygen::{Camera, Generator, PixelSampling};
 use rayd_engine::{Context, Device};
 use rayd_proto as pb;
 use rayd_proto::rayd_client::RaydClient;
@@ -22,6 +25,8 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 /// Timed repetitions of each large batch; the median is reported.
 const BATCH_RUNS: usize = 7;
+/// Chunk size of the streamed row: rays of one chunk are traced while the next are received.
+const STREAM_CHUNK_BYTES: usize = 2 << 20;
 /// 1-ray calls timed for the latency percentiles (after as many warm-up calls).
 const LATENCY_CALLS: usize = 3000;
 
@@ -32,6 +37,45 @@ fn median(mut values: Vec<f64>) -> f64 {
 
 fn percentile(sorted: &[Duration], p: f64) -> Duration {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
+}
+
+/// CPU time this process has used so far (all threads, user and system), in seconds.
+fn cpu_seconds() -> f64 {
+    // SAFETY: getrusage only writes the rusage it is given, which is plain data (all zeros is a valid value).
+    let usage = unsafe {
+        let mut usage: libc::rusage = std::mem::zeroed();
+        libc::getrusage(libc::RUSAGE_SELF, &mut usage);
+        usage
+    };
+    let seconds = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+    seconds(usage.ru_utime) + seconds(usage.ru_stime)
+}
+
+/// The wall times of timed runs and the CPU time they took together.
+#[derive(Default)]
+struct Runs {
+    /// Wall time of each timed run, seconds.
+    walls: Vec<f64>,
+    /// CPU seconds of the process over the timed runs.
+    cpu: f64,
+}
+
+impl Runs {
+    /// Records one run that started at `start` (wall) and `cpu_start` (process CPU).
+    fn record(&mut self, start: Instant, cpu_start: f64) {
+        self.walls.push(start.elapsed().as_secs_f64());
+        self.cpu += cpu_seconds() - cpu_start;
+    }
+
+    /// Median wall time, seconds.
+    fn median(&self) -> f64 {
+        median(self.walls.clone())
+    }
+
+    /// CPU milliseconds per run (both cores together).
+    fn cpu_ms_per_run(&self) -> f64 {
+        self.cpu * 1e3 / self.walls.len() as f64
+    }
 }
 
 fn main() {
@@ -47,13 +91,12 @@ fn main() {
     let context = Context::new(Device::cpu());
     let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
     let mut hits = vec![0u8; ray_count * 16];
-    let engine_times: Vec<f64> = (0..BATCH_RUNS)
-        .map(|_| {
-            let start = Instant::now();
-            context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
-            start.elapsed().as_secs_f64()
-        })
-        .collect();
+    let mut engine = Runs::default();
+    for _ in 0..BATCH_RUNS {
+        let (start, cpu) = (Instant::now(), cpu_seconds());
+        context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
+        engine.record(start, cpu);
+    }
     let engine_hits = Bytes::from(hits);
 
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
@@ -95,17 +138,53 @@ fn main() {
             ..Default::default()
         };
 
-        let mut service_times = Vec::new();
+        let mut service = Runs::default();
         let mut server_times = Vec::new();
         for run in 0..=BATCH_RUNS {
-            let start = Instant::now();
+            let (start, cpu) = (Instant::now(), cpu_seconds());
             let reply = client.trace_batch(request(rays.clone())).await.unwrap().into_inner();
-            let elapsed = start.elapsed().as_secs_f64();
-            assert_eq!(reply.hits, engine_hits, "the service returns the engine's bytes");
             if run > 0 {
-                service_times.push(elapsed);
+                service.record(start, cpu);
                 server_times.push(reply.stats.unwrap().trace_ns as f64 * 1e-9);
             }
+            assert_eq!(reply.hits, engine_hits, "the service returns the engine's bytes");
+        }
+
+        // The same camera as a generator: the server makes the rays, only hits cross the wire.
+        let camera = Camera::framing(lo, hi, 1024, 1024);
+        let generated = pb::TraceBatchRequest {
+            query: Some(trace_query.clone()),
+            rays: Some(pb::trace_batch_request::Rays::RaysGenerator(rayd_client::convert::generator_to_proto(
+                &Generator::Pinhole(camera, PixelSampling { samples: 1, jitter_seed: None }),
+            ))),
+            ..Default::default()
+        };
+        let mut generated_runs = Runs::default();
+        for run in 0..=BATCH_RUNS {
+            let (start, cpu) = (Instant::now(), cpu_seconds());
+            let reply = client.trace_batch(generated.clone()).await.unwrap().into_inner();
+            if run > 0 {
+                generated_runs.record(start, cpu);
+            }
+            assert_eq!(reply.hits, engine_hits, "the generated rays are the camera's");
+        }
+
+        // The same rays through rayd-client's TraceStream: chunks pipelined, so receiving, tracing and answering
+        // overlap.
+        let options = rayd_client::ClientOptions {
+            batch_limit_bytes: STREAM_CHUNK_BYTES,
+            stream_chunk_bytes: STREAM_CHUNK_BYTES,
+            ..Default::default()
+        };
+        let streaming = rayd_client::Client::connect(&format!("http://{address}"), options).await.unwrap();
+        let mut streamed = Runs::default();
+        for run in 0..=BATCH_RUNS {
+            let (start, cpu) = (Instant::now(), cpu_seconds());
+            let result = streaming.trace("bunny", &query, rays.clone()).await.unwrap();
+            if run > 0 {
+                streamed.record(start, cpu);
+            }
+            assert_eq!(result.hits(), &engine_hits, "the stream returns the engine's bytes");
         }
 
         let one_ray = rays.slice(0..32);
@@ -120,16 +199,24 @@ fn main() {
         latencies.sort();
 
         let mrays = |seconds: f64| ray_count as f64 / seconds / 1e6;
-        let (engine, service, server) = (median(engine_times), median(service_times), median(server_times));
+        let engine_time = engine.median();
         println!("bunny, {ray_count} camera rays, closest, t_triid_u_v, {} threads", rayon::current_num_threads());
-        println!("engine in-process        {:8.2} Mrays/s  ({:.1} ms)", mrays(engine), engine * 1e3);
-        println!(
-            "rayd TraceBatch, loopback {:7.2} Mrays/s  ({:.1} ms end to end, {:.1} ms tracing in the server)",
-            mrays(service),
-            service * 1e3,
-            server * 1e3
-        );
-        println!("service / in-process      {:7.1} %", 100.0 * engine / service);
+        println!("{:<58} {:>9} {:>10} {:>13} {:>14}", "", "Mrays/s", "ms", "% in-process", "CPU ms/batch");
+        let row = |name: &str, runs: &Runs| {
+            let time = runs.median();
+            println!(
+                "{name:<58} {:>9.2} {:>10.1} {:>13.1} {:>14.0}",
+                mrays(time),
+                time * 1e3,
+                100.0 * engine_time / time,
+                runs.cpu_ms_per_run()
+            );
+        };
+        row("engine in-process", &engine);
+        row("rayd TraceBatch, rays sent", &service);
+        row("rayd TraceBatch, rays made by the server (RayGenerator)", &generated_runs);
+        row(&format!("rayd TraceStream, rays sent ({} MiB chunks)", STREAM_CHUNK_BYTES >> 20), &streamed);
+        println!("tracing inside the rayd TraceBatch call: {:.1} ms (median)", median(server_times) * 1e3);
         println!(
             "1-ray TraceBatch round trip: p50 {:.0} µs, p90 {:.0} µs, p99 {:.0} µs ({LATENCY_CALLS} calls)",
             percentile(&latencies, 0.5).as_secs_f64() * 1e6,

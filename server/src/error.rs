@@ -39,10 +39,10 @@ pub enum ServiceError {
     /// The gRPC layer refused a message (too large, malformed, or the peer went away); its status is kept.
     #[error("{}", .0.message())]
     Transport(Status),
-    /// The data directory could not be written or read.
-    #[error("persisting {what} in the data directory failed: {source}")]
+    /// The data directory could not be written or read; the request changed nothing.
+    #[error("{what} in the data directory failed: {source}")]
     Storage {
-        /// What was being persisted.
+        /// What was being done (`storing accel "bunny"`).
         what: String,
         /// The I/O error.
         source: std::io::Error,
@@ -104,12 +104,21 @@ impl From<ServiceError> for Status {
             ServiceError::Limit { .. } => Code::ResourceExhausted,
             ServiceError::Precondition(_) => Code::FailedPrecondition,
             ServiceError::Transport(status) => status.code(),
-            ServiceError::Storage { source, .. } if source.kind() == std::io::ErrorKind::StorageFull => {
-                Code::ResourceExhausted
-            }
-            ServiceError::Storage { .. } | ServiceError::Internal(_) => Code::Internal,
+            ServiceError::Storage { source, .. } => storage_code(source.kind()),
+            ServiceError::Internal(_) => Code::Internal,
         };
         Status::new(code, error.to_string())
+    }
+}
+
+/// The status of a failed read or write of the data directory: full (RESOURCE_EXHAUSTED) and read-only or
+/// forbidden (FAILED_PRECONDITION) are the operator's to fix; anything else is INTERNAL.
+fn storage_code(kind: std::io::ErrorKind) -> Code {
+    use std::io::ErrorKind::*;
+    match kind {
+        StorageFull | QuotaExceeded | FileTooLarge => Code::ResourceExhausted,
+        ReadOnlyFilesystem | PermissionDenied => Code::FailedPrecondition,
+        _ => Code::Internal,
     }
 }
 

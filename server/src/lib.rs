@@ -22,10 +22,11 @@ use rayd_engine::Device;
 use rayd_proto::rayd_server::RaydServer;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
+use tonic::codec::CompressionEncoding;
 use tonic::transport::server::TcpIncoming;
 
 pub use config::{Config, Limits};
-use service::RaydService;
+pub use service::RaydService;
 
 /// Serves the gRPC service on `listener` and the admin endpoint on `admin` until `shutdown` completes; then the
 /// health service reports NOT_SERVING, no new connection is accepted, and calls in flight finish before it
@@ -38,9 +39,14 @@ pub async fn run(
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let metrics = metrics::install();
     let max_message = usize::try_from(config.limits.max_message_bytes).unwrap_or(usize::MAX);
+    // Compressed messages are accepted, and replies compressed for clients that ask (grpc-accept-encoding).
     let rayd = RaydServer::new(RaydService::new(Device::all(), &config)?)
         .max_decoding_message_size(max_message)
-        .max_encoding_message_size(max_message);
+        .max_encoding_message_size(max_message)
+        .accept_compressed(CompressionEncoding::Zstd)
+        .accept_compressed(CompressionEncoding::Gzip)
+        .send_compressed(CompressionEncoding::Zstd)
+        .send_compressed(CompressionEncoding::Gzip);
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<RaydServer<RaydService>>().await;
     let reflection = tonic_reflection::server::Builder::configure()
@@ -66,7 +72,7 @@ pub async fn run(
         health.set_not_serving::<RaydServer<RaydService>>().await;
         let _ = stop.send(true);
     });
-    let mut builder = tonic::transport::Server::builder();
+    let mut builder = http2(tonic::transport::Server::builder(), &config.transport);
     if let Some(tls) = &config.tls {
         builder = builder.tls_config(server_tls(tls)?)?;
     }
@@ -84,6 +90,21 @@ pub async fn run(
     }
     tracing::info!("stopped");
     Ok(())
+}
+
+/// `server` with the HTTP/2 limits of `transport`.
+fn http2(server: tonic::transport::Server, transport: &config::TransportConfig) -> tonic::transport::Server {
+    let keepalive = transport.keepalive_interval_seconds;
+    server
+        .max_concurrent_streams(transport.max_concurrent_streams)
+        .http2_max_pending_accept_reset_streams(Some(transport.max_pending_accept_reset_streams as usize))
+        .http2_max_local_error_reset_streams(Some(transport.max_local_error_reset_streams as usize))
+        .http2_max_header_list_size(transport.max_header_list_bytes)
+        .max_frame_size(transport.max_frame_bytes)
+        .initial_stream_window_size(transport.stream_window_bytes)
+        .initial_connection_window_size(transport.connection_window_bytes)
+        .http2_keepalive_interval((keepalive > 0).then(|| std::time::Duration::from_secs(keepalive)))
+        .http2_keepalive_timeout(Some(std::time::Duration::from_secs(transport.keepalive_timeout_seconds)))
 }
 
 /// The rustls configuration of `tls`: the server's identity and, for mutual TLS, the CAs of client certificates.

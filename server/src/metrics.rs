@@ -1,9 +1,9 @@
-//! Prometheus metrics: calls, latency and errors per method, rays traced, accels and their bytes. Rendered at
+//! Prometheus metrics: calls, latency and errors per method and tenant, rays traced, accels and their bytes. Rendered at
 //! the admin endpoint's `/metrics`.
 
 use std::future::Future;
 use std::sync::OnceLock;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use metrics::{counter, gauge, histogram};
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
@@ -17,32 +17,54 @@ use crate::tenant::AccelEntry;
 const LATENCY_BUCKETS: [f64; 14] =
     [5e-5, 1e-4, 2.5e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 0.1, 0.5, 2.0, 10.0, 60.0];
 
-/// Installs the process-wide recorder once and returns its handle.
+/// How often the recorder's upkeep folds recorded latencies into their buckets.
+pub const UPKEEP_PERIOD: Duration = Duration::from_secs(5);
+
+/// Installs the process-wide recorder once, with its upkeep thread, and returns its handle.
+///
+/// The recorder keeps every recorded histogram sample until an upkeep (or a render of `/metrics`) folds them into
+/// the buckets: without the upkeep thread a server nobody scrapes grows by every call it answers (the hour soak
+/// measured +152 MiB over 2.1 M operations).
 pub fn install() -> PrometheusHandle {
     static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
     HANDLE
         .get_or_init(|| {
-            PrometheusBuilder::new()
+            let handle = PrometheusBuilder::new()
                 .set_buckets(&LATENCY_BUCKETS)
                 .expect("non-empty buckets")
                 .install_recorder()
-                .expect("the only metrics recorder of the process")
+                .expect("the only metrics recorder of the process");
+            let upkept = handle.clone();
+            std::thread::Builder::new()
+                .name("rayd-metrics-upkeep".into())
+                .spawn(move || {
+                    loop {
+                        std::thread::sleep(UPKEEP_PERIOD);
+                        upkept.run_upkeep();
+                    }
+                })
+                .expect("a thread for the metrics upkeep");
+            handle
         })
         .clone()
 }
 
-/// Runs one call's logic, records its latency and outcome, and turns its error into a status.
+/// Runs one call's logic for `tenant` (labels are bounded: tenants come from the configuration), records its latency
+/// and outcome, and turns its error into a status.
 pub async fn observe<T>(
     method: &'static str,
+    tenant: String,
     call: impl Future<Output = Result<T, ServiceError>>,
 ) -> Result<Response<T>, Status> {
     let start = Instant::now();
     let result = call.await.map_err(Status::from);
-    histogram!("rayd_request_duration_seconds", "method" => method).record(start.elapsed().as_secs_f64());
-    counter!("rayd_requests_total", "method" => method).increment(1);
+    let labels = [("method", method.to_owned()), ("tenant", tenant)];
+    histogram!("rayd_request_duration_seconds", &labels).record(start.elapsed().as_secs_f64());
+    counter!("rayd_requests_total", &labels).increment(1);
     if let Err(status) = &result {
-        counter!("rayd_errors_total", "method" => method, "code" => format!("{:?}", status.code())).increment(1);
-        tracing::info!(method, code = ?status.code(), message = status.message(), "request failed");
+        let code = ("code", format!("{:?}", status.code()));
+        counter!("rayd_errors_total", &[labels[0].clone(), labels[1].clone(), code]).increment(1);
+        tracing::info!(method, tenant = labels[1].1, code = ?status.code(), message = status.message(), "request failed");
     }
     result.map(Response::new)
 }
@@ -55,8 +77,14 @@ pub fn traced(tenant: &str, stats: &TraceStats) {
     counter!("rayd_trace_batches_total", "tenant" => tenant).increment(1);
 }
 
+/// Counts a piece of a queued trace of `tenant` by its `outcome`: `traced`, `failed`, or `skipped` because its trace
+/// was abandoned (the caller went away, its deadline passed, or another piece failed).
+pub fn piece(tenant: &str, outcome: &'static str) {
+    counter!("rayd_trace_pieces_total", "tenant" => tenant.to_owned(), "outcome" => outcome).increment(1);
+}
+
 /// Records how long a trace of `tenant` waited in its device's queue before its first piece started.
-pub fn queued(tenant: &str, waited: std::time::Duration) {
+pub fn queued(tenant: &str, waited: Duration) {
     histogram!("rayd_trace_queue_seconds", "tenant" => tenant.to_owned()).record(waited.as_secs_f64());
 }
 

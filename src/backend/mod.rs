@@ -2,6 +2,8 @@
 //! go through [`crate::Context`] and never see which backend runs their work.
 
 pub mod cpu;
+#[cfg(feature = "wgpu")]
+pub mod wgpu;
 
 use std::any::Any;
 use std::sync::Arc;
@@ -9,6 +11,7 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use crate::accel::{AccelKind, BuildOptions, MemoryUsage};
+use crate::backend::cpu::CpuAccel;
 use crate::context::Accel;
 use crate::error::Result;
 use crate::geometry::motion::{Bounds, TimeSpan};
@@ -20,6 +23,9 @@ use crate::query::{Query, TraceOutput, TraceStats};
 pub enum BackendKind {
     /// `obvhs`-built BVHs traced on the host's cores with rayon.
     Cpu,
+    /// The same BVHs, built on the host and traced by WGSL compute kernels on a wgpu (Vulkan) adapter (see
+    /// [`wgpu`](crate::backend::wgpu)). Listed only in builds with the `wgpu` feature.
+    Wgpu,
 }
 
 /// What a device is and can do.
@@ -68,6 +74,9 @@ pub trait BackendAccel: Any + Send + Sync {
     /// children by position in `children`, the accel's distinct children. A transform writes none: it is rebuilt
     /// from its input.
     fn encode(&self, children: &[Arc<Accel>], out: &mut Vec<u8>) -> Result<()>;
+    /// The host structure (the CPU backend's) it is built on, where the backend keeps one (both backends do):
+    /// instance accels and transforms read their children through it, and copies between devices start from it.
+    fn host(&self) -> Option<&CpuAccel>;
     /// For downcasting to the backend's own type.
     fn as_any(&self) -> &dyn Any;
 }
@@ -104,6 +113,9 @@ pub trait Backend: Send + Sync {
         payload: &[u8],
         children: &[Arc<Accel>],
     ) -> Result<Box<dyn BackendAccel>>;
+    /// An accel of this device made from `host`, the host structure of a geometry accel of another device (a copy
+    /// between devices).
+    fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>>;
     /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats>;
 }

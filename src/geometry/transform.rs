@@ -122,6 +122,14 @@ impl SrtKey {
         SrtKey { scale, rotation, translation: lerp(self.translation, next.translation, f) }
     }
 
+    /// The key as the wgpu kernel reads it: `sx a b sy c sz pvx pvy pvz` (S's upper triangle, then the pivot),
+    /// `qx qy qz qw` (R, unit length), `tx ty tz`.
+    #[cfg(feature = "wgpu")]
+    pub(crate) fn floats(&self) -> [f32; SRT_KEY_FLOATS] {
+        let ([s0, s1, s2, s3, s4, s5, s6, s7, s8], q, t) = (self.scale, self.rotation, self.translation);
+        [s0, s1, s2, s3, s4, s5, s6, s7, s8, q.x, q.y, q.z, q.w, t.x, t.y, t.z]
+    }
+
     /// C = T·R·S.
     fn combined(&self) -> Affine3A {
         Affine3A::from_rotation_translation(self.rotation, self.translation) * self.scale_map()

@@ -17,7 +17,8 @@ pub struct PreparedRay {
     pub direction: Vec3A,
     /// Smallest accepted `t` (inclusive).
     pub tmin: f32,
-    /// Largest accepted `t` (inclusive), as given by the caller.
+    /// Largest accepted `t` (inclusive), as given by the caller; −∞ (nothing accepted) when the direction is not
+    /// finite.
     pub tmax: f32,
     /// The time the scene is intersected at.
     pub time: f32,
@@ -66,7 +67,9 @@ impl PreparedRay {
             origin: ray.origin,
             direction: d,
             tmin: ray.tmin,
-            tmax: ray.tmax,
+            // A direction that is not finite hits nothing (`formats.proto`); a zero one needs no rule of its own
+            // (its shear is NaN, which no triangle test passes).
+            tmax: if d.is_finite() { ray.tmax } else { f32::NEG_INFINITY },
             time: ray.time,
             mask: ray.mask,
             visibility: ray.visibility,

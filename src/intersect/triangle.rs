@@ -18,6 +18,11 @@
 //! `dot(direction, normal) > 0`, which is `det < 0` here.
 //!
 //! **Range.** A hit is reported at `t` when `tmin ≤ t ≤ tmax`, both ends inclusive; the caller compares.
+//!
+//! **Magnitudes.** Everything is computed in f32 (the edge functions again in f64 when one is 0). Where the edge
+//! functions or `t` overflow (a triangle's extent squared times its distance from the ray origin beyond about
+//! 1e38, such as a triangle 1e13 across 5e12 away; extents beyond about 1e19; a `t` beyond f32's range) or the edge functions underflow to 0 (a triangle less than about 1e-19 across), the triangle is missed:
+//! never reported at an infinite or NaN `t`.
 
 use glam::Vec3;
 
@@ -80,7 +85,7 @@ pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> 
         return None;
     }
     let det = u + v + w;
-    if det == 0.0 || det.is_nan() {
+    if det == 0.0 || !det.is_finite() {
         return None;
     }
     if u == 0.0 || v == 0.0 || w == 0.0 {
@@ -96,8 +101,11 @@ pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> 
     let az = sz * a[kz];
     let bz = sz * b[kz];
     let cz = sz * c[kz];
-    let t_scaled = u * az + v * bz + w * cz;
-    Some(TriangleHit { t: t_scaled / det, u: v / det, v: w / det, back_face: det < 0.0 })
+    let t = (u * az + v * bz + w * cz) / det;
+    if !t.is_finite() {
+        return None;
+    }
+    Some(TriangleHit { t, u: v / det, v: w / det, back_face: det < 0.0 })
 }
 
 #[cfg(test)]

@@ -181,6 +181,9 @@ pub struct TraceStats {
     pub nodes_visited: u64,
     /// Ray/triangle tests made.
     pub triangle_tests: u64,
+    /// Nanoseconds the device spent in trace kernels, where it measures them (wgpu adapters with timestamp
+    /// queries); 0 elsewhere.
+    pub device_nanos: u64,
 }
 
 impl TraceStats {
@@ -190,5 +193,6 @@ impl TraceStats {
         self.rays_hit += other.rays_hit;
         self.nodes_visited += other.nodes_visited;
         self.triangle_tests += other.triangle_tests;
+        self.device_nanos += other.device_nanos;
     }
 }

@@ -38,6 +38,7 @@ const PAYLOAD_AT: usize = 40;
 fn backend_code(kind: BackendKind) -> u32 {
     match kind {
         BackendKind::Cpu => 1,
+        BackendKind::Wgpu => 2,
     }
 }
 

@@ -25,7 +25,7 @@
 //! | 8  | 4 | CRC-32 (IEEE, as `crc32fast` computes it) of every byte from offset 12 to the end of the blob |
 //! | 12 | 4 | byte-order marker `0x01020304` (bytes `04 03 02 01`) |
 //! | 16 | 4 | format version: 1 |
-//! | 20 | 4 | backend kind: 1 = CPU |
+//! | 20 | 4 | backend kind: 1 = CPU, 2 = wgpu (whose payload is the CPU layout: the host structure it uploads) |
 //! | 24 | 4 | the backend's payload layout version ([`Backend::layout_version`](crate::backend::Backend)); CPU: 1 |
 //! | 28 | 4 | accels embedded, at least 1 (the root is the last) |
 //! | 32 | 4 | external accels |

@@ -9,8 +9,8 @@ use std::process::{Child, ChildStdout, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Mutex, PoisonError};
 
-/// Each binary the tests run, and the workspace package that builds it.
-const BINARIES: [(&str, &str); 2] = [("rayd", "rayd-server"), ("rayctl", "rayd-client")];
+/// The workspace binaries the tests run.
+const BINARIES: [&str; 2] = ["rayd", "rayctl"];
 
 /// `target/<profile>`, where cargo puts the binaries: the test executable is `target/<profile>/deps/<test>`.
 fn profile_dir() -> PathBuf {
@@ -23,16 +23,15 @@ pub fn target_dir() -> PathBuf {
     profile_dir().parent().expect("target/<profile> has a parent").to_path_buf()
 }
 
-/// The path of the workspace binary `name` (`rayd` or `rayctl`). Its package is built once per test process,
-/// with the profile and target directory of this test, so a test never runs a stale binary.
+/// The path of the workspace binary `name` (`rayd` or `rayctl`). The workspace's binaries are built once per test
+/// process, with the profile and target directory of this test, so a test never runs a stale binary.
 pub fn binary(name: &str) -> PathBuf {
-    static BUILT: Mutex<Vec<&str>> = Mutex::new(Vec::new());
-    let (_, package) =
-        BINARIES.iter().find(|(binary, _)| *binary == name).unwrap_or_else(|| panic!("no workspace binary {name:?}"));
+    static BUILT: Mutex<bool> = Mutex::new(false);
+    assert!(BINARIES.contains(&name), "no workspace binary {name:?}");
     let mut built = BUILT.lock().unwrap_or_else(PoisonError::into_inner);
-    if !built.contains(package) {
-        cargo_build(package);
-        built.push(package);
+    if !*built {
+        cargo_build();
+        *built = true;
     }
     profile_dir().join(format!("{name}{}", std::env::consts::EXE_SUFFIX))
 }
@@ -46,21 +45,48 @@ pub fn without_rayd_env(command: &mut Command) -> &mut Command {
     command
 }
 
-/// Runs `cargo build --bins -p PACKAGE` for this test's profile and target directory.
-fn cargo_build(package: &str) {
+/// The variables cargo sets for a test process (names or name prefixes).
+const TEST_ENV_PREFIXES: [&str; 8] = [
+    "CARGO_MANIFEST_",
+    "CARGO_PKG_",
+    "CARGO_CRATE_NAME",
+    "CARGO_BIN_NAME",
+    "CARGO_PRIMARY_PACKAGE",
+    "CARGO_TARGET_TMPDIR",
+    "CARGO_RUSTC_CURRENT_DIR",
+    "OUT_DIR",
+];
+
+/// Runs `cargo build --workspace --bins --tests` for this test's profile and target directory. The whole workspace
+/// with its tests resolves dependency features exactly as `cargo test --workspace` does, so after that command only
+/// the binaries themselves are compiled; a build of one package (`-p`) would rebuild many dependencies with that
+/// package's own features (minutes, in CI).
+fn cargo_build() {
     let profile_dir = profile_dir();
     let profile = profile_dir.file_name().and_then(|p| p.to_str()).expect("a UTF-8 profile directory");
     let mut cargo = Command::new(env!("CARGO"));
     cargo
         .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .args(["build", "--bins", "-p", package, "--target-dir"])
+        .args(["build", "--workspace", "--bins", "--tests", "--target-dir"])
         .arg(target_dir());
     // `debug` holds the dev profile's output; every other profile's directory is named after it.
     if profile != "debug" {
         cargo.args(["--profile", profile]);
     }
+    // What cargo set for this test process (its package's name, manifest, …) is not the caller's environment:
+    // build scripts that watch such variables (ring's) would see a change and rebuild.
+    for (key, _) in std::env::vars_os() {
+        let key_text = key.to_string_lossy();
+        if TEST_ENV_PREFIXES.iter().any(|prefix| key_text.starts_with(prefix)) {
+            cargo.env_remove(&key);
+        }
+    }
     let output = cargo.output().expect("cargo runs");
-    assert!(output.status.success(), "cargo build -p {package} failed:\n{}", String::from_utf8_lossy(&output.stderr));
+    assert!(
+        output.status.success(),
+        "cargo build of the binaries failed:\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
 }
 
 /// A running `rayd`; killed if still running when dropped, its log printed if the test failed (and deleted
@@ -110,9 +136,40 @@ impl Daemon {
         Daemon { child, _stdout: stdout, grpc, admin, log }
     }
 
+    /// The process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// Resident memory of the process now (`VmRSS` of `/proc/PID/status`), in bytes.
+    pub fn resident_bytes(&self) -> u64 {
+        let status = std::fs::read_to_string(format!("/proc/{}/status", self.child.id())).expect("/proc/PID/status");
+        let line = status.lines().find(|l| l.starts_with("VmRSS:")).expect("a VmRSS line");
+        let kib: u64 = line.split_whitespace().nth(1).and_then(|v| v.parse().ok()).expect("VmRSS in kB");
+        kib * 1024
+    }
+
     /// The gRPC address.
     pub fn grpc_addr(&self) -> SocketAddr {
         self.grpc
+    }
+
+    /// A channel over one TCP connection to the gRPC service, and a handle on that connection to cut it as a
+    /// vanishing client would.
+    pub async fn cuttable_channel(&self) -> (tonic::transport::Channel, TcpStream) {
+        let connection = TcpStream::connect(self.grpc).expect("rayd accepts connections");
+        let kept = connection.try_clone().expect("the connection can be shared");
+        connection.set_nonblocking(true).expect("a non-blocking connection");
+        let mut connection = Some(connection);
+        let connector = tower::service_fn(move |_| {
+            let taken = connection.take().ok_or_else(|| std::io::Error::other("one connection only"));
+            async move {
+                let stream = tokio::net::TcpStream::from_std(taken?)?;
+                Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(stream))
+            }
+        });
+        let channel = tonic::transport::Channel::from_shared(self.url()).expect("a valid URL");
+        (channel.connect_with_connector(connector).await.expect("the channel connects"), kept)
     }
 
     /// The gRPC endpoint as a URL, `http://IP:PORT`, for tonic clients and `rayctl --server`.

@@ -1,4 +1,4 @@
-//! Mesh files into engine [`Mesh`]es, chosen by extension: OBJ through the engine (`tobj`), PLY through
+//! Mesh files into engine [`Mesh`]es, chosen by extension: OBJ through the engine, PLY through
 //! `ply-rs-bw`, glTF and GLB through `gltf`.
 
 mod gltf;
@@ -10,7 +10,7 @@ use std::path::Path;
 use rayd_engine::mesh::{LoadError, Mesh};
 
 /// Loads every triangle of a `.obj`, `.ply`, `.gltf` or `.glb` file (extension case ignored) into one mesh.
-/// Polygons are triangulated (OBJ by `tobj`, PLY as fans); glTF scenes are flattened with their node transforms.
+/// Polygons are triangulated (OBJ and PLY as fans); glTF scenes are flattened with their node transforms.
 pub fn load_mesh(path: impl AsRef<Path>) -> Result<Mesh, LoadError> {
     let path = path.as_ref();
     let extension = path.extension().and_then(|e| e.to_str()).unwrap_or_default().to_ascii_lowercase();

@@ -28,9 +28,12 @@ use bytes::Bytes;
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::Query;
+use rayd_engine::raygen::Generator;
+use rayd_engine::reduce::Reduction;
 use rayd_proto as proto;
 use rayd_proto::data_source::Source;
 use rayd_proto::stream_request::Op;
+use rayd_proto::trace_batch_request::Rays;
 use tokio::sync::{Mutex, Semaphore, mpsc};
 use tokio::task::JoinHandle;
 use tokio_stream::wrappers::ReceiverStream;
@@ -40,8 +43,9 @@ use state::{Expect, Outcome, Shared, Slot, Unanswered};
 
 use crate::build::{mesh_request, packed};
 use crate::client::{Client, RpcClient, copy_request};
-use crate::convert::trace_query_ref;
+use crate::convert::{generator_to_proto, reduction_to_proto, trace_query_ref};
 use crate::error::{Error, Result};
+use crate::reduce::ReducedTrace;
 use crate::trace::{TraceResult, inline_trace};
 
 /// Messages queued for the transport before enqueueing waits.
@@ -123,7 +127,8 @@ pub struct Stream {
 }
 
 impl Client {
-    /// Opens a stream (one `OpenStream` call).
+    /// Opens a stream (one `OpenStream` call). Its operations may name any accel, so it carries no scene of its
+    /// own: open it on [`Client::for_scene`] to send it to a scene's node behind a router.
     pub async fn create_stream(&self) -> Result<Stream> {
         let (sender, requests) = mpsc::channel(REQUEST_QUEUE);
         let mut responses = self.rpc.clone().open_stream(ReceiverStream::new(requests)).await?.into_inner();
@@ -229,6 +234,72 @@ impl Stream {
         let request = inline_trace(trace_query_ref(self.accel_ref(accel.into())?, query), rays);
         self.enqueue(Op::Trace(request), Vec::new(), Expect::Trace(*query, ray_bytes), |o| match o {
             Outcome::Trace(result) => Some(result.clone()),
+            _ => None,
+        })
+        .await
+    }
+
+    /// Enqueues a trace of the rays `generator` describes (made by the server), the hits returned in the answer.
+    pub async fn trace_generated<'a>(
+        &self,
+        accel: impl Into<AccelArg<'a>>,
+        query: &Query,
+        generator: &Generator,
+    ) -> Result<Operation<TraceResult>> {
+        let ray_bytes =
+            usize::try_from(generator.count()).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size());
+        query.output_layout(ray_bytes).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let request = proto::TraceBatchRequest {
+            query: Some(trace_query_ref(self.accel_ref(accel.into())?, query)),
+            rays: Some(Rays::RaysGenerator(generator_to_proto(generator))),
+            ..Default::default()
+        };
+        self.enqueue(Op::Trace(request), Vec::new(), Expect::Trace(*query, ray_bytes), |o| match o {
+            Outcome::Trace(result) => Some(result.clone()),
+            _ => None,
+        })
+        .await
+    }
+
+    /// Enqueues a trace of packed `rays` whose answer is only `reduction` of the hits.
+    pub async fn trace_reduced<'a>(
+        &self,
+        accel: impl Into<AccelArg<'a>>,
+        query: &Query,
+        rays: Bytes,
+        reduction: &Reduction,
+    ) -> Result<Operation<ReducedTrace>> {
+        self.enqueue_reduced(accel.into(), query, Rays::RaysInline(rays), reduction).await
+    }
+
+    /// Enqueues a trace of the rays `generator` describes (made by the server) whose answer is only `reduction` of
+    /// the hits: neither rays nor hits cross the network.
+    pub async fn trace_generated_reduced<'a>(
+        &self,
+        accel: impl Into<AccelArg<'a>>,
+        query: &Query,
+        generator: &Generator,
+        reduction: &Reduction,
+    ) -> Result<Operation<ReducedTrace>> {
+        self.enqueue_reduced(accel.into(), query, Rays::RaysGenerator(generator_to_proto(generator)), reduction).await
+    }
+
+    /// Enqueues a reduced trace of `rays`.
+    async fn enqueue_reduced(
+        &self,
+        accel: AccelArg<'_>,
+        query: &Query,
+        rays: Rays,
+        reduction: &Reduction,
+    ) -> Result<Operation<ReducedTrace>> {
+        let request = proto::TraceBatchRequest {
+            query: Some(trace_query_ref(self.accel_ref(accel)?, query)),
+            rays: Some(rays),
+            reduction: Some(reduction_to_proto(reduction)),
+            ..Default::default()
+        };
+        self.enqueue(Op::Trace(request), Vec::new(), Expect::Reduced, |o| match o {
+            Outcome::Reduced(reduced) => Some(reduced.clone()),
             _ => None,
         })
         .await

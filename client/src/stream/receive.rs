@@ -9,6 +9,7 @@ use rayd_proto::stream_response::Kind;
 use tonic::{Code, Status, Streaming};
 
 use super::state::{Expect, Outcome, Shared};
+use crate::reduce::ReducedTrace;
 use crate::trace::TraceResult;
 
 /// Reads answers until the server ends the stream or the call breaks; then fails whatever is still unanswered.
@@ -60,6 +61,9 @@ fn outcome(id: u64, expect: &Expect, produced: Option<Produced>, data: Bytes) ->
                 .map(Outcome::Trace)
                 .map_err(|e| Status::internal(format!("operation {id}: {e}")))
         }
+        (Expect::Reduced, Some(Produced::Trace(response))) => ReducedTrace::from_response(response)
+            .map(Outcome::Reduced)
+            .map_err(|e| Status::internal(format!("operation {id}: {e}"))),
         _ => Err(wrong()),
     }
 }

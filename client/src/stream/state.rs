@@ -10,6 +10,7 @@ use rayd_proto as proto;
 use tokio::sync::{OwnedSemaphorePermit, watch};
 use tonic::Status;
 
+use crate::reduce::ReducedTrace;
 use crate::trace::TraceResult;
 
 /// What an operation's answer is made into.
@@ -23,6 +24,8 @@ pub(crate) enum Expect {
     Accel,
     /// Hits of `rays` bytes traced with the query.
     Trace(Query, usize),
+    /// A reduction of a trace's hits.
+    Reduced,
     /// The downloaded bytes.
     Download,
 }
@@ -38,6 +41,8 @@ pub(crate) enum Outcome {
     Accel(proto::AccelInfo),
     /// A trace's hits.
     Trace(TraceResult),
+    /// A reduction of a trace's hits.
+    Reduced(ReducedTrace),
     /// Downloaded bytes.
     Bytes(Bytes),
 }

@@ -5,6 +5,7 @@
 //! `RAYD_LIMITS_MAX_RAYS_PER_BATCH=1000000`; top-level keys as `RAYD_<KEY>` (`RAYD_LISTEN`).
 
 mod tenants;
+mod transport;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -12,6 +13,7 @@ use std::path::PathBuf;
 use rayd_engine::geometry::motion::MAX_MOTION_KEYS;
 use serde::{Deserialize, Serialize};
 pub use tenants::{KeyConfig, MIN_KEY_CHARS, Role, TenantConfig};
+pub use transport::TransportConfig;
 
 /// The most worker threads a device's scheduler may be given.
 pub const MAX_WORKERS: u32 = 1024;
@@ -42,14 +44,25 @@ pub struct Config {
     pub insecure: bool,
     /// How device work is scheduled.
     pub scheduler: SchedulerConfig,
+    /// HTTP/2 limits of the gRPC connections.
+    pub transport: TransportConfig,
 }
 
 /// The fair schedulers of the devices (traces are queued per tenant and served by share; see `tenants.share`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct SchedulerConfig {
     /// Threads that trace on the CPU device, 0 to 1024; 0: one per core.
     pub workers: u32,
+    /// The tracing threads' nice value, 0 to 19 (Linux): above the threads that receive calls and send answers, so
+    /// those get a core at once and small traces are not held up behind large ones on a busy machine.
+    pub worker_nice: u32,
+}
+
+impl Default for SchedulerConfig {
+    fn default() -> Self {
+        SchedulerConfig { workers: 0, worker_nice: 10 }
+    }
 }
 
 /// TLS of the gRPC service (rustls).
@@ -77,6 +90,7 @@ impl Default for Config {
             tls: None,
             insecure: false,
             scheduler: SchedulerConfig::default(),
+            transport: TransportConfig::default(),
         }
     }
 }
@@ -99,9 +113,13 @@ pub struct Limits {
     pub max_buffer_bytes: u64,
     /// Most buffers per tenant.
     pub max_buffers: u32,
-    /// Per `TraceStream`: chunks traced or waiting to be sent at once. Per `OpenStream` stream: messages read
-    /// ahead of the running operation, and answers waiting to be sent.
+    /// Per `TraceStream`: chunks read ahead of the one being traced, and answers waiting to be sent. Per
+    /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent.
     pub stream_window: u32,
+    /// Seconds a `TraceStream` or `OpenStream` stream waits with its answers unread (all `stream_window` places
+    /// full) before it is failed with RESOURCE_EXHAUSTED and the answers it holds are dropped; 0 waits as long as
+    /// the call lasts.
+    pub stream_stall_seconds: u64,
     /// Most `OpenStream` streams open at once per tenant.
     pub max_streams: u32,
     /// Deepest traversable graph an accel may head (a geometry accel is 1 level, each instance accel or transform
@@ -131,6 +149,7 @@ impl Default for Limits {
             max_buffer_bytes: 4 << 30,
             max_buffers: 4096,
             stream_window: 4,
+            stream_stall_seconds: 60,
             max_streams: 64,
             max_graph_depth: rayd_engine::geometry::MAX_GRAPH_DEPTH,
             max_motion_keys: 64,
@@ -143,6 +162,11 @@ impl Default for Limits {
 }
 
 impl Limits {
+    /// How long a stream's answers may wait unread ([`Limits::stream_stall_seconds`]); `None` for no limit.
+    pub fn stream_stall(&self) -> Option<std::time::Duration> {
+        (self.stream_stall_seconds > 0).then(|| std::time::Duration::from_secs(self.stream_stall_seconds))
+    }
+
     /// Checks the limits that have a range; errors name the key under `section`.
     fn check(&self, section: &str) -> Result<(), String> {
         let depth = self.max_graph_depth;
@@ -196,6 +220,13 @@ impl Config {
         inherit_limits(&mut table);
         let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
         config.limits.check("limits").map_err(ConfigError::Invalid)?;
+        config.transport.check().map_err(ConfigError::Invalid)?;
+        if config.scheduler.worker_nice > 19 {
+            return Err(ConfigError::Invalid(format!(
+                "scheduler.worker_nice = {} must be 0 to 19",
+                config.scheduler.worker_nice
+            )));
+        }
         if config.scheduler.workers > MAX_WORKERS {
             return Err(ConfigError::Invalid(format!(
                 "scheduler.workers = {} must be 0 (one per core) to {MAX_WORKERS}",

@@ -17,6 +17,11 @@ use rayd_engine::Device;
 use rayd_engine::backend::BackendKind;
 use rayd_engine::query::CHUNK_RAYS;
 
+/// Rays per piece on a GPU: large enough for the backend to overlap its transfers with tracing within a piece
+/// (several of its chunks), small enough that another tenant's trace waits for milliseconds, not for a whole
+/// batch.
+pub const GPU_PIECE_RAYS: usize = 1 << 20;
+
 /// Work the scheduler runs; it reports its own results.
 pub type Task = Box<dyn FnOnce() + Send>;
 
@@ -104,31 +109,38 @@ impl Shared {
 
 impl Scheduler {
     /// A scheduler with `workers` threads (at least one) named after `device`, cutting traces into pieces of
-    /// `piece_rays` rays.
-    pub fn new(device: &str, workers: usize, piece_rays: usize) -> Scheduler {
+    /// `piece_rays` rays. The workers run at nice value `nice` (0 to 19, above the runtime's threads' 0), so that
+    /// the threads that receive calls and send answers get a core as soon as they have work: a small trace is
+    /// then queued, and answered, without waiting for the scheduler of the operating system.
+    pub fn new(device: &str, workers: usize, piece_rays: usize, nice: u32) -> Scheduler {
         let slots = workers.max(1);
         let shared = Arc::new(Shared { state: Mutex::default(), changed: Condvar::new(), slots });
         for worker in 0..slots {
             let shared = Arc::clone(&shared);
             std::thread::Builder::new()
                 .name(format!("rayd-{device}-{worker}"))
-                .spawn(move || shared.work())
+                .spawn(move || {
+                    lower_priority(nice);
+                    shared.work()
+                })
                 .expect("a worker thread can be started");
         }
         Scheduler { shared, piece_rays: piece_rays.max(1) }
     }
 
-    /// The scheduler of `device`: on the CPU one worker per core (`workers` 0) or `workers`, and pieces of one
-    /// engine chunk.
-    pub fn for_device(device: &Device, workers: usize) -> Scheduler {
+    /// The scheduler of `device`: on the CPU one worker per core (`cpu_workers` 0) or `cpu_workers`, and pieces
+    /// of one engine chunk; on a GPU one worker (the device runs one trace at a time anyway) and pieces of
+    /// [`GPU_PIECE_RAYS`].
+    pub fn for_device(device: &Device, cpu_workers: usize, nice: u32) -> Scheduler {
         let info = device.info();
         let (workers, piece_rays) = match info.kind {
             BackendKind::Cpu => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-                (if workers == 0 { cores } else { workers }, CHUNK_RAYS)
+                (if cpu_workers == 0 { cores } else { cpu_workers }, CHUNK_RAYS)
             }
+            BackendKind::Wgpu => (1, GPU_PIECE_RAYS),
         };
-        Scheduler::new(&info.id, workers, piece_rays)
+        Scheduler::new(&info.id, workers, piece_rays, nice)
     }
 
     /// Rays per piece: a trace of more rays is cut into pieces of this many.
@@ -173,9 +185,10 @@ pub struct Schedulers {
 }
 
 impl Schedulers {
-    /// One scheduler per device; `cpu_workers` threads on the CPU (0: one per core).
-    pub fn new(devices: &[Device], cpu_workers: usize) -> Schedulers {
-        let by_device = devices.iter().map(|d| (d.info().id.clone(), Scheduler::for_device(d, cpu_workers))).collect();
+    /// One scheduler per device; `cpu_workers` threads on the CPU (0: one per core), all at nice value `nice`.
+    pub fn new(devices: &[Device], cpu_workers: usize, nice: u32) -> Schedulers {
+        let by_device =
+            devices.iter().map(|d| (d.info().id.clone(), Scheduler::for_device(d, cpu_workers, nice))).collect();
         Schedulers { by_device }
     }
 
@@ -183,6 +196,19 @@ impl Schedulers {
     pub fn get(&self, id: &str) -> Option<&Scheduler> {
         self.by_device.get(id)
     }
+}
+
+/// Sets the calling thread's nice value to `nice` (on Linux a nice value is a thread's own); elsewhere, or if the
+/// system refuses, the thread keeps its priority.
+fn lower_priority(nice: u32) {
+    #[cfg(target_os = "linux")]
+    // SAFETY: setpriority takes plain integers and changes only the calling thread (`who` 0); it cannot fail
+    // unsafely, only return an error, which is ignored (the thread then keeps its priority).
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, nice.min(19) as libc::c_int);
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = nice;
 }
 
 #[cfg(test)]
@@ -193,7 +219,7 @@ mod tests {
     #[test]
     fn queued_tasks_of_a_newcomer_overtake_a_flood() {
         // One worker, held by a task until released, so the order of the rest is the queue's alone.
-        let scheduler = Scheduler::new("test", 1, 8);
+        let scheduler = Scheduler::new("test", 1, 8, 0);
         let (release, gate) = mpsc::channel::<()>();
         let (done, finished) = mpsc::channel::<&'static str>();
         let flood = Flow { name: "a".into(), share: 1 };
@@ -215,7 +241,7 @@ mod tests {
 
     #[test]
     fn an_idle_scheduler_lends_its_slots_to_callers() {
-        let scheduler = Scheduler::new("test", 2, 8);
+        let scheduler = Scheduler::new("test", 2, 8, 0);
         let first = scheduler.try_slot().expect("idle");
         let second = scheduler.try_slot().expect("two slots");
         assert!(scheduler.try_slot().is_none(), "both slots taken");
@@ -226,7 +252,7 @@ mod tests {
 
     #[test]
     fn workers_wait_for_slots_that_callers_hold() {
-        let scheduler = Scheduler::new("test", 1, 8);
+        let scheduler = Scheduler::new("test", 1, 8, 0);
         let slot = scheduler.try_slot().expect("idle");
         let (done, finished) = mpsc::channel();
         scheduler.submit(&Flow { name: "a".into(), share: 1 }, [(1, Box::new(move || done.send(()).unwrap()) as Task)]);

@@ -9,7 +9,7 @@ use tokio_stream::Stream;
 use tonic::Streaming;
 
 use crate::error::{ServiceError, ServiceResult};
-use crate::tenant::{BufferEntry, Tenant};
+use crate::tenant::{BufferEntry, Reservation, Tenant};
 
 /// Bytes per downloaded message when the request gives none.
 const DEFAULT_CHUNK_BYTES: u64 = 1 << 20;
@@ -42,15 +42,17 @@ pub struct Upload {
     header: pb::UploadBufferHeader,
     /// What arrived so far.
     data: BytesMut,
+    /// The declared size, reserved against the tenant's `max_total_buffer_bytes` until the upload ends.
+    reserved: Reservation,
 }
 
 impl Upload {
     /// Starts an upload after checking its name and declared size; a header alone never reserves the whole
     /// declared size.
     pub fn begin(tenant: &Tenant, header: pb::UploadBufferHeader) -> ServiceResult<Upload> {
-        tenant.check_new_buffer(&header.name, header.size_bytes)?;
+        let reserved = tenant.reserve_upload(&header.name, header.size_bytes)?;
         let data = BytesMut::with_capacity(header.size_bytes.min(UPLOAD_RESERVE_BYTES) as usize);
-        Ok(Upload { header, data })
+        Ok(Upload { header, data, reserved })
     }
 
     /// Appends `chunk`; more than the declared size is INVALID_ARGUMENT.
@@ -83,7 +85,10 @@ impl Upload {
                 format!("{} bytes received, {} declared", self.received(), self.header.size_bytes),
             ));
         }
-        tenant.create_buffer(&self.header.name, self.data.freeze())
+        let Upload { header, data, reserved } = self;
+        // The buffer's own bytes take the reservation's place.
+        drop(reserved);
+        tenant.create_buffer(&header.name, data.freeze())
     }
 }
 

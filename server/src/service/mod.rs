@@ -4,6 +4,7 @@
 mod accels;
 mod buffers;
 mod inputs;
+mod outbox;
 mod stream;
 mod trace;
 
@@ -37,12 +38,13 @@ impl RaydService {
     /// held to its limits; with a data directory, each tenant's objects are restored from its directory (what
     /// cannot be restored is logged and skipped) and persisted there from now on.
     pub fn new(devices: Vec<Device>, config: &Config) -> Result<RaydService, ServiceError> {
-        let schedulers = Arc::new(Schedulers::new(&devices, config.scheduler.workers as usize));
+        let schedulers =
+            Arc::new(Schedulers::new(&devices, config.scheduler.workers as usize, config.scheduler.worker_nice));
         let make = |name: &str, limits: Limits, share: u32| -> Result<Arc<Tenant>, ServiceError> {
             let mut tenant = Tenant::new(name, limits, share, &devices, Arc::clone(&schedulers));
             if let Some(dir) = &config.data_dir {
                 let store = Store::open(dir, name)
-                    .map_err(|e| ServiceError::storage(format!("tenant {name:?}'s directory"), e))?;
+                    .map_err(|e| ServiceError::storage(format!("opening tenant {name:?}'s directory"), e))?;
                 tenant = tenant.with_store(store);
                 restore_logged(name, &tenant)?;
             }
@@ -103,7 +105,7 @@ impl Rayd for RaydService {
         request: Request<pb::GetServerInfoRequest>,
     ) -> Result<Response<pb::ServerInfo>, Status> {
         let tenant = self.caller(&request, "GetServerInfo", Role::Read)?;
-        observe("GetServerInfo", async {
+        observe("GetServerInfo", tenant.name().to_owned(), async {
             Ok(pb::ServerInfo {
                 version: env!("CARGO_PKG_VERSION").into(),
                 limits: Some(convert::limits(tenant.limits())),
@@ -117,8 +119,8 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::ListDevicesRequest>,
     ) -> Result<Response<pb::ListDevicesResponse>, Status> {
-        self.caller(&request, "ListDevices", Role::Read)?;
-        observe("ListDevices", async {
+        let tenant = self.caller(&request, "ListDevices", Role::Read)?;
+        observe("ListDevices", tenant.name().to_owned(), async {
             let devices = self.devices.iter().map(|d| convert::device(d.info())).collect();
             Ok(pb::ListDevicesResponse { devices })
         })
@@ -129,8 +131,8 @@ impl Rayd for RaydService {
         &self,
         request: Request<pb::ListTenantsRequest>,
     ) -> Result<Response<pb::ListTenantsResponse>, Status> {
-        self.caller(&request, "ListTenants", Role::Admin)?;
-        observe("ListTenants", async {
+        let tenant = self.caller(&request, "ListTenants", Role::Admin)?;
+        observe("ListTenants", tenant.name().to_owned(), async {
             let tenants = self
                 .tenants
                 .all()
@@ -152,7 +154,7 @@ impl Rayd for RaydService {
         request: Request<Streaming<pb::UploadBufferRequest>>,
     ) -> Result<Response<pb::BufferInfo>, Status> {
         let tenant = self.caller(&request, "UploadBuffer", Role::Write)?;
-        observe("UploadBuffer", buffers::upload(tenant, request.into_inner())).await
+        observe("UploadBuffer", tenant.name().to_owned(), buffers::upload(tenant, request.into_inner())).await
     }
 
     type DownloadBufferStream = buffers::ChunkStream;
@@ -162,7 +164,8 @@ impl Rayd for RaydService {
         request: Request<pb::DownloadBufferRequest>,
     ) -> Result<Response<Self::DownloadBufferStream>, Status> {
         let tenant = self.caller(&request, "DownloadBuffer", Role::Read)?;
-        observe("DownloadBuffer", async { buffers::download(&tenant, request.get_ref()) }).await
+        observe("DownloadBuffer", tenant.name().to_owned(), async { buffers::download(&tenant, request.get_ref()) })
+            .await
     }
 
     async fn delete_buffer(
@@ -170,7 +173,7 @@ impl Rayd for RaydService {
         request: Request<pb::DeleteBufferRequest>,
     ) -> Result<Response<pb::DeleteBufferResponse>, Status> {
         let tenant = self.caller(&request, "DeleteBuffer", Role::Write)?;
-        observe("DeleteBuffer", async {
+        observe("DeleteBuffer", tenant.name().to_owned(), async {
             buffers::delete(&tenant, request.get_ref())?;
             Ok(pb::DeleteBufferResponse {})
         })
@@ -182,7 +185,7 @@ impl Rayd for RaydService {
         request: Request<pb::ListBuffersRequest>,
     ) -> Result<Response<pb::ListBuffersResponse>, Status> {
         let tenant = self.caller(&request, "ListBuffers", Role::Read)?;
-        observe("ListBuffers", async {
+        observe("ListBuffers", tenant.name().to_owned(), async {
             Ok(pb::ListBuffersResponse { buffers: tenant.buffers().iter().map(buffers::info).collect() })
         })
         .await
@@ -193,7 +196,7 @@ impl Rayd for RaydService {
         request: Request<pb::ComputeMemoryUsageRequest>,
     ) -> Result<Response<pb::MemoryUsage>, Status> {
         let tenant = self.caller(&request, "ComputeMemoryUsage", Role::Read)?;
-        observe("ComputeMemoryUsage", async {
+        observe("ComputeMemoryUsage", tenant.name().to_owned(), async {
             let request = request.into_inner();
             let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
             let options = inputs::options(&tenant, request.options.as_ref())?;
@@ -205,22 +208,22 @@ impl Rayd for RaydService {
 
     async fn build_accel(&self, request: Request<pb::BuildAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.caller(&request, "BuildAccel", Role::Write)?;
-        observe("BuildAccel", accels::build(tenant, request.into_inner())).await
+        observe("BuildAccel", tenant.name().to_owned(), accels::build(tenant, request.into_inner())).await
     }
 
     async fn update_accel(&self, request: Request<pb::UpdateAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.caller(&request, "UpdateAccel", Role::Write)?;
-        observe("UpdateAccel", accels::update(tenant, request.into_inner())).await
+        observe("UpdateAccel", tenant.name().to_owned(), accels::update(tenant, request.into_inner())).await
     }
 
     async fn copy_accel(&self, request: Request<pb::CopyAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.caller(&request, "CopyAccel", Role::Write)?;
-        observe("CopyAccel", accels::copy(tenant, request.into_inner())).await
+        observe("CopyAccel", tenant.name().to_owned(), accels::copy(tenant, request.into_inner())).await
     }
 
     async fn get_accel(&self, request: Request<pb::GetAccelRequest>) -> Result<Response<pb::AccelInfo>, Status> {
         let tenant = self.caller(&request, "GetAccel", Role::Read)?;
-        observe("GetAccel", async {
+        observe("GetAccel", tenant.name().to_owned(), async {
             Ok(accels::info(&accels::resolve(&tenant, request.get_ref().accel.as_ref(), "accel")?))
         })
         .await
@@ -231,7 +234,7 @@ impl Rayd for RaydService {
         request: Request<pb::ListAccelsRequest>,
     ) -> Result<Response<pb::ListAccelsResponse>, Status> {
         let tenant = self.caller(&request, "ListAccels", Role::Read)?;
-        observe("ListAccels", async {
+        observe("ListAccels", tenant.name().to_owned(), async {
             Ok(pb::ListAccelsResponse { accels: tenant.accels().iter().map(accels::info).collect() })
         })
         .await
@@ -242,7 +245,7 @@ impl Rayd for RaydService {
         request: Request<pb::DestroyAccelRequest>,
     ) -> Result<Response<pb::DestroyAccelResponse>, Status> {
         let tenant = self.caller(&request, "DestroyAccel", Role::Write)?;
-        observe("DestroyAccel", async {
+        observe("DestroyAccel", tenant.name().to_owned(), async {
             accels::destroy(&tenant, request.get_ref())?;
             Ok(pb::DestroyAccelResponse {})
         })
@@ -251,7 +254,7 @@ impl Rayd for RaydService {
 
     async fn save_accel(&self, request: Request<pb::SaveAccelRequest>) -> Result<Response<pb::BufferInfo>, Status> {
         let tenant = self.caller(&request, "SaveAccel", Role::Write)?;
-        observe("SaveAccel", accels::save(tenant, request.into_inner())).await
+        observe("SaveAccel", tenant.name().to_owned(), accels::save(tenant, request.into_inner())).await
     }
 
     async fn load_accel(
@@ -259,7 +262,7 @@ impl Rayd for RaydService {
         request: Request<pb::LoadAccelRequest>,
     ) -> Result<Response<pb::LoadAccelResponse>, Status> {
         let tenant = self.caller(&request, "LoadAccel", Role::Write)?;
-        observe("LoadAccel", accels::load(tenant, request.into_inner())).await
+        observe("LoadAccel", tenant.name().to_owned(), accels::load(tenant, request.into_inner())).await
     }
 
     async fn trace_batch(
@@ -267,7 +270,7 @@ impl Rayd for RaydService {
         request: Request<pb::TraceBatchRequest>,
     ) -> Result<Response<pb::TraceBatchResponse>, Status> {
         let tenant = self.caller(&request, "TraceBatch", Role::Read)?;
-        observe("TraceBatch", trace::batch(tenant, request.into_inner())).await
+        observe("TraceBatch", tenant.name().to_owned(), trace::batch(tenant, request.into_inner())).await
     }
 
     type TraceStreamStream = trace::ResponseStream;
@@ -277,7 +280,7 @@ impl Rayd for RaydService {
         request: Request<Streaming<pb::TraceStreamRequest>>,
     ) -> Result<Response<Self::TraceStreamStream>, Status> {
         let tenant = self.caller(&request, "TraceStream", Role::Read)?;
-        observe("TraceStream", trace::stream(tenant, request.into_inner())).await
+        observe("TraceStream", tenant.name().to_owned(), trace::stream(tenant, request.into_inner())).await
     }
 
     type OpenStreamStream = stream::ResponseStream;
@@ -287,7 +290,7 @@ impl Rayd for RaydService {
         request: Request<Streaming<pb::StreamRequest>>,
     ) -> Result<Response<Self::OpenStreamStream>, Status> {
         let tenant = self.caller(&request, "OpenStream", Role::Write)?;
-        observe("OpenStream", async { stream::open(tenant, request.into_inner()) }).await
+        observe("OpenStream", tenant.name().to_owned(), async { stream::open(tenant, request.into_inner()) }).await
     }
 
     async fn cancel_stream(
@@ -295,7 +298,7 @@ impl Rayd for RaydService {
         request: Request<pb::CancelStreamRequest>,
     ) -> Result<Response<pb::CancelStreamResponse>, Status> {
         let tenant = self.caller(&request, "CancelStream", Role::Write)?;
-        observe("CancelStream", async {
+        observe("CancelStream", tenant.name().to_owned(), async {
             tenant.streams().cancel(request.get_ref().stream_id)?;
             Ok(pb::CancelStreamResponse {})
         })

@@ -5,16 +5,17 @@ use std::sync::Arc;
 
 use bytes::Bytes;
 use rayd_engine::query::Query;
+use rayd_engine::reduce::Reduction;
 use rayd_proto as pb;
 use tokio::sync::mpsc;
 use tokio_stream::Stream;
-use tokio_stream::wrappers::ReceiverStream;
 use tonic::{Status, Streaming};
 
+use super::outbox::outbox;
 use super::{accels, blocking, buffers};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
-use crate::tenant::{AccelEntry, Tenant, TraceResult};
+use crate::tenant::{AccelEntry, Rays, Tenant, TraceResult};
 
 /// The response stream of `TraceStream`.
 pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::TraceStreamResponse, Status>> + Send>>;
@@ -29,9 +30,9 @@ fn resolve_query(tenant: &Tenant, query: Option<&pb::TraceQuery>) -> ServiceResu
     Ok((accel, convert::query(query, tenant.limits().max_hits_per_ray)?))
 }
 
-/// Checks that the hits and counts of `rays` bytes fit in one reply message.
-fn check_reply_size(tenant: &Tenant, query: &Query, rays: usize) -> ServiceResult<()> {
-    let layout = query.output_layout(rays)?;
+/// Checks that the hits and counts of `rays` rays fit in one reply message.
+fn check_reply_size(tenant: &Tenant, query: &Query, rays: u64) -> ServiceResult<()> {
+    let layout = query.output_layout(rays as usize * query.ray_format.size())?;
     ServiceError::check_limit(
         || {
             format!(
@@ -45,9 +46,16 @@ fn check_reply_size(tenant: &Tenant, query: &Query, rays: usize) -> ServiceResul
     )
 }
 
-/// Traces `rays` (through the fair scheduler of the accel's device) and counts them in the metrics.
-async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Bytes) -> ServiceResult<TraceResult> {
-    let result = tenant.trace(&accel, &query, rays).await?;
+/// Traces `rays` (through the fair scheduler of the accel's device), reduced by `reduction` if given, and counts
+/// them in the metrics.
+async fn trace(
+    tenant: &Arc<Tenant>,
+    accel: AccelEntry,
+    query: Query,
+    rays: Rays,
+    reduction: Option<Arc<Reduction>>,
+) -> ServiceResult<TraceResult> {
+    let result = tenant.trace(&accel, &query, rays, reduction).await?;
     crate::metrics::traced(tenant.name(), &result.stats);
     Ok(result)
 }
@@ -56,20 +64,40 @@ async fn trace(tenant: &Arc<Tenant>, accel: AccelEntry, query: Query, rays: Byte
 pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> ServiceResult<pb::TraceBatchResponse> {
     let (accel, query) = resolve_query(&tenant, request.query.as_ref())?;
     let rays = match request.rays {
-        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => bytes,
+        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => Rays::Packed(bytes),
         Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => {
-            buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1
+            Rays::Packed(buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1)
         }
-        None => return Err(ServiceError::invalid("rays", "rays_inline or rays_buffer is required")),
+        Some(pb::trace_batch_request::Rays::RaysGenerator(generator)) => {
+            let buffer =
+                |reference: &pb::BufferRef, field: &str| Ok(buffers::resolve(&tenant, Some(reference), field)?.1);
+            let (generator, range) = convert::generator(&generator, &buffer)?;
+            Rays::Generated(Arc::new(generator), range)
+        }
+        None => return Err(ServiceError::invalid("rays", "rays_inline, rays_buffer or rays_generator is required")),
     };
+    let ray_count = rays.count(query.ray_format.size());
+    tenant.check_batch_rays(ray_count)?;
     let to_buffer = !request.hits_buffer_name.is_empty();
+    if let Some(reduction) = &request.reduction {
+        if to_buffer {
+            return Err(ServiceError::invalid("hits_buffer_name", "cannot be combined with a reduction"));
+        }
+        let generator = match &rays {
+            Rays::Generated(generator, _) => Some(generator.as_ref()),
+            Rays::Packed(_) => None,
+        };
+        let reduction = convert::reduction(reduction, generator)?;
+        reduction.check(&query, ray_count)?;
+        return reduced(&tenant, accel, query, rays, reduction).await;
+    }
     if to_buffer {
-        let layout = query.output_layout(rays.len())?;
+        let layout = query.output_layout(ray_count as usize * query.ray_format.size())?;
         tenant.check_new_buffer(&request.hits_buffer_name, layout.hits as u64)?;
     } else {
-        check_reply_size(&tenant, &query, rays.len())?;
+        check_reply_size(&tenant, &query, ray_count)?;
     }
-    let result = trace(&tenant, accel, query, rays).await?;
+    let result = trace(&tenant, accel, query, rays, None).await?;
     let stats = Some(convert::trace_stats(&result.stats, result.trace_ns));
     if !to_buffer {
         return Ok(pb::TraceBatchResponse { hits: result.hits, counts: result.counts, stats, ..Default::default() });
@@ -100,8 +128,33 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     .await
 }
 
-/// Ordered chunks: each ray chunk is traced and answered in turn; at most `stream_window` answers wait to be sent,
-/// and no chunk is read while they do, so memory stays bounded on both sides.
+/// One batch reduced by `reduction` (checked): only the reduction comes back, if it fits a message.
+async fn reduced(
+    tenant: &Arc<Tenant>,
+    accel: AccelEntry,
+    query: Query,
+    rays: Rays,
+    reduction: Reduction,
+) -> ServiceResult<pb::TraceBatchResponse> {
+    let result = trace(tenant, accel, query, rays, Some(Arc::new(reduction))).await?;
+    let reduced = result.reduced.expect("a reduced trace has a reduction");
+    ServiceError::check_limit(
+        || format!("the reduction's {} bytes; reduce ranges of the batch in several calls", reduced.bytes.len()),
+        reduced.bytes.len() as u64 + REPLY_OVERHEAD_BYTES,
+        "max_message_bytes",
+        tenant.limits().max_message_bytes,
+    )?;
+    Ok(pb::TraceBatchResponse {
+        reduced: Some(pb::ReducedHits { data: reduced.bytes, dropped: reduced.dropped }),
+        stats: Some(convert::trace_stats(&result.stats, result.trace_ns)),
+        ..Default::default()
+    })
+}
+
+/// Ordered chunks: each ray chunk is traced and answered in turn. A reader takes up to `stream_window` chunks off
+/// the connection ahead of the one being traced, so receiving overlaps tracing, and up to `stream_window` answers
+/// wait to be sent while the next chunk traces; past those windows nothing more is read, so memory stays bounded on
+/// both sides. A client that reads no answer for `stream_stall_seconds` gets the stream failed (the outbox).
 pub async fn stream(
     tenant: Arc<Tenant>,
     mut requests: Streaming<pb::TraceStreamRequest>,
@@ -112,31 +165,44 @@ pub async fn stream(
         _ => return Err(ServiceError::invalid("query", "the first message of a trace stream must be its query")),
     };
     let (accel, query) = resolve_query(&tenant, Some(&query))?;
-    let (sender, receiver) = mpsc::channel(tenant.limits().stream_window.max(1) as usize);
+    let window = tenant.limits().stream_window.max(1) as usize;
+    let (chunk_sender, mut chunks) = mpsc::channel(window);
     tokio::spawn(async move {
-        let mut first_ray = 0u64;
         loop {
-            let reply = match requests.message().await {
+            let chunk = match requests.message().await {
                 Ok(None) => break,
                 // A chunk that could not be received (e.g. above max_message_bytes) keeps tonic's status.
                 Err(status) => Err(status),
                 Ok(Some(message)) => match message.part {
-                    Some(pb::trace_stream_request::Part::Rays(rays)) => {
-                        answer_chunk(&tenant, &accel, query, rays, first_ray).await.map_err(Status::from)
-                    }
+                    Some(pb::trace_stream_request::Part::Rays(rays)) => Ok(rays),
                     _ => Err(ServiceError::invalid("query", "only the first message may be a query").into()),
                 },
+            };
+            let failed = chunk.is_err();
+            // The tracer gone (the call ended), or a bad chunk passed on: nothing more is read.
+            if chunk_sender.send(chunk).await.is_err() || failed {
+                break;
+            }
+        }
+    });
+    let (answers, stream) = outbox(window, tenant.limits().stream_stall());
+    tokio::spawn(async move {
+        let mut first_ray = 0u64;
+        while let Some(chunk) = chunks.recv().await {
+            let reply = match chunk {
+                Ok(rays) => answer_chunk(&tenant, &accel, query, rays, first_ray).await.map_err(Status::from),
+                Err(status) => Err(status),
             };
             let failed = reply.is_err();
             if let Ok(response) = &reply {
                 first_ray += response.stats.as_ref().map_or(0, |s| s.rays);
             }
-            if sender.send(reply).await.is_err() || failed {
+            if answers.send(reply).await.is_err() || failed {
                 break;
             }
         }
     });
-    Ok(Box::pin(ReceiverStream::new(receiver)))
+    Ok(Box::pin(stream))
 }
 
 /// Traces one chunk of a stream.
@@ -147,8 +213,9 @@ async fn answer_chunk(
     rays: Bytes,
     first_ray: u64,
 ) -> ServiceResult<pb::TraceStreamResponse> {
-    check_reply_size(tenant, &query, rays.len())?;
-    let result = trace(tenant, accel.clone(), query, rays).await?;
+    let rays = Rays::Packed(rays);
+    check_reply_size(tenant, &query, rays.count(query.ray_format.size()))?;
+    let result = trace(tenant, accel.clone(), query, rays, None).await?;
     Ok(pb::TraceStreamResponse {
         first_ray,
         hits: result.hits,

@@ -6,6 +6,9 @@ mod persistence;
 mod quota;
 mod trace;
 
+pub use quota::Reservation;
+pub use trace::Rays;
+
 use std::collections::HashMap;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -58,12 +61,14 @@ pub struct BufferEntry {
 }
 
 /// The results of one trace, ready to be put in a reply without copying.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 pub struct TraceResult {
-    /// Hit records.
+    /// Hit records (empty for a reduced trace).
     pub hits: Bytes,
     /// Counts (`all` and `count` queries), else empty.
     pub counts: Bytes,
+    /// The reduction's result, for a reduced trace.
+    pub reduced: Option<rayd_engine::reduce::Reduced>,
     /// What the engine did.
     pub stats: TraceStats,
     /// Time spent in the engine.
@@ -128,13 +133,26 @@ pub fn check_name(field: &str, name: &str) -> ServiceResult<()> {
     Ok(())
 }
 
+/// A context on each device, by device id, sharing one sequence of handles (accel ids are their handles, so two
+/// devices' accels must never get the same one).
+fn contexts(devices: &[Device]) -> HashMap<String, Context> {
+    let Some((first, rest)) = devices.split_first() else { return HashMap::new() };
+    let first_context = Context::new(first.clone());
+    let mut contexts: HashMap<String, Context> = rest
+        .iter()
+        .map(|device| (device.info().id.clone(), Context::sharing_handles(device.clone(), &first_context)))
+        .collect();
+    contexts.insert(first.info().id.clone(), first_context);
+    contexts
+}
+
 impl Tenant {
     /// A tenant called `name` with a context on each device, whose traces get `share` of the devices' `schedulers`.
     pub fn new(name: &str, limits: Limits, share: u32, devices: &[Device], schedulers: Arc<Schedulers>) -> Tenant {
         Tenant {
             name: name.into(),
             limits,
-            contexts: devices.iter().map(|d| (d.info().id.clone(), Context::new(d.clone()))).collect(),
+            contexts: contexts(devices),
             accels: Registry::new("accel"),
             buffers: Registry::new("buffer"),
             next_buffer: AtomicU64::new(1),
@@ -352,10 +370,18 @@ impl Tenant {
     }
 
     /// Destroys an accel; traces holding it finish first. One that instance accels or transforms place is
-    /// refused (FAILED_PRECONDITION) and stays.
+    /// refused (FAILED_PRECONDITION) and stays. Its file goes first: when the data directory cannot be written
+    /// the accel stays, in memory and on disk, and the error says why.
     pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
-        self.context(&entry.device)?.1.destroy_accel(entry.accel.handle())?;
-        self.forget_accel(entry)?;
+        let context = self.context(&entry.device)?.1;
+        context.check_destroyable(entry.accel.handle())?;
+        self.unpersist_accel(&entry.handle)?;
+        if let Err(refused) = context.destroy_accel(entry.accel.handle()) {
+            // An instance accel came to place it since the check: it stays, so its file is written back.
+            self.persist_accel(entry)?;
+            return Err(refused.into());
+        }
+        self.accels.remove(&entry.handle, &entry.name)?;
         crate::metrics::accel_destroyed(&self.name, entry);
         Ok(())
     }
@@ -373,9 +399,9 @@ impl Tenant {
             self.buffers.check_free(name)?;
         }
         ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
-        let held = self.buffer_bytes();
+        let held = self.buffer_bytes() + self.quotas.uploading();
         ServiceError::check_limit(
-            || format!("buffer bytes of this tenant ({held} held, {size} more)"),
+            || format!("buffer bytes of this tenant ({held} held or being uploaded, {size} more)"),
             held.saturating_add(size),
             "max_total_buffer_bytes",
             self.limits.max_total_buffer_bytes,
@@ -387,6 +413,13 @@ impl Tenant {
             "max_buffers",
             self.limits.max_buffers as u64,
         )
+    }
+
+    /// Checks a new buffer of `size` bytes as [`Tenant::check_new_buffer`] does, and reserves its bytes against
+    /// `max_total_buffer_bytes` while it is uploaded (until the reservation is dropped).
+    pub fn reserve_upload(&self, name: &str, size: u64) -> ServiceResult<Reservation> {
+        self.check_new_buffer(name, size)?;
+        self.quotas.reserve_upload(size, self.buffer_bytes(), self.limits.max_total_buffer_bytes)
     }
 
     /// Keeps `data` as a buffer.
@@ -423,10 +456,11 @@ impl Tenant {
         all
     }
 
-    /// Deletes a buffer.
+    /// Deletes a buffer. Its file goes first: when the data directory cannot be written the buffer stays.
     pub fn delete_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
+        self.unpersist_buffer(&entry.id)?;
         self.buffers.remove(&entry.id, &entry.name)?;
         self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
-        self.unpersist_buffer(&entry.id)
+        Ok(())
     }
 }

@@ -59,13 +59,13 @@ impl Tenant {
             version: entry.version,
             children: child_records,
         };
-        store.put_accel(&record, &blob).map_err(|e| ServiceError::storage(format!("accel {:?}", entry.name), e))
+        store.put_accel(&record, &blob).map_err(|e| ServiceError::storage(format!("storing accel {:?}", entry.name), e))
     }
 
     /// Removes an accel from the store, if there is one.
     pub(super) fn unpersist_accel(&self, handle: &str) -> ServiceResult<()> {
         let Some(store) = &self.store else { return Ok(()) };
-        store.remove_accel(handle).map_err(|e| ServiceError::storage(format!("accel {handle}"), e))
+        store.remove_accel(handle).map_err(|e| ServiceError::storage(format!("removing the file of accel {handle}"), e))
     }
 
     /// Writes a buffer to the store, if there is one.
@@ -73,20 +73,20 @@ impl Tenant {
         let Some(store) = &self.store else { return Ok(()) };
         let data = self.context(DEFAULT_DEVICE)?.1.buffer(entry.handle)?;
         let record = BufferRecord { id: entry.id.clone(), name: entry.name.clone() };
-        store.put_buffer(&record, &data).map_err(|e| ServiceError::storage(format!("buffer {}", entry.id), e))
+        store.put_buffer(&record, &data).map_err(|e| ServiceError::storage(format!("storing buffer {}", entry.id), e))
     }
 
     /// Removes a buffer from the store, if there is one.
     pub(super) fn unpersist_buffer(&self, id: &str) -> ServiceResult<()> {
         let Some(store) = &self.store else { return Ok(()) };
-        store.remove_buffer(id).map_err(|e| ServiceError::storage(format!("buffer {id}"), e))
+        store.remove_buffer(id).map_err(|e| ServiceError::storage(format!("removing the file of buffer {id}"), e))
     }
 
     /// Restores every object of the store (nothing without one), under the ids, handles and names it had. Files
     /// that cannot be used are skipped with the reason, and so are accels whose children could not be restored.
     pub fn restore(&self) -> ServiceResult<Restored> {
         let Some(store) = &self.store else { return Ok(Restored::default()) };
-        let stored = store.read_all().map_err(|e| ServiceError::storage("the data directory".into(), e))?;
+        let stored = store.read_all().map_err(|e| ServiceError::storage("reading the stored objects".into(), e))?;
         let mut restored = Restored {
             skipped: stored.skipped.into_iter().map(|(path, why)| (path.display().to_string(), why)).collect(),
             ..Restored::default()
@@ -102,7 +102,10 @@ impl Tenant {
         for context in self.contexts.values() {
             context.advance_handles(highest);
         }
-        for (record, data) in stored.buffers {
+        // In creation order (file names sort buf-10 before buf-2), so buffers list as they did before.
+        let mut buffers = stored.buffers;
+        buffers.sort_by_key(|(record, _)| number(&record.id));
+        for (record, data) in buffers {
             match self.restore_buffer(&record, data) {
                 Ok(()) => restored.buffers += 1,
                 Err(e) => restored.skipped.push((record.id, e.to_string())),

@@ -1,9 +1,10 @@
-//! A tenant's running quotas: operations at once (a counter, taken for the life of a guard) and rays per second (a
+//! A tenant's running quotas: operations at once (a counter, taken for the life of a guard), rays per second (a
 //! token bucket that may go into debt by one batch, so a batch larger than a second's allowance still runs, and
-//! the ones after it wait for the bucket to refill).
+//! the ones after it wait for the bucket to refill), and the bytes that uploads in progress will add to its
+//! buffers (reserved for the life of a guard, so that uploads at once cannot outgrow `max_total_buffer_bytes`).
 
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use crate::error::{ServiceError, ServiceResult};
@@ -15,6 +16,23 @@ pub struct Quotas {
     running: AtomicU32,
     /// Rays that may still be traced, and when that was computed.
     rays: Mutex<(f64, Instant)>,
+    /// Bytes declared by the uploads in progress.
+    uploading: Arc<AtomicU64>,
+}
+
+/// Bytes reserved for an upload in progress; released when dropped.
+#[derive(Debug)]
+pub struct Reservation {
+    /// The counter they are reserved in.
+    uploading: Arc<AtomicU64>,
+    /// How many.
+    bytes: u64,
+}
+
+impl Drop for Reservation {
+    fn drop(&mut self) {
+        self.uploading.fetch_sub(self.bytes, Ordering::AcqRel);
+    }
 }
 
 /// One running operation; it ends when dropped.
@@ -33,7 +51,32 @@ impl Drop for Running<'_> {
 impl Quotas {
     /// No operation running; a full second of rays allowed.
     pub fn new(rays_per_second: u64) -> Quotas {
-        Quotas { running: AtomicU32::new(0), rays: Mutex::new((rays_per_second as f64, Instant::now())) }
+        Quotas {
+            running: AtomicU32::new(0),
+            rays: Mutex::new((rays_per_second as f64, Instant::now())),
+            uploading: Arc::default(),
+        }
+    }
+
+    /// Bytes reserved by the uploads in progress.
+    pub fn uploading(&self) -> u64 {
+        self.uploading.load(Ordering::Acquire)
+    }
+
+    /// Reserves `bytes` for an upload when the `held` buffer bytes, every reservation and these stay within
+    /// `allowed` (RESOURCE_EXHAUSTED naming `max_total_buffer_bytes` otherwise).
+    pub fn reserve_upload(&self, bytes: u64, held: u64, allowed: u64) -> ServiceResult<Reservation> {
+        self.uploading
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |uploading| {
+                (held.saturating_add(uploading).saturating_add(bytes) <= allowed).then_some(uploading + bytes)
+            })
+            .map_err(|uploading| ServiceError::Limit {
+                what: format!("buffer bytes of this tenant ({held} held, {uploading} being uploaded, {bytes} more)"),
+                requested: held.saturating_add(uploading).saturating_add(bytes),
+                limit: "max_total_buffer_bytes",
+                allowed,
+            })?;
+        Ok(Reservation { uploading: Arc::clone(&self.uploading), bytes })
     }
 
     /// Operations running now.
@@ -96,5 +139,18 @@ mod tests {
         let error = quotas.take_rays(1, 1000).unwrap_err().to_string();
         assert!(error.contains("max_rays_per_second = 1000"), "{error}");
         assert!(quotas.take_rays(u64::MAX, 0).is_ok(), "0 is no limit");
+    }
+
+    #[test]
+    fn uploads_in_progress_reserve_their_bytes_until_they_end() {
+        let quotas = Quotas::new(0);
+        let first = quotas.reserve_upload(60, 30, 100).unwrap();
+        let error = quotas.reserve_upload(20, 30, 100).unwrap_err().to_string();
+        assert!(error.contains("60 being uploaded") && error.contains("max_total_buffer_bytes = 100"), "{error}");
+        let second = quotas.reserve_upload(10, 30, 100).unwrap();
+        assert_eq!(quotas.uploading(), 70);
+        drop((first, second));
+        assert_eq!(quotas.uploading(), 0);
+        quotas.reserve_upload(70, 30, 100).unwrap();
     }
 }

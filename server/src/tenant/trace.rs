@@ -9,72 +9,130 @@ use std::time::Instant;
 
 use bytes::{Bytes, BytesMut};
 use rayd_engine::Accel;
-use rayd_engine::query::{Query, TraceOutput, TraceStats};
+use rayd_engine::query::{OutputLayout, Query, TraceOutput, TraceStats};
+use rayd_engine::raygen::Generator;
+use rayd_engine::reduce::{PARALLEL_SPLIT_RAYS, Partial, Reduction};
+use rayon::prelude::*;
 use tokio::sync::oneshot;
 
 use super::{AccelEntry, Tenant, TraceResult};
 use crate::error::{ServiceError, ServiceResult};
 use crate::schedule::{Scheduler, Task};
 
+/// The rays of a trace.
+#[derive(Debug, Clone)]
+pub enum Rays {
+    /// Packed in the query's ray format, as sent.
+    Packed(Bytes),
+    /// Made by a checked generator, piece by piece, where they are traced: its rays in the range (non-empty,
+    /// within the generator).
+    Generated(Arc<Generator>, std::ops::Range<u64>),
+}
+
+impl Rays {
+    /// Rays in the batch, for records of `ray_size` bytes.
+    pub fn count(&self, ray_size: usize) -> u64 {
+        match self {
+            Rays::Packed(bytes) => (bytes.len() / ray_size) as u64,
+            Rays::Generated(_, range) => range.end - range.start,
+        }
+    }
+
+    /// Bytes the rays take packed (whole records only for a generator).
+    fn byte_len(&self, ray_size: usize) -> usize {
+        match self {
+            Rays::Packed(bytes) => bytes.len(),
+            Rays::Generated(_, range) => (range.end - range.start) as usize * ray_size,
+        }
+    }
+
+    /// The rays in bytes `range` of the packed batch: a slice of the sent bytes, or made by the generator into
+    /// `scratch`.
+    fn piece<'a>(&'a self, query: &Query, range: std::ops::Range<usize>, scratch: &'a mut Vec<u8>) -> &'a [u8] {
+        match self {
+            Rays::Packed(bytes) => &bytes[range],
+            Rays::Generated(generator, rays) => {
+                scratch.clear();
+                scratch.resize(range.len(), 0);
+                let size = query.ray_format.size();
+                let first = rays.start + (range.start / size) as u64;
+                // A large piece (a GPU's) is made across the rayon pool, in parts of its own.
+                scratch.par_chunks_mut(PARALLEL_SPLIT_RAYS * size).enumerate().for_each(|(part, out)| {
+                    generator.fill(query.ray_format, first + (part * PARALLEL_SPLIT_RAYS) as u64, out)
+                });
+                scratch
+            }
+        }
+    }
+}
+
 impl Tenant {
-    /// Traces `rays` against `accel` into fresh reply buffers, once the limits allow it, through the fair scheduler
-    /// of the accel's device. A trace of at most one piece runs right here when the device has a free slot and
-    /// nothing queued.
-    pub async fn trace(self: &Arc<Self>, accel: &AccelEntry, query: &Query, rays: Bytes) -> ServiceResult<TraceResult> {
-        let layout = query.output_layout(rays.len())?;
+    /// Fails with RESOURCE_EXHAUSTED naming `max_rays_per_batch` if a batch of `rays` rays is too large.
+    pub fn check_batch_rays(&self, rays: u64) -> ServiceResult<()> {
         ServiceError::check_limit(
             || "rays in one batch".into(),
-            layout.rays as u64,
+            rays,
             "max_rays_per_batch",
             self.limits.max_rays_per_batch,
-        )?;
+        )
+    }
+
+    /// Traces `rays` against `accel` into fresh reply buffers — or, with a `reduction` (checked by the caller),
+    /// into its result — once the limits allow it, through the fair scheduler of the accel's device. A trace of at
+    /// most one piece runs right here when the device has a free slot and nothing queued.
+    pub async fn trace(
+        self: &Arc<Self>,
+        accel: &AccelEntry,
+        query: &Query,
+        rays: Rays,
+        reduction: Option<Arc<Reduction>>,
+    ) -> ServiceResult<TraceResult> {
+        let ray_size = query.ray_format.size();
+        self.check_batch_rays(rays.count(ray_size))?;
+        let layout = match &reduction {
+            None => query.output_layout(rays.byte_len(ray_size))?,
+            Some(_) => OutputLayout { rays: rays.count(ray_size) as usize, hits: 0, counts: 0 },
+        };
         let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
         self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
-        // Checked on the whole batch, so that the error names the ray by its index in the batch.
-        query.check_times(&rays)?;
+        if let Rays::Packed(bytes) = &rays {
+            // Checked on the whole batch, so that the error names the ray by its index in the batch.
+            query.check_times(bytes)?;
+        }
         let scheduler = self
             .schedulers
             .get(&accel.device)
             .ok_or_else(|| ServiceError::NotFound { what: "device", name: accel.device.clone() })?;
-        if layout.rays <= scheduler.piece_rays()
-            && let Some(_slot) = scheduler.try_slot()
-        {
-            let (mut hits, mut counts) = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
-            let start = Instant::now();
-            let stats = self.trace_piece(&accel.device, &accel.accel, query, &rays, &mut hits, &mut counts)?;
-            let trace_ns = start.elapsed().as_nanos() as u64;
-            return Ok(TraceResult { hits: hits.freeze(), counts: counts.freeze(), stats, trace_ns });
-        }
-        let (reply, result) = oneshot::channel();
+        // Rays that reduce together stay in one piece.
+        let group = reduction.as_ref().map_or(1, |r| r.group_rays());
+        let piece_rays = (scheduler.piece_rays() / group).max(1) * group;
         let job = Arc::new(TraceJob {
             tenant: Arc::clone(self),
             accel: Arc::clone(&accel.accel),
             device: accel.device.clone(),
             query: *query,
+            reduction,
             rays,
             abandoned: AtomicBool::new(false),
             progress: Mutex::new(Progress::default()),
         });
+        if layout.rays <= piece_rays
+            && let Some(_slot) = scheduler.try_slot()
+        {
+            let output = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
+            let start = Instant::now();
+            let (output, stats) = job.trace_piece(0..job.rays.byte_len(ray_size), output)?;
+            let mut progress =
+                Progress { outputs: vec![Some(output)], stats, started: Some(start), ..Default::default() };
+            return Ok(progress.finish(&job)?.trace);
+        }
+        let (reply, result) = oneshot::channel();
         let _abandon_if_dropped = Abandon(Arc::clone(&job));
         let queued = Instant::now();
-        job.submit(scheduler, layout.hits, layout.counts, reply);
+        job.submit(scheduler, piece_rays, layout, reply);
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
         crate::metrics::queued(&self.name, result.trace_start.duration_since(queued));
         Ok(result.trace)
-    }
-
-    /// Traces `rays` on device `device` into `hits` and `counts`, which fit them exactly.
-    fn trace_piece(
-        &self,
-        device: &str,
-        accel: &Accel,
-        query: &Query,
-        rays: &[u8],
-        hits: &mut [u8],
-        counts: &mut [u8],
-    ) -> ServiceResult<TraceStats> {
-        let context = self.context(device)?.1;
-        Ok(context.trace(accel, query, rays, TraceOutput { hits, counts })?)
     }
 }
 
@@ -88,8 +146,10 @@ struct TraceJob {
     device: String,
     /// What is asked of every ray.
     query: Query,
+    /// What the hits are reduced to, if not returned.
+    reduction: Option<Arc<Reduction>>,
     /// Every ray of the trace.
-    rays: Bytes,
+    rays: Rays,
     /// Set when the caller went away or a piece failed: the pieces not started yet are skipped.
     abandoned: AtomicBool,
     /// What the pieces finished so far.
@@ -99,8 +159,8 @@ struct TraceJob {
 /// The pieces' results, gathered.
 #[derive(Default)]
 struct Progress {
-    /// Each piece's hits and counts, once traced.
-    outputs: Vec<Option<(BytesMut, BytesMut)>>,
+    /// Each piece's output, once traced.
+    outputs: Vec<Option<PieceOutput>>,
     /// Pieces not finished (or skipped) yet.
     remaining: usize,
     /// The sum of the finished pieces' statistics.
@@ -111,6 +171,14 @@ struct Progress {
     started: Option<Instant>,
     /// Where the answer goes.
     reply: Option<oneshot::Sender<ServiceResult<Finished>>>,
+}
+
+/// What a piece leaves: its share of the hit and counts buffers, or its reduction.
+enum PieceOutput {
+    /// Hit records and counts, written in place.
+    Hits(BytesMut, BytesMut),
+    /// The piece's hits, reduced.
+    Reduced(Partial),
 }
 
 /// A finished trace and when its first piece started.
@@ -131,61 +199,95 @@ impl Drop for Abandon {
 }
 
 impl TraceJob {
-    /// Cuts the output buffers (`hit_bytes`, `count_bytes` long) into the pieces' shares and queues every piece.
+    /// Cuts the output buffers (sized by `layout`; empty for a reduction) into the shares of pieces of
+    /// `piece_rays` rays and queues every piece.
     fn submit(
         self: &Arc<Self>,
         scheduler: &Scheduler,
-        hit_bytes: usize,
-        count_bytes: usize,
+        piece_rays: usize,
+        layout: OutputLayout,
         reply: oneshot::Sender<ServiceResult<Finished>>,
     ) {
         let ray_size = self.query.ray_format.size();
-        let piece_bytes = scheduler.piece_rays() * ray_size;
-        let pieces = self.rays.len().div_ceil(piece_bytes);
+        let piece_bytes = piece_rays * ray_size;
+        let total = self.rays.byte_len(ray_size);
+        let pieces = total.div_ceil(piece_bytes);
         {
             let mut progress = self.progress.lock().expect("not poisoned");
             progress.outputs = (0..pieces).map(|_| None).collect();
             progress.remaining = pieces;
             progress.reply = Some(reply);
         }
-        let (mut hits, mut counts) = (BytesMut::zeroed(hit_bytes), BytesMut::zeroed(count_bytes));
+        let (mut hits, mut counts) = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
         let tasks: Vec<(u64, Task)> = (0..pieces)
             .map(|index| {
                 let start = index * piece_bytes;
-                let len = piece_bytes.min(self.rays.len() - start);
-                let layout = self.query.output_layout(len).expect("a whole number of rays");
-                let output = (hits.split_to(layout.hits), counts.split_to(layout.counts));
+                let len = piece_bytes.min(total - start);
+                let output = match self.reduction {
+                    Some(_) => (BytesMut::new(), BytesMut::new()),
+                    None => {
+                        let piece = self.query.output_layout(len).expect("a whole number of rays");
+                        (hits.split_to(piece.hits), counts.split_to(piece.counts))
+                    }
+                };
                 let job = Arc::clone(self);
                 let task: Task = Box::new(move || job.run(index, start..start + len, output));
-                (layout.rays as u64, task)
+                ((len / ray_size) as u64, task)
             })
             .collect();
         let flow = &self.tenant.flow;
         scheduler.submit(flow, tasks);
     }
 
+    /// Traces the rays in bytes `rays` of the batch into `output` (its share of the reply buffers), or into a
+    /// scratch buffer that the job's reduction reduces.
+    fn trace_piece(
+        &self,
+        rays: std::ops::Range<usize>,
+        (mut hits, mut counts): (BytesMut, BytesMut),
+    ) -> ServiceResult<(PieceOutput, TraceStats)> {
+        let context = self.tenant.context(&self.device)?.1;
+        let first_ray = (rays.start / self.query.ray_format.size()) as u64;
+        let mut scratch = Vec::new();
+        let rays = self.rays.piece(&self.query, rays, &mut scratch);
+        let Some(reduction) = &self.reduction else {
+            let stats =
+                context.trace(&self.accel, &self.query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
+            return Ok((PieceOutput::Hits(hits, counts), stats));
+        };
+        let traced = reduction.traced_query(&self.query);
+        let layout = traced.output_layout(rays.len())?;
+        let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
+        let stats = context.trace(&self.accel, &traced, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
+        let reduced = reduction.reduce_piece_parallel(&traced, first_ray, rays, &hits, &counts);
+        Ok((PieceOutput::Reduced(reduced), stats))
+    }
+
     /// Traces piece `index` (the rays in bytes `rays`) into `output`, unless the job was abandoned, and answers
     /// when it was the last.
-    fn run(&self, index: usize, rays: std::ops::Range<usize>, (mut hits, mut counts): (BytesMut, BytesMut)) {
+    fn run(&self, index: usize, rays: std::ops::Range<usize>, output: (BytesMut, BytesMut)) {
         let traced = if self.abandoned.load(Ordering::Acquire) {
             None
         } else {
             let start = Instant::now();
             self.progress.lock().expect("not poisoned").started.get_or_insert(start);
             let first_ray = rays.start / self.query.ray_format.size();
-            let piece = &self.rays[rays];
-            let trace =
-                || self.tenant.trace_piece(&self.device, &self.accel, &self.query, piece, &mut hits, &mut counts);
             // A bug in the engine fails this trace, not the worker or the other pieces waiting on it.
-            Some(std::panic::catch_unwind(AssertUnwindSafe(trace)).unwrap_or_else(|_| {
+            Some(std::panic::catch_unwind(AssertUnwindSafe(|| self.trace_piece(rays, output))).unwrap_or_else(|_| {
                 Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked")))
             }))
         };
+        let outcome = match &traced {
+            Some(Ok(_)) => "traced",
+            Some(Err(_)) => "failed",
+            None => "skipped",
+        };
+        crate::metrics::piece(&self.tenant.name, outcome);
         let mut progress = self.progress.lock().expect("not poisoned");
         match traced {
-            Some(Ok(stats)) => {
+            Some(Ok((output, stats))) => {
                 progress.stats.add(&stats);
-                progress.outputs[index] = Some((hits, counts));
+                progress.outputs[index] = Some(output);
             }
             Some(Err(error)) => {
                 self.abandoned.store(true, Ordering::Release);
@@ -195,7 +297,7 @@ impl TraceJob {
         }
         progress.remaining -= 1;
         if progress.remaining == 0 {
-            let answer = progress.finish();
+            let answer = progress.finish(self);
             if let Some(reply) = progress.reply.take() {
                 // The caller may have gone: then nobody wants the answer.
                 let _ = reply.send(answer);
@@ -205,24 +307,39 @@ impl TraceJob {
 }
 
 impl Progress {
-    /// The answer once every piece is done: the first failure, or the outputs joined back into whole buffers.
-    fn finish(&mut self) -> ServiceResult<Finished> {
+    /// The answer once every piece of `job` is done: the first failure, or the outputs joined back into whole
+    /// buffers, or the pieces' reductions folded in ray order.
+    fn finish(&mut self, job: &TraceJob) -> ServiceResult<Finished> {
         if let Some(failure) = self.failure.take() {
             return Err(failure);
         }
         let trace_start = self.started.unwrap_or_else(Instant::now);
-        let trace_ns = trace_start.elapsed().as_nanos() as u64;
         let mut outputs = std::mem::take(&mut self.outputs).into_iter();
-        let Some(Some((mut hits, mut counts))) = outputs.next() else {
-            return Err(abandoned());
-        };
-        for output in outputs {
-            let Some((more_hits, more_counts)) = output else { return Err(abandoned()) };
-            // The pieces were split off one buffer in order, so joining them back copies nothing.
-            hits.unsplit(more_hits);
-            counts.unsplit(more_counts);
+        let mut trace = TraceResult { stats: self.stats, ..Default::default() };
+        match &job.reduction {
+            None => {
+                let Some(Some(PieceOutput::Hits(mut hits, mut counts))) = outputs.next() else {
+                    return Err(abandoned());
+                };
+                for output in outputs {
+                    let Some(PieceOutput::Hits(more_hits, more_counts)) = output else { return Err(abandoned()) };
+                    // The pieces were split off one buffer in order, so joining them back copies nothing.
+                    hits.unsplit(more_hits);
+                    counts.unsplit(more_counts);
+                }
+                (trace.hits, trace.counts) = (hits.freeze(), counts.freeze());
+            }
+            Some(reduction) => {
+                let mut folded = reduction.empty();
+                for output in outputs {
+                    let Some(PieceOutput::Reduced(partial)) = output else { return Err(abandoned()) };
+                    folded.merge(partial);
+                }
+                let rays = job.rays.count(job.query.ray_format.size());
+                trace.reduced = Some(reduction.finish(folded, rays)?);
+            }
         }
-        let trace = TraceResult { hits: hits.freeze(), counts: counts.freeze(), stats: self.stats, trace_ns };
+        trace.trace_ns = trace_start.elapsed().as_nanos() as u64;
         Ok(Finished { trace, trace_start })
     }
 }

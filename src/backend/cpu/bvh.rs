@@ -14,7 +14,7 @@ use crate::geometry::motion::{Bounds, EMPTY, KeyTime, lerp, union};
 /// `index .. index + count` of its accel's primitive arrays.
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[repr(C)]
-pub(super) struct Node {
+pub(crate) struct Node {
     /// Box minimum.
     pub min: Vec3,
     /// First child (inner node) or first primitive (leaf).
@@ -149,7 +149,7 @@ fn build_bvh2(boxes: &[Aabb], params: obvhs::BvhBuildParams) -> Bvh2 {
 /// keys a node's box is the interpolation of its two key boxes ([`NodeKeys::at`]), which holds its primitives
 /// at that time because each leaf's key boxes do.
 #[derive(Debug, Clone)]
-pub(super) struct NodeKeys {
+pub(crate) struct NodeKeys {
     /// Motion keys, at least 2.
     pub keys: usize,
     /// The boxes, `keys` a node.

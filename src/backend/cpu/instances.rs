@@ -26,14 +26,14 @@ const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
 pub struct InstanceBvh {
     /// Depth-first nodes over the instances' world boxes over all of time; empty when no instance has anything
     /// to hit.
-    pub(super) nodes: Vec<Node>,
+    pub(crate) nodes: Vec<Node>,
     /// With motion: each node's box at each key, fitted so that their interpolation holds the placed children at
     /// every time.
-    pub(super) node_keys: Option<NodeKeys>,
+    pub(crate) node_keys: Option<NodeKeys>,
     /// The motion options (static without motion).
-    pub(super) motion: MotionOptions,
+    pub(crate) motion: MotionOptions,
     /// The instances in leaf order, then those with empty boxes (never traversed).
-    pub(super) instances: Vec<PlacedInstance>,
+    pub(crate) instances: Vec<PlacedInstance>,
     /// Stack entries a trace through it needs: its own path and its deepest child's stack.
     pub(super) stack_size: usize,
     /// The box around every placed child at every time.
@@ -46,18 +46,22 @@ pub struct InstanceBvh {
 #[derive(Debug, Clone)]
 pub struct TransformNode {
     /// Where the child is placed, at each time.
-    pub(super) transform: Transform,
+    pub(crate) transform: Transform,
     /// The child.
-    pub(super) child: Arc<Accel>,
+    pub(crate) child: Arc<Accel>,
     /// The child's stack size.
     pub(super) stack_size: usize,
     /// The child's box, placed, over all of time.
     bounds: Bounds,
 }
 
-/// The CPU structure of a child accel; FAILED_PRECONDITION for an accel of another device.
-pub(super) fn cpu_child(accel: &Accel) -> Result<&CpuAccel> {
-    super::cpu(accel.backend_accel())
+/// The host structure of a child accel (a CPU accel, or the host side of another backend's); FAILED_PRECONDITION
+/// for an accel that keeps none.
+pub(crate) fn cpu_child(accel: &Accel) -> Result<&CpuAccel> {
+    accel
+        .backend_accel()
+        .host()
+        .ok_or_else(|| Error::FailedPrecondition("the child accel has no host structure".into()))
 }
 
 /// The error of an update of an accel built without `ALLOW_UPDATE`.

@@ -1,7 +1,7 @@
 //! The CPU backend: BVHs built by `obvhs` ([`bvh`]) over triangles ([`triangles`]) or placed instances
 //! ([`instances`]), traced by [`traverse`] over rayon chunks.
 
-mod bvh;
+pub(crate) mod bvh;
 mod instances;
 mod persist;
 mod traverse;
@@ -22,6 +22,8 @@ use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_co
 use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, trace_batch};
 
 use bvh::Footprint;
+#[cfg(feature = "wgpu")]
+pub(crate) use instances::cpu_child;
 pub use instances::{InstanceBvh, TransformNode};
 pub use triangles::TriangleBvh;
 
@@ -92,6 +94,10 @@ impl BackendAccel for CpuAccel {
 
     fn encode(&self, children: &[Arc<Accel>], out: &mut Vec<u8>) -> Result<()> {
         self.encode_payload(children, out)
+    }
+
+    fn host(&self) -> Option<&CpuAccel> {
+        Some(self)
     }
 
     fn as_any(&self) -> &dyn Any {
@@ -170,6 +176,11 @@ impl Backend for CpuBackend {
         Ok(Box::new(CpuAccel::decode_payload(shape, options, payload, children)?))
     }
 
+    /// An exact-size copy of the host structure.
+    fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>> {
+        Ok(Box::new(host.clone()))
+    }
+
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
         let accel = cpu(accel)?;
         trace_batch(
@@ -183,7 +194,7 @@ impl Backend for CpuBackend {
 }
 
 /// The CPU structure of `accel`; FAILED_PRECONDITION for an accel of another device.
-fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
+pub(crate) fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
     accel
         .as_any()
         .downcast_ref::<CpuAccel>()
@@ -191,7 +202,7 @@ fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
 }
 
 /// Total host memory, from `/proc/meminfo` where there is one.
-fn host_memory_bytes() -> u64 {
+pub(crate) fn host_memory_bytes() -> u64 {
     std::fs::read_to_string("/proc/meminfo")
         .ok()
         .and_then(|text| {

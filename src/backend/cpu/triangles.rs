@@ -21,25 +21,25 @@ const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
 pub struct TriangleBvh {
     /// Depth-first nodes (with motion, each box is the node's box over all of time); empty when no triangle can
     /// be hit.
-    pub(super) nodes: Vec<Node>,
+    pub(crate) nodes: Vec<Node>,
     /// With motion: each node's box at each key.
-    pub(super) node_keys: Option<NodeKeys>,
+    pub(crate) node_keys: Option<NodeKeys>,
     /// Without motion: the nodes collapsed to 8 children a node, which traversal uses (empty with motion).
     pub(super) wide: WideBvh,
     /// The motion options (static without motion).
-    pub(super) motion: MotionOptions,
+    pub(crate) motion: MotionOptions,
     /// Triangle corners, `motion.keys` sets a triangle (slot `i`'s at key `k` at `i·keys + k`): first those of the
     /// leaves, in leaf order, then the degenerate ones (never traversed, kept for random vertex access). With
     /// motion no triangle is left out: one degenerate at every key may have area in between.
-    pub(super) corners: Vec<[Vec3; 3]>,
+    pub(crate) corners: Vec<[Vec3; 3]>,
     /// Ids of each triangle, parallel to `corners`.
-    pub(super) refs: Vec<TriangleRef>,
+    pub(crate) refs: Vec<TriangleRef>,
     /// Prime masks parallel to `corners`, when the build had masks.
-    pub(super) masks: Option<Vec<u32>>,
+    pub(crate) masks: Option<Vec<u32>>,
     /// Flags of each geometry.
-    pub(super) geometry_flags: Vec<GeometryFlags>,
+    pub(crate) geometry_flags: Vec<GeometryFlags>,
     /// Longest root-to-leaf path, in nodes: the traversal stack's size.
-    pub(super) depth: usize,
+    pub(crate) depth: usize,
     /// The box around every corner at every key.
     pub(super) bounds: Bounds,
     /// With `ALLOW_UPDATE`: the input index of the triangle in each slot, to refit with new positions.

@@ -124,8 +124,20 @@ pub enum Command {
     Trace(TraceArgs),
     /// Render a PNG picture of an accel through the trace API.
     Render(RenderArgs),
+    /// Scan an accel with a spinning lidar made by the server and write the returns as a PLY point cloud.
+    Lidar(LidarArgs),
     /// Load the server with concurrent batches of random rays and report throughput and latency.
     Bench(BenchArgs),
+    /// Ask the server's gRPC health service (`grpc.health.v1.Health/Check`, no token needed); exits with 0 only
+    /// when the service is SERVING (a container health check).
+    Health {
+        /// The service to ask about; "" for the server as a whole.
+        #[arg(long, value_name = "NAME", default_value = rayd_client::RAYD_SERVICE)]
+        service: String,
+        /// Seconds to connect and answer.
+        #[arg(long, value_name = "S", default_value = "5", value_parser = parse_seconds)]
+        timeout: Duration,
+    },
 }
 
 /// `rayctl build`.
@@ -213,9 +225,17 @@ pub struct TraceArgs {
     #[arg(long, value_name = "NAME")]
     pub accel: String,
     /// A file of packed rays, no header.
-    #[arg(long, value_name = "FILE")]
-    pub rays: PathBuf,
-    /// How the rays are packed.
+    #[arg(long, value_name = "FILE", required_unless_present = "pixels")]
+    pub rays: Option<PathBuf>,
+    /// Instead of a ray file: a pinhole camera of W×H pixels whose rays the server makes itself (no ray crosses
+    /// the network), framing the accel's box or placed by `--camera`.
+    #[arg(long, value_name = "WxH", value_parser = parse_pixels, conflicts_with = "rays")]
+    pub pixels: Option<(u32, u32)>,
+    /// The camera of `--pixels`, as for `render`.
+    #[arg(long, value_name = "EYE,TARGET,UP,FOVY", value_parser = parse_view, allow_hyphen_values = true,
+          conflicts_with = "rays")]
+    pub camera: Option<View>,
+    /// How the rays are packed (or made, with `--pixels`).
     #[arg(long, value_name = "FMT", value_parser = named(&RayFormat::ALL, RayFormat::name))]
     pub ray_format: RayFormat,
     /// How hits are packed.
@@ -272,7 +292,7 @@ fn parse_times(text: &str) -> Result<(f32, f32), String> {
     match values[..] {
         [t] if t.is_finite() => Ok((t, t)),
         [start, end] if start.is_finite() && end.is_finite() && start <= end => Ok((start, end)),
-        _ => Err(format!("expected a finite time T or a span T0,T1 with T0 <= T1, got {text:?}")),
+        _ => Err(format!("expected a finite number T or a span T0,T1 with T0 <= T1, got {text:?}")),
     }
 }
 
@@ -298,6 +318,62 @@ pub struct RenderArgs {
     /// The PNG file to write.
     #[arg(short = 'o', long = "output", value_name = "FILE.png")]
     pub output: PathBuf,
+}
+
+/// `rayctl lidar`.
+#[derive(Debug, Args)]
+pub struct LidarArgs {
+    /// The accel's name.
+    #[arg(long, value_name = "NAME")]
+    pub accel: String,
+    /// The sensor's position (default: above the middle of the accel's box's front face, +z).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub origin: Option<Vec3>,
+    /// Azimuth 0 (default −z).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true, default_value = "0,0,-1")]
+    pub forward: Vec3,
+    /// The rotation axis (default +y).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true, default_value = "0,1,0")]
+    pub up: Vec3,
+    /// Channels, their elevations spread evenly over `--elevations`.
+    #[arg(long, value_name = "N", default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=65536))]
+    pub channels: u32,
+    /// Lowest and highest channel elevation in degrees.
+    #[arg(long, value_name = "LO,HI", default_value = "-25,15", value_parser = parse_times, allow_hyphen_values = true)]
+    pub elevations: (f32, f32),
+    /// Azimuth steps a revolution.
+    #[arg(long, value_name = "N", default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..))]
+    pub steps: u32,
+    /// Nearest range (the rays' tmin).
+    #[arg(long, value_name = "R", default_value_t = 0.0)]
+    pub min_range: f32,
+    /// Farthest range (the rays' tmax; default unlimited).
+    #[arg(long, value_name = "R", default_value_t = f32::INFINITY)]
+    pub max_range: f32,
+    /// The PLY file to write.
+    #[arg(short = 'o', long = "output", value_name = "FILE.ply")]
+    pub output: PathBuf,
+}
+
+/// Parses `WxH`: pixels a row and rows, each 1 to 16,384.
+fn parse_pixels(text: &str) -> Result<(u32, u32), String> {
+    let size = |n: &str| n.trim().parse::<u32>().ok().filter(|n| (1..=16384).contains(n));
+    match text.split_once('x').map(|(w, h)| (size(w), size(h))) {
+        Some((Some(width), Some(height))) => Ok((width, height)),
+        _ => Err(format!("expected WxH with each from 1 to 16384, got {text:?}")),
+    }
+}
+
+/// Parses `x,y,z`.
+fn parse_vec3(text: &str) -> Result<Vec3, String> {
+    let numbers: Vec<f32> = text
+        .split(',')
+        .map(|n| n.trim().parse::<f32>().map_err(|e| format!("{n:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    match numbers[..] {
+        [x, y, z] if numbers.iter().all(|n| n.is_finite()) => Ok(Vec3::new(x, y, z)),
+        _ => Err(format!("expected 3 finite comma-separated numbers, got {text:?}")),
+    }
 }
 
 /// `--shading`'s choices.
@@ -448,6 +524,19 @@ mod tests {
     }
 
     #[test]
+    fn trace_takes_a_ray_file_or_pixels_made_by_the_server() {
+        let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
+        let with = |extra: &[&str]| parse(&[&["trace", "--accel", "a"], extra, &formats[..]].concat());
+        let cli = with(&["--pixels", "64x48", "--camera", "0,0,5,0,0,0,0,1,0,40"]).unwrap();
+        let Command::Trace(trace) = cli.command else { panic!("not trace") };
+        assert_eq!((trace.pixels, trace.rays), (Some((64, 48)), None));
+        assert!(with(&[]).is_err(), "--rays or --pixels is required");
+        assert!(with(&["--rays", "r.bin", "--pixels", "4x4"]).is_err(), "not both");
+        assert!(with(&["--pixels", "0x4"]).is_err() && with(&["--pixels", "4"]).is_err(), "sane sizes");
+        assert!(with(&["--rays", "r.bin", "--camera", "0,0,5,0,0,0,0,1,0,40"]).is_err(), "a camera needs --pixels");
+    }
+
+    #[test]
     fn build_flags_follow_the_options_and_prefer_is_exclusive() {
         let cli = parse(&["build", "--mesh", "m.ply", "--prefer", "fast-build", "--allow-compaction"]).unwrap();
         let Command::Build(build) = cli.command else { panic!("not build") };
@@ -483,5 +572,15 @@ mod tests {
         assert_eq!(bench.query.query, QueryKind::Closest);
         assert!(parse(&["bench", "--accel", "a", "--duration", "0"]).is_err());
         assert!(parse(&["bench", "--accel", "a", "--concurrency", "0"]).is_err());
+    }
+
+    #[test]
+    fn health_asks_about_rayd_within_five_seconds_by_default() {
+        let Command::Health { service, timeout } = parse(&["health"]).unwrap().command else { panic!("not health") };
+        assert_eq!((service.as_str(), timeout), ("rayd.v1.Rayd", Duration::from_secs(5)));
+        let Command::Health { service, .. } = parse(&["health", "--service", ""]).unwrap().command else {
+            panic!("not health")
+        };
+        assert_eq!(service, "", "the server as a whole");
     }
 }

@@ -5,14 +5,17 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
+use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
-use rayd_client::{BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, load_mesh};
+use rayd_client::{
+    BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, check_health, load_mesh,
+};
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::raygen::{Camera, random_rays, uniform};
+use rayd_engine::raygen::{Camera, Generator, Lidar, PixelSampling, random_rays, uniform};
 use serde_json::json;
 
-use crate::args::{BenchArgs, BuildArgs, Cli, Command, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
+use crate::args::{BenchArgs, BuildArgs, Cli, Command, LidarArgs, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -26,6 +29,9 @@ pub async fn run(cli: &Cli) -> Result<Output> {
     let tls = (cli.ca_cert.is_some() || identity.is_some())
         .then(|| Ok::<_, Error>(ClientTls { ca_cert: cli.ca_cert.as_ref().map(read).transpose()?, identity }))
         .transpose()?;
+    if let Command::Health { service, timeout } = &cli.command {
+        return health(&cli.server, tls.as_ref(), service, *timeout).await;
+    }
     let options = ClientOptions {
         token: cli.token.clone(),
         tls,
@@ -71,8 +77,23 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         Command::Rays(args) => rays(&client, args).await,
         Command::Trace(args) => trace(&client, args).await,
         Command::Render(args) => render(&client, args).await,
+        Command::Lidar(args) => lidar(&client, args).await,
         Command::Bench(args) => bench(&client, args, cli.json).await,
+        Command::Health { .. } => unreachable!("answered before connecting"),
     }
+}
+
+/// `rayctl health`: the status, or an `UNAVAILABLE` error naming it when it is not SERVING.
+async fn health(url: &str, tls: Option<&ClientTls>, service: &str, timeout: Duration) -> Result<Output> {
+    let status = check_health(url, tls, service, timeout).await?;
+    if status != ServingStatus::Serving {
+        let what = if service.is_empty() { "the server" } else { service };
+        return Err(Error::Status(tonic::Status::unavailable(format!("{what}: {}", status.as_str_name()))));
+    }
+    Ok(Output {
+        json: json!({ "service": service, "status": status.as_str_name() }),
+        text: status.as_str_name().into(),
+    })
 }
 
 /// `rayctl build`: the accel is named after the file unless `--name` says otherwise.
@@ -92,10 +113,21 @@ async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
 
 /// `rayctl trace`: `wall_ms` times the trace call alone, from sending the rays to holding every hit.
 async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
-    let rays = std::fs::read(&args.rays).map_err(|e| Error::io(&args.rays, e))?;
     let query = args.query.query(args.ray_format, args.hit_format);
-    let start = Instant::now();
-    let traced = client.trace(&args.accel, &query, rays.into()).await?;
+    let (start, traced) = match (&args.rays, args.pixels) {
+        (Some(file), _) => {
+            let rays = std::fs::read(file).map_err(|e| Error::io(file, e))?;
+            let start = Instant::now();
+            (start, client.trace(&args.accel, &query, rays.into()).await?)
+        }
+        (None, Some((width, height))) => {
+            let camera = camera(client, &args.accel, args.camera, width, height).await?;
+            let generator = Generator::Pinhole(camera, PixelSampling { samples: 1, jitter_seed: None });
+            let start = Instant::now();
+            (start, client.trace_generated(&args.accel, &query, &generator).await?)
+        }
+        (None, None) => unreachable!("clap requires --rays or --pixels"),
+    };
     let wall = start.elapsed();
     if let Some(out) = &args.out {
         std::fs::write(out, traced.hits()).map_err(|e| Error::io(out, e))?;
@@ -178,6 +210,39 @@ async fn render(client: &Client, args: &RenderArgs) -> Result<Output> {
     Ok(Output {
         json: json!({ "file": file, "width": image.width, "height": image.height, "wall_ms": wall_ms }),
         text: format!("wrote {file} ({}×{}, traced in {wall_ms:.1} ms)", image.width, image.height),
+    })
+}
+
+/// `rayctl lidar`: one revolution, the returns written as PLY.
+async fn lidar(client: &Client, args: &LidarArgs) -> Result<Output> {
+    let origin = match args.origin {
+        Some(origin) => origin,
+        None => {
+            let (lo, hi) = accel_bounds(client, &args.accel).await?;
+            Vec3::new((lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z)
+        }
+    };
+    let (low, high) = args.elevations;
+    let spread =
+        |c: u32| if args.channels == 1 { low } else { low + (high - low) * c as f32 / (args.channels - 1) as f32 };
+    let lidar = Lidar {
+        origin,
+        forward: args.forward,
+        up: args.up,
+        elevations_degrees: (0..args.channels).map(spread).collect(),
+        steps: args.steps,
+        min_range: args.min_range,
+        max_range: args.max_range,
+        time: (0.0, 0.0),
+    };
+    let start = Instant::now();
+    let scan = client.lidar(&args.accel, &lidar).await?;
+    let wall_ms = start.elapsed().as_secs_f64() * 1e3;
+    scan.write_ply(&args.output)?;
+    let file = args.output.display().to_string();
+    Ok(Output {
+        json: json!({ "file": file, "rays": scan.rays, "points": scan.len(), "wall_ms": wall_ms }),
+        text: format!("wrote {file} ({} returns of {} rays, in {wall_ms:.1} ms)", scan.len(), scan.rays),
     })
 }
 

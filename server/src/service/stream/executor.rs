@@ -14,6 +14,7 @@ use tonic::Status;
 use super::products::{Producer, Products};
 use super::{Abort, Answer, Queued};
 use crate::error::{ServiceError, ServiceResult};
+use crate::service::outbox::Outbox;
 use crate::service::{accels, buffers, trace};
 use crate::streams::{StreamSlot, Waitable};
 use crate::tenant::Tenant;
@@ -39,7 +40,7 @@ impl Executor {
 
     /// Runs until the queue ends (the client half-closed and everything ran), the call goes away, or the stream
     /// is aborted. Dropping the queue and the slot on the way out frees what the stream held and closes it.
-    pub async fn run(mut self, mut queue: mpsc::Receiver<Queued>, answers: mpsc::Sender<Answer>, abort: Arc<Abort>) {
+    pub async fn run(mut self, mut queue: mpsc::Receiver<Queued>, answers: Outbox<Answer>, abort: Arc<Abort>) {
         'operations: loop {
             let responses = tokio::select! {
                 biased;
@@ -56,7 +57,7 @@ impl Executor {
                 tokio::select! {
                     biased;
                     () = abort.cancelled() => break 'operations,
-                    sent = answers.send(answer) => if sent.is_err() { break 'operations },
+                    sent = answers.send(Ok(answer)) => if sent.is_err() { break 'operations },
                 }
             }
         }

@@ -1,7 +1,8 @@
 //! `OpenStream`: an ordered, asynchronous queue of operations per call (the semantics are in streams.proto).
 //!
 //! A reader task takes messages off the call into a bounded queue; an executor task runs the operations one at a
-//! time, in order, and sends their answers through a bounded channel. Everything queued or unsent is counted in
+//! time, in order, and sends their answers through a bounded outbox (failed, its answers dropped, when the client
+//! reads none for `stream_stall_seconds`). Everything queued or unsent is counted in
 //! the tenant's stream bytes. Cancelling the call (or a rule broken by a message) aborts both tasks, which drops
 //! the queued work and the unsent answers.
 
@@ -16,11 +17,11 @@ use bytes::Bytes;
 use rayd_proto as pb;
 use rayd_proto::stream_request::Op;
 use tokio::sync::mpsc;
-use tokio_stream::wrappers::ReceiverStream;
 use tokio_stream::{Stream, StreamExt};
 use tokio_util::sync::CancellationToken;
 use tonic::{Status, Streaming};
 
+use super::outbox::outbox;
 use crate::error::ServiceResult;
 use crate::streams::Held;
 use crate::tenant::Tenant;
@@ -95,16 +96,16 @@ pub fn open(tenant: Arc<Tenant>, requests: Streaming<pb::StreamRequest>) -> Serv
     let window = tenant.limits().stream_window.max(1);
     let (queue, queued) = mpsc::channel(window as usize);
     // One place more than the window, for the `opened` message.
-    let (answers, answered) = mpsc::channel(window as usize + 1);
+    let (answers, answered) = outbox(window as usize + 1, tenant.limits().stream_stall());
     let opened = pb::StreamResponse {
         kind: Some(pb::stream_response::Kind::Opened(pb::StreamOpened { stream_id: slot.id, window })),
     };
     let held = tenant.streams().hold(0);
-    answers.try_send(Answer { response: opened, _held: held }).expect("an empty channel has room");
+    answers.try_send(Ok(Answer { response: opened, _held: held })).expect("an empty outbox has room");
     let abort = Arc::new(Abort { token: slot.cancel.clone(), reason: Mutex::default() });
     tokio::spawn(reader::run(requests, queue, Arc::clone(tenant.streams()), Arc::clone(&abort)));
     tokio::spawn(executor::Executor::new(tenant, slot).run(queued, answers, Arc::clone(&abort)));
-    let answers = ReceiverStream::new(answered).map(|answer| Ok(answer.response));
+    let answers = answered.map(|answer| answer.map(|answer| answer.response));
     let ending = tokio_stream::iter(std::iter::once_with(move || abort.take_reason())).filter_map(|r| r.map(Err));
     Ok(Box::pin(answers.chain(ending)))
 }

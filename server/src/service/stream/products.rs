@@ -81,10 +81,15 @@ impl Products {
                 if let Some(accel) = trace.query.as_mut().and_then(|q| q.accel.as_mut()) {
                     self.accel(id, accel, "trace.query.accel")?;
                 }
-                if let Some(pb::trace_batch_request::Rays::RaysBuffer(buffer)) = &mut trace.rays {
-                    self.buffer(id, buffer, "trace.rays_buffer")?;
+                match &mut trace.rays {
+                    Some(pb::trace_batch_request::Rays::RaysBuffer(buffer)) => {
+                        self.buffer(id, buffer, "trace.rays_buffer")
+                    }
+                    Some(pb::trace_batch_request::Rays::RaysGenerator(generator)) => {
+                        self.generator(id, generator, "trace.rays_generator")
+                    }
+                    _ => Ok(()),
                 }
-                Ok(())
             }
             Op::Download(download) => self.optional_buffer(id, download.buffer.as_mut(), "download.buffer"),
             Op::DeleteBuffer(delete) => self.optional_buffer(id, delete.buffer.as_mut(), "delete_buffer.buffer"),
@@ -141,6 +146,28 @@ impl Products {
             }
         }
         Ok(())
+    }
+
+    /// Resolves the buffers a secondary generator (named `field`) reads, and those of its primary generator.
+    fn generator(&self, id: u64, generator: &mut pb::RayGenerator, field: &str) -> ServiceResult<()> {
+        use pb::secondary_rays::{Primary, PrimaryHits};
+        let Some(pb::ray_generator::Kind::Secondary(secondary)) = &mut generator.kind else { return Ok(()) };
+        let field = format!("{field}.secondary");
+        match &mut secondary.primary {
+            Some(Primary::PrimaryRaysBuffer(buffer)) => {
+                self.buffer(id, buffer, &format!("{field}.primary_rays_buffer"))?
+            }
+            Some(Primary::PrimaryGenerator(primary)) => {
+                self.generator(id, primary, &format!("{field}.primary_generator"))?
+            }
+            _ => {}
+        }
+        match &mut secondary.primary_hits {
+            Some(PrimaryHits::PrimaryHitsBuffer(buffer)) => {
+                self.buffer(id, buffer, &format!("{field}.primary_hits_buffer"))
+            }
+            _ => Ok(()),
+        }
     }
 
     /// Resolves a buffer reference that may be absent.
@@ -212,7 +239,7 @@ mod tests {
         Op::Trace(pb::TraceBatchRequest {
             query: Some(pb::TraceQuery { accel: Some(pb::AccelRef { r#ref: Some(accel) }), ..Default::default() }),
             rays: Some(pb::trace_batch_request::Rays::RaysBuffer(pb::BufferRef { r#ref: Some(rays) })),
-            hits_buffer_name: String::new(),
+            ..Default::default()
         })
     }
 
@@ -226,6 +253,40 @@ mod tests {
         let mut op = trace_on(pb::accel_ref::Ref::Operation(1), pb::buffer_ref::Ref::Operation(2));
         products.resolve(3, &mut op).unwrap();
         assert_eq!(op, trace_on(pb::accel_ref::Ref::Handle("acc-7".into()), pb::buffer_ref::Ref::Id("buf-3".into())));
+    }
+
+    #[test]
+    fn a_secondary_generator_names_its_rays_and_hits_by_earlier_operations() {
+        use pb::secondary_rays::{Primary, PrimaryHits};
+        let secondary = |rays: pb::buffer_ref::Ref, hits: pb::buffer_ref::Ref| {
+            let secondary = pb::SecondaryRays {
+                primary: Some(Primary::PrimaryRaysBuffer(pb::BufferRef { r#ref: Some(rays) })),
+                primary_hits: Some(PrimaryHits::PrimaryHitsBuffer(pb::BufferRef { r#ref: Some(hits) })),
+                ..Default::default()
+            };
+            let kind = Some(pb::ray_generator::Kind::Secondary(Box::new(secondary)));
+            Op::Trace(pb::TraceBatchRequest {
+                rays: Some(pb::trace_batch_request::Rays::RaysGenerator(pb::RayGenerator {
+                    kind,
+                    ..Default::default()
+                })),
+                ..Default::default()
+            })
+        };
+        let mut products = Products::default();
+        let uploaded = pb::BufferInfo { id: "buf-1".into(), ..Default::default() };
+        products.record(1, Producer::Buffer, &Ok(Some(Outcome::Buffer(uploaded))));
+        let hits = pb::TraceBatchResponse {
+            hits_buffer: Some(pb::BufferInfo { id: "buf-2".into(), ..Default::default() }),
+            ..Default::default()
+        };
+        products.record(2, Producer::Buffer, &Ok(Some(Outcome::Trace(hits))));
+        let mut op = secondary(pb::buffer_ref::Ref::Operation(1), pb::buffer_ref::Ref::Operation(2));
+        products.resolve(3, &mut op).unwrap();
+        assert_eq!(op, secondary(pb::buffer_ref::Ref::Id("buf-1".into()), pb::buffer_ref::Ref::Id("buf-2".into())));
+        let mut later = secondary(pb::buffer_ref::Ref::Operation(1), pb::buffer_ref::Ref::Operation(4));
+        let error = products.resolve(3, &mut later).unwrap_err();
+        assert!(error.to_string().contains("trace.rays_generator.secondary.primary_hits_buffer"), "{error}");
     }
 
     #[test]

@@ -2,20 +2,64 @@
 //! without its image decoders. Every triangle-list primitive (mode TRIANGLES) of the default scene (else the first
 //! scene) is taken, placed by its node's world transform; a file without scenes gives every mesh untransformed.
 //! Points, lines, strips and fans are skipped. External URIs are plain relative paths (no percent-decoding).
+//! Positions and indices are read by [`accessors`], which checks every offset against the buffers.
 
 use std::path::Path;
 
 use ::gltf::buffer::Source;
 use ::gltf::mesh::Mode;
-use ::gltf::{Document, Gltf, Node};
+use ::gltf::{Document, Gltf, Node, Semantic};
 use base64::Engine;
-use glam::{Mat4, Vec3};
+use glam::Mat4;
 use rayd_engine::mesh::Mesh;
+
+mod accessors;
+
+/// The size of a GLB header: magic, version, total length.
+const GLB_HEADER_BYTES: u32 = 12;
+
+/// Refuses a GLB whose header gives a total length shorter than the header itself, which the `gltf` crate
+/// subtracts from without a check (a panic in debug builds; found by the `meshes` fuzz target).
+fn check_glb_length(bytes: &[u8]) -> Result<(), String> {
+    match bytes {
+        [b'g', b'l', b'T', b'F', _, _, _, _, l0, l1, l2, l3, ..] => {
+            let length = u32::from_le_bytes([*l0, *l1, *l2, *l3]);
+            match length >= GLB_HEADER_BYTES {
+                true => Ok(()),
+                false => Err(format!("GLB header: length {length} is shorter than the {GLB_HEADER_BYTES}-byte header")),
+            }
+        }
+        _ => Ok(()),
+    }
+}
+
+/// Refuses a primitive whose POSITION names an accessor the file does not have, which the `gltf` crate's
+/// validation indexes without a check (a panic; found by the `meshes` fuzz target). The rest is its validation's.
+fn check_position_accessors(root: &::gltf::json::Root) -> Result<(), String> {
+    let positions = ::gltf::json::validation::Checked::Valid(::gltf::Semantic::Positions);
+    for (m, mesh) in root.meshes.iter().enumerate() {
+        for (p, primitive) in mesh.primitives.iter().enumerate() {
+            if let Some(accessor) = primitive.attributes.get(&positions)
+                && accessor.value() >= root.accessors.len()
+            {
+                return Err(format!(
+                    "meshes[{m}].primitives[{p}].attributes.POSITION: accessor {} of {}",
+                    accessor.value(),
+                    root.accessors.len()
+                ));
+            }
+        }
+    }
+    Ok(())
+}
 
 /// Reads the glTF or GLB file at `path`.
 pub(super) fn load(path: &Path) -> Result<Mesh, String> {
     let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
-    let Gltf { document, mut blob } = Gltf::from_slice(&bytes).map_err(|e| e.to_string())?;
+    check_glb_length(&bytes)?;
+    let Gltf { document, mut blob } = Gltf::from_slice_without_validation(&bytes).map_err(|e| e.to_string())?;
+    check_position_accessors(document.as_json())?;
+    let document = Document::from_json(document.into_json()).map_err(|e| e.to_string())?;
     let folder = path.parent().unwrap_or(Path::new("."));
     let buffers = document
         .buffers()
@@ -67,22 +111,30 @@ fn add_all_meshes(document: &Document, buffers: &[Vec<u8>], out: &mut Mesh) -> R
 /// Adds the triangle-list primitives of `mesh`, vertices moved by `transform`.
 fn add_mesh(mesh: &::gltf::Mesh, transform: Mat4, buffers: &[Vec<u8>], out: &mut Mesh) -> Result<(), String> {
     for primitive in mesh.primitives().filter(|p| p.mode() == Mode::Triangles) {
-        let reader = primitive.reader(|buffer| buffers.get(buffer.index()).map(Vec::as_slice));
-        let where_ = || format!("mesh {} primitive {}", mesh.index(), primitive.index());
-        let positions = reader.read_positions().ok_or_else(|| format!("{}: positions cannot be read", where_()))?;
-        let base = out.positions.len() as u32;
-        out.positions.extend(positions.map(|p| transform.transform_point3(Vec3::from(p))));
-        let corners: Vec<u32> = match reader.read_indices() {
-            Some(indices) => indices.into_u32().map(|i| base + i).collect(),
-            None => (base..out.positions.len() as u32).collect(),
+        let in_primitive = |e: String| format!("mesh {} primitive {}: {e}", mesh.index(), primitive.index());
+        let positions = primitive.get(&Semantic::Positions).ok_or_else(|| in_primitive("no POSITION".into()))?;
+        let positions = accessors::positions(&positions, buffers).map_err(in_primitive)?;
+        let corners = match primitive.indices() {
+            Some(indices) => accessors::indices(&indices, buffers).map_err(in_primitive)?,
+            None => (0..positions.len()).map(|i| i as u32).collect(),
         };
-        out.triangles.extend(corners.chunks_exact(3).map(|t| [t[0], t[1], t[2]]));
+        if let Some(corner) = corners.iter().find(|&&i| i as usize >= positions.len()) {
+            return Err(in_primitive(format!("index {corner} of {} vertices", positions.len())));
+        }
+        let base = u32::try_from(out.positions.len())
+            .ok()
+            .filter(|base| base.checked_add(positions.len() as u32).is_some() && positions.len() <= u32::MAX as usize)
+            .ok_or_else(|| in_primitive("more than 2^32 vertices in all".into()))?;
+        out.positions.extend(positions.into_iter().map(|p| transform.transform_point3(p)));
+        out.triangles.extend(corners.chunks_exact(3).map(|t| [base + t[0], base + t[1], base + t[2]]));
     }
     Ok(())
 }
 
 #[cfg(test)]
 mod tests {
+    use glam::Vec3;
+
     use super::*;
 
     /// Little-endian bytes of a buffer holding three float3 positions, then three u16 indices (padded to 4 bytes).
@@ -109,6 +161,13 @@ mod tests {
         )
     }
 
+    /// [`document`] with the triangle buffer embedded as a base64 `data:` URI.
+    fn embedded_document(points: bool) -> String {
+        let buffer = triangle_buffer();
+        let encoded = base64::engine::general_purpose::STANDARD.encode(&buffer);
+        document(&format!("data:application/octet-stream;base64,{encoded}"), buffer.len(), points)
+    }
+
     /// Writes `files` into a fresh temporary folder and loads the first through the public entry point.
     fn load_files(files: &[(&str, &[u8])]) -> Result<Mesh, rayd_engine::mesh::LoadError> {
         let dir = tempfile::tempdir().unwrap();
@@ -120,12 +179,7 @@ mod tests {
 
     #[test]
     fn embedded_base64_buffer_gives_the_transformed_indexed_triangle() {
-        let buffer = triangle_buffer();
-        let uri = format!(
-            "data:application/octet-stream;base64,{}",
-            base64::engine::general_purpose::STANDARD.encode(&buffer)
-        );
-        let mesh = load_files(&[("tri.gltf", document(&uri, buffer.len(), true).as_bytes())]).unwrap();
+        let mesh = load_files(&[("tri.gltf", embedded_document(true).as_bytes())]).unwrap();
         assert_eq!(mesh.positions, [Vec3::new(10.0, 0.0, 0.0), Vec3::new(11.0, 0.0, 0.0), Vec3::new(10.0, 1.0, 0.0)]);
         assert_eq!(mesh.triangles, [[2, 1, 0]], "the POINTS primitive adds nothing");
     }
@@ -154,5 +208,40 @@ mod tests {
         let mesh = load_files(&[("tri.glb", &glb)]).unwrap();
         assert_eq!(mesh.triangles, [[2, 1, 0]]);
         assert_eq!(mesh.positions[1], Vec3::new(11.0, 0.0, 0.0));
+    }
+
+    #[test]
+    fn glb_with_a_length_shorter_than_its_header_is_refused() {
+        // The `meshes` fuzz target's crash (2026-11-23): a GLB header of length 0.
+        let crash = b"glTF22%\0\0\0\0\0\0\x0022  1";
+        let error = load_files(&[("crash.glb", crash)]).unwrap_err();
+        assert!(error.reason.contains("length 0 is shorter than the 12-byte header"), "{}", error.reason);
+    }
+
+    #[test]
+    fn position_accessor_beyond_the_accessors_is_refused() {
+        // The `meshes` fuzz target's second crash (2026-11-23): a document whose `accessors` key was misspelt.
+        let text = embedded_document(false).replace(r#""accessors""#, r#""accessorw""#);
+        let error = load_files(&[("tri.gltf", text.as_bytes())]).unwrap_err();
+        assert!(error.reason.contains("POSITION: accessor 0 of 0"), "{}", error.reason);
+    }
+
+    #[test]
+    fn accessors_of_the_wrong_kind_or_beyond_their_view_are_refused() {
+        let text = embedded_document(false);
+        let refused = |from: &str, to: &str| {
+            let changed = text.replace(from, to);
+            assert_ne!(changed, text);
+            load_files(&[("tri.gltf", changed.as_bytes())]).unwrap_err().reason
+        };
+        // The `meshes` fuzz target's third crash (2026-11-23): signed 16-bit indices.
+        let signed = refused(r#""componentType":5123"#, r#""componentType":5122"#);
+        assert!(signed.contains("mesh 0 primitive 0: indices must be unsigned scalars, not I16"), "{signed}");
+        let count = refused(r#""count":3,"type":"SCALAR""#, r#""count":4,"type":"SCALAR""#);
+        assert!(count.contains("4 elements of 2 bytes, 2 apart, from byte 0 lie beyond bufferView 1 of 6"), "{count}");
+        let index = refused(&text[text.find("\"indices\"").unwrap()..][..11], r#""indices":0"#);
+        assert!(index.contains("indices must be unsigned scalars, not F32 Vec3"), "{index}");
+        let stride = refused(r#""byteLength":36}"#, r#""byteLength":36,"byteStride":8}"#);
+        assert!(stride.contains("byteStride 8 is less than an element's 12 bytes"), "{stride}");
     }
 }

@@ -1,11 +1,13 @@
-//! Triangle meshes for tests, benchmarks and tools: OBJ loading (through `tobj`), packing into build-input
-//! bytes, and a large scene tiled from several meshes.
+//! Triangle meshes for tests, benchmarks and tools: OBJ loading ([`obj`]), packing into build-input bytes, and a
+//! large scene tiled from several meshes.
 
 use std::path::Path;
 
 use glam::Vec3;
 
 use crate::geometry::TriangleInput;
+
+mod obj;
 
 /// Why a mesh could not be loaded.
 #[derive(Debug, thiserror::Error)]
@@ -43,18 +45,13 @@ impl PackedMesh {
 }
 
 impl Mesh {
-    /// Loads every object of an OBJ file into one mesh (faces are triangulated).
+    /// Loads every object of an OBJ file into one mesh (polygons are split into fans).
     pub fn load_obj(path: impl AsRef<Path>) -> Result<Mesh, LoadError> {
         let path = path.as_ref();
         let error = |reason: String| LoadError { path: path.display().to_string(), reason };
-        let options = tobj::LoadOptions { triangulate: true, ..Default::default() };
-        let (models, _) = tobj::load_obj(path, &options).map_err(|e| error(e.to_string()))?;
-        let mut mesh = Mesh::default();
-        for model in models {
-            let base = mesh.positions.len() as u32;
-            mesh.positions.extend(model.mesh.positions.chunks_exact(3).map(|p| Vec3::new(p[0], p[1], p[2])));
-            mesh.triangles.extend(model.mesh.indices.chunks_exact(3).map(|t| [base + t[0], base + t[1], base + t[2]]));
-        }
+        let bytes = std::fs::read(path).map_err(|e| error(e.to_string()))?;
+        let text = std::str::from_utf8(&bytes).map_err(|e| error(format!("not UTF-8 text: {e}")))?;
+        let mesh = obj::parse(text).map_err(error)?;
         if mesh.triangles.is_empty() {
             return Err(error("no triangles".into()));
         }

@@ -1,5 +1,12 @@
-//! Ray batches made from a few numbers: a pinhole camera and uniformly random rays. Deterministic for a given
-//! seed, whatever the thread count.
+//! Ray batches made from a few numbers: a pinhole camera, uniformly random rays, and the [`Generator`]s that the
+//! server expands itself (cameras, lidar, sphere sampling, secondary rays from an earlier trace's hits). Deterministic for a given seed, whatever the thread
+//! count.
+
+mod generator;
+mod secondary;
+
+pub use generator::{Generator, Lidar, MAX_GENERATOR_POINTS, Orthographic, PixelSampling, SphereSampling};
+pub use secondary::{Bounce, Primary, Secondary};
 
 use glam::{Vec3, Vec3A};
 

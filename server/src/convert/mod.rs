@@ -10,6 +10,11 @@ use rayd_proto as pb;
 
 use crate::error::{ServiceError, ServiceResult};
 
+mod generator;
+mod reduction;
+pub use generator::generator;
+pub use reduction::reduction;
+
 /// The engine value numbered `value` in the contract, whose enums number the engine's `ALL` lists from 1 (0 is
 /// UNSPECIFIED); the test below checks that the names agree.
 fn numbered<T: Copy>(all: &[T], value: i32, field: &str, what: &str) -> ServiceResult<T> {
@@ -170,6 +175,7 @@ pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
         max_total_buffer_bytes: limits.max_total_buffer_bytes,
         max_rays_per_second: limits.max_rays_per_second,
         max_concurrent_operations: limits.max_concurrent_operations,
+        stream_stall_seconds: limits.stream_stall_seconds,
     }
 }
 
@@ -193,6 +199,7 @@ pub fn device(info: &DeviceInfo) -> pb::Device {
         id: info.id.clone(),
         backend: match info.kind {
             BackendKind::Cpu => pb::Backend::Cpu as i32,
+            BackendKind::Wgpu => pb::Backend::Wgpu as i32,
         },
         name: info.name.clone(),
         memory_bytes: info.memory_bytes,

@@ -1,0 +1,68 @@
+//! Lidar scans made and reduced by the server: a spinning lidar's rays are generated where they are traced and
+//! only the returns' points come back, written as a PLY point cloud.
+
+use std::io::Write;
+use std::path::Path;
+
+use bytes::Bytes;
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::glam::Vec3;
+use rayd_engine::query::Query;
+use rayd_engine::raygen::{Generator, Lidar};
+use rayd_engine::reduce::{PointCloud, PointEncoding, Reduction};
+
+use crate::client::Client;
+use crate::error::{Error, Result};
+use crate::reduce::ReducedTrace;
+
+/// The returns of one lidar revolution.
+#[derive(Debug, Clone)]
+pub struct LidarScan {
+    /// Hit points, x, y, z as little-endian f32, in firing order (step by step, channel by channel).
+    pub points: Bytes,
+    /// Rays fired.
+    pub rays: u64,
+}
+
+impl LidarScan {
+    /// Number of returns.
+    pub fn len(&self) -> usize {
+        self.points.len() / 12
+    }
+
+    /// Whether no ray returned.
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    /// Writes the returns as a binary little-endian PLY file of `x y z` float vertices.
+    pub fn write_ply(&self, path: &Path) -> Result<()> {
+        let header = format!(
+            "ply\nformat binary_little_endian 1.0\ncomment rayd lidar scan, {} rays\nelement vertex {}\n\
+             property float x\nproperty float y\nproperty float z\nend_header\n",
+            self.rays,
+            self.len()
+        );
+        let write = || -> std::io::Result<()> {
+            let mut file = std::io::BufWriter::new(std::fs::File::create(path)?);
+            file.write_all(header.as_bytes())?;
+            file.write_all(&self.points)?;
+            file.flush()
+        };
+        write().map_err(|e| Error::io(path, e))
+    }
+}
+
+impl Client {
+    /// Scans the accel called `accel` with `lidar` (closest hits, at the lidar's times): the server makes the rays
+    /// and returns only the hit points.
+    pub async fn lidar(&self, accel: &str, lidar: &Lidar) -> Result<LidarScan> {
+        let query = Query::closest(RayFormat::OriginTminDirectionTmaxTime, HitFormat::T);
+        let points = PointCloud { encoding: PointEncoding::Float32, step: 0.0, origin: Vec3::ZERO, ray_indices: false };
+        let generator = Generator::Lidar(lidar.clone());
+        let reduction = Reduction::PointCloud(points);
+        let ReducedTrace { data, stats, .. } =
+            self.trace_generated_reduced(accel, &query, &generator, &reduction).await?;
+        Ok(LidarScan { points: data, rays: stats.rays })
+    }
+}

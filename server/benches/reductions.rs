@@ -1,0 +1,150 @@
+//! Rays made and hits reduced on the server: a 4-megapixel camera render of the bunny through `rayd` over
+//! loopback, with every hit returned (plain, gRPC zstd, compact encoding) and with reductions (depth and normal
+//! images, counts), against the engine tracing the same rays in-process. Prints one table with rays/s, the share
+//! of the in-process rate, and the bytes a ray puts on the wire (and what zstd/gzip would make of them). Run with
+//! `cargo bench -p rayd-server --bench reductions`; `RAYD_BENCH_DEVICE=wgpu:0` measures on a GPU device instead of
+//! `cpu:0` (the in-process reference then traces on that device too).
+
+use std::time::Instant;
+
+use bytes::Bytes;
+use rayd_client::{Client, ClientOptions};
+use rayd_engine::accel::{BuildFlags, BuildOptions};
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::geometry::BuildInput;
+use rayd_engine::mesh::Mesh;
+use rayd_engine::query::{Query, TraceOutput};
+use rayd_engine::raygen::{Camera, Generator, PixelSampling};
+use rayd_engine::reduce::{Image, ImageChannel, PixelEncoding, Reduction};
+use rayd_engine::{Context, Device};
+use tonic::codec::CompressionEncoding;
+
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// Pixels a side: 2048² ≈ 4.2 M rays.
+const SIDE: u32 = 2048;
+/// Timed runs of each row (after one warm-up); the median is reported.
+const RUNS: usize = 5;
+
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
+/// The median seconds of `RUNS` calls of `run` after a warm-up, and the bytes the last call returned.
+async fn timed<F: std::future::Future<Output = Bytes>>(mut run: impl FnMut() -> F) -> (f64, Bytes) {
+    let mut last = run().await;
+    let mut times = Vec::new();
+    for _ in 0..RUNS {
+        let start = Instant::now();
+        last = run().await;
+        times.push(start.elapsed().as_secs_f64());
+    }
+    (median(times), last)
+}
+
+/// Bytes of `data` compressed as gRPC would with zstd (level 3, tonic's default) and gzip (level 6).
+fn compressed(data: &[u8]) -> (usize, usize) {
+    use std::io::Write;
+    let zstd = zstd::bulk::compress(data, 3).expect("zstd").len();
+    let mut gzip = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::new(6));
+    gzip.write_all(data).expect("gzip");
+    (zstd, gzip.finish().expect("gzip").len())
+}
+
+fn main() {
+    let meshes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/meshes");
+    let bunny = Mesh::load_obj(meshes.join("stanford-bunny.obj")).expect("the shared bunny");
+    let (lo, hi) = bunny.bounds();
+    let camera = Camera::framing(lo, hi, SIDE, SIDE);
+    let generator = Generator::Pinhole(camera, PixelSampling { samples: 1, jitter_seed: None });
+    let rays_per_call = generator.count() as f64;
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
+
+    // In-process: the engine alone on the same rays, made beforehand, into a reused hit buffer.
+    let device_id = std::env::var("RAYD_BENCH_DEVICE").unwrap_or_else(|_| "cpu:0".into());
+    let device =
+        Device::all().into_iter().find(|d| d.info().id == device_id).expect("the device RAYD_BENCH_DEVICE names");
+    let context = Context::new(device);
+    let packed = bunny.pack();
+    let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let rays = generator.rays(query.ray_format);
+    let mut hits = vec![0u8; rays.len() / query.ray_format.size() * 16];
+    let engine = median(
+        (0..RUNS)
+            .map(|_| {
+                let start = Instant::now();
+                context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
+                start.elapsed().as_secs_f64()
+            })
+            .collect(),
+    );
+
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
+    runtime.block_on(async {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        tokio::spawn(rayd_server::run(rayd_server::Config::default(), listener, None, std::future::pending()));
+        let client = Client::connect(&url, ClientOptions::default()).await.unwrap();
+        client.build_mesh("bunny", &bunny, &device_id, BuildFlags::empty()).await.unwrap();
+        let zstd_options = ClientOptions { compression: Some(CompressionEncoding::Zstd), ..ClientOptions::default() };
+        let zstd_client = Client::connect(&url, zstd_options).await.unwrap();
+
+        let mrays = |seconds: f64| rays_per_call / seconds / 1e6;
+        println!(
+            "bunny, {SIDE}×{SIDE} camera ({} rays), closest, on {device_id}, {} CPU threads",
+            rays_per_call,
+            rayon::current_num_threads()
+        );
+        println!("{:<52} {:>9} {:>8} {:>9} {:>9} {:>9}", "", "Mrays/s", "% engine", "B/ray", "zstd B/r", "gzip B/r");
+        println!(
+            "{:<52} {:>9.2} {:>8.1}",
+            "engine in-process (rays made beforehand), t_triid_u_v",
+            mrays(engine),
+            100.0
+        );
+        let row = |what: &str, seconds: f64, wire: &Bytes| {
+            let (zstd, gzip) = compressed(wire);
+            let per_ray = |bytes: usize| bytes as f64 / rays_per_call;
+            println!(
+                "{what:<52} {:>9.2} {:>8.1} {:>9.2} {:>9.2} {:>9.2}",
+                mrays(seconds),
+                100.0 * engine / seconds,
+                per_ray(wire.len()),
+                per_ray(zstd),
+                per_ray(gzip)
+            );
+        };
+
+        let (seconds, full) =
+            timed(|| async { client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() }).await;
+        assert_eq!(full.len(), hits.len(), "every hit");
+        row("generated, every hit t_triid_u_v", seconds, &full);
+        let (seconds, _) =
+            timed(|| async { zstd_client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() })
+                .await;
+        row("generated, every hit t_triid_u_v, gRPC zstd", seconds, &full);
+
+        let (near, far) = (0.0, (hi - lo).length() * 4.0);
+        let reductions = [
+            ("generated, compact hits (t_triid_u_v)", Reduction::CompactHits { t_far: far }),
+            ("generated, depth image float32", image(ImageChannel::Depth, PixelEncoding::Float32, near, far)),
+            ("generated, depth image 16-bit PNG", image(ImageChannel::Depth, PixelEncoding::Png, near, far)),
+            ("generated, normal image unorm16", image(ImageChannel::Normal, PixelEncoding::Unorm16, near, far)),
+            ("generated, hit counts", Reduction::Counts),
+        ];
+        for (what, reduction) in reductions {
+            let (seconds, data) = timed(|| async {
+                client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap().data
+            })
+            .await;
+            row(what, seconds, &data);
+        }
+    });
+}
+
+/// An image reduction of one ray a pixel, `SIDE` wide.
+fn image(channel: ImageChannel, encoding: PixelEncoding, near: f32, far: f32) -> Reduction {
+    Reduction::Image(Image { width: SIDE, rays_per_pixel: 1, channel, encoding, near, far })
+}

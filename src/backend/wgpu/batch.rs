@@ -1,0 +1,450 @@
+//! Batches on the device. Rays are traced in chunks whose buffers each fit one storage binding and whose
+//! workgroups fit one dispatch; chunk `i` runs in slot `i % 2`, so while the device traces one chunk the host
+//! copies the previous chunk's results out and the next chunk's rays in (double buffering). A slot's buffers,
+//! staging included, are kept by the backend and reused by later traces; they grow when a trace needs more.
+//!
+//! A slot's buffers (bind group 1 of the trace pipeline), every value a little-endian 32-bit word:
+//! - `params`: the chunk's [`Params`] (uniform).
+//! - `rays`: the chunk's rays, the caller's bytes unchanged (`RayFormat` layout), ray `i` at `i·size`.
+//! - `hits`: the chunk's hit records in the caller's `HitFormat` layout, record `r` at `r·size`; for the
+//!   bitmask, record `r` is bit `r % 32` of word `r / 32` (which is bit `r % 8` of byte `r / 8`, as in the
+//!   caller's buffer), the words cleared before the dispatch. A chunk starts at a multiple of 32 rays, so its
+//!   records start on a word boundary of the caller's bitmask.
+//! - `tallies`: [`TALLY_WORDS`] words of statistics (`0 rays_hit | 4 nodes_visited low | 8 nodes_visited high |
+//!   12 triangle_tests low | 16 triangle_tests high | 20..32 zero`), cleared before the dispatch, then, for the
+//!   counting kinds, one count a ray.
+//! - `scratch`: for `all` queries, `records_per_ray` sorted hits a ray, 48 bytes each: `0 t f32 | 4 slot u32
+//!   (bit 31: back face) | 8 u f32 | 12 v f32 | 16 levels u32 | 20 records u32×7` (what entered each instance
+//!   level below the root, top to bottom: an instance record's offset in `graph`, or bit 31 and a transform's
+//!   object offset); 48 unused bytes for the other kinds.
+//! - `upload` (mappable, copied to `rays`) and `readback` (mappable, `hits`, `tallies`, then the kernel's start
+//!   and end timestamps copied into it): the staging buffers. An idle slot's `upload` is mapped, ready for the
+//!   next chunk's rays.
+//! - `timestamps`, where the adapter has timestamp queries: a query set of 2 (the trace pass's start and end) and
+//!   the 16 bytes it resolves into (two u64 ticks); without them the readback's last 16 bytes stay unused.
+
+use std::sync::mpsc::{Receiver, TryRecvError, channel};
+use std::time::{Duration, Instant};
+
+#[cfg(doc)]
+use super::WgpuOptions;
+use super::device::Opened;
+use super::kernel::{Params, WORKGROUP_SIZE};
+use super::layout::GpuGraph;
+use crate::error::{Error, Result};
+use crate::format::{HitFormat, read_u32};
+use crate::query::{Query, QueryKind, TraceOutput, TraceStats};
+
+/// Slots a trace keeps in flight.
+pub(super) const SLOTS: usize = 2;
+/// Words of statistics at the head of `tallies` (`TALLY_WORDS` in `layout.wgsl`).
+const TALLY_WORDS: usize = 8;
+/// Bytes of those words.
+const TALLY_BYTES: u64 = 4 * TALLY_WORDS as u64;
+/// Bytes of the two resolved timestamps.
+const TIMESTAMP_BYTES: u64 = 16;
+/// Bytes of one `all` scratch entry.
+const SCRATCH_ENTRY_BYTES: u64 = 48;
+/// Rays of a chunk at most unless [`WgpuOptions::max_chunk_rays`] says otherwise: large enough to keep a GPU busy,
+/// small enough that copying one chunk out overlaps tracing the next.
+pub(super) const MAX_CHUNK_RAYS: usize = 1 << 18;
+/// Rays one dispatch can cover: 65,535 workgroups (WebGPU's per-dimension limit) of [`WORKGROUP_SIZE`].
+const MAX_DISPATCH_RAYS: usize = 65_535 * WORKGROUP_SIZE as usize;
+/// Chunks start at multiples of this many rays, so that bitmask chunks start on word boundaries.
+const CHUNK_ALIGN: usize = 32;
+
+/// The byte sizes of a slot's buffers.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(super) struct Capacity {
+    /// `rays` and `upload`.
+    rays: u64,
+    /// `hits` (a multiple of 4).
+    hits: u64,
+    /// `tallies`.
+    tallies: u64,
+    /// `scratch`.
+    scratch: u64,
+}
+
+impl Capacity {
+    /// What a chunk of `rays` rays of `query` needs.
+    fn for_chunk(query: &Query, rays: usize) -> Capacity {
+        let records = rays * query.records_per_ray();
+        Capacity {
+            rays: (rays * query.ray_format.size()) as u64,
+            hits: (query.hit_format.buffer_len(records) as u64).next_multiple_of(4),
+            tallies: TALLY_BYTES + if query.kind.has_counts() { 4 * rays as u64 } else { 0 },
+            scratch: if query.kind == QueryKind::All {
+                records as u64 * SCRATCH_ENTRY_BYTES
+            } else {
+                SCRATCH_ENTRY_BYTES
+            },
+        }
+    }
+
+    /// The largest buffer.
+    fn largest(&self) -> u64 {
+        self.rays.max(self.hits).max(self.tallies).max(self.scratch)
+    }
+
+    /// Whether every buffer is at least as large as `need`'s.
+    fn holds(&self, need: &Capacity) -> bool {
+        self.rays >= need.rays && self.hits >= need.hits && self.tallies >= need.tallies && self.scratch >= need.scratch
+    }
+
+    /// The larger of each buffer.
+    fn max(self, other: Capacity) -> Capacity {
+        Capacity {
+            rays: self.rays.max(other.rays),
+            hits: self.hits.max(other.hits),
+            tallies: self.tallies.max(other.tallies),
+            scratch: self.scratch.max(other.scratch),
+        }
+    }
+}
+
+/// How a batch is cut into chunks.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Plan {
+    /// Rays in the batch.
+    rays: usize,
+    /// Rays of every chunk but the last: a multiple of [`CHUNK_ALIGN`].
+    chunk_rays: usize,
+    /// What a full chunk needs.
+    need: Capacity,
+}
+
+impl Plan {
+    /// The largest chunks (up to `max_chunk_rays`) whose every buffer fits `binding_limit` bytes and whose
+    /// workgroups fit one dispatch; RESOURCE_EXHAUSTED if even [`CHUNK_ALIGN`] rays do not fit.
+    pub fn new(query: &Query, rays: usize, binding_limit: u64, max_chunk_rays: usize) -> Result<Plan> {
+        let most = max_chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS);
+        let mut chunk_rays = rays.next_multiple_of(CHUNK_ALIGN).clamp(CHUNK_ALIGN, most);
+        loop {
+            let need = Capacity::for_chunk(query, chunk_rays);
+            if need.largest() <= binding_limit {
+                return Ok(Plan { rays, chunk_rays, need });
+            }
+            if chunk_rays == CHUNK_ALIGN {
+                return Err(Error::TooLarge {
+                    what: "a wgpu chunk of 32 rays (max_hits_per_ray too large)",
+                    requested: need.largest(),
+                    limit: binding_limit,
+                });
+            }
+            chunk_rays = (chunk_rays / 2).next_multiple_of(CHUNK_ALIGN);
+        }
+    }
+}
+
+/// One chunk's buffers on the device (see the module documentation).
+pub(super) struct Slot {
+    /// What its buffers hold.
+    capacity: Capacity,
+    /// The chunk's uniform block.
+    params: wgpu::Buffer,
+    /// Staging for the rays: mapped while the slot is idle.
+    upload: wgpu::Buffer,
+    /// The rays the kernel reads.
+    rays: wgpu::Buffer,
+    /// The hit records the kernel writes.
+    hits: wgpu::Buffer,
+    /// Statistics and counts the kernel writes.
+    tallies: wgpu::Buffer,
+    /// Staging for `hits`, `tallies` and the timestamps.
+    readback: wgpu::Buffer,
+    /// The kernel's timestamp queries and the buffer they resolve into, where the adapter has them.
+    timestamps: Option<(wgpu::QuerySet, wgpu::Buffer)>,
+    /// Bind group 1 over the slot's buffers (it keeps `scratch`, which nothing else uses, alive).
+    bind_group: wgpu::BindGroup,
+}
+
+impl Slot {
+    /// A slot of `capacity`, its upload buffer mapped.
+    fn new(opened: &Opened, capacity: Capacity) -> Slot {
+        use wgpu::BufferUsages as U;
+        let buffer = |label: &str, size: u64, usage: U, mapped: bool| {
+            opened.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage,
+                mapped_at_creation: mapped,
+            })
+        };
+        let params = buffer("rayd params", size_of::<Params>() as u64, U::UNIFORM | U::COPY_DST, false);
+        let upload = buffer("rayd upload", capacity.rays, U::MAP_WRITE | U::COPY_SRC, true);
+        let rays = buffer("rayd rays", capacity.rays, U::STORAGE | U::COPY_DST, false);
+        let hits = buffer("rayd hits", capacity.hits, U::STORAGE | U::COPY_SRC | U::COPY_DST, false);
+        let tallies = buffer("rayd tallies", capacity.tallies, U::STORAGE | U::COPY_SRC | U::COPY_DST, false);
+        let scratch = buffer("rayd scratch", capacity.scratch, U::STORAGE, false);
+        let readback_bytes = capacity.hits + capacity.tallies + TIMESTAMP_BYTES;
+        let readback = buffer("rayd readback", readback_bytes, U::MAP_READ | U::COPY_DST, false);
+        let timestamps = opened.timestamp_period.map(|_| {
+            let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
+                label: Some("rayd kernel time"),
+                ty: wgpu::QueryType::Timestamp,
+                count: 2,
+            });
+            (queries, buffer("rayd timestamps", TIMESTAMP_BYTES, U::QUERY_RESOLVE | U::COPY_SRC, false))
+        });
+        let bind_group = opened.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("rayd batch"),
+            layout: &opened.kernel.batch_layout,
+            entries: &[&params, &rays, &hits, &tallies, &scratch]
+                .iter()
+                .enumerate()
+                .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                    binding: binding as u32,
+                    resource: buffer.as_entire_binding(),
+                })
+                .collect::<Vec<_>>(),
+        });
+        Slot { capacity, params, upload, rays, hits, tallies, readback, timestamps, bind_group }
+    }
+}
+
+/// The rays of one chunk.
+#[derive(Debug, Clone, Copy)]
+struct Chunk {
+    /// Index of its first ray in the batch.
+    first: usize,
+    /// Rays in it.
+    rays: usize,
+}
+
+/// A chunk submitted and not yet copied out.
+struct InFlight {
+    /// Which rays.
+    chunk: Chunk,
+    /// What its buffers hold.
+    need: Capacity,
+    /// Its submission.
+    submission: wgpu::SubmissionIndex,
+    /// Reports the readback buffer mapped.
+    read: Receiver<Result<(), wgpu::BufferAsyncError>>,
+    /// Reports the upload buffer mapped again.
+    write: Receiver<Result<(), wgpu::BufferAsyncError>>,
+}
+
+/// The little-endian u64 at byte `at` of `bytes`.
+fn u64_at(bytes: &[u8], at: usize) -> u64 {
+    u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"))
+}
+
+/// The error of a device that failed mid-trace.
+fn device_error(what: &str, error: impl std::fmt::Display) -> Error {
+    Error::FailedPrecondition(format!("the wgpu device failed {what}: {error}"))
+}
+
+/// Asks for `buffer` to be mapped once the work that uses it is done; the receiver reports it.
+fn request_map(buffer: &wgpu::Buffer, mode: wgpu::MapMode, size: u64) -> Receiver<Result<(), wgpu::BufferAsyncError>> {
+    let (sender, receiver) = channel();
+    buffer.slice(..size).map_async(mode, move |result| {
+        // The trace may have failed and dropped the receiver: nobody is waiting then.
+        let _ = sender.send(result);
+    });
+    receiver
+}
+
+/// Waits until `receiver` reports its mapping (polling the device until `submission` is done).
+fn wait_mapped(
+    opened: &Opened,
+    receiver: &Receiver<Result<(), wgpu::BufferAsyncError>>,
+    submission: &wgpu::SubmissionIndex,
+) -> Result<()> {
+    loop {
+        match receiver.try_recv() {
+            Ok(result) => return result.map_err(|e| device_error("mapping a buffer", e)),
+            Err(TryRecvError::Disconnected) => return Err(device_error("mapping a buffer", "the request was dropped")),
+            Err(TryRecvError::Empty) => {
+                let wait = wgpu::PollType::Wait { submission_index: Some(submission.clone()), timeout: None };
+                opened.device.poll(wait).map_err(|e| device_error("tracing", e))?;
+                // Another thread's poll may be delivering the callback right now.
+                std::thread::yield_now();
+            }
+        }
+    }
+}
+
+/// Traces the batch `rays` of `query` against `accel` in `plan`'s chunks and writes `out`, through `slots` (made or grown to [`SLOTS`] slots of the plan's needs; emptied if the trace fails, since
+/// their state is then unknown).
+pub(super) fn trace(
+    opened: &Opened,
+    accel: &GpuGraph,
+    query: &Query,
+    plan: &Plan,
+    rays: &[u8],
+    out: TraceOutput<'_>,
+    slots: &mut Vec<Slot>,
+) -> Result<TraceStats> {
+    if plan.rays == 0 {
+        return Ok(TraceStats::default());
+    }
+    let started = Instant::now();
+    for index in 0..SLOTS {
+        match slots.get(index) {
+            Some(slot) if slot.capacity.holds(&plan.need) => {}
+            Some(slot) => slots[index] = Slot::new(opened, slot.capacity.max(plan.need)),
+            None => slots.push(Slot::new(opened, plan.need)),
+        }
+    }
+    let params = Params { root: accel.root, ..Params::for_query(query) };
+    let traced = run_chunks(opened, accel, query, plan, &params, rays, out, slots, started);
+    if traced.is_err() {
+        slots.clear();
+    }
+    traced
+}
+
+/// The chunk loop of [`trace`] (which started at `started`); logs its timings at debug level.
+#[allow(clippy::too_many_arguments)]
+fn run_chunks(
+    opened: &Opened,
+    accel: &GpuGraph,
+    query: &Query,
+    plan: &Plan,
+    params: &Params,
+    rays: &[u8],
+    out: TraceOutput<'_>,
+    slots: &[Slot],
+    started: Instant,
+) -> Result<TraceStats> {
+    let TraceOutput { hits, counts } = out;
+    let mut stats = TraceStats::default();
+    // Host time submitting (rays copied into staging) and finishing (waiting, hits copied out), for the log.
+    let (mut submitting, mut finishing) = (Duration::ZERO, Duration::ZERO);
+    let mut finish_one = |slot: usize, flight: InFlight, stats: &mut TraceStats| {
+        let start = Instant::now();
+        let finished = finish(opened, &slots[slot], flight, query, hits, counts, stats);
+        finishing += start.elapsed();
+        finished
+    };
+    let mut in_flight: [Option<InFlight>; SLOTS] = Default::default();
+    for (index, first) in (0..plan.rays).step_by(plan.chunk_rays).enumerate() {
+        let slot = index % SLOTS;
+        if let Some(flight) = in_flight[slot].take() {
+            finish_one(slot, flight, &mut stats)?;
+        }
+        let chunk = Chunk { first, rays: plan.chunk_rays.min(plan.rays - first) };
+        let start = Instant::now();
+        in_flight[slot] = Some(submit(opened, accel, &slots[slot], query, params, chunk, rays)?);
+        submitting += start.elapsed();
+    }
+    let mut rest: Vec<(usize, InFlight)> =
+        in_flight.into_iter().enumerate().filter_map(|(slot, flight)| Some((slot, flight?))).collect();
+    rest.sort_by_key(|(_, flight)| flight.chunk.first);
+    for (slot, flight) in rest {
+        finish_one(slot, flight, &mut stats)?;
+    }
+    tracing::debug!(
+        rays = plan.rays,
+        chunk_rays = plan.chunk_rays,
+        kernel_ms = stats.device_nanos as f64 * 1e-6,
+        submitting_ms = submitting.as_secs_f64() * 1e3,
+        finishing_ms = finishing.as_secs_f64() * 1e3,
+        total_ms = started.elapsed().as_secs_f64() * 1e3,
+        "wgpu trace"
+    );
+    Ok(stats)
+}
+
+/// Copies the chunk's rays into `slot`'s (mapped) upload buffer and submits the copy, the dispatch and the
+/// copies into the readback buffer; then asks for both staging buffers to be mapped when that work is done.
+fn submit(
+    opened: &Opened,
+    accel: &GpuGraph,
+    slot: &Slot,
+    query: &Query,
+    params: &Params,
+    chunk: Chunk,
+    rays: &[u8],
+) -> Result<InFlight> {
+    let size = query.ray_format.size();
+    let bytes = &rays[chunk.first * size..(chunk.first + chunk.rays) * size];
+    let need = Capacity::for_chunk(query, chunk.rays);
+    slot.upload
+        .slice(..need.rays)
+        .get_mapped_range_mut()
+        .map_err(|e| device_error("mapping the ray staging buffer", e))?
+        .copy_from_slice(bytes);
+    slot.upload.unmap();
+    let params = Params { ray_count: chunk.rays as u32, ..*params };
+    opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
+    let mut encoder =
+        opened.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("rayd trace") });
+    encoder.copy_buffer_to_buffer(&slot.upload, 0, &slot.rays, 0, need.rays);
+    if query.hit_format == HitFormat::Bitmask {
+        encoder.clear_buffer(&slot.hits, 0, Some(need.hits));
+    }
+    encoder.clear_buffer(&slot.tallies, 0, Some(TALLY_BYTES));
+    {
+        let timestamp_writes = slot.timestamps.as_ref().map(|(queries, _)| wgpu::ComputePassTimestampWrites {
+            query_set: queries,
+            beginning_of_pass_write_index: Some(0),
+            end_of_pass_write_index: Some(1),
+        });
+        let mut pass =
+            encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes });
+        pass.set_pipeline(&opened.kernel.pipeline);
+        pass.set_bind_group(0, &accel.bind_group, &[]);
+        pass.set_bind_group(1, &slot.bind_group, &[]);
+        pass.dispatch_workgroups((chunk.rays as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
+    }
+    encoder.copy_buffer_to_buffer(&slot.hits, 0, &slot.readback, 0, need.hits);
+    encoder.copy_buffer_to_buffer(&slot.tallies, 0, &slot.readback, need.hits, need.tallies);
+    if let Some((queries, resolved)) = &slot.timestamps {
+        encoder.resolve_query_set(queries, 0..2, resolved, 0);
+        encoder.copy_buffer_to_buffer(resolved, 0, &slot.readback, need.hits + need.tallies, TIMESTAMP_BYTES);
+    }
+    let submission = opened.queue.submit([encoder.finish()]);
+    let read = request_map(&slot.readback, wgpu::MapMode::Read, need.hits + need.tallies + TIMESTAMP_BYTES);
+    let write = request_map(&slot.upload, wgpu::MapMode::Write, slot.capacity.rays);
+    Ok(InFlight { chunk, need, submission, read, write })
+}
+
+/// Waits for a chunk, copies its records and counts into the caller's buffers and adds its statistics; leaves
+/// the slot idle (upload mapped, readback unmapped).
+fn finish(
+    opened: &Opened,
+    slot: &Slot,
+    flight: InFlight,
+    query: &Query,
+    hits: &mut [u8],
+    counts: &mut [u8],
+    stats: &mut TraceStats,
+) -> Result<()> {
+    wait_mapped(opened, &flight.read, &flight.submission)?;
+    wait_mapped(opened, &flight.write, &flight.submission)?;
+    let InFlight { chunk, need, .. } = flight;
+    {
+        let view = slot
+            .readback
+            .slice(..need.hits + need.tallies + TIMESTAMP_BYTES)
+            .get_mapped_range()
+            .map_err(|e| device_error("mapping the hit staging buffer", e))?;
+        let per_ray = query.records_per_ray();
+        let start = query.hit_format.buffer_len(chunk.first * per_ray);
+        let len = query.hit_format.buffer_len(chunk.rays * per_ray);
+        hits[start..start + len].copy_from_slice(&view[..len]);
+        let tallies = &view[need.hits as usize..(need.hits + need.tallies) as usize];
+        let ticks = &view[(need.hits + need.tallies) as usize..];
+        if query.kind.has_counts() {
+            counts[4 * chunk.first..4 * (chunk.first + chunk.rays)]
+                .copy_from_slice(&tallies[TALLY_BYTES as usize..TALLY_BYTES as usize + 4 * chunk.rays]);
+        }
+        let wide =
+            |word: usize| u64::from(read_u32(tallies, 4 * word)) | u64::from(read_u32(tallies, 4 * word + 4)) << 32;
+        stats.add(&TraceStats {
+            rays: chunk.rays as u64,
+            rays_hit: u64::from(read_u32(tallies, 0)),
+            nodes_visited: wide(1),
+            triangle_tests: wide(3),
+            device_nanos: opened.timestamp_period.map_or(0, |period| {
+                let (start, end) = (u64_at(ticks, 0), u64_at(ticks, 8));
+                (end.saturating_sub(start) as f64 * f64::from(period)) as u64
+            }),
+        });
+    }
+    slot.readback.unmap();
+    Ok(())
+}

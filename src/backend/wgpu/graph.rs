@@ -1,0 +1,203 @@
+//! An accel's graph flattened into the device's arrays ([`super::layout`] documents them): every distinct accel
+//! below it (itself included) once, children before parents. A BVH's nodes, key boxes, corners and triangle ids
+//! are appended to the shared arrays with its node indices made global (inner nodes' children, geometry leaves'
+//! triangle slots; instance leaves keep their own slots); instances, transforms and one record a BVH or transform
+//! (an *object*) go to the graph words.
+
+use std::collections::HashMap;
+
+use glam::Affine3A;
+
+use super::layout::{INSTANCE_WORDS, OBJECT_WORDS, ObjectKind, Prim};
+use crate::backend::cpu::bvh::{Node, NodeKeys};
+use crate::backend::cpu::{CpuAccel, InstanceBvh, TransformNode, TriangleBvh, cpu_child};
+use crate::error::Result;
+use crate::geometry::{MotionOptions, Transform};
+
+/// The flattened arrays.
+#[derive(Debug, Default)]
+pub(super) struct Flat {
+    /// Node words, 8 a node.
+    pub nodes: Vec<u32>,
+    /// Per-key node boxes of motion BVHs, 6 floats a box.
+    pub boxes: Vec<f32>,
+    /// Triangle corners, 9 floats a triangle a key.
+    pub corners: Vec<f32>,
+    /// Triangle ids, one a slot.
+    pub prims: Vec<Prim>,
+    /// Objects, instance records and transform keys.
+    pub graph: Vec<u32>,
+    /// The root object's word offset in `graph`.
+    pub root: u32,
+    /// Traversal stack entries a ray through the graph needs at most.
+    pub stack: usize,
+}
+
+/// Flattens the graph under `host`.
+pub(super) fn flatten(host: &CpuAccel) -> Result<Flat> {
+    let mut flattener = Flattener { flat: Flat::default(), seen: HashMap::new() };
+    let (root, stack) = flattener.object(host)?;
+    Ok(Flat { root, stack, ..flattener.flat })
+}
+
+/// The flattening in progress.
+struct Flattener {
+    /// What is flattened so far.
+    flat: Flat,
+    /// The objects already flattened, by address of their host structure: their offset and stack need.
+    seen: HashMap<usize, (u32, usize)>,
+}
+
+/// The 12 floats of an affine map, column by column (x axis, y axis, z axis, translation).
+fn columns(affine: &Affine3A) -> [f32; 12] {
+    let m = affine.matrix3;
+    let mut out = [0.0; 12];
+    for (i, v) in [m.x_axis, m.y_axis, m.z_axis, affine.translation].iter().enumerate() {
+        out[3 * i..3 * i + 3].copy_from_slice(&v.to_array());
+    }
+    out
+}
+
+/// Longest root-to-leaf path of a depth-first node array, in nodes (0 when empty).
+fn depth(nodes: &[Node]) -> usize {
+    let mut deepest = 0;
+    let mut pending = if nodes.is_empty() { vec![] } else { vec![(0usize, 1usize)] };
+    while let Some((node, level)) = pending.pop() {
+        deepest = deepest.max(level);
+        if nodes[node].count == 0 {
+            let first = nodes[node].index as usize;
+            pending.extend([(first, level + 1), (first + 1, level + 1)]);
+        }
+    }
+    deepest
+}
+
+impl Flattener {
+    /// Flattens `host` (once) and returns its object's offset and its stack need.
+    fn object(&mut self, host: &CpuAccel) -> Result<(u32, usize)> {
+        let key = std::ptr::from_ref(host) as usize;
+        if let Some(&known) = self.seen.get(&key) {
+            return Ok(known);
+        }
+        let flattened = match host {
+            CpuAccel::Triangles(bvh) => self.triangles(bvh),
+            CpuAccel::Instances(bvh) => self.instances(bvh)?,
+            CpuAccel::Transform(node) => self.transform(node)?,
+        };
+        self.seen.insert(key, flattened);
+        Ok(flattened)
+    }
+
+    /// Appends a BVH's nodes (inner nodes' children made global, leaves' first slot moved by `leaf_base`) and key
+    /// boxes; returns the first node's index and the first box's float offset.
+    fn bvh(&mut self, nodes: &[Node], keys: Option<&NodeKeys>, leaf_base: u32) -> (u32, u32) {
+        let first = (self.flat.nodes.len() / 8) as u32;
+        let box_base = self.flat.boxes.len() as u32;
+        for node in nodes {
+            let index = node.index + if node.count == 0 { first } else { leaf_base };
+            let (min, max) = (node.min.to_array().map(f32::to_bits), node.max.to_array().map(f32::to_bits));
+            self.flat.nodes.extend([min[0], min[1], min[2], index, max[0], max[1], max[2], node.count]);
+        }
+        if let Some(keys) = keys {
+            self.flat
+                .boxes
+                .extend(keys.boxes.iter().flat_map(|(min, max)| min.to_array().into_iter().chain(max.to_array())));
+        }
+        (first, box_base)
+    }
+
+    /// Appends an object record; returns its offset.
+    #[allow(clippy::too_many_arguments)]
+    fn record(
+        &mut self,
+        kind: ObjectKind,
+        motion: &MotionOptions,
+        first: u32,
+        node_count: u32,
+        box_base: u32,
+        base: u32,
+        corner_base: u32,
+    ) -> u32 {
+        let offset = self.flat.graph.len() as u32;
+        let words: [u32; OBJECT_WORDS] = [
+            kind as u32,
+            motion.keys,
+            motion.flags.bits(),
+            motion.time_begin.to_bits(),
+            motion.time_end.to_bits(),
+            first,
+            node_count,
+            box_base,
+            base,
+            corner_base,
+        ];
+        self.flat.graph.extend(words);
+        offset
+    }
+
+    /// A geometry accel.
+    fn triangles(&mut self, bvh: &TriangleBvh) -> (u32, usize) {
+        let slot_base = self.flat.prims.len() as u32;
+        let corner_base = self.flat.corners.len() as u32;
+        let (first, box_base) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), slot_base);
+        self.flat.corners.extend(bvh.corners.iter().flat_map(|c| c.iter().flat_map(|v| v.to_array())));
+        self.flat.prims.extend(bvh.refs.iter().enumerate().map(|(slot, r)| Prim {
+            geom_id: r.geom_id,
+            prim_id: r.prim_id,
+            mask: bvh.masks.as_ref().map_or(0, |m| m[slot]),
+            geometry_flags: bvh.geometry_flags[r.geom_id as usize].bits(),
+        }));
+        let node_count = bvh.nodes.len() as u32;
+        let offset =
+            self.record(ObjectKind::Triangles, &bvh.motion, first, node_count, box_base, slot_base, corner_base);
+        (offset, bvh.depth)
+    }
+
+    /// An instance accel: its children first, then its instance records, nodes and object.
+    fn instances(&mut self, bvh: &InstanceBvh) -> Result<(u32, usize)> {
+        let mut children = Vec::with_capacity(bvh.instances.len());
+        let mut child_stack = 0;
+        for instance in &bvh.instances {
+            let (child, stack) = self.object(cpu_child(&instance.child)?)?;
+            children.push(child);
+            child_stack = child_stack.max(stack);
+        }
+        let records = self.flat.graph.len() as u32;
+        for (instance, child) in bvh.instances.iter().zip(children) {
+            let mut record = [0u32; INSTANCE_WORDS];
+            record[..12].copy_from_slice(&columns(&instance.placement.world_to_object).map(f32::to_bits));
+            record[12..].copy_from_slice(&[
+                instance.instance_id,
+                u32::from(instance.mask),
+                instance.flags.bits(),
+                child,
+            ]);
+            self.flat.graph.extend(record);
+        }
+        let (first, box_base) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), 0);
+        let node_count = bvh.nodes.len() as u32;
+        let offset = self.record(ObjectKind::Instances, &bvh.motion, first, node_count, box_base, records, 0);
+        // A walk's pending nodes, then a leaf's resume entry and the marker below it.
+        Ok((offset, depth(&bvh.nodes) + 2 + child_stack))
+    }
+
+    /// A transform: its child first, then its keys and object.
+    fn transform(&mut self, node: &TransformNode) -> Result<(u32, usize)> {
+        let (child, child_stack) = self.object(cpu_child(&node.child)?)?;
+        let base = self.flat.graph.len() as u32;
+        let floats: Vec<f32> = match &node.transform {
+            Transform::Static(placement) => columns(&placement.world_to_object).to_vec(),
+            Transform::Matrix { keys, .. } => keys.iter().flat_map(columns).collect(),
+            Transform::Srt { keys, .. } => keys.iter().flat_map(|k| k.floats()).collect(),
+        };
+        self.flat.graph.extend(floats.iter().map(|f| f.to_bits()));
+        let kind = match &node.transform {
+            Transform::Static(_) => ObjectKind::StaticTransform,
+            Transform::Matrix { .. } => ObjectKind::MatrixTransform,
+            Transform::Srt { .. } => ObjectKind::SrtTransform,
+        };
+        let offset = self.record(kind, &node.transform.motion(), child, 0, 0, base, 0);
+        // The marker below it.
+        Ok((offset, 1 + child_stack))
+    }
+}

@@ -1,0 +1,140 @@
+//! An accel on the device: its graph flattened ([`super::graph`]) into five storage buffers (bind group 0 of the
+//! trace pipeline), uploaded once at build, update or load. Every value is a little-endian 32-bit word; `f32` is
+//! IEEE-754 binary32. An instance accel or transform holds copies of everything below it (each distinct accel
+//! once), so the kernel traverses the whole graph from its own buffers.
+//!
+//! - `nodes`: every BVH's depth-first nodes, 32 bytes each: `0 min.xyz f32×3 | 12 index u32 | 16 max.xyz f32×3 |
+//!   28 count u32` ([`Node`] with global indices): an inner node (`count` 0) has its children at `index` and
+//!   `index + 1` of this array; a geometry leaf holds the triangle slots `index .. index + count` of `prims`; an
+//!   instance leaf the instances `index .. index + count` of its object (counted from its first record). With
+//!   motion each box is the node's box over all of time.
+//! - `node_boxes`: with motion, node `i`'s box at key `k` at float `box_base + ((i − first)·keys + k)·6` of its
+//!   object: `min.xyz, max.xyz`. One zero box when no BVH moves.
+//! - `corners`: triangle slot `s`'s corners at key `k` at float `corner_base + ((s − base)·keys + k)·9` of its
+//!   object: `v0.xyz, v1.xyz, v2.xyz` (leaf order, then the never-traversed degenerate triangles, as on the host).
+//! - `prims`: per triangle slot, 16 bytes ([`Prim`]): `0 geom_id u32 | 4 prim_id u32 | 8 mask u32 (0 without
+//!   masks) | 12 geometry_flags u32`.
+//! - `graph`: words. An object (a BVH or transform, [`OBJECT_WORDS`] words at its offset): `0 kind` ([`ObjectKind`])
+//!   `| 1 keys | 2 motion_flags | 3 time_begin f32 | 4 time_end f32 | 5 first | 6 node_count | 7 box_base | 8 base |
+//!   9 corner_base`, where `first` is a BVH's root node (a transform's child object) and `base` a geometry accel's
+//!   first triangle slot, an instance accel's first instance record or a transform's first key. An instance record
+//!   ([`INSTANCE_WORDS`] words): `0 world_to_object f32×12` (columns: x axis, y axis, z axis, translation) `|
+//!   12 instance_id | 13 mask | 14 flags | 15 child object`. Transform keys: a static transform's world-to-object
+//!   map (12 floats, columns); a matrix motion transform's object-to-world map a key (12 floats, columns); an SRT
+//!   motion transform's 16 floats a key (`sx a b sy c sz pvx pvy pvz qx qy qz qw tx ty tz`, unit quaternion).
+
+use bytemuck::{Pod, Zeroable};
+use wgpu::util::DeviceExt;
+
+use super::device::Opened;
+use super::graph;
+use super::kernel::STACK_SIZE;
+use crate::backend::cpu::CpuAccel;
+#[cfg(doc)]
+use crate::backend::cpu::bvh::Node;
+use crate::error::{Error, Result};
+
+/// The ids and acceptance data of one triangle slot (`Prim` in `layout.wgsl`).
+#[derive(Debug, Clone, Copy, Pod, Zeroable)]
+#[repr(C)]
+pub(super) struct Prim {
+    /// Geometry id.
+    pub geom_id: u32,
+    /// Primitive id.
+    pub prim_id: u32,
+    /// Prime mask.
+    pub mask: u32,
+    /// Flags of the triangle's geometry.
+    pub geometry_flags: u32,
+}
+
+/// Words of an object record in `graph` (`OBJECT_WORDS` in `layout.wgsl`).
+pub(super) const OBJECT_WORDS: usize = 10;
+/// Words of an instance record in `graph` (`INSTANCE_WORDS` in `layout.wgsl`).
+pub(super) const INSTANCE_WORDS: usize = 16;
+
+/// What an object is (`OBJECT_*` in `layout.wgsl`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum ObjectKind {
+    /// A geometry accel's BVH.
+    Triangles = 0,
+    /// An instance accel's BVH.
+    Instances = 1,
+    /// A static transform.
+    StaticTransform = 2,
+    /// A matrix motion transform.
+    MatrixTransform = 3,
+    /// An SRT motion transform.
+    SrtTransform = 4,
+}
+
+/// An accel's buffers on the device.
+#[derive(Debug)]
+pub(super) struct GpuGraph {
+    /// Bind group 0 over the five buffers (which it keeps alive).
+    pub bind_group: wgpu::BindGroup,
+    /// The root object's offset in `graph`.
+    pub root: u32,
+    /// Bytes of the five buffers.
+    bytes: u64,
+}
+
+impl GpuGraph {
+    /// Flattens and uploads the graph under `host`. FAILED_PRECONDITION if a ray through it could need more stack
+    /// than the kernel's; RESOURCE_EXHAUSTED if an array exceeds what the adapter can bind.
+    pub fn upload(opened: &Opened, host: &CpuAccel) -> Result<GpuGraph> {
+        let flat = graph::flatten(host)?;
+        if flat.stack > STACK_SIZE {
+            return Err(Error::FailedPrecondition(format!(
+                "a ray through the accel's BVHs and instance levels needs {} stack entries; the wgpu kernel's stack \
+                 holds {STACK_SIZE}",
+                flat.stack
+            )));
+        }
+        let limit = opened.binding_limit(None);
+        let mut bytes = 0;
+        let mut buffer = |name: &str, contents: &[u8]| -> Result<wgpu::Buffer> {
+            // Bindings must not be empty: an empty array gets zero words.
+            let contents = if contents.is_empty() { &[0u8; 32][..] } else { contents };
+            if contents.len() as u64 > limit {
+                return Err(Error::TooLarge {
+                    what: "the accel's device arrays",
+                    requested: contents.len() as u64,
+                    limit,
+                });
+            }
+            bytes += contents.len() as u64;
+            Ok(opened.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(name),
+                contents,
+                usage: wgpu::BufferUsages::STORAGE,
+            }))
+        };
+        let buffers = [
+            buffer("rayd nodes", bytemuck::cast_slice(&flat.nodes))?,
+            buffer("rayd node boxes", bytemuck::cast_slice(&flat.boxes))?,
+            buffer("rayd corners", bytemuck::cast_slice(&flat.corners))?,
+            buffer("rayd prims", bytemuck::cast_slice(&flat.prims))?,
+            buffer("rayd graph", bytemuck::cast_slice(&flat.graph))?,
+        ];
+        let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
+            .iter()
+            .enumerate()
+            .map(|(binding, buffer)| wgpu::BindGroupEntry {
+                binding: binding as u32,
+                resource: buffer.as_entire_binding(),
+            })
+            .collect();
+        let bind_group = opened.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("rayd accel"),
+            layout: &opened.kernel.accel_layout,
+            entries: &entries,
+        });
+        Ok(GpuGraph { bind_group, root: flat.root, bytes })
+    }
+
+    /// Bytes the accel occupies on the device.
+    pub fn bytes(&self) -> u64 {
+        self.bytes
+    }
+}

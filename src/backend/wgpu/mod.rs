@@ -1,0 +1,231 @@
+//! The wgpu backend: accels built on the host by the CPU backend's builders, their graphs flattened ([`graph`]) and
+//! uploaded once ([`layout`]), traced by a WGSL compute kernel ([`kernel`], `shaders/`) in chunks that fit the
+//! adapter's limits ([`batch`]), on every Vulkan adapter that wgpu enumerates ([`device`]).
+//!
+//! What runs on the GPU: traversal and hit collection for every accel kind — geometry accels (static or with
+//! vertex motion), instance accels (visibility masks, instance flags, motion keys) and static, matrix motion and
+//! SRT motion transforms, in graphs as deep as the engine allows — at per-ray times, in every ray format, hit
+//! format and query kind, with ray flags and Prime masks. One kernel walks every level: entering an instance or
+//! transform it carries the ray into the child's space and pushes a marker that restores it. Refused
+//! (FAILED_PRECONDITION): graphs whose rays could need more than the kernel's 64 stack entries.
+//!
+//! Results agree with the CPU backend up to rounding: the kernel runs the same watertight test, edge rule, tie
+//! rule and traversal order, but a GPU may fuse multiplies and adds (and divides less exactly), so `t` can differ
+//! in the last bits and a ray through an edge can pick the neighbouring triangle.
+
+mod batch;
+mod device;
+mod graph;
+mod kernel;
+mod layout;
+
+use std::any::Any;
+use std::sync::{Arc, Mutex};
+
+use glam::Vec3;
+
+use crate::accel::{BuildOptions, MemoryUsage};
+use crate::backend::cpu::{CpuAccel, CpuBackend, cpu};
+use crate::backend::{Backend, BackendAccel, DeviceInfo, Shape};
+use crate::context::Accel;
+use crate::error::{Error, Result};
+use crate::geometry::motion::{Bounds, TimeSpan};
+use crate::geometry::{BuildInput, PlacedInstance, Transform};
+use crate::query::{Query, TraceOutput, TraceStats};
+
+use batch::Slot;
+use device::{Gpu, Opened};
+use layout::GpuGraph;
+
+/// Settings of a wgpu device.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct WgpuOptions {
+    /// Caps the bytes of each per-chunk buffer a trace binds (rays, hits, counts, `all` scratch) below the
+    /// adapter's `max_storage_buffer_binding_size`; `None` uses the adapter's limit. Smaller chunks mean more
+    /// dispatches: tests use it to split small batches.
+    pub max_binding_bytes: Option<u64>,
+    /// Caps the rays of a chunk (2^18 when `None`; the bindings and a dispatch's workgroups cap it too). Larger
+    /// chunks mean fewer dispatches but less overlap of copies with tracing: benches sweep it.
+    pub max_chunk_rays: Option<usize>,
+}
+
+/// One wgpu adapter as a device.
+pub struct WgpuBackend {
+    /// The adapter, and its device once opened.
+    gpu: Arc<Gpu>,
+    /// Chunk limits.
+    options: WgpuOptions,
+    /// Builds, updates and serialization run on the host, as on the CPU backend.
+    host: CpuBackend,
+    /// Idle per-chunk buffer sets (staging included), reused by later traces; a trace takes two and gives them back.
+    slots: Mutex<Vec<Slot>>,
+}
+
+impl std::fmt::Debug for WgpuBackend {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WgpuBackend").field("adapter", &self.gpu.index()).field("options", &self.options).finish()
+    }
+}
+
+/// A backend for every adapter wgpu enumerates (an empty list on a machine without one).
+pub fn backends(options: WgpuOptions) -> Vec<WgpuBackend> {
+    device::adapters()
+        .iter()
+        .map(|gpu| WgpuBackend { gpu: Arc::clone(gpu), options, host: CpuBackend, slots: Mutex::default() })
+        .collect()
+}
+
+/// An accel of the wgpu backend: the host's structure (which builds, updates, bounds, vertex access,
+/// serialization and parents use) and its graph on the device (which traces use).
+#[derive(Debug, Clone)]
+pub struct WgpuAccel {
+    /// The CPU backend's accel.
+    host: CpuAccel,
+    /// Its graph's arrays on the device; immutable, so copies of the accel share them.
+    device: Arc<GpuGraph>,
+}
+
+impl BackendAccel for WgpuAccel {
+    /// The host's arrays as allocated plus the device's buffers, which hold the arrays of every accel below it too
+    /// (copies of an accel share the device buffers but each counts them).
+    fn size_bytes(&self) -> u64 {
+        self.host.size_bytes() + self.device.bytes()
+    }
+
+    fn compacted_size_bytes(&self) -> u64 {
+        self.host.compacted_size_bytes() + self.device.bytes()
+    }
+
+    fn duplicate(&self) -> Box<dyn BackendAccel> {
+        Box::new(self.clone())
+    }
+
+    fn bounds_during(&self, span: TimeSpan) -> Bounds {
+        self.host.bounds_during(span)
+    }
+
+    fn triangle_vertices(&self, geom_id: u32, prim_id: u32) -> Option<[Vec3; 3]> {
+        self.host.triangle_vertices(geom_id, prim_id)
+    }
+
+    fn encode(&self, children: &[Arc<Accel>], out: &mut Vec<u8>) -> Result<()> {
+        self.host.encode(children, out)
+    }
+
+    fn host(&self) -> Option<&CpuAccel> {
+        Some(&self.host)
+    }
+
+    fn as_any(&self) -> &dyn Any {
+        self
+    }
+}
+
+impl WgpuBackend {
+    /// The adapter's device, opened on first use.
+    fn opened(&self) -> Result<&Opened> {
+        self.gpu.open()
+    }
+
+    /// Uploads the graph of a host accel the CPU backend made.
+    fn upload(&self, host: Box<dyn BackendAccel>) -> Result<Box<dyn BackendAccel>> {
+        self.adopt(cpu(host.as_ref())?)
+    }
+}
+
+impl Backend for WgpuBackend {
+    /// `name` is the adapter's, with its driver and type. wgpu reports neither memory nor compute units: a
+    /// software adapter (lavapipe) reports the host's memory and threads; other adapters report 0 (unknown).
+    fn info(&self) -> DeviceInfo {
+        self.gpu.info()
+    }
+
+    fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage> {
+        let host = self.host.compute_memory_usage(inputs, options)?;
+        // The device holds at most what the host's accel holds (the arrays it copies).
+        Ok(MemoryUsage { output_bytes: 2 * host.output_bytes, ..host })
+    }
+
+    fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.build(inputs, options)?)
+    }
+
+    /// The host's bound, twice for the instance accel's own arrays on the device. The device copies of its
+    /// children's arrays are not in it (only their count is known here): they are counted in its `size_bytes`.
+    fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
+        let host = self.host.compute_instance_memory_usage(instances, options)?;
+        Ok(MemoryUsage { output_bytes: 2 * host.output_bytes, ..host })
+    }
+
+    fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.build_instances(instances, options)?)
+    }
+
+    fn update(&self, accel: &dyn BackendAccel, inputs: &[BuildInput<'_>]) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.update(&wgpu_accel(accel)?.host, inputs)?)
+    }
+
+    fn update_instances(
+        &self,
+        accel: &dyn BackendAccel,
+        instances: &[PlacedInstance],
+    ) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.update_instances(&wgpu_accel(accel)?.host, instances)?)
+    }
+
+    fn build_transform(&self, transform: &Transform, child: &Arc<Accel>) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.build_transform(transform, child)?)
+    }
+
+    /// The CPU backend's payload layout: a wgpu accel serializes its host structure.
+    fn layout_version(&self) -> u32 {
+        self.host.layout_version()
+    }
+
+    fn decode(
+        &self,
+        shape: &Shape,
+        options: &BuildOptions,
+        payload: &[u8],
+        children: &[Arc<Accel>],
+    ) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.decode(shape, options, payload, children)?)
+    }
+
+    /// Uploads the host structure's graph.
+    fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>> {
+        let device = Arc::new(GpuGraph::upload(self.opened()?, host)?);
+        Ok(Box::new(WgpuAccel { host: host.clone(), device }))
+    }
+
+    fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
+        let accel = wgpu_accel(accel)?;
+        let layout = query.output_layout(rays.len())?;
+        out.check(&layout)?;
+        let opened = self.opened()?;
+        let binding_limit = opened.binding_limit(self.options.max_binding_bytes);
+        let max_chunk_rays = self.options.max_chunk_rays.unwrap_or(batch::MAX_CHUNK_RAYS);
+        let plan = batch::Plan::new(query, layout.rays, binding_limit, max_chunk_rays)?;
+        let mut slots = self.take_slots();
+        let traced = batch::trace(opened, &accel.device, query, &plan, rays, out, &mut slots);
+        self.slots.lock().unwrap_or_else(|e| e.into_inner()).extend(slots);
+        traced
+    }
+}
+
+impl WgpuBackend {
+    /// Up to two idle slots from the pool (the trace makes or grows what it lacks).
+    fn take_slots(&self) -> Vec<Slot> {
+        let mut pool = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        let keep = pool.len().saturating_sub(batch::SLOTS);
+        pool.split_off(keep)
+    }
+}
+
+/// The wgpu structure of `accel`; FAILED_PRECONDITION for an accel of another device.
+fn wgpu_accel(accel: &dyn BackendAccel) -> Result<&WgpuAccel> {
+    accel
+        .as_any()
+        .downcast_ref::<WgpuAccel>()
+        .ok_or_else(|| Error::FailedPrecondition("the accel was built on another device".into()))
+}

@@ -1,0 +1,78 @@
+// Shared by every pipeline of the wgpu backend: the structs and constants whose byte layouts the host writes.
+// Each names the Rust item it must match; change both together.
+
+// `kernel::Params` (src/backend/wgpu/kernel.rs), 32 bytes, one uniform buffer a chunk.
+struct Params {
+    // Rays in this chunk.
+    ray_count: u32,
+    // The ray format: its index in `RayFormat::ALL`.
+    ray_format: u32,
+    // The hit format: its index in `HitFormat::ALL`.
+    hit_format: u32,
+    // The query kind: its index in `QueryKind::ALL`.
+    query_kind: u32,
+    // `RayFlags` bits OR-ed into every ray's.
+    query_flags: u32,
+    // Hit records a ray (`Query::records_per_ray`).
+    records_per_ray: u32,
+    // Words (4 bytes) a hit record, 0 for the bitmask.
+    record_words: u32,
+    // The traced accel's object: its word offset in `graph`.
+    root: u32,
+}
+
+// `cpu::bvh::Node` (src/backend/cpu/bvh.rs), 32 bytes: `0 min.xyz | 12 index | 16 max.xyz | 28 count`, with
+// global indices (`layout.rs`).
+struct Node {
+    min: vec3<f32>,
+    index: u32,
+    max: vec3<f32>,
+    count: u32,
+}
+
+// `layout::Prim` (src/backend/wgpu/layout.rs), 16 bytes a triangle slot.
+struct Prim {
+    geom_id: u32,
+    prim_id: u32,
+    // Prime mask (0 without masks).
+    mask: u32,
+    // `GeometryFlags` bits of the triangle's geometry.
+    geometry_flags: u32,
+}
+
+// An object record of `graph` (`layout::OBJECT_WORDS` words, read by `load_object`).
+struct Object {
+    // `layout::ObjectKind`.
+    kind: u32,
+    // Motion keys, 1 when static.
+    keys: u32,
+    // `MotionFlags` bits.
+    motion_flags: u32,
+    // The motion range.
+    time_begin: f32,
+    time_end: f32,
+    // A BVH's root node; a transform's child object.
+    first: u32,
+    // A BVH's nodes (0 when it holds nothing to hit); 0 for a transform.
+    node_count: u32,
+    // A motion BVH's first key box (float offset in `node_boxes`).
+    box_base: u32,
+    // A geometry accel's first triangle slot, an instance accel's first instance record, a transform's first key.
+    base: u32,
+    // A geometry accel's first corner (float offset in `corners`).
+    corner_base: u32,
+}
+
+const OBJECT_WORDS: u32 = 10u;
+// `layout::INSTANCE_WORDS`: `0 world_to_object f32×12 | 12 instance_id | 13 mask | 14 flags | 15 child`.
+const INSTANCE_WORDS: u32 = 16u;
+// `layout::ObjectKind`.
+const OBJECT_TRIANGLES: u32 = 0u;
+const OBJECT_INSTANCES: u32 = 1u;
+const OBJECT_STATIC_TRANSFORM: u32 = 2u;
+const OBJECT_MATRIX_TRANSFORM: u32 = 3u;
+const OBJECT_SRT_TRANSFORM: u32 = 4u;
+
+// Words at the head of the tallies buffer before the per-ray counts (`batch::TALLY_WORDS`): 0 rays hit,
+// 1–2 nodes visited (low, high), 3–4 triangle tests (low, high), 5–7 zero.
+const TALLY_WORDS: u32 = 8u;

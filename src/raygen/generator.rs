@@ -1,0 +1,470 @@
+//! Ray generators: a batch described by a few numbers and expanded where it is traced, ray by ray from its index,
+//! so any range of it can be made on its own (by each piece of a trace, on any thread) with the same bytes.
+//!
+//! Every generator names its rays `0 .. count()` in a documented order, and every random number is
+//! [`uniform`]`(seed, index·8 + k)` for the ray's index and a small `k` that says what it is for.
+
+use std::f32::consts::TAU;
+
+use glam::{Vec3, Vec3A};
+
+use super::{Camera, Secondary, uniform};
+use crate::error::{Error, Result};
+use crate::format::{Ray, RayFormat};
+
+/// Most channels of a lidar and most points of a sphere generator.
+pub const MAX_GENERATOR_POINTS: usize = 1 << 16;
+
+/// Where the rays of a camera pass through their pixel.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PixelSampling {
+    /// Rays per pixel, at least 1: ray `i` is sample `i % samples` of pixel `i / samples` (pixels row by row, row
+    /// 0 at the top).
+    pub samples: u32,
+    /// Without a seed every ray passes through its pixel's centre; with one, through a point uniform in the pixel
+    /// (`k` = 0, 1 for x, y).
+    pub jitter_seed: Option<u64>,
+}
+
+/// An orthographic camera: parallel rays from a rectangle around the eye.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Orthographic {
+    /// Centre of the image rectangle.
+    pub eye: Vec3,
+    /// A point the camera looks towards (the rays' direction is `target − eye`, normalized).
+    pub target: Vec3,
+    /// Up direction (need not be orthogonal to the view direction).
+    pub up: Vec3,
+    /// Height of the image rectangle in world units; its width follows the pixels' aspect ratio.
+    pub view_height: f32,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+}
+
+/// A spinning lidar: for each of `steps` azimuths around `up`, one ray per channel.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Lidar {
+    /// Position of the sensor.
+    pub origin: Vec3,
+    /// Azimuth 0: the first column fires along this direction (projected on the plane across `up`).
+    pub forward: Vec3,
+    /// The rotation axis; azimuths turn counter-clockwise seen from its tip.
+    pub up: Vec3,
+    /// Each channel's elevation above the plane across `up`, in degrees, −90 to 90.
+    pub elevations_degrees: Vec<f32>,
+    /// Azimuth steps per revolution: ray `i` is channel `i % channels` of step `i / channels`, at azimuth
+    /// `360° · step / steps`.
+    pub steps: u32,
+    /// Nearest range (the rays' `tmin`; directions are unit vectors, so `t` is a distance).
+    pub min_range: f32,
+    /// Farthest range (the rays' `tmax`).
+    pub max_range: f32,
+    /// Time of the first step and time after the last: step `s` fires at `begin + (end − begin) · s / steps`. Equal
+    /// times fire every ray at that time.
+    pub time: (f32, f32),
+}
+
+/// Rays in random directions around given points (ambient occlusion, visibility).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SphereSampling {
+    /// The points rays start from.
+    pub points: Vec<Vec3>,
+    /// Empty, for directions uniform on the sphere; or one normal a point, for directions cosine-distributed on the
+    /// hemisphere around it (as ambient occlusion wants).
+    pub normals: Vec<Vec3>,
+    /// Rays per point: ray `i` is sample `i % samples` of point `i / samples`.
+    pub samples: u32,
+    /// Rays start this far along their direction (`tmin`), to leave the surface a point lies on.
+    pub min_distance: f32,
+    /// And reach this far (`tmax`).
+    pub max_distance: f32,
+    /// Seed of the directions (`k` = 0, 1).
+    pub seed: u64,
+}
+
+/// A batch of rays described by a few numbers.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Generator {
+    /// A pinhole camera ([`Camera::ray`] through each sample point).
+    Pinhole(Camera, PixelSampling),
+    /// An orthographic camera.
+    Orthographic(Orthographic, PixelSampling),
+    /// A spinning lidar.
+    Lidar(Lidar),
+    /// Rays around points.
+    Sphere(SphereSampling),
+    /// Rays that continue an earlier trace from its hits.
+    Secondary(Secondary),
+}
+
+/// Fails with INVALID_ARGUMENT naming `field` unless `ok`.
+pub(super) fn require(ok: bool, field: &'static str, rule: impl FnOnce() -> String) -> Result<()> {
+    if ok { Ok(()) } else { Err(Error::InvalidQuery { field, rule: rule() }) }
+}
+
+/// Checks that every coordinate of `values` is finite.
+fn finite(field: &'static str, values: &[Vec3]) -> Result<()> {
+    let bad = values.iter().position(|v| !v.is_finite());
+    require(bad.is_none(), field, || format!("must be finite (entry {})", bad.unwrap_or(0)))
+}
+
+/// An orthonormal frame looking along `target − eye` with `up` as close to up as can be.
+fn frame(field: &'static str, eye: Vec3, target: Vec3, up: Vec3) -> Result<(Vec3, Vec3, Vec3)> {
+    let forward = (target - eye).normalize_or_zero();
+    let right = forward.cross(up).normalize_or_zero();
+    require(forward != Vec3::ZERO && right != Vec3::ZERO, field, || {
+        "eye and target must differ, and up must not be parallel to the view direction".into()
+    })?;
+    Ok((forward, right, right.cross(forward)))
+}
+
+impl PixelSampling {
+    /// Ray `index`'s pixel (x, y) and its point in the pixel in `[0, 1)²`.
+    fn sample(&self, width: u32, index: u64) -> (u32, u32, f32, f32) {
+        let pixel = index / u64::from(self.samples);
+        let (x, y) = ((pixel % u64::from(width)) as u32, (pixel / u64::from(width)) as u32);
+        match self.jitter_seed {
+            None => (x, y, 0.5, 0.5),
+            Some(seed) => (x, y, uniform(seed, index * 8), uniform(seed, index * 8 + 1)),
+        }
+    }
+}
+
+/// Checks a camera's image size and sampling.
+fn check_image(width: u32, height: u32, sampling: &PixelSampling) -> Result<()> {
+    require(width > 0 && height > 0, "generator.width", || format!("{width}×{height} must have pixels"))?;
+    require(sampling.samples > 0, "generator.samples_per_pixel", || "must be at least 1".into())
+}
+
+impl Generator {
+    /// Checks the numbers: finite, in range, a frame that exists; INVALID_ARGUMENT naming the field.
+    pub fn check(&self) -> Result<()> {
+        match self {
+            Generator::Pinhole(camera, sampling) => {
+                finite("generator.eye", &[camera.eye, camera.target, camera.up])?;
+                frame("generator.target", camera.eye, camera.target, camera.up)?;
+                let fov = camera.fov_y_degrees;
+                require(fov > 0.0 && fov < 180.0, "generator.fov_y_degrees", || format!("{fov} must be in (0, 180)"))?;
+                check_image(camera.width, camera.height, sampling)
+            }
+            Generator::Orthographic(camera, sampling) => {
+                finite("generator.eye", &[camera.eye, camera.target, camera.up])?;
+                frame("generator.target", camera.eye, camera.target, camera.up)?;
+                let h = camera.view_height;
+                require(h.is_finite() && h > 0.0, "generator.view_height", || format!("{h} must be positive"))?;
+                check_image(camera.width, camera.height, sampling)
+            }
+            Generator::Lidar(lidar) => {
+                finite("generator.origin", &[lidar.origin, lidar.forward, lidar.up])?;
+                frame("generator.forward", Vec3::ZERO, lidar.forward, lidar.up)?;
+                let channels = lidar.elevations_degrees.len();
+                require((1..=MAX_GENERATOR_POINTS).contains(&channels), "generator.elevations_degrees", || {
+                    format!("{channels} channels; 1 to {MAX_GENERATOR_POINTS}")
+                })?;
+                let bad = lidar.elevations_degrees.iter().position(|e| !(-90.0..=90.0).contains(e));
+                require(bad.is_none(), "generator.elevations_degrees", || {
+                    format!("channel {} must be −90 to 90 degrees", bad.unwrap_or(0))
+                })?;
+                require(lidar.steps > 0, "generator.steps", || "must be at least 1".into())?;
+                check_range("generator.min_range", lidar.min_range, lidar.max_range)?;
+                let (begin, end) = lidar.time;
+                require(begin.is_finite() && end.is_finite(), "generator.time", || "must be finite".into())
+            }
+            Generator::Sphere(sphere) => {
+                let points = sphere.points.len();
+                require((1..=MAX_GENERATOR_POINTS).contains(&points), "generator.points", || {
+                    format!("{points} points; 1 to {MAX_GENERATOR_POINTS}")
+                })?;
+                finite("generator.points", &sphere.points)?;
+                require(sphere.normals.is_empty() || sphere.normals.len() == points, "generator.normals", || {
+                    format!("{} normals for {points} points: none, or one a point", sphere.normals.len())
+                })?;
+                let bad = sphere.normals.iter().position(|n| n.normalize_or_zero() == Vec3::ZERO);
+                require(bad.is_none(), "generator.normals", || {
+                    format!("normal {} must be finite and non-zero", bad.unwrap_or(0))
+                })?;
+                require(sphere.samples > 0, "generator.samples", || "must be at least 1".into())?;
+                check_range("generator.min_distance", sphere.min_distance, sphere.max_distance)
+            }
+            Generator::Secondary(secondary) => secondary.check(),
+        }
+    }
+
+    /// Rays it makes (saturating: a count beyond `u64` is refused by any limit anyway).
+    pub fn count(&self) -> u64 {
+        match self {
+            Generator::Pinhole(Camera { width, height, .. }, s)
+            | Generator::Orthographic(Orthographic { width, height, .. }, s) => {
+                (u64::from(*width) * u64::from(*height)).saturating_mul(u64::from(s.samples))
+            }
+            Generator::Lidar(l) => u64::from(l.steps) * l.elevations_degrees.len() as u64,
+            Generator::Sphere(s) => s.points.len() as u64 * u64::from(s.samples),
+            Generator::Secondary(s) => s.count(),
+        }
+    }
+
+    /// Packs rays `first .. first + out.len() / format.size()` in `format` into `out`. The generator must have
+    /// passed [`Generator::check`] and hold those rays.
+    pub fn fill(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        let size = format.size();
+        match self {
+            Generator::Pinhole(camera, sampling) => {
+                let view = PinholeView::new(camera);
+                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
+                    let (x, y, dx, dy) = sampling.sample(camera.width, first + i as u64);
+                    format.encode(&view.ray(x as f32 + dx, y as f32 + dy), slot);
+                }
+            }
+            Generator::Orthographic(camera, sampling) => {
+                let (forward, right, up) =
+                    frame("", camera.eye, camera.target, camera.up).expect("a checked generator");
+                let half_height = camera.view_height * 0.5;
+                let half_width = half_height * camera.width as f32 / camera.height as f32;
+                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
+                    let (x, y, dx, dy) = sampling.sample(camera.width, first + i as u64);
+                    let sx = ((x as f32 + dx) / camera.width as f32 * 2.0 - 1.0) * half_width;
+                    let sy = (1.0 - (y as f32 + dy) / camera.height as f32 * 2.0) * half_height;
+                    let origin = camera.eye + right * sx + up * sy;
+                    format.encode(&Ray { origin: origin.into(), direction: forward.into(), ..Ray::default() }, slot);
+                }
+            }
+            Generator::Lidar(lidar) => {
+                let (forward, left, up) = frame("", Vec3::ZERO, lidar.forward, lidar.up)
+                    .map(|(f, r, u)| (f, -r, u))
+                    .expect("a checked generator");
+                let channels = lidar.elevations_degrees.len() as u64;
+                let (begin, end) = lidar.time;
+                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
+                    let index = first + i as u64;
+                    let (step, channel) = (index / channels, (index % channels) as usize);
+                    let fraction = step as f32 / lidar.steps as f32;
+                    let (sin_a, cos_a) = (TAU * fraction).sin_cos();
+                    let (sin_e, cos_e) = lidar.elevations_degrees[channel].to_radians().sin_cos();
+                    let direction = (forward * cos_a + left * sin_a) * cos_e + up * sin_e;
+                    let ray = Ray {
+                        origin: lidar.origin.into(),
+                        direction: direction.normalize().into(),
+                        tmin: lidar.min_range,
+                        tmax: lidar.max_range,
+                        time: begin + (end - begin) * fraction,
+                        ..Ray::default()
+                    };
+                    format.encode(&ray, slot);
+                }
+            }
+            Generator::Sphere(sphere) => {
+                let samples = u64::from(sphere.samples);
+                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
+                    let index = first + i as u64;
+                    let point = (index / samples) as usize;
+                    let (u0, u1) = (uniform(sphere.seed, index * 8), uniform(sphere.seed, index * 8 + 1));
+                    let direction = match sphere.normals.get(point) {
+                        None => uniform_sphere(u0, u1),
+                        Some(normal) => cosine_hemisphere(normal.normalize(), u0, u1),
+                    };
+                    let ray = Ray {
+                        origin: sphere.points[point].into(),
+                        direction,
+                        tmin: sphere.min_distance,
+                        tmax: sphere.max_distance,
+                        ..Ray::default()
+                    };
+                    format.encode(&ray, slot);
+                }
+            }
+            Generator::Secondary(secondary) => secondary.fill(format, first, out),
+        }
+    }
+
+    /// Every ray, packed in `format` (for callers that want the buffer itself, e.g. to compare).
+    pub fn rays(&self, format: RayFormat) -> Vec<u8> {
+        let mut bytes = vec![0u8; self.count() as usize * format.size()];
+        self.fill(format, 0, &mut bytes);
+        bytes
+    }
+}
+
+/// Checks a `tmin`/`tmax` pair: finite `tmin` ≥ 0, `tmax` ≥ `tmin` (may be +∞).
+fn check_range(field: &'static str, min: f32, max: f32) -> Result<()> {
+    require(min.is_finite() && min >= 0.0 && !max.is_nan() && max >= min, field, || {
+        format!("range {min} .. {max}: need 0 ≤ min ≤ max, min finite")
+    })
+}
+
+/// A pinhole camera's frame, computed once for many rays.
+struct PinholeView {
+    /// Where the rays start.
+    eye: Vec3,
+    /// The view direction, unit.
+    forward: Vec3,
+    /// Image x per unit of `sx`.
+    right: Vec3,
+    /// Image y per unit of `sy`.
+    up: Vec3,
+    /// Half the image's extent at distance 1, across and up.
+    half: (f32, f32),
+    /// Pixels across and up.
+    size: (f32, f32),
+}
+
+impl PinholeView {
+    fn new(camera: &Camera) -> PinholeView {
+        let forward = (camera.target - camera.eye).normalize();
+        let right = forward.cross(camera.up).normalize();
+        let half_height = (camera.fov_y_degrees.to_radians() * 0.5).tan();
+        PinholeView {
+            eye: camera.eye,
+            forward,
+            right,
+            up: right.cross(forward),
+            half: (half_height * camera.width as f32 / camera.height as f32, half_height),
+            size: (camera.width as f32, camera.height as f32),
+        }
+    }
+
+    /// The ray through image point (`px`, `py`) in pixels, (0, 0) the top left corner: [`Camera::ray`]'s formula.
+    fn ray(&self, px: f32, py: f32) -> Ray {
+        let sx = (px / self.size.0 * 2.0 - 1.0) * self.half.0;
+        let sy = (1.0 - py / self.size.1 * 2.0) * self.half.1;
+        let direction = (self.forward + self.right * sx + self.up * sy).normalize();
+        Ray { origin: self.eye.into(), direction: direction.into(), ..Ray::default() }
+    }
+}
+
+/// A direction uniform on the unit sphere from two uniform numbers.
+fn uniform_sphere(u0: f32, u1: f32) -> Vec3A {
+    let z = 1.0 - 2.0 * u0;
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let (sin, cos) = (TAU * u1).sin_cos();
+    Vec3A::new(r * cos, r * sin, z)
+}
+
+/// A direction on the hemisphere around the unit `normal`, cosine-distributed, from two uniform numbers.
+fn cosine_hemisphere(normal: Vec3, u0: f32, u1: f32) -> Vec3A {
+    let (tangent, bitangent) = normal.any_orthonormal_pair();
+    let r = u0.sqrt();
+    let (sin, cos) = (TAU * u1).sin_cos();
+    let local = (tangent * (r * cos) + bitangent * (r * sin) + normal * (1.0 - u0).max(0.0).sqrt()).normalize();
+    local.into()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera() -> Camera {
+        Camera {
+            eye: Vec3::new(0.0, 0.0, 5.0),
+            target: Vec3::ZERO,
+            up: Vec3::Y,
+            fov_y_degrees: 45.0,
+            width: 8,
+            height: 6,
+        }
+    }
+
+    const CENTRES: PixelSampling = PixelSampling { samples: 1, jitter_seed: None };
+
+    #[test]
+    fn a_pinhole_generator_through_pixel_centres_is_the_camera() {
+        let camera = camera();
+        let generated = Generator::Pinhole(camera, CENTRES).rays(RayFormat::OriginTminDirectionTmax);
+        assert_eq!(generated, camera.rays(RayFormat::OriginTminDirectionTmax));
+    }
+
+    #[test]
+    fn any_range_is_made_as_in_the_whole() {
+        let lidar = Generator::Lidar(Lidar {
+            origin: Vec3::new(1.0, 2.0, 3.0),
+            forward: Vec3::X,
+            up: Vec3::Z,
+            elevations_degrees: vec![-15.0, 0.0, 15.0],
+            steps: 100,
+            min_range: 0.5,
+            max_range: 100.0,
+            time: (0.0, 0.1),
+        });
+        let sphere = Generator::Sphere(SphereSampling {
+            points: vec![Vec3::ZERO, Vec3::ONE],
+            normals: vec![Vec3::Z, Vec3::X],
+            samples: 64,
+            min_distance: 1e-3,
+            max_distance: 10.0,
+            seed: 3,
+        });
+        let jittered = Generator::Pinhole(camera(), PixelSampling { samples: 4, jitter_seed: Some(9) });
+        let format = RayFormat::OriginTminDirectionTmaxTime;
+        for generator in [lidar, sphere, jittered] {
+            generator.check().unwrap();
+            let whole = generator.rays(format);
+            let size = format.size();
+            let mut part = vec![0u8; 17 * size];
+            generator.fill(format, 5, &mut part);
+            assert_eq!(part, whole[5 * size..22 * size], "{generator:?}");
+        }
+    }
+
+    #[test]
+    fn lidar_rays_turn_counter_clockwise_rise_with_elevation_and_spread_time() {
+        let lidar = Lidar {
+            origin: Vec3::ZERO,
+            forward: Vec3::X,
+            up: Vec3::Z,
+            elevations_degrees: vec![0.0, 90.0],
+            steps: 4,
+            min_range: 0.0,
+            max_range: 50.0,
+            time: (1.0, 2.0),
+        };
+        let rays = Generator::Lidar(lidar).rays(RayFormat::Full);
+        let ray = |i: usize| RayFormat::Full.decode(&rays[i * RayFormat::Full.size()..]);
+        assert!((ray(0).direction - Vec3A::X).length() < 1e-6, "step 0, channel 0 along forward");
+        assert!((ray(1).direction - Vec3A::Z).length() < 1e-6, "channel 1 straight up");
+        assert!((ray(2).direction - Vec3A::Y).length() < 1e-6, "a quarter turn counter-clockwise about +z");
+        assert_eq!((ray(2).time, ray(7).time, ray(7).tmax), (1.25, 1.75, 50.0));
+    }
+
+    #[test]
+    fn hemisphere_samples_stay_above_their_normal() {
+        let normal = Vec3::new(1.0, 2.0, -0.5).normalize();
+        let sphere = Generator::Sphere(SphereSampling {
+            points: vec![Vec3::ZERO],
+            normals: vec![normal],
+            samples: 1000,
+            min_distance: 0.0,
+            max_distance: 1.0,
+            seed: 1,
+        });
+        let rays = sphere.rays(RayFormat::OriginDirection);
+        let mean_cos: f32 = rays
+            .chunks_exact(RayFormat::OriginDirection.size())
+            .map(|b| Vec3::from(RayFormat::OriginDirection.decode(b).direction).dot(normal))
+            .inspect(|&c| assert!(c >= -1e-6))
+            .sum::<f32>()
+            / 1000.0;
+        assert!((mean_cos - 2.0 / 3.0).abs() < 0.03, "cosine-distributed: E[cos] = 2/3, got {mean_cos}");
+    }
+
+    #[test]
+    fn bad_numbers_are_refused_naming_the_field() {
+        let mut flat = camera();
+        flat.up = Vec3::new(0.0, 0.0, -1.0);
+        let error = Generator::Pinhole(flat, CENTRES).check().unwrap_err().to_string();
+        assert!(error.contains("generator.target"), "{error}");
+        let wide = Camera { fov_y_degrees: 180.0, ..camera() };
+        assert!(Generator::Pinhole(wide, CENTRES).check().unwrap_err().to_string().contains("fov_y_degrees"));
+        let none = PixelSampling { samples: 0, jitter_seed: None };
+        assert!(Generator::Pinhole(camera(), none).check().unwrap_err().to_string().contains("samples_per_pixel"));
+        let sphere = SphereSampling {
+            points: vec![Vec3::ZERO],
+            normals: vec![Vec3::ZERO],
+            samples: 1,
+            min_distance: 0.0,
+            max_distance: 1.0,
+            seed: 0,
+        };
+        assert!(Generator::Sphere(sphere).check().unwrap_err().to_string().contains("generator.normals"));
+    }
+}

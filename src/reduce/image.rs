@@ -1,0 +1,137 @@
+//! The image reduction: each pixel's nearest hit as a depth or a normal, in float32, 16-bit or a 16-bit PNG.
+
+use super::invalid;
+use crate::error::{Error, Result};
+use crate::format::{Hit, HitFormat};
+
+/// An image of the nearest hit among each pixel's `rays_per_pixel` consecutive rays, pixels row by row from the top
+/// left (the order of the camera generators). Its height is the batch's rays / (`width` × `rays_per_pixel`).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Image {
+    /// Pixels a row, at least 1.
+    pub width: u32,
+    /// Consecutive rays a pixel, 1 to [`super::MAX_GROUP_RAYS`].
+    pub rays_per_pixel: u32,
+    /// What a pixel shows.
+    pub channel: ImageChannel,
+    /// How a pixel is written.
+    pub encoding: PixelEncoding,
+    /// For depth in 16 bits: the distance written as 0 …
+    pub near: f32,
+    /// … and the distance written as 65,534 (farther hits clamp to it; 65,535 is a miss).
+    pub far: f32,
+}
+
+/// What an image's pixel shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ImageChannel {
+    /// The nearest hit's `t` (a distance for unit directions). Float32: a miss is +∞.
+    Depth,
+    /// The unit geometric normal in world space, turned to face the ray. A miss is (0, 0, 0).
+    Normal,
+}
+
+/// How an image's pixels are written.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PixelEncoding {
+    /// Little-endian f32 per channel (depth: 4 bytes a pixel, normal: 12).
+    Float32,
+    /// Little-endian u16 per channel: depth `round((t − near)/(far − near) · 65534)` clamped to 0 ..= 65,534 and
+    /// 65,535 for a miss; normal `round((0.5 + 0.5·n) · 65535)` per component, 0 for a miss.
+    Unorm16,
+    /// The [`PixelEncoding::Unorm16`] values as a 16-bit PNG (grey for depth, RGB for normals).
+    Png,
+}
+
+impl ImageChannel {
+    /// The hit format that carries what this channel needs.
+    pub fn hit_format(self) -> HitFormat {
+        match self {
+            ImageChannel::Depth => HitFormat::T,
+            ImageChannel::Normal => HitFormat::Full,
+        }
+    }
+
+    /// Values a pixel.
+    fn channels(self) -> usize {
+        match self {
+            ImageChannel::Depth => 1,
+            ImageChannel::Normal => 3,
+        }
+    }
+}
+
+impl Image {
+    /// Checks the image against a batch of `rays`.
+    pub(super) fn check(&self, rays: u64) -> Result<()> {
+        if self.width == 0 {
+            return Err(invalid("reduction.image.width", "must be at least 1".into()));
+        }
+        super::check_groups("reduction.image.rays_per_pixel", self.rays_per_pixel, rays)?;
+        let row = u64::from(self.width) * u64::from(self.rays_per_pixel);
+        if !rays.is_multiple_of(row) {
+            let rule =
+                format!("{rays} rays are not whole rows of {} pixels × {} rays", self.width, self.rays_per_pixel);
+            return Err(invalid("reduction.image.width", rule));
+        }
+        let quantized = self.encoding != PixelEncoding::Float32 && self.channel == ImageChannel::Depth;
+        if quantized && !(self.near.is_finite() && self.far.is_finite() && self.near < self.far) {
+            let rule = format!("near {} and far {} must be finite with near < far", self.near, self.far);
+            return Err(invalid("reduction.image.far", rule));
+        }
+        Ok(())
+    }
+
+    /// Appends the pixel of `hit` (its pixel's nearest, read from [`ImageChannel::hit_format`]).
+    pub(super) fn push_pixel(&self, hit: &Hit, out: &mut Vec<u8>) {
+        match (self.channel, self.encoding) {
+            (ImageChannel::Depth, PixelEncoding::Float32) => {
+                let depth = if hit.is_hit() { hit.t } else { f32::INFINITY };
+                out.extend_from_slice(&depth.to_le_bytes());
+            }
+            (ImageChannel::Depth, _) => {
+                let depth = match hit.is_hit() {
+                    true => ((hit.t - self.near) / (self.far - self.near)).clamp(0.0, 1.0) * 65534.0,
+                    false => 65535.0,
+                };
+                out.extend_from_slice(&(depth.round() as u16).to_le_bytes());
+            }
+            (ImageChannel::Normal, encoding) => {
+                let facing = match (hit.is_hit(), hit.back_face) {
+                    (false, _) => None,
+                    (true, false) => Some(hit.normal),
+                    (true, true) => Some(-hit.normal),
+                };
+                for n in facing.map_or([0.0; 3], |n| n.to_array()) {
+                    match (encoding, facing.is_some()) {
+                        (PixelEncoding::Float32, _) => out.extend_from_slice(&n.to_le_bytes()),
+                        (_, true) => out.extend_from_slice(&(((0.5 + 0.5 * n) * 65535.0).round() as u16).to_le_bytes()),
+                        (_, false) => out.extend_from_slice(&0u16.to_le_bytes()),
+                    }
+                }
+            }
+        }
+    }
+
+    /// The whole image from its pixels in order, for a batch of `rays`: the pixels themselves, or a PNG of them.
+    pub(super) fn finish(&self, pixels: Vec<u8>, rays: u64) -> Result<Vec<u8>> {
+        if self.encoding != PixelEncoding::Png {
+            return Ok(pixels);
+        }
+        let height = rays / (u64::from(self.width) * u64::from(self.rays_per_pixel));
+        let height = u32::try_from(height).map_err(|_| invalid("reduction.image.width", "too many rows".into()))?;
+        // PNG samples are big-endian.
+        let samples: Vec<u8> = pixels.chunks_exact(2).flat_map(|s| [s[1], s[0]]).collect();
+        let mut png = Vec::new();
+        let mut encoder = png::Encoder::new(&mut png, self.width, height);
+        encoder.set_color(match self.channel.channels() {
+            1 => png::ColorType::Grayscale,
+            _ => png::ColorType::Rgb,
+        });
+        encoder.set_depth(png::BitDepth::Sixteen);
+        let written = encoder.write_header().and_then(|mut writer| writer.write_image_data(&samples));
+        written
+            .map_err(|e| Error::InvalidQuery { field: "reduction.image", rule: format!("PNG encoding failed: {e}") })?;
+        Ok(png)
+    }
+}

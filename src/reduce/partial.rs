@@ -1,0 +1,43 @@
+//! What one piece of a reduced trace leaves for the others to be folded into.
+
+use std::collections::BTreeMap;
+
+/// A piece's reduction, or several pieces' folded in ray order.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Partial {
+    /// Counters that add up.
+    Sums(Vec<u64>),
+    /// Counters by id that add up.
+    Keyed(BTreeMap<i32, u64>),
+    /// Records in ray order that concatenate, and the items left out so far.
+    Ordered {
+        /// The records.
+        bytes: Vec<u8>,
+        /// Items that could not be encoded.
+        dropped: u64,
+    },
+}
+
+impl Partial {
+    /// Folds `next` (the partial of the rays right after this one's) into this one.
+    ///
+    /// # Panics
+    /// If the two are of different kinds (they come from one reduction).
+    pub fn merge(&mut self, next: Partial) {
+        match (self, next) {
+            (Partial::Sums(sums), Partial::Sums(more)) => {
+                sums.iter_mut().zip(more).for_each(|(sum, more)| *sum += more)
+            }
+            (Partial::Keyed(counts), Partial::Keyed(more)) => {
+                for (id, count) in more {
+                    *counts.entry(id).or_insert(0) += count;
+                }
+            }
+            (Partial::Ordered { bytes, dropped }, Partial::Ordered { bytes: more, dropped: more_dropped }) => {
+                bytes.extend_from_slice(&more);
+                *dropped += more_dropped;
+            }
+            (this, next) => panic!("partials of different reductions: {this:?} and {next:?}"),
+        }
+    }
+}

@@ -1,0 +1,239 @@
+//! End to end: reductions made by the server. For every kind (counts, depth and normal images in each encoding,
+//! histogram, per-id counts, nearest per group, point clouds) over generated rays cut into several pieces, the
+//! reduction that comes back is byte for byte the engine's reduction of the full hits of the same rays traced and
+//! returned whole; a reduction over packed rays likewise; bad combinations answer INVALID_ARGUMENT naming the field,
+//! a reduction larger than a message RESOURCE_EXHAUSTED naming the limit;
+//! calls compressed with zstd or gzip answer the same bytes; generated and reduced traces on an `OpenStream` stream
+//! answer what single calls do.
+
+mod common;
+mod daemon;
+
+use bytes::Bytes;
+use daemon::Daemon;
+use rayd_client::{Client, ClientOptions};
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::glam::Vec3;
+use rayd_engine::query::{Query, QueryKind};
+use rayd_engine::raygen::{Camera, Generator, Lidar, PixelSampling};
+use rayd_engine::reduce::{IdKind, Image, ImageChannel, PixelEncoding, PointCloud, PointEncoding, Reduction};
+use tonic::Code;
+use tonic::codec::CompressionEncoding;
+
+/// Every reduction kind, with the generator it is tried on: a jittered camera of 3 rays a pixel (3,600 rays, so
+/// pieces of the server's 1,024-ray kind end on pixel boundaries only if it aligns them) and a lidar.
+fn cases(mesh: &rayd_engine::mesh::Mesh) -> Vec<(Generator, Reduction)> {
+    let (lo, hi) = mesh.bounds();
+    let camera =
+        Generator::Pinhole(Camera::framing(lo, hi, 40, 30), PixelSampling { samples: 3, jitter_seed: Some(7) });
+    let lidar = Generator::Lidar(Lidar {
+        origin: (lo + hi) * 0.5 + Vec3::new(0.0, 0.0, (hi - lo).z),
+        forward: Vec3::NEG_Z,
+        up: Vec3::Y,
+        elevations_degrees: vec![-15.0, -5.0, 0.0, 5.0, 15.0],
+        steps: 400,
+        min_range: 0.001,
+        max_range: 10.0,
+        time: (0.0, 0.0),
+    });
+    let (near, far) = (0.1, 0.4);
+    let image = |channel, encoding| Image { width: 40, rays_per_pixel: 3, channel, encoding, near, far };
+    // Steps of a micrometre: an i16 holds ±3.3 cm of the bunny's 16 cm, so some of its points are dropped.
+    let cloud = |encoding| PointCloud { encoding, step: 1e-6, origin: (lo + hi) * 0.5, ray_indices: true };
+    let mut cases = vec![
+        (camera.clone(), Reduction::Counts),
+        (camera.clone(), Reduction::Histogram { bins: 64, t_min: 0.15, t_max: 0.3 }),
+        (camera.clone(), Reduction::IdCounts(IdKind::Primitive)),
+        (camera.clone(), Reduction::IdCounts(IdKind::Instance)),
+        (camera.clone(), Reduction::NearestPerGroup { group: 3 }),
+        (camera.clone(), Reduction::CompactHits { t_far: 1.0 }),
+        (lidar.clone(), Reduction::PointCloud(cloud(PointEncoding::Float32))),
+        (lidar.clone(), Reduction::PointCloud(cloud(PointEncoding::Int16))),
+        (lidar, Reduction::PointCloud(cloud(PointEncoding::Int32))),
+    ];
+    for channel in [ImageChannel::Depth, ImageChannel::Normal] {
+        for encoding in [PixelEncoding::Float32, PixelEncoding::Unorm16, PixelEncoding::Png] {
+            cases.push((camera.clone(), Reduction::Image(image(channel, encoding))));
+        }
+    }
+    cases
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reductions_equal_the_reduction_of_full_hits() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    for (generator, reduction) in cases(&bunny) {
+        let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);
+        let what = format!("{reduction:?} of {generator:?}");
+        let reduced = client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.expect(&what);
+        let traced = reduction.traced_query(&query);
+        let rays = generator.rays(traced.ray_format);
+        let full = client.trace("bunny", &traced, Bytes::from(rays.clone())).await.unwrap();
+        let expected = reduction.reduce_all(&traced, &rays, full.hits(), full.counts()).unwrap();
+        assert!(
+            reduced.data == expected.bytes,
+            "{what}: {} bytes, {} expected",
+            reduced.data.len(),
+            expected.bytes.len()
+        );
+        assert_eq!(reduced.dropped, expected.dropped, "{what}");
+        assert_eq!(reduced.stats.rays, generator.count(), "{what}");
+        assert!(reduced.stats.rays_hit > 0 && !reduced.data.is_empty(), "{what}: something is hit");
+        if let Reduction::PointCloud(PointCloud { encoding: PointEncoding::Int16, .. }) = reduction {
+            assert!(expected.dropped > 0, "{what}: some returns lie beyond an i16 of micrometre steps");
+        }
+
+        // The same reduction of the rays sent, with a counting query.
+        let all = Query { kind: QueryKind::All, max_hits_per_ray: 3, ..query };
+        if reduction.check(&all, generator.count()).is_ok() {
+            let sent = client.trace_reduced("bunny", &all, Bytes::from(rays.clone()), &reduction).await.expect(&what);
+            let traced = reduction.traced_query(&all);
+            let full = client.trace("bunny", &traced, Bytes::from(rays)).await.unwrap();
+            let expected =
+                reduction.reduce_all(&traced, &generator.rays(traced.ray_format), full.hits(), full.counts());
+            assert!(sent.data == expected.unwrap().bytes, "{what} with an `all` query of sent rays");
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_reductions_name_their_field() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let (lo, hi) = bunny.bounds();
+    let camera = Camera::framing(lo, hi, 8, 8);
+    let rays = Bytes::from(camera.rays(RayFormat::OriginDirection));
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+    let refused = |error: rayd_client::Error, code: Code, field: &str| {
+        assert_eq!(error.code(), code, "{error}");
+        assert!(error.to_string().contains(field), "{error} names {field}");
+    };
+    let image = Image {
+        width: 0,
+        rays_per_pixel: 0,
+        channel: ImageChannel::Depth,
+        encoding: PixelEncoding::Float32,
+        near: 0.0,
+        far: 0.0,
+    };
+    // Packed rays carry no camera to take the width from.
+    let error = client.trace_reduced("bunny", &query, rays.clone(), &Reduction::Image(image)).await.unwrap_err();
+    refused(error, Code::InvalidArgument, "reduction.image.width");
+    let seven = Reduction::Image(Image { width: 7, ..image });
+    let error = client.trace_reduced("bunny", &query, rays.clone(), &seven).await.unwrap_err();
+    refused(error, Code::InvalidArgument, "reduction.image.width");
+    let any_count = Query { kind: QueryKind::Count, ..query };
+    let eight = Reduction::Image(Image { width: 8, ..image });
+    let error = client.trace_reduced("bunny", &any_count, rays.clone(), &eight).await.unwrap_err();
+    refused(error, Code::InvalidArgument, "query.query");
+    let histogram = Reduction::Histogram { bins: 0, t_min: 0.0, t_max: 1.0 };
+    let error = client.trace_reduced("bunny", &query, rays.clone(), &histogram).await.unwrap_err();
+    refused(error, Code::InvalidArgument, "reduction.histogram.bins");
+    // A camera generator gives the image its width; the 8×8 depths come back.
+    let centres = PixelSampling { samples: 1, jitter_seed: None };
+    let generated = Generator::Pinhole(camera, centres);
+    let depths = client.trace_generated_reduced("bunny", &query, &generated, &Reduction::Image(image)).await.unwrap();
+    assert_eq!(depths.data.len(), 8 * 8 * 4);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reduction_larger_than_a_message_is_refused_by_the_limit() {
+    // 1 MiB: the bunny's 1.25 MB of vertices and indices are uploaded in chunks the client fits to the limit.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "1048576")]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let (lo, hi) = bunny.bounds();
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+    let depth = |side: u32| {
+        let camera =
+            Generator::Pinhole(Camera::framing(lo, hi, side, side), PixelSampling { samples: 1, jitter_seed: None });
+        let image = Image {
+            width: 0,
+            rays_per_pixel: 0,
+            channel: ImageChannel::Depth,
+            encoding: PixelEncoding::Float32,
+            near: 0.0,
+            far: 1.0,
+        };
+        (camera, Reduction::Image(image))
+    };
+    // 600 × 600 float32 depths are 1,440,000 bytes: more than a 1 MiB message.
+    let (camera, image) = depth(600);
+    let error = client.trace_generated_reduced("bunny", &query, &camera, &image).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("the reduction's 1440000 bytes"), "{error}");
+    assert!(error.to_string().contains("max_message_bytes"), "{error}");
+    // 500 × 500 are 1,000,000 bytes: they fit.
+    let (camera, image) = depth(500);
+    let fits = client.trace_generated_reduced("bunny", &query, &camera, &image).await.unwrap();
+    assert_eq!(fits.data.len(), 500 * 500 * 4);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn generators_and_reductions_on_a_stream_answer_what_single_calls_do() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);
+    let all = Query { kind: QueryKind::All, max_hits_per_ray: 3, ..query };
+    let cases = cases(&bunny);
+
+    // Every case enqueued on one stream: generated and reduced; the same rays sent and reduced (with an `all`
+    // query where the reduction takes one); the generated rays' full hits.
+    let stream = client.create_stream().await.unwrap();
+    let mut enqueued = Vec::new();
+    for (generator, reduction) in &cases {
+        let generated = stream.trace_generated_reduced("bunny", &query, generator, reduction).await.unwrap();
+        let sent_query = if reduction.check(&all, generator.count()).is_ok() { all } else { query };
+        let rays = Bytes::from(generator.rays(sent_query.ray_format));
+        let sent = stream.trace_reduced("bunny", &sent_query, rays.clone(), reduction).await.unwrap();
+        let full = stream.trace_generated("bunny", &query, generator).await.unwrap();
+        enqueued.push((generated, (sent_query, rays, sent), full));
+    }
+    stream.synchronize().await.unwrap();
+
+    for ((generator, reduction), (generated, (sent_query, rays, sent), full)) in cases.iter().zip(enqueued) {
+        let what = format!("{reduction:?} of {generator:?} on a stream");
+        let expected = client.trace_generated_reduced("bunny", &query, generator, reduction).await.unwrap();
+        let generated = generated.wait().await.expect(&what);
+        assert!(
+            generated.data == expected.data,
+            "{what}: {} bytes, {} expected",
+            generated.data.len(),
+            expected.data.len()
+        );
+        assert_eq!((generated.dropped, generated.stats.rays), (expected.dropped, generator.count()), "{what}");
+        let expected = client.trace_reduced("bunny", &sent_query, rays, reduction).await.unwrap();
+        assert!(sent.wait().await.expect(&what).data == expected.data, "{what}: rays sent, {:?}", sent_query.kind);
+        let expected = client.trace_generated("bunny", &query, generator).await.unwrap();
+        let full = full.wait().await.expect(&what);
+        assert!(full.hits() == expected.hits() && full.hits().len() as u64 == generator.count() * 8, "{what}: hits");
+    }
+    stream.finish().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn compressed_calls_answer_the_same_bytes() {
+    let daemon = Daemon::start(&[]);
+    let plain = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let bunny = common::shared_mesh("stanford-bunny");
+    plain.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    let (lo, hi) = bunny.bounds();
+    let rays = Bytes::from(Camera::framing(lo, hi, 64, 64).rays(RayFormat::OriginDirection));
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
+    let expected = plain.trace("bunny", &query, rays.clone()).await.unwrap();
+    for encoding in [CompressionEncoding::Zstd, CompressionEncoding::Gzip] {
+        let options = ClientOptions { compression: Some(encoding), ..ClientOptions::default() };
+        let compressed = Client::connect(&daemon.url(), options).await.unwrap();
+        let traced = compressed.trace("bunny", &query, rays.clone()).await.expect("a compressed trace");
+        assert!(traced.hits() == expected.hits(), "{encoding:?}: the same hits");
+    }
+}

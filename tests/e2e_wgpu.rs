@@ -1,0 +1,76 @@
+//! End to end against the real `rayd`: it lists the wgpu adapters after `cpu:0`, builds the bunny on `wgpu:0` and
+//! traces it by TraceBatch with the hits the CPU device gives (`t` within 1e-4 relative, same primitive); copies it
+//! from `cpu:0` by CopyAccel, instances it twice on `wgpu:0` and traces that with the instance ids the CPU gives.
+//!
+//! Adapter policy as in `tests/wgpu.rs`: without one, a notice and a pass, unless `RAYD_REQUIRE_GPU=1`.
+
+mod common;
+mod daemon;
+
+use bytes::Bytes;
+use common::{pack_rays, random_rays, shared_mesh};
+use daemon::Daemon;
+use glam::Vec3;
+use rayd_client::{Client, ClientOptions};
+use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::geometry::{InstanceFlags, InstanceRecord};
+use rayd_engine::query::Query;
+use rayd_proto as proto;
+
+#[tokio::test]
+async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.expect("the client connects");
+    let devices = client.devices().await.unwrap();
+    assert_eq!(devices[0].id, "cpu:0");
+    let Some(gpu) = devices.iter().find(|d| d.id == "wgpu:0") else {
+        if std::env::var("RAYD_REQUIRE_GPU").as_deref() == Ok("1") {
+            panic!("RAYD_REQUIRE_GPU=1 but rayd lists no wgpu device: {devices:?}");
+        }
+        eprintln!("skipped: rayd lists no wgpu device (set RAYD_REQUIRE_GPU=1 to fail instead)");
+        return;
+    };
+    assert_eq!(gpu.backend, proto::Backend::Wgpu as i32);
+    let bunny = shared_mesh("stanford-bunny").normalized_at(Vec3::splat(0.5));
+    client.build_mesh("cpu", &bunny, "cpu:0", BuildFlags::empty()).await.unwrap();
+    let info = client.build_mesh("gpu", &bunny, "wgpu:0", BuildFlags::empty()).await.unwrap();
+    assert_eq!(info.device, "wgpu:0");
+    let query = Query::closest(RayFormat::Full, HitFormat::TTriid);
+    let rays = Bytes::from(pack_rays(&random_rays(4000, 9), RayFormat::Full));
+    let on_cpu = client.trace("cpu", &query, rays.clone()).await.unwrap();
+    let on_gpu = client.trace("gpu", &query, rays.clone()).await.unwrap();
+    let differing = |format: HitFormat, a: &Bytes, b: &Bytes| {
+        (0..4000)
+            .filter(|&i| {
+                let (c, g) = (format.read(a, i), format.read(b, i));
+                (c.prim_id, c.inst_id) != (g.prim_id, g.inst_id) || (c.t - g.t).abs() > 1e-4 * c.t.abs().max(1.0)
+            })
+            .count()
+    };
+    assert_eq!(differing(HitFormat::TTriid, on_cpu.hits(), on_gpu.hits()), 0, "rays differing on cpu:0 and wgpu:0");
+    assert!(on_gpu.stats().rays_hit > 0);
+    // A copy from cpu:0 traces there; two instances of it (one visible to half the rays) trace as on the CPU.
+    let copy = client.copy_accel("cpu", "copied", "wgpu:0", false).await.unwrap();
+    assert_eq!(copy.device, "wgpu:0");
+    let shifted = [1.0, 0.0, 0.0, 0.3, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+    let identity = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+    let records = [
+        InstanceRecord { transform: identity, instance_id: 4, mask: 0xFF, flags: InstanceFlags::empty(), child: 0 },
+        InstanceRecord { transform: shifted, instance_id: 9, mask: 0x01, flags: InstanceFlags::empty(), child: 0 },
+    ];
+    for (name, device, child) in [("two-cpu", "cpu:0", "cpu"), ("two-gpu", "wgpu:0", "copied")] {
+        client.build_instances(name, device, &[child], &records, BuildFlags::empty()).await.unwrap();
+    }
+    let query = Query::closest(RayFormat::Full, HitFormat::TTriidInstid);
+    let mut rays = random_rays(4000, 10);
+    for (i, ray) in rays.iter_mut().enumerate() {
+        ray.visibility = if i % 2 == 0 { 0x01 } else { 0x02 };
+    }
+    let rays = Bytes::from(pack_rays(&rays, RayFormat::Full));
+    let on_cpu = client.trace("two-cpu", &query, rays.clone()).await.unwrap();
+    let on_gpu = client.trace("two-gpu", &query, rays).await.unwrap();
+    assert_eq!(differing(HitFormat::TTriidInstid, on_cpu.hits(), on_gpu.hits()), 0, "instanced rays differing");
+    let shifted_hits = (0..4000).filter(|&i| HitFormat::TTriidInstid.read(on_gpu.hits(), i).inst_id == 9).count();
+    assert!(shifted_hits > 0, "the instance only even rays see is hit");
+}

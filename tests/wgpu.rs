@@ -1,0 +1,481 @@
+//! The wgpu backend against the CPU backend: every ray format × hit format × query kind on the bunny, a random
+//! soup with masks, flags and two geometries, a vertex-motion mesh and a graph of instance accels and transforms
+//! (visibility masks, instance flags, ties, static, matrix and SRT motion, a motion instance accel); large
+//! batches; batches split into many chunks; copies between devices; what the backend refuses.
+//!
+//! The two backends run the same algorithm, but a GPU may fuse multiplies and adds, so answers are compared with
+//! tolerances (issue 8): a ray agrees when hit/miss, primitive, geometry and instance ids, facing and counts are
+//! equal, `t` is within 1e-4 relative and u, v and the normal within 1e-3; at least 99.99% of rays must agree over
+//! each test (on lavapipe they are usually all bit-identical).
+//!
+//! Adapter policy: without an adapter these tests print a notice and pass, unless `RAYD_REQUIRE_GPU=1` (CI sets
+//! it), where they fail. The engine enumerates `WGPU_BACKEND`'s backends, Vulkan when it is unset.
+
+mod common;
+
+use common::{input_with_masks, pack_rays, random_rays, random_soup, shared_mesh};
+use std::sync::Arc;
+
+use glam::{Affine3A, Quat, Vec3, Vec3A};
+use rayd_engine::accel::{AccelKind, BuildOptions};
+use rayd_engine::backend::BackendKind;
+use rayd_engine::backend::wgpu::WgpuOptions;
+use rayd_engine::format::{HitFormat, Ray, RayFlags, RayFormat};
+use rayd_engine::geometry::{
+    BuildInput, GeometryFlags, Instance, InstanceFlags, MotionFlags, MotionOptions, Placement, TransformInput,
+    TriangleInput,
+};
+use rayd_engine::mesh::Mesh;
+use rayd_engine::query::{Query, QueryKind, TraceOutput};
+use rayd_engine::{Accel, Context, Device, ErrorKind};
+
+/// The first wgpu device with `options`, or `None` (after a notice) on a machine without an adapter; panics
+/// instead when `RAYD_REQUIRE_GPU=1`.
+fn gpu_with(options: WgpuOptions) -> Option<Device> {
+    if let Some(device) = Device::wgpu(options).into_iter().next() {
+        return Some(device);
+    }
+    if std::env::var("RAYD_REQUIRE_GPU").as_deref() == Ok("1") {
+        panic!("RAYD_REQUIRE_GPU=1 but wgpu found no adapter (install mesa-vulkan-drivers for lavapipe)");
+    }
+    eprintln!("skipped: no wgpu adapter (set RAYD_REQUIRE_GPU=1 to fail instead)");
+    None
+}
+
+/// The first wgpu device with default options.
+fn gpu() -> Option<Device> {
+    gpu_with(WgpuOptions::default())
+}
+
+/// Agreement counts over a test.
+#[derive(Debug, Default)]
+struct Agreement {
+    /// Rays compared.
+    rays: usize,
+    /// Rays whose results differ beyond the tolerances.
+    differing: usize,
+}
+
+impl Agreement {
+    /// Asserts that at least 99.99% of rays agreed.
+    fn check(&self) {
+        eprintln!("{} of {} rays differ", self.differing, self.rays);
+        assert!(self.rays > 0);
+        assert!(self.differing as f64 <= self.rays as f64 * 1e-4, "{} of {} rays differ", self.differing, self.rays);
+    }
+}
+
+/// Whether two floats are within `tolerance`, relative to the larger magnitude (absolute below 1).
+fn close(a: f32, b: f32, tolerance: f32) -> bool {
+    a == b || (a - b).abs() <= tolerance * a.abs().max(b.abs()).max(1.0)
+}
+
+/// Traces `rays` with `query` on `accel` in `context`; returns (hits, counts).
+fn trace(context: &Context, accel: &Accel, query: &Query, rays: &[u8]) -> (Vec<u8>, Vec<u8>) {
+    let layout = query.output_layout(rays.len()).unwrap();
+    let (mut hits, mut counts) = (vec![0xEE; layout.hits], vec![0xEE; layout.counts]);
+    context.trace(accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts }).unwrap();
+    (hits, counts)
+}
+
+/// One scene built on both devices.
+struct Scene {
+    /// The reference.
+    cpu: (Context, Arc<Accel>),
+    /// The device under test.
+    gpu: (Context, Arc<Accel>),
+}
+
+impl Scene {
+    /// Builds `inputs` with `options` on the CPU and on `device`.
+    fn new(device: &Device, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Scene {
+        Scene::built(device, |context| context.build_accel(inputs, options).unwrap())
+    }
+
+    /// The accel `build` makes in a context of the CPU and in one of `device`.
+    fn built(device: &Device, build: impl Fn(&Context) -> Arc<Accel>) -> Scene {
+        let on = |device: Device| {
+            let context = Context::new(device);
+            let accel = build(&context);
+            (context, accel)
+        };
+        Scene { cpu: on(Device::cpu()), gpu: on(device.clone()) }
+    }
+
+    /// Traces `rays` (packed in `query.ray_format`) on both and adds the comparison to `agreement`.
+    fn compare(&self, query: &Query, rays: &[u8], agreement: &mut Agreement) {
+        let (cpu_hits, cpu_counts) = trace(&self.cpu.0, &self.cpu.1, query, rays);
+        let (gpu_hits, gpu_counts) = trace(&self.gpu.0, &self.gpu.1, query, rays);
+        let ray_count = rays.len() / query.ray_format.size();
+        let per_ray = query.records_per_ray();
+        let format = query.hit_format;
+        for ray in 0..ray_count {
+            let records_agree = (ray * per_ray..(ray + 1) * per_ray).all(|record| {
+                let (c, g) = (format.read(&cpu_hits, record), format.read(&gpu_hits, record));
+                c.is_hit() == g.is_hit()
+                    && (c.prim_id, c.geom_id, c.inst_id, c.inst_path, c.back_face)
+                        == (g.prim_id, g.geom_id, g.inst_id, g.inst_path, g.back_face)
+                    && close(c.t, g.t, 1e-4)
+                    && close(c.u, g.u, 1e-3)
+                    && close(c.v, g.v, 1e-3)
+                    && (c.normal - g.normal).abs().max_element() <= 1e-3
+            });
+            let counts_agree =
+                !query.kind.has_counts() || cpu_counts[4 * ray..4 * ray + 4] == gpu_counts[4 * ray..4 * ray + 4];
+            if !(records_agree && counts_agree) {
+                agreement.differing += 1;
+                if agreement.differing <= 5 {
+                    eprintln!("{query:?}: ray {ray} differs");
+                }
+            }
+        }
+        if format == HitFormat::Bitmask {
+            assert_eq!(cpu_hits.last(), gpu_hits.last(), "{query:?}: the bitmask's last byte (unused bits 0)");
+        }
+        agreement.rays += ray_count;
+    }
+
+    /// Compares every ray format × hit format × query kind on `rays`, with query flags varied across kinds.
+    fn compare_everything(&self, rays: &[Ray], agreement: &mut Agreement) {
+        for ray_format in RayFormat::ALL {
+            let packed = pack_rays(rays, ray_format);
+            for hit_format in HitFormat::ALL {
+                for (k, kind) in QueryKind::ALL.into_iter().enumerate() {
+                    let flags = [RayFlags::empty(), RayFlags::CULL_BACK_FACING, RayFlags::CULL_FRONT_FACING][k % 3];
+                    let query = Query { kind, ray_format, hit_format, flags, max_hits_per_ray: 3 };
+                    self.compare(&query, &packed, agreement);
+                }
+            }
+        }
+    }
+}
+
+/// Random rays through the unit cube with every field randomized (see `common::random_rays`).
+fn rays(count: usize, seed: u64) -> Vec<Ray> {
+    random_rays(count, seed)
+}
+
+/// Rays from a ring of cameras around the unit cube's centre, aimed at it, full range: they hit often.
+fn camera_rays(count: usize) -> Vec<Ray> {
+    (0..count)
+        .map(|i| {
+            let f = i as f32 / count as f32;
+            let angle = f * std::f32::consts::TAU * 7.0;
+            let origin = Vec3A::new(0.5 + 2.0 * angle.cos(), 0.5 + (f - 0.5), 0.5 + 2.0 * angle.sin());
+            let target =
+                Vec3A::new(0.5, 0.5, 0.5) + Vec3A::new((f * 97.0).sin(), (f * 61.0).cos(), (f * 37.0).sin()) * 0.3;
+            Ray { origin, direction: target - origin, ..Ray::default() }
+        })
+        .collect()
+}
+
+fn bunny() -> Mesh {
+    shared_mesh("stanford-bunny").normalized_at(Vec3::splat(0.5))
+}
+
+#[test]
+fn the_bunny_agrees_in_every_format_and_query_kind() {
+    let Some(device) = gpu() else { return };
+    assert_eq!(device.info().kind, BackendKind::Wgpu);
+    assert!(device.info().id.starts_with("wgpu:"));
+    let mesh = bunny().pack();
+    let scene = Scene::new(&device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default());
+    let mut agreement = Agreement::default();
+    let mut rays = rays(700, 1);
+    rays.extend(camera_rays(700));
+    scene.compare_everything(&rays, &mut agreement);
+    agreement.check();
+}
+
+#[test]
+fn a_soup_with_masks_flags_and_two_geometries_agrees() {
+    let Some(device) = gpu() else { return };
+    let (a, b) = (random_soup(1500, 7).pack(), random_soup(800, 8).pack());
+    let masks: Vec<u8> = (0..1500u32).flat_map(|i| (1u32 << (i % 5)).to_le_bytes()).collect();
+    let inputs = [
+        input_with_masks(&a.vertices, &a.indices, &masks),
+        BuildInput::Triangles(TriangleInput {
+            flags: GeometryFlags::DISABLE_FACE_CULLING,
+            primitive_index_offset: 100,
+            ..b.input()
+        }),
+    ];
+    let scene = Scene::new(&device, &inputs, &BuildOptions::default());
+    let mut agreement = Agreement::default();
+    scene.compare_everything(&rays(1200, 2), &mut agreement);
+    agreement.check();
+}
+
+/// The bunny moving and deforming over 3 keys in [0.2, 0.8], vanishing before and after.
+fn moving_bunny_inputs() -> (Vec<u8>, Vec<Vec<u8>>, MotionOptions) {
+    let mesh = bunny();
+    let key = |k: usize| Mesh {
+        positions: mesh
+            .positions
+            .iter()
+            .map(|&p| p + Vec3::new(0.15 * k as f32, 0.05 * (p.y * 9.0 + k as f32).sin(), 0.0))
+            .collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    let motion = MotionOptions {
+        keys: 3,
+        time_begin: 0.2,
+        time_end: 0.8,
+        flags: MotionFlags::START_VANISH | MotionFlags::END_VANISH,
+    };
+    (mesh.pack().indices, (0..3).map(|k| key(k).pack().vertices).collect(), motion)
+}
+
+#[test]
+fn a_vertex_motion_mesh_agrees_at_every_ray_time() {
+    let Some(device) = gpu() else { return };
+    let (indices, keys, motion) = moving_bunny_inputs();
+    let later: Vec<&[u8]> = keys[1..].iter().map(Vec::as_slice).collect();
+    let inputs = [BuildInput::Triangles(TriangleInput {
+        motion_vertices: &later,
+        ..TriangleInput::indexed(&keys[0], &indices)
+    })];
+    let scene = Scene::new(&device, &inputs, &BuildOptions { motion, ..BuildOptions::default() });
+    let mut rays = rays(600, 3);
+    rays.extend(camera_rays(600).into_iter().enumerate().map(|(i, r)| Ray { time: i as f32 / 600.0, ..r }));
+    let mut agreement = Agreement::default();
+    scene.compare_everything(&rays, &mut agreement);
+    agreement.check();
+}
+
+#[test]
+fn large_batches_agree_for_closest_and_any() {
+    let Some(device) = gpu() else { return };
+    let mesh = bunny().pack();
+    let scene = Scene::new(&device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default());
+    let mut rays = rays(200_000, 4);
+    rays.extend(camera_rays(200_000));
+    let packed = pack_rays(&rays, RayFormat::OriginTminDirectionTmax);
+    let mut agreement = Agreement::default();
+    for kind in [QueryKind::Closest, QueryKind::Any] {
+        let query = Query { kind, ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV) };
+        scene.compare(&query, &packed, &mut agreement);
+    }
+    agreement.check();
+}
+
+#[test]
+fn batches_larger_than_one_binding_are_split_into_chunks() {
+    // 8 KiB bindings: 170 full rays a chunk at most (32 for `all`, whose 5 sorted hits a ray take 240 bytes of
+    // scratch), so 5,000 rays take dozens of chunks through both slots.
+    let Some(device) = gpu_with(WgpuOptions { max_binding_bytes: Some(8192), ..WgpuOptions::default() }) else {
+        return;
+    };
+    let mesh = bunny().pack();
+    let scene = Scene::new(&device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default());
+    let mut rays = rays(2500, 5);
+    rays.extend(camera_rays(2500));
+    let packed = pack_rays(&rays, RayFormat::Full);
+    let mut agreement = Agreement::default();
+    for (kind, hit_format) in [
+        (QueryKind::Closest, HitFormat::Full),
+        (QueryKind::All, HitFormat::Bitmask),
+        (QueryKind::Count, HitFormat::TTriid),
+    ] {
+        let query = Query { kind, hit_format, max_hits_per_ray: 5, ..Query::closest(RayFormat::Full, hit_format) };
+        scene.compare(&query, &packed, &mut agreement);
+    }
+    agreement.check();
+    // A chunk of 32 rays with 1,000 full records each cannot fit 8 KiB.
+    let query =
+        Query { kind: QueryKind::All, max_hits_per_ray: 1000, ..Query::closest(RayFormat::Full, HitFormat::Full) };
+    let layout = query.output_layout(packed.len()).unwrap();
+    let (mut hits, mut counts) = (vec![0; layout.hits], vec![0; layout.counts]);
+    let error = scene.gpu.0.trace(&scene.gpu.1, &query, &packed, TraceOutput { hits: &mut hits, counts: &mut counts });
+    assert_eq!(error.unwrap_err().kind(), ErrorKind::ResourceExhausted);
+}
+
+#[test]
+fn updates_copies_and_empty_batches_work() {
+    let Some(device) = gpu() else { return };
+    let context = Context::new(device);
+    let (first, second) = (random_soup(300, 11).pack(), random_soup(300, 12).pack());
+    let options = BuildOptions { flags: rayd_engine::accel::BuildFlags::ALLOW_UPDATE, ..BuildOptions::default() };
+    let accel = context.build_accel(&[BuildInput::Triangles(first.input())], &options).unwrap();
+    assert!(accel.info().size_bytes > 0);
+    let updated = context.update_accel(&accel, &[BuildInput::Triangles(second.input())]).unwrap();
+    let copy = context.copy_accel(&updated, false).unwrap();
+    // The reference is updated the same way: terminate-on-first-hit rays depend on the BVH's structure.
+    let reference = Context::new(Device::cpu());
+    let built = reference.build_accel(&[BuildInput::Triangles(first.input())], &options).unwrap();
+    let expected = reference.update_accel(&built, &[BuildInput::Triangles(second.input())]).unwrap();
+    let query = Query::closest(RayFormat::Full, HitFormat::TTriid);
+    let packed = pack_rays(&rays(500, 6), RayFormat::Full);
+    let (want, _) = trace(&reference, &expected, &query, &packed);
+    for accel in [&updated, &copy] {
+        let (got, _) = trace(&context, accel, &query, &packed);
+        let differing = (0..500)
+            .filter(|&i| HitFormat::TTriid.read(&got, i).prim_id != HitFormat::TTriid.read(&want, i).prim_id)
+            .count();
+        assert!(differing == 0, "{differing} rays differ after the update");
+    }
+    let (hits, counts) = trace(&context, &copy, &query, &[]);
+    assert!(hits.is_empty() && counts.is_empty());
+    assert_eq!(accel.info().kind, AccelKind::Triangles);
+}
+
+/// A 3×4 row-major matrix of `affine`.
+fn rows(affine: Affine3A) -> [f32; 12] {
+    Placement::rows(&affine)
+}
+
+/// An instance of `child`.
+fn instance(child: &Arc<Accel>, to_world: Affine3A, instance_id: u32, mask: u8, flags: InstanceFlags) -> Instance {
+    Instance { transform: rows(to_world), instance_id, mask, flags, child: Arc::clone(child) }
+}
+
+/// An SRT key: scale `s`, quaternion `q`, translation `t` (no shear, no pivot).
+fn srt(s: Vec3, q: Quat, t: Vec3) -> [f32; 16] {
+    [s.x, 0.0, 0.0, 0.0, s.y, 0.0, 0.0, s.z, 0.0, q.x, q.y, q.z, q.w, t.x, t.y, t.z]
+}
+
+/// A graph of every kind of node, three levels of instances and transforms deep, in `context`: the bunny and a
+/// soup with masks and a culling-exempt geometry, placed plainly, mirrored (flipped and not), exempt from culling,
+/// three times at the same place (ties, broken by instance id), under a static transform, a matrix motion
+/// transform and an SRT motion transform (vanishing after its range), beside the vertex-motion bunny, under a
+/// motion instance accel; each instance with its own visibility mask.
+fn every_kind_of_graph(context: &Context) -> Arc<Accel> {
+    let bunny = bunny().pack();
+    let soup = random_soup(600, 21).pack();
+    let masks: Vec<u8> = (0..600u32).flat_map(|i| (1u32 << (i % 3)).to_le_bytes()).collect();
+    let soup_inputs = [input_with_masks(&soup.vertices, &soup.indices, &masks)];
+    let bunny_accel = context.build_accel(&[BuildInput::Triangles(bunny.input())], &BuildOptions::default()).unwrap();
+    let soup_accel = context.build_accel(&soup_inputs, &BuildOptions::default()).unwrap();
+    let (indices, keys, motion) = moving_bunny_inputs();
+    let later: Vec<&[u8]> = keys[1..].iter().map(Vec::as_slice).collect();
+    let moving_inputs = [BuildInput::Triangles(TriangleInput {
+        motion_vertices: &later,
+        ..TriangleInput::indexed(&keys[0], &indices)
+    })];
+    let moving = context.build_accel(&moving_inputs, &BuildOptions { motion, ..BuildOptions::default() }).unwrap();
+    let centre = Vec3::splat(0.5);
+    let about_centre = |a: Affine3A| Affine3A::from_translation(centre) * a * Affine3A::from_translation(-centre);
+    let mirror = about_centre(Affine3A::from_scale(Vec3::new(-1.0, 1.0, 1.0)));
+    let shrunk = about_centre(Affine3A::from_scale(Vec3::splat(0.6)));
+    let still = context
+        .build_transform(
+            &TransformInput::Static(rows(Affine3A::from_translation(Vec3::new(0.3, 0.0, 0.1)))),
+            &bunny_accel,
+        )
+        .unwrap();
+    let two_keys = MotionOptions { keys: 2, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
+    let sliding = TransformInput::MatrixMotion {
+        keys: vec![rows(shrunk), rows(Affine3A::from_translation(Vec3::new(0.2, 0.1, 0.0)) * shrunk)],
+        motion: two_keys,
+    };
+    let sliding = context.build_transform(&sliding, &soup_accel).unwrap();
+    let turning = TransformInput::SrtMotion {
+        keys: (0..3)
+            .map(|k| srt(Vec3::splat(0.8), Quat::from_rotation_y(0.6 * k as f32), Vec3::new(0.1, 0.05 * k as f32, 0.2)))
+            .collect(),
+        motion: MotionOptions { keys: 3, time_begin: 0.1, time_end: 0.9, flags: MotionFlags::END_VANISH },
+    };
+    let turning = context.build_transform(&turning, &bunny_accel).unwrap();
+    let none = InstanceFlags::empty();
+    let inner = [
+        instance(&bunny_accel, Affine3A::IDENTITY, 7, 0x01, none),
+        instance(&bunny_accel, Affine3A::IDENTITY, 3, 0x01, none),
+        instance(&bunny_accel, Affine3A::IDENTITY, 5, 0x03, none),
+        instance(&bunny_accel, mirror, 8, 0x02, InstanceFlags::FLIP_FACING),
+        instance(&bunny_accel, mirror * shrunk, 9, 0x04, none),
+        instance(
+            &soup_accel,
+            Affine3A::from_translation(Vec3::new(0.0, 0.2, 0.0)),
+            10,
+            0x08,
+            InstanceFlags::DISABLE_FACE_CULLING,
+        ),
+        instance(&still, Affine3A::IDENTITY, 11, 0x10, none),
+    ];
+    let inner = context.build_instance_accel(&inner, &BuildOptions::default()).unwrap();
+    let top = [
+        instance(&inner, Affine3A::IDENTITY, 20, 0xFF, none),
+        instance(
+            &inner,
+            Affine3A::from_translation(Vec3::new(0.5, 0.4, -0.3)) * shrunk,
+            21,
+            0x0F,
+            InstanceFlags::FLIP_FACING,
+        ),
+        instance(&sliding, Affine3A::IDENTITY, 22, 0x30, none),
+        instance(&turning, Affine3A::from_translation(Vec3::new(-0.2, 0.0, 0.0)), 23, 0xC0, none),
+        instance(&moving, Affine3A::IDENTITY, 24, 0x41, none),
+    ];
+    context.build_instance_accel(&top, &BuildOptions { motion: two_keys, ..BuildOptions::default() }).unwrap()
+}
+
+/// Rays with every visibility mask and times over the motion ranges (and beyond them).
+fn graph_rays(count: usize, seed: u64) -> Vec<Ray> {
+    let mut rays = rays(count, seed);
+    rays.extend(camera_rays(count));
+    for (i, ray) in rays.iter_mut().enumerate() {
+        ray.visibility = [0xFF, 0x01, 0x02, 0x04, 0x08, 0x10, 0x30, 0xC0, 0x40, 0x00][i % 10];
+        ray.time = (i % 23) as f32 / 20.0 - 0.05;
+    }
+    rays
+}
+
+#[test]
+fn an_instance_graph_of_every_kind_of_node_agrees_in_every_format_and_query_kind() {
+    let Some(device) = gpu() else { return };
+    let scene = Scene::built(&device, every_kind_of_graph);
+    assert_eq!(scene.gpu.1.info().kind, AccelKind::Instances);
+    assert_eq!(scene.gpu.1.info().depth, 4);
+    let mut agreement = Agreement::default();
+    scene.compare_everything(&graph_rays(500, 31), &mut agreement);
+    agreement.check();
+    // The graph is hit through every level, and the tie between the three coinciding bunnies goes to id 3.
+    let query = Query::closest(RayFormat::Full, HitFormat::Full);
+    let rays: Vec<Ray> = camera_rays(400).into_iter().map(|r| Ray { visibility: 0x01, ..r }).collect();
+    let (hits, _) = trace(&scene.gpu.0, &scene.gpu.1, &query, &pack_rays(&rays, RayFormat::Full));
+    let paths: Vec<Vec<u32>> = (0..rays.len())
+        .map(|i| HitFormat::Full.read(&hits, i))
+        .filter(|h| h.is_hit())
+        .map(|h| h.inst_path.ids().to_vec())
+        .collect();
+    assert!(paths.len() > 100, "{} of 400 camera rays hit", paths.len());
+    assert!(paths.iter().all(|p| p == &[20, 3] || p == &[21, 3] || p == &[24]), "{paths:?}");
+}
+
+#[test]
+fn geometry_accels_copy_between_devices_and_graphs_stay_on_theirs() {
+    let Some(device) = gpu() else { return };
+    let (cpu, gpu) = (Context::new(Device::cpu()), Context::new(device));
+    let mesh = bunny().pack();
+    let options = BuildOptions { flags: rayd_engine::accel::BuildFlags::ALLOW_COMPACTION, ..BuildOptions::default() };
+    let on_cpu = cpu.build_accel(&[BuildInput::Triangles(mesh.input())], &options).unwrap();
+    let to_gpu = gpu.copy_accel(&on_cpu, true).unwrap();
+    let back = cpu.copy_accel(&to_gpu, false).unwrap();
+    assert_eq!(to_gpu.info().triangle_count, on_cpu.info().triangle_count);
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    let packed = pack_rays(&camera_rays(2000), RayFormat::OriginTminDirectionTmax);
+    let (want, _) = trace(&cpu, &on_cpu, &query, &packed);
+    let (got, _) = trace(&gpu, &to_gpu, &query, &packed);
+    let (again, _) = trace(&cpu, &back, &query, &packed);
+    assert_eq!(want, again, "a copy to the GPU and back traces the same bytes on the CPU");
+    let differing = (0..2000)
+        .filter(|&i| {
+            let (c, g) = (HitFormat::TTriidUV.read(&want, i), HitFormat::TTriidUV.read(&got, i));
+            c.prim_id != g.prim_id || !close(c.t, g.t, 1e-4)
+        })
+        .count();
+    assert!(differing <= 1, "{differing} of 2000 rays differ on the copy");
+    // Instance accels place accels of their own device, and are copied only there.
+    let identity = instance(&on_cpu, Affine3A::IDENTITY, 0, 0xFF, InstanceFlags::empty());
+    let error = gpu.build_instance_accel(&[identity], &BuildOptions::default()).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::FailedPrecondition, "{error}");
+    let placed = gpu
+        .build_instance_accel(&[instance(&to_gpu, Affine3A::IDENTITY, 0, 0xFF, InstanceFlags::empty())], &options)
+        .unwrap();
+    let error = cpu.copy_accel(&placed, false).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::FailedPrecondition, "{error}");
+    assert!(error.to_string().contains("geometry accels are"), "{error}");
+    let copy = gpu.copy_accel(&placed, true).unwrap();
+    let (placed_hits, _) = trace(&gpu, &copy, &query, &packed);
+    assert_eq!(placed_hits, got, "an identity instance traces as its child");
+}
