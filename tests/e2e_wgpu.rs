@@ -13,7 +13,7 @@ use daemon::Daemon;
 use glam::Vec3;
 use rayd_client::{Client, ClientOptions};
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::format::{HitFormat, RayFlags, RayFormat};
 use rayd_engine::geometry::{InstanceFlags, InstanceRecord};
 use rayd_engine::query::Query;
 use rayd_proto as proto;
@@ -37,14 +37,23 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
     let info = client.build_mesh("gpu", &bunny, "wgpu:0", BuildFlags::empty()).await.unwrap();
     assert_eq!(info.device, "wgpu:0");
     let query = Query::closest(RayFormat::Full, HitFormat::TTriid);
-    let rays = Bytes::from(pack_rays(&random_rays(4000, 9), RayFormat::Full));
+    let random = random_rays(4000, 9);
+    let rays = Bytes::from(pack_rays(&random, RayFormat::Full));
     let on_cpu = client.trace("cpu", &query, rays.clone()).await.unwrap();
     let on_gpu = client.trace("gpu", &query, rays.clone()).await.unwrap();
+    // A ray that terminates on its first hit may stop at any hit (which one depends on the traversal order: the
+    // CPU's wide nodes and the GPU's binary ones differ): only whether it hit must agree.
     let differing = |format: HitFormat, a: &Bytes, b: &Bytes| {
         (0..4000)
             .filter(|&i| {
                 let (c, g) = (format.read(a, i), format.read(b, i));
-                (c.prim_id, c.inst_id) != (g.prim_id, g.inst_id) || (c.t - g.t).abs() > 1e-4 * c.t.abs().max(1.0)
+                match random[i].flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT) {
+                    true => (c.t >= 0.0) != (g.t >= 0.0),
+                    false => {
+                        (c.prim_id, c.inst_id) != (g.prim_id, g.inst_id)
+                            || (c.t - g.t).abs() > 1e-4 * c.t.abs().max(1.0)
+                    }
+                }
             })
             .count()
     };

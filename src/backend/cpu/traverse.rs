@@ -41,7 +41,13 @@ impl CpuAccel {
     }
 }
 
-static AB_BINARY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+/// Whether static accels walk their binary nodes instead of their wide ones: `RAYD_CPU_TRAVERSAL=binary`, read once,
+/// for A/B benchmarks of the traversal (BENCHMARKS.md, "CPU traversal step 1"); the answers are the same either way
+/// except which hit a ray that terminates on its first hit stops at.
+fn binary_traversal() -> bool {
+    static BINARY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *BINARY.get_or_init(|| std::env::var("RAYD_CPU_TRAVERSAL").as_deref() == Ok("binary"))
+}
 
 impl TriangleBvh {
     /// Offers the triangles of the leaves the ray reaches, as they are at the ray's time: a static accel through its
@@ -56,8 +62,13 @@ impl TriangleBvh {
     ) {
         let Some(at) = self.motion.locate(ray.time) else { return };
         match &self.node_keys {
-            None if *AB_BINARY.get_or_init(|| std::env::var_os("RAYD_AB_BINARY").is_some()) => walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, self.offer_leaf(|slot| self.corners[slot], ray, scope)),
-            None => self.wide.walk(stack, ray, collector, stats, self.offer_leaf(|slot| self.corners[slot], ray, scope)),
+            None => {
+                let leaf = self.offer_leaf(|slot| self.corners[slot], ray, scope);
+                match binary_traversal() {
+                    true => walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, leaf),
+                    false => self.wide.walk(stack, ray, collector, stats, leaf),
+                }
+            }
             Some(keys) => {
                 let stride = keys.keys;
                 let corners = move |slot: usize| {

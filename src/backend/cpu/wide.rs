@@ -227,7 +227,8 @@ fn enter_lanes(node: &WideNode, ray: &PreparedRay, tmax: f32) -> (u32, [f32; WID
     let mut near = [ray.tmin; WIDTH];
     let mut far = [tmax; WIDTH];
     for axis in 0..3 {
-        let (lo, hi) = if ray.negative[axis] { (&node.hi[axis], &node.lo[axis]) } else { (&node.lo[axis], &node.hi[axis]) };
+        let (lo, hi) =
+            if ray.negative[axis] { (&node.hi[axis], &node.lo[axis]) } else { (&node.lo[axis], &node.hi[axis]) };
         let (origin, inv) = (ray.origin[axis], ray.inv_direction[axis]);
         for lane in 0..WIDTH {
             // `a > b ? a : b` keeps `b` when `a` is NaN, as `f32::max` does in the scalar test.
