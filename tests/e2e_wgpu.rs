@@ -43,11 +43,11 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
     let on_gpu = client.trace("gpu", &query, rays.clone()).await.unwrap();
     // A ray that terminates on its first hit may stop at any hit (which one depends on the traversal order: the
     // CPU's wide nodes and the GPU's binary ones differ): only whether it hit must agree.
-    let differing = |format: HitFormat, a: &Bytes, b: &Bytes| {
-        (0..4000)
+    let differing = |rays: &[rayd_engine::format::Ray], format: HitFormat, a: &Bytes, b: &Bytes| {
+        (0..rays.len())
             .filter(|&i| {
                 let (c, g) = (format.read(a, i), format.read(b, i));
-                match random[i].flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT) {
+                match rays[i].flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT) {
                     true => (c.t >= 0.0) != (g.t >= 0.0),
                     false => {
                         (c.prim_id, c.inst_id) != (g.prim_id, g.inst_id)
@@ -57,7 +57,11 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
             })
             .count()
     };
-    assert_eq!(differing(HitFormat::TTriid, on_cpu.hits(), on_gpu.hits()), 0, "rays differing on cpu:0 and wgpu:0");
+    assert_eq!(
+        differing(&random, HitFormat::TTriid, on_cpu.hits(), on_gpu.hits()),
+        0,
+        "rays differing on cpu:0 and wgpu:0"
+    );
     assert!(on_gpu.stats().rays_hit > 0);
     // A copy from cpu:0 traces there; two instances of it (one visible to half the rays) trace as on the CPU.
     let copy = client.copy_accel("cpu", "copied", "wgpu:0", false).await.unwrap();
@@ -72,14 +76,15 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
         client.build_instances(name, device, &[child], &records, BuildFlags::empty()).await.unwrap();
     }
     let query = Query::closest(RayFormat::Full, HitFormat::TTriidInstid);
-    let mut rays = random_rays(4000, 10);
-    for (i, ray) in rays.iter_mut().enumerate() {
+    let mut seen_by_halves = random_rays(4000, 10);
+    for (i, ray) in seen_by_halves.iter_mut().enumerate() {
         ray.visibility = if i % 2 == 0 { 0x01 } else { 0x02 };
     }
-    let rays = Bytes::from(pack_rays(&rays, RayFormat::Full));
+    let rays = Bytes::from(pack_rays(&seen_by_halves, RayFormat::Full));
     let on_cpu = client.trace("two-cpu", &query, rays.clone()).await.unwrap();
     let on_gpu = client.trace("two-gpu", &query, rays).await.unwrap();
-    assert_eq!(differing(HitFormat::TTriidInstid, on_cpu.hits(), on_gpu.hits()), 0, "instanced rays differing");
+    let differ = differing(&seen_by_halves, HitFormat::TTriidInstid, on_cpu.hits(), on_gpu.hits());
+    assert_eq!(differ, 0, "instanced rays differing");
     let shifted_hits = (0..4000).filter(|&i| HitFormat::TTriidInstid.read(on_gpu.hits(), i).inst_id == 9).count();
     assert!(shifted_hits > 0, "the instance only even rays see is hit");
 }
