@@ -119,7 +119,14 @@ def main():
         nodes.append(grpc)
         admins.append(admin)
     env = dict(os.environ, RAYD_SERVER=f"http://{nodes[0]}")
-    result = subprocess.run([str(BIN / health[0]), *health[1:]], env=env, capture_output=True, text=True, timeout=30)
+    # As Docker runs it: retried within the start period (rayd opens its devices before it serves; three nodes
+    # starting at once on a loaded CI machine took longer than one try's 4 s).
+    deadline = time.time() + 30
+    while True:
+        result = subprocess.run([str(BIN / health[0]), *health[1:]], env=env, capture_output=True, text=True, timeout=30)
+        if result.returncode == 0 or time.time() > deadline:
+            break
+        time.sleep(1)
     assert result.returncode == 0 and result.stdout.strip() == "SERVING", result
     print(f"image entrypoint and environment: rayd started; HEALTHCHECK {' '.join(health)}: {result.stdout.strip()}")
 
