@@ -100,6 +100,18 @@ async fn reductions_equal_the_reduction_of_full_hits() {
     }
 }
 
+/// A float32 depth image over `0 .. far`, its width and samples taken from the camera generator.
+fn float_depths(far: f32) -> Image {
+    Image {
+        width: 0,
+        rays_per_pixel: 0,
+        channel: ImageChannel::Depth,
+        encoding: PixelEncoding::Float32,
+        near: 0.0,
+        far,
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_reductions_name_their_field() {
     let daemon = Daemon::start(&[]);
@@ -114,14 +126,7 @@ async fn bad_reductions_name_their_field() {
         assert_eq!(error.code(), code, "{error}");
         assert!(error.to_string().contains(field), "{error} names {field}");
     };
-    let image = Image {
-        width: 0,
-        rays_per_pixel: 0,
-        channel: ImageChannel::Depth,
-        encoding: PixelEncoding::Float32,
-        near: 0.0,
-        far: 0.0,
-    };
+    let image = float_depths(0.0);
     // Packed rays carry no camera to take the width from.
     let error = client.trace_reduced("bunny", &query, rays.clone(), &Reduction::Image(image)).await.unwrap_err();
     refused(error, Code::InvalidArgument, "reduction.image.width");
@@ -154,15 +159,7 @@ async fn a_reduction_larger_than_a_message_is_refused_by_the_limit() {
     let depth = |side: u32| {
         let camera =
             Generator::Pinhole(Camera::framing(lo, hi, side, side), PixelSampling { samples: 1, jitter_seed: None });
-        let image = Image {
-            width: 0,
-            rays_per_pixel: 0,
-            channel: ImageChannel::Depth,
-            encoding: PixelEncoding::Float32,
-            near: 0.0,
-            far: 1.0,
-        };
-        (camera, Reduction::Image(image))
+        (camera, Reduction::Image(float_depths(1.0)))
     };
     // 600 × 600 float32 depths are 1,440,000 bytes: more than a 1 MiB message.
     let (camera, image) = depth(600);
