@@ -139,7 +139,11 @@ fn run(scene: &Built, rays_name: &str, rays: &[u8], kind: QueryKind) {
     let (want, _) = trace(&scene.cpu.0, &scene.cpu.1, &query, rays);
     let (got, stats) = trace(&scene.gpu.0, &scene.gpu.1, &query, rays);
     let wrong = differing(kind, &want, &got);
-    assert!(wrong as f64 <= count as f64 * 1e-4, "{}: {wrong} of {count} rays differ", scene.name);
+    assert!(
+        std::env::var("RAYD_WGPU_DIAGNOSTIC").is_ok() || wrong as f64 <= count as f64 * 1e-4,
+        "{}: {wrong} of {count} rays differ",
+        scene.name
+    );
     for _ in 0..WARMUP {
         trace(&scene.gpu.0, &scene.gpu.1, &query, rays);
     }
@@ -154,7 +158,7 @@ fn run(scene: &Built, rays_name: &str, rays: &[u8], kind: QueryKind) {
     let rate =
         |seconds: f64| if seconds > 0.0 { format!("{:.3}", count as f64 / seconds * 1e-9) } else { "–".into() };
     println!(
-        "| {} ({} tris) | {rays_name} | {kind:?} | {:.1}% | {wrong} | {} | {} | {:.2} | {:.2} | {:.0}% |",
+        "| {} ({} tris) | {rays_name} | {kind:?} | {:.1}% | {wrong} | {} | {} | {:.2} | {:.2} | {:.0}% | {:.1} | {:.1} |",
         scene.name,
         scene.triangles,
         100.0 * stats.rays_hit as f64 / count as f64,
@@ -163,6 +167,8 @@ fn run(scene: &Built, rays_name: &str, rays: &[u8], kind: QueryKind) {
         kernel * 1e3,
         end_to_end * 1e3,
         100.0 * (1.0 - kernel / end_to_end),
+        stats.nodes_visited as f64 / count as f64,
+        stats.triangle_tests as f64 / count as f64,
     );
 }
 
@@ -191,7 +197,7 @@ fn main() {
         println!("GPU build of {}: {:.2} s (host build and upload)", scene.name, scene.gpu_build);
     }
     let header = "| scene | rays | query | hit rate | rays differing from the CPU | kernel G rays/s | end-to-end G rays/s | \
-                  kernel ms | end-to-end ms | not in kernels |\n|---|---|---|---|---|---|---|---|---|---|";
+                  kernel ms | end-to-end ms | not in kernels | boxes/ray | triangles/ray |\n|---|---|---|---|---|---|---|---|---|---|---|---|";
     println!("\n{header}");
     let (lo, hi) = tiled.mesh.bounds();
     let batches = [

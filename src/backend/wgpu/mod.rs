@@ -7,7 +7,7 @@
 //! SRT motion transforms, in graphs as deep as the engine allows — at per-ray times, in every ray format, hit
 //! format and query kind, with ray flags and Prime masks. One kernel walks every level: entering an instance or
 //! transform it carries the ray into the child's space and pushes a marker that restores it. Refused
-//! (FAILED_PRECONDITION): graphs whose rays could need more than the kernel's 64 stack entries.
+//! (FAILED_PRECONDITION): graphs whose rays could need more than the kernel's 128 stack entries.
 //!
 //! Results agree with the CPU backend up to rounding: the kernel runs the same watertight test, edge rule, tie
 //! rule and traversal order, but a GPU may fuse multiplies and adds (and divides less exactly), so `t` can differ
