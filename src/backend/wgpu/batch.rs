@@ -29,7 +29,7 @@ use std::time::{Duration, Instant};
 #[cfg(doc)]
 use super::WgpuOptions;
 use super::device::Opened;
-use super::kernel::{Params, workgroup_size};
+use super::kernel::{Params, WORKGROUP_SIZE};
 use super::layout::GpuGraph;
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, read_u32};
@@ -49,9 +49,7 @@ const SCRATCH_ENTRY_BYTES: u64 = 48;
 /// small enough that copying one chunk out overlaps tracing the next.
 pub(super) const MAX_CHUNK_RAYS: usize = 1 << 18;
 /// Rays one dispatch can cover: 65,535 workgroups (WebGPU's per-dimension limit) of [`WORKGROUP_SIZE`].
-fn max_dispatch_rays() -> usize {
-    65_535 * workgroup_size() as usize
-}
+const MAX_DISPATCH_RAYS: usize = 65_535 * WORKGROUP_SIZE as usize;
 /// Chunks start at multiples of this many rays, so that bitmask chunks start on word boundaries.
 const CHUNK_ALIGN: usize = 32;
 
@@ -120,7 +118,7 @@ impl Plan {
     /// The largest chunks (up to `max_chunk_rays`) whose every buffer fits `binding_limit` bytes and whose
     /// workgroups fit one dispatch; RESOURCE_EXHAUSTED if even [`CHUNK_ALIGN`] rays do not fit.
     pub fn new(query: &Query, rays: usize, binding_limit: u64, max_chunk_rays: usize) -> Result<Plan> {
-        let most = max_chunk_rays.clamp(CHUNK_ALIGN, max_dispatch_rays());
+        let most = max_chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS);
         let mut chunk_rays = rays.next_multiple_of(CHUNK_ALIGN).clamp(CHUNK_ALIGN, most);
         loop {
             let need = Capacity::for_chunk(query, chunk_rays);
@@ -390,7 +388,7 @@ fn submit(
         pass.set_pipeline(opened.kernel.pipeline(&opened.device, accel.variant.for_query(query)));
         pass.set_bind_group(0, &accel.bind_group, &[]);
         pass.set_bind_group(1, &slot.bind_group, &[]);
-        pass.dispatch_workgroups((chunk.rays as u32).div_ceil(workgroup_size()), 1, 1);
+        pass.dispatch_workgroups((chunk.rays as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
     }
     encoder.copy_buffer_to_buffer(&slot.hits, 0, &slot.readback, 0, need.hits);
     encoder.copy_buffer_to_buffer(&slot.tallies, 0, &slot.readback, need.hits, need.tallies);

@@ -16,11 +16,8 @@ const SOURCE: &str = concat!(include_str!("shaders/layout.wgsl"), include_str!("
 /// a resume entry and a marker, each transform a marker.
 pub(super) const STACK_SIZE: usize = 128;
 
-/// Threads of a workgroup (`WORKGROUP_SIZE` in `trace.wgsl`), one a ray.
-pub(super) fn workgroup_size() -> u32 {
-    static SIZE: OnceLock<u32> = OnceLock::new();
-    *SIZE.get_or_init(|| std::env::var("RAYD_WGPU_WORKGROUP").ok().and_then(|v| v.parse().ok()).unwrap_or(64))
-}
+/// Threads of a workgroup, one a ray (the pipeline constant `WORKGROUP_SIZE` of `trace.wgsl` is set to it).
+pub(super) const WORKGROUP_SIZE: u32 = 64;
 
 /// What a pipeline is specialised for (the pipeline constants of `trace.wgsl`): the driver compiles away the
 /// instance levels and motion keys of graphs that have none, every query kind but the traced one's, and the
@@ -56,10 +53,6 @@ impl Variant {
         ((self.kind as usize * 2 + usize::from(self.full_hits)) * 2 + usize::from(self.motion)) * 2
             + usize::from(self.levels)
     }
-}
-
-fn experiment(name: &str) -> bool {
-    std::env::var(name).is_ok_and(|v| v == "1")
 }
 
 /// The uniform block of one chunk (`Params` in `layout.wgsl`), 32 bytes: `0 ray_count | 4 ray_format |
@@ -140,12 +133,17 @@ impl Kernel {
     pub fn new(device: &wgpu::Device) -> Kernel {
         let descriptor =
             wgpu::ShaderModuleDescriptor { label: Some("rayd trace"), source: wgpu::ShaderSource::Wgsl(SOURCE.into()) };
-        let module = if experiment("RAYD_WGPU_CHECKED") {
-            device.create_shader_module(descriptor)
-        } else {
-            // SAFETY: experiment.
-            unsafe { device.create_shader_module_trusted(descriptor, wgpu::ShaderRuntimeChecks::unchecked()) }
-        };
+        // SAFETY: the kernel is compiled without naga's run-time checks, which cost it a third of its speed on an
+        // H100 (BENCHMARKS.md): loop counters, index clamps, division guards. What they guard holds without them:
+        // - storage buffer accesses stay within their bindings through Vulkan's robust buffer access, which wgpu
+        //   enables where the adapter has it; naga's own buffer checks are off only where it does;
+        // - private arrays: the traversal stack never holds more than `STACK_SIZE` entries (`GpuGraph::upload`
+        //   refuses graphs that could need more) and levels never exceed `MAX_LEVELS` (`MAX_GRAPH_DEPTH`);
+        // - every loop ends: BVH nodes form trees whose children follow their parent (built so, or checked when
+        //   loaded), instance graphs have no cycles (an accel only places accels that existed before it), and the
+        //   other loops count to fixed bounds;
+        // - integer divisions are by constants.
+        let module = unsafe { device.create_shader_module_trusted(descriptor, wgpu::ShaderRuntimeChecks::unchecked()) };
         let accel_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("rayd accel"),
             entries: &[storage(0, true), storage(1, true), storage(2, true), storage(3, true), storage(4, true)],
@@ -174,22 +172,13 @@ impl Kernel {
 
     /// The pipeline of `variant`, compiled on `device` the first time it is asked for.
     pub fn pipeline(&self, device: &wgpu::Device, variant: Variant) -> &wgpu::ComputePipeline {
-        let variant = if experiment("RAYD_WGPU_GENERIC") {
-            Variant { levels: true, motion: true, full_hits: true, ..variant }
-        } else {
-            variant
-        };
         self.pipelines[variant.index()].get_or_init(|| {
             let constants = [
                 ("LEVELS", f64::from(u8::from(variant.levels))),
                 ("MOTION", f64::from(u8::from(variant.motion))),
                 ("QUERY_KIND", f64::from(variant.kind)),
-                (
-                    "DIAGNOSTIC",
-                    std::env::var("RAYD_WGPU_DIAGNOSTIC").ok().and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0),
-                ),
                 ("FULL_HITS", f64::from(u8::from(variant.full_hits))),
-                ("WORKGROUP_SIZE", f64::from(workgroup_size())),
+                ("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE)),
             ];
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("rayd trace"),

@@ -1,14 +1,19 @@
 // The trace pipeline: one thread a ray. It decodes the ray from the caller's packed bytes, walks the accel's graph
-// as `src/backend/cpu/traverse.rs` does (nearer child first, same box test, same pop re-check; an instance leaf's
-// visible instances in order, each child traversed in the instance's space before the next), tests triangles as
+// of 4-wide nodes (all lanes' boxes tested at once with the box test of `src/intersect/aabb.rs`, entered lanes
+// visited nearest first, the same pop re-check as `src/backend/cpu/traverse.rs`; an instance leaf's visible
+// instances in order, each child traversed in the instance's space before the next), tests triangles as
 // `src/intersect/triangle.rs` does, collects hits as `src/query/collect.rs` does and writes the caller's hit
-// format. Prepended by `layout.wgsl`.
+// format. Prepended by `layout.wgsl`. The walk is while-while (Aila and Laine): a thread tests nodes until it has
+// a leaf, then that leaf's triangles, so the threads of a subgroup do the same kind of work at the same time.
 //
 // Instance levels without recursion: the walk is one loop over one stack. Entering an instance or transform
 // pushes a marker, moves one level down (the ray carried into the child's space, the level's origin, direction,
 // object and record kept) and enters the child's BVH; popping the marker restores the level above. An instance
-// leaf with more instances to visit first pushes a resume entry for them. Stack entries: a node (index, entry
-// distance bits), a marker (`MARKER`), a resume entry (`RESUME | next slot`, end slot).
+// leaf with more instances to visit first pushes a resume entry for them. Stack entries: a lane (`node ·
+// NODE_WIDTH + lane`, entry distance bits), a marker (`MARKER`), a resume entry (`RESUME | next slot`, end slot).
+//
+// Compiled into one pipeline a `kernel::Variant` (the pipeline constants below): what a graph or query does not
+// use is compiled away.
 
 // The accel's graph (uploaded once; `layout::GpuGraph`).
 @group(0) @binding(0) var<storage, read> nodes: array<Node>;
@@ -31,16 +36,15 @@
 // For `all` queries: `records_per_ray` sorted hits a ray, 3 vectors each (`batch.rs`, `load_entry`).
 @group(1) @binding(4) var<storage, read_write> scratch: array<vec4<u32>>;
 
-// Pipeline constants (`kernel::Variant`), so the driver compiles away what the traced graph cannot need: whether it
-// has instance or transform levels below its root, and whether anything in it moves (motion keys).
+// Pipeline constants (`kernel::Variant`): whether the traced graph has instance or transform levels below its
+// root, and whether anything in it moves (motion keys).
 override LEVELS: bool = true;
 override MOTION: bool = true;
 // The query kind (`QueryKind::ALL` index, as `params.query_kind`) and whether the hit format is `full` (whose
 // normals need the graph's transforms again).
 override QUERY_KIND: u32 = 0u;
-override DIAGNOSTIC: u32 = 0u;
 override FULL_HITS: bool = true;
-// Threads of a workgroup, one a ray (`kernel::WORKGROUP_SIZE`).
+// Threads of a workgroup, one a ray (set to `kernel::WORKGROUP_SIZE`).
 override WORKGROUP_SIZE: u32 = 64u;
 
 // Entries of the traversal stack: the host refuses graphs whose rays could need more (`kernel::STACK_SIZE`).
@@ -1127,12 +1131,8 @@ fn trace(@builtin(global_invocation_id) global: vec3<u32>, @builtin(local_invoca
         done = false;
         nodes_visited = 0u;
         triangle_tests = 0u;
-        if (DIAGNOSTIC & 1u) == 0u {
-            traverse(ray);
-        }
-        if (DIAGNOSTIC & 2u) == 0u {
-            write_ray(index);
-        }
+        traverse(ray);
+        write_ray(index);
         atomicAdd(&group_tallies[0], select(0u, 1u, hit_count > 0u));
         atomicAdd(&group_tallies[1], nodes_visited);
         atomicAdd(&group_tallies[2], triangle_tests);
