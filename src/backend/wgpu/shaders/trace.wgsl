@@ -508,6 +508,11 @@ struct TriangleHit {
 
 const NO_TRIANGLE_HIT = TriangleHit(false, 0.0, 0.0, 0.0, false);
 
+// Component `k` of `v`, chosen with selects rather than a dynamic index (which a compiler may put in memory).
+fn component(v: vec3<f32>, k: u32) -> f32 {
+    return select(select(v.z, v.y, k == 1u), v.x, k == 0u);
+}
+
 // The watertight test with the edge rule (`triangle::intersect`).
 fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit {
     let kx = ray.kx;
@@ -519,12 +524,12 @@ fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit
     let sx = ray.shear.x;
     let sy = ray.shear.y;
     let sz = ray.shear.z;
-    let ax = a[kx] - sx * a[kz];
-    let ay = a[ky] - sy * a[kz];
-    let bx = b[kx] - sx * b[kz];
-    let by = b[ky] - sy * b[kz];
-    let cx = c[kx] - sx * c[kz];
-    let cy = c[ky] - sy * c[kz];
+    let ax = component(a, kx) - sx * component(a, kz);
+    let ay = component(a, ky) - sy * component(a, kz);
+    let bx = component(b, kx) - sx * component(b, kz);
+    let by = component(b, ky) - sy * component(b, kz);
+    let cx = component(c, kx) - sx * component(c, kz);
+    let cy = component(c, ky) - sy * component(c, kz);
     var u = cx * by - cy * bx;
     var v = ax * cy - ay * cx;
     var w = bx * ay - by * ax;
@@ -549,9 +554,9 @@ fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit
             return NO_TRIANGLE_HIT;
         }
     }
-    let az = sz * a[kz];
-    let bz = sz * b[kz];
-    let cz = sz * c[kz];
+    let az = sz * component(a, kz);
+    let bz = sz * component(b, kz);
+    let cz = sz * component(c, kz);
     let t = (u * az + v * bz + w * cz) / det;
     if !is_finite_f32(t) {
         return NO_TRIANGLE_HIT;
