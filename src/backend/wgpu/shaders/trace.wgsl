@@ -416,15 +416,21 @@ fn slab(slabs: Slabs, lo: vec4<f32>, hi: vec4<f32>, negative: bool, o: f32, inv:
     return Slabs(max_num4(slabs.near, (entry - o) * inv), min_num4(slabs.far, (exit - o) * inv));
 }
 
-// Which lanes of a node the ray enters within `[ray.tmin, tmax]`, and where.
+// Which lanes of a node the ray enters within `[ray.tmin, tmax]`, and where; the lanes' indices and counts.
 struct LaneHits {
     entered: vec4<bool>,
     near: vec4<f32>,
+    index: vec4<u32>,
+    count: vec4<u32>,
 }
 
-// The lanes' boxes of node `node` of the current object at the ray's time (interpolated between motion keys).
-fn lane_boxes(node: u32) -> LaneBoxes {
-    let n = nodes[node];
+// Lane `lane` of `v`, chosen with selects.
+fn lane_of(v: vec4<u32>, lane: u32) -> u32 {
+    return select(select(select(v.w, v.z, lane == 2u), v.y, lane == 1u), v.x, lane == 0u);
+}
+
+// The lanes' boxes of node `node` (`n`) of the current object at the ray's time (interpolated between motion keys).
+fn lane_boxes(node: u32, n: Node) -> LaneBoxes {
     var b = LaneBoxes(n.lo_x, n.lo_y, n.lo_z, n.hi_x, n.hi_y, n.hi_z);
     if MOTION && cur.keys > 1u {
         for (var lane = 0u; lane < NODE_WIDTH; lane++) {
@@ -445,7 +451,8 @@ fn lane_boxes(node: u32) -> LaneBoxes {
 // Node `node`'s lanes tested against `[ray.tmin, tmax]` (`intersect::aabb::intersect`, same operations, same
 // NaN rule, same slack); empty lanes are never entered.
 fn test_lanes(node: u32, tmax: f32) -> LaneHits {
-    let b = lane_boxes(node);
+    let n = nodes[node];
+    let b = lane_boxes(node, n);
     let r = cur_ray;
     var slabs = Slabs(vec4<f32>(r.tmin), vec4<f32>(tmax));
     slabs = slab(slabs, b.lo_x, b.hi_x, r.direction.x < 0.0, r.origin.x, r.inv_direction.x);
@@ -453,7 +460,7 @@ fn test_lanes(node: u32, tmax: f32) -> LaneHits {
     slabs = slab(slabs, b.lo_z, b.hi_z, r.direction.z < 0.0, r.origin.z, r.inv_direction.z);
     let near = slabs.near - abs(slabs.near) * SLACK;
     let far = slabs.far + abs(slabs.far) * SLACK;
-    return LaneHits((near <= far) & (nodes[node].index != vec4<u32>(EMPTY_LANE)), near);
+    return LaneHits((near <= far) & (n.index != vec4<u32>(EMPTY_LANE)), near, n.index, n.count);
 }
 
 fn corner(word: u32) -> vec3<f32> {
@@ -896,15 +903,19 @@ struct Slots {
 fn next_leaf(current_node: u32) -> Slots {
     var current = current_node;
     loop {
-        var lane_ref: u32;
+        // The lane to visit: its index and count.
+        var index: u32;
+        var count: u32;
         if current != NONE {
             let hits = test_lanes(current, cull_tmax());
             nodes_visited += NODE_WIDTH;
-            lane_ref = push_lanes(current, hits);
+            let lane_ref = push_lanes(current, hits);
             current = NONE;
             if lane_ref == NONE {
                 continue;
             }
+            index = lane_of(hits.index, lane_ref % NODE_WIDTH);
+            count = lane_of(hits.count, lane_ref % NODE_WIDTH);
         } else {
             if stack_len == 0u {
                 return Slots(0u, 0u);
@@ -923,12 +934,9 @@ fn next_leaf(current_node: u32) -> Slots {
             if bitcast<f32>(b) > cull_tmax() {
                 continue;
             }
-            lane_ref = a;
+            index = nodes[a / NODE_WIDTH].index[a % NODE_WIDTH];
+            count = nodes[a / NODE_WIDTH].count[a % NODE_WIDTH];
         }
-        let node = lane_ref / NODE_WIDTH;
-        let lane = lane_ref % NODE_WIDTH;
-        let index = nodes[node].index[lane];
-        let count = nodes[node].count[lane];
         if count == 0u {
             current = index;
         } else if LEVELS && cur.kind != OBJECT_TRIANGLES {
