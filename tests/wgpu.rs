@@ -111,7 +111,7 @@ impl Scene {
         let format = query.hit_format;
         for ray in 0..ray_count {
             // Which hit an `any` query, or a ray that terminates on its first hit, stops at depends on the traversal
-            // order (the CPU walks wide nodes, the GPU binary ones): only whether it hit must agree.
+            // order (the CPU walks 8-wide nodes, the GPU 4-wide ones): only whether it hit must agree.
             let terminates = query.kind == QueryKind::Any
                 || query.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT)
                 || query.ray_format == RayFormat::Full && {

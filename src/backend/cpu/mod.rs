@@ -2,6 +2,7 @@
 //! ([`instances`]), traced by [`traverse`] over rayon chunks.
 
 pub(crate) mod bvh;
+pub(crate) mod collapse;
 mod instances;
 mod persist;
 mod traverse;

@@ -13,6 +13,7 @@ use std::ops::Range;
 use glam::Vec3A;
 
 use super::bvh::{Footprint, Node, VecLen};
+use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::traverse::StackEntry;
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::{self, SLACK};
@@ -71,49 +72,26 @@ pub(super) struct WideBvh {
 }
 
 impl WideBvh {
-    /// Collapses a depth-first binary BVH: each wide node takes its binary node's two children, then keeps
-    /// replacing the inner child of largest surface area by its two children while it has fewer than [`WIDTH`].
+    /// Collapses a depth-first binary BVH ([`collapse`]).
     pub fn collapse(binary: &[Node]) -> WideBvh {
         let Some(root) = binary.first() else { return WideBvh::default() };
+        let collapsed = collapse(binary, WIDTH);
         let mut wide = WideBvh {
-            nodes: vec![WideNode::EMPTY],
-            children: vec![0],
+            nodes: Vec::with_capacity(collapsed.lanes.len() / WIDTH),
+            children: Vec::with_capacity(collapsed.lanes.len() / WIDTH),
             root: (root.min.into(), root.max.into()),
-            depth: 0,
+            depth: collapsed.depth,
         };
-        let children = |n: usize| [binary[n].index as usize, binary[n].index as usize + 1];
-        let area = |n: usize| {
-            let d = binary[n].max - binary[n].min;
-            d.x * d.y + d.y * d.z + d.z * d.x
-        };
-        let mut pending = vec![(0usize, 0usize, 1usize)];
-        while let Some((source, target, level)) = pending.pop() {
-            wide.depth = wide.depth.max(level);
-            let mut lanes: Vec<usize> = if binary[source].count > 0 { vec![source] } else { children(source).into() };
-            while lanes.len() < WIDTH {
-                let widest = (0..lanes.len())
-                    .filter(|&l| binary[lanes[l]].count == 0)
-                    .max_by(|&a, &b| area(lanes[a]).total_cmp(&area(lanes[b])));
-                let Some(lane) = widest else { break };
-                let inner = lanes.swap_remove(lane);
-                lanes.extend(children(inner));
+        for lanes in collapsed.lanes.chunks(WIDTH) {
+            let mut node = WideNode::EMPTY;
+            let occupied = lanes.iter().take_while(|l| l.binary != EMPTY_LANE).count();
+            for (lane, &Lane { binary: n, child }) in lanes[..occupied].iter().enumerate() {
+                let n = &binary[n as usize];
+                node.set_lane(lane, n, if n.count > 0 { n.index } else { child });
             }
-            wide.children[target] = lanes.len() as u8;
-            for (lane, &n) in lanes.iter().enumerate() {
-                let index = if binary[n].count > 0 {
-                    binary[n].index
-                } else {
-                    let child = wide.nodes.len();
-                    wide.nodes.push(WideNode::EMPTY);
-                    wide.children.push(0);
-                    pending.push((n, child, level + 1));
-                    child as u32
-                };
-                wide.nodes[target].set_lane(lane, &binary[n], index);
-            }
+            wide.nodes.push(node);
+            wide.children.push(occupied as u8);
         }
-        wide.nodes.shrink_to_fit();
-        wide.children.shrink_to_fit();
         wide
     }
 
@@ -283,54 +261,5 @@ fn nearest_first(
             }
             Some(lane_ref(order[0].1))
         }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use glam::Vec3;
-
-    use super::*;
-
-    /// A leaf node of the binary layout.
-    fn leaf(min: Vec3, max: Vec3, index: u32, count: u32) -> Node {
-        Node { min, index, max, count }
-    }
-
-    #[test]
-    fn collapsing_keeps_every_leaf_once_with_its_box() {
-        // A complete binary tree of 16 leaves, depth-first: wide root holds 8 subtrees of 2 leaves each at most.
-        let mut binary = Vec::new();
-        fn build(binary: &mut Vec<Node>, at: usize, first: u32, leaves: u32) {
-            if leaves == 1 {
-                let x = first as f32;
-                binary[at] = leaf(Vec3::new(x, 0.0, 0.0), Vec3::new(x + 1.0, 1.0, 1.0), first, 1);
-                return;
-            }
-            let child = binary.len();
-            binary.push(binary[at]);
-            binary.push(binary[at]);
-            build(binary, child, first, leaves / 2);
-            build(binary, child + 1, first + leaves / 2, leaves / 2);
-            let (l, r) = (binary[child], binary[child + 1]);
-            binary[at] = Node { min: l.min.min(r.min), index: child as u32, max: l.max.max(r.max), count: 0 };
-        }
-        binary.push(leaf(Vec3::ZERO, Vec3::ZERO, 0, 0));
-        build(&mut binary, 0, 0, 16);
-        let wide = WideBvh::collapse(&binary);
-        let mut leaves = Vec::new();
-        for node in &wide.nodes {
-            for lane in 0..WIDTH {
-                if node.count[lane] > 0 {
-                    let first = node.index[lane];
-                    assert_eq!(node.lo[0][lane], first as f32, "leaf {first}'s box");
-                    leaves.push(first);
-                }
-            }
-        }
-        leaves.sort();
-        assert_eq!(leaves, (0..16).collect::<Vec<_>>());
-        assert_eq!(wide.children[0] as usize, WIDTH, "the root is filled");
-        assert_eq!(wide.depth, 2);
     }
 }

@@ -385,7 +385,7 @@ fn submit(
         });
         let mut pass =
             encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes });
-        pass.set_pipeline(&opened.kernel.pipeline);
+        pass.set_pipeline(opened.kernel.pipeline(&opened.device, accel.variant.for_query(query)));
         pass.set_bind_group(0, &accel.bind_group, &[]);
         pass.set_bind_group(1, &slot.bind_group, &[]);
         pass.dispatch_workgroups((chunk.rays as u32).div_ceil(WORKGROUP_SIZE), 1, 1);

@@ -6,18 +6,21 @@
 
 use std::collections::HashMap;
 
-use glam::Affine3A;
+use glam::{Affine3A, Vec3};
 
-use super::layout::{INSTANCE_WORDS, OBJECT_WORDS, ObjectKind, Prim};
+use super::kernel::Variant;
+use super::layout::{INSTANCE_WORDS, NODE_WIDTH, NODE_WORDS, OBJECT_WORDS, ObjectKind, Prim};
 use crate::backend::cpu::bvh::{Node, NodeKeys};
+use crate::backend::cpu::collapse::{EMPTY_LANE, Lane, collapse};
 use crate::backend::cpu::{CpuAccel, InstanceBvh, TransformNode, TriangleBvh, cpu_child};
 use crate::error::Result;
+use crate::geometry::motion::Bounds;
 use crate::geometry::{MotionOptions, Transform};
 
 /// The flattened arrays.
 #[derive(Debug, Default)]
 pub(super) struct Flat {
-    /// Node words, 8 a node.
+    /// Node words, [`NODE_WORDS`] a node.
     pub nodes: Vec<u32>,
     /// Per-key node boxes of motion BVHs, 6 floats a box.
     pub boxes: Vec<f32>,
@@ -31,13 +34,17 @@ pub(super) struct Flat {
     pub root: u32,
     /// Traversal stack entries a ray through the graph needs at most.
     pub stack: usize,
+    /// What the trace pipeline can be specialised for.
+    pub variant: Variant,
 }
 
 /// Flattens the graph under `host`.
 pub(super) fn flatten(host: &CpuAccel) -> Result<Flat> {
     let mut flattener = Flattener { flat: Flat::default(), seen: HashMap::new() };
     let (root, stack) = flattener.object(host)?;
-    Ok(Flat { root, stack, ..flattener.flat })
+    let levels = !matches!(host, CpuAccel::Triangles(_));
+    let variant = Variant::for_graph(levels, flattener.flat.variant.motion);
+    Ok(Flat { root, stack, variant, ..flattener.flat })
 }
 
 /// The flattening in progress.
@@ -58,19 +65,14 @@ fn columns(affine: &Affine3A) -> [f32; 12] {
     out
 }
 
-/// Longest root-to-leaf path of a depth-first node array, in nodes (0 when empty).
-fn depth(nodes: &[Node]) -> usize {
-    let mut deepest = 0;
-    let mut pending = if nodes.is_empty() { vec![] } else { vec![(0usize, 1usize)] };
-    while let Some((node, level)) = pending.pop() {
-        deepest = deepest.max(level);
-        if nodes[node].count == 0 {
-            let first = nodes[node].index as usize;
-            pending.extend([(first, level + 1), (first + 1, level + 1)]);
-        }
-    }
-    deepest
+/// Stack entries a walk of a BVH `depth` device nodes deep needs at most: each node on the way leaves at most all
+/// its lanes but one waiting.
+fn stack_need(depth: usize) -> usize {
+    depth * (NODE_WIDTH - 1)
 }
+
+/// The key box of an empty lane (never read: the lane's index marks it empty).
+const EMPTY_KEY_BOX: Bounds = (Vec3::ZERO, Vec3::ZERO);
 
 impl Flattener {
     /// Flattens `host` (once) and returns its object's offset and its stack need.
@@ -88,22 +90,45 @@ impl Flattener {
         Ok(flattened)
     }
 
-    /// Appends a BVH's nodes (inner nodes' children made global, leaves' first slot moved by `leaf_base`) and key
-    /// boxes; returns the first node's index and the first box's float offset.
-    fn bvh(&mut self, nodes: &[Node], keys: Option<&NodeKeys>, leaf_base: u32) -> (u32, u32) {
-        let first = (self.flat.nodes.len() / 8) as u32;
+    /// Appends a BVH's nodes collapsed to [`NODE_WIDTH`] lanes (inner lanes' nodes made global, leaf lanes' first
+    /// slot moved by `leaf_base`) and their lanes' key boxes; returns the first node's index, the first box's float
+    /// offset, the node count and the longest root-to-leaf path in nodes.
+    fn bvh(&mut self, nodes: &[Node], keys: Option<&NodeKeys>, leaf_base: u32) -> (u32, u32, u32, usize) {
+        let first = (self.flat.nodes.len() / NODE_WORDS) as u32;
         let box_base = self.flat.boxes.len() as u32;
-        for node in nodes {
-            let index = node.index + if node.count == 0 { first } else { leaf_base };
-            let (min, max) = (node.min.to_array().map(f32::to_bits), node.max.to_array().map(f32::to_bits));
-            self.flat.nodes.extend([min[0], min[1], min[2], index, max[0], max[1], max[2], node.count]);
+        let collapsed = collapse(nodes, NODE_WIDTH);
+        for lanes in collapsed.lanes.chunks(NODE_WIDTH) {
+            let mut words = [0u32; NODE_WORDS];
+            for (lane, &Lane { binary, child }) in lanes.iter().enumerate() {
+                let (index, count) = (6 * NODE_WIDTH + lane, 7 * NODE_WIDTH + lane);
+                if binary == EMPTY_LANE {
+                    words[index] = EMPTY_LANE;
+                    continue;
+                }
+                let node = &nodes[binary as usize];
+                for axis in 0..3 {
+                    words[axis * NODE_WIDTH + lane] = node.min[axis].to_bits();
+                    words[(3 + axis) * NODE_WIDTH + lane] = node.max[axis].to_bits();
+                }
+                words[index] = if node.count == 0 { first + child } else { node.index + leaf_base };
+                words[count] = node.count;
+            }
+            self.flat.nodes.extend(words);
+            if let Some(keys) = keys {
+                for &Lane { binary, .. } in lanes {
+                    for key in 0..keys.keys {
+                        let (min, max) = if binary == EMPTY_LANE {
+                            EMPTY_KEY_BOX
+                        } else {
+                            keys.boxes[binary as usize * keys.keys + key]
+                        };
+                        self.flat.boxes.extend(min.to_array().into_iter().chain(max.to_array()));
+                    }
+                }
+            }
         }
-        if let Some(keys) = keys {
-            self.flat
-                .boxes
-                .extend(keys.boxes.iter().flat_map(|(min, max)| min.to_array().into_iter().chain(max.to_array())));
-        }
-        (first, box_base)
+        let count = (collapsed.lanes.len() / NODE_WIDTH) as u32;
+        (first, box_base, count, collapsed.depth)
     }
 
     /// Appends an object record; returns its offset.
@@ -119,6 +144,7 @@ impl Flattener {
         corner_base: u32,
     ) -> u32 {
         let offset = self.flat.graph.len() as u32;
+        self.flat.variant.motion |= motion.keys > 1;
         let words: [u32; OBJECT_WORDS] = [
             kind as u32,
             motion.keys,
@@ -139,7 +165,7 @@ impl Flattener {
     fn triangles(&mut self, bvh: &TriangleBvh) -> (u32, usize) {
         let slot_base = self.flat.prims.len() as u32;
         let corner_base = self.flat.corners.len() as u32;
-        let (first, box_base) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), slot_base);
+        let (first, box_base, node_count, depth) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), slot_base);
         self.flat.corners.extend(bvh.corners.iter().flat_map(|c| c.iter().flat_map(|v| v.to_array())));
         self.flat.prims.extend(bvh.refs.iter().enumerate().map(|(slot, r)| Prim {
             geom_id: r.geom_id,
@@ -147,10 +173,9 @@ impl Flattener {
             mask: bvh.masks.as_ref().map_or(0, |m| m[slot]),
             geometry_flags: bvh.geometry_flags[r.geom_id as usize].bits(),
         }));
-        let node_count = bvh.nodes.len() as u32;
         let offset =
             self.record(ObjectKind::Triangles, &bvh.motion, first, node_count, box_base, slot_base, corner_base);
-        (offset, bvh.depth)
+        (offset, stack_need(depth))
     }
 
     /// An instance accel: its children first, then its instance records, nodes and object.
@@ -174,11 +199,10 @@ impl Flattener {
             ]);
             self.flat.graph.extend(record);
         }
-        let (first, box_base) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), 0);
-        let node_count = bvh.nodes.len() as u32;
+        let (first, box_base, node_count, depth) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), 0);
         let offset = self.record(ObjectKind::Instances, &bvh.motion, first, node_count, box_base, records, 0);
-        // A walk's pending nodes, then a leaf's resume entry and the marker below it.
-        Ok((offset, depth(&bvh.nodes) + 2 + child_stack))
+        // A walk's pending lanes, then a leaf's resume entry and the marker below it.
+        Ok((offset, stack_need(depth) + 2 + child_stack))
     }
 
     /// A transform: its child first, then its keys and object.

@@ -1,6 +1,8 @@
 //! The trace pipeline: its WGSL source (`shaders/layout.wgsl` then `shaders/trace.wgsl`), its bind group layouts
 //! and the uniform block each chunk gets.
 
+use std::sync::OnceLock;
+
 use bytemuck::{Pod, Zeroable};
 
 use crate::format::{HitFormat, RayFormat};
@@ -10,12 +12,48 @@ use crate::query::{Query, QueryKind};
 const SOURCE: &str = concat!(include_str!("shaders/layout.wgsl"), include_str!("shaders/trace.wgsl"));
 
 /// Entries of the kernel's traversal stack (`STACK_SIZE` in `trace.wgsl`): an accel whose rays could need more is
-/// refused. A BVH walk holds at most one pending node a level below its root; each instance level adds a resume
-/// entry and a marker, each transform a marker.
-pub(super) const STACK_SIZE: usize = 64;
+/// refused. A BVH walk holds at most `NODE_WIDTH − 1` pending lanes a node on its way down; each instance level adds
+/// a resume entry and a marker, each transform a marker.
+pub(super) const STACK_SIZE: usize = 128;
 
-/// Threads of a workgroup (`@workgroup_size` in `trace.wgsl`), one a ray.
+/// Threads of a workgroup, one a ray (the pipeline constant `WORKGROUP_SIZE` of `trace.wgsl` is set to it).
 pub(super) const WORKGROUP_SIZE: u32 = 64;
+
+/// What a pipeline is specialised for (the pipeline constants of `trace.wgsl`): the driver compiles away the
+/// instance levels and motion keys of graphs that have none, every query kind but the traced one's, and the
+/// normals of hit formats without them. Fewer live values a thread, more threads a multiprocessor.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub(super) struct Variant {
+    /// The graph has instance or transform levels below its root (`LEVELS`).
+    pub levels: bool,
+    /// Something in the graph has motion keys (`MOTION`).
+    pub motion: bool,
+    /// The query kind's index in [`QueryKind::ALL`] (`QUERY_KIND`).
+    pub kind: u32,
+    /// The hit format is [`HitFormat::Full`] (`FULL_HITS`).
+    pub full_hits: bool,
+}
+
+/// Pipelines a kernel can hold: one a [`Variant`].
+const VARIANTS: usize = 2 * 2 * QueryKind::ALL.len() * 2;
+
+impl Variant {
+    /// The graph's part of a variant; [`Variant::for_query`] adds the query's.
+    pub fn for_graph(levels: bool, motion: bool) -> Variant {
+        Variant { levels, motion, ..Variant::default() }
+    }
+
+    /// This graph variant for tracing `query`.
+    pub fn for_query(self, query: &Query) -> Variant {
+        Variant { kind: index_of(&QueryKind::ALL, &query.kind), full_hits: query.hit_format == HitFormat::Full, ..self }
+    }
+
+    /// Its pipeline's index in [`Kernel`].
+    fn index(self) -> usize {
+        ((self.kind as usize * 2 + usize::from(self.full_hits)) * 2 + usize::from(self.motion)) * 2
+            + usize::from(self.levels)
+    }
+}
 
 /// The uniform block of one chunk (`Params` in `layout.wgsl`), 32 bytes: `0 ray_count | 4 ray_format |
 /// 8 hit_format | 12 query_kind | 16 query_flags | 20 records_per_ray | 24 record_words | 28 root`, every field a
@@ -62,10 +100,14 @@ impl Params {
     }
 }
 
-/// The compiled pipeline.
+/// The trace pipelines, compiled on first use, one a [`Variant`].
 pub(super) struct Kernel {
-    /// The trace pipeline.
-    pub pipeline: wgpu::ComputePipeline,
+    /// The shader module they are made from.
+    module: wgpu::ShaderModule,
+    /// Their layout (the two bind group layouts).
+    layout: wgpu::PipelineLayout,
+    /// By [`Variant::index`].
+    pipelines: [OnceLock<wgpu::ComputePipeline>; VARIANTS],
     /// Group 0: an accel's buffers (nodes, node key boxes, corners, prims, graph).
     pub accel_layout: wgpu::BindGroupLayout,
     /// Group 1: a chunk's buffers (params, rays, hits, tallies, scratch).
@@ -87,12 +129,21 @@ fn storage(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
 }
 
 impl Kernel {
-    /// Compiles the pipeline on `device`.
+    /// Compiles the shader module on `device`.
     pub fn new(device: &wgpu::Device) -> Kernel {
-        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-            label: Some("rayd trace"),
-            source: wgpu::ShaderSource::Wgsl(SOURCE.into()),
-        });
+        let descriptor =
+            wgpu::ShaderModuleDescriptor { label: Some("rayd trace"), source: wgpu::ShaderSource::Wgsl(SOURCE.into()) };
+        // SAFETY: the kernel is compiled without naga's run-time checks, which cost it a third of its speed on an
+        // H100 (BENCHMARKS.md): loop counters, index clamps, division guards. What they guard holds without them:
+        // - storage buffer accesses stay within their bindings through Vulkan's robust buffer access, which wgpu
+        //   enables where the adapter has it; naga's own buffer checks are off only where it does;
+        // - private arrays: the traversal stack never holds more than `STACK_SIZE` entries (`GpuGraph::upload`
+        //   refuses graphs that could need more) and levels never exceed `MAX_LEVELS` (`MAX_GRAPH_DEPTH`);
+        // - every loop ends: BVH nodes form trees whose children follow their parent (built so, or checked when
+        //   loaded), instance graphs have no cycles (an accel only places accels that existed before it), and the
+        //   other loops count to fixed bounds;
+        // - integer divisions are by constants.
+        let module = unsafe { device.create_shader_module_trusted(descriptor, wgpu::ShaderRuntimeChecks::unchecked()) };
         let accel_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("rayd accel"),
             entries: &[storage(0, true), storage(1, true), storage(2, true), storage(3, true), storage(4, true)],
@@ -116,14 +167,30 @@ impl Kernel {
             bind_group_layouts: &[Some(&accel_layout), Some(&batch_layout)],
             immediate_size: 0,
         });
-        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-            label: Some("rayd trace"),
-            layout: Some(&layout),
-            module: &module,
-            entry_point: Some("trace"),
-            compilation_options: wgpu::PipelineCompilationOptions::default(),
-            cache: None,
-        });
-        Kernel { pipeline, accel_layout, batch_layout }
+        Kernel { module, layout, pipelines: std::array::from_fn(|_| OnceLock::new()), accel_layout, batch_layout }
+    }
+
+    /// The pipeline of `variant`, compiled on `device` the first time it is asked for.
+    pub fn pipeline(&self, device: &wgpu::Device, variant: Variant) -> &wgpu::ComputePipeline {
+        self.pipelines[variant.index()].get_or_init(|| {
+            let constants = [
+                ("LEVELS", f64::from(u8::from(variant.levels))),
+                ("MOTION", f64::from(u8::from(variant.motion))),
+                ("QUERY_KIND", f64::from(variant.kind)),
+                ("FULL_HITS", f64::from(u8::from(variant.full_hits))),
+                ("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE)),
+            ];
+            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("rayd trace"),
+                layout: Some(&self.layout),
+                module: &self.module,
+                entry_point: Some("trace"),
+                compilation_options: wgpu::PipelineCompilationOptions {
+                    constants: &constants,
+                    ..wgpu::PipelineCompilationOptions::default()
+                },
+                cache: None,
+            })
+        })
     }
 }

@@ -3,13 +3,16 @@
 //! IEEE-754 binary32. An instance accel or transform holds copies of everything below it (each distinct accel
 //! once), so the kernel traverses the whole graph from its own buffers.
 //!
-//! - `nodes`: every BVH's depth-first nodes, 32 bytes each: `0 min.xyz f32×3 | 12 index u32 | 16 max.xyz f32×3 |
-//!   28 count u32` ([`Node`] with global indices): an inner node (`count` 0) has its children at `index` and
-//!   `index + 1` of this array; a geometry leaf holds the triangle slots `index .. index + count` of `prims`; an
-//!   instance leaf the instances `index .. index + count` of its object (counted from its first record). With
-//!   motion each box is the node's box over all of time.
-//! - `node_boxes`: with motion, node `i`'s box at key `k` at float `box_base + ((i − first)·keys + k)·6` of its
-//!   object: `min.xyz, max.xyz`. One zero box when no BVH moves.
+//! - `nodes`: every BVH's nodes collapsed to [`NODE_WIDTH`] (4) lanes a node ([`collapse`]), the root first, 128
+//!   bytes each, by field then lane: `0 lo.x f32×4 | 16 lo.y | 32 lo.z | 48 hi.x | 64 hi.y | 80 hi.z | 96 index u32×4
+//!   | 112 count u32×4`. Lane `l` holds one child's box `lo .. hi` and what it is: an inner child (`count` 0, its
+//!   node at `index` of this array), a geometry leaf (the triangle slots `index .. index + count` of `prims`), an
+//!   instance leaf (the instances `index .. index + count` of its object, counted from its first record), or
+//!   nothing (`index` `0xffffffff`; the occupied lanes come first). With motion each box is the child's box over
+//!   all of time.
+//! - `node_boxes`: with motion, lane `l` of node `i`'s box at key `k` at float
+//!   `box_base + (((i − first)·4 + l)·keys + k)·6` of its object: `min.xyz, max.xyz` (zeros for an empty lane).
+//!   One zero box when no BVH moves.
 //! - `corners`: triangle slot `s`'s corners at key `k` at float `corner_base + ((s − base)·keys + k)·9` of its
 //!   object: `v0.xyz, v1.xyz, v2.xyz` (leaf order, then the never-traversed degenerate triangles, as on the host).
 //! - `prims`: per triangle slot, 16 bytes ([`Prim`]): `0 geom_id u32 | 4 prim_id u32 | 8 mask u32 (0 without
@@ -28,10 +31,10 @@ use wgpu::util::DeviceExt;
 
 use super::device::Opened;
 use super::graph;
-use super::kernel::STACK_SIZE;
+use super::kernel::{STACK_SIZE, Variant};
 use crate::backend::cpu::CpuAccel;
 #[cfg(doc)]
-use crate::backend::cpu::bvh::Node;
+use crate::backend::cpu::collapse::collapse;
 use crate::error::{Error, Result};
 
 /// The ids and acceptance data of one triangle slot (`Prim` in `layout.wgsl`).
@@ -47,6 +50,11 @@ pub(super) struct Prim {
     /// Flags of the triangle's geometry.
     pub geometry_flags: u32,
 }
+
+/// Lanes of a device node (`NODE_WIDTH` in `layout.wgsl`).
+pub(super) const NODE_WIDTH: usize = 4;
+/// Words of a device node: six box coordinates, an index and a count a lane.
+pub(super) const NODE_WORDS: usize = 8 * NODE_WIDTH;
 
 /// Words of an object record in `graph` (`OBJECT_WORDS` in `layout.wgsl`).
 pub(super) const OBJECT_WORDS: usize = 10;
@@ -75,6 +83,8 @@ pub(super) struct GpuGraph {
     pub bind_group: wgpu::BindGroup,
     /// The root object's offset in `graph`.
     pub root: u32,
+    /// The trace pipeline it needs.
+    pub variant: Variant,
     /// Bytes of the five buffers.
     bytes: u64,
 }
@@ -130,7 +140,7 @@ impl GpuGraph {
             layout: &opened.kernel.accel_layout,
             entries: &entries,
         });
-        Ok(GpuGraph { bind_group, root: flat.root, bytes })
+        Ok(GpuGraph { bind_group, root: flat.root, variant: flat.variant, bytes })
     }
 
     /// Bytes the accel occupies on the device.

@@ -5,13 +5,17 @@
 //! What runs on the GPU: traversal and hit collection for every accel kind — geometry accels (static or with
 //! vertex motion), instance accels (visibility masks, instance flags, motion keys) and static, matrix motion and
 //! SRT motion transforms, in graphs as deep as the engine allows — at per-ray times, in every ray format, hit
-//! format and query kind, with ray flags and Prime masks. One kernel walks every level: entering an instance or
-//! transform it carries the ray into the child's space and pushes a marker that restores it. Refused
-//! (FAILED_PRECONDITION): graphs whose rays could need more than the kernel's 64 stack entries.
+//! format and query kind, with ray flags and Prime masks. One kernel walks every level of 4-wide nodes: entering an
+//! instance or transform it carries the ray into the child's space and pushes a marker that restores it. It is
+//! compiled into one pipeline a graph shape and query ([`kernel::Variant`]), so that a static geometry accel's
+//! closest-hit trace carries none of the instance, motion or `all`-query machinery. Refused (FAILED_PRECONDITION):
+//! graphs whose rays could need more than the kernel's 128 stack entries.
 //!
-//! Results agree with the CPU backend up to rounding: the kernel runs the same watertight test, edge rule, tie
-//! rule and traversal order, but a GPU may fuse multiplies and adds (and divides less exactly), so `t` can differ
-//! in the last bits and a ray through an edge can pick the neighbouring triangle.
+//! Results agree with the CPU backend up to rounding: the kernel runs the same watertight test, edge rule and tie
+//! rule, but a GPU may fuse multiplies and adds (and divides less exactly), so `t` can differ in the last bits and
+//! a ray through an edge can pick the neighbouring triangle. The traversal order differs (4-wide nodes here,
+//! 8-wide on the CPU), which only `any` queries and terminate-on-first-hit rays can see: they may stop at another
+//! hit, equally valid.
 
 mod batch;
 mod device;
@@ -133,6 +137,12 @@ impl WgpuBackend {
     }
 }
 
+/// An accel's bytes (host structure and device copy) at most, in multiples of the host structure's bound. The
+/// device holds the host's triangles and ids once more, but its 4-wide nodes can take twice the bytes of the host's
+/// binary nodes (every wide node has at least two lanes, 128 bytes for two 32-byte binary nodes at worst) and
+/// motion keys a box a lane, empty lanes included: at most twice the host's bound, so three in all.
+const DEVICE_COPY_BOUND: u64 = 3;
+
 impl Backend for WgpuBackend {
     /// `name` is the adapter's, with its driver and type. wgpu reports neither memory nor compute units: a
     /// software adapter (lavapipe) reports the host's memory and threads; other adapters report 0 (unknown).
@@ -142,19 +152,18 @@ impl Backend for WgpuBackend {
 
     fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage> {
         let host = self.host.compute_memory_usage(inputs, options)?;
-        // The device holds at most what the host's accel holds (the arrays it copies).
-        Ok(MemoryUsage { output_bytes: 2 * host.output_bytes, ..host })
+        Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })
     }
 
     fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
         self.upload(self.host.build(inputs, options)?)
     }
 
-    /// The host's bound, twice for the instance accel's own arrays on the device. The device copies of its
+    /// The host's bound and [`DEVICE_COPY_BOUND`] − 1 times it for the instance accel's own arrays on the device. The device copies of its
     /// children's arrays are not in it (only their count is known here): they are counted in its `size_bytes`.
     fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
         let host = self.host.compute_instance_memory_usage(instances, options)?;
-        Ok(MemoryUsage { output_bytes: 2 * host.output_bytes, ..host })
+        Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })
     }
 
     fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {

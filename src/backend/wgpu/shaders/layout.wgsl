@@ -21,14 +21,24 @@ struct Params {
     root: u32,
 }
 
-// `cpu::bvh::Node` (src/backend/cpu/bvh.rs), 32 bytes: `0 min.xyz | 12 index | 16 max.xyz | 28 count`, with
-// global indices (`layout.rs`).
+// A device node (`layout::NODE_WORDS` words, `layout.rs`): `NODE_WIDTH` lanes, by field then lane. A lane is an
+// inner child (`count` 0, its node at `index`), a leaf (`count` primitives or instances from `index`) or empty
+// (`index` `EMPTY_LANE`).
 struct Node {
-    min: vec3<f32>,
-    index: u32,
-    max: vec3<f32>,
-    count: u32,
+    lo_x: vec4<f32>,
+    lo_y: vec4<f32>,
+    lo_z: vec4<f32>,
+    hi_x: vec4<f32>,
+    hi_y: vec4<f32>,
+    hi_z: vec4<f32>,
+    index: vec4<u32>,
+    count: vec4<u32>,
 }
+
+// `layout::NODE_WIDTH`.
+const NODE_WIDTH: u32 = 4u;
+// `collapse::EMPTY_LANE`.
+const EMPTY_LANE: u32 = 0xffffffffu;
 
 // `layout::Prim` (src/backend/wgpu/layout.rs), 16 bytes a triangle slot.
 struct Prim {

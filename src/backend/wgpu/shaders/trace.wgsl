@@ -1,14 +1,19 @@
 // The trace pipeline: one thread a ray. It decodes the ray from the caller's packed bytes, walks the accel's graph
-// as `src/backend/cpu/traverse.rs` does (nearer child first, same box test, same pop re-check; an instance leaf's
-// visible instances in order, each child traversed in the instance's space before the next), tests triangles as
+// of 4-wide nodes (all lanes' boxes tested at once with the box test of `src/intersect/aabb.rs`, entered lanes
+// visited nearest first, the same pop re-check as `src/backend/cpu/traverse.rs`; an instance leaf's visible
+// instances in order, each child traversed in the instance's space before the next), tests triangles as
 // `src/intersect/triangle.rs` does, collects hits as `src/query/collect.rs` does and writes the caller's hit
-// format. Prepended by `layout.wgsl`.
+// format. Prepended by `layout.wgsl`. The walk is while-while (Aila and Laine): a thread tests nodes until it has
+// a leaf, then that leaf's triangles, so the threads of a subgroup do the same kind of work at the same time.
 //
 // Instance levels without recursion: the walk is one loop over one stack. Entering an instance or transform
 // pushes a marker, moves one level down (the ray carried into the child's space, the level's origin, direction,
 // object and record kept) and enters the child's BVH; popping the marker restores the level above. An instance
-// leaf with more instances to visit first pushes a resume entry for them. Stack entries: a node (index, entry
-// distance bits), a marker (`MARKER`), a resume entry (`RESUME | next slot`, end slot).
+// leaf with more instances to visit first pushes a resume entry for them. Stack entries: a lane (`node ·
+// NODE_WIDTH + lane`, entry distance bits), a marker (`MARKER`), a resume entry (`RESUME | next slot`, end slot).
+//
+// Compiled into one pipeline a `kernel::Variant` (the pipeline constants below): what a graph or query does not
+// use is compiled away.
 
 // The accel's graph (uploaded once; `layout::GpuGraph`).
 @group(0) @binding(0) var<storage, read> nodes: array<Node>;
@@ -31,8 +36,19 @@
 // For `all` queries: `records_per_ray` sorted hits a ray, 3 vectors each (`batch.rs`, `load_entry`).
 @group(1) @binding(4) var<storage, read_write> scratch: array<vec4<u32>>;
 
+// Pipeline constants (`kernel::Variant`): whether the traced graph has instance or transform levels below its
+// root, and whether anything in it moves (motion keys).
+override LEVELS: bool = true;
+override MOTION: bool = true;
+// The query kind (`QueryKind::ALL` index, as `params.query_kind`) and whether the hit format is `full` (whose
+// normals need the graph's transforms again).
+override QUERY_KIND: u32 = 0u;
+override FULL_HITS: bool = true;
+// Threads of a workgroup, one a ray (set to `kernel::WORKGROUP_SIZE`).
+override WORKGROUP_SIZE: u32 = 64u;
+
 // Entries of the traversal stack: the host refuses graphs whose rays could need more (`kernel::STACK_SIZE`).
-const STACK_SIZE: u32 = 64u;
+const STACK_SIZE: u32 = 128u;
 // Levels of a graph at most (`geometry::MAX_GRAPH_DEPTH`): the traced accel's, then one an instance or transform.
 const MAX_LEVELS: u32 = 8u;
 // Stack entries that are not nodes.
@@ -124,9 +140,10 @@ fn ray_vec3(word: u32) -> vec3<f32> {
 
 // Decodes ray `index` of the chunk (`RayFormat::decode`) and prepares it (`PreparedRay::new`).
 fn load_ray(index: u32) -> PreparedRay {
-    var sizes = array<u32, 5>(6u, 8u, 8u, 9u, 12u);
     let format = params.ray_format;
-    let base = index * sizes[format];
+    // Words a ray: `RayFormat::size` / 4 of each format in `RayFormat::ALL` order (6, 8, 8, 9, 12).
+    let words = select(select(select(8u, 6u, format == 0u), 9u, format == 3u), 12u, format == 4u);
+    let base = index * words;
     var r: PreparedRay;
     r.origin = ray_vec3(base);
     r.tmin = 0.0;
@@ -214,7 +231,7 @@ struct KeyTime {
 
 fn locate(object: Object, time: f32) -> KeyTime {
     let keys = object.keys;
-    if keys <= 1u {
+    if !MOTION || keys <= 1u {
         return KeyTime(true, 0u, 0.0);
     }
     let last_segment = keys - 2u;
@@ -362,39 +379,88 @@ fn box_corner(word: u32) -> vec3<f32> {
     return vec3<f32>(node_boxes[word], node_boxes[word + 1u], node_boxes[word + 2u]);
 }
 
-// Result of the box test: whether the ray's range reaches the box, and where it enters it.
-struct BoxHit {
-    hit: bool,
-    near: f32,
+// `is_nan`, `max_num` and `min_num` lane by lane.
+fn is_nan4(x: vec4<f32>) -> vec4<bool> {
+    return (bitcast<vec4<u32>>(x) & vec4<u32>(0x7fffffffu)) > vec4<u32>(0x7f800000u);
 }
 
-// Node `node` of the current object, at the ray's time, tested against `[ray.tmin, tmax]`
-// (`intersect::aabb::intersect`).
-fn test_node(node: u32, tmax: f32) -> BoxHit {
-    var lo: vec3<f32>;
-    var hi: vec3<f32>;
-    if cur.keys <= 1u {
-        lo = nodes[node].min;
-        hi = nodes[node].max;
-    } else {
-        let first = cur.box_base + ((node - cur.first) * cur.keys + cur_at.segment) * 6u;
-        lo = lerp3(box_corner(first), box_corner(first + 6u), cur_at.fraction);
-        hi = lerp3(box_corner(first + 3u), box_corner(first + 9u), cur_at.fraction);
+fn max_num4(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
+    return select(max(a, b), a, is_nan4(b));
+}
+
+fn min_num4(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
+    return select(min(a, b), a, is_nan4(b));
+}
+
+// The four lanes' boxes of a node, by axis.
+struct LaneBoxes {
+    lo_x: vec4<f32>,
+    lo_y: vec4<f32>,
+    lo_z: vec4<f32>,
+    hi_x: vec4<f32>,
+    hi_y: vec4<f32>,
+    hi_z: vec4<f32>,
+}
+
+// The entry and exit distances of four boxes, narrowed one axis at a time.
+struct Slabs {
+    near: vec4<f32>,
+    far: vec4<f32>,
+}
+
+// `slabs` narrowed by the boxes' `lo .. hi` along the axis whose ray origin, inverse direction and sign are given
+// (`intersect::aabb::intersect`'s loop body, four lanes at once).
+fn slab(slabs: Slabs, lo: vec4<f32>, hi: vec4<f32>, negative: bool, o: f32, inv: f32) -> Slabs {
+    let entry = select(lo, hi, negative);
+    let exit = select(hi, lo, negative);
+    return Slabs(max_num4(slabs.near, (entry - o) * inv), min_num4(slabs.far, (exit - o) * inv));
+}
+
+// Which lanes of a node the ray enters within `[ray.tmin, tmax]`, and where; the lanes' indices and counts.
+struct LaneHits {
+    entered: vec4<bool>,
+    near: vec4<f32>,
+    index: vec4<u32>,
+    count: vec4<u32>,
+}
+
+// Lane `lane` of `v`, chosen with selects.
+fn lane_of(v: vec4<u32>, lane: u32) -> u32 {
+    return select(select(select(v.w, v.z, lane == 2u), v.y, lane == 1u), v.x, lane == 0u);
+}
+
+// The lanes' boxes of node `node` (`n`) of the current object at the ray's time (interpolated between motion keys).
+fn lane_boxes(node: u32, n: Node) -> LaneBoxes {
+    var b = LaneBoxes(n.lo_x, n.lo_y, n.lo_z, n.hi_x, n.hi_y, n.hi_z);
+    if MOTION && cur.keys > 1u {
+        for (var lane = 0u; lane < NODE_WIDTH; lane++) {
+            let first = cur.box_base + (((node - cur.first) * NODE_WIDTH + lane) * cur.keys + cur_at.segment) * 6u;
+            let lo = lerp3(box_corner(first), box_corner(first + 6u), cur_at.fraction);
+            let hi = lerp3(box_corner(first + 3u), box_corner(first + 9u), cur_at.fraction);
+            b.lo_x[lane] = lo.x;
+            b.lo_y[lane] = lo.y;
+            b.lo_z[lane] = lo.z;
+            b.hi_x[lane] = hi.x;
+            b.hi_y[lane] = hi.y;
+            b.hi_z[lane] = hi.z;
+        }
     }
-    var near = cur_ray.tmin;
-    var far = tmax;
-    for (var axis = 0u; axis < 3u; axis++) {
-        let negative = cur_ray.direction[axis] < 0.0;
-        let entry = select(lo[axis], hi[axis], negative);
-        let exit = select(hi[axis], lo[axis], negative);
-        let o = cur_ray.origin[axis];
-        let inv = cur_ray.inv_direction[axis];
-        near = max_num(near, (entry - o) * inv);
-        far = min_num(far, (exit - o) * inv);
-    }
-    let widened_near = near - abs(near) * SLACK;
-    let widened_far = far + abs(far) * SLACK;
-    return BoxHit(widened_near <= widened_far, widened_near);
+    return b;
+}
+
+// Node `node`'s lanes tested against `[ray.tmin, tmax]` (`intersect::aabb::intersect`, same operations, same
+// NaN rule, same slack); empty lanes are never entered.
+fn test_lanes(node: u32, tmax: f32) -> LaneHits {
+    let n = nodes[node];
+    let b = lane_boxes(node, n);
+    let r = cur_ray;
+    var slabs = Slabs(vec4<f32>(r.tmin), vec4<f32>(tmax));
+    slabs = slab(slabs, b.lo_x, b.hi_x, r.direction.x < 0.0, r.origin.x, r.inv_direction.x);
+    slabs = slab(slabs, b.lo_y, b.hi_y, r.direction.y < 0.0, r.origin.y, r.inv_direction.y);
+    slabs = slab(slabs, b.lo_z, b.hi_z, r.direction.z < 0.0, r.origin.z, r.inv_direction.z);
+    let near = slabs.near - abs(slabs.near) * SLACK;
+    let far = slabs.far + abs(slabs.far) * SLACK;
+    return LaneHits((near <= far) & (n.index != vec4<u32>(EMPTY_LANE)), near, n.index, n.count);
 }
 
 fn corner(word: u32) -> vec3<f32> {
@@ -404,7 +470,7 @@ fn corner(word: u32) -> vec3<f32> {
 // Triangle slot `slot` of geometry object `object`, its corners at `at`.
 fn triangle_at(object: Object, slot: u32, at: KeyTime) -> array<vec3<f32>, 3> {
     let first = object.corner_base + ((slot - object.base) * object.keys + at.segment) * 9u;
-    if object.keys <= 1u {
+    if !MOTION || object.keys <= 1u {
         return array<vec3<f32>, 3>(corner(first), corner(first + 3u), corner(first + 6u));
     }
     let f = at.fraction;
@@ -449,6 +515,11 @@ struct TriangleHit {
 
 const NO_TRIANGLE_HIT = TriangleHit(false, 0.0, 0.0, 0.0, false);
 
+// Component `k` of `v`, chosen with selects rather than a dynamic index (which a compiler may put in memory).
+fn component(v: vec3<f32>, k: u32) -> f32 {
+    return select(select(v.z, v.y, k == 1u), v.x, k == 0u);
+}
+
 // The watertight test with the edge rule (`triangle::intersect`).
 fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit {
     let kx = ray.kx;
@@ -460,12 +531,12 @@ fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit
     let sx = ray.shear.x;
     let sy = ray.shear.y;
     let sz = ray.shear.z;
-    let ax = a[kx] - sx * a[kz];
-    let ay = a[ky] - sy * a[kz];
-    let bx = b[kx] - sx * b[kz];
-    let by = b[ky] - sy * b[kz];
-    let cx = c[kx] - sx * c[kz];
-    let cy = c[ky] - sy * c[kz];
+    let ax = component(a, kx) - sx * component(a, kz);
+    let ay = component(a, ky) - sy * component(a, kz);
+    let bx = component(b, kx) - sx * component(b, kz);
+    let by = component(b, ky) - sy * component(b, kz);
+    let cx = component(c, kx) - sx * component(c, kz);
+    let cy = component(c, ky) - sy * component(c, kz);
     var u = cx * by - cy * bx;
     var v = ax * cy - ay * cx;
     var w = bx * ay - by * ax;
@@ -490,9 +561,9 @@ fn intersect_triangle(ray: PreparedRay, tri: array<vec3<f32>, 3>) -> TriangleHit
             return NO_TRIANGLE_HIT;
         }
     }
-    let az = sz * a[kz];
-    let bz = sz * b[kz];
-    let cz = sz * c[kz];
+    let az = sz * component(a, kz);
+    let bz = sz * component(b, kz);
+    let cz = sz * component(c, kz);
     let t = (u * az + v * bz + w * cz) / det;
     if !is_finite_f32(t) {
         return NO_TRIANGLE_HIT;
@@ -658,14 +729,16 @@ fn offer(t: f32, slot: u32, u: f32, v: f32, back_face: bool) {
         best_v = v;
         best_back = back_face;
         best_levels = level;
-        best_records = level_record;
+        if LEVELS {
+            best_records = level_record;
+        }
     }
 }
 
 // `query::consider_triangle`: mask, intersection, range, culling (facing as the instances above decide it).
 fn consider_triangle(slot: u32) {
-    let prim = prims[slot];
-    if (cur_ray.mask & prim.mask) != 0u {
+    // The slot's ids and flags are read only when the ray's mask or culling flags need them.
+    if cur_ray.mask != 0u && (cur_ray.mask & prims[slot].mask) != 0u {
         return;
     }
     let hit = intersect_triangle(cur_ray, triangle_at(cur, slot, cur_at));
@@ -676,7 +749,8 @@ fn consider_triangle(slot: u32) {
         return;
     }
     let back_face = hit.back_face != flip_facing;
-    if !no_culling && (prim.geometry_flags & DISABLE_FACE_CULLING) == 0u {
+    let culling = cur_ray.flags & (CULL_BACK_FACING | CULL_FRONT_FACING);
+    if culling != 0u && !no_culling && (prims[slot].geometry_flags & DISABLE_FACE_CULLING) == 0u {
         let culled = select(CULL_FRONT_FACING, CULL_BACK_FACING, back_face);
         if (cur_ray.flags & culled) != 0u {
             return;
@@ -725,12 +799,13 @@ fn restore() {
 }
 
 // Enters object `first` at the current level (through any transforms, each a level further down): the root node
-// of the BVH to walk, or `NONE` when the ray cannot reach anything in it at its time.
+// of the BVH to walk (its lanes test the ray against the root's children), or `NONE` when the ray cannot reach
+// anything in it at its time.
 fn enter(first: u32) -> u32 {
     var object = first;
     loop {
         cur = load_object(object);
-        if cur.kind >= OBJECT_STATIC_TRANSFORM {
+        if LEVELS && cur.kind >= OBJECT_STATIC_TRANSFORM {
             let to = transform_at(cur, ray_time);
             if !to.valid {
                 return NONE;
@@ -741,10 +816,6 @@ fn enter(first: u32) -> u32 {
         }
         cur_at = locate(cur, ray_time);
         if !cur_at.present || cur.node_count == 0u {
-            return NONE;
-        }
-        nodes_visited += 1u;
-        if !test_node(cur.first, cull_tmax()).hit {
             return NONE;
         }
         break;
@@ -770,7 +841,114 @@ fn visit_instances(first: u32, end: u32) -> u32 {
     return NONE;
 }
 
-// The walk of `traverse::walk` through every level of the graph.
+// A lane and where the ray enters it, as the lane sort orders them: `near` (`+∞` for a lane not entered), then
+// `key` (the lane, plus `NODE_WIDTH` when not entered, so entered lanes come first on ties).
+struct LaneOrder {
+    near: f32,
+    key: u32,
+}
+
+fn lane_order(hits: LaneHits, lane: u32) -> LaneOrder {
+    let entered = hits.entered[lane];
+    return LaneOrder(select(infinity(), hits.near[lane], entered), select(lane + NODE_WIDTH, lane, entered));
+}
+
+// Puts `a` and `b` in order.
+fn order_lanes(a: ptr<function, LaneOrder>, b: ptr<function, LaneOrder>) {
+    let x = *a;
+    let y = *b;
+    if y.near < x.near || (y.near == x.near && y.key < x.key) {
+        *a = y;
+        *b = x;
+    }
+}
+
+// Sorts the lanes of node `node` that the ray enters by entry distance, pushes all but the nearest (farthest
+// first, so the nearer pop first) and returns the nearest's lane reference (`node · NODE_WIDTH + lane`), or
+// `NONE` when the ray enters none.
+fn push_lanes(node: u32, hits: LaneHits) -> u32 {
+    var l0 = lane_order(hits, 0u);
+    var l1 = lane_order(hits, 1u);
+    var l2 = lane_order(hits, 2u);
+    var l3 = lane_order(hits, 3u);
+    order_lanes(&l0, &l1);
+    order_lanes(&l2, &l3);
+    order_lanes(&l0, &l2);
+    order_lanes(&l1, &l3);
+    order_lanes(&l1, &l2);
+    let entered = u32(hits.entered.x) + u32(hits.entered.y) + u32(hits.entered.z) + u32(hits.entered.w);
+    let base = node * NODE_WIDTH;
+    if entered > 3u {
+        push(base + l3.key, bitcast<u32>(l3.near));
+    }
+    if entered > 2u {
+        push(base + l2.key, bitcast<u32>(l2.near));
+    }
+    if entered > 1u {
+        push(base + l1.key, bitcast<u32>(l1.near));
+    }
+    return select(NONE, base + l0.key, entered > 0u);
+}
+
+// A leaf lane's triangle slots.
+struct Slots {
+    first: u32,
+    end: u32,
+}
+
+// Walks nodes until it reaches a geometry leaf the ray enters, which it returns; an empty range when the walk is
+// over. `current` is the node whose lanes are tested next (`NONE`: the next lane comes off the stack), the stack
+// holds the lanes entered but not yet visited, nearest on top. Inner lanes, instance leaves and markers are handled
+// here, so that the threads of a subgroup test nodes together and triangles together (a while-while walk).
+fn next_leaf(current_node: u32) -> Slots {
+    var current = current_node;
+    loop {
+        // The lane to visit: its index and count.
+        var index: u32;
+        var count: u32;
+        if current != NONE {
+            let hits = test_lanes(current, cull_tmax());
+            nodes_visited += NODE_WIDTH;
+            let lane_ref = push_lanes(current, hits);
+            current = NONE;
+            if lane_ref == NONE {
+                continue;
+            }
+            index = lane_of(hits.index, lane_ref % NODE_WIDTH);
+            count = lane_of(hits.count, lane_ref % NODE_WIDTH);
+        } else {
+            if stack_len == 0u {
+                return Slots(0u, 0u);
+            }
+            stack_len -= 1u;
+            let a = stack_a[stack_len];
+            let b = stack_b[stack_len];
+            if LEVELS && a == MARKER {
+                restore();
+                continue;
+            }
+            if LEVELS && (a & RESUME) != 0u {
+                current = visit_instances(a & ~RESUME, b);
+                continue;
+            }
+            if bitcast<f32>(b) > cull_tmax() {
+                continue;
+            }
+            index = nodes[a / NODE_WIDTH].index[a % NODE_WIDTH];
+            count = nodes[a / NODE_WIDTH].count[a % NODE_WIDTH];
+        }
+        if count == 0u {
+            current = index;
+        } else if LEVELS && cur.kind != OBJECT_TRIANGLES {
+            current = visit_instances(index, index + count);
+        } else {
+            return Slots(index, index + count);
+        }
+    }
+    return Slots(0u, 0u);
+}
+
+// The walk of `traverse::walk` through every level of the graph: leaf after leaf, nearest first.
 fn traverse(world: PreparedRay) {
     cur_ray = world;
     level = 0u;
@@ -784,55 +962,16 @@ fn traverse(world: PreparedRay) {
     stack_len = 0u;
     var current = enter(params.root);
     loop {
-        if current == NONE {
-            if stack_len == 0u {
-                return;
-            }
-            stack_len -= 1u;
-            let a = stack_a[stack_len];
-            let b = stack_b[stack_len];
-            if a == MARKER {
-                restore();
-            } else if (a & RESUME) != 0u {
-                current = visit_instances(a & ~RESUME, b);
-            } else if bitcast<f32>(b) <= cull_tmax() {
-                current = a;
-            }
-            continue;
-        }
-        let node = nodes[current];
+        let leaf = next_leaf(current);
         current = NONE;
-        if node.count > 0u {
-            if cur.kind == OBJECT_TRIANGLES {
-                for (var slot = node.index; slot < node.index + node.count; slot++) {
-                    triangle_tests += 1u;
-                    consider_triangle(slot);
-                    if done {
-                        return;
-                    }
-                }
-            } else {
-                current = visit_instances(node.index, node.index + node.count);
-            }
-        } else {
-            let tmax = cull_tmax();
-            let left = node.index;
-            let right = node.index + 1u;
-            nodes_visited += 2u;
-            let near_left = test_node(left, tmax);
-            let near_right = test_node(right, tmax);
-            if near_left.hit && near_right.hit {
-                if near_right.near < near_left.near {
-                    push(left, bitcast<u32>(near_left.near));
-                    current = right;
-                } else {
-                    push(right, bitcast<u32>(near_right.near));
-                    current = left;
-                }
-            } else if near_left.hit {
-                current = left;
-            } else if near_right.hit {
-                current = right;
+        if leaf.first == leaf.end {
+            return;
+        }
+        for (var slot = leaf.first; slot < leaf.end; slot++) {
+            triangle_tests += 1u;
+            consider_triangle(slot);
+            if done {
+                return;
             }
         }
     }
@@ -934,7 +1073,7 @@ fn write_record(record: u32, present: bool, e: Entry) {
         }
         case HIT_FULL: {
             var normal = vec3<f32>(0.0);
-            if present {
+            if FULL_HITS && present {
                 normal = world_normal(e);
             }
             store(w + 1u, prim.prim_id);
@@ -982,7 +1121,7 @@ fn add_wide(low: u32, value: u32) {
     }
 }
 
-@compute @workgroup_size(64)
+@compute @workgroup_size(WORKGROUP_SIZE)
 fn trace(@builtin(global_invocation_id) global: vec3<u32>, @builtin(local_invocation_index) local: u32) {
     if local == 0u {
         atomicStore(&group_tallies[0], 0u);
@@ -993,7 +1132,7 @@ fn trace(@builtin(global_invocation_id) global: vec3<u32>, @builtin(local_invoca
     let index = global.x;
     if index < params.ray_count {
         let ray = load_ray(index);
-        kind = params.query_kind;
+        kind = QUERY_KIND;
         ray_tmax = ray.tmax;
         ray_time = ray.time;
         terminate_on_first_hit = (ray.flags & TERMINATE_ON_FIRST_HIT) != 0u;
