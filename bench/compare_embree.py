@@ -14,6 +14,11 @@ Speed: embreex's `EmbreeScene.run` loops over `rtcIntersect1` in one thread (it 
 threads do not help); rayd is therefore timed twice, with every thread (rayon's default) and with
 RAYON_NUM_THREADS=1, and the 1-thread figures are the like-for-like comparison. Trace times are medians of
 --repeat runs and exclude scene builds, which are reported apart (Embree builds with all its TBB threads).
+
+Builds: each scene is then built --builds times by each side, fresh every time, and the medians compared: rayd with
+`PREFER_FAST_BUILD` and with its default preset, on every thread and on one; Embree (its default, medium quality)
+on all its TBB threads (embreex cannot limit them). An Embree build is timed from creating the scene to its commit
+(the first, one-ray query).
 """
 
 import argparse
@@ -103,6 +108,38 @@ def trace_embree(vertices, indices, origins, directions, repeat):
         hits = scene.run(origins, directions, output=1)
         times.append((time.perf_counter() - start) * 1e3)
     return build_ms, float(np.median(times)), hits
+
+
+def embree_build_ms(vertices, indices, builds):
+    """Median milliseconds of `builds` fresh Embree builds of the triangles."""
+    indices = indices.astype(np.int32)
+    origin, direction = np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32)
+    times = []
+    for _ in range(builds):
+        start = time.perf_counter()
+        scene = rtcore_scene.EmbreeScene()
+        mesh_construction.TriangleMesh(scene, vertices, indices)
+        scene.run(origin, direction)  # commits (builds) the scene
+        times.append((time.perf_counter() - start) * 1e3)
+    return float(np.median(times))
+
+
+def compare_builds(scenes, builds):
+    """Prints rayd's and Embree's build times of each (name, trace_mesh arguments, vertices, indices) scene."""
+    print(f"Builds, median of {builds} fresh builds, ms (M triangles/s):")
+    print(f"{'scene':<7} {'tris':>9} {'fast-build 2 thr':>18} {'fast-build 1 thr':>18} {'default 2 thr':>18} "
+          f"{'Embree (TBB)':>18} {'Embree / fast-build 2 thr':>26}")
+    for name, args, vertices, indices in scenes:
+        quick = args + ["--rays", "random", "--count", "1024", "--builds", str(builds)]
+        fast = run_rayd(quick + ["--prefer", "fast-build"], 1)
+        fast_one = run_rayd(quick + ["--prefer", "fast-build"], 1, threads=1)
+        default = run_rayd(quick, 1)
+        embree = embree_build_ms(vertices, indices, builds)
+        tris = len(indices)
+        cell = lambda ms: f"{ms:.1f} ({tris / ms / 1e3:.2f})"
+        print(f"{name:<7} {tris:>9} {cell(fast['build_ms']):>18} {cell(fast_one['build_ms']):>18} "
+              f"{cell(default['build_ms']):>18} {cell(embree):>18} {embree / fast['build_ms']:>26.2f}")
+    print()
 
 
 def explain(vertices, indices, who, prim, origin, direction):
@@ -196,13 +233,14 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=5, help="timed traces per tracer and case (median reported)")
     parser.add_argument("--keep", type=Path, help="export the buffers into this directory and keep them")
+    parser.add_argument("--builds", type=int, default=5, help="fresh builds per builder and scene (median reported)")
     options = parser.parse_args()
 
     print(machine(), flush=True)
     print("building the trace_mesh example ...", flush=True)
     subprocess.run(["cargo", "build", "--quiet", "--release", "--example", "trace_mesh"], cwd=ROOT, check=True)
 
-    rows, failures = [], []
+    rows, failures, built = [], [], {}
     with tempfile.TemporaryDirectory(prefix="rayd-embree-") as scratch:
         base = options.keep or Path(scratch)
         for name, args in cases():
@@ -212,6 +250,10 @@ def main():
             print(f"{name}: rayd (1 thread) ...", flush=True)
             rayd_one = run_rayd(args, options.repeat, threads=1, export=export / "one-thread")
             vertices, indices, rays, rayd_hits = load_export(export)
+            scene_name = name.split()[0]
+            if scene_name not in built:
+                built[scene_name] = (scene_name, [a for a in args if a not in ("--rays", "camera", "random")],
+                                     vertices, indices)
             same = (export / "hits.bin").read_bytes() == (export / "one-thread" / "hits.bin").read_bytes()
             if not same:
                 failures.append(f"{name}: rayd's hits differ between 1 thread and {rayd_all['threads']} threads")
@@ -232,6 +274,7 @@ def main():
 
     threads = rows[0][2]["threads"]
     print()
+    compare_builds(built.values(), options.builds)
     print(f"Agreement (rayd vs Embree, same rays); a tie = different primitives hit at relative |dt| <= "
           f"{TIE_TOLERANCE:g};\n|dt| over rays both hit, absolute (abs) and relative to Embree's t (large only for "
           f"hits at tiny t, from origins next to a surface).")

@@ -7,10 +7,11 @@
 //!
 //! The meshes are concatenated into one geometry (or, with `--tiled`, laid out by [`Mesh::tiled`]); rays are
 //! camera rays framing the scene or random rays in its box, packed `origin_tmin_direction_tmax`; hits are
-//! `t_triid_u_v`. The JSON has `build_ms`, `trace_ms` (median of `--repeat` traces), `mrays_per_s`, `rays`,
-//! `hits`, `triangles` and `threads` (rayon's; set `RAYON_NUM_THREADS` to change it). `--export DIR` writes the
-//! raw little-endian buffers (`vertices.f32`, `indices.u32`, `rays.bin`, `hits.bin`) so that another tracer can
-//! run exactly the same rays; `--png FILE` writes the camera image, shaded by the cosine between ray and normal.
+//! `t_triid_u_v`. The JSON has `build_ms` (median of `--builds` builds), `trace_ms` (median of `--repeat` traces),
+//! `mrays_per_s`, `rays`, `hits`, `triangles` and `threads` (rayon's; set `RAYON_NUM_THREADS` to change it).
+//! `--export DIR` writes the raw little-endian buffers (`vertices.f32`, `indices.u32`, `rays.bin`, `hits.bin`) so
+//! that another tracer can run exactly the same rays; `--png FILE` writes the camera image, shaded by the cosine
+//! between ray and normal.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -60,6 +61,9 @@ struct Args {
     /// Traces to time; the median is reported.
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
     repeat: u32,
+    /// Builds to time; the median is reported (the last build is traced).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..))]
+    builds: u32,
     /// Write the scene, rays and hits as raw buffers into this directory.
     #[arg(long, value_name = "DIR")]
     export: Option<PathBuf>,
@@ -113,9 +117,16 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         None => BuildFlags::empty(),
     };
     let context = Context::new(Device::cpu());
-    let start = Instant::now();
-    let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::new(flags))?;
-    let build_ms = start.elapsed().as_secs_f64() * 1e3;
+    let mut build_times_ms = Vec::new();
+    let mut accel = None;
+    for _ in 0..args.builds {
+        drop(accel.take());
+        let start = Instant::now();
+        accel = Some(context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::new(flags))?);
+        build_times_ms.push(start.elapsed().as_secs_f64() * 1e3);
+    }
+    let accel = accel.expect("at least one build");
+    let build_ms = median(build_times_ms);
 
     let (lo, hi) = scene.bounds();
     let camera = Camera::framing(lo, hi, args.width, args.height);
@@ -138,8 +149,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         times_ms.push(start.elapsed().as_secs_f64() * 1e3);
         rays_hit = stats.rays_hit;
     }
-    times_ms.sort_by(f64::total_cmp);
-    let trace_ms = times_ms[times_ms.len() / 2];
+    let trace_ms = median(times_ms);
 
     if let Some(dir) = &args.export {
         std::fs::create_dir_all(dir)?;
@@ -159,6 +169,12 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         rayon::current_num_threads(),
     );
     Ok(())
+}
+
+/// The median of `values` (the upper one of an even count).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
 }
 
 /// All meshes as one, in order, so triangle ids run on from one mesh to the next.
