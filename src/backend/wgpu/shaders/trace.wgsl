@@ -371,8 +371,7 @@ var<private> level_direction: array<vec3<f32>, MAX_LEVELS>;
 var<private> flip_bits: u32;
 var<private> no_culling_bits: u32;
 // The traversal stack.
-var<private> stack_a: array<u32, STACK_SIZE>;
-var<private> stack_b: array<u32, STACK_SIZE>;
+var<private> stack: array<vec2<u32>, STACK_SIZE>;
 var<private> stack_len: u32;
 
 fn box_corner(word: u32) -> vec3<f32> {
@@ -764,8 +763,7 @@ var<private> nodes_visited: u32;
 var<private> triangle_tests: u32;
 
 fn push(a: u32, b: u32) {
-    stack_a[stack_len] = a;
-    stack_b[stack_len] = b;
+    stack[stack_len] = vec2<u32>(a, b);
     stack_len += 1u;
 }
 
@@ -921,8 +919,9 @@ fn next_leaf(current_node: u32) -> Slots {
                 return Slots(0u, 0u);
             }
             stack_len -= 1u;
-            let a = stack_a[stack_len];
-            let b = stack_b[stack_len];
+            let entry = stack[stack_len];
+            let a = entry.x;
+            let b = entry.y;
             if LEVELS && a == MARKER {
                 restore();
                 continue;
