@@ -42,7 +42,7 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
     let on_cpu = client.trace("cpu", &query, rays.clone()).await.unwrap();
     let on_gpu = client.trace("gpu", &query, rays.clone()).await.unwrap();
     // A ray that terminates on its first hit may stop at any hit (which one depends on the traversal order: the
-    // CPU's wide nodes and the GPU's binary ones differ): only whether it hit must agree.
+    // CPU's 8-wide nodes and the GPU's 4-wide ones differ): only whether it hit must agree.
     let differing = |rays: &[rayd_engine::format::Ray], format: HitFormat, a: &Bytes, b: &Bytes| {
         (0..rays.len())
             .filter(|&i| {

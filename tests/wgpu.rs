@@ -319,7 +319,7 @@ fn updates_copies_and_empty_batches_work() {
     let updated = context.update_accel(&accel, &[BuildInput::Triangles(second.input())]).unwrap();
     let copy = context.copy_accel(&updated, false).unwrap();
     // The reference is updated the same way. Terminate-on-first-hit rays stop at a hit that depends on the BVH and
-    // on the traversal order (the CPU walks wide nodes, the GPU binary ones): for them only hit or miss must agree.
+    // on the traversal order (the CPU walks 8-wide nodes, the GPU 4-wide ones): for them only hit or miss must agree.
     let reference = Context::new(Device::cpu());
     let built = reference.build_accel(&[BuildInput::Triangles(first.input())], &options).unwrap();
     let expected = reference.update_accel(&built, &[BuildInput::Triangles(second.input())]).unwrap();

@@ -24,6 +24,9 @@ pub(crate) struct Collapsed {
     pub lanes: Vec<Lane>,
     /// Longest root-to-leaf path, in wide nodes.
     pub depth: usize,
+    /// Entries a nearest-first walk's stack holds at most: over root-to-leaf paths, the sum of each node's occupied
+    /// lanes but one (the lanes it leaves waiting).
+    pub stack_need: usize,
 }
 
 /// Collapses a depth-first binary BVH into nodes of `width` (≥ 2) lanes. A binary root that is a leaf becomes the
@@ -34,16 +37,18 @@ pub(crate) fn collapse(binary: &[Node], width: usize) -> Collapsed {
         return Collapsed::default();
     }
     let empty = Lane { binary: EMPTY_LANE, child: EMPTY_LANE };
-    let mut collapsed = Collapsed { lanes: vec![empty; width], depth: 0 };
+    let mut collapsed =
+        Collapsed { lanes: Vec::with_capacity((binary.len() / 2 + 1) * width), depth: 0, stack_need: 0 };
+    collapsed.lanes.resize(width, empty);
     let children = |n: usize| [binary[n].index as usize, binary[n].index as usize + 1];
     let area = |n: usize| {
         let d = binary[n].max - binary[n].min;
         d.x * d.y + d.y * d.z + d.z * d.x
     };
-    // (binary node whose subtree a wide node holds, that wide node, its level)
-    let mut pending = vec![(0usize, 0usize, 1usize)];
+    // (binary node whose subtree a wide node holds, that wide node, its level, lanes left waiting above it)
+    let mut pending = vec![(0usize, 0usize, 1usize, 0usize)];
     let mut lanes = Vec::with_capacity(width);
-    while let Some((source, target, level)) = pending.pop() {
+    while let Some((source, target, level, waiting)) = pending.pop() {
         collapsed.depth = collapsed.depth.max(level);
         lanes.clear();
         if binary[source].count > 0 {
@@ -59,19 +64,20 @@ pub(crate) fn collapse(binary: &[Node], width: usize) -> Collapsed {
             let inner = lanes.swap_remove(lane);
             lanes.extend(children(inner));
         }
+        let waiting = waiting + lanes.len() - 1;
+        collapsed.stack_need = collapsed.stack_need.max(waiting);
         for (lane, &n) in lanes.iter().enumerate() {
             let child = if binary[n].count > 0 {
                 EMPTY_LANE
             } else {
                 let child = collapsed.lanes.len() / width;
                 collapsed.lanes.extend(std::iter::repeat_n(empty, width));
-                pending.push((n, child, level + 1));
+                pending.push((n, child, level + 1, waiting));
                 child as u32
             };
             collapsed.lanes[target * width + lane] = Lane { binary: n as u32, child };
         }
     }
-    collapsed.lanes.shrink_to_fit();
     collapsed
 }
 
@@ -109,6 +115,10 @@ mod tests {
         for (width, depth) in [(2, 4), (4, 2), (8, 2)] {
             let collapsed = collapse(&binary, width);
             assert_eq!(collapsed.depth, depth, "width {width}");
+            // A complete tree: every node on a path is full but the last level's.
+            let full_levels = (collapsed.lanes.len() / width).min(depth);
+            assert!(collapsed.stack_need <= full_levels * (width - 1), "width {width}");
+            assert!(collapsed.stack_need >= width - 1, "width {width}: the root leaves its other lanes waiting");
             let mut leaves = Vec::new();
             for node in collapsed.lanes.chunks(width) {
                 let occupied = node.iter().take_while(|l| l.binary != EMPTY_LANE).count();
@@ -137,7 +147,7 @@ mod tests {
         let collapsed = collapse(&leaf, 4);
         assert_eq!(collapsed.lanes[0], Lane { binary: 0, child: EMPTY_LANE });
         assert!(collapsed.lanes[1..].iter().all(|l| l.binary == EMPTY_LANE));
-        assert_eq!(collapsed.depth, 1);
+        assert_eq!((collapsed.depth, collapsed.stack_need), (1, 0));
         assert_eq!(collapse(&[], 4), Collapsed::default());
     }
 }

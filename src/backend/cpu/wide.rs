@@ -263,3 +263,37 @@ fn nearest_first(
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3;
+
+    use super::*;
+
+    #[test]
+    fn lanes_hold_their_childrens_boxes_and_leaves_their_slots() {
+        // A root over a leaf of 2 triangles (slots 0..2) and an inner node over two leaves (slots 2..3, 3..5).
+        let node = |min: f32, max: f32, index: u32, count: u32| Node {
+            min: Vec3::splat(min),
+            index,
+            max: Vec3::splat(max),
+            count,
+        };
+        let binary = [
+            node(0.0, 9.0, 1, 0),
+            node(0.0, 1.0, 0, 2),
+            node(2.0, 9.0, 3, 0),
+            node(2.0, 3.0, 2, 1),
+            node(4.0, 9.0, 3, 2),
+        ];
+        let wide = WideBvh::collapse(&binary);
+        assert_eq!((wide.nodes.len(), wide.children.as_slice(), wide.depth), (1, &[3u8][..], 1));
+        let root = &wide.nodes[0];
+        // The leaf first, then the inner node's two children in its place and after.
+        let lanes: Vec<(f32, f32, u32, u32)> =
+            (0..3).map(|l| (root.lo[0][l], root.hi[2][l], root.index[l], root.count[l])).collect();
+        assert_eq!(lanes, [(0.0, 1.0, 0, 2), (2.0, 3.0, 2, 1), (4.0, 9.0, 3, 2)]);
+        assert!((3..WIDTH).all(|l| root.lo[1][l] == f32::INFINITY && root.hi[1][l] == f32::NEG_INFINITY));
+        assert_eq!(wide.root, (Vec3A::ZERO, Vec3A::splat(9.0)));
+    }
+}

@@ -1,6 +1,7 @@
 //! Adapters and their devices. Every adapter that wgpu enumerates on the backends of `WGPU_BACKEND` (Vulkan when
 //! it is unset) is a device `wgpu:N`, in enumeration order. Enumeration happens once a process; an adapter's wgpu
-//! device (and its pipeline) is opened on first use and shared by every context and backend on it.
+//! device (with the kernel's shader module; its pipelines are compiled as traces need them) is opened on first use
+//! and shared by every context and backend on it.
 
 use std::sync::{Arc, OnceLock};
 
@@ -96,7 +97,7 @@ impl Gpu {
                 let (device, queue) = pollster::block_on(self.adapter.request_device(&descriptor)).map_err(|e| {
                     Error::FailedPrecondition(format!("wgpu:{}: opening the device failed: {e}", self.index))
                 })?;
-                let kernel = Kernel::new(&device);
+                let kernel = Kernel::new(&device, self.adapter.get_info().backend);
                 let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
                 Ok(Opened { device, queue, kernel, timestamp_period })
             })

@@ -11,6 +11,8 @@ use glam::{Affine3A, Vec3};
 use super::kernel::Variant;
 use super::layout::{INSTANCE_WORDS, NODE_WIDTH, NODE_WORDS, OBJECT_WORDS, ObjectKind, Prim};
 use crate::backend::cpu::bvh::{Node, NodeKeys};
+#[cfg(doc)]
+use crate::backend::cpu::collapse::Collapsed;
 use crate::backend::cpu::collapse::{EMPTY_LANE, Lane, collapse};
 use crate::backend::cpu::{CpuAccel, InstanceBvh, TransformNode, TriangleBvh, cpu_child};
 use crate::error::Result;
@@ -22,7 +24,7 @@ use crate::geometry::{MotionOptions, Transform};
 pub(super) struct Flat {
     /// Node words, [`NODE_WORDS`] a node.
     pub nodes: Vec<u32>,
-    /// Per-key node boxes of motion BVHs, 6 floats a box.
+    /// Per-key lane boxes of motion BVHs, 6 floats a box.
     pub boxes: Vec<f32>,
     /// Triangle corners, 9 floats a triangle a key.
     pub corners: Vec<f32>,
@@ -40,10 +42,10 @@ pub(super) struct Flat {
 
 /// Flattens the graph under `host`.
 pub(super) fn flatten(host: &CpuAccel) -> Result<Flat> {
-    let mut flattener = Flattener { flat: Flat::default(), seen: HashMap::new() };
+    let mut flattener = Flattener { flat: Flat::default(), seen: HashMap::new(), motion: false };
     let (root, stack) = flattener.object(host)?;
     let levels = !matches!(host, CpuAccel::Triangles(_));
-    let variant = Variant::for_graph(levels, flattener.flat.variant.motion);
+    let variant = Variant::for_graph(levels, flattener.motion);
     Ok(Flat { root, stack, variant, ..flattener.flat })
 }
 
@@ -53,6 +55,20 @@ struct Flattener {
     flat: Flat,
     /// The objects already flattened, by address of their host structure: their offset and stack need.
     seen: HashMap<usize, (u32, usize)>,
+    /// Whether an object flattened so far has motion keys.
+    motion: bool,
+}
+
+/// Where [`Flattener::bvh`] put a BVH.
+struct PlacedBvh {
+    /// Its root node's index in `nodes`.
+    first: u32,
+    /// Its first key box's float offset in `boxes`.
+    box_base: u32,
+    /// Its nodes.
+    node_count: u32,
+    /// Stack entries a walk of it needs at most ([`Collapsed::stack_need`]).
+    stack_need: usize,
 }
 
 /// The 12 floats of an affine map, column by column (x axis, y axis, z axis, translation).
@@ -65,13 +81,7 @@ fn columns(affine: &Affine3A) -> [f32; 12] {
     out
 }
 
-/// Stack entries a walk of a BVH `depth` device nodes deep needs at most: each node on the way leaves at most all
-/// its lanes but one waiting.
-fn stack_need(depth: usize) -> usize {
-    depth * (NODE_WIDTH - 1)
-}
-
-/// The key box of an empty lane (never read: the lane's index marks it empty).
+/// The key box of an empty lane (read with the others, never entered: the lane's index marks it empty).
 const EMPTY_KEY_BOX: Bounds = (Vec3::ZERO, Vec3::ZERO);
 
 impl Flattener {
@@ -91,18 +101,18 @@ impl Flattener {
     }
 
     /// Appends a BVH's nodes collapsed to [`NODE_WIDTH`] lanes (inner lanes' nodes made global, leaf lanes' first
-    /// slot moved by `leaf_base`) and their lanes' key boxes; returns the first node's index, the first box's float
-    /// offset, the node count and the longest root-to-leaf path in nodes.
-    fn bvh(&mut self, nodes: &[Node], keys: Option<&NodeKeys>, leaf_base: u32) -> (u32, u32, u32, usize) {
+    /// slot moved by `leaf_base`) and their lanes' key boxes.
+    fn bvh(&mut self, nodes: &[Node], keys: Option<&NodeKeys>, leaf_base: u32) -> PlacedBvh {
         let first = (self.flat.nodes.len() / NODE_WORDS) as u32;
         let box_base = self.flat.boxes.len() as u32;
         let collapsed = collapse(nodes, NODE_WIDTH);
         for lanes in collapsed.lanes.chunks(NODE_WIDTH) {
             let mut words = [0u32; NODE_WORDS];
             for (lane, &Lane { binary, child }) in lanes.iter().enumerate() {
-                let (index, count) = (6 * NODE_WIDTH + lane, 7 * NODE_WIDTH + lane);
+                // The lane's words: boxes by axis (lo x, y, z, hi x, y, z), then index, then count.
+                let (index_word, count_word) = (6 * NODE_WIDTH + lane, 7 * NODE_WIDTH + lane);
                 if binary == EMPTY_LANE {
-                    words[index] = EMPTY_LANE;
+                    words[index_word] = EMPTY_LANE;
                     continue;
                 }
                 let node = &nodes[binary as usize];
@@ -110,8 +120,8 @@ impl Flattener {
                     words[axis * NODE_WIDTH + lane] = node.min[axis].to_bits();
                     words[(3 + axis) * NODE_WIDTH + lane] = node.max[axis].to_bits();
                 }
-                words[index] = if node.count == 0 { first + child } else { node.index + leaf_base };
-                words[count] = node.count;
+                words[index_word] = if node.count == 0 { first + child } else { node.index + leaf_base };
+                words[count_word] = node.count;
             }
             self.flat.nodes.extend(words);
             if let Some(keys) = keys {
@@ -127,33 +137,31 @@ impl Flattener {
                 }
             }
         }
-        let count = (collapsed.lanes.len() / NODE_WIDTH) as u32;
-        (first, box_base, count, collapsed.depth)
+        let node_count = (collapsed.lanes.len() / NODE_WIDTH) as u32;
+        PlacedBvh { first, box_base, node_count, stack_need: collapsed.stack_need }
     }
 
-    /// Appends an object record; returns its offset.
-    #[allow(clippy::too_many_arguments)]
+    /// Appends an object record (`placed`: a BVH's place; a transform's child object as `first`); returns its
+    /// offset.
     fn record(
         &mut self,
         kind: ObjectKind,
         motion: &MotionOptions,
-        first: u32,
-        node_count: u32,
-        box_base: u32,
+        placed: &PlacedBvh,
         base: u32,
         corner_base: u32,
     ) -> u32 {
         let offset = self.flat.graph.len() as u32;
-        self.flat.variant.motion |= motion.keys > 1;
+        self.motion |= motion.keys > 1;
         let words: [u32; OBJECT_WORDS] = [
             kind as u32,
             motion.keys,
             motion.flags.bits(),
             motion.time_begin.to_bits(),
             motion.time_end.to_bits(),
-            first,
-            node_count,
-            box_base,
+            placed.first,
+            placed.node_count,
+            placed.box_base,
             base,
             corner_base,
         ];
@@ -165,7 +173,7 @@ impl Flattener {
     fn triangles(&mut self, bvh: &TriangleBvh) -> (u32, usize) {
         let slot_base = self.flat.prims.len() as u32;
         let corner_base = self.flat.corners.len() as u32;
-        let (first, box_base, node_count, depth) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), slot_base);
+        let placed = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), slot_base);
         self.flat.corners.extend(bvh.corners.iter().flat_map(|c| c.iter().flat_map(|v| v.to_array())));
         self.flat.prims.extend(bvh.refs.iter().enumerate().map(|(slot, r)| Prim {
             geom_id: r.geom_id,
@@ -173,9 +181,8 @@ impl Flattener {
             mask: bvh.masks.as_ref().map_or(0, |m| m[slot]),
             geometry_flags: bvh.geometry_flags[r.geom_id as usize].bits(),
         }));
-        let offset =
-            self.record(ObjectKind::Triangles, &bvh.motion, first, node_count, box_base, slot_base, corner_base);
-        (offset, stack_need(depth))
+        let offset = self.record(ObjectKind::Triangles, &bvh.motion, &placed, slot_base, corner_base);
+        (offset, placed.stack_need)
     }
 
     /// An instance accel: its children first, then its instance records, nodes and object.
@@ -199,10 +206,10 @@ impl Flattener {
             ]);
             self.flat.graph.extend(record);
         }
-        let (first, box_base, node_count, depth) = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), 0);
-        let offset = self.record(ObjectKind::Instances, &bvh.motion, first, node_count, box_base, records, 0);
+        let placed = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), 0);
+        let offset = self.record(ObjectKind::Instances, &bvh.motion, &placed, records, 0);
         // A walk's pending lanes, then a leaf's resume entry and the marker below it.
-        Ok((offset, stack_need(depth) + 2 + child_stack))
+        Ok((offset, placed.stack_need + 2 + child_stack))
     }
 
     /// A transform: its child first, then its keys and object.
@@ -220,7 +227,8 @@ impl Flattener {
             Transform::Matrix { .. } => ObjectKind::MatrixTransform,
             Transform::Srt { .. } => ObjectKind::SrtTransform,
         };
-        let offset = self.record(kind, &node.transform.motion(), child, 0, 0, base, 0);
+        let child = PlacedBvh { first: child, box_base: 0, node_count: 0, stack_need: 0 };
+        let offset = self.record(kind, &node.transform.motion(), &child, base, 0);
         // The marker below it.
         Ok((offset, 1 + child_stack))
     }

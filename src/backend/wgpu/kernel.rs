@@ -1,5 +1,5 @@
-//! The trace pipeline: its WGSL source (`shaders/layout.wgsl` then `shaders/trace.wgsl`), its bind group layouts
-//! and the uniform block each chunk gets.
+//! The trace pipelines: their WGSL source (`shaders/layout.wgsl` then `shaders/trace.wgsl`), the variants it is
+//! compiled into, their bind group layouts and the uniform block each chunk gets.
 
 use std::sync::OnceLock;
 
@@ -55,10 +55,10 @@ impl Variant {
     }
 }
 
-/// The uniform block of one chunk (`Params` in `layout.wgsl`), 32 bytes: `0 ray_count | 4 ray_format |
-/// 8 hit_format | 12 query_kind | 16 query_flags | 20 records_per_ray | 24 record_words | 28 root`, every field a
-/// little-endian u32. Formats and kinds are their indices in [`RayFormat::ALL`], [`HitFormat::ALL`] and
-/// [`QueryKind::ALL`].
+/// The uniform block of one chunk (`Params` in `layout.wgsl`), 28 bytes: `0 ray_count | 4 ray_format |
+/// 8 hit_format | 12 query_flags | 16 records_per_ray | 20 record_words | 24 root`, every field a little-endian u32.
+/// Formats are their indices in [`RayFormat::ALL`] and [`HitFormat::ALL`]; the query kind is the pipeline's
+/// ([`Variant`]).
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
 #[repr(C)]
 pub(super) struct Params {
@@ -68,8 +68,6 @@ pub(super) struct Params {
     pub ray_format: u32,
     /// The hit format's index.
     pub hit_format: u32,
-    /// The query kind's index.
-    pub query_kind: u32,
     /// The query's ray flags.
     pub query_flags: u32,
     /// Hit records a ray.
@@ -91,7 +89,6 @@ impl Params {
         Params {
             ray_format: index_of(&RayFormat::ALL, &query.ray_format),
             hit_format: index_of(&HitFormat::ALL, &query.hit_format),
-            query_kind: index_of(&QueryKind::ALL, &query.kind),
             query_flags: query.flags.bits(),
             records_per_ray: query.records_per_ray() as u32,
             record_words: query.hit_format.size().map_or(0, |size| size as u32 / 4),
@@ -129,21 +126,29 @@ fn storage(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
 }
 
 impl Kernel {
-    /// Compiles the shader module on `device`.
-    pub fn new(device: &wgpu::Device) -> Kernel {
+    /// Compiles the shader module on `device`, whose adapter runs on `backend`.
+    pub fn new(device: &wgpu::Device, backend: wgpu::Backend) -> Kernel {
         let descriptor =
             wgpu::ShaderModuleDescriptor { label: Some("rayd trace"), source: wgpu::ShaderSource::Wgsl(SOURCE.into()) };
-        // SAFETY: the kernel is compiled without naga's run-time checks, which cost it a third of its speed on an
-        // H100 (BENCHMARKS.md): loop counters, index clamps, division guards. What they guard holds without them:
-        // - storage buffer accesses stay within their bindings through Vulkan's robust buffer access, which wgpu
-        //   enables where the adapter has it; naga's own buffer checks are off only where it does;
+        // SAFETY: the kernel is compiled without naga's loop counters and division guards, and on Vulkan without
+        // its index and buffer bounds checks too: together they cost a third of the kernel's speed on an H100
+        // (BENCHMARKS.md). No access is out of bounds and every loop ends by construction:
+        // - storage buffers are indexed by offsets the host wrote and checked (`graph.rs`, `layout.rs`, the chunk
+        //   sizes of `batch.rs`); on Vulkan, robust buffer access (which wgpu enables) backs that up, and on the
+        //   other backends naga's bounds checks stay on;
         // - private arrays: the traversal stack never holds more than `STACK_SIZE` entries (`GpuGraph::upload`
-        //   refuses graphs that could need more) and levels never exceed `MAX_LEVELS` (`MAX_GRAPH_DEPTH`);
+        //   refuses graphs that could need more), levels never exceed `MAX_LEVELS` (= `MAX_GRAPH_DEPTH`, which
+        //   builds enforce), and an `all` query's hit entries read back from `scratch` carry the level count this
+        //   same invocation wrote there (`tests` below check the WGSL constants against the Rust ones);
         // - every loop ends: BVH nodes form trees whose children follow their parent (built so, or checked when
         //   loaded), instance graphs have no cycles (an accel only places accels that existed before it), and the
         //   other loops count to fixed bounds;
-        // - integer divisions are by constants.
-        let module = unsafe { device.create_shader_module_trusted(descriptor, wgpu::ShaderRuntimeChecks::unchecked()) };
+        // - integer divisions and remainders are by non-zero constants.
+        let checks = wgpu::ShaderRuntimeChecks {
+            bounds_checks: backend != wgpu::Backend::Vulkan,
+            ..wgpu::ShaderRuntimeChecks::unchecked()
+        };
+        let module = unsafe { device.create_shader_module_trusted(descriptor, checks) };
         let accel_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("rayd accel"),
             entries: &[storage(0, true), storage(1, true), storage(2, true), storage(3, true), storage(4, true)],
@@ -192,5 +197,21 @@ impl Kernel {
                 cache: None,
             })
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::wgpu::layout::NODE_WIDTH;
+    use crate::geometry::MAX_GRAPH_DEPTH;
+
+    /// The kernel's bounds that its unchecked accesses rely on are the host's (see `Kernel::new`).
+    #[test]
+    fn the_kernels_bounds_are_the_hosts() {
+        assert!(SOURCE.contains(&format!("const STACK_SIZE: u32 = {STACK_SIZE}u;")));
+        assert!(SOURCE.contains(&format!("const MAX_LEVELS: u32 = {MAX_GRAPH_DEPTH}u;")));
+        assert!(SOURCE.contains(&format!("const NODE_WIDTH: u32 = {NODE_WIDTH}u;")));
+        assert!(SOURCE.contains(&format!("override WORKGROUP_SIZE: u32 = {WORKGROUP_SIZE}u;")));
     }
 }

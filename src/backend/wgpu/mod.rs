@@ -139,8 +139,9 @@ impl WgpuBackend {
 
 /// An accel's bytes (host structure and device copy) at most, in multiples of the host structure's bound. The
 /// device holds the host's triangles and ids once more, but its 4-wide nodes can take twice the bytes of the host's
-/// binary nodes (every wide node has at least two lanes, 128 bytes for two 32-byte binary nodes at worst) and
-/// motion keys a box a lane, empty lanes included: at most twice the host's bound, so three in all.
+/// binary nodes (every wide node has at least two lanes, 128 bytes for two 32-byte binary nodes at worst; a root
+/// that is a leaf has one, within the bound's fixed bytes) and motion keys a box a lane, empty lanes included: at
+/// most twice the host's bound, so three in all.
 const DEVICE_COPY_BOUND: u64 = 3;
 
 impl Backend for WgpuBackend {
@@ -159,8 +160,9 @@ impl Backend for WgpuBackend {
         self.upload(self.host.build(inputs, options)?)
     }
 
-    /// The host's bound and [`DEVICE_COPY_BOUND`] − 1 times it for the instance accel's own arrays on the device. The device copies of its
-    /// children's arrays are not in it (only their count is known here): they are counted in its `size_bytes`.
+    /// The host's bound and [`DEVICE_COPY_BOUND`] − 1 times it for the instance accel's own arrays on the device.
+    /// The device copies of its children's arrays are not in it (only their count is known here): they are counted
+    /// in its `size_bytes`.
     fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
         let host = self.host.compute_instance_memory_usage(instances, options)?;
         Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })

@@ -1,7 +1,7 @@
 // Shared by every pipeline of the wgpu backend: the structs and constants whose byte layouts the host writes.
 // Each names the Rust item it must match; change both together.
 
-// `kernel::Params` (src/backend/wgpu/kernel.rs), 32 bytes, one uniform buffer a chunk.
+// `kernel::Params` (src/backend/wgpu/kernel.rs), 28 bytes, one uniform buffer a chunk.
 struct Params {
     // Rays in this chunk.
     ray_count: u32,
@@ -9,8 +9,6 @@ struct Params {
     ray_format: u32,
     // The hit format: its index in `HitFormat::ALL`.
     hit_format: u32,
-    // The query kind: its index in `QueryKind::ALL`.
-    query_kind: u32,
     // `RayFlags` bits OR-ed into every ray's.
     query_flags: u32,
     // Hit records a ray (`Query::records_per_ray`).

@@ -17,7 +17,7 @@
 
 // The accel's graph (uploaded once; `layout::GpuGraph`).
 @group(0) @binding(0) var<storage, read> nodes: array<Node>;
-// Node boxes at motion keys, 6 floats a box (`layout.rs`).
+// Lane boxes at motion keys, 6 floats a box (`layout.rs`).
 @group(0) @binding(1) var<storage, read> node_boxes: array<f32>;
 // Triangle corners at motion keys, 9 floats a triangle (`layout.rs`).
 @group(0) @binding(2) var<storage, read> corners: array<f32>;
@@ -40,18 +40,18 @@
 // root, and whether anything in it moves (motion keys).
 override LEVELS: bool = true;
 override MOTION: bool = true;
-// The query kind (`QueryKind::ALL` index, as `params.query_kind`) and whether the hit format is `full` (whose
-// normals need the graph's transforms again).
+// The query kind (its index in `QueryKind::ALL`) and whether the hit format is `full` (whose normals need the
+// graph's transforms again).
 override QUERY_KIND: u32 = 0u;
 override FULL_HITS: bool = true;
 // Threads of a workgroup, one a ray (set to `kernel::WORKGROUP_SIZE`).
 override WORKGROUP_SIZE: u32 = 64u;
 
-// Entries of the traversal stack: the host refuses graphs whose rays could need more (`kernel::STACK_SIZE`).
+// Entries of the traversal stack (`kernel::STACK_SIZE`): the host refuses graphs whose rays could need more.
 const STACK_SIZE: u32 = 128u;
 // Levels of a graph at most (`geometry::MAX_GRAPH_DEPTH`): the traced accel's, then one an instance or transform.
 const MAX_LEVELS: u32 = 8u;
-// Stack entries that are not nodes.
+// Stack entries that are not lanes.
 const MARKER: u32 = 0xffffffffu;
 const RESUME: u32 = 0x80000000u;
 // A level record naming a transform's object (otherwise it is an instance record's offset).
@@ -421,6 +421,12 @@ struct LaneHits {
     near: vec4<f32>,
     index: vec4<u32>,
     count: vec4<u32>,
+}
+
+// Lanes of a node that hold a child (the boxes a node visit tests, as the CPU counts them).
+fn occupied(index: vec4<u32>) -> u32 {
+    let full = index != vec4<u32>(EMPTY_LANE);
+    return u32(full.x) + u32(full.y) + u32(full.z) + u32(full.w);
 }
 
 // Lane `lane` of `v`, chosen with selects.
@@ -906,7 +912,7 @@ fn next_leaf(current_node: u32) -> Slots {
         var count: u32;
         if current != NONE {
             let hits = test_lanes(current, cull_tmax());
-            nodes_visited += NODE_WIDTH;
+            nodes_visited += occupied(hits.index);
             let lane_ref = push_lanes(current, hits);
             current = NONE;
             if lane_ref == NONE {
