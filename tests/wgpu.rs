@@ -505,3 +505,24 @@ fn geometry_accels_copy_between_devices_and_graphs_stay_on_theirs() {
     let (placed_hits, _) = trace(&gpu, &copy, &query, &packed);
     assert_eq!(placed_hits, got, "an identity instance traces as its child");
 }
+
+#[test]
+fn an_accel_deeper_than_the_kernels_stack_is_refused_by_name_and_kept_on_the_cpu() {
+    let Some(device) = gpu() else { return };
+    // Triangles nested in ever smaller copies of each other: the BVH over them is a chain, one level a triangle.
+    let mesh = Mesh {
+        positions: (0..600)
+            .flat_map(|k| {
+                let s = 0.97f32.powi(k);
+                [Vec3::ZERO, Vec3::new(s, 0.0, 0.0), Vec3::new(0.0, s, s * 0.5)]
+            })
+            .collect(),
+        triangles: (0..600u32).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect(),
+    };
+    let packed = mesh.pack();
+    let inputs = [BuildInput::Triangles(packed.input())];
+    let error = Context::new(device).build_accel(&inputs, &BuildOptions::default()).expect_err("too deep for the GPU");
+    assert_eq!(error.kind(), ErrorKind::FailedPrecondition, "{error}");
+    assert!(error.to_string().contains("stack entries"), "{error}");
+    Context::new(Device::cpu()).build_accel(&inputs, &BuildOptions::default()).expect("the CPU has no such limit");
+}
