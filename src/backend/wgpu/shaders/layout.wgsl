@@ -23,14 +23,19 @@ struct Params {
 // inner child (`count` 0, its node at `index`), a leaf (`count` primitives or instances from `index`) or empty
 // (`index` `EMPTY_LANE`).
 struct Node {
+    boxes: LaneBoxes,
+    index: vec4<u32>,
+    count: vec4<u32>,
+}
+
+// The lanes' boxes of a node, by axis (the first 96 bytes of a `Node`).
+struct LaneBoxes {
     lo_x: vec4<f32>,
     lo_y: vec4<f32>,
     lo_z: vec4<f32>,
     hi_x: vec4<f32>,
     hi_y: vec4<f32>,
     hi_z: vec4<f32>,
-    index: vec4<u32>,
-    count: vec4<u32>,
 }
 
 // `layout::NODE_WIDTH`.

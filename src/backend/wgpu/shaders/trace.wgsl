@@ -391,16 +391,6 @@ fn min_num4(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
     return select(min(a, b), a, is_nan4(b));
 }
 
-// The four lanes' boxes of a node, by axis.
-struct LaneBoxes {
-    lo_x: vec4<f32>,
-    lo_y: vec4<f32>,
-    lo_z: vec4<f32>,
-    hi_x: vec4<f32>,
-    hi_y: vec4<f32>,
-    hi_z: vec4<f32>,
-}
-
 // The entry and exit distances of four boxes, narrowed one axis at a time.
 struct Slabs {
     near: vec4<f32>,
@@ -436,7 +426,7 @@ fn lane_of(v: vec4<u32>, lane: u32) -> u32 {
 
 // The lanes' boxes of node `node` (`n`) of the current object at the ray's time (interpolated between motion keys).
 fn lane_boxes(node: u32, n: Node) -> LaneBoxes {
-    var b = LaneBoxes(n.lo_x, n.lo_y, n.lo_z, n.hi_x, n.hi_y, n.hi_z);
+    var b = n.boxes;
     if MOTION && cur.keys > 1u {
         for (var lane = 0u; lane < NODE_WIDTH; lane++) {
             let first = cur.box_base + (((node - cur.first) * NODE_WIDTH + lane) * cur.keys + cur_at.segment) * 6u;
