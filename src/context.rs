@@ -13,13 +13,14 @@ use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuBackend;
 #[cfg(feature = "wgpu")]
 use crate::backend::wgpu::WgpuOptions;
-use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, Shape};
+use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, RaySource, Shape};
 use crate::error::{Error, Result};
 use crate::geometry::motion::TimeSpan;
 use crate::geometry::{
     BuildInput, Instance, PlacedInstance, Structure, Transform, TransformInput, check_depth, place, triangle_counts,
 };
 use crate::query::{Query, TraceOutput, TraceStats};
+use crate::reduce::{Partial, Reduction};
 
 /// A device that contexts can be created on.
 #[derive(Clone)]
@@ -620,5 +621,39 @@ impl Context {
         accel.check_current()?;
         query.check_times(rays)?;
         self.device.backend.trace(accel.data.as_ref(), query, rays, out)
+    }
+
+    /// [`Context::trace`] of rays that may be generated (a checked generator's rays are made where they are traced,
+    /// on the device when its backend can).
+    pub fn trace_source(
+        &self,
+        accel: &Accel,
+        query: &Query,
+        rays: RaySource<'_>,
+        out: TraceOutput<'_>,
+    ) -> Result<TraceStats> {
+        accel.check_current()?;
+        if let RaySource::Packed(rays) = rays {
+            query.check_times(rays)?;
+        }
+        self.device.backend.trace_source(accel.data.as_ref(), query, rays, out)
+    }
+
+    /// Traces `rays` (ray `first_ray` of the batch first; whole groups of the reduction) against `accel` and
+    /// reduces their hits with `reduction` (checked against the query and the batch): the piece's partial, to be
+    /// folded with the other pieces' ([`Reduction::finish`]).
+    pub fn trace_reduced(
+        &self,
+        accel: &Accel,
+        query: &Query,
+        rays: RaySource<'_>,
+        first_ray: u64,
+        reduction: &Reduction,
+    ) -> Result<(Partial, TraceStats)> {
+        accel.check_current()?;
+        if let RaySource::Packed(rays) = rays {
+            query.check_times(rays)?;
+        }
+        self.device.backend.trace_reduced(accel.data.as_ref(), query, rays, first_ray, reduction)
     }
 }

@@ -18,8 +18,8 @@ use std::sync::Arc;
 
 use glam::{Affine3A, Quat, Vec3, Vec3A};
 use rayd_engine::accel::{AccelKind, BuildOptions};
-use rayd_engine::backend::BackendKind;
 use rayd_engine::backend::wgpu::WgpuOptions;
+use rayd_engine::backend::{BackendKind, RaySource};
 use rayd_engine::format::{HitFormat, Ray, RayFlags, RayFormat};
 use rayd_engine::geometry::{
     BuildInput, GeometryFlags, Instance, InstanceFlags, MotionFlags, MotionOptions, Placement, TransformInput,
@@ -27,6 +27,8 @@ use rayd_engine::geometry::{
 };
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, QueryKind, TraceOutput};
+use rayd_engine::raygen::{Camera, Generator, Orthographic, PixelSampling};
+use rayd_engine::reduce::{Image, ImageChannel, PixelEncoding, Reduction};
 use rayd_engine::{Accel, Context, Device, ErrorKind};
 
 /// The first wgpu device with `options`, or `None` (after a notice) on a machine without an adapter; panics
@@ -104,53 +106,9 @@ impl Scene {
 
     /// Traces `rays` (packed in `query.ray_format`) on both and adds the comparison to `agreement`.
     fn compare(&self, query: &Query, rays: &[u8], agreement: &mut Agreement) {
-        let (cpu_hits, cpu_counts) = trace(&self.cpu.0, &self.cpu.1, query, rays);
-        let (gpu_hits, gpu_counts) = trace(&self.gpu.0, &self.gpu.1, query, rays);
-        let ray_count = rays.len() / query.ray_format.size();
-        let per_ray = query.records_per_ray();
-        let format = query.hit_format;
-        for ray in 0..ray_count {
-            // Which hit an `any` query, or a ray that terminates on its first hit, stops at depends on the traversal
-            // order (the CPU walks 8-wide nodes, the GPU 4-wide ones): only whether it hit must agree.
-            let terminates = query.kind == QueryKind::Any
-                || query.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT)
-                || query.ray_format == RayFormat::Full && {
-                    let at = ray * query.ray_format.size();
-                    RayFormat::Full
-                        .decode(&rays[at..at + RayFormat::Full.size()])
-                        .flags
-                        .contains(RayFlags::TERMINATE_ON_FIRST_HIT)
-                };
-            if terminates {
-                let hit = |hits: &[u8]| format.read(hits, ray * per_ray).is_hit();
-                if hit(&cpu_hits) != hit(&gpu_hits) {
-                    agreement.differing += 1;
-                }
-                continue;
-            }
-            let records_agree = (ray * per_ray..(ray + 1) * per_ray).all(|record| {
-                let (c, g) = (format.read(&cpu_hits, record), format.read(&gpu_hits, record));
-                c.is_hit() == g.is_hit()
-                    && (c.prim_id, c.geom_id, c.inst_id, c.inst_path, c.back_face)
-                        == (g.prim_id, g.geom_id, g.inst_id, g.inst_path, g.back_face)
-                    && close(c.t, g.t, 1e-4)
-                    && close(c.u, g.u, 1e-3)
-                    && close(c.v, g.v, 1e-3)
-                    && (c.normal - g.normal).abs().max_element() <= 1e-3
-            });
-            let counts_agree =
-                !query.kind.has_counts() || cpu_counts[4 * ray..4 * ray + 4] == gpu_counts[4 * ray..4 * ray + 4];
-            if !(records_agree && counts_agree) {
-                agreement.differing += 1;
-                if agreement.differing <= 5 {
-                    eprintln!("{query:?}: ray {ray} differs");
-                }
-            }
-        }
-        if format == HitFormat::Bitmask {
-            assert_eq!(cpu_hits.last(), gpu_hits.last(), "{query:?}: the bitmask's last byte (unused bits 0)");
-        }
-        agreement.rays += ray_count;
+        let cpu = trace(&self.cpu.0, &self.cpu.1, query, rays);
+        let gpu = trace(&self.gpu.0, &self.gpu.1, query, rays);
+        compare_hits(query, rays, (&cpu.0, &cpu.1), (&gpu.0, &gpu.1), agreement);
     }
 
     /// Compares every ray format × hit format × query kind on `rays`, with query flags varied across kinds.
@@ -166,6 +124,62 @@ impl Scene {
             }
         }
     }
+}
+
+/// Compares the hits and counts of `rays` (packed in `query.ray_format`) traced on the CPU and on the GPU and adds
+/// the comparison to `agreement`.
+fn compare_hits(
+    query: &Query,
+    rays: &[u8],
+    (cpu_hits, cpu_counts): (&[u8], &[u8]),
+    (gpu_hits, gpu_counts): (&[u8], &[u8]),
+    agreement: &mut Agreement,
+) {
+    let ray_count = rays.len() / query.ray_format.size();
+    let per_ray = query.records_per_ray();
+    let format = query.hit_format;
+    for ray in 0..ray_count {
+        // Which hit an `any` query, or a ray that terminates on its first hit, stops at depends on the traversal
+        // order (the CPU walks 8-wide nodes, the GPU 4-wide ones): only whether it hit must agree.
+        let terminates = query.kind == QueryKind::Any
+            || query.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT)
+            || query.ray_format == RayFormat::Full && {
+                let at = ray * query.ray_format.size();
+                RayFormat::Full
+                    .decode(&rays[at..at + RayFormat::Full.size()])
+                    .flags
+                    .contains(RayFlags::TERMINATE_ON_FIRST_HIT)
+            };
+        if terminates {
+            let hit = |hits: &[u8]| format.read(hits, ray * per_ray).is_hit();
+            if hit(cpu_hits) != hit(gpu_hits) {
+                agreement.differing += 1;
+            }
+            continue;
+        }
+        let records_agree = (ray * per_ray..(ray + 1) * per_ray).all(|record| {
+            let (c, g) = (format.read(cpu_hits, record), format.read(gpu_hits, record));
+            c.is_hit() == g.is_hit()
+                && (c.prim_id, c.geom_id, c.inst_id, c.inst_path, c.back_face)
+                    == (g.prim_id, g.geom_id, g.inst_id, g.inst_path, g.back_face)
+                && close(c.t, g.t, 1e-4)
+                && close(c.u, g.u, 1e-3)
+                && close(c.v, g.v, 1e-3)
+                && (c.normal - g.normal).abs().max_element() <= 1e-3
+        });
+        let counts_agree =
+            !query.kind.has_counts() || cpu_counts[4 * ray..4 * ray + 4] == gpu_counts[4 * ray..4 * ray + 4];
+        if !(records_agree && counts_agree) {
+            agreement.differing += 1;
+            if agreement.differing <= 5 {
+                eprintln!("{query:?}: ray {ray} differs");
+            }
+        }
+    }
+    if format == HitFormat::Bitmask {
+        assert_eq!(cpu_hits.last(), gpu_hits.last(), "{query:?}: the bitmask's last byte (unused bits 0)");
+    }
+    agreement.rays += ray_count;
 }
 
 /// Random rays through the unit cube with every field randomized (see `common::random_rays`).
@@ -273,6 +287,160 @@ fn large_batches_agree_for_closest_and_any() {
     for kind in [QueryKind::Closest, QueryKind::Any] {
         let query = Query { kind, ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV) };
         scene.compare(&query, &packed, &mut agreement);
+    }
+    agreement.check();
+}
+
+/// A pinhole camera (3 jittered samples a pixel) and an orthographic one (pixel centres) looking at the bunny.
+fn cameras() -> [Generator; 2] {
+    let pinhole = Camera::framing(Vec3::ZERO, Vec3::ONE, 40, 30);
+    let orthographic = Orthographic {
+        eye: Vec3::new(0.4, 0.6, 3.0),
+        target: Vec3::splat(0.5),
+        up: Vec3::Y,
+        view_height: 1.2,
+        width: 37,
+        height: 29,
+    };
+    [
+        Generator::Pinhole(pinhole, PixelSampling { samples: 3, jitter_seed: Some(7) }),
+        Generator::Orthographic(orthographic, PixelSampling { samples: 1, jitter_seed: None }),
+    ]
+}
+
+/// The bunny on the CPU and on `device`.
+fn bunny_scene(device: &Device) -> Scene {
+    let mesh = bunny().pack();
+    Scene::new(device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default())
+}
+
+#[test]
+fn camera_rays_made_on_the_device_agree_with_the_hosts() {
+    // Chunks of 320 rays at most: each range below takes several, each chunk starting at another generator index.
+    let Some(device) = gpu_with(WgpuOptions { max_chunk_rays: Some(320), ..WgpuOptions::default() }) else {
+        return;
+    };
+    let scene = bunny_scene(&device);
+    let mut agreement = Agreement::default();
+    for generator in cameras() {
+        generator.check().unwrap();
+        // A range that does not start at the generator's first ray.
+        let (first, count) = (101, generator.count() as usize - 101);
+        for (kind, ray_format, hit_format) in [
+            (QueryKind::Closest, RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV),
+            (QueryKind::Any, RayFormat::OriginDirection, HitFormat::T),
+            (QueryKind::Count, RayFormat::Full, HitFormat::Full),
+        ] {
+            let query = Query { kind, ..Query::closest(ray_format, hit_format) };
+            let mut packed = vec![0; count * ray_format.size()];
+            generator.fill(ray_format, first, &mut packed);
+            let cpu = trace(&scene.cpu.0, &scene.cpu.1, &query, &packed);
+            let layout = query.output_layout(packed.len()).unwrap();
+            let (mut hits, mut counts) = (vec![0xEE; layout.hits], vec![0xEE; layout.counts]);
+            let made_there = RaySource::Generated { generator: &generator, first, count };
+            let output = TraceOutput { hits: &mut hits, counts: &mut counts };
+            let stats = scene.gpu.0.trace_source(&scene.gpu.1, &query, made_there, output).unwrap();
+            assert_eq!(stats.rays, count as u64);
+            compare_hits(&query, &packed, (&cpu.0, &cpu.1), (&hits, &counts), &mut agreement);
+        }
+    }
+    agreement.check();
+}
+
+/// The reductions the device makes for a camera of `width` pixels a row and `samples` rays a pixel, and one whose
+/// pixels are too large for a chunk (`rays` a multiple of 600), which the host makes.
+fn reductions(width: u32, samples: u32, rays: u64) -> Vec<Reduction> {
+    let image = |channel, encoding| Image { width, rays_per_pixel: samples, channel, encoding, near: 1.0, far: 2.5 };
+    let mut reductions = vec![
+        Reduction::Image(image(ImageChannel::Depth, PixelEncoding::Float32)),
+        Reduction::Image(image(ImageChannel::Depth, PixelEncoding::Unorm16)),
+        Reduction::Image(image(ImageChannel::Normal, PixelEncoding::Float32)),
+        Reduction::Image(image(ImageChannel::Normal, PixelEncoding::Unorm16)),
+        Reduction::Counts,
+    ];
+    if rays.is_multiple_of(600) {
+        reductions.push(Reduction::Image(Image {
+            width: 1,
+            rays_per_pixel: 600,
+            ..image(ImageChannel::Depth, PixelEncoding::Float32)
+        }));
+    }
+    reductions
+}
+
+/// Compares two answers of `reduction` (of `rays` rays) and adds the comparison to `agreement`, a pixel (or the
+/// counts) at a time: depths within 1e-4 relative, normal components within 1e-3 (33 in 16 bits), rays hit within
+/// 1e-4 of the rays.
+fn compare_reduced(reduction: &Reduction, rays: u64, cpu: &[u8], gpu: &[u8], agreement: &mut Agreement) {
+    assert_eq!(cpu.len(), gpu.len(), "{reduction:?}");
+    let Reduction::Image(image) = reduction else {
+        let word = |bytes: &[u8], i: usize| u64::from_le_bytes(bytes[8 * i..8 * i + 8].try_into().unwrap());
+        assert_eq!(word(cpu, 0), rays);
+        assert_eq!(word(gpu, 0), rays);
+        assert!(word(cpu, 1).abs_diff(word(gpu, 1)) as f64 <= rays as f64 * 1e-4, "{reduction:?}");
+        assert_eq!(word(gpu, 1), word(gpu, 2), "a closest query's hits are its rays hit");
+        return;
+    };
+    let (values, float) = match (image.channel, image.encoding) {
+        (ImageChannel::Depth, PixelEncoding::Float32) => (1, true),
+        (ImageChannel::Normal, PixelEncoding::Float32) => (3, true),
+        (ImageChannel::Depth, _) => (1, false),
+        (ImageChannel::Normal, _) => (3, false),
+    };
+    let value = |bytes: &[u8], i: usize| match float {
+        true => f32::from_le_bytes(bytes[4 * i..4 * i + 4].try_into().unwrap()),
+        false => f32::from(u16::from_le_bytes(bytes[2 * i..2 * i + 2].try_into().unwrap())),
+    };
+    let pixels = cpu.len() / values / if float { 4 } else { 2 };
+    for pixel in 0..pixels {
+        let agree = (pixel * values..(pixel + 1) * values).all(|i| {
+            let (c, g) = (value(cpu, i), value(gpu, i));
+            match (image.channel, float) {
+                (ImageChannel::Depth, true) => close(c, g, 1e-4),
+                (ImageChannel::Depth, false) => (c - g).abs() <= 1.0 || c.max(g) == 65535.0 && c == g,
+                (ImageChannel::Normal, true) => (c - g).abs() <= 1e-3,
+                (ImageChannel::Normal, false) => (c - g).abs() <= 33.0,
+            }
+        });
+        if !agree {
+            agreement.differing += 1;
+            eprintln!("{reduction:?}: pixel {pixel} differs");
+        }
+    }
+    agreement.rays += pixels;
+}
+
+#[test]
+fn image_and_count_reductions_made_on_the_device_agree_with_the_hosts() {
+    // Chunks of 500 rays at most: whole pixels of 3 rays take 480 (a multiple of 32 and 3), pixels of 600 none.
+    let Some(device) = gpu_with(WgpuOptions { max_chunk_rays: Some(500), ..WgpuOptions::default() }) else {
+        return;
+    };
+    let scene = bunny_scene(&device);
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+    let mut agreement = Agreement::default();
+    for generator in cameras() {
+        let (width, samples) = match &generator {
+            Generator::Pinhole(camera, sampling) => (camera.width, sampling.samples),
+            Generator::Orthographic(camera, sampling) => (camera.width, sampling.samples),
+            _ => unreachable!("cameras"),
+        };
+        let count = generator.count();
+        let packed = generator.rays(query.ray_format);
+        for reduction in reductions(width, samples, count) {
+            reduction.check(&query, count).unwrap();
+            let reduce = |(context, accel): &(Context, Arc<Accel>), rays| {
+                let (partial, stats) = context.trace_reduced(accel, &query, rays, 0, &reduction).unwrap();
+                assert_eq!(stats.rays, count);
+                reduction.finish(partial, count).unwrap().bytes
+            };
+            let cpu = reduce(&scene.cpu, RaySource::Packed(&packed));
+            // Rays made by the kernel, and rays sent.
+            let made_there = RaySource::Generated { generator: &generator, first: 0, count: count as usize };
+            for rays in [made_there, RaySource::Packed(&packed)] {
+                compare_reduced(&reduction, count, &cpu, &reduce(&scene.gpu, rays), &mut agreement);
+            }
+        }
     }
     agreement.check();
 }

@@ -3,13 +3,15 @@
 //! images, counts), against the engine tracing the same rays in-process. Prints one table with rays/s, the share
 //! of the in-process rate, and the bytes a ray puts on the wire (and what zstd/gzip would make of them). Run with
 //! `cargo bench -p rayd-server --bench reductions`; `RAYD_BENCH_DEVICE=wgpu:0` measures on a GPU device instead of
-//! `cpu:0` (the in-process reference then traces on that device too).
+//! `cpu:0` (the in-process reference then traces on that device too, and its kernel time and the in-process rate of
+//! a generated, reduced trace are printed below it).
 
 use std::time::Instant;
 
 use bytes::Bytes;
 use rayd_client::{Client, ClientOptions};
 use rayd_engine::accel::{BuildFlags, BuildOptions};
+use rayd_engine::backend::RaySource;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::BuildInput;
 use rayd_engine::mesh::Mesh;
@@ -71,11 +73,37 @@ fn main() {
     let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
     let rays = generator.rays(query.ray_format);
     let mut hits = vec![0u8; rays.len() / query.ray_format.size() * 16];
-    let engine = median(
+    let (engine, kernel): (Vec<f64>, Vec<f64>) = (0..RUNS)
+        .map(|_| {
+            let start = Instant::now();
+            let stats = context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
+            (start.elapsed().as_secs_f64(), stats.device_nanos as f64 * 1e-9)
+        })
+        .unzip();
+    let (engine, kernel) = (median(engine), median(kernel));
+    // In-process, the rays made and the hits reduced where they are traced (on a GPU: in the kernel).
+    let depth = image(ImageChannel::Depth, PixelEncoding::Float32, 0.0, 1.0);
+    let all_rays = RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
+    let engine_reduced = median(
         (0..RUNS)
             .map(|_| {
                 let start = Instant::now();
-                context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
+                context.trace_reduced(&accel, &query, all_rays, 0, &depth).unwrap();
+                start.elapsed().as_secs_f64()
+            })
+            .collect(),
+    );
+    // The same in the pieces rayd's scheduler cuts a GPU trace into, one after the other.
+    let piece = 1 << 20; // rayd's `schedule::GPU_PIECE_RAYS`
+    let engine_pieces = median(
+        (0..RUNS)
+            .map(|_| {
+                let start = Instant::now();
+                for first in (0..generator.count()).step_by(piece) {
+                    let count = piece.min((generator.count() - first) as usize);
+                    let rays = RaySource::Generated { generator: &generator, first, count };
+                    context.trace_reduced(&accel, &query, rays, first, &depth).unwrap();
+                }
                 start.elapsed().as_secs_f64()
             })
             .collect(),
@@ -104,6 +132,14 @@ fn main() {
             mrays(engine),
             100.0
         );
+        if kernel > 0.0 {
+            let what = "  of which the kernel (GPU timestamps)";
+            println!("{what:<52} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
+        }
+        let what = "engine in-process, generated, depth image float32";
+        println!("{what:<52} {:>9.2} {:>8.1}", mrays(engine_reduced), 100.0 * engine / engine_reduced);
+        let what = "  the same in pieces of 2^20 rays";
+        println!("{what:<52} {:>9.2} {:>8.1}", mrays(engine_pieces), 100.0 * engine / engine_pieces);
         let row = |what: &str, seconds: f64, wire: &Bytes| {
             let (zstd, gzip) = compressed(wire);
             let per_ray = |bytes: usize| bytes as f64 / rays_per_call;
@@ -135,11 +171,16 @@ fn main() {
             ("generated, hit counts", Reduction::Counts),
         ];
         for (what, reduction) in reductions {
+            let trace_seconds = std::sync::Mutex::new(Vec::new());
             let (seconds, data) = timed(|| async {
-                client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap().data
+                let reduced = client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap();
+                trace_seconds.lock().unwrap().push(reduced.stats.trace_ns as f64 * 1e-9);
+                reduced.data
             })
             .await;
             row(what, seconds, &data);
+            let trace = median(trace_seconds.into_inner().unwrap());
+            println!("{:<52} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
         }
     });
 }

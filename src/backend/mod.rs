@@ -2,6 +2,7 @@
 //! go through [`crate::Context`] and never see which backend runs their work.
 
 pub mod cpu;
+pub mod host;
 #[cfg(feature = "wgpu")]
 pub mod wgpu;
 
@@ -17,6 +18,8 @@ use crate::error::Result;
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform};
 use crate::query::{Query, TraceOutput, TraceStats};
+use crate::raygen::Generator;
+use crate::reduce::{Partial, Reduction};
 
 /// Which implementation a device uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -118,4 +121,59 @@ pub trait Backend: Send + Sync {
     fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>>;
     /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats>;
+    /// [`Backend::trace`] of rays that may be generated: by default made on the host ([`host::trace_source`]); a
+    /// backend that can make them where it traces does.
+    fn trace_source(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: RaySource<'_>,
+        out: TraceOutput<'_>,
+    ) -> Result<TraceStats> {
+        host::trace_source(self, accel, query, rays, out)
+    }
+    /// Traces `rays` (the first being ray `first_ray` of the batch; a whole number of the reduction's groups) and
+    /// reduces their hits with a checked `reduction`: the piece's partial. By default the hits are reduced on the
+    /// host ([`host::trace_reduced`]); a backend that can reduce where it traces does.
+    fn trace_reduced(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: RaySource<'_>,
+        first_ray: u64,
+        reduction: &Reduction,
+    ) -> Result<(Partial, TraceStats)> {
+        host::trace_reduced(self, accel, query, rays, first_ray, reduction)
+    }
+}
+
+/// The rays of a trace as a backend receives them.
+#[derive(Debug, Clone, Copy)]
+pub enum RaySource<'a> {
+    /// Packed in the query's ray format.
+    Packed(&'a [u8]),
+    /// Rays `first .. first + count` of a checked generator that holds them, made where they are traced.
+    Generated {
+        /// What makes them.
+        generator: &'a Generator,
+        /// The generator's index of the first.
+        first: u64,
+        /// How many.
+        count: usize,
+    },
+}
+
+impl RaySource<'_> {
+    /// Rays it holds, given the ray format's record size.
+    pub fn count(&self, ray_size: usize) -> usize {
+        self.packed_len(ray_size) / ray_size
+    }
+
+    /// Bytes its rays take packed: the caller's bytes (perhaps not whole records), or whole records.
+    pub fn packed_len(&self, ray_size: usize) -> usize {
+        match self {
+            RaySource::Packed(rays) => rays.len(),
+            RaySource::Generated { count, .. } => count * ray_size,
+        }
+    }
 }

@@ -8,9 +8,12 @@ use std::f32::consts::TAU;
 
 use glam::{Vec3, Vec3A};
 
+use rayon::prelude::*;
+
 use super::{Camera, Secondary, uniform};
 use crate::error::{Error, Result};
 use crate::format::{Ray, RayFormat};
+use crate::reduce::PARALLEL_SPLIT_RAYS;
 
 /// Most channels of a lidar and most points of a sphere generator.
 pub const MAX_GENERATOR_POINTS: usize = 1 << 16;
@@ -170,7 +173,10 @@ impl Generator {
                 require(lidar.steps > 0, "generator.steps", || "must be at least 1".into())?;
                 check_range("generator.min_range", lidar.min_range, lidar.max_range)?;
                 let (begin, end) = lidar.time;
-                require(begin.is_finite() && end.is_finite(), "generator.time", || "must be finite".into())
+                // Its span must be finite too, so that every step's time is a number.
+                require((end - begin).is_finite(), "generator.time", || {
+                    "must be finite, and so must end − begin".into()
+                })
             }
             Generator::Sphere(sphere) => {
                 let points = sphere.points.len();
@@ -210,24 +216,10 @@ impl Generator {
     pub fn fill(&self, format: RayFormat, first: u64, out: &mut [u8]) {
         let size = format.size();
         match self {
-            Generator::Pinhole(camera, sampling) => {
-                let view = PinholeView::new(camera);
+            Generator::Pinhole(..) | Generator::Orthographic(..) => {
+                let frame = self.camera_frame().expect("a camera");
                 for (i, slot) in out.chunks_exact_mut(size).enumerate() {
-                    let (x, y, dx, dy) = sampling.sample(camera.width, first + i as u64);
-                    format.encode(&view.ray(x as f32 + dx, y as f32 + dy), slot);
-                }
-            }
-            Generator::Orthographic(camera, sampling) => {
-                let (forward, right, up) =
-                    frame("", camera.eye, camera.target, camera.up).expect("a checked generator");
-                let half_height = camera.view_height * 0.5;
-                let half_width = half_height * camera.width as f32 / camera.height as f32;
-                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
-                    let (x, y, dx, dy) = sampling.sample(camera.width, first + i as u64);
-                    let sx = ((x as f32 + dx) / camera.width as f32 * 2.0 - 1.0) * half_width;
-                    let sy = (1.0 - (y as f32 + dy) / camera.height as f32 * 2.0) * half_height;
-                    let origin = camera.eye + right * sx + up * sy;
-                    format.encode(&Ray { origin: origin.into(), direction: forward.into(), ..Ray::default() }, slot);
+                    format.encode(&frame.ray(first + i as u64), slot);
                 }
             }
             Generator::Lidar(lidar) => {
@@ -278,6 +270,15 @@ impl Generator {
         }
     }
 
+    /// [`Generator::fill`] across the rayon pool, in parts of [`PARALLEL_SPLIT_RAYS`] rays: the same bytes, sooner
+    /// for a large range.
+    pub fn fill_parallel(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        let part_bytes = PARALLEL_SPLIT_RAYS * format.size();
+        out.par_chunks_mut(part_bytes)
+            .enumerate()
+            .for_each(|(part, out)| self.fill(format, first + (part * PARALLEL_SPLIT_RAYS) as u64, out));
+    }
+
     /// Every ray, packed in `format` (for callers that want the buffer itself, e.g. to compare).
     pub fn rays(&self, format: RayFormat) -> Vec<u8> {
         let mut bytes = vec![0u8; self.count() as usize * format.size()];
@@ -293,43 +294,71 @@ fn check_range(field: &'static str, min: f32, max: f32) -> Result<()> {
     })
 }
 
-/// A pinhole camera's frame, computed once for many rays.
-struct PinholeView {
-    /// Where the rays start.
-    eye: Vec3,
+/// A camera generator's frame, computed once for many rays: what [`Generator::fill`] (and the wgpu kernel, from
+/// the same numbers) makes each of its rays from.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraFrame {
+    /// A pinhole camera (rays from `eye` through the image), or an orthographic one (parallel rays from the image
+    /// rectangle around `eye`).
+    pub pinhole: bool,
+    /// The eye, or the image rectangle's centre.
+    pub eye: Vec3,
     /// The view direction, unit.
-    forward: Vec3,
-    /// Image x per unit of `sx`.
-    right: Vec3,
-    /// Image y per unit of `sy`.
-    up: Vec3,
-    /// Half the image's extent at distance 1, across and up.
-    half: (f32, f32),
-    /// Pixels across and up.
-    size: (f32, f32),
+    pub forward: Vec3,
+    /// Image x per unit of `sx`, unit.
+    pub right: Vec3,
+    /// Image y per unit of `sy`, unit.
+    pub up: Vec3,
+    /// Half the image's extent across and up: at distance 1 (pinhole), in world units (orthographic).
+    pub half: (f32, f32),
+    /// Pixels across and up, as floats.
+    pub size: (f32, f32),
+    /// Pixels across.
+    pub width: u32,
+    /// Where rays pass through their pixel.
+    pub sampling: PixelSampling,
 }
 
-impl PinholeView {
-    fn new(camera: &Camera) -> PinholeView {
-        let forward = (camera.target - camera.eye).normalize();
-        let right = forward.cross(camera.up).normalize();
-        let half_height = (camera.fov_y_degrees.to_radians() * 0.5).tan();
-        PinholeView {
-            eye: camera.eye,
-            forward,
-            right,
-            up: right.cross(forward),
-            half: (half_height * camera.width as f32 / camera.height as f32, half_height),
-            size: (camera.width as f32, camera.height as f32),
-        }
-    }
-
-    /// The ray through image point (`px`, `py`) in pixels, (0, 0) the top left corner: [`Camera::ray`]'s formula.
-    fn ray(&self, px: f32, py: f32) -> Ray {
+impl CameraFrame {
+    /// The camera's ray `index`: its pixel and point in it (`PixelSampling`), through image point (`px`, `py`) in
+    /// pixels, (0, 0) the top left corner; `sx`, `sy` = (`px` / width · 2 − 1) · half width, (1 − `py` / height · 2)
+    /// · half height. Pinhole: from the eye along `forward + right·sx + up·sy`, normalized; orthographic: from
+    /// `eye + right·sx + up·sy` along `forward`. `tmin` 0, `tmax` +∞.
+    pub fn ray(&self, index: u64) -> Ray {
+        let (x, y, dx, dy) = self.sampling.sample(self.width, index);
+        let (px, py) = (x as f32 + dx, y as f32 + dy);
         let sx = (px / self.size.0 * 2.0 - 1.0) * self.half.0;
         let sy = (1.0 - py / self.size.1 * 2.0) * self.half.1;
-        let direction = (self.forward + self.right * sx + self.up * sy).normalize();
-        Ray { origin: self.eye.into(), direction: direction.into(), ..Ray::default() }
+        let (origin, direction) = match self.pinhole {
+            true => (self.eye, (self.forward + self.right * sx + self.up * sy).normalize()),
+            false => (self.eye + self.right * sx + self.up * sy, self.forward),
+        };
+        Ray { origin: origin.into(), direction: direction.into(), ..Ray::default() }
+    }
+}
+
+impl Generator {
+    /// The frame of a checked camera generator (pinhole or orthographic); `None` for the others.
+    pub fn camera_frame(&self) -> Option<CameraFrame> {
+        let (pinhole, eye, target, up, half_height, width, height, sampling) = match self {
+            Generator::Pinhole(c, s) => {
+                (true, c.eye, c.target, c.up, (c.fov_y_degrees.to_radians() * 0.5).tan(), c.width, c.height, s)
+            }
+            Generator::Orthographic(c, s) => (false, c.eye, c.target, c.up, c.view_height * 0.5, c.width, c.height, s),
+            _ => return None,
+        };
+        let (forward, right, up) = frame("", eye, target, up).expect("a checked generator");
+        Some(CameraFrame {
+            pinhole,
+            eye,
+            forward,
+            right,
+            up,
+            half: (half_height * width as f32 / height as f32, half_height),
+            size: (width as f32, height as f32),
+            width,
+            sampling: *sampling,
+        })
     }
 }
 

@@ -1,5 +1,7 @@
 //! The image reduction: each pixel's nearest hit as a depth or a normal, in float32, 16-bit or a 16-bit PNG.
 
+use glam::Vec3;
+
 use super::invalid;
 use crate::error::{Error, Result};
 use crate::format::{Hit, HitFormat};
@@ -84,31 +86,34 @@ impl Image {
 
     /// Appends the pixel of `hit` (its pixel's nearest, read from [`ImageChannel::hit_format`]).
     pub(super) fn push_pixel(&self, hit: &Hit, out: &mut Vec<u8>) {
-        match (self.channel, self.encoding) {
-            (ImageChannel::Depth, PixelEncoding::Float32) => {
-                let depth = if hit.is_hit() { hit.t } else { f32::INFINITY };
-                out.extend_from_slice(&depth.to_le_bytes());
+        match self.channel {
+            ImageChannel::Depth => self.push_depth(hit.is_hit().then_some(hit.t), out),
+            ImageChannel::Normal => {
+                let facing = if hit.back_face { -hit.normal } else { hit.normal };
+                self.push_normal(hit.is_hit().then_some(facing.into()), out)
             }
-            (ImageChannel::Depth, _) => {
-                let depth = match hit.is_hit() {
-                    true => ((hit.t - self.near) / (self.far - self.near)).clamp(0.0, 1.0) * 65534.0,
-                    false => 65535.0,
-                };
+        }
+    }
+
+    /// Appends a depth pixel whose nearest hit is at `t` (`None`: every ray of the pixel missed).
+    pub fn push_depth(&self, t: Option<f32>, out: &mut Vec<u8>) {
+        match (self.encoding, t) {
+            (PixelEncoding::Float32, t) => out.extend_from_slice(&t.unwrap_or(f32::INFINITY).to_le_bytes()),
+            (_, t) => {
+                let depth = t.map_or(65535.0, |t| ((t - self.near) / (self.far - self.near)).clamp(0.0, 1.0) * 65534.0);
                 out.extend_from_slice(&(depth.round() as u16).to_le_bytes());
             }
-            (ImageChannel::Normal, encoding) => {
-                let facing = match (hit.is_hit(), hit.back_face) {
-                    (false, _) => None,
-                    (true, false) => Some(hit.normal),
-                    (true, true) => Some(-hit.normal),
-                };
-                for n in facing.map_or([0.0; 3], |n| n.to_array()) {
-                    match (encoding, facing.is_some()) {
-                        (PixelEncoding::Float32, _) => out.extend_from_slice(&n.to_le_bytes()),
-                        (_, true) => out.extend_from_slice(&(((0.5 + 0.5 * n) * 65535.0).round() as u16).to_le_bytes()),
-                        (_, false) => out.extend_from_slice(&0u16.to_le_bytes()),
-                    }
-                }
+        }
+    }
+
+    /// Appends a normal pixel whose nearest hit has the unit normal `facing`, turned to face the ray (`None`: every
+    /// ray of the pixel missed).
+    pub fn push_normal(&self, facing: Option<Vec3>, out: &mut Vec<u8>) {
+        for n in facing.map_or([0.0; 3], |n| n.to_array()) {
+            match (self.encoding, facing.is_some()) {
+                (PixelEncoding::Float32, _) => out.extend_from_slice(&n.to_le_bytes()),
+                (_, true) => out.extend_from_slice(&(((0.5 + 0.5 * n) * 65535.0).round() as u16).to_le_bytes()),
+                (_, false) => out.extend_from_slice(&0u16.to_le_bytes()),
             }
         }
     }

@@ -9,10 +9,10 @@ use std::time::Instant;
 
 use bytes::{Bytes, BytesMut};
 use rayd_engine::Accel;
+use rayd_engine::backend::RaySource;
 use rayd_engine::query::{OutputLayout, Query, TraceOutput, TraceStats};
 use rayd_engine::raygen::Generator;
-use rayd_engine::reduce::{PARALLEL_SPLIT_RAYS, Partial, Reduction};
-use rayon::prelude::*;
+use rayd_engine::reduce::{Partial, Reduction};
 use tokio::sync::oneshot;
 
 use super::{AccelEntry, Tenant, TraceResult};
@@ -46,21 +46,14 @@ impl Rays {
         }
     }
 
-    /// The rays in bytes `range` of the packed batch: a slice of the sent bytes, or made by the generator into
-    /// `scratch`.
-    fn piece<'a>(&'a self, query: &Query, range: std::ops::Range<usize>, scratch: &'a mut Vec<u8>) -> &'a [u8] {
+    /// The rays in bytes `range` of the packed batch: a slice of the sent bytes, or the generator's rays there.
+    fn piece(&self, query: &Query, range: std::ops::Range<usize>) -> RaySource<'_> {
         match self {
-            Rays::Packed(bytes) => &bytes[range],
+            Rays::Packed(bytes) => RaySource::Packed(&bytes[range]),
             Rays::Generated(generator, rays) => {
-                scratch.clear();
-                scratch.resize(range.len(), 0);
                 let size = query.ray_format.size();
                 let first = rays.start + (range.start / size) as u64;
-                // A large piece (a GPU's) is made across the rayon pool, in parts of its own.
-                scratch.par_chunks_mut(PARALLEL_SPLIT_RAYS * size).enumerate().for_each(|(part, out)| {
-                    generator.fill(query.ray_format, first + (part * PARALLEL_SPLIT_RAYS) as u64, out)
-                });
-                scratch
+                RaySource::Generated { generator, first, count: range.len() / size }
             }
         }
     }
@@ -248,18 +241,13 @@ impl TraceJob {
     ) -> ServiceResult<(PieceOutput, TraceStats)> {
         let context = self.tenant.context(&self.device)?.1;
         let first_ray = (rays.start / self.query.ray_format.size()) as u64;
-        let mut scratch = Vec::new();
-        let rays = self.rays.piece(&self.query, rays, &mut scratch);
+        let rays = self.rays.piece(&self.query, rays);
         let Some(reduction) = &self.reduction else {
-            let stats =
-                context.trace(&self.accel, &self.query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
+            let output = TraceOutput { hits: &mut hits, counts: &mut counts };
+            let stats = context.trace_source(&self.accel, &self.query, rays, output)?;
             return Ok((PieceOutput::Hits(hits, counts), stats));
         };
-        let traced = reduction.traced_query(&self.query);
-        let layout = traced.output_layout(rays.len())?;
-        let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
-        let stats = context.trace(&self.accel, &traced, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
-        let reduced = reduction.reduce_piece_parallel(&traced, first_ray, rays, &hits, &counts);
+        let (reduced, stats) = context.trace_reduced(&self.accel, &self.query, rays, first_ray, reduction)?;
         Ok((PieceOutput::Reduced(reduced), stats))
     }
 

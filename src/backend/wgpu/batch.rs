@@ -5,7 +5,8 @@
 //!
 //! A slot's buffers (bind group 1 of the trace pipeline), every value a little-endian 32-bit word:
 //! - `params`: the chunk's [`Params`] (uniform).
-//! - `rays`: the chunk's rays, the caller's bytes unchanged (`RayFormat` layout), ray `i` at `i·size`.
+//! - `rays`: the chunk's rays, the caller's bytes unchanged (`RayFormat` layout), ray `i` at `i·size`; or, when
+//!   the rays are made on the device, the generator's [`GeneratorBlock`].
 //! - `hits`: the chunk's hit records in the caller's `HitFormat` layout, record `r` at `r·size`; for the
 //!   bitmask, record `r` is bit `r % 32` of word `r / 32` (which is bit `r % 8` of byte `r / 8`, as in the
 //!   caller's buffer), the words cleared before the dispatch. A chunk starts at a multiple of 32 rays, so its
@@ -17,9 +18,10 @@
 //!   (bit 31: back face) | 8 u f32 | 12 v f32 | 16 levels u32 | 20 records u32×7` (what entered each instance
 //!   level below the root, top to bottom: an instance record's offset in `graph`, or bit 31 and a transform's
 //!   object offset); 48 unused bytes for the other kinds.
-//! - `upload` (mappable, copied to `rays`) and `readback` (mappable, `hits`, `tallies`, then the kernel's start
-//!   and end timestamps copied into it): the staging buffers. An idle slot's `upload` is mapped, ready for the
-//!   next chunk's rays.
+//! - `reduced`: for the image reduction, `pixel_words` words a pixel (`reduce.wgsl`); 4 unused bytes otherwise.
+//! - `upload` (mappable, copied to `rays`; unused for generated rays) and `readback` (mappable: what the trace
+//!   gives back — `hits`, `reduced` or nothing — then `tallies`, then the kernel's start and end timestamps): the
+//!   staging buffers. An idle slot's `upload` is mapped, ready for the next chunk's rays.
 //! - `timestamps`, where the adapter has timestamp queries: a query set of 2 (the trace pass's start and end) and
 //!   the 16 bytes it resolves into (two u64 ticks); without them the readback's last 16 bytes stay unused.
 
@@ -29,7 +31,7 @@ use std::time::{Duration, Instant};
 #[cfg(doc)]
 use super::WgpuOptions;
 use super::device::Opened;
-use super::kernel::{Params, WORKGROUP_SIZE};
+use super::kernel::{Params, Rays, WORKGROUP_SIZE};
 use super::layout::GpuGraph;
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, read_u32};
@@ -50,8 +52,73 @@ const SCRATCH_ENTRY_BYTES: u64 = 48;
 pub(super) const MAX_CHUNK_RAYS: usize = 1 << 18;
 /// Rays one dispatch can cover: 65,535 workgroups (WebGPU's per-dimension limit) of [`WORKGROUP_SIZE`].
 const MAX_DISPATCH_RAYS: usize = 65_535 * WORKGROUP_SIZE as usize;
-/// Chunks start at multiples of this many rays, so that bitmask chunks start on word boundaries.
+/// Chunks start at multiples of this many rays (and of a reduction's pixel), so that bitmask chunks start on word
+/// boundaries.
 const CHUNK_ALIGN: usize = 32;
+
+/// Words of a [`GeneratorBlock`].
+pub(super) const GENERATOR_WORDS: usize = 21;
+
+/// A camera generator's numbers as the kernel reads them (layout in `generate.wgsl`), little-endian words.
+pub(super) type GeneratorBlock = [u32; GENERATOR_WORDS];
+
+/// Where a trace's rays come from.
+#[derive(Debug, Clone, Copy)]
+pub(super) enum Input<'a> {
+    /// The caller's rays, packed in the query's format.
+    Packed(&'a [u8]),
+    /// Made on the device by the pipeline of `rays` from `block`; the batch's first ray is the generator's ray
+    /// `first` (the batch ends below 2^32).
+    Generated {
+        /// Which generator.
+        rays: Rays,
+        /// Its numbers.
+        block: GeneratorBlock,
+        /// The generator's index of the batch's first ray.
+        first: u32,
+    },
+}
+
+/// What a trace gives back besides its statistics.
+#[derive(Debug)]
+pub(super) enum Output<'a> {
+    /// Every hit record and count, into the caller's buffers.
+    Hits(TraceOutput<'a>),
+    /// Each pixel of `group_rays` rays reduced on the device to `pixel_words` words (`reduce.wgsl`), into `pixels`
+    /// (little-endian words, pixel after pixel).
+    Pixels {
+        /// Rays a pixel.
+        group_rays: u32,
+        /// Words a pixel: 1 (depth) or 4 (normal).
+        pixel_words: u32,
+        /// The pixels of the whole batch.
+        pixels: &'a mut [u8],
+    },
+    /// Nothing else: the statistics count the rays hit.
+    Tallies,
+}
+
+impl Output<'_> {
+    /// Rays whose results go together (a pixel's), 1 but for pixels.
+    fn group_rays(&self) -> usize {
+        match self {
+            Output::Pixels { group_rays, .. } => *group_rays as usize,
+            _ => 1,
+        }
+    }
+
+    /// Bytes a chunk of `rays` rays gives back (a multiple of 4, as copies need): its hit records, its pixels, or
+    /// none.
+    fn chunk_bytes(&self, query: &Query, rays: usize) -> u64 {
+        match self {
+            Output::Hits(_) => (query.hit_format.buffer_len(rays * query.records_per_ray()) as u64).next_multiple_of(4),
+            Output::Pixels { group_rays, pixel_words, .. } => {
+                (rays / *group_rays as usize) as u64 * 4 * u64::from(*pixel_words)
+            }
+            Output::Tallies => 0,
+        }
+    }
+}
 
 /// The byte sizes of a slot's buffers.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -64,14 +131,25 @@ pub(super) struct Capacity {
     tallies: u64,
     /// `scratch`.
     scratch: u64,
+    /// `reduced` (at least 4).
+    reduced: u64,
+    /// What `readback` gives back before `tallies`.
+    given_back: u64,
 }
 
 impl Capacity {
-    /// What a chunk of `rays` rays of `query` needs.
-    fn for_chunk(query: &Query, rays: usize) -> Capacity {
+    /// What a chunk of `rays` rays of `query` needs, its rays from `input`, giving back `output`.
+    fn for_chunk(query: &Query, rays: usize, input: &Input<'_>, output: &Output<'_>) -> Capacity {
         let records = rays * query.records_per_ray();
+        let reduced = match output {
+            Output::Pixels { .. } => output.chunk_bytes(query, rays),
+            _ => 0,
+        };
         Capacity {
-            rays: (rays * query.ray_format.size()) as u64,
+            rays: match input {
+                Input::Packed(_) => (rays * query.ray_format.size()) as u64,
+                Input::Generated { .. } => 4 * GENERATOR_WORDS as u64,
+            },
             hits: (query.hit_format.buffer_len(records) as u64).next_multiple_of(4),
             tallies: TALLY_BYTES + if query.kind.has_counts() { 4 * rays as u64 } else { 0 },
             scratch: if query.kind == QueryKind::All {
@@ -79,17 +157,24 @@ impl Capacity {
             } else {
                 SCRATCH_ENTRY_BYTES
             },
+            reduced: reduced.max(4),
+            given_back: output.chunk_bytes(query, rays),
         }
     }
 
     /// The largest buffer.
     fn largest(&self) -> u64 {
-        self.rays.max(self.hits).max(self.tallies).max(self.scratch)
+        self.rays.max(self.hits).max(self.tallies).max(self.scratch).max(self.reduced)
     }
 
     /// Whether every buffer is at least as large as `need`'s.
     fn holds(&self, need: &Capacity) -> bool {
-        self.rays >= need.rays && self.hits >= need.hits && self.tallies >= need.tallies && self.scratch >= need.scratch
+        self.rays >= need.rays
+            && self.hits >= need.hits
+            && self.tallies >= need.tallies
+            && self.scratch >= need.scratch
+            && self.reduced >= need.reduced
+            && self.given_back >= need.given_back
     }
 
     /// The larger of each buffer.
@@ -99,6 +184,8 @@ impl Capacity {
             hits: self.hits.max(other.hits),
             tallies: self.tallies.max(other.tallies),
             scratch: self.scratch.max(other.scratch),
+            reduced: self.reduced.max(other.reduced),
+            given_back: self.given_back.max(other.given_back),
         }
     }
 }
@@ -108,7 +195,7 @@ impl Capacity {
 pub(super) struct Plan {
     /// Rays in the batch.
     rays: usize,
-    /// Rays of every chunk but the last: a multiple of [`CHUNK_ALIGN`].
+    /// Rays of every chunk but the last: a multiple of [`CHUNK_ALIGN`] and of the output's pixel.
     chunk_rays: usize,
     /// What a full chunk needs.
     need: Capacity,
@@ -116,25 +203,50 @@ pub(super) struct Plan {
 
 impl Plan {
     /// The largest chunks (up to `max_chunk_rays`) whose every buffer fits `binding_limit` bytes and whose
-    /// workgroups fit one dispatch; RESOURCE_EXHAUSTED if even [`CHUNK_ALIGN`] rays do not fit.
-    pub fn new(query: &Query, rays: usize, binding_limit: u64, max_chunk_rays: usize) -> Result<Plan> {
-        let most = max_chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS);
-        let mut chunk_rays = rays.next_multiple_of(CHUNK_ALIGN).clamp(CHUNK_ALIGN, most);
+    /// workgroups fit one dispatch; RESOURCE_EXHAUSTED if even one aligned chunk does not fit (or, for pixels, if
+    /// a chunk cannot hold whole pixels: the caller then reduces on the host).
+    pub fn new(
+        query: &Query,
+        rays: usize,
+        input: &Input<'_>,
+        output: &Output<'_>,
+        binding_limit: u64,
+        max_chunk_rays: usize,
+    ) -> Result<Plan> {
+        let align = lcm(CHUNK_ALIGN, output.group_rays());
+        let most = max_chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS) / align * align;
+        if most == 0 {
+            return Err(Error::TooLarge {
+                what: "a wgpu chunk of whole pixels",
+                requested: align as u64,
+                limit: max_chunk_rays as u64,
+            });
+        }
+        let mut chunk_rays = rays.next_multiple_of(align).clamp(align, most);
         loop {
-            let need = Capacity::for_chunk(query, chunk_rays);
+            let need = Capacity::for_chunk(query, chunk_rays, input, output);
             if need.largest() <= binding_limit {
                 return Ok(Plan { rays, chunk_rays, need });
             }
-            if chunk_rays == CHUNK_ALIGN {
+            if chunk_rays == align {
                 return Err(Error::TooLarge {
                     what: "a wgpu chunk of 32 rays (max_hits_per_ray too large)",
                     requested: need.largest(),
                     limit: binding_limit,
                 });
             }
-            chunk_rays = (chunk_rays / 2).next_multiple_of(CHUNK_ALIGN);
+            chunk_rays = (chunk_rays / 2).next_multiple_of(align);
         }
     }
+}
+
+/// The least common multiple of two positive numbers.
+fn lcm(a: usize, b: usize) -> usize {
+    let (mut x, mut y) = (a, b);
+    while y != 0 {
+        (x, y) = (y, x % y);
+    }
+    a / x * b
 }
 
 /// One chunk's buffers on the device (see the module documentation).
@@ -151,7 +263,9 @@ pub(super) struct Slot {
     hits: wgpu::Buffer,
     /// Statistics and counts the kernel writes.
     tallies: wgpu::Buffer,
-    /// Staging for `hits`, `tallies` and the timestamps.
+    /// The image reduction's pixels.
+    reduced: wgpu::Buffer,
+    /// Staging for what the trace gives back, `tallies` and the timestamps.
     readback: wgpu::Buffer,
     /// The kernel's timestamp queries and the buffer they resolve into, where the adapter has them.
     timestamps: Option<(wgpu::QuerySet, wgpu::Buffer)>,
@@ -177,7 +291,8 @@ impl Slot {
         let hits = buffer("rayd hits", capacity.hits, U::STORAGE | U::COPY_SRC | U::COPY_DST, false);
         let tallies = buffer("rayd tallies", capacity.tallies, U::STORAGE | U::COPY_SRC | U::COPY_DST, false);
         let scratch = buffer("rayd scratch", capacity.scratch, U::STORAGE, false);
-        let readback_bytes = capacity.hits + capacity.tallies + TIMESTAMP_BYTES;
+        let reduced = buffer("rayd reduced", capacity.reduced, U::STORAGE | U::COPY_SRC, false);
+        let readback_bytes = capacity.given_back + capacity.tallies + TIMESTAMP_BYTES;
         let readback = buffer("rayd readback", readback_bytes, U::MAP_READ | U::COPY_DST, false);
         let timestamps = opened.timestamp_period.map(|_| {
             let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
@@ -190,7 +305,7 @@ impl Slot {
         let bind_group = opened.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("rayd batch"),
             layout: &opened.kernel.batch_layout,
-            entries: &[&params, &rays, &hits, &tallies, &scratch]
+            entries: &[&params, &rays, &hits, &tallies, &scratch, &reduced]
                 .iter()
                 .enumerate()
                 .map(|(binding, buffer)| wgpu::BindGroupEntry {
@@ -199,7 +314,7 @@ impl Slot {
                 })
                 .collect::<Vec<_>>(),
         });
-        Slot { capacity, params, upload, rays, hits, tallies, readback, timestamps, bind_group }
+        Slot { capacity, params, upload, rays, hits, tallies, reduced, readback, timestamps, bind_group }
     }
 }
 
@@ -222,8 +337,8 @@ struct InFlight {
     submission: wgpu::SubmissionIndex,
     /// Reports the readback buffer mapped.
     read: Receiver<Result<(), wgpu::BufferAsyncError>>,
-    /// Reports the upload buffer mapped again.
-    write: Receiver<Result<(), wgpu::BufferAsyncError>>,
+    /// Reports the upload buffer mapped again (packed rays only).
+    write: Option<Receiver<Result<(), wgpu::BufferAsyncError>>>,
 }
 
 /// The little-endian u64 at byte `at` of `bytes`.
@@ -266,15 +381,17 @@ fn wait_mapped(
     }
 }
 
-/// Traces the batch `rays` of `query` against `accel` in `plan`'s chunks and writes `out`, through `slots` (made or grown to [`SLOTS`] slots of the plan's needs; emptied if the trace fails, since
-/// their state is then unknown).
+/// Traces the batch of `plan` with `query` against `accel`, its rays from `input`, into `output`, through `slots`
+/// (made or grown to [`SLOTS`] slots of the plan's needs; emptied if the trace fails, since their state is then
+/// unknown).
+#[allow(clippy::too_many_arguments)]
 pub(super) fn trace(
     opened: &Opened,
     accel: &GpuGraph,
     query: &Query,
     plan: &Plan,
-    rays: &[u8],
-    out: TraceOutput<'_>,
+    input: Input<'_>,
+    output: Output<'_>,
     slots: &mut Vec<Slot>,
 ) -> Result<TraceStats> {
     if plan.rays == 0 {
@@ -288,8 +405,11 @@ pub(super) fn trace(
             None => slots.push(Slot::new(opened, plan.need)),
         }
     }
-    let params = Params { root: accel.root, ..Params::for_query(query) };
-    let traced = run_chunks(opened, accel, query, plan, &params, rays, out, slots, started);
+    let mut params = Params { root: accel.root, ..Params::for_query(query) };
+    if let Output::Pixels { group_rays, pixel_words, .. } = output {
+        (params.group_rays, params.pixel_words) = (group_rays, pixel_words);
+    }
+    let traced = run_chunks(opened, accel, query, plan, &params, input, output, slots, started);
     if traced.is_err() {
         slots.clear();
     }
@@ -304,18 +424,17 @@ fn run_chunks(
     query: &Query,
     plan: &Plan,
     params: &Params,
-    rays: &[u8],
-    out: TraceOutput<'_>,
+    input: Input<'_>,
+    mut output: Output<'_>,
     slots: &[Slot],
     started: Instant,
 ) -> Result<TraceStats> {
-    let TraceOutput { hits, counts } = out;
     let mut stats = TraceStats::default();
-    // Host time submitting (rays copied into staging) and finishing (waiting, hits copied out), for the log.
+    // Host time submitting (rays copied into staging) and finishing (waiting, results copied out), for the log.
     let (mut submitting, mut finishing) = (Duration::ZERO, Duration::ZERO);
-    let mut finish_one = |slot: usize, flight: InFlight, stats: &mut TraceStats| {
+    let mut finish_one = |slot: usize, flight: InFlight, output: &mut Output<'_>, stats: &mut TraceStats| {
         let start = Instant::now();
-        let finished = finish(opened, &slots[slot], flight, query, hits, counts, stats);
+        let finished = finish(opened, &slots[slot], flight, query, output, stats);
         finishing += start.elapsed();
         finished
     };
@@ -323,18 +442,18 @@ fn run_chunks(
     for (index, first) in (0..plan.rays).step_by(plan.chunk_rays).enumerate() {
         let slot = index % SLOTS;
         if let Some(flight) = in_flight[slot].take() {
-            finish_one(slot, flight, &mut stats)?;
+            finish_one(slot, flight, &mut output, &mut stats)?;
         }
         let chunk = Chunk { first, rays: plan.chunk_rays.min(plan.rays - first) };
         let start = Instant::now();
-        in_flight[slot] = Some(submit(opened, accel, &slots[slot], query, params, chunk, rays)?);
+        in_flight[slot] = Some(submit(opened, accel, &slots[slot], query, params, chunk, &input, &output)?);
         submitting += start.elapsed();
     }
     let mut rest: Vec<(usize, InFlight)> =
         in_flight.into_iter().enumerate().filter_map(|(slot, flight)| Some((slot, flight?))).collect();
     rest.sort_by_key(|(_, flight)| flight.chunk.first);
     for (slot, flight) in rest {
-        finish_one(slot, flight, &mut stats)?;
+        finish_one(slot, flight, &mut output, &mut stats)?;
     }
     tracing::debug!(
         rays = plan.rays,
@@ -348,8 +467,11 @@ fn run_chunks(
     Ok(stats)
 }
 
-/// Copies the chunk's rays into `slot`'s (mapped) upload buffer and submits the copy, the dispatch and the
-/// copies into the readback buffer; then asks for both staging buffers to be mapped when that work is done.
+/// Puts the chunk's rays on the device — its packed rays copied into `slot`'s (mapped) upload buffer, or the
+/// generator's block written — and submits the dispatches (the trace, then the pixel reduction if `output` has
+/// pixels) and the copies into the readback buffer; then asks for the staging buffers to be mapped when that work
+/// is done.
+#[allow(clippy::too_many_arguments)]
 fn submit(
     opened: &Opened,
     accel: &GpuGraph,
@@ -357,22 +479,32 @@ fn submit(
     query: &Query,
     params: &Params,
     chunk: Chunk,
-    rays: &[u8],
+    input: &Input<'_>,
+    output: &Output<'_>,
 ) -> Result<InFlight> {
-    let size = query.ray_format.size();
-    let bytes = &rays[chunk.first * size..(chunk.first + chunk.rays) * size];
-    let need = Capacity::for_chunk(query, chunk.rays);
-    slot.upload
-        .slice(..need.rays)
-        .get_mapped_range_mut()
-        .map_err(|e| device_error("mapping the ray staging buffer", e))?
-        .copy_from_slice(bytes);
-    slot.upload.unmap();
-    let params = Params { ray_count: chunk.rays as u32, ..*params };
-    opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
+    let need = Capacity::for_chunk(query, chunk.rays, input, output);
     let mut encoder =
         opened.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("rayd trace") });
-    encoder.copy_buffer_to_buffer(&slot.upload, 0, &slot.rays, 0, need.rays);
+    let mut params = Params { ray_count: chunk.rays as u32, ..*params };
+    let rays = match input {
+        Input::Packed(rays) => {
+            let size = query.ray_format.size();
+            slot.upload
+                .slice(..need.rays)
+                .get_mapped_range_mut()
+                .map_err(|e| device_error("mapping the ray staging buffer", e))?
+                .copy_from_slice(&rays[chunk.first * size..(chunk.first + chunk.rays) * size]);
+            slot.upload.unmap();
+            encoder.copy_buffer_to_buffer(&slot.upload, 0, &slot.rays, 0, need.rays);
+            Rays::Packed
+        }
+        Input::Generated { rays, block, first } => {
+            opened.queue.write_buffer(&slot.rays, 0, bytemuck::bytes_of(block));
+            params.first_ray = first + chunk.first as u32;
+            *rays
+        }
+    };
+    opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
     if query.hit_format == HitFormat::Bitmask {
         encoder.clear_buffer(&slot.hits, 0, Some(need.hits));
     }
@@ -385,52 +517,78 @@ fn submit(
         });
         let mut pass =
             encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes });
-        pass.set_pipeline(opened.kernel.pipeline(&opened.device, accel.variant.for_query(query)));
+        let variant = super::kernel::Variant { rays, ..accel.variant.for_query(query) };
+        pass.set_pipeline(opened.kernel.pipeline(&opened.device, variant));
         pass.set_bind_group(0, &accel.bind_group, &[]);
         pass.set_bind_group(1, &slot.bind_group, &[]);
         pass.dispatch_workgroups((chunk.rays as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
+        if let Output::Pixels { group_rays, .. } = output {
+            // Dispatches of one pass see each other's writes: the reduction reads the records just traced.
+            pass.set_pipeline(opened.kernel.reduce_pixels(&opened.device));
+            pass.dispatch_workgroups((chunk.rays as u32 / group_rays).div_ceil(WORKGROUP_SIZE), 1, 1);
+        }
     }
-    encoder.copy_buffer_to_buffer(&slot.hits, 0, &slot.readback, 0, need.hits);
-    encoder.copy_buffer_to_buffer(&slot.tallies, 0, &slot.readback, need.hits, need.tallies);
+    let given_back = match output {
+        Output::Hits(_) => Some(&slot.hits),
+        Output::Pixels { .. } => Some(&slot.reduced),
+        Output::Tallies => None,
+    };
+    if let Some(buffer) = given_back {
+        encoder.copy_buffer_to_buffer(buffer, 0, &slot.readback, 0, need.given_back);
+    }
+    encoder.copy_buffer_to_buffer(&slot.tallies, 0, &slot.readback, need.given_back, need.tallies);
     if let Some((queries, resolved)) = &slot.timestamps {
         encoder.resolve_query_set(queries, 0..2, resolved, 0);
-        encoder.copy_buffer_to_buffer(resolved, 0, &slot.readback, need.hits + need.tallies, TIMESTAMP_BYTES);
+        encoder.copy_buffer_to_buffer(resolved, 0, &slot.readback, need.given_back + need.tallies, TIMESTAMP_BYTES);
     }
     let submission = opened.queue.submit([encoder.finish()]);
-    let read = request_map(&slot.readback, wgpu::MapMode::Read, need.hits + need.tallies + TIMESTAMP_BYTES);
-    let write = request_map(&slot.upload, wgpu::MapMode::Write, slot.capacity.rays);
+    let read = request_map(&slot.readback, wgpu::MapMode::Read, need.given_back + need.tallies + TIMESTAMP_BYTES);
+    let write =
+        matches!(input, Input::Packed(_)).then(|| request_map(&slot.upload, wgpu::MapMode::Write, slot.capacity.rays));
     Ok(InFlight { chunk, need, submission, read, write })
 }
 
-/// Waits for a chunk, copies its records and counts into the caller's buffers and adds its statistics; leaves
-/// the slot idle (upload mapped, readback unmapped).
+/// Waits for a chunk, copies what it gives back into `output` and adds its statistics; leaves the slot idle
+/// (upload mapped, readback unmapped).
 fn finish(
     opened: &Opened,
     slot: &Slot,
     flight: InFlight,
     query: &Query,
-    hits: &mut [u8],
-    counts: &mut [u8],
+    output: &mut Output<'_>,
     stats: &mut TraceStats,
 ) -> Result<()> {
     wait_mapped(opened, &flight.read, &flight.submission)?;
-    wait_mapped(opened, &flight.write, &flight.submission)?;
+    if let Some(write) = &flight.write {
+        wait_mapped(opened, write, &flight.submission)?;
+    }
     let InFlight { chunk, need, .. } = flight;
     {
         let view = slot
             .readback
-            .slice(..need.hits + need.tallies + TIMESTAMP_BYTES)
+            .slice(..need.given_back + need.tallies + TIMESTAMP_BYTES)
             .get_mapped_range()
             .map_err(|e| device_error("mapping the hit staging buffer", e))?;
-        let per_ray = query.records_per_ray();
-        let start = query.hit_format.buffer_len(chunk.first * per_ray);
-        let len = query.hit_format.buffer_len(chunk.rays * per_ray);
-        hits[start..start + len].copy_from_slice(&view[..len]);
-        let tallies = &view[need.hits as usize..(need.hits + need.tallies) as usize];
-        let ticks = &view[(need.hits + need.tallies) as usize..];
-        if query.kind.has_counts() {
-            counts[4 * chunk.first..4 * (chunk.first + chunk.rays)]
-                .copy_from_slice(&tallies[TALLY_BYTES as usize..TALLY_BYTES as usize + 4 * chunk.rays]);
+        let tallies = &view[need.given_back as usize..(need.given_back + need.tallies) as usize];
+        let ticks = &view[(need.given_back + need.tallies) as usize..];
+        match output {
+            Output::Hits(TraceOutput { hits, counts }) => {
+                let per_ray = query.records_per_ray();
+                let start = query.hit_format.buffer_len(chunk.first * per_ray);
+                let len = query.hit_format.buffer_len(chunk.rays * per_ray);
+                hits[start..start + len].copy_from_slice(&view[..len]);
+                if query.kind.has_counts() {
+                    counts[4 * chunk.first..4 * (chunk.first + chunk.rays)]
+                        .copy_from_slice(&tallies[TALLY_BYTES as usize..TALLY_BYTES as usize + 4 * chunk.rays]);
+                }
+            }
+            Output::Pixels { group_rays, pixel_words, pixels } => {
+                let pixel_bytes = 4 * *pixel_words as usize;
+                let start = chunk.first / *group_rays as usize * pixel_bytes;
+                let len = need.given_back as usize;
+                pixels[start..start + len].copy_from_slice(&view[..len]);
+            }
+            Output::Tallies => {}
         }
         let wide =
             |word: usize| u64::from(read_u32(tallies, 4 * word)) | u64::from(read_u32(tallies, 4 * word + 4)) << 32;

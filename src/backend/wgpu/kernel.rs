@@ -1,5 +1,6 @@
-//! The trace pipelines: their WGSL source (`shaders/layout.wgsl` then `shaders/trace.wgsl`), the variants it is
-//! compiled into, their bind group layouts and the uniform block each chunk gets.
+//! The trace pipelines: their WGSL source (`shaders/layout.wgsl`, `trace.wgsl`, `generate.wgsl`, `reduce.wgsl`),
+//! the variants it is compiled into, the image reduction's pipeline, their bind group layouts and the uniform block
+//! each chunk gets.
 
 use std::sync::OnceLock;
 
@@ -8,8 +9,13 @@ use bytemuck::{Pod, Zeroable};
 use crate::format::{HitFormat, RayFormat};
 use crate::query::{Query, QueryKind};
 
-/// The kernel's source: the shared structs, then the trace pipeline.
-const SOURCE: &str = concat!(include_str!("shaders/layout.wgsl"), include_str!("shaders/trace.wgsl"));
+/// The kernel's source: the shared structs, the trace pipeline, rays made on the device, the pixel reduction.
+const SOURCE: &str = concat!(
+    include_str!("shaders/layout.wgsl"),
+    include_str!("shaders/trace.wgsl"),
+    include_str!("shaders/generate.wgsl"),
+    include_str!("shaders/reduce.wgsl"),
+);
 
 /// Entries of the kernel's traversal stack (`STACK_SIZE` in `trace.wgsl`): an accel whose rays could need more is
 /// refused. A BVH walk holds at most `NODE_WIDTH − 1` pending lanes a node on its way down; each instance level adds
@@ -32,10 +38,25 @@ pub(super) struct Variant {
     pub kind: u32,
     /// The hit format is [`HitFormat::Full`] (`FULL_HITS`).
     pub full_hits: bool,
+    /// Where the rays come from (`GENERATOR`).
+    pub rays: Rays,
+}
+
+/// Where a pipeline's rays come from (the values of `GENERATOR_*` in `generate.wgsl`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[repr(u32)]
+pub(super) enum Rays {
+    /// The caller's rays, packed.
+    #[default]
+    Packed = 0,
+    /// A pinhole camera generator.
+    Pinhole = 1,
+    /// An orthographic camera generator.
+    Orthographic = 2,
 }
 
 /// Pipelines a kernel can hold: one a [`Variant`].
-const VARIANTS: usize = 2 * 2 * QueryKind::ALL.len() * 2;
+const VARIANTS: usize = 3 * QueryKind::ALL.len() * 2 * 2 * 2;
 
 impl Variant {
     /// The graph's part of a variant; [`Variant::for_query`] adds the query's.
@@ -50,13 +71,16 @@ impl Variant {
 
     /// Its pipeline's index in [`Kernel`].
     fn index(self) -> usize {
-        ((self.kind as usize * 2 + usize::from(self.full_hits)) * 2 + usize::from(self.motion)) * 2
+        (((self.rays as usize * QueryKind::ALL.len() + self.kind as usize) * 2 + usize::from(self.full_hits)) * 2
+            + usize::from(self.motion))
+            * 2
             + usize::from(self.levels)
     }
 }
 
-/// The uniform block of one chunk (`Params` in `layout.wgsl`), 28 bytes: `0 ray_count | 4 ray_format |
-/// 8 hit_format | 12 query_flags | 16 records_per_ray | 20 record_words | 24 root`, every field a little-endian u32.
+/// The uniform block of one chunk (`Params` in `layout.wgsl`), 40 bytes: `0 ray_count | 4 ray_format |
+/// 8 hit_format | 12 query_flags | 16 records_per_ray | 20 record_words | 24 root | 28 first_ray | 32 group_rays |
+/// 36 pixel_words`, every field a little-endian u32.
 /// Formats are their indices in [`RayFormat::ALL`] and [`HitFormat::ALL`]; the query kind is the pipeline's
 /// ([`Variant`]).
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]
@@ -76,6 +100,12 @@ pub(super) struct Params {
     pub record_words: u32,
     /// The traced accel's object: its offset in the `graph` buffer.
     pub root: u32,
+    /// Generated rays: the generator's index of the chunk's first ray.
+    pub first_ray: u32,
+    /// The image reduction: rays a pixel.
+    pub group_rays: u32,
+    /// The image reduction: words a pixel (1 depth, 4 normal; 0 without it).
+    pub pixel_words: u32,
 }
 
 /// The index of `value` in `all`.
@@ -105,9 +135,11 @@ pub(super) struct Kernel {
     layout: wgpu::PipelineLayout,
     /// By [`Variant::index`].
     pipelines: [OnceLock<wgpu::ComputePipeline>; VARIANTS],
+    /// The image reduction's pass (`reduce_pixels`).
+    reduce_pixels: OnceLock<wgpu::ComputePipeline>,
     /// Group 0: an accel's buffers (nodes, node key boxes, corners, prims, graph).
     pub accel_layout: wgpu::BindGroupLayout,
-    /// Group 1: a chunk's buffers (params, rays, hits, tallies, scratch).
+    /// Group 1: a chunk's buffers (params, rays, hits, tallies, scratch, reduced).
     pub batch_layout: wgpu::BindGroupLayout,
 }
 
@@ -165,14 +197,28 @@ impl Kernel {
         };
         let batch_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("rayd batch"),
-            entries: &[params, storage(1, true), storage(2, false), storage(3, false), storage(4, false)],
+            entries: &[
+                params,
+                storage(1, true),
+                storage(2, false),
+                storage(3, false),
+                storage(4, false),
+                storage(5, false),
+            ],
         });
         let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("rayd trace"),
             bind_group_layouts: &[Some(&accel_layout), Some(&batch_layout)],
             immediate_size: 0,
         });
-        Kernel { module, layout, pipelines: std::array::from_fn(|_| OnceLock::new()), accel_layout, batch_layout }
+        Kernel {
+            module,
+            layout,
+            pipelines: std::array::from_fn(|_| OnceLock::new()),
+            reduce_pixels: OnceLock::new(),
+            accel_layout,
+            batch_layout,
+        }
     }
 
     /// The pipeline of `variant`, compiled on `device` the first time it is asked for.
@@ -183,19 +229,31 @@ impl Kernel {
                 ("MOTION", f64::from(u8::from(variant.motion))),
                 ("QUERY_KIND", f64::from(variant.kind)),
                 ("FULL_HITS", f64::from(u8::from(variant.full_hits))),
+                ("GENERATOR", f64::from(variant.rays as u32)),
                 ("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE)),
             ];
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("rayd trace"),
-                layout: Some(&self.layout),
-                module: &self.module,
-                entry_point: Some("trace"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &constants,
-                    ..wgpu::PipelineCompilationOptions::default()
-                },
-                cache: None,
-            })
+            self.compile(device, "trace", &constants)
+        })
+    }
+
+    /// The image reduction's pipeline, compiled on `device` the first time it is asked for.
+    pub fn reduce_pixels(&self, device: &wgpu::Device) -> &wgpu::ComputePipeline {
+        self.reduce_pixels
+            .get_or_init(|| self.compile(device, "reduce_pixels", &[("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE))]))
+    }
+
+    /// The module's entry point `entry` with the pipeline constants `constants`.
+    fn compile(&self, device: &wgpu::Device, entry: &str, constants: &[(&str, f64)]) -> wgpu::ComputePipeline {
+        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(entry),
+            layout: Some(&self.layout),
+            module: &self.module,
+            entry_point: Some(entry),
+            compilation_options: wgpu::PipelineCompilationOptions {
+                constants,
+                ..wgpu::PipelineCompilationOptions::default()
+            },
+            cache: None,
         })
     }
 }

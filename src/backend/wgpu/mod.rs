@@ -5,7 +5,8 @@
 //! What runs on the GPU: traversal and hit collection for every accel kind — geometry accels (static or with
 //! vertex motion), instance accels (visibility masks, instance flags, motion keys) and static, matrix motion and
 //! SRT motion transforms, in graphs as deep as the engine allows — at per-ray times, in every ray format, hit
-//! format and query kind, with ray flags and Prime masks. One kernel walks every level of 4-wide nodes: entering an
+//! format and query kind, with ray flags and Prime masks. Rays of camera generators are made by the kernel, and
+//! image and count reductions made on the device, so that only the reduction crosses the bus ([`offload`]). One kernel walks every level of 4-wide nodes: entering an
 //! instance or transform it carries the ray into the child's space and pushes a marker that restores it. It is
 //! compiled into one pipeline a graph shape and query ([`kernel::Variant`]), so that a static geometry accel's
 //! closest-hit trace carries none of the instance, motion or `all`-query machinery. Refused (FAILED_PRECONDITION):
@@ -22,6 +23,7 @@ mod device;
 mod graph;
 mod kernel;
 mod layout;
+mod offload;
 
 use std::any::Any;
 use std::sync::{Arc, Mutex};
@@ -30,16 +32,18 @@ use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
 use crate::backend::cpu::{CpuAccel, CpuBackend, cpu};
-use crate::backend::{Backend, BackendAccel, DeviceInfo, Shape};
+use crate::backend::{Backend, BackendAccel, DeviceInfo, RaySource, Shape, host};
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform};
 use crate::query::{Query, TraceOutput, TraceStats};
+use crate::reduce::{Partial, Reduction};
 
-use batch::Slot;
+use batch::{Input, Output, Slot};
 use device::{Gpu, Opened};
 use layout::GpuGraph;
+use offload::OnDevice;
 
 /// Settings of a wgpu device.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -210,15 +214,89 @@ impl Backend for WgpuBackend {
     }
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
-        let accel = wgpu_accel(accel)?;
-        let layout = query.output_layout(rays.len())?;
+        self.trace_source(accel, query, RaySource::Packed(rays), out)
+    }
+
+    /// Camera generators' rays are made by the kernel; other generators' on the host.
+    fn trace_source(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: RaySource<'_>,
+        out: TraceOutput<'_>,
+    ) -> Result<TraceStats> {
+        let input = match rays {
+            RaySource::Packed(rays) => Input::Packed(rays),
+            RaySource::Generated { generator, first, count } => match offload::generated(generator, first, count) {
+                Some(input) => input,
+                None => return host::trace_source(self, accel, query, rays, out),
+            },
+        };
+        let layout = query.output_layout(rays.packed_len(query.ray_format.size()))?;
         out.check(&layout)?;
-        let opened = self.opened()?;
-        let binding_limit = opened.binding_limit(self.options.max_binding_bytes);
+        let output = Output::Hits(out);
+        let plan = self.plan(query, layout.rays, &input, &output)?;
+        self.run(wgpu_accel(accel)?, query, &plan, input, output)
+    }
+
+    /// Images and the counts of closest and any queries are reduced on the device ([`offload`]), with camera rays
+    /// made there too; other reductions on the host.
+    fn trace_reduced(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: RaySource<'_>,
+        first_ray: u64,
+        reduction: &Reduction,
+    ) -> Result<(Partial, TraceStats)> {
+        let Some(on_device) = OnDevice::of(reduction, query) else {
+            return host::trace_reduced(self, accel, query, rays, first_ray, reduction);
+        };
+        let traced = reduction.traced_query(query);
+        let mut scratch = Vec::new();
+        let input = match rays {
+            RaySource::Generated { generator, first, count } => offload::generated(generator, first, count),
+            RaySource::Packed(_) => None,
+        }
+        .unwrap_or_else(|| Input::Packed(host::packed(rays, query.ray_format, &mut scratch)));
+        let count = rays.count(query.ray_format.size());
+        let mut pixels = Vec::new();
+        let output = match &on_device {
+            OnDevice::Image(image) => {
+                let pixel_words = OnDevice::pixel_words(image);
+                pixels.resize(count / image.rays_per_pixel as usize * 4 * pixel_words as usize, 0);
+                Output::Pixels { group_rays: image.rays_per_pixel, pixel_words, pixels: &mut pixels }
+            }
+            OnDevice::Counts => Output::Tallies,
+        };
+        // A pixel too large for one chunk is reduced on the host.
+        let Ok(plan) = self.plan(&traced, count, &input, &output) else {
+            return host::trace_reduced(self, accel, query, rays, first_ray, reduction);
+        };
+        let stats = self.run(wgpu_accel(accel)?, &traced, &plan, input, output)?;
+        Ok((on_device.partial(&pixels, &stats), stats))
+    }
+}
+
+impl WgpuBackend {
+    /// How a batch of `rays` rays of `query`, from `input` into `output`, is cut into chunks on this adapter.
+    fn plan(&self, query: &Query, rays: usize, input: &Input<'_>, output: &Output<'_>) -> Result<batch::Plan> {
+        let binding_limit = self.opened()?.binding_limit(self.options.max_binding_bytes);
         let max_chunk_rays = self.options.max_chunk_rays.unwrap_or(batch::MAX_CHUNK_RAYS);
-        let plan = batch::Plan::new(query, layout.rays, binding_limit, max_chunk_rays)?;
+        batch::Plan::new(query, rays, input, output, binding_limit, max_chunk_rays)
+    }
+
+    /// Traces the batch of `plan` through the slot pool.
+    fn run(
+        &self,
+        accel: &WgpuAccel,
+        query: &Query,
+        plan: &batch::Plan,
+        input: Input<'_>,
+        output: Output<'_>,
+    ) -> Result<TraceStats> {
         let mut slots = self.take_slots();
-        let traced = batch::trace(opened, &accel.device, query, &plan, rays, out, &mut slots);
+        let traced = batch::trace(self.opened()?, &accel.device, query, plan, input, output, &mut slots);
         self.slots.lock().unwrap_or_else(|e| e.into_inner()).extend(slots);
         traced
     }

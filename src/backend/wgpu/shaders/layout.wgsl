@@ -1,7 +1,7 @@
 // Shared by every pipeline of the wgpu backend: the structs and constants whose byte layouts the host writes.
 // Each names the Rust item it must match; change both together.
 
-// `kernel::Params` (src/backend/wgpu/kernel.rs), 28 bytes, one uniform buffer a chunk.
+// `kernel::Params` (src/backend/wgpu/kernel.rs), 40 bytes, one uniform buffer a chunk.
 struct Params {
     // Rays in this chunk.
     ray_count: u32,
@@ -17,6 +17,11 @@ struct Params {
     record_words: u32,
     // The traced accel's object: its word offset in `graph`.
     root: u32,
+    // Generated rays: the generator's index of the chunk's first ray.
+    first_ray: u32,
+    // The image reduction: rays a pixel, and words a pixel (1 depth, 4 normal; 0 without a reduction).
+    group_rays: u32,
+    pixel_words: u32,
 }
 
 // A device node (`layout::NODE_WORDS` words, `layout.rs`): `NODE_WIDTH` lanes, by field then lane. A lane is an

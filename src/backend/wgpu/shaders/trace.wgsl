@@ -3,7 +3,8 @@
 // visited nearest first, the same pop re-check as `src/backend/cpu/traverse.rs`; an instance leaf's visible
 // instances in order, each child traversed in the instance's space before the next), tests triangles as
 // `src/intersect/triangle.rs` does, collects hits as `src/query/collect.rs` does and writes the caller's hit
-// format. Prepended by `layout.wgsl`. The walk is while-while (Aila and Laine): a thread tests nodes until it has
+// format. Prepended by `layout.wgsl`, followed by `generate.wgsl` (rays made on the device) and `reduce.wgsl`
+// (the image reduction's pass). The walk is while-while (Aila and Laine): a thread tests nodes until it has
 // a leaf, then that leaf's triangles, so the threads of a subgroup do the same kind of work at the same time.
 //
 // Instance levels without recursion: the walk is one loop over one stack. Entering an instance or transform
@@ -27,7 +28,7 @@
 
 // The chunk (`batch::Slot`).
 @group(1) @binding(0) var<uniform> params: Params;
-// The caller's rays, packed in `params.ray_format`.
+// The caller's rays, packed in `params.ray_format`; or a generator's numbers (`generate.wgsl`).
 @group(1) @binding(1) var<storage, read> rays: array<u32>;
 // The caller's hit records, packed in `params.hit_format` (atomic for the bitmask's shared words).
 @group(1) @binding(2) var<storage, read_write> hits: array<atomic<u32>>;
@@ -44,6 +45,8 @@ override MOTION: bool = true;
 // graph's transforms again).
 override QUERY_KIND: u32 = 0u;
 override FULL_HITS: bool = true;
+// Where the rays come from: the caller's packed rays, or a generator (`GENERATOR_*` in `generate.wgsl`).
+override GENERATOR: u32 = 0u;
 // Threads of a workgroup, one a ray (set to `kernel::WORKGROUP_SIZE`).
 override WORKGROUP_SIZE: u32 = 64u;
 
@@ -1126,7 +1129,12 @@ fn trace(@builtin(global_invocation_id) global: vec3<u32>, @builtin(local_invoca
     workgroupBarrier();
     let index = global.x;
     if index < params.ray_count {
-        let ray = load_ray(index);
+        var ray: PreparedRay;
+        if GENERATOR == GENERATOR_NONE {
+            ray = load_ray(index);
+        } else {
+            ray = generated_ray(index);
+        }
         kind = QUERY_KIND;
         ray_tmax = ray.tmax;
         ray_time = ray.time;
