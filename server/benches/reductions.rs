@@ -28,6 +28,8 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 const SIDE: u32 = 2048;
 /// Timed runs of each row (after one warm-up); the median is reported.
 const RUNS: usize = 5;
+/// Calls in flight at once in the concurrent rows.
+const CONCURRENT_CALLS: usize = 4;
 
 fn median(mut values: Vec<f64>) -> f64 {
     values.sort_by(f64::total_cmp);
@@ -181,6 +183,31 @@ fn main() {
             row(what, seconds, &data);
             let trace = median(trace_seconds.into_inner().unwrap());
             println!("{:<52} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
+        }
+
+        // Several callers at once keep the device busy (a GPU idling between calls lowers its clock).
+        let concurrent = [
+            ("depth image float32, 4 calls at once", image(ImageChannel::Depth, PixelEncoding::Float32, near, far)),
+            ("hit counts, 4 calls at once", Reduction::Counts),
+        ];
+        for (what, reduction) in concurrent {
+            let (seconds, data) = timed(|| async {
+                let calls: Vec<_> = (0..CONCURRENT_CALLS)
+                    .map(|_| {
+                        let (client, generator, reduction) = (client.clone(), generator.clone(), reduction.clone());
+                        tokio::spawn(async move {
+                            client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap().data
+                        })
+                    })
+                    .collect();
+                let mut last = Bytes::new();
+                for call in calls {
+                    last = call.await.unwrap();
+                }
+                last
+            })
+            .await;
+            row(&format!("generated, {what}"), seconds / CONCURRENT_CALLS as f64, &data);
         }
     });
 }

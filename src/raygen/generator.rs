@@ -495,5 +495,17 @@ mod tests {
             seed: 0,
         };
         assert!(Generator::Sphere(sphere).check().unwrap_err().to_string().contains("generator.normals"));
+        // Finite times whose span is not: the first step's time would be NaN.
+        let lidar = Lidar {
+            origin: Vec3::ZERO,
+            forward: Vec3::X,
+            up: Vec3::Z,
+            elevations_degrees: vec![0.0],
+            steps: 4,
+            min_range: 0.0,
+            max_range: 1.0,
+            time: (-3e38, 3e38),
+        };
+        assert!(Generator::Lidar(lidar).check().unwrap_err().to_string().contains("generator.time"));
     }
 }
