@@ -214,10 +214,19 @@ impl Client {
     }
 }
 
+/// HTTP/2 flow-control window of each call's reply: bytes the server may send before the client has read them. Large
+/// replies (images, hit buffers of millions of rays) then flow without waiting for window updates.
+const REPLY_WINDOW_BYTES: u32 = 8 << 20;
+/// Largest HTTP/2 frame the client accepts: fewer, larger frames for large replies.
+const REPLY_FRAME_BYTES: u32 = 1 << 20;
+
 /// The endpoint of `url`, with `tls` when given.
 pub(crate) fn endpoint(url: &str, tls: Option<&ClientTls>) -> Result<Endpoint> {
     let endpoint = Endpoint::from_shared(url.to_owned())
-        .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?;
+        .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?
+        .initial_stream_window_size(REPLY_WINDOW_BYTES)
+        .initial_connection_window_size(2 * REPLY_WINDOW_BYTES)
+        .max_frame_size(REPLY_FRAME_BYTES);
     match tls {
         Some(tls) => {
             endpoint.tls_config(tls.config()).map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
