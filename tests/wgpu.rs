@@ -27,7 +27,7 @@ use rayd_engine::geometry::{
 };
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, QueryKind, TraceOutput};
-use rayd_engine::raygen::{Camera, Generator, Orthographic, PixelSampling};
+use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, PixelSampling};
 use rayd_engine::reduce::{Image, ImageChannel, PixelEncoding, Reduction};
 use rayd_engine::{Accel, Context, Device, ErrorKind};
 
@@ -314,15 +314,31 @@ fn bunny_scene(device: &Device) -> Scene {
     Scene::new(device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default())
 }
 
+/// A lidar beside the bunny whose ranges skip its near side and cut its far side (in the ray formats that keep them).
+fn lidar() -> Generator {
+    Generator::Lidar(Lidar {
+        origin: Vec3::new(0.5, 0.5, -0.8),
+        forward: Vec3::Z,
+        up: Vec3::Y,
+        elevations_degrees: (0..16).map(|c| -20.0 + 2.5 * c as f32).collect(),
+        steps: 90,
+        min_range: 1.2,
+        max_range: 1.3,
+        time: (0.0, 1.0),
+    })
+}
+
 #[test]
-fn camera_rays_made_on_the_device_agree_with_the_hosts() {
-    // Chunks of 320 rays at most: each range below takes several, each chunk starting at another generator index.
+fn camera_and_lidar_rays_made_on_the_device_agree_with_the_hosts() {
+    // Chunks of 320 rays at most: each range below takes several, each chunk starting at another generator index (for
+    // the lidar, inside a step).
     let Some(device) = gpu_with(WgpuOptions { max_chunk_rays: Some(320), ..WgpuOptions::default() }) else {
         return;
     };
     let scene = bunny_scene(&device);
     let mut agreement = Agreement::default();
-    for generator in cameras() {
+    let [pinhole, orthographic] = cameras();
+    for generator in [pinhole, orthographic, lidar()] {
         generator.check().unwrap();
         // A range that does not start at the generator's first ray.
         let (first, count) = (101, generator.count() as usize - 101);
@@ -330,6 +346,9 @@ fn camera_rays_made_on_the_device_agree_with_the_hosts() {
             (QueryKind::Closest, RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV),
             (QueryKind::Any, RayFormat::OriginDirection, HitFormat::T),
             (QueryKind::Count, RayFormat::Full, HitFormat::Full),
+            // Formats without a lidar's tmin, or without its tmin and tmax.
+            (QueryKind::Closest, RayFormat::OriginMaskDirectionTmax, HitFormat::TTriid),
+            (QueryKind::Closest, RayFormat::OriginDirection, HitFormat::T),
         ] {
             let query = Query { kind, ..Query::closest(ray_format, hit_format) };
             let mut packed = vec![0; count * ray_format.size()];

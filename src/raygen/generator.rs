@@ -223,27 +223,12 @@ impl Generator {
                 }
             }
             Generator::Lidar(lidar) => {
-                let (forward, left, up) = frame("", Vec3::ZERO, lidar.forward, lidar.up)
-                    .map(|(f, r, u)| (f, -r, u))
-                    .expect("a checked generator");
+                let frame = LidarFrame::new(lidar);
                 let channels = lidar.elevations_degrees.len() as u64;
-                let (begin, end) = lidar.time;
                 for (i, slot) in out.chunks_exact_mut(size).enumerate() {
                     let index = first + i as u64;
                     let (step, channel) = (index / channels, (index % channels) as usize);
-                    let fraction = step as f32 / lidar.steps as f32;
-                    let (sin_a, cos_a) = (TAU * fraction).sin_cos();
-                    let (sin_e, cos_e) = lidar.elevations_degrees[channel].to_radians().sin_cos();
-                    let direction = (forward * cos_a + left * sin_a) * cos_e + up * sin_e;
-                    let ray = Ray {
-                        origin: lidar.origin.into(),
-                        direction: direction.normalize().into(),
-                        tmin: lidar.min_range,
-                        tmax: lidar.max_range,
-                        time: begin + (end - begin) * fraction,
-                        ..Ray::default()
-                    };
-                    format.encode(&ray, slot);
+                    format.encode(&frame.ray(frame.step(step), frame.channel(channel)), slot);
                 }
             }
             Generator::Sphere(sphere) => {
@@ -359,6 +344,76 @@ impl Generator {
             width,
             sampling: *sampling,
         })
+    }
+}
+
+/// A lidar's frame: what [`Generator::fill`] (and the wgpu kernel, from the same numbers) makes its rays from. A ray
+/// is made from its step's [`LidarStep`] and its channel's [`LidarChannel`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LidarFrame<'a> {
+    /// The lidar.
+    pub lidar: &'a Lidar,
+    /// Azimuth 0, unit.
+    pub forward: Vec3,
+    /// Azimuth 90°, unit.
+    pub left: Vec3,
+    /// The rotation axis, unit.
+    pub up: Vec3,
+}
+
+/// A lidar step's azimuth and time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LidarStep {
+    /// Sine of the azimuth.
+    pub sin: f32,
+    /// Cosine of the azimuth.
+    pub cos: f32,
+    /// When the step fires.
+    pub time: f32,
+}
+
+/// A lidar channel's elevation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LidarChannel {
+    /// Sine of the elevation.
+    pub sin: f32,
+    /// Cosine of the elevation.
+    pub cos: f32,
+}
+
+impl LidarFrame<'_> {
+    /// The frame of a checked lidar.
+    pub fn new(lidar: &Lidar) -> LidarFrame<'_> {
+        let (forward, right, up) = frame("", Vec3::ZERO, lidar.forward, lidar.up).expect("a checked generator");
+        LidarFrame { lidar, forward, left: -right, up }
+    }
+
+    /// Step `step`: azimuth `2π · step / steps`, time `begin + (end − begin) · step / steps`.
+    pub fn step(&self, step: u64) -> LidarStep {
+        let fraction = step as f32 / self.lidar.steps as f32;
+        let (sin, cos) = (TAU * fraction).sin_cos();
+        let (begin, end) = self.lidar.time;
+        LidarStep { sin, cos, time: begin + (end - begin) * fraction }
+    }
+
+    /// Channel `channel`'s elevation.
+    pub fn channel(&self, channel: usize) -> LidarChannel {
+        let (sin, cos) = self.lidar.elevations_degrees[channel].to_radians().sin_cos();
+        LidarChannel { sin, cos }
+    }
+
+    /// The ray of `step` and `channel`: from the origin along `(forward·cos a + left·sin a)·cos e + up·sin e`,
+    /// normalized; `tmin`, `tmax` the ranges, the step's time.
+    pub fn ray(&self, step: LidarStep, channel: LidarChannel) -> Ray {
+        let direction = (self.forward * step.cos + self.left * step.sin) * channel.cos + self.up * channel.sin;
+        Ray {
+            origin: self.lidar.origin.into(),
+            direction: direction.normalize().into(),
+            tmin: self.lidar.min_range,
+            tmax: self.lidar.max_range,
+            time: step.time,
+            ..Ray::default()
+        }
     }
 }
 

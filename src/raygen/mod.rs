@@ -5,7 +5,10 @@
 mod generator;
 mod secondary;
 
-pub use generator::{CameraFrame, Generator, Lidar, MAX_GENERATOR_POINTS, Orthographic, PixelSampling, SphereSampling};
+pub use generator::{
+    CameraFrame, Generator, Lidar, LidarChannel, LidarFrame, LidarStep, MAX_GENERATOR_POINTS, Orthographic,
+    PixelSampling, SphereSampling,
+};
 pub use secondary::{Bounce, Primary, Secondary};
 
 use glam::{Vec3, Vec3A};

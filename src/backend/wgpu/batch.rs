@@ -6,7 +6,7 @@
 //! A slot's buffers (bind group 1 of the trace pipeline), every value a little-endian 32-bit word:
 //! - `params`: the chunk's [`Params`] (uniform).
 //! - `rays`: the chunk's rays, the caller's bytes unchanged (`RayFormat` layout), ray `i` at `i·size`; or, when
-//!   the rays are made on the device, the generator's [`GeneratorBlock`].
+//!   the rays are made on the device, the generator's numbers for the chunk ([`DeviceGenerator::words`]).
 //! - `hits`: the chunk's hit records in the caller's `HitFormat` layout, record `r` at `r·size`; for the
 //!   bitmask, record `r` is bit `r % 32` of word `r / 32` (which is bit `r % 8` of byte `r / 8`, as in the
 //!   caller's buffer), the words cleared before the dispatch. A chunk starts at a multiple of 32 rays, so its
@@ -33,6 +33,7 @@ use super::WgpuOptions;
 use super::device::Opened;
 use super::kernel::{Params, Rays, WORKGROUP_SIZE};
 use super::layout::GpuGraph;
+use super::offload::DeviceGenerator;
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, read_u32};
 use crate::query::{Query, QueryKind, TraceOutput, TraceStats};
@@ -56,27 +57,13 @@ const MAX_DISPATCH_RAYS: usize = 65_535 * WORKGROUP_SIZE as usize;
 /// boundaries.
 const CHUNK_ALIGN: usize = 32;
 
-/// Words of a [`GeneratorBlock`].
-pub(super) const GENERATOR_WORDS: usize = 21;
-
-/// A camera generator's numbers as the kernel reads them (layout in `generate.wgsl`), little-endian words.
-pub(super) type GeneratorBlock = [u32; GENERATOR_WORDS];
-
 /// Where a trace's rays come from.
 #[derive(Debug, Clone, Copy)]
 pub(super) enum Input<'a> {
     /// The caller's rays, packed in the query's format.
     Packed(&'a [u8]),
-    /// Made on the device by the pipeline of `rays` from `block`; the batch's first ray is the generator's ray
-    /// `first` (the batch ends below 2^32).
-    Generated {
-        /// Which generator.
-        rays: Rays,
-        /// Its numbers.
-        block: GeneratorBlock,
-        /// The generator's index of the batch's first ray.
-        first: u32,
-    },
+    /// Made on the device.
+    Generated(DeviceGenerator<'a>),
 }
 
 /// What a trace gives back besides its statistics.
@@ -148,7 +135,7 @@ impl Capacity {
         Capacity {
             rays: match input {
                 Input::Packed(_) => (rays * query.ray_format.size()) as u64,
-                Input::Generated { .. } => 4 * GENERATOR_WORDS as u64,
+                Input::Generated(generator) => 4 * generator.most_words(rays) as u64,
             },
             hits: (query.hit_format.buffer_len(records) as u64).next_multiple_of(4),
             tallies: TALLY_BYTES + if query.kind.has_counts() { 4 * rays as u64 } else { 0 },
@@ -498,10 +485,11 @@ fn submit(
             encoder.copy_buffer_to_buffer(&slot.upload, 0, &slot.rays, 0, need.rays);
             Rays::Packed
         }
-        Input::Generated { rays, block, first } => {
-            opened.queue.write_buffer(&slot.rays, 0, bytemuck::bytes_of(block));
-            params.first_ray = first + chunk.first as u32;
-            *rays
+        Input::Generated(generator) => {
+            params.first_ray = generator.first + chunk.first as u32;
+            let words = generator.words(params.first_ray, chunk.rays);
+            opened.queue.write_buffer(&slot.rays, 0, bytemuck::cast_slice(&words));
+            generator.rays
         }
     };
     opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));

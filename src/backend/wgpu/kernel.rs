@@ -53,10 +53,12 @@ pub(super) enum Rays {
     Pinhole = 1,
     /// An orthographic camera generator.
     Orthographic = 2,
+    /// A lidar generator.
+    Lidar = 3,
 }
 
 /// Pipelines a kernel can hold: one a [`Variant`].
-const VARIANTS: usize = 3 * QueryKind::ALL.len() * 2 * 2 * 2;
+const VARIANTS: usize = 4 * QueryKind::ALL.len() * 2 * 2 * 2;
 
 impl Variant {
     /// The graph's part of a variant; [`Variant::for_query`] adds the query's.

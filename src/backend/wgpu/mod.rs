@@ -5,7 +5,7 @@
 //! What runs on the GPU: traversal and hit collection for every accel kind — geometry accels (static or with
 //! vertex motion), instance accels (visibility masks, instance flags, motion keys) and static, matrix motion and
 //! SRT motion transforms, in graphs as deep as the engine allows — at per-ray times, in every ray format, hit
-//! format and query kind, with ray flags and Prime masks. Rays of camera generators are made by the kernel, and
+//! format and query kind, with ray flags and Prime masks. Rays of camera and lidar generators are made by the kernel, and
 //! image and count reductions made on the device, so that only the reduction crosses the bus ([`offload`]). One kernel walks every level of 4-wide nodes: entering an
 //! instance or transform it carries the ray into the child's space and pushes a marker that restores it. It is
 //! compiled into one pipeline a graph shape and query ([`kernel::Variant`]), so that a static geometry accel's
@@ -43,7 +43,7 @@ use crate::reduce::{Partial, Reduction};
 use batch::{Input, Output, Slot};
 use device::{Gpu, Opened};
 use layout::GpuGraph;
-use offload::OnDevice;
+use offload::{DeviceGenerator, OnDevice};
 
 /// Settings of a wgpu device.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -217,7 +217,7 @@ impl Backend for WgpuBackend {
         self.trace_source(accel, query, RaySource::Packed(rays), out)
     }
 
-    /// Camera generators' rays are made by the kernel; other generators' on the host.
+    /// Camera and lidar generators' rays are made by the kernel; other generators' on the host.
     fn trace_source(
         &self,
         accel: &dyn BackendAccel,
@@ -227,7 +227,7 @@ impl Backend for WgpuBackend {
     ) -> Result<TraceStats> {
         let input = match rays {
             RaySource::Packed(rays) => Input::Packed(rays),
-            RaySource::Generated { generator, first, count } => match offload::generated(generator, first, count) {
+            RaySource::Generated { generator, first, count } => match DeviceGenerator::input(generator, first, count) {
                 Some(input) => input,
                 None => return host::trace_source(self, accel, query, rays, out),
             },
@@ -239,8 +239,8 @@ impl Backend for WgpuBackend {
         self.run(wgpu_accel(accel)?, query, &plan, input, output)
     }
 
-    /// Images and the counts of closest and any queries are reduced on the device ([`offload`]), with camera rays
-    /// made there too; other reductions on the host.
+    /// Images and the counts of closest and any queries are reduced on the device ([`offload`]), with camera and
+    /// lidar rays made there too; other reductions on the host.
     fn trace_reduced(
         &self,
         accel: &dyn BackendAccel,
@@ -255,7 +255,7 @@ impl Backend for WgpuBackend {
         let traced = reduction.traced_query(query);
         let mut scratch = Vec::new();
         let input = match rays {
-            RaySource::Generated { generator, first, count } => offload::generated(generator, first, count),
+            RaySource::Generated { generator, first, count } => DeviceGenerator::input(generator, first, count),
             RaySource::Packed(_) => None,
         }
         .unwrap_or_else(|| Input::Packed(host::packed(rays, query.ray_format, &mut scratch)));
