@@ -41,7 +41,8 @@ pub enum PixelEncoding {
     /// Little-endian u16 per channel: depth `round((t − near)/(far − near) · 65534)` clamped to 0 ..= 65,534 and
     /// 65,535 for a miss; normal `round((0.5 + 0.5·n) · 65535)` per component, 0 for a miss.
     Unorm16,
-    /// The [`PixelEncoding::Unorm16`] values as a 16-bit PNG (grey for depth, RGB for normals).
+    /// The [`PixelEncoding::Unorm16`] values as a 16-bit PNG (grey for depth, RGB for normals), compressed for speed
+    /// (the `png` crate's `Fast` level) rather than size.
     Png,
 }
 
@@ -134,6 +135,9 @@ impl Image {
             _ => png::ColorType::Rgb,
         });
         encoder.set_depth(png::BitDepth::Sixteen);
+        // For speed: a 2048² depth image encodes in 13 ms instead of 198 (the default's) and takes 1.9× the bytes,
+        // still a fifteenth of the float32 image's (BENCHMARKS.md).
+        encoder.set_compression(png::Compression::Fast);
         let written = encoder.write_header().and_then(|mut writer| writer.write_image_data(&samples));
         written
             .map_err(|e| Error::InvalidQuery { field: "reduction.image", rule: format!("PNG encoding failed: {e}") })?;
