@@ -164,11 +164,6 @@ pub enum RaySource<'a> {
 }
 
 impl RaySource<'_> {
-    /// Rays it holds, given the ray format's record size.
-    pub fn count(&self, ray_size: usize) -> usize {
-        self.packed_len(ray_size) / ray_size
-    }
-
     /// Bytes its rays take packed: the caller's bytes (perhaps not whole records), or whole records.
     pub fn packed_len(&self, ray_size: usize) -> usize {
         match self {

@@ -5,10 +5,11 @@
 //! What runs on the GPU: traversal and hit collection for every accel kind — geometry accels (static or with
 //! vertex motion), instance accels (visibility masks, instance flags, motion keys) and static, matrix motion and
 //! SRT motion transforms, in graphs as deep as the engine allows — at per-ray times, in every ray format, hit
-//! format and query kind, with ray flags and Prime masks. Rays of camera and lidar generators are made by the kernel, and
-//! image and count reductions made on the device, so that only the reduction crosses the bus ([`offload`]). One kernel walks every level of 4-wide nodes: entering an
-//! instance or transform it carries the ray into the child's space and pushes a marker that restores it. It is
-//! compiled into one pipeline a graph shape and query ([`kernel::Variant`]), so that a static geometry accel's
+//! format and query kind, with ray flags and Prime masks. Rays of camera and lidar generators are made by the
+//! kernel, and image and count reductions made on the device, so that only the reduction crosses the bus
+//! ([`offload`]). One kernel walks every level of 4-wide nodes: entering an instance or transform it carries the ray
+//! into the child's space and pushes a marker that restores it. It is compiled into one pipeline a graph shape,
+//! query and ray source ([`kernel::Variant`]), so that a static geometry accel's
 //! closest-hit trace carries none of the instance, motion or `all`-query machinery. Refused (FAILED_PRECONDITION):
 //! graphs whose rays could need more than the kernel's 128 stack entries.
 //!
@@ -253,13 +254,14 @@ impl Backend for WgpuBackend {
             return host::trace_reduced(self, accel, query, rays, first_ray, reduction);
         };
         let traced = reduction.traced_query(query);
+        // Checks the query and that packed rays are whole records, as a trace does.
+        let count = traced.output_layout(rays.packed_len(query.ray_format.size()))?.rays;
         let mut scratch = Vec::new();
         let input = match rays {
             RaySource::Generated { generator, first, count } => DeviceGenerator::input(generator, first, count),
             RaySource::Packed(_) => None,
         }
         .unwrap_or_else(|| Input::Packed(host::packed(rays, query.ray_format, &mut scratch)));
-        let count = rays.count(query.ray_format.size());
         let mut pixels = Vec::new();
         let output = match &on_device {
             OnDevice::Image(image) => {

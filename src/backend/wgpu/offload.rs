@@ -1,7 +1,7 @@
 //! What the wgpu backend does on the device that the host does for other backends ([`crate::backend::host`]):
-//! camera and lidar generators expanded by the kernel (`shaders/generate.wgsl`), the image reduction's pixels made by its
-//! pass (`shaders/reduce.wgsl`), and hit counts taken from the kernel's tallies. So only the reduction, not every
-//! ray and hit, crosses the bus. Other generators (sphere sampling, whose random directions need exact sines, and
+//! camera and lidar generators expanded by the kernel (`shaders/generate.wgsl`), the image reduction's pixels made
+//! by its pass (`shaders/reduce.wgsl`), and hit counts taken from the kernel's tallies. So only the reduction, not
+//! every ray and hit, crosses the bus. Other generators (sphere sampling, whose random directions need exact sines, and
 //! secondary rays) and other reductions stay on the host.
 
 use glam::Vec3;

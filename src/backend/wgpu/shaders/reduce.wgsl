@@ -30,7 +30,8 @@ fn reduce_pixels(@builtin(global_invocation_id) global: vec3<u32>) {
     if nearest != NONE {
         // A `full` record: the normal at word 6, the back-face flag at word 9.
         let w = nearest * params.record_words;
-        var n = bitcast<vec3<f32>>(vec3<u32>(atomicLoad(&hits[w + 6u]), atomicLoad(&hits[w + 7u]), atomicLoad(&hits[w + 8u])));
+        let bits = vec3<u32>(atomicLoad(&hits[w + 6u]), atomicLoad(&hits[w + 7u]), atomicLoad(&hits[w + 8u]));
+        var n = bitcast<vec3<f32>>(bits);
         if atomicLoad(&hits[w + 9u]) != 0u {
             n = -n;
         }
