@@ -63,6 +63,11 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
         "rays differing on cpu:0 and wgpu:0"
     );
     assert!(on_gpu.stats().rays_hit > 0);
+    // The kernels' time is within the trace's, and there is none on the CPU.
+    let (gpu_stats, cpu_stats) = (on_gpu.stats(), on_cpu.stats());
+    eprintln!("wgpu:0 kernels {} ns of a {} ns trace", gpu_stats.device_ns, gpu_stats.trace_ns);
+    assert!(gpu_stats.device_ns <= gpu_stats.trace_ns, "{gpu_stats:?}");
+    assert_eq!(cpu_stats.device_ns, 0);
     // A copy from cpu:0 traces there; two instances of it (one visible to half the rays) trace as on the CPU.
     let copy = client.copy_accel("cpu", "copied", "wgpu:0", false).await.unwrap();
     assert_eq!(copy.device, "wgpu:0");

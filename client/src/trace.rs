@@ -249,6 +249,7 @@ fn add_stats(total: &mut proto::TraceStats, chunk: &proto::TraceStats) {
     total.nodes_visited += chunk.nodes_visited;
     total.triangle_tests += chunk.triangle_tests;
     total.trace_ns += chunk.trace_ns;
+    total.device_ns += chunk.device_ns;
 }
 
 /// Closes the stream's window when the call ends, so the request stream stops waiting for permits that will

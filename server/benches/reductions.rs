@@ -173,16 +173,23 @@ fn main() {
             ("generated, hit counts", Reduction::Counts),
         ];
         for (what, reduction) in reductions {
-            let trace_seconds = std::sync::Mutex::new(Vec::new());
+            let (trace_seconds, kernel_seconds) =
+                (std::sync::Mutex::new(Vec::new()), std::sync::Mutex::new(Vec::new()));
             let (seconds, data) = timed(|| async {
                 let reduced = client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap();
                 trace_seconds.lock().unwrap().push(reduced.stats.trace_ns as f64 * 1e-9);
+                kernel_seconds.lock().unwrap().push(reduced.stats.device_ns as f64 * 1e-9);
                 reduced.data
             })
             .await;
             row(what, seconds, &data);
             let trace = median(trace_seconds.into_inner().unwrap());
             println!("{:<52} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
+            let kernel = median(kernel_seconds.into_inner().unwrap());
+            if kernel > 0.0 {
+                let what = "  of which the device's kernels (GPU timestamps)";
+                println!("{what:<52} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
+            }
         }
 
         // Several callers at once keep the device busy (a GPU idling between calls lowers its clock).

@@ -154,6 +154,7 @@ pub fn trace_stats(stats: &TraceStats, trace_ns: u64) -> pb::TraceStats {
         nodes_visited: stats.nodes_visited,
         triangle_tests: stats.triangle_tests,
         trace_ns,
+        device_ns: stats.device_nanos,
     }
 }
 
