@@ -618,8 +618,7 @@ impl Context {
     /// Traces `rays` against `accel` and writes the results into `out` in place. FAILED_PRECONDITION when the
     /// accel places an accel in a version an update has replaced (update the placing accel first).
     pub fn trace(&self, accel: &Accel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
-        accel.check_current()?;
-        query.check_times(rays)?;
+        check_trace(accel, query, RaySource::Packed(rays))?;
         self.device.backend.trace(accel.data.as_ref(), query, rays, out)
     }
 
@@ -632,10 +631,7 @@ impl Context {
         rays: RaySource<'_>,
         out: TraceOutput<'_>,
     ) -> Result<TraceStats> {
-        accel.check_current()?;
-        if let RaySource::Packed(rays) = rays {
-            query.check_times(rays)?;
-        }
+        check_trace(accel, query, rays)?;
         self.device.backend.trace_source(accel.data.as_ref(), query, rays, out)
     }
 
@@ -650,10 +646,17 @@ impl Context {
         first_ray: u64,
         reduction: &Reduction,
     ) -> Result<(Partial, TraceStats)> {
-        accel.check_current()?;
-        if let RaySource::Packed(rays) = rays {
-            query.check_times(rays)?;
-        }
+        check_trace(accel, query, rays)?;
         self.device.backend.trace_reduced(accel.data.as_ref(), query, rays, first_ray, reduction)
     }
+}
+
+/// What every trace checks before its backend runs: the accel is current, and packed rays' times are numbers (a
+/// checked generator makes only such times).
+fn check_trace(accel: &Accel, query: &Query, rays: RaySource<'_>) -> Result<()> {
+    accel.check_current()?;
+    if let RaySource::Packed(rays) = rays {
+        query.check_times(rays)?;
+    }
+    Ok(())
 }
