@@ -90,14 +90,15 @@ impl Gpu {
                 let timestamps = self.adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
                 let descriptor = wgpu::DeviceDescriptor {
                     label: Some("rayd"),
-                    required_features: timestamps,
+                    // The kernel is handed to the driver as SPIR-V (`spirv.rs`); every Vulkan adapter has this.
+                    required_features: timestamps | wgpu::Features::PASSTHROUGH_SHADERS,
                     required_limits: self.adapter.limits(),
                     ..wgpu::DeviceDescriptor::default()
                 };
                 let (device, queue) = pollster::block_on(self.adapter.request_device(&descriptor)).map_err(|e| {
                     Error::FailedPrecondition(format!("wgpu:{}: opening the device failed: {e}", self.index))
                 })?;
-                let kernel = Kernel::new(&device, self.adapter.get_info().backend);
+                let kernel = Kernel::new(&device);
                 let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
                 Ok(Opened { device, queue, kernel, timestamp_period })
             })

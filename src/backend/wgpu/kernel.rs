@@ -6,11 +6,12 @@ use std::sync::OnceLock;
 
 use bytemuck::{Pod, Zeroable};
 
+use super::spirv::Source;
 use crate::format::{HitFormat, RayFormat};
 use crate::query::{Query, QueryKind};
 
 /// The kernel's source: the shared structs, the trace pipeline, rays made on the device, the pixel reduction.
-const SOURCE: &str = concat!(
+pub(super) const SOURCE: &str = concat!(
     include_str!("shaders/layout.wgsl"),
     include_str!("shaders/trace.wgsl"),
     include_str!("shaders/generate.wgsl"),
@@ -131,8 +132,8 @@ impl Params {
 
 /// The trace pipelines, compiled on first use, one a [`Variant`].
 pub(super) struct Kernel {
-    /// The shader module they are made from.
-    module: wgpu::ShaderModule,
+    /// The WGSL they are made from (each pipeline gets its own SPIR-V module, its constants applied).
+    source: Source,
     /// Their layout (the two bind group layouts).
     layout: wgpu::PipelineLayout,
     /// By [`Variant::index`].
@@ -160,29 +161,24 @@ fn storage(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
 }
 
 impl Kernel {
-    /// Compiles the shader module on `device`, whose adapter runs on `backend`.
-    pub fn new(device: &wgpu::Device, backend: wgpu::Backend) -> Kernel {
-        let descriptor =
-            wgpu::ShaderModuleDescriptor { label: Some("rayd trace"), source: wgpu::ShaderSource::Wgsl(SOURCE.into()) };
-        // SAFETY: the kernel is compiled without naga's loop counters and division guards, and on Vulkan without
-        // its index and buffer bounds checks too: together they cost a third of the kernel's speed on an H100
-        // (BENCHMARKS.md). No access is out of bounds and every loop ends by construction:
-        // - storage buffers are indexed by offsets the host wrote and checked (`graph.rs`, `layout.rs`, the chunk
-        //   sizes of `batch.rs`); on Vulkan, robust buffer access (which wgpu enables) backs that up, and on the
-        //   other backends naga's bounds checks stay on;
-        // - private arrays: the traversal stack never holds more than `STACK_SIZE` entries (`GpuGraph::upload`
-        //   refuses graphs that could need more), levels never exceed `MAX_LEVELS` (= `MAX_GRAPH_DEPTH`, which
-        //   builds enforce), and an `all` query's hit entries read back from `scratch` carry the level count this
-        //   same invocation wrote there (`tests` below check the WGSL constants against the Rust ones);
-        // - every loop ends: BVH nodes form trees whose children follow their parent (built so, or checked when
-        //   loaded), instance graphs have no cycles (an accel only places accels that existed before it), and the
-        //   other loops count to fixed bounds;
-        // - integer divisions and remainders are by non-zero constants.
-        let checks = wgpu::ShaderRuntimeChecks {
-            bounds_checks: backend != wgpu::Backend::Vulkan,
-            ..wgpu::ShaderRuntimeChecks::unchecked()
-        };
-        let module = unsafe { device.create_shader_module_trusted(descriptor, checks) };
+    /// Parses the kernel's source and makes its layouts on `device`.
+    ///
+    /// The pipelines' SPIR-V is written without naga's run-time checks (index clamps, loop counters, division
+    /// guards), which cost a third of the kernel's speed on an H100 (BENCHMARKS.md), and without the zero
+    /// initializers of the arrays that [`super::spirv`] names. That is sound because:
+    /// - storage buffers are indexed by offsets the host wrote and checked (`graph.rs`, `layout.rs`, the chunk sizes
+    ///   of `batch.rs`), and Vulkan's robust buffer access (which wgpu enables) backs that up;
+    /// - private arrays: the traversal stack never holds more than `STACK_SIZE` entries (`GpuGraph::upload` refuses
+    ///   graphs that could need more), levels never exceed `MAX_LEVELS` (= `MAX_GRAPH_DEPTH`, which builds
+    ///   enforce), an `all` query's hit entries read back from `scratch` carry the level count this same invocation
+    ///   wrote there (`tests` below check the WGSL constants against the Rust ones), and the arrays left
+    ///   uninitialized are written before they are read;
+    /// - every loop ends: BVH nodes form trees whose children follow their parent (built so, or checked when
+    ///   loaded), instance graphs have no cycles (an accel only places accels that existed before it), and the
+    ///   other loops count to fixed bounds;
+    /// - integer divisions and remainders are by non-zero constants.
+    pub fn new(device: &wgpu::Device) -> Kernel {
+        let source = Source::new(SOURCE);
         let accel_layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("rayd accel"),
             entries: &[storage(0, true), storage(1, true), storage(2, true), storage(3, true), storage(4, true)],
@@ -214,7 +210,7 @@ impl Kernel {
             immediate_size: 0,
         });
         Kernel {
-            module,
+            source,
             layout,
             pipelines: std::array::from_fn(|_| OnceLock::new()),
             reduce_pixels: OnceLock::new(),
@@ -244,17 +240,27 @@ impl Kernel {
             .get_or_init(|| self.compile(device, "reduce_pixels", &[("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE))]))
     }
 
-    /// The module's entry point `entry` with the pipeline constants `constants`.
+    /// The entry point `entry` with the pipeline constants `constants`, as SPIR-V handed to the driver as is.
     fn compile(&self, device: &wgpu::Device, entry: &str, constants: &[(&str, f64)]) -> wgpu::ComputePipeline {
+        let spirv = self.source.spirv(entry, constants);
+        let entry_points =
+            [wgpu::PassthroughShaderEntryPoint { name: entry.into(), workgroup_size: (WORKGROUP_SIZE, 1, 1) }];
+        // SAFETY: naga wrote and validated this SPIR-V from the kernel's WGSL; what `Kernel::new` lists makes
+        // running it without naga's checks and the dropped initializers sound.
+        let module = unsafe {
+            device.create_shader_module_passthrough(wgpu::ShaderModuleDescriptorPassthrough {
+                label: Some(entry),
+                entry_points: entry_points.as_slice().into(),
+                spirv: Some(spirv.into()),
+                ..wgpu::ShaderModuleDescriptorPassthrough::default()
+            })
+        };
         device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some(entry),
             layout: Some(&self.layout),
-            module: &self.module,
+            module: &module,
             entry_point: Some(entry),
-            compilation_options: wgpu::PipelineCompilationOptions {
-                constants,
-                ..wgpu::PipelineCompilationOptions::default()
-            },
+            compilation_options: wgpu::PipelineCompilationOptions::default(),
             cache: None,
         })
     }

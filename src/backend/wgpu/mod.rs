@@ -25,6 +25,7 @@ mod graph;
 mod kernel;
 mod layout;
 mod offload;
+mod spirv;
 
 use std::any::Any;
 use std::sync::{Arc, Mutex};

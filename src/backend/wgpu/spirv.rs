@@ -1,0 +1,155 @@
+//! The kernel's SPIR-V, written here by naga rather than inside wgpu, for one reason: WGSL zero-initializes every
+//! variable, and the driver carries that out at the start of every invocation — for the traversal stack, 1 KiB of
+//! stores a ray. The arrays in [`WRITTEN_BEFORE_READ`] never need it, so their initializers are dropped from the
+//! SPIR-V before it goes to the driver (`wgpu::Features::PASSTHROUGH_SHADERS`). On an H100 this made the flat
+//! scene's kernel 21–24% faster (BENCHMARKS.md, "wgpu kernel step 3").
+//!
+//! The rest is what wgpu would do itself on Vulkan: pipeline constants applied by naga, the module written for the
+//! one entry point, workgroup memory zeroed by naga's polyfill; without naga's run-time checks (see
+//! [`super::kernel::Kernel::new`]).
+
+use naga::back::spv;
+
+/// The `var<private>` arrays of `trace.wgsl` that the kernel always writes before it reads them: the traversal
+/// stack (an entry is read only once pushed) and the per-level ray and object (level 0 is set when a ray's walk
+/// begins, level `l + 1` when it descends from `l`, and only levels up to the current one are read).
+const WRITTEN_BEFORE_READ: [&str; 4] = ["stack", "level_object", "level_origin", "level_direction"];
+
+/// SPIR-V's `OpName` and `OpVariable` opcodes.
+const OP_NAME: u32 = 5;
+const OP_VARIABLE: u32 = 59;
+/// Words of the SPIR-V header before the first instruction.
+const HEADER_WORDS: usize = 5;
+
+/// The kernel's WGSL, parsed and validated once.
+pub(super) struct Source {
+    /// The module.
+    module: naga::Module,
+    /// Its validation info.
+    info: naga::valid::ModuleInfo,
+}
+
+impl Source {
+    /// Parses and validates `wgsl`. The kernel's source is part of the binary, so an error is a bug: it panics
+    /// with naga's message.
+    pub fn new(wgsl: &str) -> Source {
+        let module = naga::front::wgsl::parse_str(wgsl).unwrap_or_else(|e| panic!("{}", e.emit_to_string(wgsl)));
+        let info = naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
+            .validate(&module)
+            .unwrap_or_else(|e| panic!("the kernel's WGSL is invalid: {e:?}"));
+        Source { module, info }
+    }
+
+    /// The SPIR-V of compute entry point `entry` with the pipeline constants `constants`, without the initializers
+    /// of [`WRITTEN_BEFORE_READ`].
+    pub fn spirv(&self, entry: &str, constants: &[(&str, f64)]) -> Vec<u32> {
+        let mut words = self.written(entry, constants);
+        drop_initializers(&mut words, &WRITTEN_BEFORE_READ);
+        words
+    }
+
+    /// The SPIR-V as naga writes it, every variable initialized.
+    fn written(&self, entry: &str, constants: &[(&str, f64)]) -> Vec<u32> {
+        let constants: naga::back::PipelineConstants = constants.iter().map(|&(k, v)| (k.to_owned(), v)).collect();
+        let stage = Some((naga::ShaderStage::Compute, entry));
+        let (module, info) =
+            naga::back::pipeline_constants::process_overrides(&self.module, &self.info, stage, &constants)
+                .unwrap_or_else(|e| panic!("pipeline constants of {entry}: {e}"));
+        let unchecked = naga::proc::BoundsCheckPolicy::Unchecked;
+        let options = spv::Options {
+            // SPIR-V 1.0 runs on every Vulkan version.
+            lang_version: (1, 0),
+            // `OpName`s, which name the variables whose initializers go.
+            flags: spv::WriterFlags::DEBUG,
+            bounds_check_policies: naga::proc::BoundsCheckPolicies {
+                index: unchecked,
+                buffer: unchecked,
+                image_load: unchecked,
+                binding_array: unchecked,
+            },
+            force_loop_bounding: false,
+            emit_int_div_checks: false,
+            ..spv::Options::default()
+        };
+        let pipeline = spv::PipelineOptions { shader_stage: naga::ShaderStage::Compute, entry_point: entry.to_owned() };
+        spv::write_vec(&module, &info, &options, Some(&pipeline))
+            .unwrap_or_else(|e| panic!("writing the SPIR-V of {entry}: {e}"))
+    }
+}
+
+/// The instructions of a SPIR-V module after its header: each one's opcode and operand words.
+fn instructions(words: &[u32]) -> impl Iterator<Item = (usize, u32, &[u32])> {
+    let mut at = HEADER_WORDS;
+    std::iter::from_fn(move || {
+        let first = *words.get(at)?;
+        let (count, opcode) = ((first >> 16) as usize, first & 0xffff);
+        let start = at;
+        at += count.max(1);
+        Some((start, opcode, words.get(start + 1..start + count).unwrap_or(&[])))
+    })
+}
+
+/// Drops the initializer operand of every `OpVariable` whose `OpName` is one of `names`; returns how many went.
+fn drop_initializers(words: &mut Vec<u32>, names: &[&str]) -> usize {
+    let named: Vec<u32> = instructions(words)
+        .filter(|&(_, opcode, operands)| opcode == OP_NAME && !operands.is_empty())
+        .filter(|(_, _, operands)| {
+            let bytes: Vec<u8> = operands[1..].iter().flat_map(|w| w.to_le_bytes()).collect();
+            let name = bytes.split(|&b| b == 0).next().unwrap_or_default();
+            names.iter().any(|n| n.as_bytes() == name)
+        })
+        .map(|(_, _, operands)| operands[0])
+        .collect();
+    // `OpVariable result-type result-id storage-class [initializer]`: 5 words with an initializer.
+    let initialized: Vec<usize> = instructions(words)
+        .filter(|&(_, opcode, operands)| opcode == OP_VARIABLE && operands.len() == 4 && named.contains(&operands[1]))
+        .map(|(at, _, _)| at)
+        .collect();
+    for &at in initialized.iter().rev() {
+        words.remove(at + 4);
+        words[at] = (4 << 16) | OP_VARIABLE;
+    }
+    initialized.len()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::backend::wgpu::kernel::SOURCE;
+
+    /// The variables of `words` that have an initializer, by name.
+    fn initialized(words: &[u32]) -> Vec<String> {
+        let names: Vec<(u32, String)> = instructions(words)
+            .filter(|&(_, opcode, _)| opcode == OP_NAME)
+            .map(|(_, _, operands)| {
+                let bytes: Vec<u8> = operands[1..].iter().flat_map(|w| w.to_le_bytes()).collect();
+                let name = bytes.split(|&b| b == 0).next().unwrap_or_default();
+                (operands[0], String::from_utf8_lossy(name).into_owned())
+            })
+            .collect();
+        instructions(words)
+            .filter(|&(_, opcode, operands)| opcode == OP_VARIABLE && operands.len() == 4)
+            .filter_map(|(_, _, operands)| names.iter().find(|(id, _)| *id == operands[1]).map(|(_, n)| n.clone()))
+            .collect()
+    }
+
+    #[test]
+    fn only_the_arrays_written_before_read_lose_their_initializers() {
+        let source = Source::new(SOURCE);
+        let constants = [("LEVELS", 1.0), ("MOTION", 0.0), ("QUERY_KIND", 0.0), ("FULL_HITS", 0.0)];
+        let before = initialized(&source.written("trace", &constants));
+        let stripped = source.spirv("trace", &constants);
+        let after = initialized(&stripped);
+        for name in WRITTEN_BEFORE_READ {
+            assert!(before.iter().any(|n| n == name), "naga initializes {name}");
+            assert!(!after.iter().any(|n| n == name), "{name} keeps its initializer");
+        }
+        // Every other variable keeps its own (the hit collector's state among them).
+        let kept: Vec<&String> = before.iter().filter(|n| !WRITTEN_BEFORE_READ.contains(&n.as_str())).collect();
+        assert!(kept.iter().any(|n| *n == "hit_count"));
+        assert_eq!(after.iter().collect::<Vec<_>>(), kept);
+        // The instruction stream still ends exactly at the end of the words.
+        let (last, _, operands) = instructions(&stripped).last().unwrap();
+        assert_eq!(last + 1 + operands.len(), stripped.len());
+    }
+}
