@@ -1,6 +1,7 @@
 //! The wgpu backend: accels built on the host by the CPU backend's builders, their graphs flattened ([`graph`]) and
-//! uploaded once ([`layout`]), traced by a WGSL compute kernel ([`kernel`], `shaders/`) in chunks that fit the
-//! adapter's limits ([`batch`]), on every Vulkan adapter that wgpu enumerates ([`device`]).
+//! uploaded once ([`layout`]), traced by a WGSL compute kernel ([`kernel`], `shaders/`; its SPIR-V written by
+//! [`spirv`]) in chunks that fit the adapter's limits ([`batch`]), on every Vulkan adapter that wgpu enumerates
+//! ([`device`]).
 //!
 //! What runs on the GPU: traversal and hit collection for every accel kind — geometry accels (static or with
 //! vertex motion), instance accels (visibility masks, instance flags, motion keys) and static, matrix motion and
