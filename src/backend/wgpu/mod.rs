@@ -55,8 +55,9 @@ pub struct WgpuOptions {
     /// adapter's `max_storage_buffer_binding_size`; `None` uses the adapter's limit. Smaller chunks mean more
     /// dispatches: tests use it to split small batches.
     pub max_binding_bytes: Option<u64>,
-    /// Caps the rays of a chunk (2^18 when `None`; the bindings and a dispatch's workgroups cap it too). Larger
-    /// chunks mean fewer dispatches but less overlap of copies with tracing: benches sweep it.
+    /// Caps the rays of a chunk (when `None`: 2^20 for rays made on the device and reduced there, 2^18 otherwise;
+    /// the bindings and a dispatch's workgroups cap it too). Larger chunks mean fewer dispatches but less overlap of
+    /// copies with tracing: benches sweep it.
     pub max_chunk_rays: Option<usize>,
 }
 
@@ -286,7 +287,11 @@ impl WgpuBackend {
     /// How a batch of `rays` rays of `query`, from `input` into `output`, is cut into chunks on this adapter.
     fn plan(&self, query: &Query, rays: usize, input: &Input<'_>, output: &Output<'_>) -> Result<batch::Plan> {
         let binding_limit = self.opened()?.binding_limit(self.options.max_binding_bytes);
-        let max_chunk_rays = self.options.max_chunk_rays.unwrap_or(batch::MAX_CHUNK_RAYS);
+        let default = match (input, output) {
+            (Input::Generated(_), Output::Pixels { .. } | Output::Tallies) => batch::MAX_ON_DEVICE_CHUNK_RAYS,
+            _ => batch::MAX_CHUNK_RAYS,
+        };
+        let max_chunk_rays = self.options.max_chunk_rays.unwrap_or(default);
         batch::Plan::new(query, rays, input, output, binding_limit, max_chunk_rays)
     }
 
