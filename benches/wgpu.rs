@@ -11,6 +11,10 @@
 //! Markdown table. The best kernel time is there because a GPU busy only part of the time lowers its clock (an
 //! H100 went from 1980 to 345 MHz between traces): the best run is the one at the highest clock.
 //!
+//! Then the kernel alone, timed as GPU ray tracers are compared (OptiX's figures in `../shared/MEASURED.md` are GPU
+//! time a launch over a batch already on the device): 220 launches over the whole million rays, kept on the device,
+//! back to back (`Context::time_launches`), the first 200 untimed so that the clock is up; median and best.
+//!
 //! Then the flat scene's closest hits again with chunks (one dispatch each) of 2^16, 2^18 (the default) and 2^20
 //! rays: fewer, larger dispatches against less overlap of copies with tracing.
 //!
@@ -173,6 +177,30 @@ fn run(scene: &Built, rays_name: &str, rays: &[u8], kind: QueryKind) {
     );
 }
 
+/// Launches a kernel-only case makes back to back: the first [`WARMUP_LAUNCHES`] raise the GPU's clock, the rest
+/// are timed.
+const LAUNCHES: u32 = 220;
+/// Untimed launches before the timed ones.
+const WARMUP_LAUNCHES: usize = 200;
+
+/// The kernel alone, as GPU ray tracers are compared: launches over the whole batch kept on the device, one after
+/// another (`Context::time_launches`), by GPU timestamps; prints the median and best of the timed launches.
+fn launches(scene: &Built, rays_name: &str, rays: &[u8], kind: QueryKind) {
+    let query = Query { kind, ..Query::closest(RAY_FORMAT, HIT_FORMAT) };
+    let times = scene.gpu.0.time_launches(&scene.gpu.1, &query, rays, LAUNCHES).expect("the adapter times launches");
+    let seconds: Vec<f64> = times[WARMUP_LAUNCHES..].iter().map(|t| t.as_secs_f64()).collect();
+    let best = seconds.iter().copied().fold(f64::INFINITY, f64::min);
+    let count = (rays.len() / RAY_FORMAT.size()) as f64;
+    let median = median(seconds);
+    println!(
+        "| {} | {rays_name} | {kind:?} | {:.3} | {:.3} | {:.3} |",
+        scene.name,
+        count / median * 1e-9,
+        count / best * 1e-9,
+        median * 1e3
+    );
+}
+
 /// The first wgpu adapter as a device with `options`.
 fn gpu(options: WgpuOptions) -> Option<Device> {
     Device::wgpu(options).into_iter().next()
@@ -210,6 +238,18 @@ fn main() {
         for (rays_name, rays) in &batches {
             for kind in [QueryKind::Closest, QueryKind::Any] {
                 run(scene, rays_name, rays, kind);
+            }
+        }
+    }
+    println!(
+        "\nThe kernel alone: {LAUNCHES} launches over the whole batch on the device, back to back; the last {} timed\n\n\
+         | scene | rays | query | G rays/s (median) | G rays/s (best) | ms a launch |\n|---|---|---|---|---|---|",
+        LAUNCHES as usize - WARMUP_LAUNCHES
+    );
+    for scene in &scenes {
+        for (rays_name, rays) in &batches {
+            for kind in [QueryKind::Closest, QueryKind::Any] {
+                launches(scene, rays_name, rays, kind);
             }
         }
     }

@@ -4,6 +4,7 @@
 use std::collections::HashSet;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
+use std::time::Duration;
 
 use bytes::Bytes;
 use dashmap::DashMap;
@@ -620,6 +621,16 @@ impl Context {
     pub fn trace(&self, accel: &Accel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
         check_trace(accel, query, RaySource::Packed(rays))?;
         self.device.backend.trace(accel.data.as_ref(), query, rays, out)
+    }
+
+    /// For benchmarks that compare a GPU's trace kernel with other engines' (which time one launch over a batch
+    /// already on the device): the kernel time of each of `launches` launches of `query` over all of `rays`,
+    /// uploaded once and traced again and again back to back, by the GPU's timestamps. The hits stay on the
+    /// device. FAILED_PRECONDITION on a device without a kernel or timestamps (the CPU), RESOURCE_EXHAUSTED when
+    /// the rays do not fit one launch.
+    pub fn time_launches(&self, accel: &Accel, query: &Query, rays: &[u8], launches: u32) -> Result<Vec<Duration>> {
+        check_trace(accel, query, RaySource::Packed(rays))?;
+        self.device.backend.time_launches(accel.data.as_ref(), query, rays, launches)
     }
 
     /// [`Context::trace`] of rays that may be generated (a checked generator's rays are made where they are traced,

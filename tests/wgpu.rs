@@ -15,6 +15,7 @@ mod common;
 
 use common::{input_with_masks, pack_rays, random_rays, random_soup, shared_mesh};
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use glam::{Affine3A, Quat, Vec3, Vec3A};
 use rayd_engine::accel::{AccelKind, BuildOptions};
@@ -289,6 +290,28 @@ fn large_batches_agree_for_closest_and_any() {
         scene.compare(&query, &packed, &mut agreement);
     }
     agreement.check();
+}
+
+/// `Context::time_launches` (the kernel-only benchmark's measurement) times each launch by the GPU's timestamps, and
+/// is refused where there is no kernel or the rays are not whole.
+#[test]
+fn kernel_launches_are_timed_one_by_one_and_refused_without_a_kernel() {
+    let Some(device) = gpu() else { return };
+    let scene = bunny_scene(&device);
+    let packed = pack_rays(&camera_rays(4096), RayFormat::OriginTminDirectionTmax);
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    let (context, accel) = &scene.gpu;
+    let start = Instant::now();
+    let times = context.time_launches(accel, &query, &packed, 3).unwrap();
+    let elapsed = start.elapsed();
+    assert_eq!(times.len(), 3);
+    assert!(times.iter().all(|t| !t.is_zero()), "{times:?}");
+    assert!(times.iter().sum::<Duration>() <= elapsed, "{times:?} within {elapsed:?}");
+    let torn = context.time_launches(accel, &query, &packed[..packed.len() - 1], 1).unwrap_err();
+    assert_eq!(torn.kind(), ErrorKind::InvalidArgument, "{torn}");
+    let (cpu, cpu_accel) = &scene.cpu;
+    let refused = cpu.time_launches(cpu_accel, &query, &packed, 1).unwrap_err();
+    assert_eq!(refused.kind(), ErrorKind::FailedPrecondition, "{refused}");
 }
 
 /// A pinhole camera (3 jittered samples a pixel) and an orthographic one (pixel centres) looking at the bunny.

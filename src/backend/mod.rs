@@ -8,13 +8,14 @@ pub mod wgpu;
 
 use std::any::Any;
 use std::sync::Arc;
+use std::time::Duration;
 
 use glam::Vec3;
 
 use crate::accel::{AccelKind, BuildOptions, MemoryUsage};
 use crate::backend::cpu::CpuAccel;
 use crate::context::Accel;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform};
 use crate::query::{Query, TraceOutput, TraceStats};
@@ -121,6 +122,19 @@ pub trait Backend: Send + Sync {
     fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>>;
     /// Traces every ray of `rays` against `accel` (built by this backend) and writes the results in place.
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats>;
+    /// The kernel time of each of `launches` launches over all of `rays` kept on the device, one after another
+    /// ([`Context::time_launches`](crate::Context::time_launches)); FAILED_PRECONDITION by default: only a device
+    /// with a trace kernel and timestamps has it.
+    fn time_launches(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: &[u8],
+        launches: u32,
+    ) -> Result<Vec<Duration>> {
+        let _ = (accel, query, rays, launches);
+        Err(Error::FailedPrecondition(format!("{} has no trace kernel to time", self.info().id)))
+    }
     /// [`Backend::trace`] of rays that may be generated: by default made on the host ([`host::trace_source`]); a
     /// backend that can make them where it traces does.
     fn trace_source(

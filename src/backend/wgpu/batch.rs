@@ -458,6 +458,82 @@ fn run_chunks(
     Ok(stats)
 }
 
+/// GPU time of each of `launches` launches of the trace kernel over all of `rays` (a query checked against them),
+/// one after another with the rays and hits kept on the device: the kernel timed the way GPU ray tracers are
+/// compared (one launch over a resident batch), at the clock that back-to-back work keeps. FAILED_PRECONDITION
+/// without timestamp queries, RESOURCE_EXHAUSTED if the batch does not fit one chunk.
+pub(super) fn time_launches(
+    opened: &Opened,
+    accel: &GpuGraph,
+    query: &Query,
+    rays: &[u8],
+    launches: u32,
+) -> Result<Vec<Duration>> {
+    let Some(period) = opened.timestamp_period else {
+        return Err(Error::FailedPrecondition("the adapter has no timestamp queries to time launches with".into()));
+    };
+    let count = rays.len() / query.ray_format.size();
+    let (input, output) = (Input::Packed(rays), Output::Tallies);
+    let plan = Plan::new(query, count, &input, &output, opened.binding_limit(None), count)?;
+    if plan.chunk_rays < count {
+        return Err(Error::TooLarge {
+            what: "rays of one launch",
+            requested: count as u64,
+            limit: plan.chunk_rays as u64,
+        });
+    }
+    let slot = Slot::new(opened, plan.need);
+    opened.queue.write_buffer(&slot.rays, 0, rays);
+    let params = Params { ray_count: count as u32, root: accel.root, ..Params::for_query(query) };
+    opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
+    let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
+        label: Some("rayd launches"),
+        ty: wgpu::QueryType::Timestamp,
+        count: 2 * launches,
+    });
+    let bytes = u64::from(launches) * TIMESTAMP_BYTES;
+    let buffer = |usage| {
+        opened.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("rayd launches"),
+            size: bytes,
+            usage,
+            mapped_at_creation: false,
+        })
+    };
+    let resolved = buffer(wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC);
+    let readback = buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
+    let mut encoder =
+        opened.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("rayd launches") });
+    let pipeline = opened.kernel.pipeline(&opened.device, accel.variant.for_query(query));
+    for launch in 0..launches {
+        let timestamp_writes = wgpu::ComputePassTimestampWrites {
+            query_set: &queries,
+            beginning_of_pass_write_index: Some(2 * launch),
+            end_of_pass_write_index: Some(2 * launch + 1),
+        };
+        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+            label: Some("rayd launch"),
+            timestamp_writes: Some(timestamp_writes),
+        });
+        pass.set_pipeline(pipeline);
+        pass.set_bind_group(0, &accel.bind_group, &[]);
+        pass.set_bind_group(1, &slot.bind_group, &[]);
+        pass.dispatch_workgroups((count as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
+    }
+    encoder.resolve_query_set(&queries, 0..2 * launches, &resolved, 0);
+    encoder.copy_buffer_to_buffer(&resolved, 0, &readback, 0, bytes);
+    let submission = opened.queue.submit([encoder.finish()]);
+    wait_mapped(opened, &request_map(&readback, wgpu::MapMode::Read, bytes), &submission)?;
+    let ticks = readback.slice(..).get_mapped_range().map_err(|e| device_error("mapping the timestamps", e))?;
+    Ok(ticks
+        .chunks_exact(TIMESTAMP_BYTES as usize)
+        .map(|pair| {
+            let (start, end) = (u64_at(pair, 0), u64_at(pair, 8));
+            Duration::from_nanos((end.saturating_sub(start) as f64 * f64::from(period)) as u64)
+        })
+        .collect())
+}
+
 /// Puts the chunk's rays on the device — its packed rays copied into `slot`'s (mapped) upload buffer, or the
 /// generator's block written — and submits the dispatches (the trace, then the pixel reduction if `output` has
 /// pixels) and the copies into the readback buffer; then asks for the staging buffers to be mapped when that work

@@ -30,6 +30,7 @@ mod spirv;
 
 use std::any::Any;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use glam::Vec3;
 
@@ -219,6 +220,17 @@ impl Backend for WgpuBackend {
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
         self.trace_source(accel, query, RaySource::Packed(rays), out)
+    }
+
+    fn time_launches(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: &[u8],
+        launches: u32,
+    ) -> Result<Vec<Duration>> {
+        query.output_layout(rays.len())?;
+        batch::time_launches(self.opened()?, &wgpu_accel(accel)?.device, query, rays, launches)
     }
 
     /// Camera and lidar generators' rays are made by the kernel; other generators' on the host.
