@@ -626,8 +626,8 @@ impl Context {
     /// For benchmarks that compare a GPU's trace kernel with other engines' (which time one launch over a batch
     /// already on the device): the kernel time of each of `launches` launches of `query` over all of `rays`,
     /// uploaded once and traced again and again back to back, by the GPU's timestamps. The hits stay on the
-    /// device. FAILED_PRECONDITION on a device without a kernel or timestamps (the CPU), RESOURCE_EXHAUSTED when
-    /// the rays do not fit one launch.
+    /// device. FAILED_PRECONDITION on a device without a kernel or timestamps (the CPU), INVALID_ARGUMENT for
+    /// `launches` outside 1 ..= 2,048, RESOURCE_EXHAUSTED when the rays do not fit one launch.
     pub fn time_launches(&self, accel: &Accel, query: &Query, rays: &[u8], launches: u32) -> Result<Vec<Duration>> {
         check_trace(accel, query, RaySource::Packed(rays))?;
         self.device.backend.time_launches(accel.data.as_ref(), query, rays, launches)

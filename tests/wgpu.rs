@@ -307,6 +307,8 @@ fn kernel_launches_are_timed_one_by_one_and_refused_without_a_kernel() {
     assert_eq!(times.len(), 3);
     assert!(times.iter().all(|t| !t.is_zero()), "{times:?}");
     assert!(times.iter().sum::<Duration>() <= elapsed, "{times:?} within {elapsed:?}");
+    let none = context.time_launches(accel, &query, &packed, 0).unwrap_err();
+    assert_eq!(none.kind(), ErrorKind::InvalidArgument, "{none}");
     let torn = context.time_launches(accel, &query, &packed[..packed.len() - 1], 1).unwrap_err();
     assert_eq!(torn.kind(), ErrorKind::InvalidArgument, "{torn}");
     let (cpu, cpu_accel) = &scene.cpu;

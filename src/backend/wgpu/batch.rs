@@ -337,6 +337,28 @@ fn u64_at(bytes: &[u8], at: usize) -> u64 {
     u64::from_le_bytes(bytes[at..at + 8].try_into().expect("8 bytes"))
 }
 
+/// Nanoseconds between the start and end timestamps resolved into `pair` (two little-endian u64 ticks) at `period`
+/// nanoseconds a tick.
+fn elapsed_nanos(pair: &[u8], period: f32) -> u64 {
+    let (start, end) = (u64_at(pair, 0), u64_at(pair, 8));
+    (end.saturating_sub(start) as f64 * f64::from(period)) as u64
+}
+
+/// Sets the trace pipeline of `variant`, the accel's and the slot's bind groups, and dispatches one thread a ray.
+fn dispatch_trace(
+    pass: &mut wgpu::ComputePass<'_>,
+    opened: &Opened,
+    accel: &GpuGraph,
+    slot: &Slot,
+    variant: super::kernel::Variant,
+    rays: usize,
+) {
+    pass.set_pipeline(opened.kernel.pipeline(&opened.device, variant));
+    pass.set_bind_group(0, &accel.bind_group, &[]);
+    pass.set_bind_group(1, &slot.bind_group, &[]);
+    pass.dispatch_workgroups((rays as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
+}
+
 /// The error of a device that failed mid-trace.
 fn device_error(what: &str, error: impl std::fmt::Display) -> Error {
     Error::FailedPrecondition(format!("the wgpu device failed {what}: {error}"))
@@ -458,10 +480,14 @@ fn run_chunks(
     Ok(stats)
 }
 
+/// Launches [`time_launches`] times at most: two timestamps each fill a query set of 4,096 (wgpu's limit).
+const MAX_LAUNCHES: u32 = 2048;
+
 /// GPU time of each of `launches` launches of the trace kernel over all of `rays` (a query checked against them),
 /// one after another with the rays and hits kept on the device: the kernel timed the way GPU ray tracers are
 /// compared (one launch over a resident batch), at the clock that back-to-back work keeps. FAILED_PRECONDITION
-/// without timestamp queries, RESOURCE_EXHAUSTED if the batch does not fit one chunk.
+/// without timestamp queries, INVALID_ARGUMENT for `launches` outside 1 ..= 2,048, RESOURCE_EXHAUSTED if the batch
+/// does not fit one chunk.
 pub(super) fn time_launches(
     opened: &Opened,
     accel: &GpuGraph,
@@ -472,6 +498,12 @@ pub(super) fn time_launches(
     let Some(period) = opened.timestamp_period else {
         return Err(Error::FailedPrecondition("the adapter has no timestamp queries to time launches with".into()));
     };
+    if !(1..=MAX_LAUNCHES).contains(&launches) {
+        return Err(Error::InvalidQuery {
+            field: "launches",
+            rule: format!("must be 1 to {MAX_LAUNCHES}, not {launches}"),
+        });
+    }
     let count = rays.len() / query.ray_format.size();
     let (input, output) = (Input::Packed(rays), Output::Tallies);
     let plan = Plan::new(query, count, &input, &output, opened.binding_limit(None), count)?;
@@ -504,7 +536,6 @@ pub(super) fn time_launches(
     let readback = buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
     let mut encoder =
         opened.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("rayd launches") });
-    let pipeline = opened.kernel.pipeline(&opened.device, accel.variant.for_query(query));
     for launch in 0..launches {
         let timestamp_writes = wgpu::ComputePassTimestampWrites {
             query_set: &queries,
@@ -515,10 +546,7 @@ pub(super) fn time_launches(
             label: Some("rayd launch"),
             timestamp_writes: Some(timestamp_writes),
         });
-        pass.set_pipeline(pipeline);
-        pass.set_bind_group(0, &accel.bind_group, &[]);
-        pass.set_bind_group(1, &slot.bind_group, &[]);
-        pass.dispatch_workgroups((count as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
+        dispatch_trace(&mut pass, opened, accel, &slot, accel.variant.for_query(query), count);
     }
     encoder.resolve_query_set(&queries, 0..2 * launches, &resolved, 0);
     encoder.copy_buffer_to_buffer(&resolved, 0, &readback, 0, bytes);
@@ -527,10 +555,7 @@ pub(super) fn time_launches(
     let ticks = readback.slice(..).get_mapped_range().map_err(|e| device_error("mapping the timestamps", e))?;
     Ok(ticks
         .chunks_exact(TIMESTAMP_BYTES as usize)
-        .map(|pair| {
-            let (start, end) = (u64_at(pair, 0), u64_at(pair, 8));
-            Duration::from_nanos((end.saturating_sub(start) as f64 * f64::from(period)) as u64)
-        })
+        .map(|pair| Duration::from_nanos(elapsed_nanos(pair, period)))
         .collect())
 }
 
@@ -586,10 +611,7 @@ fn submit(
         let mut pass =
             encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes });
         let variant = super::kernel::Variant { rays, ..accel.variant.for_query(query) };
-        pass.set_pipeline(opened.kernel.pipeline(&opened.device, variant));
-        pass.set_bind_group(0, &accel.bind_group, &[]);
-        pass.set_bind_group(1, &slot.bind_group, &[]);
-        pass.dispatch_workgroups((chunk.rays as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
+        dispatch_trace(&mut pass, opened, accel, slot, variant, chunk.rays);
         if let Output::Pixels { group_rays, .. } = output {
             // Dispatches of one pass see each other's writes: the reduction reads the records just traced.
             pass.set_pipeline(opened.kernel.reduce_pixels(&opened.device));
@@ -665,10 +687,7 @@ fn finish(
             rays_hit: u64::from(read_u32(tallies, 0)),
             nodes_visited: wide(1),
             triangle_tests: wide(3),
-            device_nanos: opened.timestamp_period.map_or(0, |period| {
-                let (start, end) = (u64_at(ticks, 0), u64_at(ticks, 8));
-                (end.saturating_sub(start) as f64 * f64::from(period)) as u64
-            }),
+            device_nanos: opened.timestamp_period.map_or(0, |period| elapsed_nanos(ticks, period)),
         });
     }
     slot.readback.unmap();
