@@ -26,8 +26,8 @@ pub(super) struct Flat {
     pub nodes: Vec<u32>,
     /// Per-key lane boxes of motion BVHs, 6 floats a box.
     pub boxes: Vec<f32>,
-    /// Triangle corners, 9 floats a triangle a key.
-    pub corners: Vec<f32>,
+    /// Triangle corners, 3 vectors a triangle a key (`x, y, z, 0`: one aligned load a corner).
+    pub corners: Vec<[f32; 4]>,
     /// Triangle ids, one a slot.
     pub prims: Vec<Prim>,
     /// Objects, instance records and transform keys.
@@ -174,7 +174,7 @@ impl Flattener {
         let slot_base = self.flat.prims.len() as u32;
         let corner_base = self.flat.corners.len() as u32;
         let placed = self.bvh(&bvh.nodes, bvh.node_keys.as_ref(), slot_base);
-        self.flat.corners.extend(bvh.corners.iter().flat_map(|c| c.iter().flat_map(|v| v.to_array())));
+        self.flat.corners.extend(bvh.corners.iter().flat_map(|c| c.iter().map(|v| v.extend(0.0).to_array())));
         self.flat.prims.extend(bvh.refs.iter().enumerate().map(|(slot, r)| Prim {
             geom_id: r.geom_id,
             prim_id: r.prim_id,

@@ -13,8 +13,9 @@
 //! - `node_boxes`: with motion, lane `l` of node `i`'s box at key `k` at float
 //!   `box_base + (((i − first)·4 + l)·keys + k)·6` of its object: `min.xyz, max.xyz` (zeros for an empty lane).
 //!   One zero box when no BVH moves.
-//! - `corners`: triangle slot `s`'s corners at key `k` at float `corner_base + ((s − base)·keys + k)·9` of its
-//!   object: `v0.xyz, v1.xyz, v2.xyz` (leaf order, then the never-traversed degenerate triangles, as on the host).
+//! - `corners`: triangle slot `s`'s corners at key `k` from vector `corner_base + ((s − base)·keys + k)·3` of its
+//!   object, 16 bytes a corner: `v0.xyz 0 | v1.xyz 0 | v2.xyz 0` (leaf order, then the never-traversed degenerate
+//!   triangles, as on the host).
 //! - `prims`: per triangle slot, 16 bytes ([`Prim`]): `0 geom_id u32 | 4 prim_id u32 | 8 mask u32 (0 without
 //!   masks) | 12 geometry_flags u32`.
 //! - `graph`: words. An object (a BVH or transform, [`OBJECT_WORDS`] words at its offset): `0 kind` ([`ObjectKind`])

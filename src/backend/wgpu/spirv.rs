@@ -1,8 +1,12 @@
-//! The kernel's SPIR-V, written here by naga rather than inside wgpu, for one reason: WGSL zero-initializes every
-//! variable, and the driver carries that out at the start of every invocation — for the traversal stack, 1 KiB of
-//! stores a ray. The arrays in [`WRITTEN_BEFORE_READ`] never need it, so their initializers are dropped from the
-//! SPIR-V before it goes to the driver (`wgpu::Features::PASSTHROUGH_SHADERS`). On an H100 this made the flat
-//! scene's kernel 21–24% faster (BENCHMARKS.md, "wgpu kernel step 3").
+//! The kernel's SPIR-V, written here by naga rather than inside wgpu, for two reasons, each an edit of the SPIR-V
+//! before it goes to the driver (`wgpu::Features::PASSTHROUGH_SHADERS`):
+//! - WGSL zero-initializes every variable, and the driver carries that out at the start of every invocation — for
+//!   the traversal stack, 1 KiB of stores a ray. The arrays in [`WRITTEN_BEFORE_READ`] never need it, so their
+//!   initializers are dropped. On an H100 this made the flat scene's kernel 21–24% faster (BENCHMARKS.md, "wgpu
+//!   kernel step 3").
+//! - WGSL leaves `min` and `max` of a NaN undefined, so the kernel had to test for NaN itself where the CPU's box
+//!   test relies on Rust's rule (a NaN operand is ignored); [`ignore_nan_operands`] gives every float `min`, `max`
+//!   and `clamp` that rule instead.
 //!
 //! The rest is what wgpu would do itself on Vulkan: pipeline constants applied by naga, the module written for the
 //! one entry point, workgroup memory zeroed by naga's polyfill; without naga's run-time checks (see
@@ -15,9 +19,15 @@ use naga::back::spv;
 /// begins, level `l + 1` when it descends from `l`, and only levels up to the current one are read).
 const WRITTEN_BEFORE_READ: [&str; 4] = ["stack", "level_object", "level_origin", "level_direction"];
 
-/// SPIR-V's `OpName` and `OpVariable` opcodes.
+/// SPIR-V's `OpName`, `OpExtInstImport`, `OpExtInst` and `OpVariable` opcodes.
 const OP_NAME: u32 = 5;
+const OP_EXT_INST_IMPORT: u32 = 11;
+const OP_EXT_INST: u32 = 12;
 const OP_VARIABLE: u32 = 59;
+/// The instruction set whose float `min`, `max` and `clamp` naga writes.
+const GLSL_STD_450: &[u8] = b"GLSL.std.450";
+/// GLSL.std.450's `FMin`, `FMax`, `FClamp` and the NaN-ignoring instruction each becomes.
+const NAN_IGNORING: [(u32, u32); 3] = [(37, 79), (40, 80), (43, 81)];
 /// Words of the SPIR-V header before the first instruction.
 const HEADER_WORDS: usize = 5;
 
@@ -41,10 +51,11 @@ impl Source {
     }
 
     /// The SPIR-V of compute entry point `entry` with the pipeline constants `constants`, without the initializers
-    /// of [`WRITTEN_BEFORE_READ`].
+    /// of [`WRITTEN_BEFORE_READ`], its float `min`, `max` and `clamp` ignoring NaN operands.
     pub fn spirv(&self, entry: &str, constants: &[(&str, f64)]) -> Vec<u32> {
         let mut words = self.written(entry, constants);
         drop_initializers(&mut words, &WRITTEN_BEFORE_READ);
+        ignore_nan_operands(&mut words);
         words
     }
 
@@ -89,15 +100,44 @@ fn instructions(words: &[u32]) -> impl Iterator<Item = (usize, u32, &[u32])> {
     })
 }
 
+/// Makes every float `min`, `max` and `clamp` (GLSL.std.450 `FMin`, `FMax`, `FClamp`, whose result WGSL and SPIR-V
+/// leave undefined for a NaN operand) the `NMin`, `NMax`, `NClamp` of the same instruction set, which return the
+/// other operand: Rust's `f32::min` and `f32::max`, which the CPU backend's box test relies on. The kernel can then
+/// use the plain built-ins where it tested for NaN lane by lane; on an H100 that made it 6–11% faster
+/// (BENCHMARKS.md, "wgpu kernel step 4"), and NVIDIA's min/max instructions ignore NaN operands anyway. Returns how
+/// many instructions changed.
+fn ignore_nan_operands(words: &mut [u32]) -> usize {
+    let glsl: Vec<u32> = instructions(words)
+        .filter(|&(_, opcode, operands)| opcode == OP_EXT_INST_IMPORT && !operands.is_empty())
+        .filter(|(_, _, operands)| string_operand(&operands[1..]) == GLSL_STD_450)
+        .map(|(_, _, operands)| operands[0])
+        .collect();
+    // `OpExtInst result-type result-id set instruction operands…`.
+    let calls: Vec<usize> = instructions(words)
+        .filter(|&(_, opcode, operands)| opcode == OP_EXT_INST && operands.len() >= 4 && glsl.contains(&operands[2]))
+        .map(|(at, _, _)| at + 4)
+        .collect();
+    let mut changed = 0;
+    for at in calls {
+        if let Some(&(_, nan_ignoring)) = NAN_IGNORING.iter().find(|&&(undefined, _)| undefined == words[at]) {
+            words[at] = nan_ignoring;
+            changed += 1;
+        }
+    }
+    changed
+}
+
+/// A string operand's text (nul-terminated, little-endian words).
+fn string_operand(words: &[u32]) -> Vec<u8> {
+    let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
+    bytes.split(|&b| b == 0).next().unwrap_or_default().to_vec()
+}
+
 /// Drops the initializer operand of every `OpVariable` whose `OpName` is one of `names`; returns how many went.
 fn drop_initializers(words: &mut Vec<u32>, names: &[&str]) -> usize {
     let named: Vec<u32> = instructions(words)
         .filter(|&(_, opcode, operands)| opcode == OP_NAME && !operands.is_empty())
-        .filter(|(_, _, operands)| {
-            let bytes: Vec<u8> = operands[1..].iter().flat_map(|w| w.to_le_bytes()).collect();
-            let name = bytes.split(|&b| b == 0).next().unwrap_or_default();
-            names.iter().any(|n| n.as_bytes() == name)
-        })
+        .filter(|(_, _, operands)| names.iter().any(|n| n.as_bytes() == string_operand(&operands[1..])))
         .map(|(_, _, operands)| operands[0])
         .collect();
     // `OpVariable result-type result-id storage-class [initializer]`: 5 words with an initializer.
@@ -122,9 +162,7 @@ mod tests {
         let names: Vec<(u32, String)> = instructions(words)
             .filter(|&(_, opcode, _)| opcode == OP_NAME)
             .map(|(_, _, operands)| {
-                let bytes: Vec<u8> = operands[1..].iter().flat_map(|w| w.to_le_bytes()).collect();
-                let name = bytes.split(|&b| b == 0).next().unwrap_or_default();
-                (operands[0], String::from_utf8_lossy(name).into_owned())
+                (operands[0], String::from_utf8_lossy(&string_operand(&operands[1..])).into_owned())
             })
             .collect();
         instructions(words)
@@ -151,5 +189,36 @@ mod tests {
         // The instruction stream still ends exactly at the end of the words.
         let (last, _, operands) = instructions(&stripped).last().unwrap();
         assert_eq!(last + 1 + operands.len(), stripped.len());
+    }
+
+    /// The GLSL.std.450 instruction numbers of `words`' extended instructions, in order.
+    fn glsl_calls(words: &[u32]) -> Vec<u32> {
+        instructions(words)
+            .filter(|&(_, opcode, operands)| opcode == OP_EXT_INST && operands.len() >= 4)
+            .map(|(_, _, operands)| operands[3])
+            .collect()
+    }
+
+    #[test]
+    fn every_float_min_max_and_clamp_ignores_nan_operands_and_nothing_else_changes() {
+        let source = Source::new(SOURCE);
+        let constants = [("LEVELS", 1.0), ("MOTION", 1.0), ("QUERY_KIND", 0.0), ("FULL_HITS", 1.0)];
+        let written = source.written("trace", &constants);
+        let before = glsl_calls(&written);
+        let mut words = written.clone();
+        let changed = ignore_nan_operands(&mut words);
+        let after = glsl_calls(&words);
+        // The box test narrows slabs with `max` and `min`; a key time is clamped.
+        assert!(changed >= 3, "{changed} instructions changed");
+        for (undefined, nan_ignoring) in NAN_IGNORING {
+            assert!(!after.contains(&undefined), "GLSL.std.450 {undefined} is left");
+            let count = |calls: &[u32], op: u32| calls.iter().filter(|&&c| c == op).count();
+            assert_eq!(count(&after, nan_ignoring), count(&before, undefined) + count(&before, nan_ignoring));
+        }
+        assert!(after.contains(&80) && after.contains(&79), "NMax and NMin are used");
+        // Only those instruction numbers differ, word for word.
+        let differing: Vec<usize> = (0..words.len()).filter(|&i| words[i] != written[i]).collect();
+        assert_eq!(differing.len(), changed);
+        assert_eq!(before.len(), after.len());
     }
 }

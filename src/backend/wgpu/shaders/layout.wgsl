@@ -28,20 +28,14 @@ struct Params {
 // inner child (`count` 0, its node at `index`), a leaf (`count` primitives or instances from `index`) or empty
 // (`index` `EMPTY_LANE`).
 struct Node {
-    boxes: LaneBoxes,
+    // The lanes' boxes, a row a plane: `lo.x, lo.y, lo.z, hi.x, hi.y, hi.z` (a row indexed by axis, plus 3 for `hi`).
+    boxes: LaneRows,
     index: vec4<u32>,
     count: vec4<u32>,
 }
 
-// The lanes' boxes of a node, by axis (the first 96 bytes of a `Node`).
-struct LaneBoxes {
-    lo_x: vec4<f32>,
-    lo_y: vec4<f32>,
-    lo_z: vec4<f32>,
-    hi_x: vec4<f32>,
-    hi_y: vec4<f32>,
-    hi_z: vec4<f32>,
-}
+// Six rows of four lanes: the lanes' boxes of a node.
+alias LaneRows = array<vec4<f32>, 6>;
 
 // `layout::NODE_WIDTH`.
 const NODE_WIDTH: u32 = 4u;
@@ -77,7 +71,7 @@ struct Object {
     box_base: u32,
     // A geometry accel's first triangle slot, an instance accel's first instance record, a transform's first key.
     base: u32,
-    // A geometry accel's first corner (float offset in `corners`).
+    // A geometry accel's first corner (its index in `corners`).
     corner_base: u32,
 }
 

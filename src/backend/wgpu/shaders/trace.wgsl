@@ -11,17 +11,21 @@
 // pushes a marker, moves one level down (the ray carried into the child's space, the level's origin, direction,
 // object and record kept) and enters the child's BVH; popping the marker restores the level above. An instance
 // leaf with more instances to visit first pushes a resume entry for them. Stack entries: a lane (`node ·
-// NODE_WIDTH + lane`, entry distance bits), a marker (`MARKER`), a resume entry (`RESUME | next slot`, end slot).
+// NODE_WIDTH + lane`, entry distance bits rounded down: `key_distance`), a marker (`MARKER`), a resume entry
+// (`RESUME | next slot`, end slot).
 //
 // Compiled into one pipeline a `kernel::Variant` (the pipeline constants below): what a graph or query does not
 // use is compiled away.
+//
+// Float `min`, `max` and `clamp` ignore a NaN operand, as Rust's `f32::min` and `f32::max` do (WGSL leaves it
+// undefined; `spirv.rs` writes them as SPIR-V's `NMin`, `NMax`, `NClamp`, which define it so).
 
 // The accel's graph (uploaded once; `layout::GpuGraph`).
 @group(0) @binding(0) var<storage, read> nodes: array<Node>;
 // Lane boxes at motion keys, 6 floats a box (`layout.rs`).
 @group(0) @binding(1) var<storage, read> node_boxes: array<f32>;
-// Triangle corners at motion keys, 9 floats a triangle (`layout.rs`).
-@group(0) @binding(2) var<storage, read> corners: array<f32>;
+// Triangle corners at motion keys, 3 vectors a triangle (`layout.rs`).
+@group(0) @binding(2) var<storage, read> corners: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> prims: array<Prim>;
 // Objects, instance records and transform keys (`layout.rs`).
 @group(0) @binding(4) var<storage, read> graph: array<u32>;
@@ -106,15 +110,6 @@ fn infinity() -> f32 {
     return bitcast<f32>(0x7f800000u);
 }
 
-// `f32::max` / `f32::min`: a NaN operand is ignored.
-fn max_num(a: f32, b: f32) -> f32 {
-    return select(max(a, b), a, is_nan(b));
-}
-
-fn min_num(a: f32, b: f32) -> f32 {
-    return select(min(a, b), a, is_nan(b));
-}
-
 // A ray with the constants of the box and triangle tests (`intersect::PreparedRay`).
 struct PreparedRay {
     origin: vec3<f32>,
@@ -131,6 +126,10 @@ struct PreparedRay {
     kz: u32,
     shear: vec3<f32>,
     inv_direction: vec3<f32>,
+    // By axis, the row of a `Node`'s `boxes` where the ray enters the lanes' slabs (`lo` for a direction that is
+    // not negative, `hi` otherwise), and where it leaves them.
+    entry_rows: vec3<u32>,
+    exit_rows: vec3<u32>,
 }
 
 fn ray_f32(word: u32) -> f32 {
@@ -207,6 +206,9 @@ fn oriented(origin: vec3<f32>, direction: vec3<f32>, base: PreparedRay) -> Prepa
     r.kz = kz;
     r.shear = vec3<f32>(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]);
     r.inv_direction = select(vec3<f32>(1.0) / d, vec3<f32>(infinity()), d == vec3<f32>(0.0));
+    let negative = d < vec3<f32>(0.0);
+    r.entry_rows = select(vec3<u32>(0u, 1u, 2u), vec3<u32>(3u, 4u, 5u), negative);
+    r.exit_rows = select(vec3<u32>(3u, 4u, 5u), vec3<u32>(0u, 1u, 2u), negative);
     return r;
 }
 
@@ -381,31 +383,16 @@ fn box_corner(word: u32) -> vec3<f32> {
     return vec3<f32>(node_boxes[word], node_boxes[word + 1u], node_boxes[word + 2u]);
 }
 
-// `is_nan`, `max_num` and `min_num` lane by lane.
-fn is_nan4(x: vec4<f32>) -> vec4<bool> {
-    return (bitcast<vec4<u32>>(x) & vec4<u32>(0x7fffffffu)) > vec4<u32>(0x7f800000u);
-}
-
-fn max_num4(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
-    return select(max(a, b), a, is_nan4(b));
-}
-
-fn min_num4(a: vec4<f32>, b: vec4<f32>) -> vec4<f32> {
-    return select(min(a, b), a, is_nan4(b));
-}
-
 // The entry and exit distances of four boxes, narrowed one axis at a time.
 struct Slabs {
     near: vec4<f32>,
     far: vec4<f32>,
 }
 
-// `slabs` narrowed by the boxes' `lo .. hi` along the axis whose ray origin, inverse direction and sign are given
-// (`intersect::aabb::intersect`'s loop body, four lanes at once).
-fn slab(slabs: Slabs, lo: vec4<f32>, hi: vec4<f32>, negative: bool, o: f32, inv: f32) -> Slabs {
-    let entry = select(lo, hi, negative);
-    let exit = select(hi, lo, negative);
-    return Slabs(max_num4(slabs.near, (entry - o) * inv), min_num4(slabs.far, (exit - o) * inv));
+// `slabs` narrowed by the boxes' planes where the ray enters (`entry`) and leaves (`exit`) them along the axis
+// whose ray origin and inverse direction are given (`intersect::aabb::intersect`'s loop body, four lanes at once).
+fn slab(slabs: Slabs, entry: vec4<f32>, exit: vec4<f32>, o: f32, inv: f32) -> Slabs {
+    return Slabs(max(slabs.near, (entry - o) * inv), min(slabs.far, (exit - o) * inv));
 }
 
 // Which lanes of a node the ray enters within `[ray.tmin, tmax]`, and where; the lanes' indices and counts.
@@ -427,21 +414,20 @@ fn lane_of(v: vec4<u32>, lane: u32) -> u32 {
     return select(select(select(v.w, v.z, lane == 2u), v.y, lane == 1u), v.x, lane == 0u);
 }
 
-// The lanes' boxes of node `node` (`n`) of the current object at the ray's time (interpolated between motion keys).
-fn lane_boxes(node: u32, n: Node) -> LaneBoxes {
-    var b = n.boxes;
-    if MOTION && cur.keys > 1u {
-        for (var lane = 0u; lane < NODE_WIDTH; lane++) {
-            let first = cur.box_base + (((node - cur.first) * NODE_WIDTH + lane) * cur.keys + cur_at.segment) * 6u;
-            let lo = lerp3(box_corner(first), box_corner(first + 6u), cur_at.fraction);
-            let hi = lerp3(box_corner(first + 3u), box_corner(first + 9u), cur_at.fraction);
-            b.lo_x[lane] = lo.x;
-            b.lo_y[lane] = lo.y;
-            b.lo_z[lane] = lo.z;
-            b.hi_x[lane] = hi.x;
-            b.hi_y[lane] = hi.y;
-            b.hi_z[lane] = hi.z;
-        }
+// The lanes' boxes of node `node` of the current object, a moving BVH's, at the ray's time (interpolated between
+// its motion keys), as a `Node`'s rows.
+fn moving_boxes(node: u32) -> LaneRows {
+    var b: LaneRows;
+    for (var lane = 0u; lane < NODE_WIDTH; lane++) {
+        let first = cur.box_base + (((node - cur.first) * NODE_WIDTH + lane) * cur.keys + cur_at.segment) * 6u;
+        let lo = lerp3(box_corner(first), box_corner(first + 6u), cur_at.fraction);
+        let hi = lerp3(box_corner(first + 3u), box_corner(first + 9u), cur_at.fraction);
+        b[0][lane] = lo.x;
+        b[1][lane] = lo.y;
+        b[2][lane] = lo.z;
+        b[3][lane] = hi.x;
+        b[4][lane] = hi.y;
+        b[5][lane] = hi.z;
     }
     return b;
 }
@@ -449,33 +435,42 @@ fn lane_boxes(node: u32, n: Node) -> LaneBoxes {
 // Node `node`'s lanes tested against `[ray.tmin, tmax]` (`intersect::aabb::intersect`, same operations, same
 // NaN rule, same slack); empty lanes are never entered.
 fn test_lanes(node: u32, tmax: f32) -> LaneHits {
-    let n = nodes[node];
-    let b = lane_boxes(node, n);
     let r = cur_ray;
+    let index = nodes[node].index;
+    let count = nodes[node].count;
     var slabs = Slabs(vec4<f32>(r.tmin), vec4<f32>(tmax));
-    slabs = slab(slabs, b.lo_x, b.hi_x, r.direction.x < 0.0, r.origin.x, r.inv_direction.x);
-    slabs = slab(slabs, b.lo_y, b.hi_y, r.direction.y < 0.0, r.origin.y, r.inv_direction.y);
-    slabs = slab(slabs, b.lo_z, b.hi_z, r.direction.z < 0.0, r.origin.z, r.inv_direction.z);
+    if MOTION && cur.keys > 1u {
+        let b = moving_boxes(node);
+        let n = r.direction < vec3<f32>(0.0);
+        slabs = slab(slabs, select(b[0], b[3], n.x), select(b[3], b[0], n.x), r.origin.x, r.inv_direction.x);
+        slabs = slab(slabs, select(b[1], b[4], n.y), select(b[4], b[1], n.y), r.origin.y, r.inv_direction.y);
+        slabs = slab(slabs, select(b[2], b[5], n.z), select(b[5], b[2], n.z), r.origin.z, r.inv_direction.z);
+    } else {
+        // The rows the ray needs, read where they lie rather than chosen with selects.
+        let boxes = &nodes[node].boxes;
+        let entry = r.entry_rows;
+        let exit = r.exit_rows;
+        slabs = slab(slabs, (*boxes)[entry.x], (*boxes)[exit.x], r.origin.x, r.inv_direction.x);
+        slabs = slab(slabs, (*boxes)[entry.y], (*boxes)[exit.y], r.origin.y, r.inv_direction.y);
+        slabs = slab(slabs, (*boxes)[entry.z], (*boxes)[exit.z], r.origin.z, r.inv_direction.z);
+    }
     let near = slabs.near - abs(slabs.near) * SLACK;
     let far = slabs.far + abs(slabs.far) * SLACK;
-    return LaneHits((near <= far) & (n.index != vec4<u32>(EMPTY_LANE)), near, n.index, n.count);
+    return LaneHits((near <= far) & (index != vec4<u32>(EMPTY_LANE)), near, index, count);
 }
 
-fn corner(word: u32) -> vec3<f32> {
-    return vec3<f32>(corners[word], corners[word + 1u], corners[word + 2u]);
-}
 
 // Triangle slot `slot` of geometry object `object`, its corners at `at`.
 fn triangle_at(object: Object, slot: u32, at: KeyTime) -> array<vec3<f32>, 3> {
-    let first = object.corner_base + ((slot - object.base) * object.keys + at.segment) * 9u;
+    let first = object.corner_base + ((slot - object.base) * object.keys + at.segment) * 3u;
     if !MOTION || object.keys <= 1u {
-        return array<vec3<f32>, 3>(corner(first), corner(first + 3u), corner(first + 6u));
+        return array<vec3<f32>, 3>(corners[first].xyz, corners[first + 1u].xyz, corners[first + 2u].xyz);
     }
     let f = at.fraction;
     return array<vec3<f32>, 3>(
-        lerp3(corner(first), corner(first + 9u), f),
-        lerp3(corner(first + 3u), corner(first + 12u), f),
-        lerp3(corner(first + 6u), corner(first + 15u), f),
+        lerp3(corners[first].xyz, corners[first + 3u].xyz, f),
+        lerp3(corners[first + 1u].xyz, corners[first + 4u].xyz, f),
+        lerp3(corners[first + 2u].xyz, corners[first + 5u].xyz, f),
     );
 }
 
@@ -838,53 +833,46 @@ fn visit_instances(first: u32, end: u32) -> u32 {
     return NONE;
 }
 
-// A lane and where the ray enters it, as the lane sort orders them: `near` (`+∞` for a lane not entered), then
-// `key` (the lane, plus `NODE_WIDTH` when not entered, so entered lanes come first on ties).
-struct LaneOrder {
-    near: f32,
-    key: u32,
+// Sort keys of the lanes that the ray enters (`0xffffffff` for the others): the entry distance's bits made to order
+// as unsigned integers (sign bit flipped, or every bit for a negative distance), the lane in the two lowest bits.
+fn lane_keys(hits: LaneHits) -> vec4<u32> {
+    let bits = bitcast<vec4<u32>>(hits.near);
+    let ordered = bits ^ select(vec4<u32>(0x80000000u), vec4<u32>(0xffffffffu), bits >= vec4<u32>(0x80000000u));
+    let keys = (ordered & vec4<u32>(~3u)) | vec4<u32>(0u, 1u, 2u, 3u);
+    return select(vec4<u32>(0xffffffffu), keys, hits.entered);
 }
 
-fn lane_order(hits: LaneHits, lane: u32) -> LaneOrder {
-    let entered = hits.entered[lane];
-    return LaneOrder(select(infinity(), hits.near[lane], entered), select(lane + NODE_WIDTH, lane, entered));
+// The entry distance of a lane key: the lane's own rounded down by its two lowest bits, never above it, so the pop
+// re-check (`near > cull_tmax()`) never drops a lane that the exact distance would keep; only ties within four
+// units in the last place are ordered by lane.
+fn key_distance(key: u32) -> f32 {
+    let ordered = key & ~3u;
+    return bitcast<f32>(ordered ^ select(0xffffffffu, 0x80000000u, ordered >= 0x80000000u));
 }
 
-// Puts `a` and `b` in order.
-fn order_lanes(a: ptr<function, LaneOrder>, b: ptr<function, LaneOrder>) {
-    let x = *a;
-    let y = *b;
-    if y.near < x.near || (y.near == x.near && y.key < x.key) {
-        *a = y;
-        *b = x;
-    }
-}
-
-// Sorts the lanes of node `node` that the ray enters by entry distance, pushes all but the nearest (farthest
-// first, so the nearer pop first) and returns the nearest's lane reference (`node · NODE_WIDTH + lane`), or
-// `NONE` when the ray enters none.
+// Sorts the lanes of node `node` that the ray enters by entry distance (then lane, on equal keys), pushes all but
+// the nearest (farthest first, so the nearer pop first) and returns the nearest's lane reference (`node ·
+// NODE_WIDTH + lane`), or `NONE` when the ray enters none. Four keys, five compare-exchanges, no branches.
 fn push_lanes(node: u32, hits: LaneHits) -> u32 {
-    var l0 = lane_order(hits, 0u);
-    var l1 = lane_order(hits, 1u);
-    var l2 = lane_order(hits, 2u);
-    var l3 = lane_order(hits, 3u);
-    order_lanes(&l0, &l1);
-    order_lanes(&l2, &l3);
-    order_lanes(&l0, &l2);
-    order_lanes(&l1, &l3);
-    order_lanes(&l1, &l2);
+    let keys = lane_keys(hits);
+    let low = min(keys.xz, keys.yw);
+    let high = max(keys.xz, keys.yw);
+    let k0 = min(low.x, low.y);
+    let k3 = max(high.x, high.y);
+    let k1 = min(max(low.x, low.y), min(high.x, high.y));
+    let k2 = max(max(low.x, low.y), min(high.x, high.y));
     let entered = u32(hits.entered.x) + u32(hits.entered.y) + u32(hits.entered.z) + u32(hits.entered.w);
     let base = node * NODE_WIDTH;
     if entered > 3u {
-        push(base + l3.key, bitcast<u32>(l3.near));
+        push(base + (k3 & 3u), bitcast<u32>(key_distance(k3)));
     }
     if entered > 2u {
-        push(base + l2.key, bitcast<u32>(l2.near));
+        push(base + (k2 & 3u), bitcast<u32>(key_distance(k2)));
     }
     if entered > 1u {
-        push(base + l1.key, bitcast<u32>(l1.near));
+        push(base + (k1 & 3u), bitcast<u32>(key_distance(k1)));
     }
-    return select(NONE, base + l0.key, entered > 0u);
+    return select(NONE, base + (k0 & 3u), entered > 0u);
 }
 
 // A leaf lane's triangle slots.
