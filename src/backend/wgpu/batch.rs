@@ -28,6 +28,8 @@
 use std::sync::mpsc::{Receiver, TryRecvError, channel};
 use std::time::{Duration, Instant};
 
+use rayon::prelude::*;
+
 #[cfg(doc)]
 use super::WgpuOptions;
 use super::device::Opened;
@@ -581,11 +583,13 @@ fn submit(
     let rays = match input {
         Input::Packed(rays) => {
             let size = query.ray_format.size();
-            slot.upload
+            let mut staging = slot
+                .upload
                 .slice(..need.rays)
                 .get_mapped_range_mut()
-                .map_err(|e| device_error("mapping the ray staging buffer", e))?
-                .copy_from_slice(&rays[chunk.first * size..(chunk.first + chunk.rays) * size]);
+                .map_err(|e| device_error("mapping the ray staging buffer", e))?;
+            upload_spread(staging.slice(..), &rays[chunk.first * size..(chunk.first + chunk.rays) * size]);
+            drop(staging);
             slot.upload.unmap();
             encoder.copy_buffer_to_buffer(&slot.upload, 0, &slot.rays, 0, need.rays);
             Rays::Packed
@@ -638,6 +642,48 @@ fn submit(
     Ok(InFlight { chunk, need, submission, read, write })
 }
 
+/// Bytes a task of [`copy_spread`].
+const COPY_PIECE_BYTES: usize = 1 << 20;
+
+/// Copies `from` (a staging buffer's mapped bytes) into `to` (the caller's; the same length) a MiB a task on the
+/// rayon pool. One thread was the bottleneck of transfers: on the H100's host it copied 1.5–10 GB/s out of a mapped
+/// buffer (the low end when the destination's pages are touched for the first time, as a fresh output buffer's
+/// are), 16 threads 37–48 GB/s, while the device fills the staging buffer at 30–44 GB/s (BENCHMARKS.md,
+/// "Transfers spread over cores").
+fn copy_spread(to: &mut [u8], from: &[u8]) {
+    to.par_chunks_mut(COPY_PIECE_BYTES)
+        .zip(from.par_chunks(COPY_PIECE_BYTES))
+        .for_each(|(to, from)| to.copy_from_slice(from));
+}
+
+/// Copies `from` (the caller's rays) into `staging` (a mapped staging range, write-only; the same length) a MiB a
+/// task on the rayon pool, as [`copy_spread`] does the other way.
+fn upload_spread(mut staging: wgpu::WriteOnly<'_, [u8]>, from: &[u8]) {
+    assert_eq!(staging.len(), from.len(), "a staging range and the rays copied into it differ in length");
+    let start = StagingStart(staging.as_raw_element_ptr());
+    from.par_chunks(COPY_PIECE_BYTES).enumerate().for_each(|(piece, bytes)| {
+        // SAFETY: `start` is the first of `from.len()` writable bytes, which `staging` borrows mutably until this
+        // function returns; each task writes only its own piece of them (disjoint ranges), and none reads them —
+        // the use `WriteOnly::as_raw_ptr` documents (writes from several threads).
+        unsafe {
+            std::ptr::copy_nonoverlapping(bytes.as_ptr(), start.at(piece * COPY_PIECE_BYTES), bytes.len());
+        }
+    });
+}
+
+/// The first byte of a mapped staging range, shared by the tasks of [`upload_spread`].
+struct StagingStart(std::ptr::NonNull<u8>);
+
+impl StagingStart {
+    /// The byte `offset` bytes further.
+    fn at(&self, offset: usize) -> *mut u8 {
+        self.0.as_ptr().wrapping_add(offset)
+    }
+}
+
+// SAFETY: the tasks of `upload_spread` write disjoint bytes of a range borrowed for the whole copy (see there).
+unsafe impl Sync for StagingStart {}
+
 /// Waits for a chunk, copies what it gives back into `output` and adds its statistics; leaves the slot idle
 /// (upload mapped, readback unmapped).
 fn finish(
@@ -666,17 +712,19 @@ fn finish(
                 let per_ray = query.records_per_ray();
                 let start = query.hit_format.buffer_len(chunk.first * per_ray);
                 let len = query.hit_format.buffer_len(chunk.rays * per_ray);
-                hits[start..start + len].copy_from_slice(&view[..len]);
+                copy_spread(&mut hits[start..start + len], &view[..len]);
                 if query.kind.has_counts() {
-                    counts[4 * chunk.first..4 * (chunk.first + chunk.rays)]
-                        .copy_from_slice(&tallies[TALLY_BYTES as usize..TALLY_BYTES as usize + 4 * chunk.rays]);
+                    copy_spread(
+                        &mut counts[4 * chunk.first..4 * (chunk.first + chunk.rays)],
+                        &tallies[TALLY_BYTES as usize..TALLY_BYTES as usize + 4 * chunk.rays],
+                    );
                 }
             }
             Output::Pixels { group_rays, pixel_words, pixels } => {
                 let pixel_bytes = 4 * *pixel_words as usize;
                 let start = chunk.first / *group_rays as usize * pixel_bytes;
                 let len = need.given_back as usize;
-                pixels[start..start + len].copy_from_slice(&view[..len]);
+                copy_spread(&mut pixels[start..start + len], &view[..len]);
             }
             Output::Tallies => {}
         }
