@@ -95,22 +95,6 @@ fn main() {
             })
             .collect(),
     );
-    // The same in the pieces rayd's scheduler cuts a GPU trace into, one after the other.
-    let piece = 1 << 20; // rayd's `schedule::GPU_PIECE_RAYS`
-    let engine_pieces = median(
-        (0..RUNS)
-            .map(|_| {
-                let start = Instant::now();
-                for first in (0..generator.count()).step_by(piece) {
-                    let count = piece.min((generator.count() - first) as usize);
-                    let rays = RaySource::Generated { generator: &generator, first, count };
-                    context.trace_reduced(&accel, &query, rays, first, &depth).unwrap();
-                }
-                start.elapsed().as_secs_f64()
-            })
-            .collect(),
-    );
-
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
@@ -140,8 +124,6 @@ fn main() {
         }
         let what = "engine in-process, generated, depth image float32";
         println!("{what:<52} {:>9.2} {:>8.1}", mrays(engine_reduced), 100.0 * engine / engine_reduced);
-        let what = "  the same in pieces of 2^20 rays";
-        println!("{what:<52} {:>9.2} {:>8.1}", mrays(engine_pieces), 100.0 * engine / engine_pieces);
         let row = |what: &str, seconds: f64, wire: &Bytes| {
             let (zstd, gzip) = compressed(wire);
             let per_ray = |bytes: usize| bytes as f64 / rays_per_call;

@@ -17,10 +17,17 @@ use rayd_engine::Device;
 use rayd_engine::backend::BackendKind;
 use rayd_engine::query::CHUNK_RAYS;
 
-/// Rays per piece on a GPU: large enough for the backend to overlap its transfers with tracing within a piece
-/// (several of its chunks), small enough that another tenant's trace waits for milliseconds, not for a whole
-/// batch.
+/// Rays per piece on a GPU when the caller sends the rays: large enough for the backend to overlap its transfers
+/// with tracing within a piece (several of its chunks), small enough that another tenant's trace waits for
+/// milliseconds, not for a whole batch.
 pub const GPU_PIECE_RAYS: usize = 1 << 20;
+
+/// Rays per piece on a GPU when the server makes the rays (a generator): nothing is uploaded, so a piece is the
+/// kernels' time alone — about 6 ms for 2^22 camera rays on an H100 at the clock the service runs at — and the
+/// device idles between pieces (the host finishes one before the next is queued) a quarter as often as with
+/// pieces of [`GPU_PIECE_RAYS`]: on an H100, counts through rayd +9% and depth images +27% (BENCHMARKS.md,
+/// "Larger GPU pieces for rays made on the server").
+pub const GPU_GENERATED_PIECE_RAYS: usize = 1 << 22;
 
 /// Work the scheduler runs; it reports its own results.
 pub type Task = Box<dyn FnOnce() + Send>;
@@ -30,8 +37,10 @@ pub type Task = Box<dyn FnOnce() + Send>;
 pub struct Scheduler {
     /// What the workers share with the callers.
     shared: Arc<Shared>,
-    /// Rays per piece on this device.
+    /// Rays per piece on this device, for rays sent.
     piece_rays: usize,
+    /// Rays per piece on this device, for rays made by a generator.
+    generated_piece_rays: usize,
 }
 
 /// The queue and the slots, behind one lock.
@@ -125,27 +134,35 @@ impl Scheduler {
                 })
                 .expect("a worker thread can be started");
         }
-        Scheduler { shared, piece_rays: piece_rays.max(1) }
+        Scheduler { shared, piece_rays: piece_rays.max(1), generated_piece_rays: piece_rays.max(1) }
+    }
+
+    /// The same, but cutting traces of rays made by a generator into pieces of `rays` rays.
+    pub fn with_generated_pieces(mut self, rays: usize) -> Scheduler {
+        self.generated_piece_rays = rays.max(1);
+        self
     }
 
     /// The scheduler of `device`: on the CPU one worker per core (`cpu_workers` 0) or `cpu_workers`, and pieces
     /// of one engine chunk; on a GPU one worker (the device runs one trace at a time anyway) and pieces of
-    /// [`GPU_PIECE_RAYS`].
+    /// [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made by a generator.
     pub fn for_device(device: &Device, cpu_workers: usize, nice: u32) -> Scheduler {
         let info = device.info();
-        let (workers, piece_rays) = match info.kind {
+        match info.kind {
             BackendKind::Cpu => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-                (if cpu_workers == 0 { cores } else { cpu_workers }, CHUNK_RAYS)
+                Scheduler::new(&info.id, if cpu_workers == 0 { cores } else { cpu_workers }, CHUNK_RAYS, nice)
             }
-            BackendKind::Wgpu => (1, GPU_PIECE_RAYS),
-        };
-        Scheduler::new(&info.id, workers, piece_rays, nice)
+            BackendKind::Wgpu => {
+                Scheduler::new(&info.id, 1, GPU_PIECE_RAYS, nice).with_generated_pieces(GPU_GENERATED_PIECE_RAYS)
+            }
+        }
     }
 
-    /// Rays per piece: a trace of more rays is cut into pieces of this many.
-    pub fn piece_rays(&self) -> usize {
-        self.piece_rays
+    /// Rays per piece: a trace of more rays is cut into pieces of this many — of rays made by a generator when
+    /// `generated`, of rays sent otherwise.
+    pub fn piece_rays(&self, generated: bool) -> usize {
+        if generated { self.generated_piece_rays } else { self.piece_rays }
     }
 
     /// A slot for the caller to run one small task itself, if one is free and no task is waiting (so it never
@@ -237,6 +254,17 @@ mod tests {
         let order: Vec<_> = (0..101).map(|_| finished.recv().unwrap()).collect();
         let b_at = order.iter().position(|&n| n == "b").unwrap();
         assert!(b_at <= 1, "b was served {b_at}th: {order:?}");
+    }
+
+    #[test]
+    fn rays_made_by_a_generator_are_cut_into_their_own_pieces() {
+        let scheduler = Scheduler::new("test", 1, 8, 0);
+        assert_eq!((scheduler.piece_rays(false), scheduler.piece_rays(true)), (8, 8));
+        let scheduler = scheduler.with_generated_pieces(32);
+        assert_eq!((scheduler.piece_rays(false), scheduler.piece_rays(true)), (8, 32));
+        // The CPU's pieces are one engine chunk either way.
+        let cpu = Scheduler::for_device(&rayd_engine::Device::cpu(), 1, 0);
+        assert_eq!((cpu.piece_rays(false), cpu.piece_rays(true)), (CHUNK_RAYS, CHUNK_RAYS));
     }
 
     #[test]
