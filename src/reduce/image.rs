@@ -85,6 +85,12 @@ impl Image {
         Ok(())
     }
 
+    /// Bytes a pixel takes before any PNG compression.
+    pub fn pixel_bytes(&self) -> usize {
+        let value = if self.encoding == PixelEncoding::Float32 { 4 } else { 2 };
+        self.channel.channels() * value
+    }
+
     /// Appends the pixel of `hit` (its pixel's nearest, read from [`ImageChannel::hit_format`]).
     pub(super) fn push_pixel(&self, hit: &Hit, out: &mut Vec<u8>) {
         match self.channel {

@@ -34,10 +34,32 @@ impl Partial {
                 }
             }
             (Partial::Ordered { bytes, dropped }, Partial::Ordered { bytes: more, dropped: more_dropped }) => {
-                bytes.extend_from_slice(&more);
+                // The first piece's records are taken as they are (on a GPU, a whole image is one piece).
+                if bytes.is_empty() {
+                    *bytes = more;
+                } else {
+                    bytes.extend_from_slice(&more);
+                }
                 *dropped += more_dropped;
             }
             (this, next) => panic!("partials of different reductions: {this:?} and {next:?}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ordered_records_concatenate_and_the_first_are_taken_without_a_copy() {
+        let first = vec![1u8, 2, 3];
+        let at = first.as_ptr();
+        let mut folded = Partial::Ordered { bytes: Vec::new(), dropped: 0 };
+        folded.merge(Partial::Ordered { bytes: first, dropped: 1 });
+        let Partial::Ordered { bytes, .. } = &folded else { unreachable!() };
+        assert_eq!(bytes.as_ptr(), at, "the first piece's records were copied");
+        folded.merge(Partial::Ordered { bytes: vec![4, 5], dropped: 2 });
+        assert_eq!(folded, Partial::Ordered { bytes: vec![1, 2, 3, 4, 5], dropped: 3 });
     }
 }
