@@ -292,6 +292,37 @@ fn large_batches_agree_for_closest_and_any() {
     agreement.check();
 }
 
+/// Rays whose range reaches behind their origin (negative `tmin`; a third with a negative `tmax` too, so only
+/// behind): the kernel orders and re-checks lanes entered at negative distances like any others. Every hit format
+/// that carries `t` and ids, every query kind. (Not the bitmask: the CPU backend writes a hit at a negative `t` as
+/// a 0 bit, since `Hit::is_hit` is `t >= 0`, where the GPU writes 1 — a separate inconsistency, left open.)
+#[test]
+fn ranges_behind_the_origin_agree() {
+    let Some(device) = gpu() else { return };
+    let scene = bunny_scene(&device);
+    let rays: Vec<Ray> = rays(3000, 11)
+        .into_iter()
+        .enumerate()
+        .map(|(i, ray)| Ray { tmin: -3.0, tmax: if i % 3 == 0 { -0.25 } else { ray.tmax }, ..ray })
+        .collect();
+    let mut agreement = Agreement::default();
+    for ray_format in [RayFormat::OriginTminDirectionTmax, RayFormat::Full] {
+        let packed = pack_rays(&rays, ray_format);
+        for hit_format in HitFormat::ALL.into_iter().filter(|&f| f != HitFormat::Bitmask) {
+            for kind in QueryKind::ALL {
+                let query = Query { kind, max_hits_per_ray: 3, ..Query::closest(ray_format, hit_format) };
+                scene.compare(&query, &packed, &mut agreement);
+            }
+        }
+    }
+    agreement.check();
+    // The test is about hits behind the origins: there are many.
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    let (hits, _) = trace(&scene.cpu.0, &scene.cpu.1, &query, &pack_rays(&rays, query.ray_format));
+    let behind = hits.chunks_exact(16).filter(|hit| f32::from_le_bytes(hit[..4].try_into().unwrap()) < 0.0).count();
+    assert!(behind > rays.len() / 10, "{behind} of {} rays hit behind their origin", rays.len());
+}
+
 /// `Context::time_launches` (the kernel-only benchmark's measurement) times each launch by the GPU's timestamps, and
 /// is refused where there is no kernel or the rays are not whole.
 #[test]
