@@ -87,12 +87,10 @@ impl<'a> HitView<'a> {
         self.len == 0
     }
 
-    /// Whether record `index` is a hit, for every format (the bitmask's bit, otherwise `t >= 0`).
+    /// Whether record `index` is a hit, for every format: the bitmask's bit, a primitive id other than −1, or in
+    /// the `t` format (no id) `t >= 0` ([`Hit::is_hit`]).
     pub fn is_hit(&self, index: usize) -> bool {
-        match self.format.size() {
-            None => self.bytes[index / 8] & (1 << (index % 8)) != 0,
-            Some(size) => f32_at(self.bytes, index * size) >= 0.0,
-        }
+        self.get(index).is_hit()
     }
 
     /// Record `index`, decoded by [`HitFormat::read`]: fields the format does not carry read as in [`Hit::MISS`], a
@@ -106,16 +104,6 @@ impl<'a> HitView<'a> {
     pub fn iter(&self) -> impl ExactSizeIterator<Item = Hit> + '_ {
         (0..self.len).map(|i| self.get(i))
     }
-}
-
-/// The little-endian `f32` at `offset`.
-fn f32_at(bytes: &[u8], offset: usize) -> f32 {
-    f32::from_bits(u32_at(bytes, offset))
-}
-
-/// The little-endian `u32` at `offset`.
-fn u32_at(bytes: &[u8], offset: usize) -> u32 {
-    u32::from_le_bytes(bytes[offset..offset + 4].try_into().expect("4 bytes"))
 }
 
 #[cfg(test)]

@@ -83,9 +83,11 @@ impl Hit {
         back_face: false,
     };
 
-    /// Whether this is a real hit.
+    /// Whether this is a real hit: it names a primitive, or (read from a record without ids: the `t` format, a
+    /// bitmask read as `t = 0`) its `t` is ≥ 0, Prime's rule. A hit behind the ray's origin (`tmin` < 0) names its
+    /// primitive, so it is a hit here; in the `t` format alone it cannot be told from a miss.
     pub fn is_hit(&self) -> bool {
-        self.t >= 0.0
+        self.prim_id != MISS_ID || self.t >= 0.0
     }
 }
 
@@ -265,6 +267,18 @@ mod tests {
         assert_eq!(bits, [0b0000_0001, 0b0000_0010]);
         HitFormat::Bitmask.write(&mut bits, 0, &Hit::MISS);
         assert_eq!(bits, [0, 0b0000_0010]);
+    }
+
+    #[test]
+    fn a_hit_behind_the_origin_is_a_hit_in_every_format_with_ids_and_in_the_bitmask() {
+        let behind = Hit { t: -0.5, prim_id: 3, ..Hit::MISS };
+        assert!(behind.is_hit() && !Hit::MISS.is_hit());
+        for format in HitFormat::ALL {
+            let mut record = vec![0u8; format.buffer_len(1)];
+            format.write(&mut record, 0, &behind);
+            // The `t` format has no id: by Prime's rule its negative t reads as a miss (the contract says so).
+            assert_eq!(format.read(&record, 0).is_hit(), format != HitFormat::T, "{format:?}");
+        }
     }
 
     #[test]

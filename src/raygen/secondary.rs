@@ -156,7 +156,7 @@ impl Secondary {
         let f32_at = |at: usize| f32::from_le_bytes(hit[at..at + 4].try_into().expect("4 bytes"));
         let t = f32_at(0);
         let missed = Ray { direction: Vec3A::ZERO, ..*primary };
-        if t < 0.0 {
+        if !HitFormat::Full.read(hit, 0).is_hit() {
             return missed;
         }
         let normal = Vec3A::new(f32_at(NORMAL_OFFSET), f32_at(NORMAL_OFFSET + 4), f32_at(NORMAL_OFFSET + 8));
@@ -181,15 +181,16 @@ impl Secondary {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::format::Hit;
 
-    /// A `Full` hit record at `t` with `normal` (the other fields do not matter here).
+    /// A `Full` hit record at `t` with the unit `normal` on primitive 0, or a miss's record where `t` < 0.
     fn hit(t: f32, normal: Vec3) -> Vec<u8> {
+        let hit = match t < 0.0 {
+            true => Hit::MISS,
+            false => Hit { t, prim_id: 0, normal: normal.into(), ..Hit::MISS },
+        };
         let mut record = vec![0u8; HIT_BYTES];
-        record[0..4].copy_from_slice(&t.to_le_bytes());
-        for (axis, value) in normal.to_array().into_iter().enumerate() {
-            let at = NORMAL_OFFSET + 4 * axis;
-            record[at..at + 4].copy_from_slice(&value.to_le_bytes());
-        }
+        HitFormat::Full.write(&mut record, 0, &hit);
         record
     }
 

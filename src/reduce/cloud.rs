@@ -51,7 +51,7 @@ impl PointCloud {
         Ok(())
     }
 
-    /// The points of one piece, whose first ray is `first_ray` of the batch (hits in [`crate::format::HitFormat::T`]).
+    /// The points of one piece, whose first ray is `first_ray` of the batch (hits in [`crate::format::HitFormat::TTriid`]).
     pub(super) fn reduce(&self, traced: &Query, first_ray: u64, rays: &[u8], hits: &[u8]) -> Partial {
         let (ray_size, records) = (traced.ray_format.size(), traced.records_per_ray());
         let (mut bytes, mut dropped) = (Vec::new(), 0);

@@ -47,10 +47,11 @@ pub enum PixelEncoding {
 }
 
 impl ImageChannel {
-    /// The hit format that carries what this channel needs.
+    /// The hit format that carries what this channel needs (the primitive id at least: it tells a hit behind the
+    /// ray's origin from a miss).
     pub fn hit_format(self) -> HitFormat {
         match self {
-            ImageChannel::Depth => HitFormat::T,
+            ImageChannel::Depth => HitFormat::TTriid,
             ImageChannel::Normal => HitFormat::Full,
         }
     }

@@ -141,7 +141,8 @@ impl Reduction {
     /// needs.
     pub fn traced_query(&self, query: &Query) -> Query {
         let hit_format = match self {
-            Reduction::Counts | Reduction::Histogram { .. } | Reduction::PointCloud(_) => HitFormat::T,
+            // The primitive id tells a hit behind the ray's origin from a miss (`Hit::is_hit`).
+            Reduction::Counts | Reduction::Histogram { .. } | Reduction::PointCloud(_) => HitFormat::TTriid,
             Reduction::Image(image) => image.channel.hit_format(),
             Reduction::IdCounts(IdKind::Instance) => HitFormat::TTriidInstid,
             Reduction::IdCounts(IdKind::Geometry) => HitFormat::Full,

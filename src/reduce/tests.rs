@@ -50,6 +50,36 @@ fn counts_and_histogram_count_what_was_hit() {
 }
 
 #[test]
+fn hits_behind_the_origin_are_counted_imaged_and_placed() {
+    // Negative t: rays whose tmin < 0 hit behind their origins. Each reduction traces with a format that has ids.
+    let hits = [hit(-0.5, 0, 0, 0), Hit::MISS, hit(-2.0, 1, 0, 0)];
+    let traced =
+        |reduction: &Reduction| reduction.traced_query(&Query::closest(RayFormat::OriginDirection, HitFormat::T));
+    let counted = |reduction: Reduction| reduce(&reduction, traced(&reduction).hit_format, &hits).bytes;
+    assert_eq!(u64s(&counted(Reduction::Counts)), [3, 2, 2]);
+    let histogram = Reduction::Histogram { bins: 2, t_min: -3.0, t_max: 1.0 };
+    // Bins [−3, −1) and [−1, 1), then below and above.
+    assert_eq!(u64s(&counted(histogram)), [1, 1, 0, 0]);
+    let depth = Image {
+        width: 3,
+        rays_per_pixel: 1,
+        channel: ImageChannel::Depth,
+        encoding: PixelEncoding::Float32,
+        near: 0.0,
+        far: 1.0,
+    };
+    let floats: Vec<f32> =
+        counted(Reduction::Image(depth)).chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().unwrap())).collect();
+    assert_eq!(floats, [-0.5, f32::INFINITY, -2.0]);
+    let cloud = PointCloud { encoding: PointEncoding::Float32, step: 0.01, origin: Vec3::ZERO, ray_indices: false };
+    let points: Vec<f32> = counted(Reduction::PointCloud(cloud))
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    assert_eq!(points, [-0.5, 0.0, 0.0, -2.0, 0.0, 0.0]);
+}
+
+#[test]
 fn id_counts_are_sorted_by_signed_id_with_none_first() {
     let hits = [hit(1.0, 7, 2, 5), hit(1.0, 7, 1, crate::format::MISS_ID), Hit::MISS, hit(2.0, 3, 2, 5)];
     let pairs = |bytes: &[u8]| -> Vec<(i32, u64)> {

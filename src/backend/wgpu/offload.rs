@@ -100,6 +100,9 @@ const CAMERA_WORDS: usize = 21;
 /// Words of a lidar's block before its channels.
 const LIDAR_HEADER_WORDS: usize = 16;
 
+/// The bits of a depth pixel whose rays all missed (`NONE` in `reduce.wgsl`: a NaN, which no hit's `t` is).
+const MISSED_PIXEL: u32 = u32::MAX;
+
 /// A reduction the device makes.
 #[derive(Debug, Clone, Copy)]
 pub(super) enum OnDevice {
@@ -145,7 +148,8 @@ impl OnDevice {
                             let word = |i: usize| f32::from_le_bytes(pixel[4 * i..4 * i + 4].try_into().unwrap());
                             match image.channel {
                                 ImageChannel::Depth => {
-                                    image.push_depth(Some(word(0)).filter(|t| *t >= 0.0), &mut encoded)
+                                    let hit = word(0).to_bits() != MISSED_PIXEL;
+                                    image.push_depth(hit.then(|| word(0)), &mut encoded)
                                 }
                                 ImageChannel::Normal => {
                                     let hit = word(3).to_bits() != 0;

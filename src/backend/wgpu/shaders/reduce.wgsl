@@ -1,9 +1,11 @@
 
 // The image reduction on the device (`reduce::Image`), dispatched after the trace over the same chunk: one thread a
-// pixel of `params.group_rays` consecutive rays (one record each: closest or any), the nearest of their records
-// (the first of equal `t`, as `reduce::nearest`) written to `reduced` as the pixel's depth (`params.pixel_words`
-// 1: `t`, or `MISS_T` for a miss) or its normal turned to face the ray (4 words: x, y, z f32, then 1 for a hit;
-// all 0 for a miss). The host encodes the pixels (`Image::push_depth`, `Image::push_normal`).
+// pixel of `params.group_rays` consecutive rays (one record each: closest or any, in a format whose word 1 is the
+// primitive id), the nearest of their hits (records naming a primitive, as `Hit::is_hit`; the first of equal `t`,
+// as `reduce::nearest`) written to `reduced` as the pixel's depth (`params.pixel_words` 1: `t`, which is negative
+// for a hit behind the ray's origin, or `NONE`'s bits, a NaN, for a miss) or its normal turned to face the ray (4
+// words: x, y, z f32, then 1 for a hit; all 0 for a miss). The host encodes the pixels (`Image::push_depth`,
+// `Image::push_normal`).
 @group(1) @binding(5) var<storage, read_write> reduced: array<u32>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
@@ -17,13 +19,14 @@ fn reduce_pixels(@builtin(global_invocation_id) global: vec3<u32>) {
     var nearest_t = 0.0;
     for (var ray = pixel * group; ray < (pixel + 1u) * group; ray++) {
         let t = bitcast<f32>(atomicLoad(&hits[ray * params.record_words]));
-        if t >= 0.0 && (nearest == NONE || t < nearest_t) {
+        let hit = atomicLoad(&hits[ray * params.record_words + 1u]) != MISS_ID;
+        if hit && (nearest == NONE || t < nearest_t) {
             nearest = ray;
             nearest_t = t;
         }
     }
     if params.pixel_words == 1u {
-        reduced[pixel] = bitcast<u32>(select(MISS_T, nearest_t, nearest != NONE));
+        reduced[pixel] = select(NONE, bitcast<u32>(nearest_t), nearest != NONE);
         return;
     }
     var normal = vec4<u32>(0u);
