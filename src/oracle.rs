@@ -15,19 +15,21 @@ pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: Tra
         rays,
         out,
         || (),
-        |_, ray, collector, stats| {
-            for &i in &hittable {
-                stats.triangle_tests += 1;
-                let id = triangles.refs[i];
-                let candidate = TriangleCandidate {
-                    corners: &triangles.corners(i)[0],
-                    id,
-                    mask: triangles.mask(i),
-                    geometry_flags: triangles.geometry_flags[id.geom_id as usize],
-                };
-                consider_triangle(ray, &candidate, &InstanceScope::WORLD, collector);
-                if collector.done() {
-                    return;
+        |_, rays, collectors, stats| {
+            for (ray, collector) in rays.iter().zip(collectors) {
+                for &i in &hittable {
+                    stats.triangle_tests += 1;
+                    let id = triangles.refs[i];
+                    let candidate = TriangleCandidate {
+                        corners: &triangles.corners(i)[0],
+                        id,
+                        mask: triangles.mask(i),
+                        geometry_flags: triangles.geometry_flags[id.geom_id as usize],
+                    };
+                    consider_triangle(ray, &candidate, &InstanceScope::WORLD, collector);
+                    if collector.done() {
+                        break;
+                    }
                 }
             }
         },

@@ -56,25 +56,62 @@ fn perturbed_sign(p: (f32, f32), q: (f32, f32)) -> f32 {
     }
 }
 
+/// A triangle in the ray's sheared space: its corners relative to the origin (`a`, `b`, `c`), projected onto the
+/// plane across the ray (`ax` … `cy`), and the edge functions `u`, `v`, `w` computed in f32.
+struct Projected {
+    a: glam::Vec3A,
+    b: glam::Vec3A,
+    c: glam::Vec3A,
+    ax: f32,
+    ay: f32,
+    bx: f32,
+    by: f32,
+    cx: f32,
+    cy: f32,
+    u: f32,
+    v: f32,
+    w: f32,
+}
+
+impl Projected {
+    /// Translates, permutes and shears `corners` into the ray's space.
+    #[inline(always)]
+    fn new(ray: &PreparedRay, corners: &[Vec3; 3]) -> Projected {
+        let (kx, ky, kz) = (ray.kx, ray.ky, ray.kz);
+        let o = ray.origin;
+        let a = glam::Vec3A::from(corners[0]) - o;
+        let b = glam::Vec3A::from(corners[1]) - o;
+        let c = glam::Vec3A::from(corners[2]) - o;
+        let (sx, sy) = (ray.shear.x, ray.shear.y);
+        let ax = a[kx] - sx * a[kz];
+        let ay = a[ky] - sy * a[kz];
+        let bx = b[kx] - sx * b[kz];
+        let by = b[ky] - sy * b[kz];
+        let cx = c[kx] - sx * c[kz];
+        let cy = c[ky] - sy * c[kz];
+        let u = cx * by - cy * bx;
+        let v = ax * cy - ay * cx;
+        let w = bx * ay - by * ax;
+        Projected { a, b, c, ax, ay, bx, by, cx, cy, u, v, w }
+    }
+}
+
+/// Whether [`intersect`] may find a hit: false only when its f32 edge functions are all nonzero and of mixed
+/// signs, where it returns `None` without more work. Computed without branches, so that a leaf's triangles can be
+/// filtered before any is intersected (the rejections, about half of the tests and unpredictable, cost a
+/// mispredicted branch each when taken one at a time).
+#[inline(always)]
+pub fn may_hit(ray: &PreparedRay, corners: &[Vec3; 3]) -> bool {
+    let Projected { u, v, w, .. } = Projected::new(ray, corners);
+    let zero = (u == 0.0) | (v == 0.0) | (w == 0.0);
+    let mixed = ((u < 0.0) | (v < 0.0) | (w < 0.0)) & ((u > 0.0) | (v > 0.0) | (w > 0.0));
+    zero | !mixed
+}
+
 /// Intersects `ray` with the triangle `corners`; `None` when the ray's line misses it (or it is edge-on).
 #[inline(always)]
 pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> {
-    let (kx, ky, kz) = (ray.kx, ray.ky, ray.kz);
-    let o = ray.origin;
-    let a = glam::Vec3A::from(corners[0]) - o;
-    let b = glam::Vec3A::from(corners[1]) - o;
-    let c = glam::Vec3A::from(corners[2]) - o;
-    let (sx, sy, sz) = (ray.shear.x, ray.shear.y, ray.shear.z);
-    let ax = a[kx] - sx * a[kz];
-    let ay = a[ky] - sy * a[kz];
-    let bx = b[kx] - sx * b[kz];
-    let by = b[ky] - sy * b[kz];
-    let cx = c[kx] - sx * c[kz];
-    let cy = c[ky] - sy * c[kz];
-
-    let mut u = cx * by - cy * bx;
-    let mut v = ax * cy - ay * cx;
-    let mut w = bx * ay - by * ax;
+    let Projected { a, b, c, ax, ay, bx, by, cx, cy, mut u, mut v, mut w } = Projected::new(ray, corners);
     if u == 0.0 || v == 0.0 || w == 0.0 {
         let (ax, ay, bx, by, cx, cy) = (ax as f64, ay as f64, bx as f64, by as f64, cx as f64, cy as f64);
         u = (cx * by - cy * bx) as f32;
@@ -98,6 +135,7 @@ pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> 
             return None;
         }
     }
+    let (sz, kz) = (ray.shear.z, ray.kz);
     let az = sz * a[kz];
     let bz = sz * b[kz];
     let cz = sz * c[kz];
@@ -143,6 +181,42 @@ mod tests {
             assert_eq!(hit.back_face, direction.dot(normal) > 0.0, "direction {direction}");
             assert!((hit.t - 5.0).abs() < 1e-5);
         }
+    }
+
+    #[test]
+    fn may_hit_rules_out_only_triangles_that_intersect_misses() {
+        // Rays through a grid of points over triangles of a small lattice (so many rays meet edges and vertices
+        // exactly), from several directions.
+        let corner = |i: i32, j: i32| Vec3::new(i as f32 * 0.5, j as f32 * 0.5, ((i * 7 + j * 3) % 5) as f32 * 0.1);
+        let triangles: Vec<[Vec3; 3]> = (0..4)
+            .flat_map(|i| {
+                (0..4).flat_map(move |j| {
+                    [
+                        [corner(i, j), corner(i + 1, j), corner(i + 1, j + 1)],
+                        [corner(i, j), corner(i + 1, j + 1), corner(i, j + 1)],
+                    ]
+                })
+            })
+            .collect();
+        let (mut ruled_out, mut hits) = (0, 0);
+        for direction in [-Vec3A::Z, Vec3A::new(0.2, -0.1, -1.0), Vec3A::new(-1.0, 0.3, 0.1), Vec3A::new(0.0, 1.0, 0.0)]
+        {
+            for x in 0..=16 {
+                for y in 0..=16 {
+                    let point = Vec3A::new(x as f32 * 0.125, y as f32 * 0.125, 0.2);
+                    let ray = prepared(point - direction * 3.0, direction);
+                    for triangle in &triangles {
+                        let hit = intersect(&ray, triangle);
+                        if !may_hit(&ray, triangle) {
+                            assert!(hit.is_none(), "ruled out but hit: {point} {direction} {triangle:?}");
+                            ruled_out += 1;
+                        }
+                        hits += usize::from(hit.is_some());
+                    }
+                }
+            }
+        }
+        assert!(ruled_out > hits && hits > 0, "{ruled_out} ruled out, {hits} hits");
     }
 
     #[test]

@@ -1,19 +1,24 @@
-//! The batch driver of CPU-side tracing: rays are split into chunks traced in parallel with rayon, each ray is
-//! decoded once, traversed by the backend's closure and written in place. Nothing is allocated per ray.
+//! The batch driver of CPU-side tracing: rays are split into chunks traced in parallel with rayon; in a chunk each
+//! ray is decoded once, handed to the backend's closure in groups of consecutive rays ([`GROUP_RAYS`], so that a
+//! backend can trace coherent ones together) and written in place. Nothing is allocated per ray.
 
 use rayon::prelude::*;
 
 use super::{Collector, Query, QueryKind, TraceOutput, TraceStats};
 use crate::error::Result;
-use crate::format::Hit;
+use crate::format::{Hit, Ray};
 use crate::intersect::PreparedRay;
 
 /// Rays per parallel chunk; a multiple of 8 so that bitmask outputs split on byte boundaries.
 pub const CHUNK_RAYS: usize = 1024;
 
+/// Consecutive rays handed to the backend at once (the last group of a chunk may be smaller).
+pub const GROUP_RAYS: usize = 8;
+
 /// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`.
-/// `traverse` offers the ray's candidate triangles to the collector and adds what it did to the stats; it gets
-/// working state (a traversal stack) made once per chunk by `new_state`.
+/// `traverse` gets up to [`GROUP_RAYS`] consecutive rays with a collector each, offers each ray's candidate
+/// triangles to its collector and adds what it did to the stats; it gets working state (a traversal stack) made
+/// once per chunk by `new_state`.
 pub fn trace_batch<S, N, F>(
     query: &Query,
     rays: &[u8],
@@ -23,7 +28,7 @@ pub fn trace_batch<S, N, F>(
 ) -> Result<TraceStats>
 where
     N: Fn() -> S + Sync,
-    F: Fn(&mut S, &PreparedRay, &mut Collector<'_>, &mut TraceStats) + Sync,
+    F: Fn(&mut S, &[PreparedRay], &mut [Collector<'_>], &mut TraceStats) + Sync,
 {
     let layout = query.output_layout(rays.len())?;
     out.check(&layout)?;
@@ -37,14 +42,26 @@ where
     let trace_chunk = |rays: &[u8], hits: &mut [u8], counts: &mut [u8]| {
         let mut stats = TraceStats::default();
         let mut state = new_state();
-        let mut scratch = vec![Hit::MISS; if query.kind == QueryKind::All { records_per_ray } else { 0 }];
-        for (index, bytes) in rays.chunks_exact(ray_size).enumerate() {
-            let ray = PreparedRay::new(&query.ray_format.decode(bytes), query.flags);
-            let mut collector = Collector::new(query, &ray, &mut scratch);
-            traverse(&mut state, &ray, &mut collector, &mut stats);
-            collector.write(query, hits, index * records_per_ray, counts, index);
-            stats.rays += 1;
-            stats.rays_hit += u64::from(collector.found());
+        let all = query.kind == QueryKind::All;
+        let mut scratch = vec![Hit::MISS; if all { records_per_ray * GROUP_RAYS } else { 0 }];
+        let unused = PreparedRay::new(&Ray::default(), query.flags);
+        for (group, bytes) in rays.chunks(ray_size * GROUP_RAYS).enumerate() {
+            let first = group * GROUP_RAYS;
+            let len = bytes.len() / ray_size;
+            let mut prepared = [unused; GROUP_RAYS];
+            for (ray, bytes) in prepared.iter_mut().zip(bytes.chunks_exact(ray_size)) {
+                *ray = PreparedRay::new(&query.ray_format.decode(bytes), query.flags);
+            }
+            let mut parts = scratch.chunks_mut(records_per_ray.max(1)).take(if all { GROUP_RAYS } else { 0 });
+            let mut collectors: [Collector<'_>; GROUP_RAYS] =
+                std::array::from_fn(|i| Collector::new(query, &prepared[i], parts.next().unwrap_or_default()));
+            traverse(&mut state, &prepared[..len], &mut collectors[..len], &mut stats);
+            for (i, collector) in collectors[..len].iter().enumerate() {
+                let index = first + i;
+                collector.write(query, hits, index * records_per_ray, counts, index);
+                stats.rays_hit += u64::from(collector.found());
+            }
+            stats.rays += len as u64;
         }
         stats
     };

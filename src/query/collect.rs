@@ -155,6 +155,22 @@ impl<'s> Collector<'s> {
         }
     }
 
+    /// Whether the order in which boxes are entered matters to the answer's cost: a closest-hit query prunes by its
+    /// nearest hit so far, so it wants boxes nearest first; `all` and `count` must see every hit whatever the order,
+    /// and `any` stops at whichever it finds first.
+    #[inline(always)]
+    pub fn wants_nearest_first(&self) -> bool {
+        self.kind == QueryKind::Closest
+    }
+
+    /// Whether the ray may be traced with others, in an order of boxes they decide together: true unless it is a
+    /// closest-hit ray that terminates on its first hit (which then stops at the first hit nearest first, as alone).
+    /// Other answers do not depend on that order, but for which hit an `any` query stops at.
+    #[inline(always)]
+    pub fn may_share_order(&self) -> bool {
+        !(self.kind == QueryKind::Closest && self.terminate_on_first_hit)
+    }
+
     /// Whether traversal can stop: an `any` query or a terminate-on-first-hit ray has its hit.
     #[inline(always)]
     pub fn done(&self) -> bool {

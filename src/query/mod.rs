@@ -4,7 +4,7 @@
 mod batch;
 mod collect;
 
-pub use batch::{CHUNK_RAYS, trace_batch};
+pub use batch::{CHUNK_RAYS, GROUP_RAYS, trace_batch};
 pub use collect::{Collector, InstanceScope, TriangleCandidate, consider_triangle};
 
 use crate::error::{Error, Result};

@@ -1,9 +1,14 @@
 //! The CPU backend: BVHs built by `obvhs` ([`bvh`]) over triangles ([`triangles`]) or placed instances
 //! ([`instances`]), traced by [`traverse`] over rayon chunks.
 
+mod blocks;
 pub(crate) mod bvh;
 pub(crate) mod collapse;
+#[cfg(target_arch = "x86_64")]
+mod filter;
 mod instances;
+#[cfg(target_arch = "x86_64")]
+mod packet;
 mod persist;
 mod traverse;
 mod triangles;
@@ -20,7 +25,7 @@ use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_counts};
-use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, trace_batch};
+use crate::query::{Query, TraceOutput, TraceStats, trace_batch};
 
 use bvh::Footprint;
 #[cfg(feature = "wgpu")]
@@ -188,8 +193,8 @@ impl Backend for CpuBackend {
             query,
             rays,
             out,
-            || accel.new_stack(),
-            |stack, ray, collector, stats| accel.traverse(stack, ray, &InstanceScope::WORLD, collector, stats),
+            || accel.new_stacks(),
+            |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats),
         )
     }
 }

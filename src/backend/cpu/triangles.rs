@@ -4,6 +4,7 @@
 use glam::Vec3;
 use obvhs::aabb::Aabb;
 
+use super::blocks::CornerBlocks;
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
 use super::wide::{WIDTH, WideBvh, WideNode};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
@@ -68,7 +69,9 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     // Static accels also collapse their nodes to wide ones: every wide node with an inner lane has all WIDTH lanes
     // and every other has at least 2 leaves, so there are at most 4/7 as many as leaves (plus the root).
     let wide_nodes = if keys > 1 { 0 } else { (4 * n).div_ceil(WIDTH as u64 - 1) + 1 };
-    let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1);
+    // … and copy their corners into blocks for the leaves' first test.
+    let blocks = if keys > 1 { 0 } else { CornerBlocks::bytes_for(n) };
+    let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1) + blocks;
     let per_triangle =
         (keys as usize * size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
     let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
@@ -110,7 +113,10 @@ impl TriangleBvh {
 
     /// Derives the wide nodes from the binary ones (static accels only).
     pub(super) fn collapse_wide(&mut self) {
-        self.wide = if self.node_keys.is_none() { WideBvh::collapse(&self.nodes) } else { WideBvh::default() };
+        self.wide = match self.node_keys {
+            None => WideBvh::collapse(&self.nodes, &self.corners),
+            Some(_) => WideBvh::default(),
+        };
     }
 
     /// Stack entries a traversal needs.

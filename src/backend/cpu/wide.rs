@@ -5,13 +5,16 @@
 //!
 //! The box test is [`crate::intersect::aabb::intersect`] lane by lane: same operations in the same order, the same
 //! NaN rule (a NaN slab distance leaves the interval as it was) and the same [`SLACK`], so a lane is entered exactly
-//! when the binary BVH would enter that node. Children are visited nearest first; which triangles a ray can hit,
-//! and so every query's answer, does not depend on the order.
+//! when the binary BVH would enter that node. Children are visited nearest first for closest-hit queries (which prune
+//! by their nearest hit) and in lane order for the others (which must see every hit, or stop at any); which
+//! triangles a ray can hit, and so every query's answer but which hit an `any` query stops at, does not depend on the
+//! order.
 
 use std::ops::Range;
 
-use glam::Vec3A;
+use glam::{Vec3, Vec3A};
 
+use super::blocks::CornerBlocks;
 use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::traverse::StackEntry;
@@ -22,25 +25,26 @@ use crate::query::{Collector, TraceStats};
 /// Children per node.
 pub(super) const WIDTH: usize = 8;
 
-/// One node, 256 bytes: `0 lo[axis][lane] f32×24 | 96 hi[axis][lane] f32×24 | 192 index u32×8 | 224 count u32×8`.
+/// One node, 256 bytes (four cache lines, aligned to them): `0 lo[axis][lane] f32×24 | 96 hi[axis][lane] f32×24 |
+/// 192 index u32×8 | 224 count u32×8`.
 /// Lane `l` is a child: an inner node (`count[l]` 0, its node at `index[l]`), a leaf (its primitive slots
 /// `index[l] .. index[l] + count[l]`), or empty (box `+∞ .. −∞`; the children come first, the empty lanes after).
 #[derive(Debug, Clone, Copy, PartialEq)]
-#[repr(C, align(32))]
+#[repr(C, align(64))]
 pub(super) struct WideNode {
     /// Box minima, by axis then lane.
-    lo: [[f32; WIDTH]; 3],
+    pub(super) lo: [[f32; WIDTH]; 3],
     /// Box maxima, by axis then lane.
-    hi: [[f32; WIDTH]; 3],
+    pub(super) hi: [[f32; WIDTH]; 3],
     /// Per lane: the child node (inner) or the first primitive slot (leaf).
-    index: [u32; WIDTH],
+    pub(super) index: [u32; WIDTH],
     /// Per lane: primitives of a leaf, 0 for an inner or empty lane.
-    count: [u32; WIDTH],
+    pub(super) count: [u32; WIDTH],
 }
 
 impl WideNode {
     /// A node whose lanes are all empty.
-    const EMPTY: WideNode = WideNode {
+    pub(super) const EMPTY: WideNode = WideNode {
         lo: [[f32::INFINITY; WIDTH]; 3],
         hi: [[f32::NEG_INFINITY; WIDTH]; 3],
         index: [0; WIDTH],
@@ -62,18 +66,20 @@ impl WideNode {
 #[derive(Debug, Clone, Default)]
 pub(super) struct WideBvh {
     /// Nodes, the root first; empty when the binary BVH was.
-    nodes: Vec<WideNode>,
+    pub(super) nodes: Vec<WideNode>,
     /// Children of each node: its first lanes, the rest are empty.
-    children: Vec<u8>,
+    pub(super) children: Vec<u8>,
     /// The root's box (the binary root's).
-    root: (Vec3A, Vec3A),
+    pub(super) root: (Vec3A, Vec3A),
     /// Longest root-to-leaf path, in wide nodes.
     depth: usize,
+    /// The triangles' corners in blocks, for the leaves' first test.
+    pub(super) blocks: CornerBlocks,
 }
 
 impl WideBvh {
-    /// Collapses a depth-first binary BVH ([`collapse`]).
-    pub fn collapse(binary: &[Node]) -> WideBvh {
+    /// Collapses a depth-first binary BVH ([`collapse`]) over triangles whose slots hold `corners`.
+    pub fn collapse(binary: &[Node], corners: &[[Vec3; 3]]) -> WideBvh {
         let Some(root) = binary.first() else { return WideBvh::default() };
         let collapsed = collapse(binary, WIDTH);
         let mut wide = WideBvh {
@@ -81,6 +87,7 @@ impl WideBvh {
             children: Vec::with_capacity(collapsed.lanes.len() / WIDTH),
             root: (root.min.into(), root.max.into()),
             depth: collapsed.depth,
+            blocks: CornerBlocks::new(corners),
         };
         for lanes in collapsed.lanes.chunks(WIDTH) {
             let mut node = WideNode::EMPTY;
@@ -103,10 +110,12 @@ impl WideBvh {
     /// Bytes it occupies.
     pub fn size_bytes(&self, footprint: Footprint) -> u64 {
         (footprint.of(&self.nodes as &dyn VecLen) * size_of::<WideNode>() + footprint.of(&self.children)) as u64
+            + self.blocks.size_bytes(footprint)
     }
 
     /// Walks the nodes front to back and hands each leaf the ray reaches (its primitive slots, the free part of the
     /// stack, the collector and the statistics) to `leaf`, which returns whether the collector is done.
+    /// `prefetch_leaf` starts loading a leaf's data (by its slots) as soon as the ray enters the leaf's box.
     #[inline(always)]
     pub fn walk(
         &self,
@@ -115,17 +124,19 @@ impl WideBvh {
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
         leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
+        prefetch_leaf: impl Fn(Range<usize>),
     ) {
         #[cfg(target_arch = "x86_64")]
         if std::arch::is_x86_feature_detected!("avx2") {
             // SAFETY: the CPU has AVX2, as just checked.
-            unsafe { self.walk_avx2(stack, ray, collector, stats, leaf) };
+            unsafe { self.walk_avx2(stack, ray, collector, stats, leaf, prefetch_leaf) };
             return;
         }
-        self.walk_lanes(stack, ray, collector, stats, leaf);
+        let enter = |node: &WideNode, tmax: f32| enter_lanes(node, ray, tmax);
+        self.walk_lanes(stack, ray, collector, stats, enter, leaf, prefetch_leaf);
     }
 
-    /// [`WideBvh::walk_lanes`] compiled for AVX2.
+    /// [`WideBvh::walk_lanes`] compiled for AVX2, its box tests written with AVX intrinsics.
     ///
     /// # Safety
     /// The CPU must have AVX2.
@@ -138,20 +149,28 @@ impl WideBvh {
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
         leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
+        prefetch_leaf: impl Fn(Range<usize>),
     ) {
-        self.walk_lanes(stack, ray, collector, stats, leaf);
+        // SAFETY (both): the CPU has AVX2 (this function's contract), so AVX too.
+        let lanes = unsafe { avx::RayLanes::new(ray) };
+        let enter = |node: &WideNode, tmax: f32| unsafe { lanes.enter(node, tmax) };
+        self.walk_lanes(stack, ray, collector, stats, enter, leaf, prefetch_leaf);
     }
 
-    /// The walk itself, for whatever instruction set it is compiled with. Stack entries name a lane (`node ·
-    /// WIDTH + lane`) with the distance at which the ray enters its box.
+    /// The walk itself, for whatever instruction set it is compiled with, with `enter` as the box test of a node's
+    /// lanes ([`enter_lanes`]). Stack entries name a lane (`node · WIDTH + lane`) with the distance at which the ray
+    /// enters its box.
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
     fn walk_lanes(
         &self,
         stack: &mut [StackEntry],
         ray: &PreparedRay,
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
+        enter: impl Fn(&WideNode, f32) -> (u32, [f32; WIDTH]),
         mut leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
+        prefetch_leaf: impl Fn(Range<usize>),
     ) {
         if self.nodes.is_empty() {
             return;
@@ -165,10 +184,11 @@ impl WideBvh {
         loop {
             let children = self.children[node];
             stats.nodes_visited += u64::from(children);
-            let (entered, near) = enter_lanes(&self.nodes[node], ray, collector.cull_tmax());
+            let (entered, near) = enter(&self.nodes[node], collector.cull_tmax());
             // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
             let entered = entered & ((1u32 << children) - 1);
-            let mut next = nearest_first(node, entered, &near, stack, &mut len);
+            self.prefetch_lanes(node, entered, &prefetch_leaf);
+            let mut next = visit_order(node, entered, &near, stack, &mut len, collector.wants_nearest_first());
             // Leaves are handled as they come; the first inner lane reached is visited next.
             loop {
                 let lane_ref = match next.take() {
@@ -199,6 +219,48 @@ impl WideBvh {
     }
 }
 
+impl WideBvh {
+    /// Starts loading what the entered lanes of `node` lead to (their nodes; their leaves' data through
+    /// `prefetch_leaf`), so that the memory is on its way while the nearer lanes are visited: random rays spend
+    /// much of their time waiting for nodes and triangles that are not in the cache.
+    #[inline(always)]
+    fn prefetch_lanes(&self, node: usize, entered: u32, prefetch_leaf: &impl Fn(Range<usize>)) {
+        let owner = &self.nodes[node];
+        let mut bits = entered;
+        while bits != 0 {
+            let lane = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            let (index, count) = (owner.index[lane] as usize, owner.count[lane] as usize);
+            match count {
+                0 => prefetch(&self.nodes[index]),
+                _ => prefetch_leaf(index..index + count),
+            }
+        }
+    }
+}
+
+/// Asks the CPU to start loading the cache lines of `item`, which is about to be read. Only a hint: what the
+/// program reads does not change.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(super) fn prefetch<T: ?Sized>(item: &T) {
+    use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
+    /// Bytes of a cache line on x86-64 CPUs.
+    const CACHE_LINE: usize = 64;
+    let start = (item as *const T).cast::<i8>();
+    // Every line `item` touches: from the one its first byte is in to the one its last byte is in.
+    let skew = start as usize % CACHE_LINE;
+    for offset in (0..skew + size_of_val(item)).step_by(CACHE_LINE) {
+        // SAFETY: a prefetch reads nothing the program sees and never faults, whatever the address.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(offset).wrapping_sub(skew)) };
+    }
+}
+
+/// Elsewhere the hint is left out: stable Rust has no prefetch instruction for other architectures.
+#[cfg(not(target_arch = "x86_64"))]
+#[inline(always)]
+pub(super) fn prefetch<T: ?Sized>(_item: &T) {}
+
 /// Which lanes of `node` the ray enters within `[ray.tmin, tmax]` (bit per lane), and at what distance.
 #[inline(always)]
 fn enter_lanes(node: &WideNode, ray: &PreparedRay, tmax: f32) -> (u32, [f32; WIDTH]) {
@@ -225,19 +287,102 @@ fn enter_lanes(node: &WideNode, ray: &PreparedRay, tmax: f32) -> (u32, [f32; WID
     (entered, near)
 }
 
-/// Pushes the entered lanes of `node` but the nearest on the stack, farthest first, and returns the nearest.
+/// [`enter_lanes`] in AVX intrinsics: the same operations in the same order on eight lanes at once (`vmaxps` and
+/// `vminps` keep their second operand when the first is NaN, as the portable test's `a > b ? a : b` does), the
+/// entered lanes taken from the comparison's sign bits in one instruction.
+#[cfg(target_arch = "x86_64")]
+mod avx {
+    use std::arch::x86_64::*;
+
+    use super::{SLACK, WIDTH, WideNode};
+    use crate::intersect::PreparedRay;
+
+    /// A ray's numbers spread over the lanes once a walk.
+    pub(super) struct RayLanes {
+        /// Origin, by axis.
+        origin: [__m256; 3],
+        /// `1/direction`, by axis.
+        inv_direction: [__m256; 3],
+        /// Per axis, whether the ray meets the boxes' maxima first.
+        negative: [bool; 3],
+        /// `tmin`.
+        tmin: __m256,
+    }
+
+    impl RayLanes {
+        /// # Safety
+        /// The CPU must have AVX.
+        #[inline(always)]
+        pub(super) unsafe fn new(ray: &PreparedRay) -> RayLanes {
+            // SAFETY: the CPU has AVX (the caller's contract).
+            unsafe {
+                RayLanes {
+                    origin: std::array::from_fn(|axis| _mm256_set1_ps(ray.origin[axis])),
+                    inv_direction: std::array::from_fn(|axis| _mm256_set1_ps(ray.inv_direction[axis])),
+                    negative: ray.negative,
+                    tmin: _mm256_set1_ps(ray.tmin),
+                }
+            }
+        }
+
+        /// Which lanes of `node` the ray enters within `[tmin, tmax]` (bit per lane), and at what distance.
+        ///
+        /// # Safety
+        /// The CPU must have AVX.
+        #[inline(always)]
+        pub(super) unsafe fn enter(&self, node: &WideNode, tmax: f32) -> (u32, [f32; WIDTH]) {
+            // SAFETY: the CPU has AVX (the caller's contract); the loads read a node's whole rows.
+            unsafe {
+                let (mut near, mut far) = (self.tmin, _mm256_set1_ps(tmax));
+                for axis in 0..3 {
+                    let (lo, hi) = match self.negative[axis] {
+                        true => (&node.hi[axis], &node.lo[axis]),
+                        false => (&node.lo[axis], &node.hi[axis]),
+                    };
+                    let (origin, inv) = (self.origin[axis], self.inv_direction[axis]);
+                    let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(lo.as_ptr()), origin), inv);
+                    near = _mm256_max_ps(t0, near);
+                    let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(hi.as_ptr()), origin), inv);
+                    far = _mm256_min_ps(t1, far);
+                }
+                let (slack, magnitude) = (_mm256_set1_ps(SLACK), _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
+                let near = _mm256_sub_ps(near, _mm256_mul_ps(_mm256_and_ps(near, magnitude), slack));
+                let far = _mm256_add_ps(far, _mm256_mul_ps(_mm256_and_ps(far, magnitude), slack));
+                let entered = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32;
+                let mut distances = [0.0; WIDTH];
+                _mm256_storeu_ps(distances.as_mut_ptr(), near);
+                (entered, distances)
+            }
+        }
+    }
+}
+
+/// Pushes the entered lanes of `node` but one on the stack and returns that one, the lane visited next: `by_distance`,
+/// the nearest (the others pushed farthest first); otherwise the first in lane order (the others pushed so that the
+/// next lane is on top), which costs no sort.
 #[inline(always)]
-fn nearest_first(
+fn visit_order(
     node: usize,
     entered: u32,
     near: &[f32; WIDTH],
     stack: &mut [StackEntry],
     len: &mut usize,
+    by_distance: bool,
 ) -> Option<u32> {
     let lane_ref = |lane: u32| (node * WIDTH) as u32 + lane;
     match entered.count_ones() {
         0 => None,
         1 => Some(lane_ref(entered.trailing_zeros())),
+        _ if !by_distance => {
+            let mut rest = entered & (entered - 1);
+            while rest != 0 {
+                let lane = 31 - rest.leading_zeros();
+                rest &= !(1 << lane);
+                stack[*len] = (lane_ref(lane), near[lane as usize]);
+                *len += 1;
+            }
+            Some(lane_ref(entered.trailing_zeros()))
+        }
         _ => {
             let mut order = [(0f32, 0u32); WIDTH];
             let mut count = 0;
@@ -267,8 +412,49 @@ fn nearest_first(
 #[cfg(test)]
 mod tests {
     use glam::Vec3;
+    use proptest::prelude::*;
 
     use super::*;
+    use crate::format::{Ray, RayFlags};
+
+    /// Coordinates of every kind a box test meets: ordinary, zeros of both signs, infinities, NaN, tiny.
+    fn coordinate() -> impl Strategy<Value = f32> {
+        prop_oneof![
+            4 => -10.0f32..10.0,
+            1 => Just(0.0f32),
+            1 => Just(-0.0f32),
+            1 => Just(f32::INFINITY),
+            1 => Just(f32::NEG_INFINITY),
+            1 => Just(f32::NAN),
+            1 => Just(1e-39f32),
+            1 => proptest::num::f32::ANY,
+        ]
+    }
+
+    proptest! {
+        #[test]
+        fn the_avx_box_test_is_the_portable_one_bit_for_bit(
+            bounds in proptest::collection::vec(coordinate(), 2 * 3 * WIDTH),
+            origin in proptest::array::uniform3(coordinate()),
+            direction in proptest::array::uniform3(coordinate()),
+            (tmin, tmax) in (coordinate(), coordinate()),
+        ) {
+            #[cfg(target_arch = "x86_64")]
+            if std::arch::is_x86_feature_detected!("avx") {
+                let mut node = WideNode::EMPTY;
+                for (value, bound) in bounds.iter().zip(node.lo.iter_mut().chain(&mut node.hi).flatten()) {
+                    *bound = *value;
+                }
+                let ray = Ray { origin: origin.into(), direction: direction.into(), tmin, tmax, ..Ray::default() };
+                let ray = PreparedRay::new(&ray, RayFlags::empty());
+                let (entered, near) = enter_lanes(&node, &ray, tmax);
+                // SAFETY: the CPU has AVX, as just checked.
+                let (avx_entered, avx_near) = unsafe { avx::RayLanes::new(&ray).enter(&node, tmax) };
+                prop_assert_eq!(entered, avx_entered);
+                prop_assert_eq!(near.map(f32::to_bits), avx_near.map(f32::to_bits));
+            }
+        }
+    }
 
     #[test]
     fn lanes_hold_their_childrens_boxes_and_leaves_their_slots() {
@@ -286,7 +472,7 @@ mod tests {
             node(2.0, 3.0, 2, 1),
             node(4.0, 9.0, 3, 2),
         ];
-        let wide = WideBvh::collapse(&binary);
+        let wide = WideBvh::collapse(&binary, &[]);
         assert_eq!((wide.nodes.len(), wide.children.as_slice(), wide.depth), (1, &[3u8][..], 1));
         let root = &wide.nodes[0];
         // The leaf first, then the inner node's two children in its place and after.

@@ -1,0 +1,188 @@
+//! The corners of a static accel's triangles regrouped [`BLOCK`] slots a block, one row per corner and axis
+//! (structure of arrays), so that a leaf's triangles are sorted out four at a time: the same first step of the
+//! watertight test as [`crate::intersect::triangle::may_hit`], in SSE on x86-64 (elsewhere `may_hit` itself, lane by
+//! lane), and a leaf's corners are read from here. A block starts at a slot that is a multiple of [`BLOCK`], whatever leaf the slots belong to, so a
+//! leaf finds its blocks by its slots alone; a leaf's triangles fill one or two blocks.
+
+use std::ops::Range;
+
+use glam::Vec3;
+
+use super::bvh::{Footprint, VecLen};
+#[cfg(target_arch = "x86_64")]
+use super::filter;
+use crate::intersect::PreparedRay;
+
+/// Slots a block.
+pub(super) const BLOCK: usize = 4;
+
+/// Rows of a block: corner `c`'s axis `k` is row `3c + k`.
+const ROWS: usize = 9;
+
+/// One block: for each corner and axis, that coordinate of the block's [`BLOCK`] triangles.
+pub(super) type Block = [[f32; BLOCK]; ROWS];
+
+/// Every slot's corners, in blocks; slots past the last triangle are NaN (and never asked for).
+#[derive(Debug, Clone, Default)]
+pub(super) struct CornerBlocks {
+    /// Block `b` holds slots `b·BLOCK .. (b + 1)·BLOCK`.
+    blocks: Vec<Block>,
+}
+
+impl CornerBlocks {
+    /// The blocks of `corners` (one triangle a slot).
+    pub fn new(corners: &[[Vec3; 3]]) -> CornerBlocks {
+        let blocks = corners
+            .chunks(BLOCK)
+            .map(|triangles| {
+                let mut block = [[f32::NAN; BLOCK]; ROWS];
+                for (lane, triangle) in triangles.iter().enumerate() {
+                    for (corner, point) in triangle.iter().enumerate() {
+                        for axis in 0..3 {
+                            block[3 * corner + axis][lane] = point[axis];
+                        }
+                    }
+                }
+                block
+            })
+            .collect();
+        CornerBlocks { blocks }
+    }
+
+    /// Bytes the blocks of `triangles` slots take.
+    pub const fn bytes_for(triangles: u64) -> u64 {
+        triangles.div_ceil(BLOCK as u64) * size_of::<Block>() as u64
+    }
+
+    /// Bytes they occupy.
+    pub fn size_bytes(&self, footprint: Footprint) -> u64 {
+        (footprint.of(&self.blocks as &dyn VecLen) * size_of::<Block>()) as u64
+    }
+
+    /// The corners of the triangle in `slot`, as [`CornerBlocks::new`] was given them.
+    #[inline(always)]
+    pub fn corners(&self, slot: usize) -> [Vec3; 3] {
+        let (rows, lane) = (&self.blocks[slot / BLOCK], slot % BLOCK);
+        std::array::from_fn(|corner| Vec3::from_array(std::array::from_fn(|axis| rows[3 * corner + axis][lane])))
+    }
+
+    /// The block holding `slot`, and the slot's lane in it.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub fn lane_of(&self, slot: usize) -> (&Block, usize) {
+        (&self.blocks[slot / BLOCK], slot % BLOCK)
+    }
+
+    /// The blocks holding `slots` (to prefetch them).
+    pub fn of(&self, slots: Range<usize>) -> &[Block] {
+        &self.blocks[slots.start / BLOCK..slots.end.div_ceil(BLOCK)]
+    }
+
+    /// Bit `i` set when the ray may hit the triangle in slot `slots.start + i` (at most 64 slots): cleared only where
+    /// [`crate::intersect::triangle::may_hit`] is false.
+    #[inline(always)]
+    pub fn candidates(&self, ray: &PreparedRay, slots: Range<usize>) -> u64 {
+        debug_assert!(slots.len() <= 64);
+        let first_block = slots.start / BLOCK;
+        let mut bits = 0u128;
+        for block in first_block..slots.end.div_ceil(BLOCK) {
+            bits |= u128::from(self.block_candidates(ray, block)) << (BLOCK * (block - first_block));
+        }
+        let bits = (bits >> (slots.start - first_block * BLOCK)) as u64;
+        bits & (u64::MAX >> (64 - slots.len()))
+    }
+
+    /// The lanes of block `block` the ray may hit, a bit each: SSE (every x86-64 CPU has it), four lanes in one
+    /// register, through [`filter::may_hit_lanes`].
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
+        use std::arch::x86_64::*;
+        let rows = BlockRows { rows: &self.blocks[block], axes: [ray.kx, ray.ky, ray.kz] };
+        let origin = ray.origin.to_array();
+        // SAFETY: SSE is part of x86-64.
+        unsafe {
+            let origin = rows.axes.map(|axis| _mm_set1_ps(origin[axis]));
+            filter::may_hit_lanes(&rows, origin, [_mm_set1_ps(ray.shear.x), _mm_set1_ps(ray.shear.y)])
+        }
+    }
+
+    /// The lanes of block `block` the ray may hit, a bit each: [`crate::intersect::triangle::may_hit`] lane by lane.
+    #[cfg(not(target_arch = "x86_64"))]
+    #[inline(always)]
+    fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
+        (0..BLOCK).fold(0, |maybe, lane| {
+            let corners = self.corners(block * BLOCK + lane);
+            maybe | u32::from(crate::intersect::triangle::may_hit(ray, &corners)) << lane
+        })
+    }
+}
+
+/// A block's rows as [`filter::Corners`]: four triangles, a lane each, on a ray's projection axes.
+#[cfg(target_arch = "x86_64")]
+struct BlockRows<'a> {
+    /// The block.
+    rows: &'a Block,
+    /// The ray's `kx`, `ky`, `kz`.
+    axes: [usize; 3],
+}
+
+#[cfg(target_arch = "x86_64")]
+impl filter::Corners<std::arch::x86_64::__m128> for BlockRows<'_> {
+    #[inline(always)]
+    unsafe fn corner(&self, c: usize) -> [std::arch::x86_64::__m128; 3] {
+        use std::arch::x86_64::_mm_loadu_ps;
+        let [kx, ky, kz] = self.axes;
+        // SAFETY: SSE is part of x86-64; the loads read whole rows.
+        unsafe {
+            [
+                _mm_loadu_ps(self.rows[3 * c + kx].as_ptr()),
+                _mm_loadu_ps(self.rows[3 * c + ky].as_ptr()),
+                _mm_loadu_ps(self.rows[3 * c + kz].as_ptr()),
+            ]
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3A;
+
+    use super::*;
+    use crate::format::{Ray, RayFlags};
+    use crate::intersect::triangle::may_hit;
+
+    #[test]
+    fn blocks_give_back_the_corners_and_sort_out_exactly_what_the_scalar_test_does_for_any_run_of_slots() {
+        // Eleven triangles of a fan and strays, rays from several directions through points on a grid.
+        let corners: Vec<[Vec3; 3]> = (0..11)
+            .map(|i| {
+                let angle = i as f32 * 0.6;
+                let p = Vec3::new(angle.cos(), angle.sin(), 0.1 * i as f32);
+                [Vec3::ZERO, p, p + Vec3::new(-0.3, 0.5, 0.2)]
+            })
+            .collect();
+        let blocks = CornerBlocks::new(&corners);
+        assert!((0..corners.len()).all(|slot| blocks.corners(slot) == corners[slot]), "corners read back");
+        let mut ruled_out = 0;
+        for direction in [-Vec3A::Z, Vec3A::new(0.3, -0.2, -1.0), Vec3A::new(1.0, 0.1, 0.2), Vec3A::new(0.0, -1.0, 0.0)]
+        {
+            for point in (0..25).map(|i| Vec3A::new((i % 5) as f32 * 0.25 - 0.5, (i / 5) as f32 * 0.25 - 0.5, 0.3)) {
+                let ray = PreparedRay::new(
+                    &Ray { origin: point - direction * 4.0, direction, ..Ray::default() },
+                    RayFlags::empty(),
+                );
+                for start in 0..corners.len() {
+                    for end in start + 1..=corners.len() {
+                        let got = blocks.candidates(&ray, start..end);
+                        let want = (start..end)
+                            .fold(0u64, |bits, slot| bits | u64::from(may_hit(&ray, &corners[slot])) << (slot - start));
+                        assert_eq!(got, want, "slots {start}..{end}");
+                    }
+                }
+                ruled_out += (0..corners.len()).filter(|&slot| !may_hit(&ray, &corners[slot])).count();
+            }
+        }
+        assert!(ruled_out > 100, "{ruled_out} triangles ruled out");
+    }
+}

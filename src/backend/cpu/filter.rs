@@ -1,0 +1,134 @@
+//! [`crate::intersect::triangle::may_hit`] on SIMD lanes: the same operations in the same order, so each lane's
+//! answer is bit for bit the scalar one. Written once over [`Lanes`] and used two ways: four triangles against one
+//! ray in SSE ([`super::blocks`]), and one triangle against eight rays in AVX ([`super::packet`]).
+
+use std::arch::x86_64::*;
+
+/// A SIMD register of f32 lanes, with what the filter needs of it.
+pub(super) trait Lanes: Copy {
+    /// `self − other`, lane by lane.
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn sub(self, other: Self) -> Self;
+
+    /// `self · other`, lane by lane.
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn mul(self, other: Self) -> Self;
+
+    /// A bit per lane: some of `u`, `v`, `w` is 0, or they are not of mixed signs (comparisons with NaN are false,
+    /// as Rust's are).
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn zero_or_not_mixed(u: Self, v: Self, w: Self) -> u32;
+}
+
+impl Lanes for __m128 {
+    #[inline(always)]
+    unsafe fn sub(self, other: Self) -> Self {
+        // SAFETY: SSE is part of x86-64.
+        unsafe { _mm_sub_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn mul(self, other: Self) -> Self {
+        // SAFETY: SSE is part of x86-64.
+        unsafe { _mm_mul_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn zero_or_not_mixed(u: Self, v: Self, w: Self) -> u32 {
+        // SAFETY: SSE is part of x86-64.
+        unsafe {
+            let zero = _mm_setzero_ps();
+            let any = |f: unsafe fn(__m128, __m128) -> __m128| _mm_or_ps(_mm_or_ps(f(u, zero), f(v, zero)), f(w, zero));
+            let (on_edge, negative, positive) = (any(_mm_cmpeq_ps), any(_mm_cmplt_ps), any(_mm_cmpgt_ps));
+            // on_edge | !mixed, a lane's four bytes all ones or all zeros.
+            let mixed = _mm_and_ps(negative, positive);
+            _mm_movemask_ps(_mm_or_ps(on_edge, _mm_andnot_ps(mixed, _mm_castsi128_ps(_mm_set1_epi32(-1))))) as u32
+        }
+    }
+}
+
+impl Lanes for __m256 {
+    #[inline(always)]
+    unsafe fn sub(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe { _mm256_sub_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn mul(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe { _mm256_mul_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn zero_or_not_mixed(u: Self, v: Self, w: Self) -> u32 {
+        // No closures here: a closure is compiled without AVX and might not be inlined.
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe {
+            let zero = _mm256_setzero_ps();
+            let on_edge = _mm256_or_ps(
+                _mm256_or_ps(_mm256_cmp_ps::<_CMP_EQ_OQ>(u, zero), _mm256_cmp_ps::<_CMP_EQ_OQ>(v, zero)),
+                _mm256_cmp_ps::<_CMP_EQ_OQ>(w, zero),
+            );
+            let negative = _mm256_or_ps(
+                _mm256_or_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(u, zero), _mm256_cmp_ps::<_CMP_LT_OQ>(v, zero)),
+                _mm256_cmp_ps::<_CMP_LT_OQ>(w, zero),
+            );
+            let positive = _mm256_or_ps(
+                _mm256_or_ps(_mm256_cmp_ps::<_CMP_GT_OQ>(u, zero), _mm256_cmp_ps::<_CMP_GT_OQ>(v, zero)),
+                _mm256_cmp_ps::<_CMP_GT_OQ>(w, zero),
+            );
+            let mixed = _mm256_and_ps(negative, positive);
+            let all = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
+            _mm256_movemask_ps(_mm256_or_ps(on_edge, _mm256_andnot_ps(mixed, all))) as u32
+        }
+    }
+}
+
+/// Where the filter reads a triangle's corners from, one corner at a time as it needs them (so that no more
+/// registers are live than the arithmetic needs).
+pub(super) trait Corners<L> {
+    /// Corner `c` (0, 1 or 2) on the ray's projection axes (`kx`, `ky`, `kz`).
+    ///
+    /// # Safety
+    /// The CPU must have the registers' instruction set.
+    unsafe fn corner(&self, c: usize) -> [L; 3];
+}
+
+/// A bit per lane: whether the ray may hit the triangle ([`crate::intersect::triangle::may_hit`]). `origin` is the
+/// ray's origin on its projection axes and `shear` its first two shear constants.
+///
+/// # Safety
+/// The CPU must have the registers' instruction set.
+#[inline(always)]
+pub(super) unsafe fn may_hit_lanes<L: Lanes>(corners: &impl Corners<L>, origin: [L; 3], shear: [L; 2]) -> u32 {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe {
+        let (ax, ay) = project(corners.corner(0), origin, shear);
+        let (bx, by) = project(corners.corner(1), origin, shear);
+        let (cx, cy) = project(corners.corner(2), origin, shear);
+        let u = cx.mul(by).sub(cy.mul(bx));
+        let v = ax.mul(cy).sub(ay.mul(cx));
+        let w = bx.mul(ay).sub(by.mul(ax));
+        L::zero_or_not_mixed(u, v, w)
+    }
+}
+
+/// A corner translated to the ray's origin and sheared: (x, y) in the plane across the ray.
+///
+/// # Safety
+/// The CPU must have the registers' instruction set.
+#[inline(always)]
+unsafe fn project<L: Lanes>([x, y, z]: [L; 3], origin: [L; 3], shear: [L; 2]) -> (L, L) {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe {
+        let z = z.sub(origin[2]);
+        (x.sub(origin[0]).sub(shear[0].mul(z)), y.sub(origin[1]).sub(shear[1].mul(z)))
+    }
+}
