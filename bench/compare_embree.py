@@ -10,10 +10,20 @@ triangles with Embree, and compares ray by ray. A ray agrees when both tracers m
 primitive, or both hit at distances within a relative 1e-4 (ties between triangles that share an edge or overlap).
 The script exits with status 1 when fewer than 99.99% of a case's rays agree, and lists the rays that do not.
 
-Speed: embreex's `EmbreeScene.run` loops over `rtcIntersect1` in one thread (it keeps the GIL, so Python
-threads do not help); rayd is therefore timed twice, with every thread (rayon's default) and with
-RAYON_NUM_THREADS=1, and the 1-thread figures are the like-for-like comparison. Trace times are medians of
---repeat runs and exclude scene builds, which are reported apart (Embree builds with all its TBB threads).
+Speed: embreex's `EmbreeScene.run` loops over `rtcIntersect1` (closest hit) or `rtcOccluded1` (any hit) in one
+thread (it keeps the GIL, so Python threads do not help); rayd is therefore timed with every thread (rayon's
+default) and with RAYON_NUM_THREADS=1, and the 1-thread figures are the like-for-like comparison. Trace times are
+medians of --repeat runs and exclude scene builds, which are reported apart (Embree builds with all its TBB
+threads). The 1-thread timings run in --rounds rounds, rayd then Embree in each, for closest and any hit; the ratio
+reported is the median of the rounds' ratios, with their range, so that a machine whose speed drifts (a shared
+host) biases neither side. rayd's `any` answers are checked against Embree's occlusion ray by ray (hit or miss).
+
+Embree from C: embreex's loop costs time of its own around each `rtcIntersect1`, and Embree's 16-wide packets
+(`rtcIntersect16`, `rtcOccluded16`) are not in embreex. So bench/embree_packets.c (compiled here with gcc against the
+Embree library inside the embreex wheel) times, in the same rounds and over the same exported rays, on one thread:
+Embree's single-ray calls in a C loop, packets of 16 consecutive rays (the order rayd gets them in) and, for camera
+rays, packets of 4×4 pixel tiles (Embree's best case), each with its hit/miss agreement with rayd checked. rayd's
+own packets are 8 consecutive rays.
 
 Builds: each scene is then built --builds times by each side, fresh every time, and the medians compared: rayd with
 `PREFER_FAST_BUILD` and with its default preset, on every thread and on one; Embree (its default, medium quality)
@@ -41,6 +51,8 @@ MESHES = Path(os.environ.get("RAYD_MESHES", "/work/shared/data/meshes"))
 ALL_MESHES = ["stanford-bunny", "ogre", "nefertiti", "beast", "cow", "teapot", "fandisk", "spot"]
 REQUIRED_AGREEMENT = 99.99  # percent of rays, every case
 TIE_TOLERANCE = 1e-4  # relative |Δt| under which two different primitives count as a tie
+CAMERA_WIDTH = 1024  # trace_mesh's camera image width (its default), for Embree's 4×4 tiles
+PACKET_HARNESS = VENV / "embree_packets"
 
 
 def ensure_venv():
@@ -64,11 +76,14 @@ def cases():
     """(name, trace_mesh arguments) of every case."""
     bunny = ["--mesh", str(MESHES / "stanford-bunny.obj")]
     tiled = [arg for name in ALL_MESHES for arg in ("--mesh", str(MESHES / f"{name}.obj"))] + ["--tiled", "1000000"]
+    uneven = bunny + ["--slivers", "256"]
     return [
         ("bunny camera", bunny + ["--rays", "camera"]),
         ("bunny random", bunny + ["--rays", "random"]),
         ("tiled camera", tiled + ["--rays", "camera"]),
         ("tiled random", tiled + ["--rays", "random"]),
+        ("uneven camera", uneven + ["--rays", "camera"]),
+        ("uneven random", uneven + ["--rays", "random"]),
     ]
 
 
@@ -95,19 +110,27 @@ def load_export(directory):
     return vertices, indices, rays, hits
 
 
-def trace_embree(vertices, indices, origins, directions, repeat):
-    """Builds an Embree scene, traces the rays `repeat` times; returns (build ms, median trace ms, hits)."""
+def build_embree(vertices, indices, origins, directions):
+    """Builds an Embree scene (committed by a first one-ray query); returns (scene, build ms)."""
     start = time.perf_counter()
     scene = rtcore_scene.EmbreeScene()
     mesh_construction.TriangleMesh(scene, vertices, indices.astype(np.int32))
     scene.run(origins[:1], directions[:1])  # the scene is committed (built) on its first run
-    build_ms = (time.perf_counter() - start) * 1e3
+    return scene, (time.perf_counter() - start) * 1e3
+
+
+def time_embree(scene, origins, directions, repeat, query):
+    """Traces the rays `repeat` times with `query` (INTERSECT: closest hit, rtcIntersect1; OCCLUDED: any hit,
+    rtcOccluded1); returns (median trace ms, hits of the last run)."""
     times = []
     for _ in range(repeat):
         start = time.perf_counter()
-        hits = scene.run(origins, directions, output=1)
+        if query == "INTERSECT":
+            hits = scene.run(origins, directions, output=1)
+        else:
+            hits = scene.run(origins, directions, query=query)
         times.append((time.perf_counter() - start) * 1e3)
-    return build_ms, float(np.median(times)), hits
+    return float(np.median(times)), hits
 
 
 def embree_build_ms(vertices, indices, builds):
@@ -214,6 +237,46 @@ def compare(vertices, indices, rays, rayd, embree):
     }
 
 
+def build_packet_harness():
+    """Compiles bench/embree_packets.c against the embreex wheel's Embree library; False when it cannot."""
+    libraries = sorted((Path(__import__("embreex").__file__).parent.parent / "embreex.libs").glob("libembree4*.so*"))
+    if not libraries:
+        print("no Embree library in the embreex wheel: Embree's packets are not timed", flush=True)
+        return False
+    command = ["gcc", "-O2", "-o", str(PACKET_HARNESS), str(BENCH / "embree_packets.c"), str(libraries[0]),
+               f"-Wl,-rpath,{libraries[0].parent}", "-lm"]
+    try:
+        subprocess.run(command, check=True)
+    except (OSError, subprocess.CalledProcessError) as error:
+        print(f"cannot compile the packet harness ({error}): Embree's packets are not timed", flush=True)
+        return False
+    return True
+
+
+def embree_packets(export, repeat, query, camera):
+    """Embree's 1-thread speeds over an exported case from the packet harness: single rays, packets of 16
+    consecutive rays, 4×4 tiles for a `camera` case (else 0), and each one's hit/miss agreement with rayd."""
+    command = [str(PACKET_HARNESS), str(export), str(repeat), query] + ([str(CAMERA_WIDTH)] if camera else [])
+    output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
+    return json.loads(output.strip().splitlines()[-1])
+
+
+def interleaved_speeds(args, scene, origins, directions, options, export, packets, camera):
+    """{"closest": [(rayd, Embree, the packet harness's report or None) M rays/s a round], "any": [...]}, 1 thread
+    each, rayd then Embree (then, with `packets`, the packet harness over `export`) in every round; the first round's
+    rayd `any` trace exports its hits to `export / "any"`."""
+    rays = len(origins)
+    speeds = {"closest": [], "any": []}
+    for round in range(options.rounds):
+        for query, embree_query in (("closest", "INTERSECT"), ("any", "OCCLUDED")):
+            any_export = export / "any" if query == "any" and round == 0 else None
+            rayd = run_rayd(args + ["--query", query], options.repeat, threads=1, export=any_export)
+            embree_ms, _ = time_embree(scene, origins, directions, options.repeat, embree_query)
+            packed = embree_packets(export, options.repeat, query, camera) if packets else None
+            speeds[query].append((rayd["mrays_per_s"], rays / embree_ms / 1e3, packed))
+    return speeds
+
+
 def machine():
     """A line saying where and when this ran."""
     model = "unknown CPU"
@@ -238,16 +301,23 @@ def main():
     parser.add_argument("--repeat", type=int, default=5, help="timed traces per tracer and case (median reported)")
     parser.add_argument("--keep", type=Path, help="export the buffers into this directory and keep them")
     parser.add_argument("--builds", type=int, default=5, help="fresh builds per builder and scene (median reported)")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="rounds of 1-thread timings, rayd then Embree in each (medians reported)")
+    parser.add_argument("--scene", action="append", choices=sorted({name.split()[0] for name, _ in cases()}),
+                        help="run only this scene's cases (repeat for several; default: every scene)")
     options = parser.parse_args()
 
     print(machine(), flush=True)
     print("building the trace_mesh example ...", flush=True)
     subprocess.run(["cargo", "build", "--quiet", "--release", "--example", "trace_mesh"], cwd=ROOT, check=True)
+    packets = build_packet_harness()
 
     rows, failures, built = [], [], {}
     with tempfile.TemporaryDirectory(prefix="rayd-embree-") as scratch:
         base = options.keep or Path(scratch)
         for name, args in cases():
+            if options.scene and name.split()[0] not in options.scene:
+                continue
             export = base / name.replace(" ", "-")
             print(f"{name}: rayd (all threads) ...", flush=True)
             rayd_all = run_rayd(args, options.repeat, export=export)
@@ -265,13 +335,28 @@ def main():
                 sys.exit(f"{name}: rays must have tmin 0 and tmax +inf (embreex fixes tnear = 0)")
             origins, directions = np.ascontiguousarray(rays[:, 0:3]), np.ascontiguousarray(rays[:, 4:7])
             print(f"{name}: Embree ...", flush=True)
-            embree_build, embree_ms, embree_hits = trace_embree(vertices, indices, origins, directions,
-                                                                options.repeat)
+            scene, embree_build = build_embree(vertices, indices, origins, directions)
+            embree_ms, embree_hits = time_embree(scene, origins, directions, options.repeat, "INTERSECT")
             result = compare(vertices, indices, rays, rayd_hits, embree_hits)
-            embree_mrays = len(rays) / embree_ms / 1e3
-            rows.append((name, len(rays), rayd_all, rayd_one, embree_build, embree_mrays, result))
+            print(f"{name}: rayd and Embree, 1 thread each, closest and any hit, {options.rounds} rounds ...",
+                  flush=True)
+            camera = name.endswith("camera")
+            speeds = interleaved_speeds(args, scene, origins, directions, options, export, packets, camera)
+            rayd_any = load_export(export / "any")[3]
+            _, embree_occluded = time_embree(scene, origins, directions, 1, "OCCLUDED")
+            any_agree = 100.0 * np.mean((rayd_any[:, 0] >= 0) == (np.asarray(embree_occluded) >= 0))
+            rows.append((name, len(rays), rayd_all, rayd_one, embree_build, speeds, result, any_agree))
             if result["agree"] < REQUIRED_AGREEMENT:
                 failures.append(f"{name}: {result['agree']:.4f}% of rays agree, below {REQUIRED_AGREEMENT}%")
+            for query, rounds in speeds.items():
+                for _, _, packed in rounds:
+                    for way in ("single", "packet") + (("tile",) if camera else ()):
+                        if packed and packed[f"{way}_agreement"] < REQUIRED_AGREEMENT:
+                            failures.append(f"{name}: Embree's {way}s ({query}) agree with rayd on hit/miss for "
+                                            f"{packed[f'{way}_agreement']:.4f}% of rays")
+            if any_agree < REQUIRED_AGREEMENT:
+                failures.append(f"{name}: any hit: {any_agree:.4f}% of rays agree on hit/miss, below "
+                                f"{REQUIRED_AGREEMENT}%")
             if result["details"]:
                 print(f"{name}: {result['disagree']} rays disagree (first {len(result['details'])}):")
                 print("\n".join(result["details"]), flush=True)
@@ -284,20 +369,52 @@ def main():
           f"hits at tiny t, from origins next to a surface).")
     print(f"{'case':<13} {'tris':>9} {'rays':>9} {'hit rate':>8} {'hit/miss':>9} {'prim id':>9} {'ties':>5} "
           f"{'max abs':>9} {'max rel':>9} {'p99.9 rel':>9} {'agree':>9}")
-    for name, count, rayd_all, _, _, _, r in rows:
+    for name, count, rayd_all, _, _, _, r, _ in rows:
         print(f"{name:<13} {rayd_all['triangles']:>9} {count:>9} {r['hit_rate']:>7.2f}% {r['hit_miss']:>8.4f}% "
               f"{r['prim']:>8.4f}% {r['ties']:>5} {r['dt_abs']:>9.2e} {r['dt_max']:>9.2e} {r['dt_p999']:>9.2e} {r['agree']:>8.4f}%")
+    print("Any hit: hit/miss agreement of rayd's `any` query with Embree's rtcOccluded1: " +
+          ", ".join(f"{name} {any_agree:.4f}%" for name, *_, any_agree in rows))
     print()
-    print(f"Speed, closest hit, M rays/s (median of {options.repeat}); Embree (embreex) runs on 1 thread, so the "
-          f"like-for-like ratio is rayd 1 thread / Embree 1 thread.")
-    print(f"{'case':<13} {f'rayd {threads} thr':>12} {'rayd 1 thr':>11} {'Embree 1 thr':>13} "
-          f"{'ratio 1/1':>10} {f'ratio {threads}/1':>10} {f'rayd build ms ({threads} thr)':>22} "
+    print(f"Speed, M rays/s. rayd {threads} thr: closest hit, median of {options.repeat} traces. 1 thread each "
+          f"(the like-for-like comparison; embreex runs one thread): {options.rounds} rounds, each timing rayd then "
+          f"Embree (median of {options.repeat} traces each), closest hit then any hit; medians over the rounds, "
+          f"and the median and range of the rounds' ratios (a round's ratio is immune to the machine slowing down "
+          f"between rounds).")
+    print(f"{'case':<13} {f'rayd {threads} thr':>12} {'rayd 1 thr':>11} {'Embree 1 thr':>13} {'ratio 1/1':>18} "
+          f"{'any: rayd 1 thr':>16} {'Embree 1 thr':>13} {'ratio 1/1':>18} {f'rayd build ms ({threads} thr)':>22} "
           f"{'Embree build ms (TBB)':>22}")
-    for name, _, rayd_all, rayd_one, embree_build, embree_mrays, _ in rows:
-        print(f"{name:<13} {rayd_all['mrays_per_s']:>12.2f} {rayd_one['mrays_per_s']:>11.2f} {embree_mrays:>13.2f} "
-              f"{rayd_one['mrays_per_s'] / embree_mrays:>10.2f} {rayd_all['mrays_per_s'] / embree_mrays:>10.2f} "
-              f"{rayd_all['build_ms']:>22.1f} {embree_build:>22.1f}")
+    for name, _, rayd_all, _, embree_build, speeds, _, _ in rows:
+        cells = []
+        for query, width in (("closest", 11), ("any", 16)):
+            rounds = speeds[query]
+            ratios = sorted(r / e for r, e, _ in rounds)
+            cells.append(f"{np.median([r for r, _, _ in rounds]):>{width}.2f} "
+                         f"{np.median([e for _, e, _ in rounds]):>13.2f} "
+                         f"{f'{np.median(ratios):.2f} ({ratios[0]:.2f}–{ratios[-1]:.2f})':>18}")
+        print(f"{name:<13} {rayd_all['mrays_per_s']:>12.2f} {cells[0]} {cells[1]} {rayd_all['build_ms']:>22.1f} "
+              f"{embree_build:>22.1f}")
     print()
+    packet_rows = [(name, speeds) for name, _, _, _, _, speeds, _, _ in rows if speeds["closest"][0][2]]
+    if packet_rows:
+        print(f"Against Embree from C (bench/embree_packets.c, the same Embree library, 1 thread, the same "
+              f"{options.rounds} rounds): single rays in a C loop, packets of 16 consecutive rays, 4×4 pixel tiles "
+              f"(camera rays); M rays/s, medians over the rounds, and the median and range of the rounds' ratios "
+              f"rayd / Embree.")
+        print(f"{'case':<13} {'query':<8} {'rayd 1 thr':>11} {'Embree 1-ray':>13} {'ratio':>18} {'16 in a row':>12} "
+              f"{'ratio':>18} {'4×4 tiles':>10} {'ratio':>18}")
+        for name, speeds in packet_rows:
+            for query, rounds in speeds.items():
+                cells = []
+                for way in ("single", "packet", "tile"):
+                    if not rounds[0][2][f"{way}_mrays_per_s"]:
+                        cells += ["–", "–"]
+                        continue
+                    ratios = sorted(r / p[f"{way}_mrays_per_s"] for r, _, p in rounds)
+                    cells.append(f"{np.median([p[f'{way}_mrays_per_s'] for _, _, p in rounds]):.2f}")
+                    cells.append(f"{np.median(ratios):.2f} ({ratios[0]:.2f}–{ratios[-1]:.2f})")
+                print(f"{name:<13} {query:<8} {np.median([r for r, _, _ in rounds]):>11.2f} {cells[0]:>13} "
+                      f"{cells[1]:>18} {cells[2]:>12} {cells[3]:>18} {cells[4]:>10} {cells[5]:>18}")
+        print()
     if failures:
         print("FAIL:\n  " + "\n  ".join(failures))
         sys.exit(1)

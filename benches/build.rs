@@ -1,5 +1,5 @@
-//! Build throughput (M triangles/s, reported by criterion as Melem/s): the bunny and the tiled
-//! million-triangle scene, with default options, `PREFER_FAST_BUILD` and `PREFER_FAST_TRACE`, on one thread and
+//! Build throughput (M triangles/s, reported by criterion as Melem/s): the bunny, the tiled million-triangle scene
+//! and the uneven one (the bunny with a floor and slivers), with default options, `PREFER_FAST_BUILD` and `PREFER_FAST_TRACE`, on one thread and
 //! on all of them.
 //!
 //! Before timing, each preset is built once on the bench's threads and checked (triangle count, and a small

@@ -1,4 +1,5 @@
-//! Trace throughput (M rays/s): the bunny and the tiled million-triangle scene, coherent rays (a 1024×1024
+//! Trace throughput (M rays/s): the bunny, the tiled million-triangle scene and the uneven one (the bunny with a
+//! floor and slivers: triangles of very uneven sizes), coherent rays (a 1024×1024
 //! pinhole camera) and incoherent ones (2^20 random rays in the scene's box), closest and any hit, on one thread
 //! and on all of them. Rays `origin_tmin_direction_tmax`, hits `t_triid_u_v`; accels built with default options.
 //!

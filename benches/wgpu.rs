@@ -212,7 +212,7 @@ fn main() {
         return;
     };
     println!("device: {}; {RUNS} timed traces a case (after {WARMUP:?} of untimed ones)\n", device.info().name);
-    let tiled = scenes().pop().expect("the tiled scene");
+    let tiled = scenes().into_iter().find(|s| s.name == "tiled").expect("the tiled scene");
     let meshes = tiled_meshes();
     let triangles = tiled.mesh.triangles.len();
     let flat = |context: &Context| {

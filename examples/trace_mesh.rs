@@ -3,12 +3,15 @@
 //! ```text
 //! cargo run --release --example trace_mesh -- --mesh bunny.obj --png bunny.png
 //! cargo run --release --example trace_mesh -- --mesh a.obj --mesh b.obj --tiled 1000000 --rays random
+//! cargo run --release --example trace_mesh -- --mesh bunny.obj --slivers 256
 //! ```
 //!
-//! The meshes are concatenated into one geometry (or, with `--tiled`, laid out by [`Mesh::tiled`]); rays are
+//! The meshes are concatenated into one geometry (or, with `--tiled`, laid out by [`Mesh::tiled`]; with
+//! `--slivers`, a floor and long thin triangles are added by [`Mesh::with_floor_and_slivers`]); rays are
 //! camera rays framing the scene or random rays in its box, packed `origin_tmin_direction_tmax`; hits are
 //! `t_triid_u_v`. The JSON has `build_ms` (median of `--builds` builds), `trace_ms` (median of `--repeat` traces),
-//! `mrays_per_s`, `rays`, `hits`, `triangles` and `threads` (rayon's; set `RAYON_NUM_THREADS` to change it).
+//! `mrays_per_s`, `rays`, `hits`, `triangles`, `threads` (rayon's; set `RAYON_NUM_THREADS` to change it), and the
+//! trace's `nodes_per_ray` and `triangles_per_ray` (boxes tested and triangles tested a ray: what the speed pays for).
 //! `--export DIR` writes the raw little-endian buffers (`vertices.f32`, `indices.u32`, `rays.bin`, `hits.bin`) so
 //! that another tracer can run exactly the same rays; `--png FILE` writes the camera image, shaded by the cosine
 //! between ray and normal.
@@ -21,7 +24,7 @@ use rayd_engine::accel::{BuildFlags, BuildOptions};
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::geometry::BuildInput;
 use rayd_engine::mesh::Mesh;
-use rayd_engine::query::{Query, QueryKind, TraceOutput};
+use rayd_engine::query::{Query, QueryKind, TraceOutput, TraceStats};
 use rayd_engine::raygen::{Camera, random_rays};
 use rayd_engine::{Context, Device};
 
@@ -40,6 +43,9 @@ struct Args {
     /// Tile the meshes (each scaled to a unit cube) on a grid until the scene has at least this many triangles.
     #[arg(long, value_name = "MIN_TRIANGLES")]
     tiled: Option<usize>,
+    /// Add a floor and this many slivers across the scene: triangles of very uneven sizes (seed 7).
+    #[arg(long, value_name = "COUNT")]
+    slivers: Option<usize>,
     /// Build preference; the engine's default (balanced) when left out.
     #[arg(long, value_enum)]
     prefer: Option<Prefer>,
@@ -109,6 +115,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Some(min_triangles) => Mesh::tiled(&meshes, min_triangles),
         None => concatenate(&meshes),
     };
+    let scene = match args.slivers {
+        Some(slivers) => scene.with_floor_and_slivers(slivers, 7),
+        None => scene,
+    };
     let packed = scene.pack();
 
     let flags = match args.prefer {
@@ -142,12 +152,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let ray_count = rays.len() / RAY_FORMAT.size();
     let mut hits = vec![0u8; HIT_FORMAT.buffer_len(ray_count)];
     let mut times_ms = Vec::new();
-    let mut rays_hit = 0;
+    let mut stats = TraceStats::default();
     for _ in 0..args.repeat {
         let start = Instant::now();
-        let stats = context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] })?;
+        stats = context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] })?;
         times_ms.push(start.elapsed().as_secs_f64() * 1e3);
-        rays_hit = stats.rays_hit;
     }
     let trace_ms = median(times_ms);
 
@@ -163,10 +172,13 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     }
     println!(
         "{{\"build_ms\": {build_ms:.3}, \"trace_ms\": {trace_ms:.3}, \"mrays_per_s\": {:.3}, \"rays\": {ray_count}, \
-         \"hits\": {rays_hit}, \"triangles\": {}, \"threads\": {}}}",
+         \"hits\": {}, \"triangles\": {}, \"threads\": {}, \"nodes_per_ray\": {:.2}, \"triangles_per_ray\": {:.2}}}",
         ray_count as f64 / trace_ms / 1e3,
+        stats.rays_hit,
         scene.triangles.len(),
         rayon::current_num_threads(),
+        stats.nodes_visited as f64 / ray_count as f64,
+        stats.triangle_tests as f64 / ray_count as f64,
     );
     Ok(())
 }

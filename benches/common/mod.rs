@@ -1,5 +1,5 @@
-//! What the benches share: the two scenes (the bunny, and a tiled scene of at least a million triangles made
-//! from every shared mesh), loaded from `../shared/data/meshes` beside the checkout, and a helper that runs a
+//! What the benches share: the scenes (the bunny, a tiled scene of at least a million triangles made from every
+//! shared mesh, and the bunny with a floor and slivers: triangles of very uneven sizes), loaded from `../shared/data/meshes` beside the checkout, and a helper that runs a
 //! closure on one thread or on all of them.
 
 use std::path::{Path, PathBuf};
@@ -12,6 +12,10 @@ pub const TILED_MESHES: [&str; 8] =
     ["beast", "cow", "fandisk", "nefertiti", "ogre", "spot", "stanford-bunny", "teapot"];
 /// The tiled scene's minimum triangle count (whole cycles of [`TILED_MESHES`] are placed until it is reached).
 pub const TILED_MIN_TRIANGLES: usize = 1_000_000;
+/// Slivers of the uneven scene ([`Mesh::with_floor_and_slivers`]).
+pub const UNEVEN_SLIVERS: usize = 256;
+/// Seed of the uneven scene's slivers.
+pub const UNEVEN_SEED: u64 = 7;
 
 /// A scene ready to build.
 pub struct Scene {
@@ -52,12 +56,13 @@ pub fn tiled_meshes() -> Vec<Mesh> {
     TILED_MESHES.iter().map(|name| load(name)).collect()
 }
 
-/// The bunny, then the tiled scene.
+/// The bunny, the tiled scene, then the uneven one.
 pub fn scenes() -> Vec<Scene> {
     let meshes = tiled_meshes();
     let bunny = meshes[TILED_MESHES.iter().position(|&n| n == "stanford-bunny").expect("bunny listed")].clone();
     let tiled = Mesh::tiled(&meshes, TILED_MIN_TRIANGLES);
-    vec![Scene::new("bunny", bunny), Scene::new("tiled", tiled)]
+    let uneven = bunny.with_floor_and_slivers(UNEVEN_SLIVERS, UNEVEN_SEED);
+    vec![Scene::new("bunny", bunny), Scene::new("tiled", tiled), Scene::new("uneven", uneven)]
 }
 
 /// The thread configurations every bench runs under: a one-thread pool, and rayon's global pool.
