@@ -4,8 +4,6 @@
 //! lane), and a leaf's corners are read from here. A block starts at a slot that is a multiple of [`BLOCK`], whatever leaf the slots belong to, so a
 //! leaf finds its blocks by its slots alone; a leaf's triangles fill one or two blocks.
 
-use std::ops::Range;
-
 use glam::Vec3;
 
 use super::bvh::{Footprint, VecLen};
@@ -73,30 +71,16 @@ impl CornerBlocks {
         (&self.blocks[slot / BLOCK], slot % BLOCK)
     }
 
-    /// The blocks holding `slots` (to prefetch them).
-    pub fn of(&self, slots: Range<usize>) -> &[Block] {
-        &self.blocks[slots.start / BLOCK..slots.end.div_ceil(BLOCK)]
-    }
-
-    /// Bit `i` set when the ray may hit the triangle in slot `slots.start + i` (at most 64 slots): cleared only where
-    /// [`crate::intersect::triangle::may_hit`] is false.
-    #[inline(always)]
-    pub fn candidates(&self, ray: &PreparedRay, slots: Range<usize>) -> u64 {
-        debug_assert!(slots.len() <= 64);
-        let first_block = slots.start / BLOCK;
-        let mut bits = 0u128;
-        for block in first_block..slots.end.div_ceil(BLOCK) {
-            bits |= u128::from(self.block_candidates(ray, block)) << (BLOCK * (block - first_block));
-        }
-        let bits = (bits >> (slots.start - first_block * BLOCK)) as u64;
-        bits & (u64::MAX >> (64 - slots.len()))
+    /// Where the block holding `slot` starts (to prefetch it; past the end for a slot past the last).
+    pub fn block_ptr(&self, slot: usize) -> *const Block {
+        self.blocks.as_ptr().wrapping_add(slot / BLOCK)
     }
 
     /// The lanes of block `block` the ray may hit, a bit each: SSE (every x86-64 CPU has it), four lanes in one
     /// register, through [`filter::may_hit_lanes`].
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
+    pub fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
         use std::arch::x86_64::*;
         let rows = BlockRows { rows: &self.blocks[block], axes: [ray.kx, ray.ky, ray.kz] };
         let origin = ray.origin.to_array();
@@ -110,7 +94,7 @@ impl CornerBlocks {
     /// The lanes of block `block` the ray may hit, a bit each: [`crate::intersect::triangle::may_hit`] lane by lane.
     #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
-    fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
+    pub fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
         (0..BLOCK).fold(0, |maybe, lane| {
             let corners = self.corners(block * BLOCK + lane);
             maybe | u32::from(crate::intersect::triangle::may_hit(ray, &corners)) << lane
@@ -153,8 +137,9 @@ mod tests {
     use crate::intersect::triangle::may_hit;
 
     #[test]
-    fn blocks_give_back_the_corners_and_sort_out_exactly_what_the_scalar_test_does_for_any_run_of_slots() {
-        // Eleven triangles of a fan and strays, rays from several directions through points on a grid.
+    fn blocks_give_back_the_corners_and_sort_out_exactly_what_the_scalar_test_does() {
+        // Eleven triangles of a fan and strays (the last block half full), rays from several directions through
+        // points on a grid.
         let corners: Vec<[Vec3; 3]> = (0..11)
             .map(|i| {
                 let angle = i as f32 * 0.6;
@@ -172,13 +157,12 @@ mod tests {
                     &Ray { origin: point - direction * 4.0, direction, ..Ray::default() },
                     RayFlags::empty(),
                 );
-                for start in 0..corners.len() {
-                    for end in start + 1..=corners.len() {
-                        let got = blocks.candidates(&ray, start..end);
-                        let want = (start..end)
-                            .fold(0u64, |bits, slot| bits | u64::from(may_hit(&ray, &corners[slot])) << (slot - start));
-                        assert_eq!(got, want, "slots {start}..{end}");
-                    }
+                for block in 0..corners.len().div_ceil(BLOCK) {
+                    let slots = block * BLOCK..((block + 1) * BLOCK).min(corners.len());
+                    let got = blocks.block_candidates(&ray, block) & ((1 << slots.len()) - 1);
+                    let want =
+                        slots.fold(0, |bits, slot| bits | u32::from(may_hit(&ray, &corners[slot])) << (slot % BLOCK));
+                    assert_eq!(got, want, "block {block}");
                 }
                 ruled_out += (0..corners.len()).filter(|&slot| !may_hit(&ray, &corners[slot])).count();
             }

@@ -17,7 +17,7 @@ use std::ops::Range;
 use super::blocks::Block;
 use super::filter;
 use super::triangles::TriangleBvh;
-use super::wide::{WIDTH, WideBvh, WideNode, prefetch};
+use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, has_avx2, prefetch};
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
 use crate::query::{Collector, GROUP_RAYS, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
@@ -78,11 +78,9 @@ impl TriangleBvh {
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
-        let packed = coherent(rays, collectors, self.wide.diagonal())
-            && self.node_keys.is_none()
-            && std::arch::is_x86_feature_detected!("avx2");
+        let packed = coherent(rays, collectors, self.wide.diagonal()) && self.node_keys.is_none() && has_avx2();
         if packed {
-            // SAFETY: the CPU has AVX2, as just checked.
+            // SAFETY: the CPU has the features, as just checked.
             unsafe { self.trace_packet_avx2(stack, rays, collectors, stats) };
         }
         packed
@@ -91,8 +89,8 @@ impl TriangleBvh {
     /// [`TriangleBvh::trace_packet`] once the rays make a packet.
     ///
     /// # Safety
-    /// The CPU must have AVX2.
-    #[target_feature(enable = "avx2")]
+    /// The CPU must have the features [`has_avx2`] checks.
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     unsafe fn trace_packet_avx2(
         &self,
         stack: &mut [PacketEntry],
@@ -130,10 +128,7 @@ impl TriangleBvh {
                 }
             }
         };
-        let prefetch_leaf = |slots: Range<usize>| {
-            prefetch(&self.wide.blocks.of(slots.clone()));
-            prefetch(&self.refs[slots]);
-        };
+        let prefetch_leaf = |slots: Range<usize>| self.prefetch_leaf(slots);
         // SAFETY: as above.
         unsafe { self.wide.walk_packet(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
     }
@@ -212,7 +207,7 @@ impl WideBvh {
             for &(_, _, lane) in &entered[..count] {
                 let index = owner.index[lane] as usize;
                 match owner.count[lane] as usize {
-                    0 => prefetch(&self.nodes[index]),
+                    0 => prefetch::<{ size_of::<WideNode>() / CACHE_LINE }>(self.nodes.as_ptr().wrapping_add(index)),
                     leaf_size => prefetch_leaf(index..index + leaf_size),
                 }
             }

@@ -8,6 +8,7 @@ use std::ops::Range;
 use glam::{Vec3, Vec3A};
 
 use super::CpuAccel;
+use super::blocks::BLOCK;
 use super::bvh::Node;
 use super::instances::{InstanceBvh, TransformNode, cpu_child};
 #[cfg(target_arch = "x86_64")]
@@ -103,15 +104,16 @@ impl TriangleBvh {
         let Some(at) = self.motion.locate(ray.time) else { return };
         match &self.node_keys {
             None => {
-                let candidates = |slots| self.wide.blocks.candidates(ray, slots);
+                let blocks = &self.wide.blocks;
+                let candidates = |block, lanes| blocks.block_candidates(ray, block) & lanes;
                 // The corners from the blocks too: a leaf's triangles are read from one place.
-                let leaf = self.offer_leaf(|slot| self.wide.blocks.corners(slot), candidates, ray, scope);
+                let leaf = self.offer_leaf(|slot| blocks.corners(slot), candidates, ray, scope);
                 match binary_traversal() {
-                    true => walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, leaf),
-                    false => self.wide.walk(stack, ray, collector, stats, leaf, |slots| {
-                        prefetch(&self.wide.blocks.of(slots.clone()));
-                        prefetch(&self.refs[slots]);
-                    }),
+                    true => {
+                        let leaf = with_stack(leaf);
+                        walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, leaf)
+                    }
+                    false => self.wide.walk(stack, ray, collector, stats, leaf, |slots| self.prefetch_leaf(slots)),
                 }
             }
             Some(keys) => {
@@ -121,37 +123,45 @@ impl TriangleBvh {
                         (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
                     std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
                 };
-                let candidates = |slots: Range<usize>| {
-                    let start = slots.start;
-                    slots.fold(0, |bits, slot| {
-                        bits | u64::from(triangle::may_hit(ray, &corners(slot))) << (slot - start)
+                let candidates = |block: usize, lanes: u32| {
+                    (0..BLOCK).fold(0, |bits, lane| match lanes >> lane & 1 {
+                        0 => bits,
+                        _ => bits | u32::from(triangle::may_hit(ray, &corners(block * BLOCK + lane))) << lane,
                     })
                 };
-                let leaf = self.offer_leaf(corners, candidates, ray, scope);
+                let leaf = with_stack(self.offer_leaf(corners, candidates, ray, scope));
                 walk(&self.nodes, |node| keys.at(node, at), stack, ray, collector, stats, leaf)
             }
         }
     }
 
+    /// Starts loading the data of the leaf over `slots` of a static accel: its first block of corners and its ids.
+    #[inline(always)]
+    pub(super) fn prefetch_leaf(&self, slots: Range<usize>) {
+        // A block is 144 bytes: three cache lines from the one it starts in hold it whole.
+        prefetch::<3>(self.wide.blocks.block_ptr(slots.start));
+        prefetch::<1>(self.refs.as_ptr().wrapping_add(slots.start));
+    }
+
     /// What a walk does at a leaf: offers each of its triangles, with its corners from `corners` (by slot), in slot
     /// order, and says whether the collector is done. The triangles the ray's line cannot cross are first sorted out,
-    /// up to 64 slots at a time, by `candidates` (a bit a slot: [`triangle::may_hit`], or the same test on blocks of
-    /// slots); the rest are offered as before, so the answers and the statistics (triangles tested up to where the
-    /// collector is done) are those of offering every one.
+    /// a block of [`BLOCK`] slots at a time, by `candidates` (given a block and a bit for each of its lanes in the
+    /// leaf, the bits of those the ray may hit: [`triangle::may_hit`], or the same test on the block at once); the
+    /// rest are offered as before, so the answers and the statistics (triangles tested up to where the collector is
+    /// done) are those of offering every one.
     #[inline(always)]
     fn offer_leaf<'a>(
         &'a self,
         corners: impl Fn(usize) -> [Vec3; 3] + 'a,
-        candidates: impl Fn(Range<usize>) -> u64 + 'a,
+        candidates: impl Fn(usize, u32) -> u32 + 'a,
         ray: &'a PreparedRay,
         scope: &'a InstanceScope,
-    ) -> impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
-        move |slots, _, collector, stats| {
-            for block in slots.clone().step_by(u64::BITS as usize) {
-                let block = block..(block + u64::BITS as usize).min(slots.end);
-                let mut candidates = candidates(block.clone());
+    ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
+        move |slots, collector, stats| {
+            for block in slots.start / BLOCK..slots.end.div_ceil(BLOCK) {
+                let mut candidates = candidates(block, lanes_within(block, &slots));
                 while candidates != 0 {
-                    let slot = block.start + candidates.trailing_zeros() as usize;
+                    let slot = block * BLOCK + candidates.trailing_zeros() as usize;
                     candidates &= candidates - 1;
                     let id = self.refs[slot];
                     let candidate = TriangleCandidate {
@@ -171,6 +181,22 @@ impl TriangleBvh {
             false
         }
     }
+}
+
+/// A bit for each lane of block `block` whose slot is in `slots`.
+#[inline(always)]
+fn lanes_within(block: usize, slots: &Range<usize>) -> u32 {
+    let first = block * BLOCK;
+    let (from, to) = (slots.start.saturating_sub(first).min(BLOCK), (slots.end - first).min(BLOCK));
+    ((1u32 << to) - 1) & !((1u32 << from) - 1)
+}
+
+/// A leaf of a wide walk as one of a binary walk, which also hands it the free part of the stack.
+#[inline(always)]
+fn with_stack<L: FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool>(
+    mut leaf: L,
+) -> impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool {
+    move |slots, _, collector, stats| leaf(slots, collector, stats)
 }
 
 impl InstanceBvh {

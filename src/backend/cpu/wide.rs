@@ -113,9 +113,11 @@ impl WideBvh {
             + self.blocks.size_bytes(footprint)
     }
 
-    /// Walks the nodes front to back and hands each leaf the ray reaches (its primitive slots, the free part of the
-    /// stack, the collector and the statistics) to `leaf`, which returns whether the collector is done.
-    /// `prefetch_leaf` starts loading a leaf's data (by its slots) as soon as the ray enters the leaf's box.
+    /// Walks the nodes front to back and hands each leaf the ray reaches (its primitive slots, the collector and the
+    /// statistics) to `leaf`, which returns whether the collector is done. `prefetch_leaf` starts loading a leaf's
+    /// data (by its slots) as soon as the ray enters the leaf's box.
+    ///
+    /// Panics when `stack` holds fewer than [`WideBvh::stack_size`] entries.
     #[inline(always)]
     pub fn walk(
         &self,
@@ -123,12 +125,12 @@ impl WideBvh {
         ray: &PreparedRay,
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
-        leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
+        leaf: impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
         prefetch_leaf: impl Fn(Range<usize>),
     ) {
         #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2, as just checked.
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2 and the other features, as just checked.
             unsafe { self.walk_avx2(stack, ray, collector, stats, leaf, prefetch_leaf) };
             return;
         }
@@ -139,16 +141,16 @@ impl WideBvh {
     /// [`WideBvh::walk_lanes`] compiled for AVX2, its box tests written with AVX intrinsics.
     ///
     /// # Safety
-    /// The CPU must have AVX2.
+    /// The CPU must have the features [`has_avx2`] checks.
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     unsafe fn walk_avx2(
         &self,
         stack: &mut [StackEntry],
         ray: &PreparedRay,
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
-        leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
+        leaf: impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
         prefetch_leaf: impl Fn(Range<usize>),
     ) {
         // SAFETY (both): the CPU has AVX2 (this function's contract), so AVX too.
@@ -159,7 +161,11 @@ impl WideBvh {
 
     /// The walk itself, for whatever instruction set it is compiled with, with `enter` as the box test of a node's
     /// lanes ([`enter_lanes`]). Stack entries name a lane (`node · WIDTH + lane`) with the distance at which the ray
-    /// enters its box.
+    /// enters its box. The collector's cull distance changes only at leaves, so it is read again only after one.
+    ///
+    /// Nodes and stack entries are read without bounds checks: the stack's depth is checked once here, and every
+    /// node index the walk follows is the root's or an inner lane's, below `nodes.len()` by construction
+    /// ([`WideBvh::collapse`] builds the nodes from a binary BVH whose children come after their parents).
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
     fn walk_lanes(
@@ -169,97 +175,115 @@ impl WideBvh {
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
         enter: impl Fn(&WideNode, f32) -> (u32, [f32; WIDTH]),
-        mut leaf: impl FnMut(Range<usize>, &mut [StackEntry], &mut Collector<'_>, &mut TraceStats) -> bool,
+        mut leaf: impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
         prefetch_leaf: impl Fn(Range<usize>),
     ) {
         if self.nodes.is_empty() {
             return;
         }
-        stats.nodes_visited += 1;
-        if aabb::intersect(ray, self.root.0, self.root.1, ray.tmin, collector.cull_tmax()).is_none() {
-            return;
-        }
-        let mut len = 0usize;
-        let mut node = 0usize;
-        loop {
-            let children = self.children[node];
-            stats.nodes_visited += u64::from(children);
-            let (entered, near) = enter(&self.nodes[node], collector.cull_tmax());
-            // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
-            let entered = entered & ((1u32 << children) - 1);
-            self.prefetch_lanes(node, entered, &prefetch_leaf);
-            let mut next = visit_order(node, entered, &near, stack, &mut len, collector.wants_nearest_first());
-            // Leaves are handled as they come; the first inner lane reached is visited next.
-            loop {
-                let lane_ref = match next.take() {
-                    Some(lane_ref) => lane_ref,
-                    None => loop {
-                        if len == 0 {
-                            return;
-                        }
-                        len -= 1;
-                        let (lane_ref, near) = stack[len];
-                        if near <= collector.cull_tmax() {
-                            break lane_ref;
-                        }
-                    },
-                };
-                let (owner, lane) = (&self.nodes[lane_ref as usize / WIDTH], lane_ref as usize % WIDTH);
-                let count = owner.count[lane] as usize;
-                if count == 0 {
-                    node = owner.index[lane] as usize;
-                    break;
-                }
-                let first = owner.index[lane] as usize;
-                if leaf(first..first + count, &mut stack[len..], collector, stats) {
-                    return;
+        assert!(stack.len() >= self.stack_size(), "a stack of {} entries for {}", stack.len(), self.stack_size());
+        let mut tmax = collector.cull_tmax();
+        // Boxes tested, added to the statistics at the end.
+        let mut boxes = 1u64;
+        let nearest_first = collector.wants_nearest_first();
+        if aabb::intersect(ray, self.root.0, self.root.1, ray.tmin, tmax).is_some() {
+            let mut len = 0usize;
+            let mut node = 0usize;
+            'walk: loop {
+                // SAFETY: `node` is below `nodes.len()` (see above); `children` has an entry a node.
+                let (owner, children) = unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
+                boxes += u64::from(children);
+                let (entered, near) = enter(owner, tmax);
+                // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
+                let entered = entered & ((1u32 << children) - 1);
+                self.prefetch_lanes(owner, entered, &prefetch_leaf);
+                // SAFETY: a walk leaves at most `WIDTH − 1` lanes waiting a level: `stack_size` entries, checked above.
+                let mut next = unsafe { visit_order(node, entered, &near, stack, &mut len, nearest_first) };
+                // Leaves are handled as they come; the first inner lane reached is visited next.
+                loop {
+                    let lane_ref = match next.take() {
+                        Some(lane_ref) => lane_ref,
+                        None => loop {
+                            if len == 0 {
+                                break 'walk;
+                            }
+                            len -= 1;
+                            // SAFETY: below the entries pushed.
+                            let (lane_ref, near) = unsafe { *stack.get_unchecked(len) };
+                            if near <= tmax {
+                                break lane_ref;
+                            }
+                        },
+                    };
+                    // SAFETY: a lane reference names a node visited before.
+                    let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
+                    let lane = lane_ref as usize % WIDTH;
+                    let (index, count) = (owner.index[lane] as usize, owner.count[lane] as usize);
+                    if count == 0 {
+                        node = index;
+                        break;
+                    }
+                    if leaf(index..index + count, collector, stats) {
+                        break 'walk;
+                    }
+                    tmax = collector.cull_tmax();
                 }
             }
         }
+        stats.nodes_visited += boxes;
     }
-}
 
-impl WideBvh {
-    /// Starts loading what the entered lanes of `node` lead to (their nodes; their leaves' data through
+    /// Starts loading what the entered lanes of `owner` lead to (their nodes; their leaves' data through
     /// `prefetch_leaf`), so that the memory is on its way while the nearer lanes are visited: random rays spend
     /// much of their time waiting for nodes and triangles that are not in the cache.
     #[inline(always)]
-    fn prefetch_lanes(&self, node: usize, entered: u32, prefetch_leaf: &impl Fn(Range<usize>)) {
-        let owner = &self.nodes[node];
+    fn prefetch_lanes(&self, owner: &WideNode, entered: u32, prefetch_leaf: &impl Fn(Range<usize>)) {
         let mut bits = entered;
         while bits != 0 {
             let lane = bits.trailing_zeros() as usize;
             bits &= bits - 1;
             let (index, count) = (owner.index[lane] as usize, owner.count[lane] as usize);
             match count {
-                0 => prefetch(&self.nodes[index]),
+                0 => prefetch::<{ size_of::<WideNode>() / CACHE_LINE }>(self.nodes.as_ptr().wrapping_add(index)),
                 _ => prefetch_leaf(index..index + count),
             }
         }
     }
 }
 
-/// Asks the CPU to start loading the cache lines of `item`, which is about to be read. Only a hint: what the
-/// program reads does not change.
+/// Whether the CPU has every feature the AVX2 kernels are compiled with (`#[target_feature(enable =
+/// "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]`): CPUs with AVX2 have the others too, but each is checked (detected once,
+/// then read from a cache).
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
-pub(super) fn prefetch<T: ?Sized>(item: &T) {
+pub(super) fn has_avx2() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+        && std::arch::is_x86_feature_detected!("fma")
+        && std::arch::is_x86_feature_detected!("bmi1")
+        && std::arch::is_x86_feature_detected!("bmi2")
+        && std::arch::is_x86_feature_detected!("lzcnt")
+        && std::arch::is_x86_feature_detected!("popcnt")
+}
+
+/// Bytes of a cache line on x86-64 CPUs.
+pub(super) const CACHE_LINE: usize = 64;
+
+/// Asks the CPU to start loading `LINES` cache lines from the one `start` points into, which are about to be read.
+/// Only a hint: what the program reads does not change, and the address need not be valid.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+pub(super) fn prefetch<const LINES: usize>(start: *const impl Sized) {
     use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-    /// Bytes of a cache line on x86-64 CPUs.
-    const CACHE_LINE: usize = 64;
-    let start = (item as *const T).cast::<i8>();
-    // Every line `item` touches: from the one its first byte is in to the one its last byte is in.
-    let skew = start as usize % CACHE_LINE;
-    for offset in (0..skew + size_of_val(item)).step_by(CACHE_LINE) {
+    for line in 0..LINES {
         // SAFETY: a prefetch reads nothing the program sees and never faults, whatever the address.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>(start.wrapping_add(offset).wrapping_sub(skew)) };
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(start.cast::<i8>().wrapping_add(line * CACHE_LINE)) };
     }
 }
 
 /// Elsewhere the hint is left out: stable Rust has no prefetch instruction for other architectures.
 #[cfg(not(target_arch = "x86_64"))]
 #[inline(always)]
-pub(super) fn prefetch<T: ?Sized>(_item: &T) {}
+pub(super) fn prefetch<const LINES: usize>(_start: *const impl Sized) {}
 
 /// Which lanes of `node` the ray enters within `[ray.tmin, tmax]` (bit per lane), and at what distance.
 #[inline(always)]
@@ -293,6 +317,7 @@ fn enter_lanes(node: &WideNode, ray: &PreparedRay, tmax: f32) -> (u32, [f32; WID
 #[cfg(target_arch = "x86_64")]
 mod avx {
     use std::arch::x86_64::*;
+    use std::mem::offset_of;
 
     use super::{SLACK, WIDTH, WideNode};
     use crate::intersect::PreparedRay;
@@ -303,8 +328,10 @@ mod avx {
         origin: [__m256; 3],
         /// `1/direction`, by axis.
         inv_direction: [__m256; 3],
-        /// Per axis, whether the ray meets the boxes' maxima first.
-        negative: [bool; 3],
+        /// Per axis, where in a node the row of the planes the ray meets first lies, and the row of those it meets
+        /// last (byte offsets: the minima's row when the direction is positive, the maxima's when negative), chosen
+        /// once a walk instead of at every node.
+        rows: [(usize, usize); 3],
         /// `tmin`.
         tmin: __m256,
     }
@@ -319,7 +346,11 @@ mod avx {
                 RayLanes {
                     origin: std::array::from_fn(|axis| _mm256_set1_ps(ray.origin[axis])),
                     inv_direction: std::array::from_fn(|axis| _mm256_set1_ps(ray.inv_direction[axis])),
-                    negative: ray.negative,
+                    rows: std::array::from_fn(|axis| {
+                        let (lo, hi) =
+                            (offset_of!(WideNode, lo) + 4 * WIDTH * axis, offset_of!(WideNode, hi) + 4 * WIDTH * axis);
+                        if ray.negative[axis] { (hi, lo) } else { (lo, hi) }
+                    }),
                     tmin: _mm256_set1_ps(ray.tmin),
                 }
             }
@@ -331,18 +362,17 @@ mod avx {
         /// The CPU must have AVX.
         #[inline(always)]
         pub(super) unsafe fn enter(&self, node: &WideNode, tmax: f32) -> (u32, [f32; WIDTH]) {
-            // SAFETY: the CPU has AVX (the caller's contract); the loads read a node's whole rows.
+            // SAFETY: the CPU has AVX (the caller's contract); the loads read whole rows of the node (32-byte aligned:
+            // the node is aligned to 64 and its rows are 32 bytes long).
             unsafe {
                 let (mut near, mut far) = (self.tmin, _mm256_set1_ps(tmax));
+                let row = |offset: usize| (node as *const WideNode).cast::<u8>().add(offset).cast::<f32>();
                 for axis in 0..3 {
-                    let (lo, hi) = match self.negative[axis] {
-                        true => (&node.hi[axis], &node.lo[axis]),
-                        false => (&node.lo[axis], &node.hi[axis]),
-                    };
+                    let (first, last) = self.rows[axis];
                     let (origin, inv) = (self.origin[axis], self.inv_direction[axis]);
-                    let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(lo.as_ptr()), origin), inv);
+                    let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_load_ps(row(first)), origin), inv);
                     near = _mm256_max_ps(t0, near);
-                    let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_loadu_ps(hi.as_ptr()), origin), inv);
+                    let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_load_ps(row(last)), origin), inv);
                     far = _mm256_min_ps(t1, far);
                 }
                 let (slack, magnitude) = (_mm256_set1_ps(SLACK), _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
@@ -360,8 +390,11 @@ mod avx {
 /// Pushes the entered lanes of `node` but one on the stack and returns that one, the lane visited next: `by_distance`,
 /// the nearest (the others pushed farthest first); otherwise the first in lane order (the others pushed so that the
 /// next lane is on top), which costs no sort.
+///
+/// # Safety
+/// `stack` must have room for `WIDTH − 1` entries from `*len` on.
 #[inline(always)]
-fn visit_order(
+unsafe fn visit_order(
     node: usize,
     entered: u32,
     near: &[f32; WIDTH],
@@ -370,42 +403,53 @@ fn visit_order(
     by_distance: bool,
 ) -> Option<u32> {
     let lane_ref = |lane: u32| (node * WIDTH) as u32 + lane;
-    match entered.count_ones() {
-        0 => None,
-        1 => Some(lane_ref(entered.trailing_zeros())),
-        _ if !by_distance => {
-            let mut rest = entered & (entered - 1);
-            while rest != 0 {
-                let lane = 31 - rest.leading_zeros();
-                rest &= !(1 << lane);
-                stack[*len] = (lane_ref(lane), near[lane as usize]);
-                *len += 1;
-            }
-            Some(lane_ref(entered.trailing_zeros()))
+    let mut push = |lane: u32, distance: f32| {
+        // SAFETY: at most `WIDTH − 1` entries are pushed a call, and there is room for them (the contract).
+        unsafe { *stack.get_unchecked_mut(*len) = (lane_ref(lane), distance) };
+        *len += 1;
+    };
+    let first = entered.trailing_zeros();
+    let rest = entered & entered.wrapping_sub(1);
+    if entered == 0 {
+        None
+    } else if rest == 0 {
+        Some(lane_ref(first))
+    } else if !by_distance {
+        let mut rest = rest;
+        while rest != 0 {
+            let lane = 31 - rest.leading_zeros();
+            rest &= !(1 << lane);
+            push(lane, near[lane as usize]);
         }
-        _ => {
-            let mut order = [(0f32, 0u32); WIDTH];
-            let mut count = 0;
-            let mut bits = entered;
-            while bits != 0 {
-                let lane = bits.trailing_zeros();
-                bits &= bits - 1;
-                // Insertion by distance, nearest first.
-                let d = near[lane as usize];
-                let mut at = count;
-                while at > 0 && order[at - 1].0 > d {
-                    order[at] = order[at - 1];
-                    at -= 1;
-                }
-                order[at] = (d, lane);
-                count += 1;
+        Some(lane_ref(first))
+    } else if rest & rest.wrapping_sub(1) == 0 {
+        // Two lanes: the farther waits (the first in lane order when they are equally far, as the sort below does).
+        let second = rest.trailing_zeros();
+        let (d0, d1) = (near[first as usize], near[second as usize]);
+        let (nearer, farther) = if d1 < d0 { (second, first) } else { (first, second) };
+        push(farther, near[farther as usize]);
+        Some(lane_ref(nearer))
+    } else {
+        let mut order = [(0f32, 0u32); WIDTH];
+        let mut count = 0;
+        let mut bits = entered;
+        while bits != 0 {
+            let lane = bits.trailing_zeros();
+            bits &= bits - 1;
+            // Insertion by distance, nearest first.
+            let d = near[lane as usize];
+            let mut at = count;
+            while at > 0 && order[at - 1].0 > d {
+                order[at] = order[at - 1];
+                at -= 1;
             }
-            for &(d, lane) in order[1..count].iter().rev() {
-                stack[*len] = (lane_ref(lane), d);
-                *len += 1;
-            }
-            Some(lane_ref(order[0].1))
+            order[at] = (d, lane);
+            count += 1;
         }
+        for &(d, lane) in order[1..count].iter().rev() {
+            push(lane, d);
+        }
+        Some(lane_ref(order[0].1))
     }
 }
 
