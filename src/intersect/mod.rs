@@ -49,19 +49,16 @@ impl PreparedRay {
     pub fn new(ray: &Ray, query_flags: RayFlags) -> PreparedRay {
         let d = ray.direction;
         let abs = d.abs();
-        let kz = if abs.x >= abs.y && abs.x >= abs.z {
-            0
+        let (kz, [x, y]) = if abs.x >= abs.y && abs.x >= abs.z {
+            (0, [1, 2])
         } else if abs.y >= abs.z {
-            1
+            (1, [2, 0])
         } else {
-            2
+            (2, [0, 1])
         };
-        let mut kx = (kz + 1) % 3;
-        let mut ky = (kx + 1) % 3;
-        if d[kz] < 0.0 {
-            std::mem::swap(&mut kx, &mut ky);
-        }
-        let shear = Vec3A::new(d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]);
+        let axes = d.to_array();
+        let (kx, ky) = if axes[kz] < 0.0 { (y, x) } else { (x, y) };
+        let shear = Vec3A::new(axes[kx] / axes[kz], axes[ky] / axes[kz], 1.0 / axes[kz]);
         let inv = |c: f32| if c == 0.0 { f32::INFINITY } else { 1.0 / c };
         PreparedRay {
             origin: ray.origin,

@@ -56,12 +56,12 @@ fn perturbed_sign(p: (f32, f32), q: (f32, f32)) -> f32 {
     }
 }
 
-/// A triangle in the ray's sheared space: its corners relative to the origin (`a`, `b`, `c`), projected onto the
-/// plane across the ray (`ax` … `cy`), and the edge functions `u`, `v`, `w` computed in f32.
+/// A triangle in the ray's sheared space: its corners relative to the origin along the ray's axis (`az`, `bz`,
+/// `cz`), projected onto the plane across the ray (`ax` … `cy`), and the edge functions `u`, `v`, `w` computed in f32.
 struct Projected {
-    a: glam::Vec3A,
-    b: glam::Vec3A,
-    c: glam::Vec3A,
+    az: f32,
+    bz: f32,
+    cz: f32,
     ax: f32,
     ay: f32,
     bx: f32,
@@ -79,20 +79,21 @@ impl Projected {
     fn new(ray: &PreparedRay, corners: &[Vec3; 3]) -> Projected {
         let (kx, ky, kz) = (ray.kx, ray.ky, ray.kz);
         let o = ray.origin;
-        let a = glam::Vec3A::from(corners[0]) - o;
-        let b = glam::Vec3A::from(corners[1]) - o;
-        let c = glam::Vec3A::from(corners[2]) - o;
+        let a = (glam::Vec3A::from(corners[0]) - o).to_array();
+        let b = (glam::Vec3A::from(corners[1]) - o).to_array();
+        let c = (glam::Vec3A::from(corners[2]) - o).to_array();
         let (sx, sy) = (ray.shear.x, ray.shear.y);
-        let ax = a[kx] - sx * a[kz];
-        let ay = a[ky] - sy * a[kz];
-        let bx = b[kx] - sx * b[kz];
-        let by = b[ky] - sy * b[kz];
-        let cx = c[kx] - sx * c[kz];
-        let cy = c[ky] - sy * c[kz];
+        let (az, bz, cz) = (a[kz], b[kz], c[kz]);
+        let ax = a[kx] - sx * az;
+        let ay = a[ky] - sy * az;
+        let bx = b[kx] - sx * bz;
+        let by = b[ky] - sy * bz;
+        let cx = c[kx] - sx * cz;
+        let cy = c[ky] - sy * cz;
         let u = cx * by - cy * bx;
         let v = ax * cy - ay * cx;
         let w = bx * ay - by * ax;
-        Projected { a, b, c, ax, ay, bx, by, cx, cy, u, v, w }
+        Projected { az, bz, cz, ax, ay, bx, by, cx, cy, u, v, w }
     }
 }
 
@@ -111,7 +112,7 @@ pub fn may_hit(ray: &PreparedRay, corners: &[Vec3; 3]) -> bool {
 /// Intersects `ray` with the triangle `corners`; `None` when the ray's line misses it (or it is edge-on).
 #[inline(always)]
 pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> {
-    let Projected { a, b, c, ax, ay, bx, by, cx, cy, mut u, mut v, mut w } = Projected::new(ray, corners);
+    let Projected { az, bz, cz, ax, ay, bx, by, cx, cy, mut u, mut v, mut w } = Projected::new(ray, corners);
     if u == 0.0 || v == 0.0 || w == 0.0 {
         let (ax, ay, bx, by, cx, cy) = (ax as f64, ay as f64, bx as f64, by as f64, cx as f64, cy as f64);
         u = (cx * by - cy * bx) as f32;
@@ -135,10 +136,8 @@ pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> 
             return None;
         }
     }
-    let (sz, kz) = (ray.shear.z, ray.kz);
-    let az = sz * a[kz];
-    let bz = sz * b[kz];
-    let cz = sz * c[kz];
+    let sz = ray.shear.z;
+    let (az, bz, cz) = (sz * az, sz * bz, sz * cz);
     let t = (u * az + v * bz + w * cz) / det;
     if !t.is_finite() {
         return None;

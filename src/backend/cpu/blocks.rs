@@ -80,25 +80,63 @@ impl CornerBlocks {
     /// register, through [`filter::may_hit_lanes`].
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    pub fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
-        use std::arch::x86_64::*;
-        let rows = BlockRows { rows: &self.blocks[block], axes: [ray.kx, ray.ky, ray.kz] };
-        let origin = ray.origin.to_array();
+    pub fn block_candidates(&self, ray: &BlockRay<'_>, block: usize) -> u32 {
+        let rows = BlockRows { rows: &self.blocks[block], axes: ray.axes };
         // SAFETY: SSE is part of x86-64.
-        unsafe {
-            let origin = rows.axes.map(|axis| _mm_set1_ps(origin[axis]));
-            filter::may_hit_lanes(&rows, origin, [_mm_set1_ps(ray.shear.x), _mm_set1_ps(ray.shear.y)])
-        }
+        unsafe { filter::may_hit_lanes(&rows, ray.origin, ray.shear) }
     }
 
     /// The lanes of block `block` the ray may hit, a bit each: [`crate::intersect::triangle::may_hit`] lane by lane.
     #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
-    pub fn block_candidates(&self, ray: &PreparedRay, block: usize) -> u32 {
+    pub fn block_candidates(&self, ray: &BlockRay<'_>, block: usize) -> u32 {
         (0..BLOCK).fold(0, |maybe, lane| {
             let corners = self.corners(block * BLOCK + lane);
-            maybe | u32::from(crate::intersect::triangle::may_hit(ray, &corners)) << lane
+            maybe | u32::from(crate::intersect::triangle::may_hit(ray.ray, &corners)) << lane
         })
+    }
+}
+
+/// What the block test needs of a ray, made once a ray: on x86-64 its origin on its projection axes and its first
+/// two shear constants, each in every lane of an SSE register.
+#[derive(Clone, Copy)]
+pub(super) struct BlockRay<'r> {
+    /// The ray.
+    #[cfg_attr(target_arch = "x86_64", allow(dead_code))]
+    ray: &'r PreparedRay,
+    /// The ray's projection axes `kx`, `ky`, `kz`.
+    #[cfg(target_arch = "x86_64")]
+    axes: [usize; 3],
+    /// The origin on those axes.
+    #[cfg(target_arch = "x86_64")]
+    origin: [std::arch::x86_64::__m128; 3],
+    /// `shear.x`, `shear.y`.
+    #[cfg(target_arch = "x86_64")]
+    shear: [std::arch::x86_64::__m128; 2],
+}
+
+impl<'r> BlockRay<'r> {
+    /// The block test's numbers of `ray`.
+    #[inline(always)]
+    pub fn new(ray: &'r PreparedRay) -> BlockRay<'r> {
+        #[cfg(target_arch = "x86_64")]
+        {
+            use std::arch::x86_64::_mm_set1_ps;
+            let axes = [ray.kx, ray.ky, ray.kz];
+            assert!(axes.iter().all(|&axis| axis < 3), "projection axes {axes:?}");
+            let origin = ray.origin.to_array();
+            // SAFETY: SSE is part of x86-64.
+            unsafe {
+                BlockRay {
+                    ray,
+                    axes,
+                    origin: axes.map(|axis| _mm_set1_ps(origin[axis])),
+                    shear: [_mm_set1_ps(ray.shear.x), _mm_set1_ps(ray.shear.y)],
+                }
+            }
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        BlockRay { ray }
     }
 }
 
@@ -107,7 +145,7 @@ impl CornerBlocks {
 struct BlockRows<'a> {
     /// The block.
     rows: &'a Block,
-    /// The ray's `kx`, `ky`, `kz`.
+    /// The ray's `kx`, `ky`, `kz`, each below 3 ([`BlockRay::new`] checks them).
     axes: [usize; 3],
 }
 
@@ -116,15 +154,9 @@ impl filter::Corners<std::arch::x86_64::__m128> for BlockRows<'_> {
     #[inline(always)]
     unsafe fn corner(&self, c: usize) -> [std::arch::x86_64::__m128; 3] {
         use std::arch::x86_64::_mm_loadu_ps;
-        let [kx, ky, kz] = self.axes;
-        // SAFETY: SSE is part of x86-64; the loads read whole rows.
-        unsafe {
-            [
-                _mm_loadu_ps(self.rows[3 * c + kx].as_ptr()),
-                _mm_loadu_ps(self.rows[3 * c + ky].as_ptr()),
-                _mm_loadu_ps(self.rows[3 * c + kz].as_ptr()),
-            ]
-        }
+        // SAFETY: SSE is part of x86-64; `c` is below 3 (the trait's contract) and so is every axis, so each row
+        // `3c + axis` is one of the block's nine, read whole.
+        unsafe { self.axes.map(|axis| _mm_loadu_ps(self.rows.get_unchecked(3 * c + axis).as_ptr())) }
     }
 }
 
@@ -159,7 +191,7 @@ mod tests {
                 );
                 for block in 0..corners.len().div_ceil(BLOCK) {
                     let slots = block * BLOCK..((block + 1) * BLOCK).min(corners.len());
-                    let got = blocks.block_candidates(&ray, block) & ((1 << slots.len()) - 1);
+                    let got = blocks.block_candidates(&BlockRay::new(&ray), block) & ((1 << slots.len()) - 1);
                     let want =
                         slots.fold(0, |bits, slot| bits | u32::from(may_hit(&ray, &corners[slot])) << (slot % BLOCK));
                     assert_eq!(got, want, "block {block}");

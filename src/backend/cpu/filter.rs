@@ -94,10 +94,10 @@ impl Lanes for __m256 {
 /// Where the filter reads a triangle's corners from, one corner at a time as it needs them (so that no more
 /// registers are live than the arithmetic needs).
 pub(super) trait Corners<L> {
-    /// Corner `c` (0, 1 or 2) on the ray's projection axes (`kx`, `ky`, `kz`).
+    /// Corner `c` on the ray's projection axes (`kx`, `ky`, `kz`).
     ///
     /// # Safety
-    /// The CPU must have the registers' instruction set.
+    /// The CPU must have the registers' instruction set; `c` must be 0, 1 or 2.
     unsafe fn corner(&self, c: usize) -> [L; 3];
 }
 

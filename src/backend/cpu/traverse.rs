@@ -8,7 +8,7 @@ use std::ops::Range;
 use glam::{Vec3, Vec3A};
 
 use super::CpuAccel;
-use super::blocks::BLOCK;
+use super::blocks::{BLOCK, BlockRay};
 use super::bvh::Node;
 use super::instances::{InstanceBvh, TransformNode, cpu_child};
 #[cfg(target_arch = "x86_64")]
@@ -104,8 +104,8 @@ impl TriangleBvh {
         let Some(at) = self.motion.locate(ray.time) else { return };
         match &self.node_keys {
             None => {
-                let blocks = &self.wide.blocks;
-                let candidates = |block, lanes| blocks.block_candidates(ray, block) & lanes;
+                let (blocks, block_ray) = (&self.wide.blocks, BlockRay::new(ray));
+                let candidates = |block, lanes| blocks.block_candidates(&block_ray, block) & lanes;
                 // The corners from the blocks too: a leaf's triangles are read from one place.
                 let leaf = self.offer_leaf(|slot| blocks.corners(slot), candidates, ray, scope);
                 match binary_traversal() {

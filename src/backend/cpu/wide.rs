@@ -19,7 +19,7 @@ use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::traverse::StackEntry;
 use crate::intersect::PreparedRay;
-use crate::intersect::aabb::{self, SLACK};
+use crate::intersect::aabb::SLACK;
 use crate::query::{Collector, TraceStats};
 
 /// Children per node.
@@ -63,6 +63,9 @@ impl WideNode {
 }
 
 /// A static BVH collapsed to [`WIDTH`] children a node.
+///
+/// What the walks read without bounds checks, and [`WideBvh::collapse`] makes sure of: `children` has an entry a
+/// node; every inner lane's index is below `nodes.len()`; a lane reference `node · WIDTH + lane` fits a `u32`.
 #[derive(Debug, Clone, Default)]
 pub(super) struct WideBvh {
     /// Nodes, the root first; empty when the binary BVH was.
@@ -99,6 +102,11 @@ impl WideBvh {
             wide.nodes.push(node);
             wide.children.push(occupied as u8);
         }
+        // What the walks rely on (see the type's documentation); a failure here is a bug of `collapse`.
+        let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).all(|(node, &children)| {
+            (0..usize::from(children)).all(|l| node.count[l] > 0 || (node.index[l] as usize) < wide.nodes.len())
+        });
+        assert!(inner_lanes_in_range && wide.nodes.len() <= (u32::MAX as usize) / WIDTH, "a malformed wide BVH");
         wide
     }
 
@@ -135,7 +143,7 @@ impl WideBvh {
             return;
         }
         let enter = |node: &WideNode, tmax: f32| enter_lanes(node, ray, tmax);
-        self.walk_lanes(stack, ray, collector, stats, enter, leaf, prefetch_leaf);
+        self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
     }
 
     /// [`WideBvh::walk_lanes`] compiled for AVX2, its box tests written with AVX intrinsics.
@@ -156,7 +164,7 @@ impl WideBvh {
         // SAFETY (both): the CPU has AVX2 (this function's contract), so AVX too.
         let lanes = unsafe { avx::RayLanes::new(ray) };
         let enter = |node: &WideNode, tmax: f32| unsafe { lanes.enter(node, tmax) };
-        self.walk_lanes(stack, ray, collector, stats, enter, leaf, prefetch_leaf);
+        self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
     }
 
     /// The walk itself, for whatever instruction set it is compiled with, with `enter` as the box test of a node's
@@ -167,11 +175,9 @@ impl WideBvh {
     /// node index the walk follows is the root's or an inner lane's, below `nodes.len()` by construction
     /// ([`WideBvh::collapse`] builds the nodes from a binary BVH whose children come after their parents).
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
     fn walk_lanes(
         &self,
         stack: &mut [StackEntry],
-        ray: &PreparedRay,
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
         enter: impl Fn(&WideNode, f32) -> (u32, [f32; WIDTH]),
@@ -183,51 +189,51 @@ impl WideBvh {
         }
         assert!(stack.len() >= self.stack_size(), "a stack of {} entries for {}", stack.len(), self.stack_size());
         let mut tmax = collector.cull_tmax();
-        // Boxes tested, added to the statistics at the end.
-        let mut boxes = 1u64;
+        // Boxes tested, added to the statistics at the end. The root's own box is not tested: its lanes are, and a
+        // ray that misses the root's box misses them (it is their union) at the cost of one node test.
+        let mut boxes = 0u64;
         let nearest_first = collector.wants_nearest_first();
-        if aabb::intersect(ray, self.root.0, self.root.1, ray.tmin, tmax).is_some() {
-            let mut len = 0usize;
-            let mut node = 0usize;
-            'walk: loop {
-                // SAFETY: `node` is below `nodes.len()` (see above); `children` has an entry a node.
-                let (owner, children) = unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
-                boxes += u64::from(children);
-                let (entered, near) = enter(owner, tmax);
-                // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
-                let entered = entered & ((1u32 << children) - 1);
-                self.prefetch_lanes(owner, entered, &prefetch_leaf);
-                // SAFETY: a walk leaves at most `WIDTH − 1` lanes waiting a level: `stack_size` entries, checked above.
-                let mut next = unsafe { visit_order(node, entered, &near, stack, &mut len, nearest_first) };
-                // Leaves are handled as they come; the first inner lane reached is visited next.
-                loop {
-                    let lane_ref = match next.take() {
-                        Some(lane_ref) => lane_ref,
-                        None => loop {
-                            if len == 0 {
-                                break 'walk;
-                            }
-                            len -= 1;
-                            // SAFETY: below the entries pushed.
-                            let (lane_ref, near) = unsafe { *stack.get_unchecked(len) };
-                            if near <= tmax {
-                                break lane_ref;
-                            }
-                        },
-                    };
-                    // SAFETY: a lane reference names a node visited before.
-                    let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
-                    let lane = lane_ref as usize % WIDTH;
-                    let (index, count) = (owner.index[lane] as usize, owner.count[lane] as usize);
-                    if count == 0 {
-                        node = index;
-                        break;
-                    }
-                    if leaf(index..index + count, collector, stats) {
-                        break 'walk;
-                    }
-                    tmax = collector.cull_tmax();
+        let mut len = 0usize;
+        let mut node = 0usize;
+        'walk: loop {
+            // SAFETY: `node` is the root or an inner lane's index, below `nodes.len()`, and `children` has an entry a
+            // node (the type's invariants).
+            let (owner, children) = unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
+            boxes += u64::from(children);
+            let (entered, near) = enter(owner, tmax);
+            // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
+            let entered = entered & ((1u32 << children) - 1);
+            self.prefetch_lanes(owner, entered, &prefetch_leaf);
+            // SAFETY: a walk leaves at most `WIDTH − 1` lanes waiting a level: `stack_size` entries, checked above.
+            let mut next = unsafe { visit_order(node, entered, &near, stack, &mut len, nearest_first) };
+            // Leaves are handled as they come; the first inner lane reached is visited next.
+            loop {
+                let lane_ref = match next.take() {
+                    Some(lane_ref) => lane_ref,
+                    None => loop {
+                        if len == 0 {
+                            break 'walk;
+                        }
+                        len -= 1;
+                        // SAFETY: below the entries pushed.
+                        let (lane_ref, near) = unsafe { *stack.get_unchecked(len) };
+                        if near <= tmax {
+                            break lane_ref;
+                        }
+                    },
+                };
+                // SAFETY: a lane reference names a node visited before (it fits a `u32`: the type's invariants).
+                let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
+                let lane = lane_ref as usize % WIDTH;
+                let (index, count) = (owner.index[lane] as usize, owner.count[lane] as usize);
+                if count == 0 {
+                    node = index;
+                    break;
                 }
+                if leaf(index..index + count, collector, stats) {
+                    break 'walk;
+                }
+                tmax = collector.cull_tmax();
             }
         }
         stats.nodes_visited += boxes;
@@ -257,12 +263,15 @@ impl WideBvh {
 #[cfg(target_arch = "x86_64")]
 #[inline(always)]
 pub(super) fn has_avx2() -> bool {
-    std::arch::is_x86_feature_detected!("avx2")
-        && std::arch::is_x86_feature_detected!("fma")
-        && std::arch::is_x86_feature_detected!("bmi1")
-        && std::arch::is_x86_feature_detected!("bmi2")
-        && std::arch::is_x86_feature_detected!("lzcnt")
-        && std::arch::is_x86_feature_detected!("popcnt")
+    static AVX2: std::sync::LazyLock<bool> = std::sync::LazyLock::new(|| {
+        std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+            && std::arch::is_x86_feature_detected!("bmi1")
+            && std::arch::is_x86_feature_detected!("bmi2")
+            && std::arch::is_x86_feature_detected!("lzcnt")
+            && std::arch::is_x86_feature_detected!("popcnt")
+    });
+    *AVX2
 }
 
 /// Bytes of a cache line on x86-64 CPUs.
