@@ -12,6 +12,7 @@
 //! rays entering them for closest-hit queries, lane order for the others.
 
 use std::arch::x86_64::*;
+use std::mem::offset_of;
 use std::ops::Range;
 
 use super::blocks::Block;
@@ -45,27 +46,15 @@ pub(crate) struct PacketEntry {
     rays: u32,
 }
 
-/// Whether `rays` (with their collectors) make a packet: [`PACKET_RAYS`] of them, which may share an order of
-/// boxes, with the same direction signs and projection axes (the box test and the triangle filter treat them
-/// alike: the answers need only this), directions within [`MIN_COSINE`] of the first's and origins within
-/// [`MAX_ORIGIN_SPREAD`] of the scene's diagonal from the first's (so that they meet much the same boxes; a NaN
-/// fails).
-fn coherent(rays: &[PreparedRay], collectors: &[Collector<'_>], diagonal: f32) -> bool {
-    let [first, ..] = rays else { return false };
-    let (heading, spread) = (first.direction, MAX_ORIGIN_SPREAD * diagonal);
-    // cos(angle)² ≥ MIN_COSINE², without a square root: dot² ≥ MIN_COSINE² · |d|² · |heading|², with dot > 0.
-    let min_dot_squared = MIN_COSINE * MIN_COSINE * heading.length_squared();
+/// Whether `rays` (with their collectors) may make a packet, by what is cheapest to check: [`PACKET_RAYS`] of them,
+/// which may share an order of boxes, with the same direction signs and projection axes (the box test and the triangle
+/// filter treat them alike: the answers need only this). Most incoherent groups fail at their second ray. The rest
+/// of the test is [`PacketLanes::coherent`].
+fn may_pack<'r>(rays: &'r [PreparedRay], collectors: &[Collector<'_>]) -> Option<&'r [PreparedRay; PACKET_RAYS]> {
+    let rays: &[PreparedRay; PACKET_RAYS] = rays.try_into().ok()?;
     let axes = |ray: &PreparedRay| (ray.kx, ray.ky, ray.kz, ray.negative);
-    // The cheapest test first: most incoherent groups fail it at their second ray.
-    rays.len() == PACKET_RAYS
-        && rays[1..].iter().all(|ray| axes(ray) == axes(first))
-        && collectors.iter().all(Collector::may_share_order)
-        && rays[1..].iter().all(|ray| {
-            let dot = ray.direction.dot(heading);
-            dot > 0.0
-                && dot * dot >= min_dot_squared * ray.direction.length_squared()
-                && ray.origin.distance_squared(first.origin) <= spread * spread
-        })
+    let same = rays[1..].iter().all(|ray| axes(ray) == axes(&rays[0]));
+    (same && collectors.iter().all(Collector::may_share_order)).then_some(rays)
 }
 
 impl TriangleBvh {
@@ -78,15 +67,17 @@ impl TriangleBvh {
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
-        let packed = coherent(rays, collectors, self.wide.diagonal()) && self.node_keys.is_none() && has_avx2();
-        if packed {
-            // SAFETY: the CPU has the features, as just checked.
-            unsafe { self.trace_packet_avx2(stack, rays, collectors, stats) };
+        match may_pack(rays, collectors) {
+            Some(rays) if self.node_keys.is_none() && has_avx2() => {
+                // SAFETY: the CPU has the features, as just checked.
+                unsafe { self.trace_packet_avx2(stack, rays, collectors, stats) }
+            }
+            _ => false,
         }
-        packed
     }
 
-    /// [`TriangleBvh::trace_packet`] once the rays make a packet.
+    /// [`TriangleBvh::trace_packet`] once the rays may make a packet: traces them if they head the same way from
+    /// nearby origins ([`PacketLanes::coherent`]), and says whether they did.
     ///
     /// # Safety
     /// The CPU must have the features [`has_avx2`] checks.
@@ -94,12 +85,15 @@ impl TriangleBvh {
     unsafe fn trace_packet_avx2(
         &self,
         stack: &mut [PacketEntry],
-        rays: &[PreparedRay],
+        rays: &[PreparedRay; PACKET_RAYS],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
-    ) {
+    ) -> bool {
         // SAFETY: the CPU has AVX2 (this function's contract), so AVX too.
         let lanes = unsafe { PacketLanes::new(rays) };
+        if !unsafe { lanes.coherent(rays, MAX_ORIGIN_SPREAD * self.wide.diagonal()) } {
+            return false;
+        }
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
             for slot in slots {
@@ -131,6 +125,7 @@ impl TriangleBvh {
         let prefetch_leaf = |slots: Range<usize>| self.prefetch_leaf(slots);
         // SAFETY: as above.
         unsafe { self.wide.walk_packet(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
+        true
     }
 }
 
@@ -162,10 +157,12 @@ impl WideBvh {
         }
         let mut cull: [f32; PACKET_RAYS] = std::array::from_fn(|ray| collectors[ray].cull_tmax());
         let (lo, hi) = (self.root.0.to_array(), self.root.1.to_array());
+        let first = std::array::from_fn(|axis| if lanes.negative[axis] { hi[axis] } else { lo[axis] });
+        let last = std::array::from_fn(|axis| if lanes.negative[axis] { lo[axis] } else { hi[axis] });
         // SAFETY: the CPU has AVX2 (this function's contract).
         let (mut alive, _) = unsafe {
             let (far, all) = (_mm256_loadu_ps(cull.as_ptr()), PacketLanes::select(u32::MAX));
-            lanes.enter_box(lo, hi, far, all, &mut [0.0; PACKET_RAYS])
+            lanes.enter_box(first, last, far, all, &mut [0.0; PACKET_RAYS])
         };
         stats.nodes_visited += PACKET_RAYS as u64;
         let nearest_first = collectors[0].wants_nearest_first();
@@ -188,7 +185,7 @@ impl WideBvh {
                         bits &= bits - 1;
                     }
                     // SAFETY: the CPU has AVX2 (this function's contract).
-                    unsafe { interval.may_enter(owner, lanes.negative, largest) }
+                    unsafe { interval.may_enter(owner, lanes.rows, largest) }
                 }
                 None => u32::MAX,
             } & ((1 << children) - 1);
@@ -279,6 +276,9 @@ struct PacketLanes {
     tmin: __m256,
     /// Per axis, whether the rays meet the boxes' maxima first (the same for every ray of a packet).
     negative: [bool; 3],
+    /// Per axis, where in a node the row of the planes the rays meet first lies, and the row of those they meet last
+    /// (byte offsets, from `negative`).
+    rows: [(usize, usize); 3],
     /// The projection axes of the triangle test, `kx`, `ky`, `kz` (the same for every ray of a packet).
     axes: [usize; 3],
     /// Origin on the projection axes.
@@ -303,26 +303,71 @@ struct PacketInterval {
 
 impl PacketLanes {
     /// # Safety
-    /// The CPU must have AVX; `rays` are a packet ([`coherent`]).
+    /// The CPU must have AVX; `rays` may make a packet ([`may_pack`]).
     #[inline(always)]
-    unsafe fn new(rays: &[PreparedRay]) -> PacketLanes {
-        let values = |value: &dyn Fn(&PreparedRay) -> f32| -> [f32; PACKET_RAYS] {
-            std::array::from_fn(|ray| value(&rays[ray]))
-        };
-        // SAFETY: the CPU has AVX (the caller's contract); the load reads a whole array.
-        let lanes = |values: [f32; PACKET_RAYS]| unsafe { _mm256_loadu_ps(values.as_ptr()) };
+    unsafe fn new(rays: &[PreparedRay; PACKET_RAYS]) -> PacketLanes {
         let first = &rays[0];
         let axes = [first.kx, first.ky, first.kz];
+        // SAFETY (all): the CPU has AVX (the caller's contract).
+        let origin =
+            unsafe { [gather(rays, |r| r.origin.x), gather(rays, |r| r.origin.y), gather(rays, |r| r.origin.z)] };
+        let inv_direction = unsafe {
+            [
+                gather(rays, |r| r.inv_direction.x),
+                gather(rays, |r| r.inv_direction.y),
+                gather(rays, |r| r.inv_direction.z),
+            ]
+        };
+        let tmin = unsafe { gather(rays, |r| r.tmin) };
         PacketLanes {
-            origin: std::array::from_fn(|axis| lanes(values(&|ray| ray.origin[axis]))),
-            inv_direction: std::array::from_fn(|axis| lanes(values(&|ray| ray.inv_direction[axis]))),
-            tmin: lanes(values(&|ray| ray.tmin)),
+            origin,
+            inv_direction,
+            tmin,
             negative: first.negative,
+            rows: std::array::from_fn(|axis| {
+                let row = |bound: usize| bound + 4 * WIDTH * axis;
+                let (lo, hi) = (row(offset_of!(WideNode, lo)), row(offset_of!(WideNode, hi)));
+                if first.negative[axis] { (hi, lo) } else { (lo, hi) }
+            }),
             axes,
-            projected_origin: axes.map(|axis| lanes(values(&|ray| ray.origin[axis]))),
-            shear: [lanes(values(&|ray| ray.shear.x)), lanes(values(&|ray| ray.shear.y))],
-            // SAFETY: as above.
-            interval: unsafe { PacketInterval::new(rays) },
+            projected_origin: axes.map(|axis| origin[axis]),
+            shear: unsafe { [gather(rays, |r| r.shear.x), gather(rays, |r| r.shear.y)] },
+            interval: unsafe { PacketInterval::new(origin, inv_direction, tmin) },
+        }
+    }
+
+    /// Whether the rays head within [`MIN_COSINE`] of the first's direction and start within `spread` of its origin
+    /// (so that they meet much the same boxes; a NaN fails), all at once.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2.
+    #[inline(always)]
+    unsafe fn coherent(&self, rays: &[PreparedRay; PACKET_RAYS], spread: f32) -> bool {
+        // SAFETY: the CPU has AVX2 (the caller's contract).
+        unsafe {
+            // No `map` with intrinsics here: its closure is compiled without AVX and might not be inlined.
+            let first = |v: __m256| _mm256_broadcastss_ps(_mm256_castps256_ps128(v));
+            let dot3 = |a: [__m256; 3], b: [__m256; 3]| {
+                _mm256_add_ps(
+                    _mm256_add_ps(_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1])),
+                    _mm256_mul_ps(a[2], b[2]),
+                )
+            };
+            let direction =
+                [gather(rays, |r| r.direction.x), gather(rays, |r| r.direction.y), gather(rays, |r| r.direction.z)];
+            let heading = [first(direction[0]), first(direction[1]), first(direction[2])];
+            // cos(angle)² ≥ MIN_COSINE², without a square root: dot² ≥ MIN_COSINE² · |heading|² · |d|², with dot > 0.
+            let dot = dot3(direction, heading);
+            let lengths = dot3(direction, direction);
+            let least = _mm256_mul_ps(_mm256_set1_ps(MIN_COSINE * MIN_COSINE), first(lengths));
+            let along = _mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_GT_OQ>(dot, _mm256_setzero_ps()),
+                _mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_mul_ps(dot, dot), _mm256_mul_ps(least, lengths)),
+            );
+            let offset = |axis: usize| _mm256_sub_ps(self.origin[axis], first(self.origin[axis]));
+            let offset = [offset(0), offset(1), offset(2)];
+            let near = _mm256_cmp_ps::<_CMP_LE_OQ>(dot3(offset, offset), _mm256_set1_ps(spread * spread));
+            _mm256_movemask_ps(_mm256_and_ps(along, near)) == 0xff
         }
     }
 
@@ -330,7 +375,7 @@ impl PacketLanes {
     /// `[tmin, far]`, a bit each: [`PacketLanes::enter_box`] on the lane's box.
     ///
     /// # Safety
-    /// The CPU must have AVX.
+    /// The CPU must have AVX; `lane` must be below [`WIDTH`].
     #[inline(always)]
     unsafe fn enter(
         &self,
@@ -340,23 +385,26 @@ impl PacketLanes {
         active: __m256,
         near: &mut [f32; PACKET_RAYS],
     ) -> (u32, f32) {
-        let (lo, hi) = (node.lo.map(|axis| axis[lane]), node.hi.map(|axis| axis[lane]));
+        // SAFETY: each offset is that of a row of `WIDTH` floats in the node, and `lane` is below `WIDTH`.
+        let plane =
+            |offset: usize| unsafe { *(node as *const WideNode).cast::<u8>().add(offset).cast::<f32>().add(lane) };
+        let (first, last) = (self.rows.map(|(first, _)| plane(first)), self.rows.map(|(_, last)| plane(last)));
         // SAFETY: the CPU has AVX (the caller's contract).
-        unsafe { self.enter_box(lo, hi, far, active, near) }
+        unsafe { self.enter_box(first, last, far, active, near) }
     }
 
-    /// Which of the `active` rays (their lanes all ones: [`PacketLanes::select`]) enter the box `lo .. hi` within
-    /// `[tmin, far]`, a bit each: the lane test of [`super::wide`] (so [`crate::intersect::aabb::intersect`]'s) with
-    /// the rays in the lanes. Stores each ray's entry distance into `near` and returns the rays with the nearest of
-    /// their distances.
+    /// Which of the `active` rays (their lanes all ones: [`PacketLanes::select`]) enter the box whose planes they meet
+    /// first are `first` and last are `last` (by axis), within `[tmin, far]`, a bit each: the lane test of
+    /// [`super::wide`] (so [`crate::intersect::aabb::intersect`]'s) with the rays in the lanes. Stores each ray's entry
+    /// distance into `near` and returns the rays with the nearest of their distances.
     ///
     /// # Safety
     /// The CPU must have AVX.
     #[inline(always)]
     unsafe fn enter_box(
         &self,
-        lo: [f32; 3],
-        hi: [f32; 3],
+        first: [f32; 3],
+        last: [f32; 3],
         far: __m256,
         active: __m256,
         near: &mut [f32; PACKET_RAYS],
@@ -365,11 +413,10 @@ impl PacketLanes {
         unsafe {
             let (mut entry, mut exit) = (self.tmin, far);
             for axis in 0..3 {
-                let (lo, hi) = if self.negative[axis] { (hi[axis], lo[axis]) } else { (lo[axis], hi[axis]) };
                 let (origin, inv) = (self.origin[axis], self.inv_direction[axis]);
-                let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(lo), origin), inv);
+                let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(first[axis]), origin), inv);
                 entry = _mm256_max_ps(t0, entry);
-                let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(hi), origin), inv);
+                let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(last[axis]), origin), inv);
                 exit = _mm256_min_ps(t1, exit);
             }
             let (slack, magnitude) = (_mm256_set1_ps(SLACK), _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
@@ -426,31 +473,31 @@ impl PacketLanes {
 }
 
 impl PacketInterval {
-    /// The interval of `rays`; `None` when a ray has a zero or infinite direction component (`1/direction` ∞ or 0,
-    /// where a bound could be `0 · ∞`) or a NaN `tmin`. Origins are finite in a packet ([`coherent`]).
+    /// The interval of a packet's rays, given as their origins, `1/direction` and `tmin` (a ray a lane); `None` when
+    /// a ray has a zero or infinite direction component (`1/direction` ∞ or 0, where a bound could be `0 · ∞`) or a
+    /// NaN `tmin`. Origins are finite in a packet ([`PacketLanes::coherent`]).
     ///
     /// # Safety
     /// The CPU must have AVX.
     #[inline(always)]
-    unsafe fn new(rays: &[PreparedRay]) -> Option<PacketInterval> {
-        let usable = |ray: &PreparedRay| {
-            let inv = ray.inv_direction;
-            inv.is_finite() && inv.cmpne(glam::Vec3A::ZERO).all() && !ray.tmin.is_nan()
-        };
-        if !rays.iter().all(usable) {
-            return None;
+    unsafe fn new(origin: [__m256; 3], inv_direction: [__m256; 3], tmin: __m256) -> Option<PacketInterval> {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe {
+            let (infinity, zero) = (_mm256_set1_ps(f32::INFINITY), _mm256_setzero_ps());
+            let magnitude = _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX));
+            let usable = inv_direction.iter().fold(_mm256_cmp_ps::<_CMP_ORD_Q>(tmin, tmin), |usable, &inv| {
+                let finite = _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(inv, magnitude), infinity);
+                _mm256_and_ps(usable, _mm256_and_ps(finite, _mm256_cmp_ps::<_CMP_NEQ_OQ>(inv, zero)))
+            });
+            if _mm256_movemask_ps(usable) != 0xff {
+                return None;
+            }
+            Some(PacketInterval {
+                origin: spread_range(origin),
+                inv_direction: spread_range(inv_direction),
+                tmin: spread_min(tmin),
+            })
         }
-        let range = |value: &dyn Fn(&PreparedRay) -> f32| {
-            let (lo, hi) =
-                rays.iter().map(value).fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| (lo.min(v), hi.max(v)));
-            // SAFETY: the CPU has AVX (the caller's contract).
-            unsafe { [_mm256_set1_ps(lo), _mm256_set1_ps(hi)] }
-        };
-        Some(PacketInterval {
-            origin: std::array::from_fn(|axis| range(&|ray| ray.origin[axis])),
-            inv_direction: std::array::from_fn(|axis| range(&|ray| ray.inv_direction[axis])),
-            tmin: range(&|ray| ray.tmin)[0],
-        })
     }
 
     /// A bit per lane of `node` that some ray of the packet may enter within `[tmin, cull]` (`cull` the largest cull
@@ -462,17 +509,14 @@ impl PacketInterval {
     /// # Safety
     /// The CPU must have AVX.
     #[inline(always)]
-    unsafe fn may_enter(&self, node: &WideNode, negative: [bool; 3], cull: f32) -> u32 {
-        // SAFETY: the CPU has AVX (the caller's contract); the loads read a node's whole rows.
+    unsafe fn may_enter(&self, node: &WideNode, rows: [(usize, usize); 3], cull: f32) -> u32 {
+        // SAFETY: the CPU has AVX (the caller's contract); each offset is that of a row of the node, 32-byte aligned.
         unsafe {
+            let row = |offset: usize| _mm256_load_ps((node as *const WideNode).cast::<u8>().add(offset).cast::<f32>());
             let (mut entry, mut exit) = (self.tmin, _mm256_set1_ps(cull));
-            for (axis, negative) in negative.into_iter().enumerate() {
-                let (near, far) = match negative {
-                    true => (&node.hi[axis], &node.lo[axis]),
-                    false => (&node.lo[axis], &node.hi[axis]),
-                };
+            for (axis, (first, last)) in rows.into_iter().enumerate() {
                 let ([o_lo, o_hi], [i_lo, i_hi]) = (self.origin[axis], self.inv_direction[axis]);
-                let (near, far) = (_mm256_loadu_ps(near.as_ptr()), _mm256_loadu_ps(far.as_ptr()));
+                let (near, far) = (row(first), row(last));
                 let (a, b) = (_mm256_sub_ps(near, o_lo), _mm256_sub_ps(near, o_hi));
                 let lowest = _mm256_min_ps(
                     _mm256_min_ps(_mm256_mul_ps(a, i_lo), _mm256_mul_ps(a, i_hi)),
@@ -491,6 +535,62 @@ impl PacketInterval {
             let exit = _mm256_add_ps(exit, _mm256_mul_ps(_mm256_and_ps(exit, magnitude), slack));
             _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(entry, exit)) as u32
         }
+    }
+}
+
+/// The packet's `value` of each ray, a ray a lane.
+///
+/// # Safety
+/// The CPU must have AVX.
+#[inline(always)]
+unsafe fn gather(rays: &[PreparedRay; PACKET_RAYS], value: impl Fn(&PreparedRay) -> f32) -> __m256 {
+    let [a, b, c, d, e, f, g, h] = rays;
+    // SAFETY: the CPU has AVX (the caller's contract).
+    unsafe { _mm256_setr_ps(value(a), value(b), value(c), value(d), value(e), value(f), value(g), value(h)) }
+}
+
+/// The smallest of `v`'s lanes, in every lane (`v` holds no NaN).
+///
+/// # Safety
+/// The CPU must have AVX.
+#[inline(always)]
+unsafe fn spread_min(v: __m256) -> __m256 {
+    // SAFETY: the CPU has AVX (the caller's contract).
+    unsafe {
+        let v = _mm256_min_ps(v, _mm256_permute2f128_ps::<1>(v, v));
+        let v = _mm256_min_ps(v, _mm256_shuffle_ps::<0b0100_1110>(v, v));
+        _mm256_min_ps(v, _mm256_shuffle_ps::<0b1011_0001>(v, v))
+    }
+}
+
+/// Per axis, the smallest and the largest of `v`'s lanes, each in every lane (`v` holds no NaN). Written out, not with
+/// `map`: a closure is compiled without AVX and might not be inlined.
+///
+/// # Safety
+/// The CPU must have AVX.
+#[inline(always)]
+unsafe fn spread_range(v: [__m256; 3]) -> [[__m256; 2]; 3] {
+    // SAFETY: the CPU has AVX (the caller's contract).
+    unsafe {
+        [
+            [spread_min(v[0]), spread_max(v[0])],
+            [spread_min(v[1]), spread_max(v[1])],
+            [spread_min(v[2]), spread_max(v[2])],
+        ]
+    }
+}
+
+/// The largest of `v`'s lanes, in every lane (`v` holds no NaN).
+///
+/// # Safety
+/// The CPU must have AVX.
+#[inline(always)]
+unsafe fn spread_max(v: __m256) -> __m256 {
+    // SAFETY: the CPU has AVX (the caller's contract).
+    unsafe {
+        let v = _mm256_max_ps(v, _mm256_permute2f128_ps::<1>(v, v));
+        let v = _mm256_max_ps(v, _mm256_shuffle_ps::<0b0100_1110>(v, v));
+        _mm256_max_ps(v, _mm256_shuffle_ps::<0b1011_0001>(v, v))
     }
 }
 
@@ -721,10 +821,10 @@ mod tests {
             let cull: [f32; PACKET_RAYS] = std::array::from_fn(|_| if u(&mut k) < 0.5 { 1.5 } else { f32::INFINITY });
             // SAFETY: the CPU has AVX2, as checked above.
             unsafe {
-                let lanes = PacketLanes::new(&rays);
+                let lanes = PacketLanes::new(rays[..].try_into().expect("a packet"));
                 let interval = lanes.interval.as_ref().expect("finite directions");
                 let largest = cull.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
-                let kept = interval.may_enter(&node, lanes.negative, largest);
+                let kept = interval.may_enter(&node, lanes.rows, largest);
                 let (far, all) = (_mm256_loadu_ps(cull.as_ptr()), PacketLanes::select(u32::MAX));
                 for lane in 0..WIDTH {
                     let (rays_in, _) = lanes.enter(&node, lane, far, all, &mut [0.0; PACKET_RAYS]);
@@ -745,12 +845,18 @@ mod tests {
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
         let rays = camera_rays();
         let neighbours = &rays[64 * 30..64 * 30 + PACKET_RAYS];
-        let collectors = |rays: &[PreparedRay], query: &Query| -> Vec<Collector<'static>> {
-            rays.iter().map(|ray| Collector::new(query, ray, &mut [])).collect()
+        if !has_avx2() {
+            return;
+        }
+        let packs = |rays: &[PreparedRay], query: &Query| {
+            let mut collectors: Vec<Collector<'_>> =
+                rays.iter().map(|ray| Collector::new(query, ray, &mut [])).collect();
+            let mut stack = vec![PacketEntry::default(); bvh.wide.stack_size()];
+            bvh.trace_packet(&mut stack, rays, &mut collectors, &mut TraceStats::default())
         };
         let diagonal = bvh.wide.diagonal();
-        assert!(coherent(neighbours, &collectors(neighbours, &query), diagonal));
-        assert!(!coherent(&neighbours[..7], &collectors(&neighbours[..7], &query), diagonal), "seven rays");
+        assert!(packs(neighbours, &query));
+        assert!(!packs(&neighbours[..7], &query), "seven rays");
         let (lo, hi) = mesh.bounds();
         let random = crate::raygen::random_rays(lo, hi, PACKET_RAYS, 5, RayFormat::OriginTminDirectionTmax);
         let random: Vec<PreparedRay> = (0..PACKET_RAYS)
@@ -761,21 +867,21 @@ mod tests {
                 )
             })
             .collect();
-        assert!(!coherent(&random, &collectors(&random, &query), diagonal), "random rays");
+        assert!(!packs(&random, &query), "random rays");
         // One ray turned by 10° or moved by 2% of the scene: not a packet.
         let mut turned = neighbours.to_vec();
         let d = turned[3].direction;
         let ray = Ray { origin: turned[3].origin, direction: glam::Quat::from_rotation_x(0.17) * d, ..Ray::default() };
         turned[3] = PreparedRay::new(&ray, RayFlags::empty());
-        assert!(!coherent(&turned, &collectors(&turned, &query), diagonal), "a ray turned");
+        assert!(!packs(&turned, &query), "a ray turned");
         let mut moved = neighbours.to_vec();
         moved[5].origin += Vec3A::X * 0.02 * diagonal;
-        assert!(!coherent(&moved, &collectors(&moved, &query), diagonal), "an origin moved");
+        assert!(!packs(&moved, &query), "an origin moved");
         // A closest-hit ray that stops at its first hit keeps its own nearest-first order.
         let mut stopping = neighbours.to_vec();
         stopping[2].flags |= RayFlags::TERMINATE_ON_FIRST_HIT;
-        assert!(!coherent(&stopping, &collectors(&stopping, &query), diagonal), "terminate on first hit");
+        assert!(!packs(&stopping, &query), "terminate on first hit");
         let any = Query { kind: QueryKind::Any, ..query };
-        assert!(coherent(&stopping, &collectors(&stopping, &any), diagonal), "any query");
+        assert!(packs(&stopping, &any), "any query");
     }
 }
