@@ -44,17 +44,21 @@ where
         let mut state = new_state();
         let all = query.kind == QueryKind::All;
         let mut scratch = vec![Hit::MISS; if all { records_per_ray * GROUP_RAYS } else { 0 }];
+        let mut parts = scratch.chunks_mut(records_per_ray.max(1));
+        // A group's rays and collectors, made once a chunk and restarted for every group.
         let unused = PreparedRay::new(&Ray::default(), query.flags);
+        let mut prepared = [unused; GROUP_RAYS];
+        let mut collectors: [Collector<'_>; GROUP_RAYS] = std::array::from_fn(|_| {
+            let part = if all { parts.next().expect("a scratch part a ray") } else { &mut [] };
+            Collector::new(query, &unused, part)
+        });
         for (group, bytes) in rays.chunks(ray_size * GROUP_RAYS).enumerate() {
             let first = group * GROUP_RAYS;
             let len = bytes.len() / ray_size;
-            let mut prepared = [unused; GROUP_RAYS];
-            for (ray, bytes) in prepared.iter_mut().zip(bytes.chunks_exact(ray_size)) {
+            for ((ray, collector), bytes) in prepared.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(ray_size)) {
                 *ray = PreparedRay::new(&query.ray_format.decode(bytes), query.flags);
+                collector.restart(ray);
             }
-            let mut parts = scratch.chunks_mut(records_per_ray.max(1)).take(if all { GROUP_RAYS } else { 0 });
-            let mut collectors: [Collector<'_>; GROUP_RAYS] =
-                std::array::from_fn(|i| Collector::new(query, &prepared[i], parts.next().unwrap_or_default()));
             traverse(&mut state, &prepared[..len], &mut collectors[..len], &mut stats);
             for (i, collector) in collectors[..len].iter().enumerate() {
                 let index = first + i;

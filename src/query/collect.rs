@@ -155,6 +155,17 @@ impl<'s> Collector<'s> {
         }
     }
 
+    /// Makes it collect for `ray` from the start, as [`Collector::new`] would, keeping its scratch.
+    #[inline(always)]
+    pub fn restart(&mut self, ray: &PreparedRay) {
+        self.ray_tmax = ray.tmax;
+        self.terminate_on_first_hit = ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT);
+        self.best = None;
+        self.count = 0;
+        self.len = 0;
+        self.done = false;
+    }
+
     /// Whether the order in which boxes are entered matters to the answer's cost: a closest-hit query prunes by its
     /// nearest hit so far, so it wants boxes nearest first; `all` and `count` must see every hit whatever the order,
     /// and `any` stops at whichever it finds first.
