@@ -13,7 +13,7 @@ use crate::intersect::PreparedRay;
 pub const CHUNK_RAYS: usize = 1024;
 
 /// Consecutive rays handed to the backend at once (the last group of a chunk may be smaller).
-pub const GROUP_RAYS: usize = 8;
+pub const GROUP_RAYS: usize = 16;
 
 /// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`.
 /// `traverse` gets up to [`GROUP_RAYS`] consecutive rays with a collector each, offers each ray's candidate
@@ -55,7 +55,8 @@ where
         for (group, bytes) in rays.chunks(ray_size * GROUP_RAYS).enumerate() {
             let first = group * GROUP_RAYS;
             let len = bytes.len() / ray_size;
-            for ((ray, collector), bytes) in prepared.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(ray_size)) {
+            for ((ray, collector), bytes) in prepared.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(ray_size))
+            {
                 *ray = PreparedRay::new(&query.ray_format.decode(bytes), query.flags);
                 collector.restart(ray);
             }

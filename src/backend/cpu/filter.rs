@@ -1,6 +1,7 @@
 //! [`crate::intersect::triangle::may_hit`] on SIMD lanes: the same operations in the same order, so each lane's
 //! answer is bit for bit the scalar one. Written once over [`Lanes`] and used two ways: four triangles against one
-//! ray in SSE ([`super::blocks`]), and one triangle against eight rays in AVX ([`super::packet`]).
+//! ray in SSE ([`super::blocks`]), and one triangle against a packet's 8 rays in AVX or 16 in AVX-512
+//! ([`super::packet`]).
 
 use std::arch::x86_64::*;
 
@@ -87,6 +88,38 @@ impl Lanes for __m256 {
             let mixed = _mm256_and_ps(negative, positive);
             let all = _mm256_castsi256_ps(_mm256_set1_epi32(-1));
             _mm256_movemask_ps(_mm256_or_ps(on_edge, _mm256_andnot_ps(mixed, all))) as u32
+        }
+    }
+}
+
+impl Lanes for __m512 {
+    #[inline(always)]
+    unsafe fn sub(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { _mm512_sub_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn mul(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { _mm512_mul_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn zero_or_not_mixed(u: Self, v: Self, w: Self) -> u32 {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe {
+            let zero = _mm512_setzero_ps();
+            let on_edge = _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(u, zero)
+                | _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(v, zero)
+                | _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(w, zero);
+            let negative = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(u, zero)
+                | _mm512_cmp_ps_mask::<_CMP_LT_OQ>(v, zero)
+                | _mm512_cmp_ps_mask::<_CMP_LT_OQ>(w, zero);
+            let positive = _mm512_cmp_ps_mask::<_CMP_GT_OQ>(u, zero)
+                | _mm512_cmp_ps_mask::<_CMP_GT_OQ>(v, zero)
+                | _mm512_cmp_ps_mask::<_CMP_GT_OQ>(w, zero);
+            u32::from(on_edge | !(negative & positive))
         }
     }
 }

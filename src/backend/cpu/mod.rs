@@ -10,6 +10,8 @@ mod instances;
 #[cfg(target_arch = "x86_64")]
 mod packet;
 mod persist;
+#[cfg(target_arch = "x86_64")]
+mod ray_lanes;
 mod traverse;
 mod triangles;
 mod wide;

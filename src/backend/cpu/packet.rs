@@ -1,7 +1,8 @@
-//! Packets: eight coherent rays — consecutive in the batch, heading the same way from nearby origins, as a camera's
-//! or a lidar's are — traced together through a static accel's wide nodes on a CPU with AVX2. Each child box of a
-//! node is tested against the eight rays at once (a ray a lane), and each leaf triangle is sorted out for the eight
-//! rays at once ([`filter`]); the rays share the loads of nodes and triangles and the traversal's bookkeeping.
+//! Packets: coherent rays — consecutive in the batch, heading the same way from nearby origins, as a camera's or a
+//! lidar's are — traced together through a static accel's wide nodes: 16 at a time on a CPU with AVX-512, 8 with
+//! AVX2 ([`RayLanes`]: the walk is written once over the register). Each child box of a node is tested against the
+//! packet's rays at once (a ray a lane), and each leaf triangle is sorted out for them at once ([`filter`]); the rays
+//! share the loads of nodes and triangles and the traversal's bookkeeping.
 //!
 //! **Same answers as alone.** A ray takes part only in the box tests of nodes it entered, with the same operations
 //! as [`super::wide`]'s lane test and its own nearest hit so far, and a popped node is re-checked against that hit.
@@ -17,17 +18,18 @@ use std::ops::Range;
 
 use super::blocks::Block;
 use super::filter;
+use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::triangles::TriangleBvh;
 use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, has_avx2, prefetch};
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
 use crate::query::{Collector, GROUP_RAYS, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
 
-/// Rays in a packet: a ray a lane of an AVX register. The batch driver hands the backend groups of this size.
-pub(super) const PACKET_RAYS: usize = 8;
-const _: () = assert!(PACKET_RAYS == GROUP_RAYS);
+/// Rays in an AVX2 packet; an AVX-512 packet holds [`MAX_PACKET_RAYS`].
+const AVX2_PACKET_RAYS: usize = 8;
+const _: () = assert!(MAX_PACKET_RAYS == GROUP_RAYS && GROUP_RAYS.is_multiple_of(AVX2_PACKET_RAYS));
 
-/// The widest angle between a packet's first ray and another, as its cosine (about 8°): a camera's eight
+/// The widest angle between a packet's first ray and another, as its cosine (about 8°): a camera's sixteen
 /// neighbouring pixels are well within it.
 const MIN_COSINE: f32 = 0.99;
 
@@ -36,68 +38,117 @@ const MAX_ORIGIN_SPREAD: f32 = 0.01;
 
 /// A node lane waiting on a packet's stack: the rays that enter its box, and the distance at which each does.
 #[derive(Debug, Clone, Copy, Default)]
-#[repr(C, align(32))]
 pub(crate) struct PacketEntry {
-    /// Per ray, the distance at which it enters the lane's box.
-    near: [f32; PACKET_RAYS],
+    /// Per ray, the distance at which it enters the lane's box (the first [`RayLanes::RAYS`] in use).
+    near: [f32; MAX_PACKET_RAYS],
     /// The lane, as `node · WIDTH + lane`.
     lane_ref: u32,
     /// A bit per ray that enters it.
     rays: u32,
 }
 
-/// Whether `rays` (with their collectors) may make a packet, by what is cheapest to check: [`PACKET_RAYS`] of them,
-/// which may share an order of boxes, with the same direction signs and projection axes (the box test and the triangle
-/// filter treat them alike: the answers need only this). Most incoherent groups fail at their second ray. The rest
-/// of the test is [`PacketLanes::coherent`].
-fn may_pack<'r>(rays: &'r [PreparedRay], collectors: &[Collector<'_>]) -> Option<&'r [PreparedRay; PACKET_RAYS]> {
-    let rays: &[PreparedRay; PACKET_RAYS] = rays.try_into().ok()?;
+/// Whether the CPU has AVX-512F besides what [`has_avx2`] checks (detected once, then read from a cache).
+#[inline(always)]
+fn has_avx512() -> bool {
+    static AVX512: std::sync::LazyLock<bool> =
+        std::sync::LazyLock::new(|| has_avx2() && std::arch::is_x86_feature_detected!("avx512f"));
+    *AVX512
+}
+
+/// Whether `rays` (with their collectors) may make a packet, by what is cheapest to check: the same direction signs
+/// and projection axes (the box test and the triangle filter treat them alike: the answers need only this), and
+/// queries that let them share an order of boxes. Most incoherent groups fail at their second ray. The rest of the
+/// test is [`PacketLanes::coherent`].
+fn may_pack(rays: &[PreparedRay], collectors: &[Collector<'_>]) -> bool {
     let axes = |ray: &PreparedRay| (ray.kx, ray.ky, ray.kz, ray.negative);
-    let same = rays[1..].iter().all(|ray| axes(ray) == axes(&rays[0]));
-    (same && collectors.iter().all(Collector::may_share_order)).then_some(rays)
+    let [first, rest @ ..] = rays else { return false };
+    rest.iter().all(|ray| axes(ray) == axes(first)) && collectors.iter().all(Collector::may_share_order)
 }
 
 impl TriangleBvh {
-    /// Traces `rays` together when they make a packet through a static accel on a CPU with AVX2, and says whether it
-    /// did; otherwise it does nothing and the rays are to be traced alone.
-    pub(super) fn trace_packet(
+    /// Traces those of `rays` (a group of the batch driver's) that make packets through a static accel, and says
+    /// which it traced (a bit a ray): the whole group as one AVX-512 packet where the CPU has AVX-512 and the rays
+    /// make one, else each half as an AVX2 packet where it makes one. The rest are to be traced alone.
+    pub(super) fn trace_packets(
+        &self,
+        stack: &mut [PacketEntry],
+        rays: &[PreparedRay],
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> u32 {
+        if self.node_keys.is_some() || !has_avx2() {
+            return 0;
+        }
+        if rays.len() == MAX_PACKET_RAYS && has_avx512() && may_pack(rays, collectors) {
+            // SAFETY: the CPU has AVX-512F and the AVX2 features, as just checked.
+            if unsafe { self.trace_packet_avx512(stack, rays, collectors, stats) } {
+                return (1 << MAX_PACKET_RAYS) - 1;
+            }
+        }
+        let mut traced = 0;
+        let halves = rays.chunks_exact(AVX2_PACKET_RAYS).zip(collectors.chunks_exact_mut(AVX2_PACKET_RAYS));
+        for (half, (rays, collectors)) in halves.enumerate() {
+            // SAFETY: the CPU has the AVX2 features, as checked above.
+            if may_pack(rays, collectors) && unsafe { self.trace_packet_avx2(stack, rays, collectors, stats) } {
+                traced |= ((1 << AVX2_PACKET_RAYS) - 1) << (half * AVX2_PACKET_RAYS);
+            }
+        }
+        traced
+    }
+
+    /// [`TriangleBvh::trace_packet`] in AVX2 registers, 8 rays.
+    ///
+    /// # Safety
+    /// The CPU must have the features [`has_avx2`] checks; `rays` are 8.
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn trace_packet_avx2(
         &self,
         stack: &mut [PacketEntry],
         rays: &[PreparedRay],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
-        match may_pack(rays, collectors) {
-            Some(rays) if self.node_keys.is_none() && has_avx2() => {
-                // SAFETY: the CPU has the features, as just checked.
-                unsafe { self.trace_packet_avx2(stack, rays, collectors, stats) }
-            }
-            _ => false,
-        }
+        // SAFETY: the CPU has AVX2 (this function's contract).
+        unsafe { self.trace_packet::<__m256>(stack, rays, collectors, stats) }
     }
 
-    /// [`TriangleBvh::trace_packet`] once the rays may make a packet: traces them if they head the same way from
-    /// nearby origins ([`PacketLanes::coherent`]), and says whether they did.
+    /// [`TriangleBvh::trace_packet`] in AVX-512 registers, 16 rays.
     ///
     /// # Safety
-    /// The CPU must have the features [`has_avx2`] checks.
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn trace_packet_avx2(
+    /// The CPU must have AVX-512F and the features [`has_avx2`] checks; `rays` are 16.
+    #[target_feature(enable = "avx512f,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn trace_packet_avx512(
         &self,
         stack: &mut [PacketEntry],
-        rays: &[PreparedRay; PACKET_RAYS],
+        rays: &[PreparedRay],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
-        // SAFETY: the CPU has AVX2 (this function's contract), so AVX too.
-        let lanes = unsafe { PacketLanes::new(rays) };
+        // SAFETY: the CPU has AVX-512F and AVX2 (this function's contract).
+        unsafe { self.trace_packet::<__m512>(stack, rays, collectors, stats) }
+    }
+
+    /// Traces `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]) as a packet in `V` registers if they head the
+    /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did.
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set and AVX2.
+    #[inline(always)]
+    unsafe fn trace_packet<V: RayLanes>(
+        &self,
+        stack: &mut [PacketEntry],
+        rays: &[PreparedRay],
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> bool {
+        // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        let lanes = unsafe { PacketLanes::<V>::new(rays) };
         if !unsafe { lanes.coherent(rays, MAX_ORIGIN_SPREAD * self.wide.diagonal()) } {
             return false;
         }
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
             for slot in slots {
-                // SAFETY: as above.
                 let mut candidates = unsafe { lanes.may_hit(self.wide.blocks.lane_of(slot)) } & active;
                 if candidates == 0 {
                     continue;
@@ -123,7 +174,6 @@ impl TriangleBvh {
             }
         };
         let prefetch_leaf = |slots: Range<usize>| self.prefetch_leaf(slots);
-        // SAFETY: as above.
         unsafe { self.wide.walk_packet(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
         true
     }
@@ -140,13 +190,13 @@ impl WideBvh {
     /// `prefetch_leaf` starts loading a leaf's data as soon as a ray enters the leaf's box.
     ///
     /// # Safety
-    /// The CPU must have AVX2.
+    /// The CPU must have `V`'s instruction set and AVX2.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn walk_packet(
+    unsafe fn walk_packet<V: RayLanes>(
         &self,
         stack: &mut [PacketEntry],
-        lanes: &PacketLanes,
+        lanes: &PacketLanes<V>,
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
         mut leaf: impl FnMut(Range<usize>, u32, &mut [Collector<'_>], &mut TraceStats),
@@ -155,16 +205,19 @@ impl WideBvh {
         if self.nodes.is_empty() {
             return;
         }
-        let mut cull: [f32; PACKET_RAYS] = std::array::from_fn(|ray| collectors[ray].cull_tmax());
+        let mut cull = [0f32; MAX_PACKET_RAYS];
+        for (cull, collector) in cull.iter_mut().zip(collectors.iter()) {
+            *cull = collector.cull_tmax();
+        }
         let (lo, hi) = (self.root.0.to_array(), self.root.1.to_array());
         let first = std::array::from_fn(|axis| if lanes.negative[axis] { hi[axis] } else { lo[axis] });
         let last = std::array::from_fn(|axis| if lanes.negative[axis] { lo[axis] } else { hi[axis] });
-        // SAFETY: the CPU has AVX2 (this function's contract).
+        // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         let (mut alive, _) = unsafe {
-            let (far, all) = (_mm256_loadu_ps(cull.as_ptr()), PacketLanes::select(u32::MAX));
-            lanes.enter_box(first, last, far, all, &mut [0.0; PACKET_RAYS])
+            let (far, all) = (V::load(&cull), V::mask((1 << V::RAYS) - 1));
+            lanes.enter_box(first, last, far, all, &mut [0.0; MAX_PACKET_RAYS])
         };
-        stats.nodes_visited += PACKET_RAYS as u64;
+        stats.nodes_visited += V::RAYS as u64;
         let nearest_first = collectors[0].wants_nearest_first();
         let (mut len, mut node, mut rays_in_node) = (0usize, 0usize, alive);
         while rays_in_node != 0 {
@@ -174,28 +227,19 @@ impl WideBvh {
             stats.nodes_visited += (children * active.count_ones() as usize) as u64;
             // The entered lanes: (rays entering, the nearest of their distances, lane); each one's distances.
             let mut entered = [(0u32, 0f32, 0usize); WIDTH];
-            let mut near = [[0f32; PACKET_RAYS]; WIDTH];
+            let mut near = [[0f32; MAX_PACKET_RAYS]; WIDTH];
             let mut count = 0;
             // The lanes some active ray may enter, by the packet's interval; then each of them exactly.
+            let (far, active_lanes) = unsafe { (V::load(&cull), V::mask(active)) };
             let mut lanes_left = match &lanes.interval {
-                Some(interval) => {
-                    let (mut bits, mut largest) = (active, f32::NEG_INFINITY);
-                    while bits != 0 {
-                        largest = largest.max(cull[bits.trailing_zeros() as usize]);
-                        bits &= bits - 1;
-                    }
-                    // SAFETY: the CPU has AVX2 (this function's contract).
-                    unsafe { interval.may_enter(owner, lanes.rows, largest) }
-                }
+                // The largest cull distance of the active rays (a NaN one counts as −∞: that ray enters nothing).
+                Some(interval) => unsafe { interval.may_enter(owner, lanes.rows, far.most(active_lanes)) },
                 None => u32::MAX,
             } & ((1 << children) - 1);
-            // SAFETY: as above.
-            let (far, active_lanes) = unsafe { (_mm256_loadu_ps(cull.as_ptr()), PacketLanes::select(active)) };
             while lanes_left != 0 {
                 let lane = lanes_left.trailing_zeros() as usize;
                 lanes_left &= lanes_left - 1;
                 let near = &mut near[lane];
-                // SAFETY: as above.
                 let (rays_in, nearest) = unsafe { lanes.enter(owner, lane, far, active_lanes, near) };
                 // Kept or overwritten by the next lane, without a branch (which lanes are entered is hard to predict).
                 entered[count] = (rays_in, nearest, lane);
@@ -234,8 +278,7 @@ impl WideBvh {
                         }
                         len -= 1;
                         let entry = &stack[len];
-                        // SAFETY: as above.
-                        let within = unsafe { lanes.within(&entry.near, &cull) };
+                        let within = unsafe { V::bits(V::load(&entry.near).le(V::load(&cull))) };
                         (entry.lane_ref, entry.rays & alive & within)
                     }
                 };
@@ -266,14 +309,14 @@ impl WideBvh {
     }
 }
 
-/// A packet's rays spread over AVX lanes, a ray a lane, once a packet.
-struct PacketLanes {
+/// A packet's rays spread over `V`'s lanes, a ray a lane, once a packet.
+struct PacketLanes<V> {
     /// Origin, by axis.
-    origin: [__m256; 3],
+    origin: [V; 3],
     /// `1/direction`, by axis.
-    inv_direction: [__m256; 3],
+    inv_direction: [V; 3],
     /// `tmin`.
-    tmin: __m256,
+    tmin: V,
     /// Per axis, whether the rays meet the boxes' maxima first (the same for every ray of a packet).
     negative: [bool; 3],
     /// Per axis, where in a node the row of the planes the rays meet first lies, and the row of those they meet last
@@ -282,9 +325,9 @@ struct PacketLanes {
     /// The projection axes of the triangle test, `kx`, `ky`, `kz` (the same for every ray of a packet).
     axes: [usize; 3],
     /// Origin on the projection axes.
-    projected_origin: [__m256; 3],
+    projected_origin: [V; 3],
     /// The first two shear constants.
-    shear: [__m256; 2],
+    shear: [V; 2],
     /// The rays as one interval, for a first test of a node's children all at once; `None` where an interval bound
     /// could be NaN.
     interval: Option<PacketInterval>,
@@ -301,24 +344,26 @@ struct PacketInterval {
     tmin: __m256,
 }
 
-impl PacketLanes {
+impl<V: RayLanes> PacketLanes<V> {
     /// # Safety
-    /// The CPU must have AVX; `rays` may make a packet ([`may_pack`]).
+    /// The CPU must have `V`'s instruction set and AVX; `rays` are [`RayLanes::RAYS`] that [`may_pack`].
     #[inline(always)]
-    unsafe fn new(rays: &[PreparedRay; PACKET_RAYS]) -> PacketLanes {
+    unsafe fn new(rays: &[PreparedRay]) -> PacketLanes<V> {
         let first = &rays[0];
         let axes = [first.kx, first.ky, first.kz];
-        // SAFETY (all): the CPU has AVX (the caller's contract).
-        let origin =
-            unsafe { [gather(rays, |r| r.origin.x), gather(rays, |r| r.origin.y), gather(rays, |r| r.origin.z)] };
+        // No `map` over registers here: its closure is compiled without the instruction set and might not be inlined.
+        // SAFETY (all): the CPU has the instruction sets (the caller's contract).
+        let origin = unsafe {
+            [V::gather(rays, |r| r.origin.x), V::gather(rays, |r| r.origin.y), V::gather(rays, |r| r.origin.z)]
+        };
         let inv_direction = unsafe {
             [
-                gather(rays, |r| r.inv_direction.x),
-                gather(rays, |r| r.inv_direction.y),
-                gather(rays, |r| r.inv_direction.z),
+                V::gather(rays, |r| r.inv_direction.x),
+                V::gather(rays, |r| r.inv_direction.y),
+                V::gather(rays, |r| r.inv_direction.z),
             ]
         };
-        let tmin = unsafe { gather(rays, |r| r.tmin) };
+        let tmin = unsafe { V::gather(rays, |r| r.tmin) };
         PacketLanes {
             origin,
             inv_direction,
@@ -330,8 +375,8 @@ impl PacketLanes {
                 if first.negative[axis] { (hi, lo) } else { (lo, hi) }
             }),
             axes,
-            projected_origin: axes.map(|axis| origin[axis]),
-            shear: unsafe { [gather(rays, |r| r.shear.x), gather(rays, |r| r.shear.y)] },
+            projected_origin: [origin[axes[0]], origin[axes[1]], origin[axes[2]]],
+            shear: unsafe { [V::gather(rays, |r| r.shear.x), V::gather(rays, |r| r.shear.y)] },
             interval: unsafe { PacketInterval::new(origin, inv_direction, tmin) },
         }
     }
@@ -340,134 +385,96 @@ impl PacketLanes {
     /// (so that they meet much the same boxes; a NaN fails), all at once.
     ///
     /// # Safety
-    /// The CPU must have AVX2.
+    /// The CPU must have `V`'s instruction set.
     #[inline(always)]
-    unsafe fn coherent(&self, rays: &[PreparedRay; PACKET_RAYS], spread: f32) -> bool {
-        // SAFETY: the CPU has AVX2 (the caller's contract).
+    unsafe fn coherent(&self, rays: &[PreparedRay], spread: f32) -> bool {
+        // No closures with register arithmetic here: they are compiled without the instruction set.
+        // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe {
-            // No `map` with intrinsics here: its closure is compiled without AVX and might not be inlined.
-            let first = |v: __m256| _mm256_broadcastss_ps(_mm256_castps256_ps128(v));
-            let dot3 = |a: [__m256; 3], b: [__m256; 3]| {
-                _mm256_add_ps(
-                    _mm256_add_ps(_mm256_mul_ps(a[0], b[0]), _mm256_mul_ps(a[1], b[1])),
-                    _mm256_mul_ps(a[2], b[2]),
-                )
-            };
-            let direction =
-                [gather(rays, |r| r.direction.x), gather(rays, |r| r.direction.y), gather(rays, |r| r.direction.z)];
-            let heading = [first(direction[0]), first(direction[1]), first(direction[2])];
+            let first = &rays[0];
+            let direction = [
+                V::gather(rays, |r| r.direction.x),
+                V::gather(rays, |r| r.direction.y),
+                V::gather(rays, |r| r.direction.z),
+            ];
+            let heading = [V::splat(first.direction.x), V::splat(first.direction.y), V::splat(first.direction.z)];
             // cos(angle)² ≥ MIN_COSINE², without a square root: dot² ≥ MIN_COSINE² · |heading|² · |d|², with dot > 0.
             let dot = dot3(direction, heading);
-            let lengths = dot3(direction, direction);
-            let least = _mm256_mul_ps(_mm256_set1_ps(MIN_COSINE * MIN_COSINE), first(lengths));
-            let along = _mm256_and_ps(
-                _mm256_cmp_ps::<_CMP_GT_OQ>(dot, _mm256_setzero_ps()),
-                _mm256_cmp_ps::<_CMP_GE_OQ>(_mm256_mul_ps(dot, dot), _mm256_mul_ps(least, lengths)),
-            );
-            let offset = |axis: usize| _mm256_sub_ps(self.origin[axis], first(self.origin[axis]));
-            let offset = [offset(0), offset(1), offset(2)];
-            let near = _mm256_cmp_ps::<_CMP_LE_OQ>(dot3(offset, offset), _mm256_set1_ps(spread * spread));
-            _mm256_movemask_ps(_mm256_and_ps(along, near)) == 0xff
+            let least = V::splat(MIN_COSINE * MIN_COSINE * first.direction.length_squared());
+            let along = V::and(V::splat(0.0).lt(dot), least.mul(dot3(direction, direction)).le(dot.mul(dot)));
+            let offset = [
+                self.origin[0].sub(V::splat(first.origin.x)),
+                self.origin[1].sub(V::splat(first.origin.y)),
+                self.origin[2].sub(V::splat(first.origin.z)),
+            ];
+            let near = dot3(offset, offset).le(V::splat(spread * spread));
+            V::bits(V::and(along, near)) == (1 << V::RAYS) - 1
         }
     }
 
-    /// Which of the `active` rays (their lanes all ones: [`PacketLanes::select`]) enter lane `lane` of `node` within
-    /// `[tmin, far]`, a bit each: [`PacketLanes::enter_box`] on the lane's box.
+    /// Which of the `active` rays enter lane `lane` of `node` within `[tmin, far]`, a bit each:
+    /// [`PacketLanes::enter_box`] on the lane's box.
     ///
     /// # Safety
-    /// The CPU must have AVX; `lane` must be below [`WIDTH`].
+    /// The CPU must have `V`'s instruction set; `lane` must be below [`WIDTH`].
     #[inline(always)]
     unsafe fn enter(
         &self,
         node: &WideNode,
         lane: usize,
-        far: __m256,
-        active: __m256,
-        near: &mut [f32; PACKET_RAYS],
+        far: V,
+        active: V::Mask,
+        near: &mut [f32; MAX_PACKET_RAYS],
     ) -> (u32, f32) {
         // SAFETY: each offset is that of a row of `WIDTH` floats in the node, and `lane` is below `WIDTH`.
         let plane =
             |offset: usize| unsafe { *(node as *const WideNode).cast::<u8>().add(offset).cast::<f32>().add(lane) };
         let (first, last) = (self.rows.map(|(first, _)| plane(first)), self.rows.map(|(_, last)| plane(last)));
-        // SAFETY: the CPU has AVX (the caller's contract).
+        // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe { self.enter_box(first, last, far, active, near) }
     }
 
-    /// Which of the `active` rays (their lanes all ones: [`PacketLanes::select`]) enter the box whose planes they meet
-    /// first are `first` and last are `last` (by axis), within `[tmin, far]`, a bit each: the lane test of
-    /// [`super::wide`] (so [`crate::intersect::aabb::intersect`]'s) with the rays in the lanes. Stores each ray's entry
-    /// distance into `near` and returns the rays with the nearest of their distances.
+    /// Which of the `active` rays enter the box whose planes they meet first are `first` and last are `last` (by
+    /// axis), within `[tmin, far]`, a bit each: the lane test of [`super::wide`] (so
+    /// [`crate::intersect::aabb::intersect`]'s) with the rays in the lanes. Stores each ray's entry distance into
+    /// `near` and returns the rays with the nearest of their distances.
     ///
     /// # Safety
-    /// The CPU must have AVX.
+    /// The CPU must have `V`'s instruction set.
     #[inline(always)]
     unsafe fn enter_box(
         &self,
         first: [f32; 3],
         last: [f32; 3],
-        far: __m256,
-        active: __m256,
-        near: &mut [f32; PACKET_RAYS],
+        far: V,
+        active: V::Mask,
+        near: &mut [f32; MAX_PACKET_RAYS],
     ) -> (u32, f32) {
-        // SAFETY: the CPU has AVX (the caller's contract); the store writes the whole array.
+        // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe {
             let (mut entry, mut exit) = (self.tmin, far);
             for axis in 0..3 {
                 let (origin, inv) = (self.origin[axis], self.inv_direction[axis]);
-                let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(first[axis]), origin), inv);
-                entry = _mm256_max_ps(t0, entry);
-                let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_set1_ps(last[axis]), origin), inv);
-                exit = _mm256_min_ps(t1, exit);
+                entry = V::splat(first[axis]).sub(origin).mul(inv).max(entry);
+                exit = V::splat(last[axis]).sub(origin).mul(inv).min(exit);
             }
-            let (slack, magnitude) = (_mm256_set1_ps(SLACK), _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
-            let entry = _mm256_sub_ps(entry, _mm256_mul_ps(_mm256_and_ps(entry, magnitude), slack));
-            let exit = _mm256_add_ps(exit, _mm256_mul_ps(_mm256_and_ps(exit, magnitude), slack));
-            let inside = _mm256_and_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(entry, exit), active);
-            _mm256_storeu_ps(near.as_mut_ptr(), entry);
-            // The nearest entry among those rays: the others set to +∞, then the minimum across lanes.
-            let masked = _mm256_blendv_ps(_mm256_set1_ps(f32::INFINITY), entry, inside);
-            let half = _mm_min_ps(_mm256_castps256_ps128(masked), _mm256_extractf128_ps::<1>(masked));
-            let quarter = _mm_min_ps(half, _mm_movehl_ps(half, half));
-            let nearest = _mm_min_ss(quarter, _mm_shuffle_ps::<0b01>(quarter, quarter));
-            (_mm256_movemask_ps(inside) as u32, _mm_cvtss_f32(nearest))
-        }
-    }
-
-    /// The lanes of the rays in `rays` (a bit each) all ones, the others zero.
-    ///
-    /// # Safety
-    /// The CPU must have AVX2.
-    #[inline(always)]
-    unsafe fn select(rays: u32) -> __m256 {
-        // SAFETY: the CPU has AVX2 (the caller's contract).
-        unsafe {
-            let bits = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
-            let set = _mm256_and_si256(_mm256_set1_epi32(rays as i32), bits);
-            _mm256_castsi256_ps(_mm256_cmpeq_epi32(set, bits))
-        }
-    }
-
-    /// A bit per ray whose entry distance `near` is within its cull distance `cull` (`near ≤ cull`).
-    ///
-    /// # Safety
-    /// The CPU must have AVX.
-    #[inline(always)]
-    unsafe fn within(&self, near: &[f32; PACKET_RAYS], cull: &[f32; PACKET_RAYS]) -> u32 {
-        // SAFETY: the CPU has AVX (the caller's contract); the loads read whole arrays.
-        unsafe {
-            let (near, cull) = (_mm256_loadu_ps(near.as_ptr()), _mm256_loadu_ps(cull.as_ptr()));
-            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, cull)) as u32
+            let slack = V::splat(SLACK);
+            let entry = entry.sub(entry.abs().mul(slack));
+            let exit = exit.add(exit.abs().mul(slack));
+            let inside = V::and(entry.le(exit), active);
+            entry.store(near);
+            (V::bits(inside), entry.least(inside))
         }
     }
 
     /// A bit per ray that may hit the triangle in lane `lane` of a block ([`crate::intersect::triangle::may_hit`]).
     ///
     /// # Safety
-    /// The CPU must have AVX.
+    /// The CPU must have `V`'s instruction set.
     #[inline(always)]
     unsafe fn may_hit(&self, (rows, lane): (&Block, usize)) -> u32 {
         let corners = Splat { rows, lane, axes: self.axes };
-        // SAFETY: the CPU has AVX (the caller's contract).
+        // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe { filter::may_hit_lanes(&corners, self.projected_origin, self.shear) }
     }
 }
@@ -478,24 +485,27 @@ impl PacketInterval {
     /// NaN `tmin`. Origins are finite in a packet ([`PacketLanes::coherent`]).
     ///
     /// # Safety
-    /// The CPU must have AVX.
+    /// The CPU must have `V`'s instruction set and AVX.
     #[inline(always)]
-    unsafe fn new(origin: [__m256; 3], inv_direction: [__m256; 3], tmin: __m256) -> Option<PacketInterval> {
-        // SAFETY: the CPU has AVX (the caller's contract).
+    unsafe fn new<V: RayLanes>(origin: [V; 3], inv_direction: [V; 3], tmin: V) -> Option<PacketInterval> {
+        // No closures with register arithmetic here: they are compiled without the instruction set.
+        // SAFETY: the CPU has the instruction sets (the caller's contract).
         unsafe {
-            let (infinity, zero) = (_mm256_set1_ps(f32::INFINITY), _mm256_setzero_ps());
-            let magnitude = _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX));
-            let usable = inv_direction.iter().fold(_mm256_cmp_ps::<_CMP_ORD_Q>(tmin, tmin), |usable, &inv| {
-                let finite = _mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(inv, magnitude), infinity);
-                _mm256_and_ps(usable, _mm256_and_ps(finite, _mm256_cmp_ps::<_CMP_NEQ_OQ>(inv, zero)))
-            });
-            if _mm256_movemask_ps(usable) != 0xff {
+            let (zero, infinity) = (V::splat(0.0), V::splat(f32::INFINITY));
+            let [x, y, z] = [inv_direction[0].abs(), inv_direction[1].abs(), inv_direction[2].abs()];
+            let finite = V::and(V::and(x.lt(infinity), y.lt(infinity)), z.lt(infinity));
+            let nonzero = V::and(V::and(zero.lt(x), zero.lt(y)), zero.lt(z));
+            if V::bits(V::and(V::and(finite, nonzero), tmin.le(tmin))) != (1 << V::RAYS) - 1 {
                 return None;
             }
             Some(PacketInterval {
-                origin: spread_range(origin),
-                inv_direction: spread_range(inv_direction),
-                tmin: spread_min(tmin),
+                origin: [spread_range(origin[0]), spread_range(origin[1]), spread_range(origin[2])],
+                inv_direction: [
+                    spread_range(inv_direction[0]),
+                    spread_range(inv_direction[1]),
+                    spread_range(inv_direction[2]),
+                ],
+                tmin: _mm256_set1_ps(tmin.smallest()),
             })
         }
     }
@@ -538,60 +548,24 @@ impl PacketInterval {
     }
 }
 
-/// The packet's `value` of each ray, a ray a lane.
+/// `a · b` lane by lane, for vectors of three registers.
 ///
 /// # Safety
-/// The CPU must have AVX.
+/// The CPU must have `V`'s instruction set.
 #[inline(always)]
-unsafe fn gather(rays: &[PreparedRay; PACKET_RAYS], value: impl Fn(&PreparedRay) -> f32) -> __m256 {
-    let [a, b, c, d, e, f, g, h] = rays;
-    // SAFETY: the CPU has AVX (the caller's contract).
-    unsafe { _mm256_setr_ps(value(a), value(b), value(c), value(d), value(e), value(f), value(g), value(h)) }
+unsafe fn dot3<V: RayLanes>(a: [V; 3], b: [V; 3]) -> V {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe { a[0].mul(b[0]).add(a[1].mul(b[1])).add(a[2].mul(b[2])) }
 }
 
-/// The smallest of `v`'s lanes, in every lane (`v` holds no NaN).
+/// The smallest and the largest of `v`'s lanes, each in every lane of an AVX register (`v` holds no NaN).
 ///
 /// # Safety
-/// The CPU must have AVX.
+/// The CPU must have `V`'s instruction set and AVX.
 #[inline(always)]
-unsafe fn spread_min(v: __m256) -> __m256 {
-    // SAFETY: the CPU has AVX (the caller's contract).
-    unsafe {
-        let v = _mm256_min_ps(v, _mm256_permute2f128_ps::<1>(v, v));
-        let v = _mm256_min_ps(v, _mm256_shuffle_ps::<0b0100_1110>(v, v));
-        _mm256_min_ps(v, _mm256_shuffle_ps::<0b1011_0001>(v, v))
-    }
-}
-
-/// Per axis, the smallest and the largest of `v`'s lanes, each in every lane (`v` holds no NaN). Written out, not with
-/// `map`: a closure is compiled without AVX and might not be inlined.
-///
-/// # Safety
-/// The CPU must have AVX.
-#[inline(always)]
-unsafe fn spread_range(v: [__m256; 3]) -> [[__m256; 2]; 3] {
-    // SAFETY: the CPU has AVX (the caller's contract).
-    unsafe {
-        [
-            [spread_min(v[0]), spread_max(v[0])],
-            [spread_min(v[1]), spread_max(v[1])],
-            [spread_min(v[2]), spread_max(v[2])],
-        ]
-    }
-}
-
-/// The largest of `v`'s lanes, in every lane (`v` holds no NaN).
-///
-/// # Safety
-/// The CPU must have AVX.
-#[inline(always)]
-unsafe fn spread_max(v: __m256) -> __m256 {
-    // SAFETY: the CPU has AVX (the caller's contract).
-    unsafe {
-        let v = _mm256_max_ps(v, _mm256_permute2f128_ps::<1>(v, v));
-        let v = _mm256_max_ps(v, _mm256_shuffle_ps::<0b0100_1110>(v, v));
-        _mm256_max_ps(v, _mm256_shuffle_ps::<0b1011_0001>(v, v))
-    }
+unsafe fn spread_range<V: RayLanes>(v: V) -> [__m256; 2] {
+    // SAFETY: the CPU has the instruction sets (the caller's contract).
+    unsafe { [_mm256_set1_ps(v.smallest()), _mm256_set1_ps(v.largest())] }
 }
 
 /// One triangle of a block as [`filter::Corners`] for a packet: each of its coordinates in every ray's lane.
@@ -604,12 +578,13 @@ struct Splat<'a> {
     axes: [usize; 3],
 }
 
-impl filter::Corners<__m256> for Splat<'_> {
+impl<V: RayLanes> filter::Corners<V> for Splat<'_> {
     #[inline(always)]
-    unsafe fn corner(&self, c: usize) -> [__m256; 3] {
+    unsafe fn corner(&self, c: usize) -> [V; 3] {
         let ([kx, ky, kz], rows, lane) = (self.axes, &self.rows[3 * c..3 * c + 3], self.lane);
-        // No closure here: it would be compiled without AVX. SAFETY: the CPU has AVX (the caller's contract).
-        unsafe { [_mm256_set1_ps(rows[kx][lane]), _mm256_set1_ps(rows[ky][lane]), _mm256_set1_ps(rows[kz][lane])] }
+        // No closure here: it would be compiled without the instruction set.
+        // SAFETY: the CPU has `V`'s instruction set (the caller's contract).
+        unsafe { [V::splat(rows[kx][lane]), V::splat(rows[ky][lane]), V::splat(rows[kz][lane])] }
     }
 }
 
@@ -677,22 +652,33 @@ mod tests {
             .collect()
     }
 
-    /// Each ray's records of `query`, traced in groups of eight as packets where they make one (returns how many
-    /// did), or each alone.
-    fn trace(bvh: &TriangleBvh, query: &Query, rays: &[PreparedRay], packets: bool) -> (Vec<u8>, Vec<u8>, usize) {
+    /// Each ray's records of `query`, traced in packets of `width` rays (8: AVX2, 16: AVX-512) where they make one
+    /// (returns how many did), or each alone when `width` is 1.
+    fn trace(bvh: &TriangleBvh, query: &Query, rays: &[PreparedRay], width: usize) -> (Vec<u8>, Vec<u8>, usize) {
         let accel = CpuAccel::Triangles(bvh.clone());
         let mut stacks = accel.new_stacks();
         let records = query.records_per_ray();
         let mut hits = vec![0u8; query.hit_format.buffer_len(rays.len() * records)];
         let mut counts = vec![0u8; 4 * rays.len()];
-        let mut scratch = vec![Hit::MISS; PACKET_RAYS * records];
+        let mut scratch = vec![Hit::MISS; width * records];
         let mut packed = 0;
-        for (group, rays) in rays.chunks(PACKET_RAYS).enumerate() {
+        for (group, rays) in rays.chunks(width).enumerate() {
             let mut parts = scratch.chunks_mut(records);
             let mut collectors: Vec<Collector<'_>> =
                 rays.iter().map(|ray| Collector::new(query, ray, parts.next().expect("a part a ray"))).collect();
             let mut stats = TraceStats::default();
-            if packets && bvh.trace_packet(&mut stacks.packet, rays, &mut collectors, &mut stats) {
+            let packet = width > 1 && rays.len() == width && may_pack(rays, &collectors);
+            // SAFETY: the tests call this only where the CPU has the width's instruction set.
+            let traced = packet
+                && unsafe {
+                    match width {
+                        AVX2_PACKET_RAYS => {
+                            bvh.trace_packet_avx2(&mut stacks.packet, rays, &mut collectors, &mut stats)
+                        }
+                        _ => bvh.trace_packet_avx512(&mut stacks.packet, rays, &mut collectors, &mut stats),
+                    }
+                };
+            if traced {
                 packed += 1;
             } else {
                 for (ray, collector) in rays.iter().zip(&mut collectors) {
@@ -700,18 +686,32 @@ mod tests {
                 }
             }
             for (i, collector) in collectors.iter().enumerate() {
-                let index = group * PACKET_RAYS + i;
+                let index = group * width + i;
                 collector.write(query, &mut hits, index * records, &mut counts, index);
             }
         }
         (hits, counts, packed)
     }
 
+    /// `rays` (a 64 × 64 image's, row by row) reordered for packets of `width`: rows of 8 pixels make packets of 8;
+    /// packets of 16 are 4 × 4 tiles, which head closer together than 16 pixels of a row of this small image.
+    fn in_packet_order(rays: &[PreparedRay], width: usize) -> Vec<PreparedRay> {
+        match width {
+            AVX2_PACKET_RAYS => rays.to_vec(),
+            _ => (0..rays.len()).map(|i| rays[(i / 256 * 4 + i % 16 / 4) * 64 + i / 16 % 16 * 4 + i % 4]).collect(),
+        }
+    }
+
+    /// The packet widths this CPU runs: 8 with AVX2, and 16 too with AVX-512.
+    fn widths() -> Vec<usize> {
+        [(AVX2_PACKET_RAYS, has_avx2()), (MAX_PACKET_RAYS, has_avx512())]
+            .into_iter()
+            .filter_map(|(width, runs)| runs.then_some(width))
+            .collect()
+    }
+
     #[test]
     fn packets_give_every_ray_the_answer_it_gets_alone() {
-        if !std::arch::is_x86_feature_detected!("avx2") {
-            return;
-        }
         let (bvh, _) = scene();
         // A pinhole camera (one origin); origins moved a little pixel by pixel (the packet's interval test then
         // spans several origins); parallel rays from a grid of origins, slanted (every `1/direction` finite) and
@@ -732,8 +732,10 @@ mod tests {
             }
             _ => (name, rays),
         });
-        for (name, rays) in &ray_sets {
-            packets_agree(&bvh, name, rays);
+        for width in widths() {
+            for (name, rays) in &ray_sets {
+                packets_agree(&bvh, name, &in_packet_order(rays, width), width);
+            }
         }
     }
 
@@ -747,9 +749,9 @@ mod tests {
         PreparedRay::new(&moved, RayFlags::empty())
     }
 
-    /// Checks that `rays` traced in packets get the answers they get alone, for every query kind.
-    fn packets_agree(bvh: &TriangleBvh, name: &str, rays: &[PreparedRay]) {
-        let groups = rays.len() / PACKET_RAYS;
+    /// Checks that `rays` traced in packets of `width` get the answers they get alone, for every query kind.
+    fn packets_agree(bvh: &TriangleBvh, name: &str, rays: &[PreparedRay], width: usize) {
+        let groups = rays.len() / width;
         for kind in [QueryKind::Closest, QueryKind::All, QueryKind::Count, QueryKind::Any] {
             for flags in [RayFlags::empty(), RayFlags::CULL_BACK_FACING] {
                 let query = Query {
@@ -758,11 +760,11 @@ mod tests {
                     max_hits_per_ray: 4,
                     ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV)
                 };
-                let (alone, alone_counts, _) = trace(bvh, &query, rays, false);
-                let (packed, packed_counts, packets) = trace(bvh, &query, rays, true);
+                let (alone, alone_counts, _) = trace(bvh, &query, rays, 1);
+                let (packed, packed_counts, packets) = trace(bvh, &query, rays, width);
                 // Pinhole groups across a change of direction signs are traced alone.
-                assert!(packets > groups * 3 / 4, "{name} {kind:?}: {packets} of {groups} groups packed");
-                assert!(name != "pinhole" || packets < groups, "{name}: no group traced alone");
+                assert!(packets > groups * 3 / 4, "{name} {kind:?} ×{width}: {packets} of {groups} groups packed");
+                assert!(name != "pinhole" || packets < groups, "{name} ×{width}: no group traced alone");
                 let first_record = |ray: usize| ray * query.records_per_ray();
                 let hit = |hits: &[u8], ray: usize| HitFormat::TTriidUV.read(hits, first_record(ray)).is_hit();
                 let hits = (0..rays.len()).filter(|&ray| hit(&alone, ray)).count();
@@ -771,11 +773,11 @@ mod tests {
                     // Any hit may be another one; whether there is one may not.
                     QueryKind::Any => {
                         let agree = (0..rays.len()).all(|ray| hit(&alone, ray) == hit(&packed, ray));
-                        assert!(agree, "{name} {kind:?}: hit/miss")
+                        assert!(agree, "{name} {kind:?} ×{width}: hit/miss")
                     }
                     _ => {
                         let same = alone == packed && alone_counts == packed_counts;
-                        assert!(same, "{name} {kind:?} {flags:?}: answers differ")
+                        assert!(same, "{name} {kind:?} {flags:?} ×{width}: answers differ")
                     }
                 }
             }
@@ -784,7 +786,7 @@ mod tests {
 
     #[test]
     fn the_interval_test_keeps_every_lane_a_ray_enters() {
-        if !std::arch::is_x86_feature_detected!("avx2") {
+        if !has_avx2() {
             return;
         }
         let u = |k: &mut u64| {
@@ -797,7 +799,7 @@ mod tests {
             // boxes of all sizes in the unit cube around them.
             let base = Vec3A::new(u(&mut k), u(&mut k), u(&mut k)) * 2.0 - Vec3A::ONE;
             let heading = Vec3A::new(u(&mut k) - 0.5, u(&mut k) - 0.5, u(&mut k) - 0.5).normalize_or(Vec3A::X);
-            let rays: Vec<PreparedRay> = (0..PACKET_RAYS)
+            let rays: Vec<PreparedRay> = (0..AVX2_PACKET_RAYS)
                 .map(|_| {
                     let origin = base + Vec3A::new(u(&mut k), u(&mut k), u(&mut k)) * 0.3;
                     let direction = heading + Vec3A::new(u(&mut k), u(&mut k), u(&mut k)) * 0.05;
@@ -818,16 +820,16 @@ mod tests {
                     node.hi[axis][lane] = a + size;
                 }
             }
-            let cull: [f32; PACKET_RAYS] = std::array::from_fn(|_| if u(&mut k) < 0.5 { 1.5 } else { f32::INFINITY });
+            let cull: [f32; MAX_PACKET_RAYS] =
+                std::array::from_fn(|_| if u(&mut k) < 0.5 { 1.5 } else { f32::INFINITY });
             // SAFETY: the CPU has AVX2, as checked above.
             unsafe {
-                let lanes = PacketLanes::new(rays[..].try_into().expect("a packet"));
+                let lanes = PacketLanes::<__m256>::new(&rays);
                 let interval = lanes.interval.as_ref().expect("finite directions");
-                let largest = cull.iter().fold(f32::NEG_INFINITY, |a, &b| a.max(b));
-                let kept = interval.may_enter(&node, lanes.rows, largest);
-                let (far, all) = (_mm256_loadu_ps(cull.as_ptr()), PacketLanes::select(u32::MAX));
+                let (far, all) = (__m256::load(&cull), __m256::mask(u32::MAX));
+                let kept = interval.may_enter(&node, lanes.rows, far.most(all));
                 for lane in 0..WIDTH {
-                    let (rays_in, _) = lanes.enter(&node, lane, far, all, &mut [0.0; PACKET_RAYS]);
+                    let (rays_in, _) = lanes.enter(&node, lane, far, all, &mut [0.0; MAX_PACKET_RAYS]);
                     if rays_in != 0 {
                         entered_lanes += 1;
                         assert!(kept & (1 << lane) != 0, "lane {lane} entered by rays {rays_in:#b} but ruled out");
@@ -843,45 +845,40 @@ mod tests {
     fn only_neighbours_heading_the_same_way_make_a_packet() {
         let (bvh, mesh) = scene();
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
-        let rays = camera_rays();
-        let neighbours = &rays[64 * 30..64 * 30 + PACKET_RAYS];
-        if !has_avx2() {
-            return;
-        }
-        let packs = |rays: &[PreparedRay], query: &Query| {
-            let mut collectors: Vec<Collector<'_>> =
-                rays.iter().map(|ray| Collector::new(query, ray, &mut [])).collect();
-            let mut stack = vec![PacketEntry::default(); bvh.wide.stack_size()];
-            bvh.trace_packet(&mut stack, rays, &mut collectors, &mut TraceStats::default())
-        };
         let diagonal = bvh.wide.diagonal();
-        assert!(packs(neighbours, &query));
-        assert!(!packs(&neighbours[..7], &query), "seven rays");
-        let (lo, hi) = mesh.bounds();
-        let random = crate::raygen::random_rays(lo, hi, PACKET_RAYS, 5, RayFormat::OriginTminDirectionTmax);
-        let random: Vec<PreparedRay> = (0..PACKET_RAYS)
-            .map(|i| {
-                PreparedRay::new(
-                    &RayFormat::OriginTminDirectionTmax.decode(&random[32 * i..32 * (i + 1)]),
-                    RayFlags::empty(),
-                )
-            })
-            .collect();
-        assert!(!packs(&random, &query), "random rays");
-        // One ray turned by 10° or moved by 2% of the scene: not a packet.
-        let mut turned = neighbours.to_vec();
-        let d = turned[3].direction;
-        let ray = Ray { origin: turned[3].origin, direction: glam::Quat::from_rotation_x(0.17) * d, ..Ray::default() };
-        turned[3] = PreparedRay::new(&ray, RayFlags::empty());
-        assert!(!packs(&turned, &query), "a ray turned");
-        let mut moved = neighbours.to_vec();
-        moved[5].origin += Vec3A::X * 0.02 * diagonal;
-        assert!(!packs(&moved, &query), "an origin moved");
-        // A closest-hit ray that stops at its first hit keeps its own nearest-first order.
-        let mut stopping = neighbours.to_vec();
-        stopping[2].flags |= RayFlags::TERMINATE_ON_FIRST_HIT;
-        assert!(!packs(&stopping, &query), "terminate on first hit");
-        let any = Query { kind: QueryKind::Any, ..query };
-        assert!(packs(&stopping, &any), "any query");
+        for width in widths() {
+            let rays = in_packet_order(&camera_rays(), width);
+            let packs = |rays: &[PreparedRay], query: &Query| trace(&bvh, query, rays, width).2 == 1;
+            let neighbours = &rays[64 * 30..64 * 30 + width];
+            assert!(packs(neighbours, &query), "×{width}");
+            assert!(!packs(&neighbours[..width - 1], &query), "×{width}: a ray short");
+            let (lo, hi) = mesh.bounds();
+            let random = crate::raygen::random_rays(lo, hi, width, 5, RayFormat::OriginTminDirectionTmax);
+            let random: Vec<PreparedRay> = (0..width)
+                .map(|i| {
+                    PreparedRay::new(
+                        &RayFormat::OriginTminDirectionTmax.decode(&random[32 * i..32 * (i + 1)]),
+                        RayFlags::empty(),
+                    )
+                })
+                .collect();
+            assert!(!packs(&random, &query), "×{width}: random rays");
+            // One ray turned by 10° or moved by 2% of the scene: not a packet.
+            let mut turned = neighbours.to_vec();
+            let d = turned[3].direction;
+            let ray =
+                Ray { origin: turned[3].origin, direction: glam::Quat::from_rotation_x(0.17) * d, ..Ray::default() };
+            turned[3] = PreparedRay::new(&ray, RayFlags::empty());
+            assert!(!packs(&turned, &query), "×{width}: a ray turned");
+            let mut moved = neighbours.to_vec();
+            moved[5].origin += Vec3A::X * 0.02 * diagonal;
+            assert!(!packs(&moved, &query), "×{width}: an origin moved");
+            // A closest-hit ray that stops at its first hit keeps its own nearest-first order.
+            let mut stopping = neighbours.to_vec();
+            stopping[2].flags |= RayFlags::TERMINATE_ON_FIRST_HIT;
+            assert!(!packs(&stopping, &query), "×{width}: terminate on first hit");
+            let any = Query { kind: QueryKind::Any, ..query };
+            assert!(packs(&stopping, &any), "×{width}: any query");
+        }
     }
 }

@@ -45,7 +45,7 @@ impl CpuAccel {
     }
 
     /// Offers each of `rays` (consecutive rays of a batch, with a collector each) the triangles it reaches: together,
-    /// as a packet ([`super::packet`]), where they make one through a static geometry accel; one by one otherwise.
+    /// as packets ([`super::packet`]), where they make them through a static geometry accel; one by one otherwise.
     pub(crate) fn traverse_group(
         &self,
         stacks: &mut Stacks,
@@ -53,15 +53,18 @@ impl CpuAccel {
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) {
+        #[allow(unused_mut)]
+        let mut traced = 0u32;
         #[cfg(target_arch = "x86_64")]
         if let CpuAccel::Triangles(bvh) = self
             && !binary_traversal()
-            && bvh.trace_packet(&mut stacks.packet, rays, collectors, stats)
         {
-            return;
+            traced = bvh.trace_packets(&mut stacks.packet, rays, collectors, stats);
         }
-        for (ray, collector) in rays.iter().zip(collectors) {
-            self.traverse(&mut stacks.single, ray, &InstanceScope::WORLD, collector, stats);
+        for (i, (ray, collector)) in rays.iter().zip(collectors).enumerate() {
+            if traced & (1 << i) == 0 {
+                self.traverse(&mut stacks.single, ray, &InstanceScope::WORLD, collector, stats);
+            }
         }
     }
 
