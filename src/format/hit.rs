@@ -198,10 +198,25 @@ impl HitFormat {
         hit
     }
 
+    /// Calls `f` with this format as a constant, once in each arm of a match, so that a loop in `f` writing many
+    /// records ([`HitFormat::write`]) is compiled once a format, without a match a record.
+    #[inline(always)]
+    pub fn specialized<R>(self, mut f: impl FnMut(HitFormat) -> R) -> R {
+        match self {
+            HitFormat::Bitmask => f(HitFormat::Bitmask),
+            HitFormat::T => f(HitFormat::T),
+            HitFormat::TTriid => f(HitFormat::TTriid),
+            HitFormat::TTriidUV => f(HitFormat::TTriidUV),
+            HitFormat::TTriidInstid => f(HitFormat::TTriidInstid),
+            HitFormat::TTriidInstidUV => f(HitFormat::TTriidInstidUV),
+            HitFormat::Full => f(HitFormat::Full),
+        }
+    }
+
     /// Writes record `index` of a hit buffer. For byte formats `buffer` may be the whole buffer or any slice
     /// that starts on a record boundary, with `index` relative to it; for the bitmask it must start on a byte
     /// boundary (`index` relative to its first bit).
-    #[inline]
+    #[inline(always)]
     pub fn write(self, buffer: &mut [u8], index: usize, hit: &Hit) {
         let Some(size) = self.size() else {
             let bit = 1u8 << (index % 8);

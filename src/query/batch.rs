@@ -61,11 +61,16 @@ where
                 collector.restart(ray);
             }
             traverse(&mut state, &prepared[..len], &mut collectors[..len], &mut stats);
-            for (i, collector) in collectors[..len].iter().enumerate() {
-                let index = first + i;
-                collector.write(query, hits, index * records_per_ray, counts, index);
-                stats.rays_hit += u64::from(collector.found());
-            }
+            query.hit_format.specialized(
+                #[inline(always)]
+                |format| {
+                    for (i, collector) in collectors[..len].iter().enumerate() {
+                        let index = first + i;
+                        collector.write(format, hits, index * records_per_ray, counts, index);
+                    }
+                },
+            );
+            stats.rays_hit += collectors[..len].iter().map(|collector| u64::from(collector.found())).sum::<u64>();
             stats.rays += len as u64;
         }
         stats

@@ -4,7 +4,7 @@
 use glam::{Mat3A, Vec3, Vec3A};
 
 use super::{Query, QueryKind};
-use crate::format::{Hit, InstancePath, RayFlags, write_u32};
+use crate::format::{Hit, HitFormat, InstancePath, RayFlags, write_u32};
 use crate::geometry::{GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
 use crate::intersect::{PreparedRay, triangle};
 
@@ -222,11 +222,10 @@ impl<'s> Collector<'s> {
         self.count > 0
     }
 
-    /// Writes this ray's records (starting at record `first_record` of `hits`) and, for counting kinds, its
-    /// count at u32 index `ray` of `counts`.
-    #[inline]
-    pub fn write(&self, query: &Query, hits: &mut [u8], first_record: usize, counts: &mut [u8], ray: usize) {
-        let format = query.hit_format;
+    /// Writes this ray's records in `format` (starting at record `first_record` of `hits`) and, for counting kinds,
+    /// its count at u32 index `ray` of `counts`.
+    #[inline(always)]
+    pub fn write(&self, format: HitFormat, hits: &mut [u8], first_record: usize, counts: &mut [u8], ray: usize) {
         if self.kind == QueryKind::All {
             for slot in 0..self.sorted.len() {
                 let hit = if slot < self.len { &self.sorted[slot] } else { &Hit::MISS };

@@ -687,7 +687,7 @@ mod tests {
             }
             for (i, collector) in collectors.iter().enumerate() {
                 let index = group * width + i;
-                collector.write(query, &mut hits, index * records, &mut counts, index);
+                collector.write(query.hit_format, &mut hits, index * records, &mut counts, index);
             }
         }
         (hits, counts, packed)
