@@ -6,7 +6,8 @@ use glam::{Mat3A, Vec3, Vec3A};
 use super::{Query, QueryKind};
 use crate::format::{Hit, HitFormat, InstancePath, RayFlags, write_u32};
 use crate::geometry::{GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
-use crate::intersect::{PreparedRay, triangle};
+use crate::intersect::PreparedRay;
+use crate::intersect::triangle::{self, TriangleHit};
 
 /// A triangle offered to a ray, with everything the acceptance rules need.
 #[derive(Debug, Clone, Copy)]
@@ -78,9 +79,22 @@ pub fn consider_triangle(
     if ray.mask & candidate.mask != 0 {
         return;
     }
-    let Some(hit) = triangle::intersect(ray, candidate.corners) else {
-        return;
-    };
+    if let Some(hit) = triangle::intersect(ray, candidate.corners) {
+        accept_hit(ray, candidate, scope, collector, hit);
+    }
+}
+
+/// The rest of [`consider_triangle`] once the ray's line meets the triangle at `hit` (and the mask rule let it be
+/// tested): the range, face culling, and the offer to `collector`. Tracers that intersect a triangle with many rays
+/// at once go on from here for each ray that meets it.
+#[inline(always)]
+pub fn accept_hit(
+    ray: &PreparedRay,
+    candidate: &TriangleCandidate<'_>,
+    scope: &InstanceScope,
+    collector: &mut Collector<'_>,
+    hit: TriangleHit,
+) {
     if !(hit.t >= ray.tmin && hit.t <= collector.cull_tmax()) {
         return;
     }

@@ -134,6 +134,35 @@ pub(super) trait Corners<L> {
     unsafe fn corner(&self, c: usize) -> [L; 3];
 }
 
+/// A triangle in a ray's sheared space, lane by lane, as the watertight test computes it: the three f32 edge
+/// functions and each corner's distance from the origin along the ray's axis (`a[kz]` … of
+/// [`crate::intersect::triangle::intersect`]).
+pub(super) struct Sheared<L> {
+    /// The edge functions `u`, `v`, `w`.
+    pub edges: [L; 3],
+    /// Each corner's coordinate along the ray's axis, relative to the origin.
+    pub along: [L; 3],
+}
+
+/// The triangle `corners` in the sheared space of the rays with origin `origin` (on their projection axes) and first
+/// two shear constants `shear`: the same operations in the same order as the scalar test.
+///
+/// # Safety
+/// The CPU must have the registers' instruction set.
+#[inline(always)]
+pub(super) unsafe fn shear<L: Lanes>(corners: &impl Corners<L>, origin: [L; 3], shear: [L; 2]) -> Sheared<L> {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe {
+        let (ax, ay, az) = project(corners.corner(0), origin, shear);
+        let (bx, by, bz) = project(corners.corner(1), origin, shear);
+        let (cx, cy, cz) = project(corners.corner(2), origin, shear);
+        let u = cx.mul(by).sub(cy.mul(bx));
+        let v = ax.mul(cy).sub(ay.mul(cx));
+        let w = bx.mul(ay).sub(by.mul(ax));
+        Sheared { edges: [u, v, w], along: [az, bz, cz] }
+    }
+}
+
 /// A bit per lane: whether the ray may hit the triangle ([`crate::intersect::triangle::may_hit`]). `origin` is the
 /// ray's origin on its projection axes and `shear` its first two shear constants.
 ///
@@ -143,25 +172,21 @@ pub(super) trait Corners<L> {
 pub(super) unsafe fn may_hit_lanes<L: Lanes>(corners: &impl Corners<L>, origin: [L; 3], shear: [L; 2]) -> u32 {
     // SAFETY: the CPU has the instruction set (the caller's contract).
     unsafe {
-        let (ax, ay) = project(corners.corner(0), origin, shear);
-        let (bx, by) = project(corners.corner(1), origin, shear);
-        let (cx, cy) = project(corners.corner(2), origin, shear);
-        let u = cx.mul(by).sub(cy.mul(bx));
-        let v = ax.mul(cy).sub(ay.mul(cx));
-        let w = bx.mul(ay).sub(by.mul(ax));
+        let [u, v, w] = self::shear(corners, origin, shear).edges;
         L::zero_or_not_mixed(u, v, w)
     }
 }
 
-/// A corner translated to the ray's origin and sheared: (x, y) in the plane across the ray.
+/// A corner translated to the ray's origin and sheared: (x, y) in the plane across the ray, and z along it (not yet
+/// scaled by the third shear constant).
 ///
 /// # Safety
 /// The CPU must have the registers' instruction set.
 #[inline(always)]
-unsafe fn project<L: Lanes>([x, y, z]: [L; 3], origin: [L; 3], shear: [L; 2]) -> (L, L) {
+unsafe fn project<L: Lanes>([x, y, z]: [L; 3], origin: [L; 3], shear: [L; 2]) -> (L, L, L) {
     // SAFETY: the CPU has the instruction set (the caller's contract).
     unsafe {
         let z = z.sub(origin[2]);
-        (x.sub(origin[0]).sub(shear[0].mul(z)), y.sub(origin[1]).sub(shear[1].mul(z)))
+        (x.sub(origin[0]).sub(shear[0].mul(z)), y.sub(origin[1]).sub(shear[1].mul(z)), z)
     }
 }

@@ -23,7 +23,10 @@ use super::triangles::TriangleBvh;
 use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, has_avx2, prefetch};
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
-use crate::query::{Collector, GROUP_RAYS, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
+use crate::intersect::triangle::TriangleHit;
+use crate::query::{
+    Collector, GROUP_RAYS, InstanceScope, TraceStats, TriangleCandidate, accept_hit, consider_triangle,
+};
 
 /// Rays in an AVX2 packet; an AVX-512 packet holds [`MAX_PACKET_RAYS`].
 const AVX2_PACKET_RAYS: usize = 8;
@@ -148,8 +151,10 @@ impl TriangleBvh {
         }
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
+            let mut met = MetLanes::default();
             for slot in slots {
-                let mut candidates = unsafe { lanes.may_hit(self.wide.blocks.lane_of(slot)) } & active;
+                let (edges, hits) = unsafe { lanes.intersect(self.wide.blocks.lane_of(slot), active, &mut met) };
+                let mut candidates = edges | hits;
                 if candidates == 0 {
                     continue;
                 }
@@ -160,11 +165,18 @@ impl TriangleBvh {
                     mask: self.masks.as_ref().map_or(0, |m| m[slot]),
                     geometry_flags: self.geometry_flags[id.geom_id as usize],
                 };
+                // Ray by ray in lane order, as each alone would be offered the triangle: rays on an edge or a vertex
+                // through the whole scalar test (its exact rule), the others from the hit found in the lanes.
                 while candidates != 0 {
                     let ray = candidates.trailing_zeros() as usize;
                     candidates &= candidates - 1;
-                    consider_triangle(&rays[ray], &candidate, &InstanceScope::WORLD, &mut collectors[ray]);
-                    if collectors[ray].done() {
+                    let (prepared, collector) = (&rays[ray], &mut collectors[ray]);
+                    if edges & (1 << ray) != 0 {
+                        consider_triangle(prepared, &candidate, &InstanceScope::WORLD, collector);
+                    } else if prepared.mask & candidate.mask == 0 {
+                        accept_hit(prepared, &candidate, &InstanceScope::WORLD, collector, met.hit(ray));
+                    }
+                    if collector.done() {
                         active &= !(1 << ray);
                     }
                 }
@@ -328,6 +340,8 @@ struct PacketLanes<V> {
     projected_origin: [V; 3],
     /// The first two shear constants.
     shear: [V; 2],
+    /// The third shear constant, `1/direction[kz]`.
+    shear_z: V,
     /// The rays as one interval, for a first test of a node's children all at once; `None` where an interval bound
     /// could be NaN.
     interval: Option<PacketInterval>,
@@ -377,6 +391,7 @@ impl<V: RayLanes> PacketLanes<V> {
             axes,
             projected_origin: [origin[axes[0]], origin[axes[1]], origin[axes[2]]],
             shear: unsafe { [V::gather(rays, |r| r.shear.x), V::gather(rays, |r| r.shear.y)] },
+            shear_z: unsafe { V::gather(rays, |r| r.shear.z) },
             interval: unsafe { PacketInterval::new(origin, inv_direction, tmin) },
         }
     }
@@ -467,15 +482,63 @@ impl<V: RayLanes> PacketLanes<V> {
         }
     }
 
-    /// A bit per ray that may hit the triangle in lane `lane` of a block ([`crate::intersect::triangle::may_hit`]).
+    /// The watertight test ([`crate::intersect::triangle::intersect`]) of the triangle in lane `lane` of a block
+    /// against the `active` rays at once, with the same operations in the same order, as far as it goes without its exact
+    /// rule for edges and vertices: returns the rays whose f32 edge functions are not all nonzero and whose line may
+    /// meet the triangle (they are to take the scalar test), and the rays whose line meets it, whose hit is left in
+    /// `met` ([`MetLanes::hit`]).
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set.
     #[inline(always)]
-    unsafe fn may_hit(&self, (rows, lane): (&Block, usize)) -> u32 {
+    unsafe fn intersect(&self, (rows, lane): (&Block, usize), active: u32, met: &mut MetLanes) -> (u32, u32) {
         let corners = Splat { rows, lane, axes: self.axes };
         // SAFETY: the CPU has the instruction set (the caller's contract).
-        unsafe { filter::may_hit_lanes(&corners, self.projected_origin, self.shear) }
+        unsafe {
+            let filter::Sheared { edges: [u, v, w], along: [az, bz, cz] } =
+                filter::shear(&corners, self.projected_origin, self.shear);
+            let may_hit = V::zero_or_not_mixed(u, v, w) & active;
+            if may_hit == 0 {
+                return (0, 0);
+            }
+            let (zero, infinity) = (V::splat(0.0), V::splat(f32::INFINITY));
+            let nonzero = V::and(V::and(zero.lt(u.abs()), zero.lt(v.abs())), zero.lt(w.abs()));
+            let edges = may_hit & !V::bits(nonzero);
+            let det = u.add(v).add(w);
+            let sz = self.shear_z;
+            let t = u.mul(sz.mul(az)).add(v.mul(sz.mul(bz))).add(w.mul(sz.mul(cz))).div(det);
+            let det_ok = V::and(det.abs().lt(infinity), zero.lt(det.abs()));
+            let hits = may_hit & V::bits(V::and(V::and(nonzero, det_ok), t.abs().lt(infinity)));
+            if hits != 0 {
+                t.store(&mut met.t);
+                det.store(&mut met.det);
+                v.store(&mut met.v);
+                w.store(&mut met.w);
+            }
+            (edges, hits)
+        }
+    }
+}
+
+/// Where a packet's rays meet a triangle, a ray a lane, as [`PacketLanes::intersect`] left it.
+#[derive(Default)]
+struct MetLanes {
+    /// Distances.
+    t: [f32; MAX_PACKET_RAYS],
+    /// The sums of the edge functions.
+    det: [f32; MAX_PACKET_RAYS],
+    /// The second edge function, `u` of the hit times `det`.
+    v: [f32; MAX_PACKET_RAYS],
+    /// The third edge function, `v` of the hit times `det`.
+    w: [f32; MAX_PACKET_RAYS],
+}
+
+impl MetLanes {
+    /// Ray `ray`'s hit, as the scalar test reports it.
+    #[inline(always)]
+    fn hit(&self, ray: usize) -> TriangleHit {
+        let det = self.det[ray];
+        TriangleHit { t: self.t[ray], u: self.v[ray] / det, v: self.w[ray] / det, back_face: det < 0.0 }
     }
 }
 

@@ -38,6 +38,9 @@ pub(super) trait RayLanes: filter::Lanes {
     /// `self + other`, lane by lane.
     unsafe fn add(self, other: Self) -> Self;
 
+    /// `self / other`, lane by lane.
+    unsafe fn div(self, other: Self) -> Self;
+
     /// The smaller lane by lane; `other` where either is NaN (as `vminps` does).
     unsafe fn min(self, other: Self) -> Self;
 
@@ -108,6 +111,12 @@ impl RayLanes for __m256 {
     unsafe fn add(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX (the trait's contract).
         unsafe { _mm256_add_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn div(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX (the trait's contract).
+        unsafe { _mm256_div_ps(self, other) }
     }
 
     #[inline(always)]
@@ -250,6 +259,12 @@ impl RayLanes for __m512 {
     unsafe fn add(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX-512F (the trait's contract).
         unsafe { _mm512_add_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn div(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX-512F (the trait's contract).
+        unsafe { _mm512_div_ps(self, other) }
     }
 
     #[inline(always)]
