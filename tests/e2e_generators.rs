@@ -1,5 +1,6 @@
-//! End to end: ray generators expanded by the server. For each kind (pinhole with jittered samples, orthographic,
-//! lidar with per-ray time, hemisphere sampling around surface points) and each query kind, the hits of a
+//! End to end: ray generators expanded by the server. For each kind (pinhole with jittered samples, orthographic
+//! through pixel centres and jittered, lidar with per-ray time, sphere and hemisphere sampling around surface points)
+//! and each query kind, the hits of a
 //! `TraceBatch` carrying only the generator are byte for byte those of the same rays expanded on the client
 //! (`Generator::rays`) and sent; bad numbers answer INVALID_ARGUMENT naming the field, too many rays in one call
 //! RESOURCE_EXHAUSTED naming the limit, and a range of a generator traces as the same rays sent. Secondary rays
@@ -24,7 +25,8 @@ use rayd_proto::rayd_client::RaydClient;
 use rayd_proto::{self as proto, trace_batch_request};
 use tonic::Code;
 
-/// One generator of each kind, aimed at the box `[lo, hi]`, with surface points from `mesh`.
+/// One generator of each kind, aimed at the box `[lo, hi]`, with surface points from `mesh`; cameras with and
+/// without jitter, sphere sampling with and without normals.
 fn generators(mesh: &rayd_engine::mesh::Mesh) -> Vec<Generator> {
     let (lo, hi) = mesh.bounds();
     let centre = (lo + hi) * 0.5;
@@ -63,11 +65,16 @@ fn generators(mesh: &rayd_engine::mesh::Mesh) -> Vec<Generator> {
         max_distance: 0.05,
         seed: 5,
     };
+    // A seed with both 32-bit words set, and directions uniform on the whole sphere around the same points.
+    let jittered_orthographic = PixelSampling { samples: 2, jitter_seed: Some(0x0123_4567_89ab_cdef) };
+    let uniform_sphere = SphereSampling { normals: Vec::new(), seed: 6, ..sphere.clone() };
     vec![
         Generator::Pinhole(camera, jittered),
         Generator::Orthographic(orthographic, PixelSampling { samples: 1, jitter_seed: None }),
+        Generator::Orthographic(orthographic, jittered_orthographic),
         Generator::Lidar(lidar),
         Generator::Sphere(sphere),
+        Generator::Sphere(uniform_sphere),
     ]
 }
 

@@ -1,7 +1,8 @@
 //! End to end: reductions made by the server. For every kind (counts, depth and normal images in each encoding,
 //! histogram, per-id counts, nearest per group, point clouds) over generated rays cut into several pieces, the
 //! reduction that comes back is byte for byte the engine's reduction of the full hits of the same rays traced and
-//! returned whole; a reduction over packed rays likewise; bad combinations answer INVALID_ARGUMENT naming the field,
+//! returned whole; a reduction over packed rays likewise; per-id counts by geometry on an accel of two geometries,
+//! and by geometry and instance on an instance accel placing it twice, likewise; bad combinations answer INVALID_ARGUMENT naming the field,
 //! a reduction larger than a message RESOURCE_EXHAUSTED naming the limit;
 //! calls compressed with zstd or gzip answer the same bytes; generated and reduced traces on an `OpenStream` stream
 //! answer what single calls do.
@@ -11,13 +12,15 @@ mod daemon;
 
 use bytes::Bytes;
 use daemon::Daemon;
-use rayd_client::{Client, ClientOptions};
+use rayd_client::{Client, ClientOptions, proto};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::geometry::{InstanceFlags, InstanceRecord};
 use rayd_engine::glam::Vec3;
+use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, QueryKind};
 use rayd_engine::raygen::{Camera, Generator, Lidar, PixelSampling};
-use rayd_engine::reduce::{IdKind, Image, ImageChannel, PixelEncoding, PointCloud, PointEncoding, Reduction};
+use rayd_engine::reduce::{IdKind, Image, ImageChannel, PixelEncoding, PointCloud, PointEncoding, Reduced, Reduction};
 use tonic::Code;
 use tonic::codec::CompressionEncoding;
 
@@ -60,6 +63,29 @@ fn cases(mesh: &rayd_engine::mesh::Mesh) -> Vec<(Generator, Reduction)> {
     cases
 }
 
+/// Traces `generator`'s rays on `accel` with `query`, reduced by the server, and asserts that the answer is byte for
+/// byte the engine's reduction of the full hits of the same rays traced and returned whole, with as many items
+/// dropped, every ray traced and something hit. Returns that reduction of the full hits.
+async fn assert_reduced_as_full_hits(
+    client: &Client,
+    accel: &str,
+    query: &Query,
+    generator: &Generator,
+    reduction: &Reduction,
+) -> Reduced {
+    let what = format!("{reduction:?} of {generator:?} with a {:?} query on {accel}", query.kind);
+    let reduced = client.trace_generated_reduced(accel, query, generator, reduction).await.expect(&what);
+    let traced = reduction.traced_query(query);
+    let rays = generator.rays(traced.ray_format);
+    let full = client.trace(accel, &traced, Bytes::from(rays.clone())).await.unwrap();
+    let expected = reduction.reduce_all(&traced, &rays, full.hits(), full.counts()).unwrap();
+    assert!(reduced.data == expected.bytes, "{what}: {} bytes, {} expected", reduced.data.len(), expected.bytes.len());
+    assert_eq!(reduced.dropped, expected.dropped, "{what}");
+    assert_eq!(reduced.stats.rays, generator.count(), "{what}");
+    assert!(reduced.stats.rays_hit > 0 && !reduced.data.is_empty(), "{what}: something is hit");
+    expected
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn reductions_equal_the_reduction_of_full_hits() {
     let daemon = Daemon::start(&[]);
@@ -69,20 +95,7 @@ async fn reductions_equal_the_reduction_of_full_hits() {
     for (generator, reduction) in cases(&bunny) {
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);
         let what = format!("{reduction:?} of {generator:?}");
-        let reduced = client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.expect(&what);
-        let traced = reduction.traced_query(&query);
-        let rays = generator.rays(traced.ray_format);
-        let full = client.trace("bunny", &traced, Bytes::from(rays.clone())).await.unwrap();
-        let expected = reduction.reduce_all(&traced, &rays, full.hits(), full.counts()).unwrap();
-        assert!(
-            reduced.data == expected.bytes,
-            "{what}: {} bytes, {} expected",
-            reduced.data.len(),
-            expected.bytes.len()
-        );
-        assert_eq!(reduced.dropped, expected.dropped, "{what}");
-        assert_eq!(reduced.stats.rays, generator.count(), "{what}");
-        assert!(reduced.stats.rays_hit > 0 && !reduced.data.is_empty(), "{what}: something is hit");
+        let expected = assert_reduced_as_full_hits(&client, "bunny", &query, &generator, &reduction).await;
         if let Reduction::PointCloud(PointCloud { encoding: PointEncoding::Int16, .. }) = reduction {
             assert!(expected.dropped > 0, "{what}: some returns lie beyond an i16 of micrometre steps");
         }
@@ -90,12 +103,78 @@ async fn reductions_equal_the_reduction_of_full_hits() {
         // The same reduction of the rays sent, with a counting query.
         let all = Query { kind: QueryKind::All, max_hits_per_ray: 3, ..query };
         if reduction.check(&all, generator.count()).is_ok() {
+            let rays = generator.rays(all.ray_format);
             let sent = client.trace_reduced("bunny", &all, Bytes::from(rays.clone()), &reduction).await.expect(&what);
             let traced = reduction.traced_query(&all);
-            let full = client.trace("bunny", &traced, Bytes::from(rays)).await.unwrap();
-            let expected =
-                reduction.reduce_all(&traced, &generator.rays(traced.ray_format), full.hits(), full.counts());
+            let full = client.trace("bunny", &traced, Bytes::from(rays.clone())).await.unwrap();
+            let expected = reduction.reduce_all(&traced, &rays, full.hits(), full.counts());
             assert!(sent.data == expected.unwrap().bytes, "{what} with an `all` query of sent rays");
+        }
+    }
+}
+
+/// A build input of `mesh`'s triangles (float3 vertices, u32×3 indices), inline.
+fn inline_triangles(mesh: &Mesh) -> proto::BuildInput {
+    let packed = mesh.pack();
+    let inline =
+        |bytes: Vec<u8>| Some(proto::DataSource { source: Some(proto::data_source::Source::Inline(bytes.into())) });
+    proto::BuildInput {
+        input: Some(proto::build_input::Input::Triangles(proto::TriangleInput {
+            vertices: inline(packed.vertices),
+            vertex_format: proto::VertexFormat::Float3.into(),
+            indices: inline(packed.indices),
+            index_format: proto::IndexFormat::Uint32x3.into(),
+            ..Default::default()
+        })),
+    }
+}
+
+/// The ids an `IdCounts` answer counts hits of, ascending (12 bytes an id: id i32 | count u64).
+fn counted_ids(bytes: &[u8]) -> Vec<i32> {
+    bytes.chunks_exact(12).map(|pair| i32::from_le_bytes(pair[..4].try_into().unwrap())).collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn id_counts_by_geometry_and_instance_equal_the_reduction_of_full_hits() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    // Two spheres side by side, geometries 0 and 1 of one accel; an instance accel places that accel twice, one
+    // above the other, as instances 7 and 8.
+    let spheres = [common::icosphere(2, Vec3::new(-1.5, 0.0, 0.0)), common::icosphere(2, Vec3::new(1.5, 0.0, 0.0))];
+    let request = proto::BuildAccelRequest {
+        name: "spheres".into(),
+        inputs: spheres.iter().map(inline_triangles).collect(),
+        ..Default::default()
+    };
+    let geometries = client.build(request).await.unwrap();
+    let placed = |instance_id, y| InstanceRecord {
+        transform: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, y, 0.0, 0.0, 1.0, 0.0],
+        instance_id,
+        mask: 0xFF,
+        flags: InstanceFlags::empty(),
+        child: 0,
+    };
+    let instances = [placed(7, -1.5), placed(8, 1.5)];
+    let pair = client.build_instances("pair", "", &["spheres"], &instances, BuildFlags::empty()).await.unwrap();
+    // A jittered camera of 3 rays a pixel that sees the whole accel.
+    let camera = |info: &proto::AccelInfo| {
+        let bounds = info.bounds.unwrap();
+        let corner = |v: Option<proto::Vec3>| v.map(|v| Vec3::new(v.x, v.y, v.z)).unwrap();
+        let frame = Camera::framing(corner(bounds.min), corner(bounds.max), 40, 30);
+        Generator::Pinhole(frame, PixelSampling { samples: 3, jitter_seed: Some(7) })
+    };
+    let closest = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);
+    let all = Query { kind: QueryKind::All, max_hits_per_ray: 3, ..closest };
+    for (accel, info, kind, ids) in [
+        ("spheres", &geometries, IdKind::Geometry, [0, 1]),
+        ("pair", &pair, IdKind::Geometry, [0, 1]),
+        ("pair", &pair, IdKind::Instance, [7, 8]),
+    ] {
+        for query in [closest, all] {
+            let reduction = Reduction::IdCounts(kind);
+            let expected = assert_reduced_as_full_hits(&client, accel, &query, &camera(info), &reduction).await;
+            let what = format!("{kind:?} on {accel}, {:?} query", query.kind);
+            assert_eq!(counted_ids(&expected.bytes), ids, "{what}: every id is hit");
         }
     }
 }

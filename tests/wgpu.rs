@@ -357,8 +357,9 @@ fn kernel_launches_are_timed_one_by_one_and_refused_without_a_kernel() {
     assert_eq!(refused.kind(), ErrorKind::FailedPrecondition, "{refused}");
 }
 
-/// A pinhole camera (3 jittered samples a pixel) and an orthographic one (pixel centres) looking at the bunny.
-fn cameras() -> [Generator; 2] {
+/// A pinhole camera (3 jittered samples a pixel) and an orthographic one (pixel centres, and 2 jittered samples a
+/// pixel with a seed whose high word is set too) looking at the bunny.
+fn cameras() -> [Generator; 3] {
     let pinhole = Camera::framing(Vec3::ZERO, Vec3::ONE, 40, 30);
     let orthographic = Orthographic {
         eye: Vec3::new(0.4, 0.6, 3.0),
@@ -371,6 +372,7 @@ fn cameras() -> [Generator; 2] {
     [
         Generator::Pinhole(pinhole, PixelSampling { samples: 3, jitter_seed: Some(7) }),
         Generator::Orthographic(orthographic, PixelSampling { samples: 1, jitter_seed: None }),
+        Generator::Orthographic(orthographic, PixelSampling { samples: 2, jitter_seed: Some(0x0123_4567_89ab_cdef) }),
     ]
 }
 
@@ -403,8 +405,7 @@ fn camera_and_lidar_rays_made_on_the_device_agree_with_the_hosts() {
     };
     let scene = bunny_scene(&device);
     let mut agreement = Agreement::default();
-    let [pinhole, orthographic] = cameras();
-    for generator in [pinhole, orthographic, lidar()] {
+    for generator in cameras().into_iter().chain([lidar()]) {
         generator.check().unwrap();
         // A range that does not start at the generator's first ray.
         let (first, count) = (101, generator.count() as usize - 101);
@@ -497,7 +498,8 @@ fn compare_reduced(reduction: &Reduction, rays: u64, cpu: &[u8], gpu: &[u8], agr
 
 #[test]
 fn image_and_count_reductions_made_on_the_device_agree_with_the_hosts() {
-    // Chunks of 500 rays at most: whole pixels of 3 rays take 480 (a multiple of 32 and 3), pixels of 600 none.
+    // Chunks of 500 rays at most: whole pixels of 2 or 3 rays take 480 (a multiple of 32 and of 2 or 3), pixels of
+    // 600 none.
     let Some(device) = gpu_with(WgpuOptions { max_chunk_rays: Some(500), ..WgpuOptions::default() }) else {
         return;
     };

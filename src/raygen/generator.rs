@@ -531,6 +531,108 @@ mod tests {
         assert!((mean_cos - 2.0 / 3.0).abs() < 0.03, "cosine-distributed: E[cos] = 2/3, got {mean_cos}");
     }
 
+    /// SplitMix64's finalizer of `seed` XOR (`index` · 0x9e3779b97f4a7c15 mod 2^64), written out from the contract
+    /// (trace.proto, `RayGenerator`) apart from the engine's `mix`, so that a change of either fails a test.
+    fn documented_splitmix64(seed: u64, index: u64) -> u64 {
+        let mut z = seed ^ index.wrapping_mul(0x9e37_79b9_7f4a_7c15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// The contract's random number `k` of ray `ray`: u(seed, ray·8 + k) = (z >> 40) / 2^24.
+    fn documented_uniform(seed: u64, ray: u64, k: u64) -> f32 {
+        (documented_splitmix64(seed, ray * 8 + k) >> 40) as f32 / 16_777_216.0
+    }
+
+    /// Ray `index` of `rays`, packed in `format`.
+    fn ray_at(rays: &[u8], format: RayFormat, index: u64) -> Ray {
+        format.decode(&rays[index as usize * format.size()..])
+    }
+
+    #[test]
+    fn the_documented_random_numbers_are_splitmix64() {
+        // With seed 0, index n is SplitMix64's state after n steps from 0: its published outputs (Steele, Lea and
+        // Flood; Vigna's splitmix64.c) are n = 1, 2, 3, 4, here ray 0's k = 1 .. 4.
+        let published = [0xe220_a839_7b1d_cdaf, 0x6e78_9e6a_a1b9_65f4, 0x06c4_5d18_8009_454f, 0xf88b_b8a8_724c_81ec];
+        for (n, expected) in (1..).zip(published) {
+            assert_eq!(documented_splitmix64(0, n), expected, "output {n}");
+        }
+        for (seed, index) in [(0, 1), (7, 0), (0x0123_4567_89ab_cdef, 8 * 1_000_003 + 1), (u64::MAX, 12_345)] {
+            assert_eq!(uniform(seed, index), documented_uniform(seed, index / 8, index % 8), "u({seed}, {index})");
+        }
+    }
+
+    #[test]
+    fn jittered_camera_rays_pass_through_the_documented_point_of_their_pixel() {
+        // Pixels of one world unit around the origin, looking down −z: ray i's point (px, py) in the image, in
+        // pixels from the top left, is (x + u(seed, i·8), y + u(seed, i·8 + 1)) for its pixel (x, y) = (p % width,
+        // p / width), p = i / samples.
+        let (width, height, samples, seed) = (5, 4, 3, 0x0123_4567_89ab_cdef);
+        let sampling = PixelSampling { samples, jitter_seed: Some(seed) };
+        let orthographic = Orthographic {
+            eye: Vec3::ZERO,
+            target: Vec3::NEG_Z,
+            up: Vec3::Y,
+            view_height: height as f32,
+            width,
+            height,
+        };
+        // A 90° field of view: the image plane at distance 1 is 2 high and 2·width/height wide.
+        let pinhole = Camera { eye: Vec3::ZERO, target: Vec3::NEG_Z, up: Vec3::Y, fov_y_degrees: 90.0, width, height };
+        let format = RayFormat::Full;
+        let orthographic_rays = Generator::Orthographic(orthographic, sampling).rays(format);
+        let pinhole_rays = Generator::Pinhole(pinhole, sampling).rays(format);
+        let rays = u64::from(width * height * samples);
+        for i in [0, 1, 2, 3, 7, 31, rays - 1] {
+            let pixel = i / u64::from(samples);
+            let (x, y) = ((pixel % u64::from(width)) as f32, (pixel / u64::from(width)) as f32);
+            let (px, py) = (x + documented_uniform(seed, i, 0), y + documented_uniform(seed, i, 1));
+            // Image point (px, py) is (px − width/2, height/2 − py) in world units across and up.
+            let (across, up) = (px - width as f32 / 2.0, height as f32 / 2.0 - py);
+            let parallel = ray_at(&orthographic_rays, format, i);
+            let expected_origin = Vec3A::new(across, up, 0.0);
+            assert!((parallel.origin - expected_origin).length() < 1e-5, "orthographic ray {i}: {parallel:?}");
+            assert_eq!(parallel.direction, Vec3A::NEG_Z, "orthographic ray {i}");
+            let through_eye = ray_at(&pinhole_rays, format, i);
+            let expected_direction = Vec3A::new(across, up, -(height as f32) / 2.0).normalize();
+            assert_eq!(through_eye.origin, Vec3A::ZERO, "pinhole ray {i}");
+            assert!((through_eye.direction - expected_direction).length() < 1e-5, "pinhole ray {i}: {through_eye:?}");
+        }
+    }
+
+    #[test]
+    fn sphere_samples_take_the_documented_random_numbers_in_order() {
+        // Ray i is sample i % samples of point i / samples, from u0 = u(seed, i·8) and u1 = u(seed, i·8 + 1). On the
+        // sphere (the engine's mapping; the contract names only the numbers): z = 1 − 2·u0, azimuth 2π·u1 about +z.
+        // On a hemisphere: cosine-distributed, at cos θ = √(1 − u0) from the normal.
+        let (samples, seed) = (4, 0xfedc_ba98_7654_3210);
+        let points = vec![Vec3::new(1.0, 2.0, 3.0), Vec3::new(-4.0, 5.0, -6.0), Vec3::new(0.5, 0.0, 0.25)];
+        let normals = vec![Vec3::X, Vec3::new(0.0, -2.0, 0.0), Vec3::new(1.0, 1.0, 1.0)];
+        let uniform_sphere =
+            SphereSampling { points, normals: Vec::new(), samples, min_distance: 0.25, max_distance: 8.0, seed };
+        let hemisphere = SphereSampling { normals: normals.clone(), ..uniform_sphere.clone() };
+        let format = RayFormat::OriginTminDirectionTmax;
+        let sphere_rays = Generator::Sphere(uniform_sphere.clone()).rays(format);
+        let hemisphere_rays = Generator::Sphere(hemisphere).rays(format);
+        for i in [0, 1, 3, 4, 6, 11] {
+            let point = (i / u64::from(samples)) as usize;
+            let (u0, u1) = (documented_uniform(seed, i, 0), documented_uniform(seed, i, 1));
+            let ray = ray_at(&sphere_rays, format, i);
+            assert_eq!(ray.origin, Vec3A::from(uniform_sphere.points[point]), "ray {i} starts at point {point}");
+            assert_eq!((ray.tmin, ray.tmax), (0.25, 8.0), "ray {i}");
+            let z = 1.0 - 2.0 * u0;
+            let (sin, cos) = (std::f32::consts::TAU * u1).sin_cos();
+            let r = (1.0 - z * z).sqrt();
+            let expected = Vec3A::new(r * cos, r * sin, z);
+            assert!((ray.direction - expected).length() < 1e-5, "sphere ray {i}: {:?}, {expected:?}", ray.direction);
+            let ray = ray_at(&hemisphere_rays, format, i);
+            assert_eq!(ray.origin, Vec3A::from(uniform_sphere.points[point]), "ray {i} starts at point {point}");
+            let cos_theta = Vec3::from(ray.direction).dot(normals[point].normalize());
+            assert!((cos_theta - (1.0 - u0).sqrt()).abs() < 1e-5, "hemisphere ray {i}: cos θ {cos_theta}, u0 {u0}");
+        }
+    }
+
     #[test]
     fn bad_numbers_are_refused_naming_the_field() {
         let mut flat = camera();
