@@ -2,7 +2,9 @@
 //! repository root: the shared bunny built from its file, listed and shown; camera rays written to a file, traced
 //! with hits (and counts) written to files byte for byte as the engine traces that file in this process; a PNG
 //! picture equal to the engine's hits shaded in this process; a short bench's report; and the exit codes and
-//! `error: <Code>: …` lines of a missing accel, a bad option and an unreachable server.
+//! `error: <Code>: …` lines of a missing accel, a bad option and an unreachable server. Rays made by the server from
+//! `rayctl trace`'s generator options (cameras, lidar, samples around points, secondary rays) trace as the engine's
+//! expansion of the generator those options describe, sent as a ray file.
 
 mod common;
 mod daemon;
@@ -12,12 +14,15 @@ use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
+use bytes::Bytes;
 use daemon::Daemon;
-use rayd_client::{Shading, shade};
+use rayd_client::{Client, ClientOptions, Shading, shade};
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::glam::Vec3;
 use rayd_engine::query::{Query, QueryKind};
-use rayd_engine::raygen::{Generator, Lidar};
+use rayd_engine::raygen::{
+    Bounce, Camera, Generator, Lidar, Orthographic, PixelSampling, Primary, Secondary, SphereSampling,
+};
 use rayd_engine::reduce::{Image, PixelEncoding, PointCloud, PointEncoding, Reduction};
 use reference::{BUNNY_TRIANGLES, assert_same_bytes, bunny};
 use serde_json::Value;
@@ -358,4 +363,191 @@ fn rayctl_builds_a_scene_file_as_an_instance_accel_over_its_meshes_and_renders_i
     std::fs::write(&broken, r#"{ "meshes": {}, "instances": [{ "mesh": "nothing" }] }"#).unwrap();
     let refused = fails(&server, &["scene", "--file", &broken], 1);
     assert!(refused.contains("instances[0].mesh"), "{refused}");
+}
+
+/// `x,y,z` as rayctl takes a vector (each `f32` printed so that it parses back to itself).
+fn vec3_arg(v: Vec3) -> String {
+    format!("{},{},{}", v.x, v.y, v.z)
+}
+
+/// Vectors packed as rayctl's `--points` and `--normals` files hold them: x, y, z little-endian f32 each.
+fn packed_vectors(vectors: &[Vec3]) -> Vec<u8> {
+    vectors.iter().flat_map(|v| v.to_array()).flat_map(f32::to_le_bytes).collect()
+}
+
+/// One `rayctl --json trace` of an accel, with its hits and counts files.
+struct Traced {
+    /// The hit records written to `--out`.
+    hits: Vec<u8>,
+    /// The counts written to `--out`.counts (empty without them).
+    counts: Vec<u8>,
+    /// The JSON report.
+    report: Value,
+}
+
+#[test]
+fn rayctl_traces_rays_made_by_the_server_as_the_engine_makes_them_sent_in_a_file() {
+    let daemon = Daemon::start(&[]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-generators");
+    let mesh_file = std::fs::canonicalize("../shared/data/meshes/stanford-bunny.obj").expect("the shared bunny");
+    let mesh_file = mesh_file.to_str().expect("a UTF-8 path");
+    succeeds(&server, &["build", "--mesh", mesh_file, "--name", "bunny"]);
+    let bunny = bunny();
+    let (lo, hi) = bunny.info().bounds;
+    let (centre, size) = ((lo + hi) * 0.5, hi - lo);
+    // The bunny moving by its own width along x over time [0, 1], for the lidar's times.
+    let scene = serde_json::json!({
+        "meshes": { "bunny": mesh_file },
+        "motion": { "keys": 2, "time": [0, 1] },
+        "instances": [{ "mesh": "bunny", "motion": { "time": [0, 1], "keys": [{}, { "translate": [size.x, 0, 0] }] } }]
+    });
+    let scene_file = scratch.path("moving.json");
+    std::fs::write(&scene_file, scene.to_string()).unwrap();
+    succeeds(&server, &["scene", "--file", &scene_file, "--name", "moving"]);
+
+    let ray_format = RayFormat::OriginTminDirectionTmaxTime;
+    let trace = |accel: &str, name: &str, rays: &[&str], query: &[&str], hit_format: &str| {
+        let out = scratch.path(name);
+        let formats = ["--ray-format", ray_format.name(), "--hit-format", hit_format, "--out", out.as_str()];
+        let report = json(&server, &[&["trace", "--accel", accel][..], rays, query, &formats].concat());
+        let counts = std::fs::read(format!("{out}.counts")).unwrap_or_default();
+        Traced { hits: read(&out), counts, report }
+    };
+    // Traces `args` with the generator options under test, and the rays `expected` makes, sent in a file: the same
+    // hits, counts and report counts; some rays hit and some miss.
+    let check = |what: &str, accel: &str, args: &[&str], expected: &Generator, query: &[&str], hit_format: &str| {
+        let made = trace(accel, &format!("{what}.hits"), args, query, hit_format);
+        let rays_file = scratch.path(&format!("{what}.rays"));
+        std::fs::write(&rays_file, expected.rays(ray_format)).unwrap();
+        let sent = trace(accel, &format!("{what}.sent"), &["--rays", &rays_file], query, hit_format);
+        assert_same_bytes(&made.hits, &sent.hits, &format!("{what}: hits"));
+        assert_same_bytes(&made.counts, &sent.counts, &format!("{what}: counts"));
+        let counted = |report: &Value| (report["rays"].as_u64(), report["hits"].as_u64());
+        assert_eq!(counted(&made.report), counted(&sent.report), "{what}: {} {}", made.report, sent.report);
+        let (rays, hit) = (made.report["rays"].as_u64().unwrap(), made.report["hits"].as_u64().unwrap());
+        assert_eq!(rays, expected.count(), "{what}: {}", made.report);
+        assert!(0 < hit && hit < rays, "{what}: rays hit and miss: {}", made.report);
+    };
+    let closest = ["--query", "closest"];
+
+    // Cameras: a jittered pinhole framing the box, and an orthographic one, both with several rays a pixel.
+    let jittered = PixelSampling { samples: 3, jitter_seed: Some(11) };
+    let pinhole = Generator::Pinhole(Camera::framing(lo, hi, 40, 30), jittered);
+    let args = ["--pixels", "40x30", "--samples", "3", "--jitter", "11"];
+    check("pinhole", "bunny", &args, &pinhole, &closest, "t_triid_u_v");
+    let orthographic = Orthographic {
+        eye: centre + Vec3::new(0.2, 0.1, 1.0) * size.length(),
+        target: centre,
+        up: Vec3::Y,
+        view_height: size.y * 1.2,
+        width: 32,
+        height: 24,
+    };
+    let view = [orthographic.eye, orthographic.target, orthographic.up].map(vec3_arg).join(",");
+    let view = format!("{view},{}", orthographic.view_height);
+    let args = ["--pixels", "32x24", "--orthographic", &view, "--samples", "2", "--jitter", "4"];
+    let sampling = PixelSampling { samples: 2, jitter_seed: Some(4) };
+    check("orthographic", "bunny", &args, &Generator::Orthographic(orthographic, sampling), &closest, "t_triid");
+
+    // A lidar sweeping the moving bunny over the revolution's times, every hit up to 4 a ray.
+    let lidar = Lidar {
+        origin: centre + Vec3::new(-0.3 * size.x, 0.1 * size.y, 1.5 * size.z),
+        forward: Vec3::new(0.1, 0.0, -1.0),
+        up: Vec3::new(0.0, 1.0, 0.1),
+        elevations_degrees: vec![-30.0, -15.0, 0.0, 15.0, 30.0],
+        steps: 360,
+        min_range: 0.9 * size.z,
+        max_range: 3.0 * size.z,
+        time: (0.0, 1.0),
+    };
+    let args = format!(
+        "--lidar --origin {} --forward {} --up {} --channels 5 --elevations -30,30 --steps 360 --min-range {} \
+         --max-range {} --time 0,1",
+        vec3_arg(lidar.origin),
+        vec3_arg(lidar.forward),
+        vec3_arg(lidar.up),
+        lidar.min_range,
+        lidar.max_range,
+    );
+    let args: Vec<&str> = args.split_whitespace().collect();
+    let all = ["--query", "all", "--max-hits", "4"];
+    check("lidar", "moving", &args, &Generator::Lidar(lidar), &all, "t_triid_instid");
+
+    // Samples around surface points: on the hemisphere of each point's normal (given as options, then as files),
+    // and on the whole sphere.
+    let triangles = &bunny.mesh.triangles[..50];
+    let corners = |t: &[u32; 3]| t.map(|i| bunny.mesh.positions[i as usize]);
+    let points: Vec<Vec3> = triangles.iter().map(|t| corners(t).iter().sum::<Vec3>() / 3.0).collect();
+    let normals: Vec<Vec3> = triangles.iter().map(corners).map(|[a, b, c]| (b - a).cross(c - a)).collect();
+    let around = SphereSampling {
+        points: points.clone(),
+        normals: normals.clone(),
+        samples: 16,
+        min_distance: 1e-4,
+        max_distance: 0.05,
+        seed: 5,
+    };
+    let options = |flag: &'static str, vectors: &[Vec3]| -> Vec<String> {
+        vectors.iter().flat_map(|&v| [flag.to_owned(), vec3_arg(v)]).collect()
+    };
+    let (listed_points, listed_normals) = (options("--point", &points), options("--normal", &normals));
+    let sampling = ["--samples", "16", "--seed", "5", "--min-distance", "0.0001", "--max-distance", "0.05"];
+    let args: Vec<&str> = listed_points.iter().chain(&listed_normals).map(String::as_str).chain(sampling).collect();
+    let count = ["--query", "count"];
+    check("hemispheres", "bunny", &args, &Generator::Sphere(around.clone()), &count, "t_triid");
+    let (points_file, normals_file) = (scratch.path("points.bin"), scratch.path("normals.bin"));
+    std::fs::write(&points_file, packed_vectors(&points)).unwrap();
+    std::fs::write(&normals_file, packed_vectors(&normals)).unwrap();
+    let args = [&["--points", &points_file, "--normals", &normals_file][..], &sampling].concat();
+    check("hemisphere-files", "bunny", &args, &Generator::Sphere(around.clone()), &count, "t_triid");
+    let sphere = SphereSampling {
+        normals: Vec::new(),
+        samples: 4,
+        min_distance: 0.0,
+        max_distance: f32::INFINITY,
+        seed: 3,
+        ..around
+    };
+    let args = ["--points", &points_file, "--samples", "4", "--seed", "3"];
+    check("spheres", "bunny", &args, &Generator::Sphere(sphere), &closest, "t");
+    std::fs::write(&points_file, &packed_vectors(&points)[..13]).unwrap();
+    let formats = ["--ray-format", ray_format.name(), "--hit-format", "t"];
+    let refused = fails(&server, &[&["trace", "--accel", "bunny", "--points", &points_file][..], &formats].concat(), 1);
+    assert!(refused.starts_with("error: InvalidArgument: ") && refused.contains("12-byte"), "{refused}");
+
+    // Secondary rays: reflections of the jittered camera's rays at their hits in a file, then shadow rays of a ray
+    // file's rays towards a light, their hits in a server-side buffer.
+    let primary_file = scratch.path("primary.full");
+    let args = ["--pixels", "40x30", "--samples", "3", "--jitter", "11"];
+    let primary = trace("bunny", "primary.full", &args, &closest, "full");
+    let reflect = Secondary {
+        primary: Primary::Generated(Box::new(pinhole.clone())),
+        hits: Bytes::from(primary.hits),
+        bounce: Bounce::Reflect,
+        offset: 1e-4,
+    };
+    let args = [&args[..], &["--reflect", "--primary-hits", &primary_file, "--offset", "0.0001"]].concat();
+    check("reflections", "bunny", &args, &Generator::Secondary(reflect), &closest, "t_triid_u_v");
+
+    let rays_file = scratch.path("camera.rays");
+    let camera_rays = Camera::framing(lo, hi, 48, 36).rays(ray_format);
+    std::fs::write(&rays_file, &camera_rays).unwrap();
+    let primary = trace("bunny", "camera.full", &["--rays", &rays_file], &closest, "full");
+    let runtime = tokio::runtime::Runtime::new().expect("a tokio runtime");
+    runtime.block_on(async {
+        let client = Client::connect(&server, ClientOptions::default()).await.expect("the client connects");
+        client.upload_buffer("camera-hits", Bytes::from(primary.hits.clone())).await.expect("the hits upload");
+    });
+    let light = hi + size;
+    let shadows = Secondary {
+        primary: Primary::Packed(ray_format, Bytes::from(camera_rays)),
+        hits: Bytes::from(primary.hits),
+        bounce: Bounce::TowardsLight(light),
+        offset: 2e-4,
+    };
+    let light = vec3_arg(light);
+    let args =
+        ["--rays", &rays_file, "--towards-light", &light, "--primary-hits-buffer", "camera-hits", "--offset", "0.0002"];
+    check("shadows", "bunny", &args, &Generator::Secondary(shadows), &["--query", "any"], "t");
 }

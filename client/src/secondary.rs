@@ -1,6 +1,8 @@
 //! Secondary rays made by the server from an earlier trace's hits that stayed on the server (a hits buffer): the
-//! primary rays are a generator's or a rays buffer's, so neither they, their hits nor the new rays cross the network.
+//! primary rays are a generator's or a rays buffer's, so neither they, their hits nor the new rays cross the network
+//! (or the caller's own, sent with the request).
 
+use bytes::Bytes;
 use rayd_engine::format::RayFormat;
 use rayd_engine::query::Query;
 use rayd_engine::raygen::{Bounce, Generator};
@@ -19,6 +21,8 @@ pub enum PrimaryRays {
     Generated(Generator),
     /// Packed in a server-side buffer, in this format.
     Buffer(proto::BufferRef, RayFormat),
+    /// Packed in this format and sent with the request (the caller's own rays, e.g. a ray file).
+    Inline(Bytes, RayFormat),
 }
 
 /// Rays that continue an earlier trace from its hits, which a `closest` or `any` trace wrote to a server-side buffer
@@ -43,6 +47,9 @@ impl SecondaryRays {
             PrimaryRays::Generated(generator) => (P::PrimaryGenerator(Box::new(generator_to_proto(generator))), 0),
             PrimaryRays::Buffer(buffer, format) => {
                 (P::PrimaryRaysBuffer(buffer.clone()), ray_format_to_proto(*format).into())
+            }
+            PrimaryRays::Inline(rays, format) => {
+                (P::PrimaryRaysInline(rays.clone()), ray_format_to_proto(*format).into())
             }
         };
         let secondary = proto::SecondaryRays {

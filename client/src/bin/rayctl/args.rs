@@ -1,16 +1,17 @@
 //! rayctl's command line: global options, one subcommand a job, and parsers for the engine's format names,
-//! camera views and durations.
+//! camera views, vectors and durations.
 
 use std::path::PathBuf;
 use std::time::Duration;
 
 use clap::builder::{PossibleValuesParser, TypedValueParser};
-use clap::{Args, Parser, Subcommand, ValueEnum};
+use clap::{ArgGroup, Args, Parser, Subcommand, ValueEnum};
 use glam::Vec3;
 use rayd_client::{DEFAULT_SERVER, Shading};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFlags, RayFormat};
 use rayd_engine::query::{Query, QueryKind};
+use rayd_engine::raygen::{Bounce, Lidar, PixelSampling};
 
 /// Command-line client of the rayd ray-tracing service.
 #[derive(Debug, Parser)]
@@ -120,8 +121,9 @@ pub enum Command {
     Stats,
     /// Write a file of packed rays: a camera's (framing the accel by default) or random rays in its box.
     Rays(RaysArgs),
-    /// Trace a file of packed rays.
-    Trace(TraceArgs),
+    /// Trace a file of packed rays, or rays the server makes itself (a pinhole or orthographic camera, a lidar,
+    /// samples around points), or the secondary rays of either from their hits.
+    Trace(Box<TraceArgs>),
     /// Render a PNG picture of an accel through the trace API.
     Render(RenderArgs),
     /// Scan an accel with a spinning lidar made by the server and write the returns as a PLY point cloud.
@@ -218,24 +220,51 @@ impl QueryArgs {
     }
 }
 
-/// `rayctl trace`.
+/// The ray sources of `rayctl trace` other than `--pixels`, which the camera's options conflict with. (An option
+/// that `requires` one source is let through when another source is given: clap lets a required argument be missing
+/// when it conflicts with one present, as every source does with the others. Requiring a group has no such leniency.)
+const SOURCES_BUT_PIXELS: [&str; 4] = ["rays", "lidar", "point", "points"];
+
+/// `rayctl trace`: the rays are a file's (`--rays`) or made by the server from one generator (`--pixels`,
+/// `--lidar`, `--point`/`--points`), exactly one of them; `--reflect` or `--towards-light` traces, instead, the
+/// secondary rays those rays make at their hits.
 #[derive(Debug, Args)]
+#[command(group(ArgGroup::new("ray_source").required(true).args(["rays", "pixels", "lidar", "point", "points"])))]
+#[command(group(ArgGroup::new("pixels_or_points").multiple(true).args(["pixels", "point", "points"])))]
 pub struct TraceArgs {
     /// The accel's name.
     #[arg(long, value_name = "NAME")]
     pub accel: String,
     /// A file of packed rays, no header.
-    #[arg(long, value_name = "FILE", required_unless_present = "pixels")]
+    #[arg(long, value_name = "FILE", conflicts_with = "lidar_scan")]
     pub rays: Option<PathBuf>,
-    /// Instead of a ray file: a pinhole camera of W×H pixels whose rays the server makes itself (no ray crosses
-    /// the network), framing the accel's box or placed by `--camera`.
-    #[arg(long, value_name = "WxH", value_parser = parse_pixels, conflicts_with = "rays")]
+    /// Instead of a ray file: a camera of W×H pixels whose rays the server makes itself (no ray crosses the
+    /// network): a pinhole framing the accel's box or placed by `--camera`, or an orthographic one placed by
+    /// `--orthographic`; rays pixel by pixel, row by row from the top left, `--samples` a pixel.
+    #[arg(long, value_name = "WxH", value_parser = parse_pixels, conflicts_with = "lidar_scan")]
     pub pixels: Option<(u32, u32)>,
     /// The camera of `--pixels`, as for `render`.
     #[arg(long, value_name = "EYE,TARGET,UP,FOVY", value_parser = parse_view, allow_hyphen_values = true,
-          conflicts_with = "rays")]
+          conflicts_with_all = SOURCES_BUT_PIXELS)]
     pub camera: Option<View>,
-    /// How the rays are packed (or made, with `--pixels`).
+    /// Makes the camera of `--pixels` orthographic: ten numbers, eye x,y,z, target x,y,z, up x,y,z, and the height
+    /// in world units of the image rectangle centred on the eye (its width follows W/H); parallel rays along
+    /// target − eye.
+    #[arg(long, value_name = "EYE,TARGET,UP,HEIGHT", value_parser = parse_orthographic, allow_hyphen_values = true,
+          conflicts_with_all = SOURCES_BUT_PIXELS, conflicts_with = "camera")]
+    pub orthographic: Option<OrthographicView>,
+    /// Rays a pixel of `--pixels` (through its centre, or `--jitter`ed), or a point of `--point`/`--points`.
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..),
+          requires = "pixels_or_points")]
+    pub samples: u32,
+    /// Sends each ray of `--pixels` through a point uniform in its pixel, drawn from SEED, instead of its centre.
+    #[arg(long, value_name = "SEED", conflicts_with_all = SOURCES_BUT_PIXELS)]
+    pub jitter: Option<u64>,
+    /// Instead of a ray file: one revolution of a spinning lidar whose rays the server makes, set by the lidar
+    /// options below as for `rayctl lidar`; rays step by step, channel by channel.
+    #[arg(long)]
+    pub lidar: bool,
+    /// How the rays are packed (or made by the server, without `--rays`; secondary rays are made in it too).
     #[arg(long, value_name = "FMT", value_parser = named(&RayFormat::ALL, RayFormat::name))]
     pub ray_format: RayFormat,
     /// How hits are packed.
@@ -247,6 +276,92 @@ pub struct TraceArgs {
     /// Write the packed hits here (and the counts of `all`/`count` to FILE.counts).
     #[arg(long, value_name = "FILE")]
     pub out: Option<PathBuf>,
+    /// The lidar of `--lidar`.
+    #[command(flatten, next_help_heading = "Lidar options (with --lidar)")]
+    pub lidar_scan: LidarScanArgs,
+    /// Rays around points instead of a ray file.
+    #[command(flatten, next_help_heading = "Sampling around points (instead of a ray file)")]
+    pub around: AroundPointsArgs,
+    /// Secondary rays of the rays instead of the rays.
+    #[command(flatten, next_help_heading = "Secondary rays (from the rays' hits)")]
+    pub secondary: SecondaryArgs,
+}
+
+/// `rayctl trace`'s rays from given points in random directions (ambient occlusion, visibility): `--samples` a
+/// point, uniform on the sphere, or cosine-distributed around each point's normal when normals are given.
+#[derive(Debug, Args)]
+#[command(group(ArgGroup::new("sphere_points").args(["point", "points"])))]
+pub struct AroundPointsArgs {
+    /// Instead of a ray file: rays from this point, made by the server; repeat for more points (1 to 65,536).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true,
+          conflicts_with = "lidar_scan")]
+    pub point: Vec<Vec3>,
+    /// Instead of a ray file or `--point`: rays from the points in FILE, packed x, y, z little-endian f32 (12 bytes a
+    /// point, no header).
+    #[arg(long, value_name = "FILE", conflicts_with = "lidar_scan")]
+    pub points: Option<PathBuf>,
+    /// The normal of each `--point`, in the same order (one a point): samples on the hemisphere around it.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true,
+          conflicts_with_all = ["rays", "pixels", "lidar", "points"])]
+    pub normal: Vec<Vec3>,
+    /// The normals of `--points`, one a point, packed as they are: samples on the hemisphere around each.
+    #[arg(long, value_name = "FILE", conflicts_with_all = ["rays", "pixels", "lidar", "point"])]
+    pub normals: Option<PathBuf>,
+    /// Seed of the rays' directions.
+    #[arg(long, default_value_t = 7, requires = "sphere_points")]
+    pub seed: u64,
+    /// Where the rays start along their direction (their tmin), to leave the surface a point lies on.
+    #[arg(long, value_name = "D", default_value_t = 0.0, requires = "sphere_points")]
+    pub min_distance: f32,
+    /// How far the rays reach (their tmax; default unlimited).
+    #[arg(long, value_name = "D", default_value_t = f32::INFINITY, requires = "sphere_points")]
+    pub max_distance: f32,
+}
+
+/// `rayctl trace`'s secondary rays, made by the server: ray i starts where ray i hit (moved `--offset` off the
+/// surface) and reflects, or heads for a point light; a ray that missed makes one that hits nothing.
+#[derive(Debug, Args)]
+#[command(group(ArgGroup::new("bounce").args(["reflect", "towards_light"])))]
+#[command(group(ArgGroup::new("primary_hits_from").args(["primary_hits", "primary_hits_buffer"])))]
+pub struct SecondaryArgs {
+    /// Trace, instead of the rays, their mirror reflections about the geometric normal at their hits.
+    #[arg(long, requires = "primary_hits_from")]
+    pub reflect: bool,
+    /// Trace, instead of the rays, shadow rays from their hits towards a point light at X,Y,Z, each reaching the
+    /// light (use `--query any`).
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true,
+          requires = "primary_hits_from")]
+    pub towards_light: Option<Vec3>,
+    /// The rays' hits: a file of `full` hit records, one a ray, as `rayctl trace --query closest` (or `any`)
+    /// `--hit-format full --out FILE` writes them for the same rays.
+    #[arg(long, value_name = "FILE", requires = "bounce")]
+    pub primary_hits: Option<PathBuf>,
+    /// Instead of `--primary-hits`: the server-side buffer called NAME that holds them (a trace's hits buffer), so
+    /// the hits do not cross the network.
+    #[arg(long, value_name = "NAME", requires = "bounce")]
+    pub primary_hits_buffer: Option<String>,
+    /// World units (≥ 0) that the secondary rays' origins move off the surface, so that a ray does not hit the
+    /// triangle it leaves.
+    #[arg(long, value_name = "D", default_value_t = 0.0, requires = "bounce")]
+    pub offset: f32,
+}
+
+impl SecondaryArgs {
+    /// What the secondary rays do at their primary ray's hit; `None` to trace the rays themselves.
+    pub fn bounce(&self) -> Option<Bounce> {
+        match (self.reflect, self.towards_light) {
+            (true, _) => Some(Bounce::Reflect),
+            (false, Some(light)) => Some(Bounce::TowardsLight(light)),
+            (false, None) => None,
+        }
+    }
+}
+
+impl TraceArgs {
+    /// Where the rays of `--pixels` pass through their pixel.
+    pub fn pixel_sampling(&self) -> PixelSampling {
+        PixelSampling { samples: self.samples, jitter_seed: self.jitter }
+    }
 }
 
 /// `rayctl rays`.
@@ -326,6 +441,19 @@ pub struct LidarArgs {
     /// The accel's name.
     #[arg(long, value_name = "NAME")]
     pub accel: String,
+    /// The lidar.
+    #[command(flatten)]
+    pub scan: LidarScanArgs,
+    /// The PLY file to write.
+    #[arg(short = 'o', long = "output", value_name = "FILE.ply")]
+    pub output: PathBuf,
+}
+
+/// A spinning lidar, as `rayctl lidar` and `rayctl trace --lidar` take it: for each of `--steps` azimuths around
+/// `--up`, one ray a channel.
+#[derive(Debug, Args)]
+#[group(id = "lidar_scan", multiple = true)]
+pub struct LidarScanArgs {
     /// The sensor's position (default: above the middle of the accel's box's front face, +z).
     #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3, allow_hyphen_values = true)]
     pub origin: Option<Vec3>,
@@ -350,9 +478,28 @@ pub struct LidarArgs {
     /// Farthest range (the rays' tmax; default unlimited).
     #[arg(long, value_name = "R", default_value_t = f32::INFINITY)]
     pub max_range: f32,
-    /// The PLY file to write.
-    #[arg(short = 'o', long = "output", value_name = "FILE.ply")]
-    pub output: PathBuf,
+    /// Motion scenes: the revolution fires at time T, or over [T0, T1] (step s of N at T0 + (T1 − T0)·s/N).
+    #[arg(long, value_name = "T|T0,T1", default_value = "0", value_parser = parse_times, allow_hyphen_values = true)]
+    pub time: (f32, f32),
+}
+
+impl LidarScanArgs {
+    /// The lidar these options describe, its sensor at `origin` (`--origin`, or the default the caller works out).
+    pub fn lidar(&self, origin: Vec3) -> Lidar {
+        let (low, high) = self.elevations;
+        let last = self.channels - 1;
+        let spread = |c: u32| if last == 0 { low } else { low + (high - low) * c as f32 / last as f32 };
+        Lidar {
+            origin,
+            forward: self.forward,
+            up: self.up,
+            elevations_degrees: (0..self.channels).map(spread).collect(),
+            steps: self.steps,
+            min_range: self.min_range,
+            max_range: self.max_range,
+            time: self.time,
+        }
+    }
 }
 
 /// Parses `WxH`: pixels a row and rows, each 1 to 16,384.
@@ -394,7 +541,7 @@ impl From<ShadingArg> for Shading {
     }
 }
 
-/// Where a camera stands and looks.
+/// Where a pinhole camera stands and looks.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct View {
     /// Position of the eye.
@@ -405,6 +552,19 @@ pub struct View {
     pub up: Vec3,
     /// Vertical field of view, in degrees.
     pub fov_y_degrees: f32,
+}
+
+/// Where an orthographic camera stands and looks, and how much it sees.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OrthographicView {
+    /// Centre of the image rectangle.
+    pub eye: Vec3,
+    /// A point looked towards: the rays run along `target − eye`.
+    pub target: Vec3,
+    /// Up direction.
+    pub up: Vec3,
+    /// Height of the image rectangle, in world units.
+    pub view_height: f32,
 }
 
 /// `rayctl bench`.
@@ -443,23 +603,47 @@ fn named<T: Copy + Send + Sync + 'static>(
         .map(move |chosen| *all.iter().find(|&&value| name(value) == chosen).expect("one of the possible values"))
 }
 
-/// Parses `ex,ey,ez,tx,ty,tz,ux,uy,uz,fovy`.
-fn parse_view(text: &str) -> Result<View, String> {
+/// Parses ten comma-separated numbers: eye x,y,z, target x,y,z, up x,y,z and one more.
+fn ten_numbers(text: &str) -> Result<[f32; 10], String> {
     let numbers: Vec<f32> = text
         .split(',')
         .map(|n| n.trim().parse::<f32>().map_err(|e| format!("{n:?}: {e}")))
         .collect::<Result<_, _>>()?;
-    let [ex, ey, ez, tx, ty, tz, ux, uy, uz, fov] = numbers[..] else {
-        return Err(format!("expected 10 comma-separated numbers, got {}", numbers.len()));
-    };
-    if !(fov > 0.0 && fov < 180.0) {
-        return Err(format!("the field of view must be between 0 and 180 degrees, not {fov}"));
-    }
+    let count = numbers.len();
+    numbers.try_into().map_err(|_| format!("expected 10 comma-separated numbers, got {count}"))
+}
+
+/// The eye, target and up of the first nine of `numbers`, which must make a view: the eye apart from the target,
+/// up not along the view.
+fn placement(numbers: &[f32; 10]) -> Result<(Vec3, Vec3, Vec3), String> {
+    let [ex, ey, ez, tx, ty, tz, ux, uy, uz, _] = *numbers;
     let (eye, target, up) = (Vec3::new(ex, ey, ez), Vec3::new(tx, ty, tz), Vec3::new(ux, uy, uz));
     if !(eye - target).is_finite() || eye == target || (target - eye).cross(up).length_squared() == 0.0 {
         return Err("the eye must differ from the target and up must not be parallel to the view".into());
     }
+    Ok((eye, target, up))
+}
+
+/// Parses `ex,ey,ez,tx,ty,tz,ux,uy,uz,fovy`.
+fn parse_view(text: &str) -> Result<View, String> {
+    let numbers = ten_numbers(text)?;
+    let fov = numbers[9];
+    if !(fov > 0.0 && fov < 180.0) {
+        return Err(format!("the field of view must be between 0 and 180 degrees, not {fov}"));
+    }
+    let (eye, target, up) = placement(&numbers)?;
     Ok(View { eye, target, up, fov_y_degrees: fov })
+}
+
+/// Parses `ex,ey,ez,tx,ty,tz,ux,uy,uz,height`.
+fn parse_orthographic(text: &str) -> Result<OrthographicView, String> {
+    let numbers = ten_numbers(text)?;
+    let height = numbers[9];
+    if !(height.is_finite() && height > 0.0) {
+        return Err(format!("the view height must be a positive number of world units, not {height}"));
+    }
+    let (eye, target, up) = placement(&numbers)?;
+    Ok(OrthographicView { eye, target, up, view_height: height })
 }
 
 /// Parses a positive number of seconds.
@@ -534,6 +718,85 @@ mod tests {
         assert!(with(&["--rays", "r.bin", "--pixels", "4x4"]).is_err(), "not both");
         assert!(with(&["--pixels", "0x4"]).is_err() && with(&["--pixels", "4"]).is_err(), "sane sizes");
         assert!(with(&["--rays", "r.bin", "--camera", "0,0,5,0,0,0,0,1,0,40"]).is_err(), "a camera needs --pixels");
+    }
+
+    #[test]
+    fn trace_makes_every_generator_from_its_own_options() {
+        let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
+        let trace = |extra: &[&str]| match parse(&[&["trace", "--accel", "a"], extra, &formats[..]].concat()) {
+            Ok(Cli { command: Command::Trace(trace), .. }) => trace,
+            other => panic!("{extra:?}: {other:?}"),
+        };
+        let camera = trace(&["--pixels", "8x6", "--orthographic", "0,0,5,0,0,0,0,1,0,2.5", "--samples", "4"]);
+        let view = camera.orthographic.expect("an orthographic camera");
+        assert_eq!((view.eye, view.target, view.view_height), (Vec3::new(0.0, 0.0, 5.0), Vec3::ZERO, 2.5));
+        assert_eq!(camera.pixel_sampling(), PixelSampling { samples: 4, jitter_seed: None });
+        let jittered = trace(&["--pixels", "8x6", "--jitter", "9"]);
+        assert_eq!(jittered.pixel_sampling(), PixelSampling { samples: 1, jitter_seed: Some(9) });
+
+        let scan = trace(&["--lidar", "--channels", "3", "--elevations", "-10,10", "--steps", "5", "--time", "0,1"]);
+        assert!(scan.lidar && scan.rays.is_none());
+        let lidar = scan.lidar_scan.lidar(Vec3::X);
+        assert_eq!((lidar.origin, lidar.steps, lidar.time), (Vec3::X, 5, (0.0, 1.0)));
+        assert_eq!(lidar.elevations_degrees, [-10.0, 0.0, 10.0]);
+        assert_eq!(trace(&["--lidar"]).lidar_scan.lidar(Vec3::X).time, (0.0, 0.0), "at time 0 by default");
+
+        let around = trace(&["--point", "0,0,0", "--point", "1,-2,3", "--normal", "0,1,0", "--normal", "0,0,-1"]);
+        assert_eq!(around.around.point, [Vec3::ZERO, Vec3::new(1.0, -2.0, 3.0)]);
+        assert_eq!(around.around.normal, [Vec3::Y, Vec3::NEG_Z]);
+        assert_eq!((around.samples, around.around.seed, around.around.max_distance), (1, 7, f32::INFINITY));
+
+        let shadows =
+            trace(&["--rays", "r", "--towards-light", "1,-2,3", "--primary-hits-buffer", "h", "--offset", "1"]);
+        assert_eq!(shadows.secondary.bounce(), Some(Bounce::TowardsLight(Vec3::new(1.0, -2.0, 3.0))));
+        assert_eq!((shadows.secondary.primary_hits_buffer.as_deref(), shadows.secondary.offset), (Some("h"), 1.0));
+        let reflections = trace(&["--pixels", "4x4", "--reflect", "--primary-hits", "h.bin"]);
+        assert_eq!(reflections.secondary.bounce(), Some(Bounce::Reflect));
+        assert_eq!(trace(&["--rays", "r"]).secondary.bounce(), None, "the rays themselves");
+    }
+
+    #[test]
+    fn trace_refuses_two_ray_sources_and_options_without_theirs() {
+        let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
+        let with = |extra: &[&str]| parse(&[&["trace", "--accel", "a"], extra, &formats[..]].concat());
+        let (view, orthographic) = ("0,0,5,0,0,0,0,1,0,40", "0,0,5,0,0,0,0,1,0,2");
+        let refused: [&[&str]; 20] = [
+            &["--rays", "r", "--lidar"],
+            &["--pixels", "4x4", "--point", "0,0,0"],
+            &["--point", "0,0,0", "--points", "p.bin"],
+            &["--lidar", "--points", "p.bin"],
+            &["--channels", "4"],
+            &["--rays", "r", "--channels", "4"],
+            &["--pixels", "4x4", "--steps", "4"],
+            &["--point", "0,0,0", "--origin", "0,0,0"],
+            &["--rays", "r", "--samples", "2"],
+            &["--lidar", "--jitter", "1"],
+            &["--rays", "r", "--orthographic", orthographic],
+            &["--pixels", "4x4", "--camera", view, "--orthographic", orthographic],
+            &["--pixels", "4x4", "--orthographic", "0,0,5,0,0,0,0,1,0,0"],
+            &["--point", "0,0,0", "--normals", "n.bin"],
+            &["--rays", "r", "--seed", "3"],
+            &["--rays", "r", "--reflect"],
+            &["--rays", "r", "--primary-hits", "h.bin"],
+            &["--rays", "r", "--reflect", "--towards-light", "1,1,1", "--primary-hits", "h.bin"],
+            &["--rays", "r", "--reflect", "--primary-hits", "h.bin", "--primary-hits-buffer", "h"],
+            &["--rays", "r", "--offset", "0.1"],
+        ];
+        for extra in refused {
+            assert!(with(extra).is_err(), "{extra:?} is refused");
+        }
+    }
+
+    #[test]
+    fn lidar_keeps_its_options_and_their_defaults() {
+        let cli = parse(&["lidar", "--accel", "a", "-o", "s.ply", "--channels", "2", "--min-range", "0.5"]).unwrap();
+        let Command::Lidar(lidar) = cli.command else { panic!("not lidar") };
+        let made = lidar.scan.lidar(Vec3::ZERO);
+        assert_eq!((made.forward, made.up, made.steps, made.min_range), (Vec3::NEG_Z, Vec3::Y, 1024, 0.5));
+        assert_eq!(
+            (made.elevations_degrees, made.max_range, made.time),
+            (vec![-25.0, 15.0], f32::INFINITY, (0.0, 0.0))
+        );
     }
 
     #[test]

@@ -5,17 +5,24 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
+use bytes::Bytes;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
 use rayd_client::{
-    BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, check_health, load_mesh,
+    BenchOptions, Client, ClientOptions, ClientTls, Error, PrimaryRays, Result, Scene, SecondaryRays, ServingStatus,
+    check_health, load_mesh, proto,
 };
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::raygen::{Camera, Generator, Lidar, PixelSampling, random_rays, uniform};
+use rayd_engine::raygen::{
+    Camera, Generator, Lidar, Orthographic, Primary, Secondary, SphereSampling, random_rays, uniform,
+};
 use serde_json::json;
 
-use crate::args::{BenchArgs, BuildArgs, Cli, Command, LidarArgs, RaysArgs, RenderArgs, SceneArgs, TraceArgs, View};
+use crate::args::{
+    AroundPointsArgs, BenchArgs, BuildArgs, Cli, Command, LidarArgs, LidarScanArgs, RaysArgs, RenderArgs, SceneArgs,
+    TraceArgs, View,
+};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -111,22 +118,16 @@ async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
     Ok(show::accel(&client.build_scene(&name, &args.device, &scene, BuildFlags::empty()).await?))
 }
 
-/// `rayctl trace`: `wall_ms` times the trace call alone, from sending the rays to holding every hit.
+/// `rayctl trace`: `wall_ms` times the trace call alone, from sending the rays (or what the server makes them from)
+/// to holding every hit.
 async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
     let query = args.query.query(args.ray_format, args.hit_format);
-    let (start, traced) = match (&args.rays, args.pixels) {
-        (Some(file), _) => {
-            let rays = std::fs::read(file).map_err(|e| Error::io(file, e))?;
-            let start = Instant::now();
-            (start, client.trace(&args.accel, &query, rays.into()).await?)
-        }
-        (None, Some((width, height))) => {
-            let camera = camera(client, &args.accel, args.camera, width, height).await?;
-            let generator = Generator::Pinhole(camera, PixelSampling { samples: 1, jitter_seed: None });
-            let start = Instant::now();
-            (start, client.trace_generated(&args.accel, &query, &generator).await?)
-        }
-        (None, None) => unreachable!("clap requires --rays or --pixels"),
+    let rays = traced_rays(client, args).await?;
+    let start = Instant::now();
+    let traced = match rays {
+        TracedRays::Sent(rays) => client.trace(&args.accel, &query, rays).await?,
+        TracedRays::Generated(generator) => client.trace_generated(&args.accel, &query, &generator).await?,
+        TracedRays::FromHitsBuffer(secondary) => client.trace_secondary(&args.accel, &query, &secondary).await?,
     };
     let wall = start.elapsed();
     if let Some(out) = &args.out {
@@ -173,6 +174,127 @@ async fn camera(client: &Client, accel: &str, view: Option<View>, width: u32, he
     })
 }
 
+/// The rays `rayctl trace` starts from: a file's, or a generator's that the server expands.
+enum RaySource {
+    /// Packed in `--ray-format`, read from `--rays`.
+    File(Bytes),
+    /// Made by the server.
+    Generator(Generator),
+}
+
+/// What `rayctl trace` sends: the rays themselves, a generator, or secondary rays from a server-side hits buffer.
+enum TracedRays {
+    /// Packed rays, sent.
+    Sent(Bytes),
+    /// A generator the server expands (secondary rays from hits sent inline among them).
+    Generated(Generator),
+    /// Secondary rays from hits that stay on the server.
+    FromHitsBuffer(SecondaryRays),
+}
+
+/// What `rayctl trace` traces: its rays ([`ray_source`]), or, with `--reflect` or `--towards-light`, the secondary
+/// rays they make at their hits.
+async fn traced_rays(client: &Client, args: &TraceArgs) -> Result<TracedRays> {
+    let source = ray_source(client, args).await?;
+    let secondary = &args.secondary;
+    let Some(bounce) = secondary.bounce() else {
+        return Ok(match source {
+            RaySource::File(rays) => TracedRays::Sent(rays),
+            RaySource::Generator(generator) => TracedRays::Generated(generator),
+        });
+    };
+    let offset = secondary.offset;
+    match (&secondary.primary_hits, &secondary.primary_hits_buffer) {
+        (Some(file), _) => {
+            let hits = read_file(file)?;
+            let primary = match source {
+                RaySource::File(rays) => Primary::Packed(args.ray_format, rays),
+                RaySource::Generator(generator) => Primary::Generated(Box::new(generator)),
+            };
+            Ok(TracedRays::Generated(Generator::Secondary(Secondary { primary, hits, bounce, offset })))
+        }
+        (None, Some(name)) => {
+            let primary = match source {
+                RaySource::File(rays) => PrimaryRays::Inline(rays, args.ray_format),
+                RaySource::Generator(generator) => PrimaryRays::Generated(generator),
+            };
+            let hits_buffer = proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Name(name.clone())) };
+            Ok(TracedRays::FromHitsBuffer(SecondaryRays { primary, hits_buffer, bounce, offset }))
+        }
+        (None, None) => unreachable!("clap requires --primary-hits or --primary-hits-buffer with a bounce"),
+    }
+}
+
+/// The rays of `rayctl trace`'s one ray source: `--rays`, `--pixels`, `--lidar`, or `--point`/`--points`.
+async fn ray_source(client: &Client, args: &TraceArgs) -> Result<RaySource> {
+    if let Some(file) = &args.rays {
+        return Ok(RaySource::File(read_file(file)?));
+    }
+    let generator = if let Some((width, height)) = args.pixels {
+        let sampling = args.pixel_sampling();
+        match args.orthographic {
+            Some(view) => {
+                let (eye, target, up, view_height) = (view.eye, view.target, view.up, view.view_height);
+                Generator::Orthographic(Orthographic { eye, target, up, view_height, width, height }, sampling)
+            }
+            None => Generator::Pinhole(camera(client, &args.accel, args.camera, width, height).await?, sampling),
+        }
+    } else if args.lidar {
+        Generator::Lidar(lidar_scan(client, &args.accel, &args.lidar_scan).await?)
+    } else {
+        Generator::Sphere(around_points(&args.around, args.samples)?)
+    };
+    Ok(RaySource::Generator(generator))
+}
+
+/// The lidar of `scan`, its sensor by default above the middle of the accel's box's front face (+z).
+async fn lidar_scan(client: &Client, accel: &str, scan: &LidarScanArgs) -> Result<Lidar> {
+    let origin = match scan.origin {
+        Some(origin) => origin,
+        None => {
+            let (lo, hi) = accel_bounds(client, accel).await?;
+            Vec3::new((lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z)
+        }
+    };
+    Ok(scan.lidar(origin))
+}
+
+/// `samples` rays around each point of `--point` or `--points`, on the hemisphere of its normal where normals are
+/// given.
+fn around_points(around: &AroundPointsArgs, samples: u32) -> Result<SphereSampling> {
+    let (points, normals) = match &around.points {
+        Some(file) => {
+            let normals = around.normals.as_ref().map(|file| packed_points(file)).transpose()?;
+            (packed_points(file)?, normals.unwrap_or_default())
+        }
+        None => (around.point.clone(), around.normal.clone()),
+    };
+    Ok(SphereSampling {
+        points,
+        normals,
+        samples,
+        min_distance: around.min_distance,
+        max_distance: around.max_distance,
+        seed: around.seed,
+    })
+}
+
+/// The vectors packed in `file`: x, y, z little-endian f32 each, 12 bytes a vector.
+fn packed_points(file: &Path) -> Result<Vec<Vec3>> {
+    let bytes = read_file(file)?;
+    if !bytes.len().is_multiple_of(12) {
+        let what = format!("{}: {} bytes is not a whole number of 12-byte x, y, z points", file.display(), bytes.len());
+        return Err(Error::InvalidArgument(what));
+    }
+    let f32_at = |at: &[u8]| f32::from_le_bytes(at.try_into().expect("4 bytes"));
+    Ok(bytes.chunks_exact(12).map(|p| Vec3::new(f32_at(&p[..4]), f32_at(&p[4..8]), f32_at(&p[8..]))).collect())
+}
+
+/// The bytes of a file the command reads.
+fn read_file(file: &Path) -> Result<Bytes> {
+    std::fs::read(file).map(Bytes::from).map_err(|e| Error::io(file, e))
+}
+
 /// `rayctl rays`: camera or random rays for an accel, packed into a file for `trace`.
 async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
     let mut bytes = match args.random {
@@ -215,26 +337,7 @@ async fn render(client: &Client, args: &RenderArgs) -> Result<Output> {
 
 /// `rayctl lidar`: one revolution, the returns written as PLY.
 async fn lidar(client: &Client, args: &LidarArgs) -> Result<Output> {
-    let origin = match args.origin {
-        Some(origin) => origin,
-        None => {
-            let (lo, hi) = accel_bounds(client, &args.accel).await?;
-            Vec3::new((lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z)
-        }
-    };
-    let (low, high) = args.elevations;
-    let spread =
-        |c: u32| if args.channels == 1 { low } else { low + (high - low) * c as f32 / (args.channels - 1) as f32 };
-    let lidar = Lidar {
-        origin,
-        forward: args.forward,
-        up: args.up,
-        elevations_degrees: (0..args.channels).map(spread).collect(),
-        steps: args.steps,
-        min_range: args.min_range,
-        max_range: args.max_range,
-        time: (0.0, 0.0),
-    };
+    let lidar = lidar_scan(client, &args.accel, &args.scan).await?;
     let start = Instant::now();
     let scan = client.lidar(&args.accel, &lidar).await?;
     let wall_ms = start.elapsed().as_secs_f64() * 1e3;
