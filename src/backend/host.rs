@@ -1,12 +1,26 @@
 //! Traces of generated rays and reduced traces done around a backend's plain [`Backend::trace`]: the rays made on
-//! the host into a scratch buffer, the hits reduced on the host, both across the rayon pool. Every backend's
-//! default; the wgpu backend does on the device what it can and comes here for the rest.
+//! the host, the hits reduced on the host, across the rayon pool. Two ways:
+//! - whole: every ray made into one scratch buffer, traced, then reduced ([`trace_source`], [`trace_reduced`]):
+//!   every backend's default, and what the wgpu backend comes to for what it cannot do on the device (a GPU wants
+//!   large dispatches);
+//! - in parts of [`PART_RAYS`] ([`trace_source_in_parts`], [`trace_reduced_in_parts`]): each worker makes, traces
+//!   and reduces a part while its rays and hits are in the core's cache, in buffers it reuses from part to part,
+//!   for backends that trace on the host's cores (the CPU). Nothing the size of the batch is allocated, touched for
+//!   the first time (page faults) or streamed through memory.
+
+use std::ops::Range;
+
+use rayon::prelude::*;
 
 use super::{Backend, BackendAccel, RaySource};
 use crate::error::Result;
 use crate::format::RayFormat;
-use crate::query::{Query, TraceOutput, TraceStats};
+use crate::query::{CHUNK_RAYS, Query, TraceOutput, TraceStats};
 use crate::reduce::{Partial, Reduction};
+
+/// Rays a part of a trace done in parts (a whole number of the batch driver's chunks): 8,192 rays of 24–48 bytes
+/// and their hits fit a core's second-level cache.
+pub const PART_RAYS: usize = 8 * CHUNK_RAYS;
 
 /// The rays of `rays` packed in `format`: the caller's bytes, or made into `scratch`.
 pub fn packed<'a>(rays: RaySource<'a>, format: RayFormat, scratch: &'a mut Vec<u8>) -> &'a [u8] {
@@ -50,4 +64,86 @@ pub fn trace_reduced<B: Backend + ?Sized>(
     let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
     let stats = backend.trace(accel, &traced, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
     Ok((reduction.reduce_piece_parallel(&traced, first_ray, rays, &hits, &counts), stats))
+}
+
+/// A worker's buffers for the parts it does, reused from part to part.
+#[derive(Default)]
+struct PartScratch {
+    /// The part's rays, when they are made.
+    rays: Vec<u8>,
+    /// Its hit records.
+    hits: Vec<u8>,
+    /// Its per-ray counts.
+    counts: Vec<u8>,
+}
+
+/// The ranges of rays of a trace in parts: `part` rays each (the last may be shorter), `rays` in all.
+fn parts(rays: usize, part: usize) -> impl IndexedParallelIterator<Item = Range<usize>> {
+    (0..rays.div_ceil(part)).into_par_iter().map(move |index| index * part..((index + 1) * part).min(rays))
+}
+
+/// [`trace_source`] in parts of [`PART_RAYS`]: generated rays made a part at a time (packed rays go to
+/// [`Backend::trace`] as they are). The same records.
+pub fn trace_source_in_parts<B: Backend + ?Sized>(
+    backend: &B,
+    accel: &dyn BackendAccel,
+    query: &Query,
+    rays: RaySource<'_>,
+    out: TraceOutput<'_>,
+) -> Result<TraceStats> {
+    let RaySource::Generated { .. } = rays else { return trace_source(backend, accel, query, rays, out) };
+    let layout = query.output_layout(rays.packed_len(query.ray_format.size()))?;
+    out.check(&layout)?;
+    // Parts start on byte boundaries of a bitmask: `PART_RAYS` is a multiple of 8.
+    let hit_bytes = query.output_layout(PART_RAYS * query.ray_format.size())?.hits;
+    let hits: Vec<&mut [u8]> = out.hits.chunks_mut(hit_bytes.max(1)).collect();
+    let counts: Vec<&mut [u8]> = match query.kind.has_counts() {
+        true => out.counts.chunks_mut(PART_RAYS * 4).collect(),
+        false => hits.iter().map(|_| Default::default()).collect(),
+    };
+    let ray_size = query.ray_format.size();
+    let stats = parts(layout.rays, PART_RAYS)
+        .zip(hits.into_par_iter().zip(counts))
+        .map_init(PartScratch::default, |scratch, (range, (hits, counts))| {
+            let rays = packed(rays.part(range, ray_size), query.ray_format, &mut scratch.rays);
+            backend.trace(accel, query, rays, TraceOutput { hits, counts })
+        })
+        .collect::<Result<Vec<TraceStats>>>()?;
+    Ok(stats.iter().fold(TraceStats::default(), |mut all, part| {
+        all.add(part);
+        all
+    }))
+}
+
+/// [`trace_reduced`] in parts of about [`PART_RAYS`] (whole groups of the reduction), each made, traced and reduced
+/// by one worker; the parts' partials folded in ray order. The same partial.
+pub fn trace_reduced_in_parts<B: Backend + ?Sized>(
+    backend: &B,
+    accel: &dyn BackendAccel,
+    query: &Query,
+    rays: RaySource<'_>,
+    first_ray: u64,
+    reduction: &Reduction,
+) -> Result<(Partial, TraceStats)> {
+    let traced = reduction.traced_query(query);
+    let layout = traced.output_layout(rays.packed_len(traced.ray_format.size()))?;
+    let group = reduction.group_rays();
+    let part = PART_RAYS.div_ceil(group) * group;
+    let ray_size = traced.ray_format.size();
+    let reduced = parts(layout.rays, part)
+        .map_init(PartScratch::default, |scratch, range| {
+            let PartScratch { rays: made, hits, counts } = scratch;
+            let rays = packed(rays.part(range.clone(), ray_size), traced.ray_format, made);
+            let layout = traced.output_layout(rays.len())?;
+            hits.resize(layout.hits, 0);
+            counts.resize(layout.counts, 0);
+            let stats = backend.trace(accel, &traced, rays, TraceOutput { hits, counts })?;
+            Ok((reduction.reduce_piece(&traced, first_ray + range.start as u64, rays, hits, counts), stats))
+        })
+        .collect::<Result<Vec<(Partial, TraceStats)>>>()?;
+    Ok(reduced.into_iter().fold((reduction.empty(), TraceStats::default()), |(mut folded, mut all), (part, stats)| {
+        folded.merge(part);
+        all.add(&stats);
+        (folded, all)
+    }))
 }

@@ -177,7 +177,18 @@ pub enum RaySource<'a> {
     },
 }
 
-impl RaySource<'_> {
+impl<'a> RaySource<'a> {
+    /// Rays `range` of it (indices from its first ray; `range.end` at most its rays): for packed rays whole records
+    /// of `ray_size` bytes.
+    pub fn part(&self, range: std::ops::Range<usize>, ray_size: usize) -> RaySource<'a> {
+        match *self {
+            RaySource::Packed(bytes) => RaySource::Packed(&bytes[range.start * ray_size..range.end * ray_size]),
+            RaySource::Generated { generator, first, .. } => {
+                RaySource::Generated { generator, first: first + range.start as u64, count: range.len() }
+            }
+        }
+    }
+
     /// Bytes its rays take packed: the caller's bytes (perhaps not whole records), or whole records.
     pub fn packed_len(&self, ray_size: usize) -> usize {
         match self {

@@ -170,6 +170,7 @@ impl HitFormat {
     /// Reads record `index` of a hit buffer (laid out as [`HitFormat::write`] takes it). Fields the format does not
     /// carry read as in [`Hit::MISS`]; a bitmask hit, which carries no distance, reads as `t = 0` so that
     /// [`Hit::is_hit`] holds. The `full` format's normal reads as written: unit length.
+    #[inline(always)]
     pub fn read(self, buffer: &[u8], index: usize) -> Hit {
         let Some(size) = self.size() else {
             let hit = buffer[index / 8] & (1 << (index % 8)) != 0;
@@ -196,6 +197,17 @@ impl HitFormat {
             }
         }
         hit
+    }
+
+    /// Record `index`'s `t` when it is a hit ([`Hit::is_hit`]), reading no more of it than that takes: what
+    /// [`HitFormat::read`] gives, for reductions that want no more.
+    #[inline(always)]
+    pub fn hit_t(self, buffer: &[u8], index: usize) -> Option<f32> {
+        let Some(size) = self.size() else { return (buffer[index / 8] & (1 << (index % 8)) != 0).then_some(0.0) };
+        let record = &buffer[index * size..(index + 1) * size];
+        let t = read_f32(record, 0);
+        let prim_id = if self == HitFormat::T { MISS_ID } else { read_u32(record, 4) };
+        (prim_id != MISS_ID || t >= 0.0).then_some(t)
     }
 
     /// Calls `f` with this format as a constant, once in each arm of a match, so that a loop in `f` writing many
@@ -293,6 +305,21 @@ mod tests {
             format.write(&mut record, 0, &behind);
             // The `t` format has no id: by Prime's rule its negative t reads as a miss (the contract says so).
             assert_eq!(format.read(&record, 0).is_hit(), format != HitFormat::T, "{format:?}");
+        }
+    }
+
+    #[test]
+    fn the_t_of_a_hit_is_what_a_whole_record_says() {
+        let hits = [Hit { t: 2.5, prim_id: 7, ..Hit::MISS }, Hit::MISS, Hit { t: -0.5, prim_id: 3, ..Hit::MISS }];
+        for format in HitFormat::ALL {
+            let mut records = vec![0u8; format.buffer_len(hits.len())];
+            for (index, hit) in hits.iter().enumerate() {
+                format.write(&mut records, index, hit);
+            }
+            for index in 0..hits.len() {
+                let read = format.read(&records, index);
+                assert_eq!(format.hit_t(&records, index), read.is_hit().then_some(read.t), "{format:?} {index}");
+            }
         }
     }
 

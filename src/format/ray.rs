@@ -153,7 +153,21 @@ impl RayFormat {
         ray
     }
 
+    /// Calls `f` with this format as a constant, once in each arm of a match, so that a loop in `f` packing many
+    /// rays ([`RayFormat::encode`]) is compiled once a format, without a match a ray.
+    #[inline(always)]
+    pub fn specialized<R>(self, mut f: impl FnMut(RayFormat) -> R) -> R {
+        match self {
+            RayFormat::OriginDirection => f(RayFormat::OriginDirection),
+            RayFormat::OriginTminDirectionTmax => f(RayFormat::OriginTminDirectionTmax),
+            RayFormat::OriginMaskDirectionTmax => f(RayFormat::OriginMaskDirectionTmax),
+            RayFormat::OriginTminDirectionTmaxTime => f(RayFormat::OriginTminDirectionTmaxTime),
+            RayFormat::Full => f(RayFormat::Full),
+        }
+    }
+
     /// Encodes one ray into exactly [`RayFormat::size`] bytes; fields the format lacks are dropped.
+    #[inline(always)]
     pub fn encode(self, ray: &Ray, b: &mut [u8]) {
         let put3 = |b: &mut [u8], offset: usize, v: Vec3A| {
             for axis in 0..3 {

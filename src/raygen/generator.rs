@@ -124,13 +124,17 @@ fn frame(field: &'static str, eye: Vec3, target: Vec3, up: Vec3) -> Result<(Vec3
 }
 
 impl PixelSampling {
-    /// Ray `index`'s pixel (x, y) and its point in the pixel in `[0, 1)²`.
-    fn sample(&self, width: u32, index: u64) -> (u32, u32, f32, f32) {
+    /// Ray `index`'s pixel (x, y) in an image `width` pixels across.
+    fn pixel(&self, width: u32, index: u64) -> (u32, u32) {
         let pixel = index / u64::from(self.samples);
-        let (x, y) = ((pixel % u64::from(width)) as u32, (pixel / u64::from(width)) as u32);
+        ((pixel % u64::from(width)) as u32, (pixel / u64::from(width)) as u32)
+    }
+
+    /// Ray `index`'s point in its pixel, in `[0, 1)²`.
+    fn point(&self, index: u64) -> (f32, f32) {
         match self.jitter_seed {
-            None => (x, y, 0.5, 0.5),
-            Some(seed) => (x, y, uniform(seed, index * 8), uniform(seed, index * 8 + 1)),
+            None => (0.5, 0.5),
+            Some(seed) => (uniform(seed, index * 8), uniform(seed, index * 8 + 1)),
         }
     }
 }
@@ -214,13 +218,21 @@ impl Generator {
     /// Packs rays `first .. first + out.len() / format.size()` in `format` into `out`. The generator must have
     /// passed [`Generator::check`] and hold those rays.
     pub fn fill(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        format.specialized(
+            #[inline(always)]
+            |format| self.fill_as(format, first, out),
+        )
+    }
+
+    /// [`Generator::fill`] for a format known where it is inlined.
+    #[inline(always)]
+    fn fill_as(&self, format: RayFormat, first: u64, out: &mut [u8]) {
         let size = format.size();
         match self {
             Generator::Pinhole(..) | Generator::Orthographic(..) => {
                 let frame = self.camera_frame().expect("a camera");
-                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
-                    format.encode(&frame.ray(first + i as u64), slot);
-                }
+                let mut slots = out.chunks_exact_mut(size);
+                frame.for_each_ray(first, slots.len(), |ray| format.encode(&ray, slots.next().expect("a slot a ray")));
             }
             Generator::Lidar(lidar) => {
                 let frame = LidarFrame::new(lidar);
@@ -310,7 +322,35 @@ impl CameraFrame {
     /// · half height. Pinhole: from the eye along `forward + right·sx + up·sy`, normalized; orthographic: from
     /// `eye + right·sx + up·sy` along `forward`. `tmin` 0, `tmax` +∞.
     pub fn ray(&self, index: u64) -> Ray {
-        let (x, y, dx, dy) = self.sampling.sample(self.width, index);
+        let (x, y) = self.sampling.pixel(self.width, index);
+        self.ray_in_pixel(x, y, index)
+    }
+
+    /// Hands `each` rays `first .. first + count` in turn: [`CameraFrame::ray`] of each, the pixel stepped from ray
+    /// to ray instead of divided out of every index.
+    #[inline(always)]
+    pub fn for_each_ray(&self, first: u64, count: usize, mut each: impl FnMut(Ray)) {
+        let samples = self.sampling.samples;
+        let (mut x, mut y) = self.sampling.pixel(self.width, first);
+        let mut sample = (first % u64::from(samples)) as u32;
+        for index in first..first + count as u64 {
+            each(self.ray_in_pixel(x, y, index));
+            sample += 1;
+            if sample == samples {
+                sample = 0;
+                x += 1;
+                if x == self.width {
+                    x = 0;
+                    y += 1;
+                }
+            }
+        }
+    }
+
+    /// Ray `index`, in pixel (`x`, `y`).
+    #[inline(always)]
+    fn ray_in_pixel(&self, x: u32, y: u32, index: u64) -> Ray {
+        let (dx, dy) = self.sampling.point(index);
         let (px, py) = (x as f32 + dx, y as f32 + dy);
         let sx = (px / self.size.0 * 2.0 - 1.0) * self.half.0;
         let sy = (1.0 - py / self.size.1 * 2.0) * self.half.1;
@@ -487,6 +527,20 @@ mod tests {
             let mut part = vec![0u8; 17 * size];
             generator.fill(format, 5, &mut part);
             assert_eq!(part, whole[5 * size..22 * size], "{generator:?}");
+        }
+    }
+
+    #[test]
+    fn camera_rays_made_in_turn_are_those_made_by_index() {
+        // 4 samples a pixel, 8 pixels a row: starts within a pixel, at a row's end and at the last ray.
+        let frame = Generator::Pinhole(camera(), PixelSampling { samples: 4, jitter_seed: Some(9) }).camera_frame();
+        let frame = frame.unwrap();
+        let count = 8 * 6 * 4;
+        for first in [0, 3, 5, 31, 32, 33, 101, count - 1] {
+            let mut in_turn = Vec::new();
+            frame.for_each_ray(first, (count - first) as usize, |ray| in_turn.push(ray));
+            let by_index: Vec<Ray> = (first..count).map(|index| frame.ray(index)).collect();
+            assert_eq!(in_turn, by_index, "from ray {first}");
         }
     }
 

@@ -4,7 +4,7 @@ use glam::Vec3;
 
 use super::invalid;
 use crate::error::{Error, Result};
-use crate::format::{Hit, HitFormat};
+use crate::format::HitFormat;
 
 /// An image of the nearest hit among each pixel's `rays_per_pixel` consecutive rays, pixels row by row from the top
 /// left (the order of the camera generators). Its height is the batch's rays / (`width` × `rays_per_pixel`).
@@ -92,11 +92,13 @@ impl Image {
         self.channel.channels() * value
     }
 
-    /// Appends the pixel of `hit` (its pixel's nearest, read from [`ImageChannel::hit_format`]).
-    pub(super) fn push_pixel(&self, hit: &Hit, out: &mut Vec<u8>) {
+    /// Appends the pixel of record `index` of `hits` (its pixel's nearest, traced in [`ImageChannel::hit_format`]).
+    #[inline(always)]
+    pub(super) fn push_pixel(&self, format: HitFormat, hits: &[u8], index: usize, out: &mut Vec<u8>) {
         match self.channel {
-            ImageChannel::Depth => self.push_depth(hit.is_hit().then_some(hit.t), out),
+            ImageChannel::Depth => self.push_depth(format.hit_t(hits, index), out),
             ImageChannel::Normal => {
+                let hit = format.read(hits, index);
                 let facing = if hit.back_face { -hit.normal } else { hit.normal };
                 self.push_normal(hit.is_hit().then_some(facing.into()), out)
             }
@@ -104,6 +106,7 @@ impl Image {
     }
 
     /// Appends a depth pixel whose nearest hit is at `t` (`None`: every ray of the pixel missed).
+    #[inline(always)]
     pub fn push_depth(&self, t: Option<f32>, out: &mut Vec<u8>) {
         match (self.encoding, t) {
             (PixelEncoding::Float32, t) => out.extend_from_slice(&t.unwrap_or(f32::INFINITY).to_le_bytes()),
@@ -116,6 +119,7 @@ impl Image {
 
     /// Appends a normal pixel whose nearest hit has the unit normal `facing`, turned to face the ray (`None`: every
     /// ray of the pixel missed).
+    #[inline(always)]
     pub fn push_normal(&self, facing: Option<Vec3>, out: &mut Vec<u8>) {
         for n in facing.map_or([0.0; 3], |n| n.to_array()) {
             match (self.encoding, facing.is_some()) {

@@ -21,7 +21,7 @@ use bytes::Bytes;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::format::{Hit, HitFormat};
+use crate::format::HitFormat;
 use crate::query::{Query, QueryKind};
 
 /// Rays of the parts a large piece is split into, to be generated and reduced across the rayon pool.
@@ -155,13 +155,23 @@ impl Reduction {
     /// Reduces one traced piece: its `rays` (packed in `traced.ray_format`, the first being ray `first_ray` of the
     /// batch), their `hits` and `counts` as traced with `traced` ([`Reduction::traced_query`]).
     pub fn reduce_piece(&self, traced: &Query, first_ray: u64, rays: &[u8], hits: &[u8], counts: &[u8]) -> Partial {
+        // The loops below compiled once a hit format, each record read without a match on it.
+        traced.hit_format.specialized(
+            #[inline(always)]
+            |hit_format| self.reduce_records(&Query { hit_format, ..*traced }, first_ray, rays, hits, counts),
+        )
+    }
+
+    /// [`Reduction::reduce_piece`] for a hit format known where it is inlined.
+    #[inline(always)]
+    fn reduce_records(&self, traced: &Query, first_ray: u64, rays: &[u8], hits: &[u8], counts: &[u8]) -> Partial {
         let ray_count = rays.len() / traced.ray_format.size();
         let records = traced.records_per_ray();
         let hit_records =
             || (0..ray_count * records).map(move |i| traced.hit_format.read(hits, i)).filter(|hit| hit.is_hit());
         match self {
             Reduction::Counts => {
-                let rays_hit = (0..ray_count).filter(|&ray| traced.hit_format.read(hits, ray * records).is_hit());
+                let rays_hit = (0..ray_count).filter(|&ray| traced.hit_format.hit_t(hits, ray * records).is_some());
                 let rays_hit = rays_hit.count() as u64;
                 let hit_total = match traced.kind.has_counts() {
                     true => counts.chunks_exact(4).map(|c| u64::from(u32::from_le_bytes(c.try_into().unwrap()))).sum(),
@@ -172,13 +182,13 @@ impl Reduction {
             Reduction::Histogram { bins, t_min, t_max } => {
                 let mut sums = vec![0u64; *bins as usize + 2];
                 let width = (f64::from(*t_max) - f64::from(*t_min)) / f64::from(*bins);
-                for hit in hit_records() {
-                    let slot = if hit.t < *t_min {
+                for t in (0..ray_count * records).filter_map(|i| traced.hit_format.hit_t(hits, i)) {
+                    let slot = if t < *t_min {
                         *bins as usize
-                    } else if hit.t >= *t_max {
+                    } else if t >= *t_max {
                         *bins as usize + 1
                     } else {
-                        (((f64::from(hit.t) - f64::from(*t_min)) / width) as usize).min(*bins as usize - 1)
+                        (((f64::from(t) - f64::from(*t_min)) / width) as usize).min(*bins as usize - 1)
                     };
                     sums[slot] += 1;
                 }
@@ -207,10 +217,10 @@ impl Reduction {
             }
             Reduction::Image(image) => {
                 let rays_per_pixel = image.rays_per_pixel as usize;
-                let mut out = Vec::new();
+                let mut out = Vec::with_capacity(ray_count / rays_per_pixel * image.pixel_bytes());
                 for first in (0..ray_count).step_by(rays_per_pixel) {
                     let index = nearest(traced.hit_format, hits, first..first + rays_per_pixel);
-                    image.push_pixel(&traced.hit_format.read(hits, index), &mut out);
+                    image.push_pixel(traced.hit_format, hits, index, &mut out);
                 }
                 Partial::Ordered { bytes: out, dropped: 0 }
             }
@@ -299,12 +309,17 @@ pub struct Reduced {
 }
 
 /// The index of the nearest hit among `rays` (the first of equal `t`), or the first ray when all missed.
+#[inline(always)]
 fn nearest(format: HitFormat, hits: &[u8], rays: std::ops::Range<usize>) -> usize {
-    let first = rays.start;
-    rays.map(|i| (i, format.read(hits, i)))
-        .filter(|(_, hit): &(usize, Hit)| hit.is_hit())
-        .min_by(|(_, a), (_, b)| a.t.total_cmp(&b.t))
-        .map_or(first, |(i, _)| i)
+    let mut nearest = (rays.start, None);
+    for index in rays {
+        if let Some(t) = format.hit_t(hits, index)
+            && nearest.1.is_none_or(|nearest: f32| t.total_cmp(&nearest).is_lt())
+        {
+            nearest = (index, Some(t));
+        }
+    }
+    nearest.0
 }
 
 /// Checks that a group of `group` rays is allowed and that `rays` is a whole number of groups.

@@ -4,7 +4,7 @@
 use glam::{Vec3, Vec3A};
 
 use super::*;
-use crate::format::{Ray, RayFormat};
+use crate::format::{Hit, Ray, RayFormat};
 
 /// `rays` packed (origin-direction) with their hits packed in `format`.
 fn batch(format: HitFormat, rays: &[Ray], hits: &[Hit]) -> (Query, Vec<u8>, Vec<u8>) {

@@ -25,12 +25,13 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
-use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, Shape};
+use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, RaySource, Shape, host};
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_counts};
 use crate::query::{Query, TraceOutput, TraceStats, trace_batch};
+use crate::reduce::{Partial, Reduction};
 
 use bvh::Footprint;
 #[cfg(feature = "wgpu")]
@@ -201,6 +202,27 @@ impl Backend for CpuBackend {
             || accel.new_stacks(),
             |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats),
         )
+    }
+
+    fn trace_source(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: RaySource<'_>,
+        out: TraceOutput<'_>,
+    ) -> Result<TraceStats> {
+        host::trace_source_in_parts(self, accel, query, rays, out)
+    }
+
+    fn trace_reduced(
+        &self,
+        accel: &dyn BackendAccel,
+        query: &Query,
+        rays: RaySource<'_>,
+        first_ray: u64,
+        reduction: &Reduction,
+    ) -> Result<(Partial, TraceStats)> {
+        host::trace_reduced_in_parts(self, accel, query, rays, first_ray, reduction)
     }
 }
 

@@ -1,0 +1,100 @@
+//! Rays made and hits reduced on the CPU in cache-sized parts (`backend::host::PART_RAYS`): the same answers as
+//! the rays packed beforehand, traced whole and reduced whole.
+
+mod common;
+
+use std::sync::Arc;
+
+use glam::Vec3;
+use rayd_engine::accel::BuildOptions;
+use rayd_engine::backend::RaySource;
+use rayd_engine::backend::host::PART_RAYS;
+use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::geometry::BuildInput;
+use rayd_engine::query::{Query, QueryKind, TraceOutput};
+use rayd_engine::raygen::{Camera, Generator, PixelSampling};
+use rayd_engine::reduce::{IdKind, Image, ImageChannel, PixelEncoding, PointCloud, PointEncoding, Reduction};
+use rayd_engine::{Accel, Context, Device};
+
+/// 97 × 90 pixels, 3 jittered samples each: 26,190 rays, several parts, none a multiple of a part.
+const WIDTH: u32 = 97;
+const HEIGHT: u32 = 90;
+const SAMPLES: u32 = 3;
+
+/// The bunny on the CPU, and a jittered camera framing it.
+fn scene() -> (Context, Arc<Accel>, Generator) {
+    let bunny = common::shared_mesh("stanford-bunny");
+    let (lo, hi) = bunny.bounds();
+    let context = Context::new(Device::cpu());
+    let packed = bunny.pack();
+    let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let camera = Camera::framing(lo, hi, WIDTH, HEIGHT);
+    let generator = Generator::Pinhole(camera, PixelSampling { samples: SAMPLES, jitter_seed: Some(5) });
+    generator.check().unwrap();
+    assert!(generator.count() as usize > 3 * PART_RAYS);
+    (context, accel, generator)
+}
+
+/// Every ray of `generator`, made on the server's CPU.
+fn generated(generator: &Generator) -> RaySource<'_> {
+    RaySource::Generated { generator, first: 0, count: generator.count() as usize }
+}
+
+/// (hits, counts) of `query` over `rays` packed beforehand, traced whole.
+fn traced_whole(context: &Context, accel: &Accel, query: &Query, rays: &[u8]) -> (Vec<u8>, Vec<u8>) {
+    let layout = query.output_layout(rays.len()).unwrap();
+    let (mut hits, mut counts) = (vec![0xEE; layout.hits], vec![0xEE; layout.counts]);
+    context.trace(accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts }).unwrap();
+    (hits, counts)
+}
+
+#[test]
+fn generated_rays_traced_in_parts_give_the_records_of_the_packed_rays() {
+    let (context, accel, generator) = scene();
+    let queries = [
+        Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV),
+        Query { kind: QueryKind::Any, ..Query::closest(RayFormat::OriginDirection, HitFormat::Bitmask) },
+        Query { kind: QueryKind::Count, ..Query::closest(RayFormat::Full, HitFormat::T) },
+        Query { kind: QueryKind::All, max_hits_per_ray: 3, ..Query::closest(RayFormat::Full, HitFormat::TTriid) },
+    ];
+    for query in queries {
+        let (hits, counts) = traced_whole(&context, &accel, &query, &generator.rays(query.ray_format));
+        let (mut part_hits, mut part_counts) = (vec![0xEE; hits.len()], vec![0xEE; counts.len()]);
+        let out = TraceOutput { hits: &mut part_hits, counts: &mut part_counts };
+        let stats = context.trace_source(&accel, &query, generated(&generator), out).unwrap();
+        assert_eq!(stats.rays, generator.count(), "{query:?}");
+        assert!(part_hits == hits && part_counts == counts, "{query:?}");
+    }
+}
+
+#[test]
+fn generated_rays_reduced_in_parts_give_the_reduction_of_every_hit() {
+    let (context, accel, generator) = scene();
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    let rays = generator.count();
+    let image = |channel, encoding| {
+        Reduction::Image(Image { width: WIDTH, rays_per_pixel: SAMPLES, channel, encoding, near: 0.0, far: 1.0 })
+    };
+    let cloud = PointCloud { encoding: PointEncoding::Int32, step: 1e-4, origin: Vec3::ZERO, ray_indices: true };
+    let reductions = [
+        Reduction::Counts,
+        Reduction::Histogram { bins: 16, t_min: 0.0, t_max: 1.0 },
+        Reduction::IdCounts(IdKind::Primitive),
+        // 270 rays a group: parts of 31 groups (8,370 rays).
+        Reduction::NearestPerGroup { group: 270 },
+        image(ImageChannel::Depth, PixelEncoding::Float32),
+        image(ImageChannel::Normal, PixelEncoding::Unorm16),
+        Reduction::PointCloud(cloud),
+        Reduction::CompactHits { t_far: 1.0 },
+    ];
+    for reduction in reductions {
+        reduction.check(&query, rays).unwrap();
+        let traced = reduction.traced_query(&query);
+        let packed = generator.rays(traced.ray_format);
+        let (hits, counts) = traced_whole(&context, &accel, &traced, &packed);
+        let whole = reduction.reduce_all(&traced, &packed, &hits, &counts).unwrap();
+        let (partial, stats) = context.trace_reduced(&accel, &query, generated(&generator), 0, &reduction).unwrap();
+        assert_eq!(stats.rays, rays, "{reduction:?}");
+        assert_eq!(reduction.finish(partial, rays).unwrap(), whole, "{reduction:?}");
+    }
+}
