@@ -9,6 +9,7 @@
 //!   the first time (page faults) or streamed through memory.
 
 use std::ops::Range;
+use std::sync::Mutex;
 
 use rayon::prelude::*;
 
@@ -16,20 +17,31 @@ use super::{Backend, BackendAccel, RaySource};
 use crate::error::Result;
 use crate::format::RayFormat;
 use crate::query::{CHUNK_RAYS, Query, TraceOutput, TraceStats};
+use crate::raygen::Generator;
 use crate::reduce::{Partial, Reduction};
 
 /// Rays a part of a trace done in parts (a whole number of the batch driver's chunks): 8,192 rays of 24–48 bytes
 /// and their hits fit a core's second-level cache.
 pub const PART_RAYS: usize = 8 * CHUNK_RAYS;
 
-/// The rays of `rays` packed in `format`: the caller's bytes, or made into `scratch`.
+/// The rays of `rays` packed in `format`: the caller's bytes, or made into `scratch` across the rayon pool.
 pub fn packed<'a>(rays: RaySource<'a>, format: RayFormat, scratch: &'a mut Vec<u8>) -> &'a [u8] {
+    packed_by(rays, format, scratch, Generator::fill_parallel)
+}
+
+/// [`packed`], the rays made by `fill` ([`Generator::fill`] or [`Generator::fill_parallel`]).
+fn packed_by<'a>(
+    rays: RaySource<'a>,
+    format: RayFormat,
+    scratch: &'a mut Vec<u8>,
+    fill: impl FnOnce(&Generator, RayFormat, u64, &mut [u8]),
+) -> &'a [u8] {
     match rays {
         RaySource::Packed(bytes) => bytes,
         RaySource::Generated { generator, first, count } => {
             scratch.clear();
             scratch.resize(count * format.size(), 0);
-            generator.fill_parallel(format, first, scratch);
+            fill(generator, format, first, scratch);
             scratch
         }
     }
@@ -77,9 +89,21 @@ struct PartScratch {
     counts: Vec<u8>,
 }
 
-/// The ranges of rays of a trace in parts: `part` rays each (the last may be shorter), `rays` in all.
-fn parts(rays: usize, part: usize) -> impl IndexedParallelIterator<Item = Range<usize>> {
-    (0..rays.div_ceil(part)).into_par_iter().map(move |index| index * part..((index + 1) * part).min(rays))
+/// Runs `each` on the parts of `part` rays of a trace of `rays` rays (the last may be shorter), with a worker's
+/// scratch buffers, and returns the results in ray order: a single part on the caller's thread, without a hop to
+/// the thread pool (rayd's CPU pieces are one part each), more across the pool.
+fn in_parts<R: Send>(
+    rays: usize,
+    part: usize,
+    each: impl Fn(&mut PartScratch, Range<usize>) -> Result<R> + Sync,
+) -> Result<Vec<R>> {
+    if rays <= part {
+        return Ok(vec![each(&mut PartScratch::default(), 0..rays)?]);
+    }
+    (0..rays.div_ceil(part))
+        .into_par_iter()
+        .map_init(PartScratch::default, |scratch, index| each(scratch, index * part..((index + 1) * part).min(rays)))
+        .collect()
 }
 
 /// [`trace_source`] in parts of [`PART_RAYS`]: generated rays made a part at a time (packed rays go to
@@ -94,25 +118,22 @@ pub fn trace_source_in_parts<B: Backend + ?Sized>(
     let RaySource::Generated { .. } = rays else { return trace_source(backend, accel, query, rays, out) };
     let layout = query.output_layout(rays.packed_len(query.ray_format.size()))?;
     out.check(&layout)?;
-    // Parts start on byte boundaries of a bitmask: `PART_RAYS` is a multiple of 8.
+    // Each part's records and counts, behind a lock of their own for the worker that traces it. Parts start on
+    // byte boundaries of a bitmask: `PART_RAYS` is a multiple of 8.
     let hit_bytes = query.output_layout(PART_RAYS * query.ray_format.size())?.hits;
-    let hits: Vec<&mut [u8]> = out.hits.chunks_mut(hit_bytes.max(1)).collect();
-    let counts: Vec<&mut [u8]> = match query.kind.has_counts() {
-        true => out.counts.chunks_mut(PART_RAYS * 4).collect(),
-        false => hits.iter().map(|_| Default::default()).collect(),
+    let hits: Vec<Mutex<&mut [u8]>> = out.hits.chunks_mut(hit_bytes.max(1)).map(Mutex::new).collect();
+    let counts: Vec<Mutex<&mut [u8]>> = match query.kind.has_counts() {
+        true => out.counts.chunks_mut(PART_RAYS * 4).map(Mutex::new).collect(),
+        false => hits.iter().map(|_| Mutex::new(Default::default())).collect(),
     };
     let ray_size = query.ray_format.size();
-    let stats = parts(layout.rays, PART_RAYS)
-        .zip(hits.into_par_iter().zip(counts))
-        .map_init(PartScratch::default, |scratch, (range, (hits, counts))| {
-            let rays = packed(rays.part(range, ray_size), query.ray_format, &mut scratch.rays);
-            backend.trace(accel, query, rays, TraceOutput { hits, counts })
-        })
-        .collect::<Result<Vec<TraceStats>>>()?;
-    Ok(stats.iter().fold(TraceStats::default(), |mut all, part| {
-        all.add(part);
-        all
-    }))
+    let stats = in_parts(layout.rays, PART_RAYS, |scratch, range| {
+        let index = range.start / PART_RAYS;
+        let (mut hits, mut counts) = (hits[index].lock().unwrap(), counts[index].lock().unwrap());
+        let rays = packed_by(rays.part(range, ray_size), query.ray_format, &mut scratch.rays, Generator::fill);
+        backend.trace(accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })
+    })?;
+    Ok(sum(&stats))
 }
 
 /// [`trace_reduced`] in parts of about [`PART_RAYS`] (whole groups of the reduction), each made, traced and reduced
@@ -128,22 +149,26 @@ pub fn trace_reduced_in_parts<B: Backend + ?Sized>(
     let traced = reduction.traced_query(query);
     let layout = traced.output_layout(rays.packed_len(traced.ray_format.size()))?;
     let group = reduction.group_rays();
-    let part = PART_RAYS.div_ceil(group) * group;
     let ray_size = traced.ray_format.size();
-    let reduced = parts(layout.rays, part)
-        .map_init(PartScratch::default, |scratch, range| {
-            let PartScratch { rays: made, hits, counts } = scratch;
-            let rays = packed(rays.part(range.clone(), ray_size), traced.ray_format, made);
-            let layout = traced.output_layout(rays.len())?;
-            hits.resize(layout.hits, 0);
-            counts.resize(layout.counts, 0);
-            let stats = backend.trace(accel, &traced, rays, TraceOutput { hits, counts })?;
-            Ok((reduction.reduce_piece(&traced, first_ray + range.start as u64, rays, hits, counts), stats))
-        })
-        .collect::<Result<Vec<(Partial, TraceStats)>>>()?;
-    Ok(reduced.into_iter().fold((reduction.empty(), TraceStats::default()), |(mut folded, mut all), (part, stats)| {
-        folded.merge(part);
-        all.add(&stats);
-        (folded, all)
-    }))
+    let reduced = in_parts(layout.rays, PART_RAYS.div_ceil(group) * group, |scratch, range| {
+        let PartScratch { rays: made, hits, counts } = scratch;
+        let rays = packed_by(rays.part(range.clone(), ray_size), traced.ray_format, made, Generator::fill);
+        let layout = traced.output_layout(rays.len())?;
+        hits.resize(layout.hits, 0);
+        counts.resize(layout.counts, 0);
+        let stats = backend.trace(accel, &traced, rays, TraceOutput { hits, counts })?;
+        Ok((reduction.reduce_piece(&traced, first_ray + range.start as u64, rays, hits, counts), stats))
+    })?;
+    let (partials, stats): (Vec<Partial>, Vec<TraceStats>) = reduced.into_iter().unzip();
+    let mut folded = reduction.empty();
+    folded.merge_all(partials);
+    Ok((folded, sum(&stats)))
+}
+
+/// The statistics of a trace's parts added up.
+fn sum(parts: &[TraceStats]) -> TraceStats {
+    parts.iter().fold(TraceStats::default(), |mut all, part| {
+        all.add(part);
+        all
+    })
 }

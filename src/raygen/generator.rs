@@ -532,15 +532,20 @@ mod tests {
 
     #[test]
     fn camera_rays_made_in_turn_are_those_made_by_index() {
-        // 4 samples a pixel, 8 pixels a row: starts within a pixel, at a row's end and at the last ray.
-        let frame = Generator::Pinhole(camera(), PixelSampling { samples: 4, jitter_seed: Some(9) }).camera_frame();
-        let frame = frame.unwrap();
-        let count = 8 * 6 * 4;
-        for first in [0, 3, 5, 31, 32, 33, 101, count - 1] {
-            let mut in_turn = Vec::new();
-            frame.for_each_ray(first, (count - first) as usize, |ray| in_turn.push(ray));
-            let by_index: Vec<Ray> = (first..count).map(|index| frame.ray(index)).collect();
-            assert_eq!(in_turn, by_index, "from ray {first}");
+        // 4 samples a pixel, 8 pixels a row: starts within a pixel, at a row's end and at the last ray; blocks of
+        // rays made at once that end anywhere.
+        let sampling = PixelSampling { samples: 4, jitter_seed: Some(9) };
+        let Camera { eye, target, up, width, height, .. } = camera();
+        let orthographic = Orthographic { eye, target, up, view_height: 3.0, width, height };
+        for generator in [Generator::Pinhole(camera(), sampling), Generator::Orthographic(orthographic, sampling)] {
+            let frame = generator.camera_frame().unwrap();
+            let count = 8 * 6 * 4;
+            for first in [0, 3, 5, 31, 32, 33, 101, count - 1] {
+                let mut in_turn = Vec::new();
+                frame.for_each_ray(first, (count - first) as usize, |ray| in_turn.push(ray));
+                let by_index: Vec<Ray> = (first..count).map(|index| frame.ray(index)).collect();
+                assert_eq!(in_turn, by_index, "{generator:?} from ray {first}");
+            }
         }
     }
 

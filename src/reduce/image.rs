@@ -92,40 +92,43 @@ impl Image {
         self.channel.channels() * value
     }
 
-    /// Appends the pixel of record `index` of `hits` (its pixel's nearest, traced in [`ImageChannel::hit_format`]).
+    /// Writes into `out` ([`Image::pixel_bytes`]) the pixel of record `index` of `hits` (its pixel's nearest,
+    /// traced in [`ImageChannel::hit_format`]).
     #[inline(always)]
-    pub(super) fn push_pixel(&self, format: HitFormat, hits: &[u8], index: usize, out: &mut Vec<u8>) {
+    pub(super) fn write_pixel(&self, format: HitFormat, hits: &[u8], index: usize, out: &mut [u8]) {
         match self.channel {
-            ImageChannel::Depth => self.push_depth(format.hit_t(hits, index), out),
+            ImageChannel::Depth => self.write_depth(format.hit_t(hits, index), out),
             ImageChannel::Normal => {
                 let hit = format.read(hits, index);
                 let facing = if hit.back_face { -hit.normal } else { hit.normal };
-                self.push_normal(hit.is_hit().then_some(facing.into()), out)
+                self.write_normal(hit.is_hit().then_some(facing.into()), out)
             }
         }
     }
 
-    /// Appends a depth pixel whose nearest hit is at `t` (`None`: every ray of the pixel missed).
+    /// Writes into `out` ([`Image::pixel_bytes`]) a depth pixel whose nearest hit is at `t` (`None`: every ray of
+    /// the pixel missed).
     #[inline(always)]
-    pub fn push_depth(&self, t: Option<f32>, out: &mut Vec<u8>) {
+    pub fn write_depth(&self, t: Option<f32>, out: &mut [u8]) {
         match (self.encoding, t) {
-            (PixelEncoding::Float32, t) => out.extend_from_slice(&t.unwrap_or(f32::INFINITY).to_le_bytes()),
+            (PixelEncoding::Float32, t) => out[..4].copy_from_slice(&t.unwrap_or(f32::INFINITY).to_le_bytes()),
             (_, t) => {
                 let depth = t.map_or(65535.0, |t| ((t - self.near) / (self.far - self.near)).clamp(0.0, 1.0) * 65534.0);
-                out.extend_from_slice(&(depth.round() as u16).to_le_bytes());
+                out[..2].copy_from_slice(&(depth.round() as u16).to_le_bytes());
             }
         }
     }
 
-    /// Appends a normal pixel whose nearest hit has the unit normal `facing`, turned to face the ray (`None`: every
-    /// ray of the pixel missed).
+    /// Writes into `out` ([`Image::pixel_bytes`]) a normal pixel whose nearest hit has the unit normal `facing`,
+    /// turned to face the ray (`None`: every ray of the pixel missed).
     #[inline(always)]
-    pub fn push_normal(&self, facing: Option<Vec3>, out: &mut Vec<u8>) {
-        for n in facing.map_or([0.0; 3], |n| n.to_array()) {
+    pub fn write_normal(&self, facing: Option<Vec3>, out: &mut [u8]) {
+        let value_bytes = self.pixel_bytes() / 3;
+        for (n, out) in facing.map_or([0.0; 3], |n| n.to_array()).into_iter().zip(out.chunks_exact_mut(value_bytes)) {
             match (self.encoding, facing.is_some()) {
-                (PixelEncoding::Float32, _) => out.extend_from_slice(&n.to_le_bytes()),
-                (_, true) => out.extend_from_slice(&(((0.5 + 0.5 * n) * 65535.0).round() as u16).to_le_bytes()),
-                (_, false) => out.extend_from_slice(&0u16.to_le_bytes()),
+                (PixelEncoding::Float32, _) => out.copy_from_slice(&n.to_le_bytes()),
+                (_, true) => out.copy_from_slice(&(((0.5 + 0.5 * n) * 65535.0).round() as u16).to_le_bytes()),
+                (_, false) => out.copy_from_slice(&0u16.to_le_bytes()),
             }
         }
     }

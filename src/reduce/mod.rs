@@ -216,11 +216,11 @@ impl Reduction {
                 Partial::Ordered { bytes: out, dropped: 0 }
             }
             Reduction::Image(image) => {
-                let rays_per_pixel = image.rays_per_pixel as usize;
-                let mut out = Vec::with_capacity(ray_count / rays_per_pixel * image.pixel_bytes());
-                for first in (0..ray_count).step_by(rays_per_pixel) {
+                let (rays_per_pixel, pixel_bytes) = (image.rays_per_pixel as usize, image.pixel_bytes());
+                let mut out = vec![0u8; ray_count / rays_per_pixel * pixel_bytes];
+                for (pixel, first) in out.chunks_exact_mut(pixel_bytes).zip((0..ray_count).step_by(rays_per_pixel)) {
                     let index = nearest(traced.hit_format, hits, first..first + rays_per_pixel);
-                    image.push_pixel(traced.hit_format, hits, index, &mut out);
+                    image.write_pixel(traced.hit_format, hits, index, pixel);
                 }
                 Partial::Ordered { bytes: out, dropped: 0 }
             }
@@ -258,10 +258,9 @@ impl Reduction {
                 )
             })
             .collect();
-        parts.into_iter().fold(self.empty(), |mut folded, part| {
-            folded.merge(part);
-            folded
-        })
+        let mut folded = self.empty();
+        folded.merge_all(parts);
+        folded
     }
 
     /// The reduction's answer from every piece's partial folded in ray order, for a batch of `rays` rays.

@@ -34,8 +34,9 @@ impl Partial {
                 }
             }
             (Partial::Ordered { bytes, dropped }, Partial::Ordered { bytes: more, dropped: more_dropped }) => {
-                // The first piece's records are taken as they are (on a GPU, a whole image is one piece).
-                if bytes.is_empty() {
+                // The first piece's records are taken as they are (on a GPU, a whole image is one piece), unless
+                // room was made for them ([`Partial::merge_all`]).
+                if bytes.is_empty() && bytes.capacity() < more.len() {
                     *bytes = more;
                 } else {
                     bytes.extend_from_slice(&more);
@@ -43,6 +44,17 @@ impl Partial {
                 *dropped += more_dropped;
             }
             (this, next) => panic!("partials of different reductions: {this:?} and {next:?}"),
+        }
+    }
+    /// Folds `parts` (the partials of the rays right after this one's, in order) into this one: [`Partial::merge`]
+    /// of each in turn, with room made once for all of their records.
+    pub fn merge_all(&mut self, parts: Vec<Partial>) {
+        if let Partial::Ordered { bytes, .. } = self {
+            let more = parts.iter().map(|part| if let Partial::Ordered { bytes, .. } = part { bytes.len() } else { 0 });
+            bytes.reserve_exact(more.sum());
+        }
+        for part in parts {
+            self.merge(part);
         }
     }
 }
@@ -61,5 +73,21 @@ mod tests {
         assert_eq!(bytes.as_ptr(), at, "the first piece's records were copied");
         folded.merge(Partial::Ordered { bytes: vec![4, 5], dropped: 2 });
         assert_eq!(folded, Partial::Ordered { bytes: vec![1, 2, 3, 4, 5], dropped: 3 });
+    }
+
+    #[test]
+    fn merged_all_at_once_they_fill_the_room_made_for_them() {
+        let parts = vec![
+            Partial::Ordered { bytes: vec![1, 2, 3], dropped: 1 },
+            Partial::Ordered { bytes: vec![4], dropped: 2 },
+        ];
+        let mut folded = Partial::Ordered { bytes: Vec::new(), dropped: 0 };
+        folded.merge_all(parts);
+        let Partial::Ordered { bytes, .. } = &folded else { unreachable!() };
+        assert_eq!(bytes.capacity(), 4, "sized once");
+        assert_eq!(folded, Partial::Ordered { bytes: vec![1, 2, 3, 4], dropped: 3 });
+        let mut sums = Partial::Sums(vec![1, 2]);
+        sums.merge_all(vec![Partial::Sums(vec![3, 4]), Partial::Sums(vec![5, 6])]);
+        assert_eq!(sums, Partial::Sums(vec![9, 12]));
     }
 }

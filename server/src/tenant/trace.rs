@@ -318,11 +318,13 @@ impl Progress {
                 (trace.hits, trace.counts) = (hits.freeze(), counts.freeze());
             }
             Some(reduction) => {
-                let mut folded = reduction.empty();
+                let mut partials = Vec::with_capacity(outputs.len());
                 for output in outputs {
                     let Some(PieceOutput::Reduced(partial)) = output else { return Err(abandoned()) };
-                    folded.merge(partial);
+                    partials.push(partial);
                 }
+                let mut folded = reduction.empty();
+                folded.merge_all(partials);
                 let rays = job.rays.count(job.query.ray_format.size());
                 trace.reduced = Some(reduction.finish(folded, rays)?);
             }

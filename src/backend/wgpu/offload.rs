@@ -143,21 +143,19 @@ impl OnDevice {
                     .par_chunks_mut(PARALLEL_SPLIT_RAYS * encoded_bytes)
                     .zip(pixels.par_chunks(PARALLEL_SPLIT_RAYS * pixel_bytes))
                     .for_each(|(out, part)| {
-                        let mut encoded = Vec::with_capacity(out.len());
-                        for pixel in part.chunks_exact(pixel_bytes) {
+                        for (pixel, out) in part.chunks_exact(pixel_bytes).zip(out.chunks_exact_mut(encoded_bytes)) {
                             let word = |i: usize| f32::from_le_bytes(pixel[4 * i..4 * i + 4].try_into().unwrap());
                             match image.channel {
                                 ImageChannel::Depth => {
                                     let hit = word(0).to_bits() != MISSED_PIXEL;
-                                    image.push_depth(hit.then(|| word(0)), &mut encoded)
+                                    image.write_depth(hit.then(|| word(0)), out)
                                 }
                                 ImageChannel::Normal => {
                                     let hit = word(3).to_bits() != 0;
-                                    image.push_normal(hit.then(|| Vec3::new(word(0), word(1), word(2))), &mut encoded)
+                                    image.write_normal(hit.then(|| Vec3::new(word(0), word(1), word(2))), out)
                                 }
                             }
                         }
-                        out.copy_from_slice(&encoded);
                     });
                 Partial::Ordered { bytes, dropped: 0 }
             }

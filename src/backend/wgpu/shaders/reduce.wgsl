@@ -4,8 +4,8 @@
 // primitive id), the nearest of their hits (records naming a primitive, as `Hit::is_hit`; the first of equal `t`,
 // as `reduce::nearest`) written to `reduced` as the pixel's depth (`params.pixel_words` 1: `t`, which is negative
 // for a hit behind the ray's origin, or `NONE`'s bits, a NaN, for a miss) or its normal turned to face the ray (4
-// words: x, y, z f32, then 1 for a hit; all 0 for a miss). The host encodes the pixels (`Image::push_depth`,
-// `Image::push_normal`).
+// words: x, y, z f32, then 1 for a hit; all 0 for a miss). The host encodes the pixels (`Image::write_depth`,
+// `Image::write_normal`).
 @group(1) @binding(5) var<storage, read_write> reduced: array<u32>;
 
 @compute @workgroup_size(WORKGROUP_SIZE)
