@@ -1,10 +1,11 @@
 //! Rays made and hits reduced on the server: a 4-megapixel camera render of the bunny through `rayd` over
 //! loopback, with every hit returned (plain, gRPC zstd, compact encoding) and with reductions (depth and normal
-//! images, counts), against the engine tracing the same rays in-process. Prints one table with rays/s, the share
-//! of the in-process rate, and the bytes a ray puts on the wire (and what zstd/gzip would make of them). Run with
-//! `cargo bench -p rayd-server --bench reductions`; `RAYD_BENCH_DEVICE=wgpu:0` measures on a GPU device instead of
-//! `cpu:0` (the in-process reference then traces on that device too, and its kernel time and the in-process rate of
-//! a generated, reduced trace are printed below it).
+//! images, counts), against the engine in-process. Prints one table with rays/s, two shares — of the engine's rate
+//! tracing the same rays made beforehand ("% engine"), and of the engine's rate doing the very same generated (and
+//! reduced) trace in-process ("% same i-p", the rate of the work rayd wraps) — and the bytes a ray puts on the wire
+//! (and what zstd/gzip would make of them). Run with `cargo bench -p rayd-server --bench reductions`;
+//! `RAYD_BENCH_DEVICE=wgpu:0` measures on a GPU device instead of `cpu:0` (the in-process rows then trace on that
+//! device too, and the kernel time of the rays-sent trace is printed below it).
 
 use std::time::Instant;
 
@@ -83,14 +84,30 @@ fn main() {
         })
         .unzip();
     let (engine, kernel) = (median(engine), median(kernel));
-    // In-process, the rays made and the hits reduced where they are traced (on a GPU: in the kernel).
-    let depth = image(ImageChannel::Depth, PixelEncoding::Float32, 0.0, 1.0);
-    let all_rays = RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
-    let engine_reduced = median(
+    // In-process, the rays made and the hits reduced where they are traced (on a GPU: in the kernel): what each
+    // row through rayd does, without the service around it.
+    let in_process_reduced = |reduction: &Reduction| {
+        let all_rays = RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
+        median(
+            (0..RUNS)
+                .map(|_| {
+                    let start = Instant::now();
+                    let (partial, _) = context.trace_reduced(&accel, &query, all_rays, 0, reduction).unwrap();
+                    reduction.finish(partial, generator.count()).unwrap();
+                    start.elapsed().as_secs_f64()
+                })
+                .collect(),
+        )
+    };
+    let in_process_generated = median(
         (0..RUNS)
             .map(|_| {
+                let all_rays =
+                    RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
                 let start = Instant::now();
-                context.trace_reduced(&accel, &query, all_rays, 0, &depth).unwrap();
+                context
+                    .trace_source(&accel, &query, all_rays, TraceOutput { hits: &mut hits, counts: &mut [] })
+                    .unwrap();
                 start.elapsed().as_secs_f64()
             })
             .collect(),
@@ -111,7 +128,10 @@ fn main() {
             rays_per_call,
             rayon::current_num_threads()
         );
-        println!("{:<52} {:>9} {:>8} {:>9} {:>9} {:>9}", "", "Mrays/s", "% engine", "B/ray", "zstd B/r", "gzip B/r");
+        println!(
+            "{:<52} {:>9} {:>8} {:>10} {:>9} {:>9} {:>9}",
+            "", "Mrays/s", "% engine", "% same i-p", "B/ray", "zstd B/r", "gzip B/r"
+        );
         println!(
             "{:<52} {:>9.2} {:>8.1}",
             "engine in-process (rays made beforehand), t_triid_u_v",
@@ -122,29 +142,32 @@ fn main() {
             let what = "  of which the kernel (GPU timestamps)";
             println!("{what:<52} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
         }
-        let what = "engine in-process, generated, depth image float32";
-        println!("{what:<52} {:>9.2} {:>8.1}", mrays(engine_reduced), 100.0 * engine / engine_reduced);
-        let row = |what: &str, seconds: f64, wire: &Bytes| {
+        // A row through rayd: its rate, its share of the engine's rate with rays sent and of the same generated
+        // (and reduced) trace in-process, and the bytes of its reply.
+        let row = |what: &str, seconds: f64, same_in_process: f64, wire: &Bytes| {
             let (zstd, gzip) = compressed(wire);
             let per_ray = |bytes: usize| bytes as f64 / rays_per_call;
             println!(
-                "{what:<52} {:>9.2} {:>8.1} {:>9.2} {:>9.2} {:>9.2}",
+                "{what:<52} {:>9.2} {:>8.1} {:>10.1} {:>9.2} {:>9.2} {:>9.2}",
                 mrays(seconds),
                 100.0 * engine / seconds,
+                100.0 * same_in_process / seconds,
                 per_ray(wire.len()),
                 per_ray(zstd),
                 per_ray(gzip)
             );
         };
+        let what = "  the same in-process: generated, every hit";
+        println!("{what:<52} {:>9.2} {:>8.1}", mrays(in_process_generated), 100.0 * engine / in_process_generated);
 
         let (seconds, full) =
             timed(|| async { client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() }).await;
         assert_eq!(full.len(), hits.len(), "every hit");
-        row("generated, every hit t_triid_u_v", seconds, &full);
+        row("generated, every hit t_triid_u_v", seconds, in_process_generated, &full);
         let (seconds, _) =
             timed(|| async { zstd_client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() })
                 .await;
-        row("generated, every hit t_triid_u_v, gRPC zstd", seconds, &full);
+        row("generated, every hit t_triid_u_v, gRPC zstd", seconds, in_process_generated, &full);
 
         let (near, far) = (0.0, (hi - lo).length() * 4.0);
         let reductions = [
@@ -164,7 +187,14 @@ fn main() {
                 reduced.data
             })
             .await;
-            row(what, seconds, &data);
+            let same_in_process = in_process_reduced(&reduction);
+            println!(
+                "{:<52} {:>9.2} {:>8.1}",
+                "  the same in-process",
+                mrays(same_in_process),
+                100.0 * engine / same_in_process
+            );
+            row(what, seconds, same_in_process, &data);
             let trace = median(trace_seconds.into_inner().unwrap());
             println!("{:<52} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
             let kernel = median(kernel_seconds.into_inner().unwrap());
@@ -196,7 +226,12 @@ fn main() {
                 last
             })
             .await;
-            row(&format!("generated, {what}"), seconds / CONCURRENT_CALLS as f64, &data);
+            row(
+                &format!("generated, {what}"),
+                seconds / CONCURRENT_CALLS as f64,
+                in_process_reduced(&reduction),
+                &data,
+            );
         }
     });
 }
