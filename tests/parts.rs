@@ -65,6 +65,12 @@ fn generated_rays_traced_in_parts_give_the_records_of_the_packed_rays() {
         assert_eq!(stats.rays, generator.count(), "{query:?}");
         assert!(part_hits == hits && part_counts == counts, "{query:?}");
     }
+    let none = RaySource::Generated { generator: &generator, first: 7, count: 0 };
+    let query = queries[0];
+    let stats = context.trace_source(&accel, &query, none, TraceOutput { hits: &mut [], counts: &mut [] }).unwrap();
+    assert_eq!(stats.rays, 0, "no rays, no records");
+    let (partial, stats) = context.trace_reduced(&accel, &query, none, 7, &Reduction::Counts).unwrap();
+    assert_eq!((Reduction::Counts.finish(partial, 0).unwrap().bytes.len(), stats.rays), (24, 0));
 }
 
 #[test]

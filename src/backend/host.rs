@@ -118,6 +118,9 @@ pub fn trace_source_in_parts<B: Backend + ?Sized>(
     let RaySource::Generated { .. } = rays else { return trace_source(backend, accel, query, rays, out) };
     let layout = query.output_layout(rays.packed_len(query.ray_format.size()))?;
     out.check(&layout)?;
+    if layout.rays == 0 {
+        return Ok(TraceStats::default());
+    }
     // Each part's records and counts, behind a lock of their own for the worker that traces it. Parts start on
     // byte boundaries of a bitmask: `PART_RAYS` is a multiple of 8.
     let hit_bytes = query.output_layout(PART_RAYS * query.ray_format.size())?.hits;
