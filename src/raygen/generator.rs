@@ -237,12 +237,19 @@ impl Generator {
                 }
             }
             Generator::Lidar(lidar) => {
+                // Each channel's elevation and each step's azimuth worked out once, not for every ray.
                 let frame = LidarFrame::new(lidar);
-                let channels = lidar.elevations_degrees.len() as u64;
-                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
-                    let index = first + i as u64;
-                    let (step, channel) = (index / channels, (index % channels) as usize);
-                    format.encode(&frame.ray(frame.step(step), frame.channel(channel)), slot);
+                let channels: Vec<LidarChannel> =
+                    (0..lidar.elevations_degrees.len()).map(|c| frame.channel(c)).collect();
+                let (mut step, mut channel) = (first / channels.len() as u64, (first % channels.len() as u64) as usize);
+                let mut at = frame.step(step);
+                for slot in out.chunks_exact_mut(size) {
+                    format.encode(&frame.ray(at, channels[channel]), slot);
+                    channel += 1;
+                    if channel == channels.len() {
+                        (step, channel) = (step + 1, 0);
+                        at = frame.step(step);
+                    }
                 }
             }
             Generator::Sphere(sphere) => {
@@ -623,12 +630,24 @@ mod tests {
             max_range: 50.0,
             time: (1.0, 2.0),
         };
-        let rays = Generator::Lidar(lidar).rays(RayFormat::Full);
+        let rays = Generator::Lidar(lidar.clone()).rays(RayFormat::Full);
         let ray = |i: usize| RayFormat::Full.decode(&rays[i * RayFormat::Full.size()..]);
         assert!((ray(0).direction - Vec3A::X).length() < 1e-6, "step 0, channel 0 along forward");
         assert!((ray(1).direction - Vec3A::Z).length() < 1e-6, "channel 1 straight up");
         assert!((ray(2).direction - Vec3A::Y).length() < 1e-6, "a quarter turn counter-clockwise about +z");
         assert_eq!((ray(2).time, ray(7).time, ray(7).tmax), (1.25, 1.75, 50.0));
+        // Made in turn (each step's azimuth once), the rays are those of their step and channel, from any first ray.
+        let frame = LidarFrame::new(&lidar);
+        for first in 0..8 {
+            let mut part = vec![0u8; (8 - first) * RayFormat::Full.size()];
+            Generator::Lidar(lidar.clone()).fill(RayFormat::Full, first as u64, &mut part);
+            let by_index = (first..8).flat_map(|index| {
+                let mut record = [0u8; 48];
+                RayFormat::Full.encode(&frame.ray(frame.step(index as u64 / 2), frame.channel(index % 2)), &mut record);
+                record
+            });
+            assert_eq!(part, by_index.collect::<Vec<u8>>(), "from ray {first}");
+        }
     }
 
     #[test]
