@@ -253,14 +253,16 @@ impl Generator {
                 }
             }
             Generator::Sphere(sphere) => {
+                // Each point's hemisphere frame worked out once, not for every sample.
                 let samples = u64::from(sphere.samples);
-                for (i, slot) in out.chunks_exact_mut(size).enumerate() {
-                    let index = first + i as u64;
-                    let point = (index / samples) as usize;
+                let frame_of = |point: usize| sphere.normals.get(point).map(|normal| HemisphereFrame::new(*normal));
+                let (mut point, mut sample) = ((first / samples) as usize, first % samples);
+                let mut frame = frame_of(point);
+                for (index, slot) in (first..).zip(out.chunks_exact_mut(size)) {
                     let (u0, u1) = (uniform(sphere.seed, index * 8), uniform(sphere.seed, index * 8 + 1));
-                    let direction = match sphere.normals.get(point) {
+                    let direction = match &frame {
                         None => uniform_sphere(u0, u1),
-                        Some(normal) => cosine_hemisphere(normal.normalize(), u0, u1),
+                        Some(frame) => frame.cosine_sample(u0, u1),
                     };
                     let ray = Ray {
                         origin: sphere.points[point].into(),
@@ -270,6 +272,11 @@ impl Generator {
                         ..Ray::default()
                     };
                     format.encode(&ray, slot);
+                    sample += 1;
+                    if sample == samples {
+                        (point, sample) = (point + 1, 0);
+                        frame = frame_of(point);
+                    }
                 }
             }
             Generator::Secondary(secondary) => secondary.fill(format, first, out),
@@ -535,13 +542,32 @@ fn uniform_sphere(u0: f32, u1: f32) -> Vec3A {
     Vec3A::new(r * cos, r * sin, z)
 }
 
-/// A direction on the hemisphere around the unit `normal`, cosine-distributed, from two uniform numbers.
-fn cosine_hemisphere(normal: Vec3, u0: f32, u1: f32) -> Vec3A {
-    let (tangent, bitangent) = normal.any_orthonormal_pair();
-    let r = u0.sqrt();
-    let (sin, cos) = (TAU * u1).sin_cos();
-    let local = (tangent * (r * cos) + bitangent * (r * sin) + normal * (1.0 - u0).max(0.0).sqrt()).normalize();
-    local.into()
+/// A point's hemisphere of directions around its normal, for cosine-distributed samples.
+struct HemisphereFrame {
+    /// The unit normal.
+    normal: Vec3,
+    /// A unit tangent, …
+    tangent: Vec3,
+    /// … and the unit vector across both ([`Vec3::any_orthonormal_pair`] of the normal).
+    bitangent: Vec3,
+}
+
+impl HemisphereFrame {
+    /// The frame around `normal` (finite and non-zero), normalized.
+    fn new(normal: Vec3) -> HemisphereFrame {
+        let normal = normal.normalize();
+        let (tangent, bitangent) = normal.any_orthonormal_pair();
+        HemisphereFrame { normal, tangent, bitangent }
+    }
+
+    /// A direction on the hemisphere, cosine-distributed, from two uniform numbers.
+    #[inline(always)]
+    fn cosine_sample(&self, u0: f32, u1: f32) -> Vec3A {
+        let r = u0.sqrt();
+        let (sin, cos) = (TAU * u1).sin_cos();
+        let local = self.tangent * (r * cos) + self.bitangent * (r * sin) + self.normal * (1.0 - u0).max(0.0).sqrt();
+        local.normalize().into()
+    }
 }
 
 #[cfg(test)]
@@ -594,9 +620,12 @@ mod tests {
             generator.check().unwrap();
             let whole = generator.rays(format);
             let size = format.size();
-            let mut part = vec![0u8; 17 * size];
-            generator.fill(format, 5, &mut part);
-            assert_eq!(part, whole[5 * size..22 * size], "{generator:?}");
+            // From within a point's (a step's, a pixel's) rays, and across to the next point's.
+            for first in [5, 60] {
+                let mut part = vec![0u8; 17 * size];
+                generator.fill(format, first as u64, &mut part);
+                assert_eq!(part, whole[first * size..(first + 17) * size], "{generator:?} from ray {first}");
+            }
         }
     }
 
