@@ -39,7 +39,7 @@ fn packed_by<'a>(
     match rays {
         RaySource::Packed(bytes) => bytes,
         RaySource::Generated { generator, first, count } => {
-            scratch.clear();
+            // Every byte is made below: a reused buffer is only resized (no clearing).
             scratch.resize(count * format.size(), 0);
             fill(generator, format, first, scratch);
             scratch
