@@ -141,8 +141,10 @@ impl Reduction {
     /// needs.
     pub fn traced_query(&self, query: &Query) -> Query {
         let hit_format = match self {
+            // A bit a record says hit or miss (`Hit::is_hit`, a hit behind the ray's origin too): all counts need.
+            Reduction::Counts => HitFormat::Bitmask,
             // The primitive id tells a hit behind the ray's origin from a miss (`Hit::is_hit`).
-            Reduction::Counts | Reduction::Histogram { .. } | Reduction::PointCloud(_) => HitFormat::TTriid,
+            Reduction::Histogram { .. } | Reduction::PointCloud(_) => HitFormat::TTriid,
             Reduction::Image(image) => image.channel.hit_format(),
             Reduction::IdCounts(IdKind::Instance) => HitFormat::TTriidInstid,
             Reduction::IdCounts(IdKind::Geometry) => HitFormat::Full,
@@ -242,7 +244,9 @@ impl Reduction {
         let group = self.group_rays();
         let split = (PARALLEL_SPLIT_RAYS / group).max(1) * group;
         let (ray_size, records) = (traced.ray_format.size(), traced.records_per_ray());
-        let hit_size = traced.hit_format.size().expect("reductions trace records with a size");
+        // Where the records of a part begin (a bitmask is traced only for counts, whose parts of 2^14 rays begin on
+        // byte boundaries).
+        let hits_before = |rays: usize| traced.hit_format.buffer_len(rays * records);
         let count_size = if counts.is_empty() { 0 } else { 4 };
         let ray_count = rays.len() / ray_size;
         let parts: Vec<Partial> = (0..ray_count.div_ceil(split))
@@ -253,7 +257,7 @@ impl Reduction {
                     traced,
                     first_ray + range.start as u64,
                     &rays[range.start * ray_size..range.end * ray_size],
-                    &hits[range.start * records * hit_size..range.end * records * hit_size],
+                    &hits[hits_before(range.start)..hits_before(range.end)],
                     &counts[range.start * count_size..range.end * count_size],
                 )
             })

@@ -315,4 +315,10 @@ fn a_piece_reduced_in_parallel_parts_equals_it_reduced_at_once() {
         let parallel = reduction.reduce_piece_parallel(&query, 1 << 20, &ray_bytes, &hit_bytes, &[]);
         assert!(at_once == parallel, "{reduction:?}");
     }
+    // Counts trace a bitmask: its parts begin within the bytes.
+    let (query, ray_bytes, hit_bytes) = batch(HitFormat::Bitmask, &rays, &hits);
+    assert_eq!(Reduction::Counts.traced_query(&query).hit_format, HitFormat::Bitmask);
+    let parallel = Reduction::Counts.reduce_piece_parallel(&query, 0, &ray_bytes, &hit_bytes, &[]);
+    let hit = hits.iter().filter(|hit| hit.is_hit()).count() as u64;
+    assert_eq!(parallel, Partial::Sums(vec![count as u64, hit, hit]));
 }
