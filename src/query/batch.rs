@@ -55,11 +55,17 @@ where
         for (group, bytes) in rays.chunks(ray_size * GROUP_RAYS).enumerate() {
             let first = group * GROUP_RAYS;
             let len = bytes.len() / ray_size;
-            for ((ray, collector), bytes) in prepared.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(ray_size))
-            {
-                *ray = PreparedRay::new(&query.ray_format.decode(bytes), query.flags);
-                collector.restart(ray);
-            }
+            // Decoded by a loop compiled once a ray format, without a match a ray.
+            query.ray_format.specialized(
+                #[inline(always)]
+                |format| {
+                    let slots = prepared.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(format.size()));
+                    for ((ray, collector), bytes) in slots {
+                        *ray = PreparedRay::new(&format.decode(bytes), query.flags);
+                        collector.restart(ray);
+                    }
+                },
+            );
             traverse(&mut state, &prepared[..len], &mut collectors[..len], &mut stats);
             query.hit_format.specialized(
                 #[inline(always)]
