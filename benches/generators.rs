@@ -1,20 +1,48 @@
 //! Rays made on the server: how fast each generator makes its rays on one core, packed in
 //! `origin_tmin_direction_tmax_time` a part of 8,192 rays at a time, as the CPU backend makes them for a trace
-//! (`backend::host::PART_RAYS`). Prints one table of M rays/s (median of 5 runs over 4,194,304 rays); run with
-//! `cargo bench --bench generators`. A trace of the bunny runs at 20–50 M rays/s a core, so a generator much slower
-//! than a few hundred M rays/s shows in a generated trace's rate.
+//! (`backend::host::PART_RAYS`), after a part of each is checked against its rays made one by one. Prints one table
+//! of M rays/s (median of 5 runs over 4,194,304 rays); run with `cargo bench --bench generators`. A trace of the
+//! bunny runs at 20–50 M rays/s a core, so a generator much slower than a few hundred M rays/s shows in a generated
+//! trace's rate.
 
 use std::time::Instant;
 
 use glam::Vec3;
 use rayd_engine::backend::host::PART_RAYS;
-use rayd_engine::format::RayFormat;
-use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, PixelSampling, SphereSampling};
+use rayd_engine::format::{Ray, RayFormat};
+use rayd_engine::raygen::{Camera, Generator, Lidar, LidarFrame, Orthographic, PixelSampling, SphereSampling};
 
 /// Rays each generator makes a run.
 const RAYS: u64 = 1 << 22;
 /// Timed runs; the median is reported.
 const RUNS: usize = 5;
+
+/// Checks a part of `generator`'s rays, from an odd first ray, against the same rays made one by one from their
+/// index where the generator has such a form (cameras, lidars), and against their point and unit length otherwise.
+fn check(generator: &Generator, format: RayFormat) {
+    let first = RAYS / 2 + 3;
+    let mut part = vec![0u8; PART_RAYS * format.size()];
+    generator.fill(format, first, &mut part);
+    let made = |i: usize| format.decode(&part[i * format.size()..(i + 1) * format.size()]);
+    for i in 0..PART_RAYS {
+        let index = first + i as u64;
+        let ray = made(i);
+        let expected = match generator {
+            Generator::Pinhole(..) | Generator::Orthographic(..) => generator.camera_frame().unwrap().ray(index),
+            Generator::Lidar(lidar) => {
+                let (frame, channels) = (LidarFrame::new(lidar), lidar.elevations_degrees.len() as u64);
+                frame.ray(frame.step(index / channels), frame.channel((index % channels) as usize))
+            }
+            Generator::Sphere(sphere) => {
+                let point = sphere.points[(index / u64::from(sphere.samples)) as usize];
+                assert!((ray.direction.length() - 1.0).abs() < 1e-5, "ray {index} has a unit direction");
+                Ray { origin: point.into(), direction: ray.direction, ..ray }
+            }
+            Generator::Secondary(_) => unreachable!("not benchmarked"),
+        };
+        assert_eq!(ray, expected, "ray {index}");
+    }
+}
 
 /// Seconds to make all `RAYS` rays of `generator`, a part at a time into one reused buffer.
 fn make(generator: &Generator, format: RayFormat) -> f64 {
@@ -81,6 +109,7 @@ fn main() {
     for (what, generator) in generators {
         generator.check().expect("a valid generator");
         assert_eq!(generator.count(), RAYS, "{what}");
+        check(&generator, format);
         make(&generator, format);
         let mut times: Vec<f64> = (0..RUNS).map(|_| make(&generator, format)).collect();
         times.sort_by(f64::total_cmp);
