@@ -69,16 +69,35 @@ pub fn trace_reduced<B: Backend + ?Sized>(
     first_ray: u64,
     reduction: &Reduction,
 ) -> Result<(Partial, TraceStats)> {
-    let mut scratch = Vec::new();
-    let rays = packed(rays, query.ray_format, &mut scratch);
+    let mut scratch = PartScratch::default();
     let traced = reduction.traced_query(query);
-    let layout = traced.output_layout(rays.len())?;
-    let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
-    let stats = backend.trace(accel, &traced, rays, TraceOutput { hits: &mut hits, counts: &mut counts })?;
-    Ok((reduction.reduce_piece_parallel(&traced, first_ray, rays, &hits, &counts), stats))
+    trace_then_reduce(backend, accel, &traced, rays, &mut scratch, Generator::fill_parallel, |rays, hits, counts| {
+        reduction.reduce_piece_parallel(&traced, first_ray, rays, hits, counts)
+    })
 }
 
-/// A worker's buffers for the parts it does, reused from part to part.
+/// Packs `rays` (made by `fill` into `scratch` when generated), traces them with `traced` into `scratch`'s hit and
+/// count buffers, and reduces them with `reduce` (given the packed rays, hits and counts): what a piece or a part of
+/// a reduced trace does.
+fn trace_then_reduce<B: Backend + ?Sized>(
+    backend: &B,
+    accel: &dyn BackendAccel,
+    traced: &Query,
+    rays: RaySource<'_>,
+    scratch: &mut PartScratch,
+    fill: impl FnOnce(&Generator, RayFormat, u64, &mut [u8]),
+    reduce: impl FnOnce(&[u8], &[u8], &[u8]) -> Partial,
+) -> Result<(Partial, TraceStats)> {
+    let PartScratch { rays: made, hits, counts } = scratch;
+    let rays = packed_by(rays, traced.ray_format, made, fill);
+    let layout = traced.output_layout(rays.len())?;
+    hits.resize(layout.hits, 0);
+    counts.resize(layout.counts, 0);
+    let stats = backend.trace(accel, traced, rays, TraceOutput { hits, counts })?;
+    Ok((reduce(rays, hits, counts), stats))
+}
+
+/// The buffers of a reduced trace's piece, or of a worker's parts (reused from part to part).
 #[derive(Default)]
 struct PartScratch {
     /// The part's rays, when they are made.
@@ -154,13 +173,11 @@ pub fn trace_reduced_in_parts<B: Backend + ?Sized>(
     let group = reduction.group_rays();
     let ray_size = traced.ray_format.size();
     let reduced = in_parts(layout.rays, PART_RAYS.div_ceil(group) * group, |scratch, range| {
-        let PartScratch { rays: made, hits, counts } = scratch;
-        let rays = packed_by(rays.part(range.clone(), ray_size), traced.ray_format, made, Generator::fill);
-        let layout = traced.output_layout(rays.len())?;
-        hits.resize(layout.hits, 0);
-        counts.resize(layout.counts, 0);
-        let stats = backend.trace(accel, &traced, rays, TraceOutput { hits, counts })?;
-        Ok((reduction.reduce_piece(&traced, first_ray + range.start as u64, rays, hits, counts), stats))
+        let first = first_ray + range.start as u64;
+        let part = rays.part(range, ray_size);
+        trace_then_reduce(backend, accel, &traced, part, scratch, Generator::fill, |rays, hits, counts| {
+            reduction.reduce_piece(&traced, first, rays, hits, counts)
+        })
     })?;
     let (partials, stats): (Vec<Partial>, Vec<TraceStats>) = reduced.into_iter().unzip();
     let mut folded = reduction.empty();
