@@ -5,7 +5,9 @@
 //! reduced) trace in-process ("% same i-p", the rate of the work rayd wraps) — and the bytes a ray puts on the wire
 //! (and what zstd/gzip would make of them). Run with `cargo bench -p rayd-server --bench reductions`;
 //! `RAYD_BENCH_DEVICE=wgpu:0` measures on a GPU device instead of `cpu:0` (the in-process rows then trace on that
-//! device too, and the kernel time of the rays-sent trace is printed below it).
+//! device too, and the kernel time of the rays-sent trace is printed below it). With `RUST_LOG` set (e.g.
+//! `RUST_LOG=rayd_engine=debug`), the engine's and the server's logs go to stderr: the wgpu backend logs each
+//! trace's kernel, submitting and finishing time at debug level.
 
 use std::time::Instant;
 
@@ -21,6 +23,7 @@ use rayd_engine::raygen::{Camera, Generator, PixelSampling};
 use rayd_engine::reduce::{Image, ImageChannel, PixelEncoding, Reduction};
 use rayd_engine::{Context, Device};
 use tonic::codec::CompressionEncoding;
+use tracing_subscriber::EnvFilter;
 
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
@@ -59,6 +62,9 @@ fn compressed(data: &[u8]) -> (usize, usize) {
 }
 
 fn main() {
+    if std::env::var_os("RUST_LOG").is_some() {
+        tracing_subscriber::fmt().with_env_filter(EnvFilter::from_default_env()).with_writer(std::io::stderr).init();
+    }
     let meshes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/meshes");
     let bunny = Mesh::load_obj(meshes.join("stanford-bunny.obj")).expect("the shared bunny");
     let (lo, hi) = bunny.bounds();
@@ -188,13 +194,13 @@ fn main() {
             })
             .await;
             let same_in_process = in_process_reduced(&reduction);
+            row(what, seconds, same_in_process, &data);
             println!(
                 "{:<52} {:>9.2} {:>8.1}",
                 "  the same in-process",
                 mrays(same_in_process),
                 100.0 * engine / same_in_process
             );
-            row(what, seconds, same_in_process, &data);
             let trace = median(trace_seconds.into_inner().unwrap());
             println!("{:<52} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
             let kernel = median(kernel_seconds.into_inner().unwrap());

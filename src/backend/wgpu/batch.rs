@@ -35,10 +35,11 @@ use super::WgpuOptions;
 use super::device::Opened;
 use super::kernel::{Params, Rays, WORKGROUP_SIZE};
 use super::layout::GpuGraph;
-use super::offload::DeviceGenerator;
+use super::offload::{DeviceGenerator, OnDevice, encode_pixels};
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, read_u32};
 use crate::query::{Query, QueryKind, TraceOutput, TraceStats};
+use crate::reduce::Image;
 
 /// Slots a trace keeps in flight.
 pub(super) const SLOTS: usize = 2;
@@ -77,14 +78,12 @@ pub(super) enum Input<'a> {
 pub(super) enum Output<'a> {
     /// Every hit record and count, into the caller's buffers.
     Hits(TraceOutput<'a>),
-    /// Each pixel of `group_rays` rays reduced on the device to `pixel_words` words (`reduce.wgsl`), into `pixels`
-    /// (little-endian words, pixel after pixel).
+    /// Each pixel of `image` (its `rays_per_pixel` rays) reduced on the device to [`OnDevice::pixel_words`] words
+    /// (`reduce.wgsl`), then encoded into `pixels` as each chunk comes back.
     Pixels {
-        /// Rays a pixel.
-        group_rays: u32,
-        /// Words a pixel: 1 (depth) or 4 (normal).
-        pixel_words: u32,
-        /// The pixels of the whole batch.
+        /// The image.
+        image: Image,
+        /// The whole batch's pixels, in the image's encoding.
         pixels: &'a mut [u8],
     },
     /// Nothing else: the statistics count the rays hit.
@@ -95,7 +94,7 @@ impl Output<'_> {
     /// Rays whose results go together (a pixel's), 1 but for pixels.
     fn group_rays(&self) -> usize {
         match self {
-            Output::Pixels { group_rays, .. } => *group_rays as usize,
+            Output::Pixels { image, .. } => image.rays_per_pixel as usize,
             _ => 1,
         }
     }
@@ -105,8 +104,8 @@ impl Output<'_> {
     fn chunk_bytes(&self, query: &Query, rays: usize) -> u64 {
         match self {
             Output::Hits(_) => (query.hit_format.buffer_len(rays * query.records_per_ray()) as u64).next_multiple_of(4),
-            Output::Pixels { group_rays, pixel_words, .. } => {
-                (rays / *group_rays as usize) as u64 * 4 * u64::from(*pixel_words)
+            Output::Pixels { image, .. } => {
+                (rays / image.rays_per_pixel as usize) as u64 * 4 * u64::from(OnDevice::pixel_words(image))
             }
             Output::Tallies => 0,
         }
@@ -421,8 +420,8 @@ pub(super) fn trace(
         }
     }
     let mut params = Params { root: accel.root, ..Params::for_query(query) };
-    if let Output::Pixels { group_rays, pixel_words, .. } = output {
-        (params.group_rays, params.pixel_words) = (group_rays, pixel_words);
+    if let Output::Pixels { image, .. } = output {
+        (params.group_rays, params.pixel_words) = (image.rays_per_pixel, OnDevice::pixel_words(&image));
     }
     let traced = run_chunks(opened, accel, query, plan, &params, input, output, slots, started);
     if traced.is_err() {
@@ -616,10 +615,10 @@ fn submit(
             encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes });
         let variant = super::kernel::Variant { rays, ..accel.variant.for_query(query) };
         dispatch_trace(&mut pass, opened, accel, slot, variant, chunk.rays);
-        if let Output::Pixels { group_rays, .. } = output {
+        if let Output::Pixels { image, .. } = output {
             // Dispatches of one pass see each other's writes: the reduction reads the records just traced.
             pass.set_pipeline(opened.kernel.reduce_pixels(&opened.device));
-            pass.dispatch_workgroups((chunk.rays as u32 / group_rays).div_ceil(WORKGROUP_SIZE), 1, 1);
+            pass.dispatch_workgroups((chunk.rays as u32 / image.rays_per_pixel).div_ceil(WORKGROUP_SIZE), 1, 1);
         }
     }
     let given_back = match output {
@@ -720,11 +719,11 @@ fn finish(
                     );
                 }
             }
-            Output::Pixels { group_rays, pixel_words, pixels } => {
-                let pixel_bytes = 4 * *pixel_words as usize;
-                let start = chunk.first / *group_rays as usize * pixel_bytes;
-                let len = need.given_back as usize;
-                copy_spread(&mut pixels[start..start + len], &view[..len]);
+            Output::Pixels { image, pixels } => {
+                let (first, len) = (chunk.first / image.rays_per_pixel as usize, need.given_back as usize);
+                let count = len / (4 * OnDevice::pixel_words(image) as usize);
+                let encoded = image.pixel_bytes();
+                encode_pixels(image, &view[..len], &mut pixels[first * encoded..(first + count) * encoded]);
             }
             Output::Tallies => {}
         }

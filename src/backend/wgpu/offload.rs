@@ -130,35 +130,36 @@ impl OnDevice {
         }
     }
 
-    /// The partial of a piece whose trace gave back `pixels` (for an image) and `stats`.
-    pub fn partial(&self, pixels: &[u8], stats: &TraceStats) -> Partial {
+    /// The partial of a piece whose trace gave back `image_bytes` (for an image: its pixels, encoded by
+    /// [`encode_pixels`] as each chunk came back) and `stats`.
+    pub fn partial(&self, image_bytes: Vec<u8>, stats: &TraceStats) -> Partial {
         match self {
             OnDevice::Counts => Partial::Sums(vec![stats.rays, stats.rays_hit, stats.rays_hit]),
-            OnDevice::Image(image) => {
-                let (pixel_bytes, encoded_bytes) = (4 * OnDevice::pixel_words(image) as usize, image.pixel_bytes());
-                let mut bytes = vec![0; pixels.len() / pixel_bytes * encoded_bytes];
-                // Parts encoded on the rayon pool, each straight into its place in the image (one 16 MiB copy on one
-                // thread took milliseconds).
-                bytes
-                    .par_chunks_mut(PARALLEL_SPLIT_RAYS * encoded_bytes)
-                    .zip(pixels.par_chunks(PARALLEL_SPLIT_RAYS * pixel_bytes))
-                    .for_each(|(out, part)| {
-                        for (pixel, out) in part.chunks_exact(pixel_bytes).zip(out.chunks_exact_mut(encoded_bytes)) {
-                            let word = |i: usize| f32::from_le_bytes(pixel[4 * i..4 * i + 4].try_into().unwrap());
-                            match image.channel {
-                                ImageChannel::Depth => {
-                                    let hit = word(0).to_bits() != MISSED_PIXEL;
-                                    image.write_depth(hit.then(|| word(0)), out)
-                                }
-                                ImageChannel::Normal => {
-                                    let hit = word(3).to_bits() != 0;
-                                    image.write_normal(hit.then(|| Vec3::new(word(0), word(1), word(2))), out)
-                                }
-                            }
-                        }
-                    });
-                Partial::Ordered { bytes, dropped: 0 }
-            }
+            OnDevice::Image(_) => Partial::Ordered { bytes: image_bytes, dropped: 0 },
         }
     }
+}
+
+/// Encodes the pixel pass's `pixels` (`pixel_words` little-endian words a pixel, `reduce.wgsl`) of `image` into
+/// `out`, those pixels' place in the image, on the rayon pool: straight out of the mapped staging buffer into the
+/// image, with no intermediate copy (a 16 MiB buffer zeroed on one thread cost milliseconds a 4-megapixel image).
+pub(super) fn encode_pixels(image: &Image, pixels: &[u8], out: &mut [u8]) {
+    let (pixel_bytes, encoded_bytes) = (4 * OnDevice::pixel_words(image) as usize, image.pixel_bytes());
+    out.par_chunks_mut(PARALLEL_SPLIT_RAYS * encoded_bytes)
+        .zip(pixels.par_chunks(PARALLEL_SPLIT_RAYS * pixel_bytes))
+        .for_each(|(out, part)| {
+            for (pixel, out) in part.chunks_exact(pixel_bytes).zip(out.chunks_exact_mut(encoded_bytes)) {
+                let word = |i: usize| f32::from_le_bytes(pixel[4 * i..4 * i + 4].try_into().unwrap());
+                match image.channel {
+                    ImageChannel::Depth => {
+                        let hit = word(0).to_bits() != MISSED_PIXEL;
+                        image.write_depth(hit.then(|| word(0)), out)
+                    }
+                    ImageChannel::Normal => {
+                        let hit = word(3).to_bits() != 0;
+                        image.write_normal(hit.then(|| Vec3::new(word(0), word(1), word(2))), out)
+                    }
+                }
+            }
+        });
 }
