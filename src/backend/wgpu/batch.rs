@@ -56,8 +56,10 @@ const SCRATCH_ENTRY_BYTES: u64 = 48;
 pub(super) const MAX_CHUNK_RAYS: usize = 1 << 18;
 /// The same for rays made on the device and reduced there: with nothing to upload and a few bytes a pixel to read
 /// back, larger chunks lose little overlap and save each chunk's start and drain (on an H100, a 4-megapixel image's
-/// hit counts through rayd ran 69% faster than in chunks of 2^18 rays, its depth image 18%; BENCHMARKS.md).
-pub(super) const MAX_ON_DEVICE_CHUNK_RAYS: usize = 1 << 20;
+/// hit counts through rayd ran 69% faster than in chunks of 2^18 rays, its depth image 18%; on an H200 the kernels of
+/// such an image took 19–20% less time in two chunks of 2^21 than in four of 2^20, and 20% more in eight of 2^19;
+/// BENCHMARKS.md).
+pub(super) const MAX_ON_DEVICE_CHUNK_RAYS: usize = 1 << 21;
 /// Rays one dispatch can cover: 65,535 workgroups (WebGPU's per-dimension limit) of [`WORKGROUP_SIZE`].
 const MAX_DISPATCH_RAYS: usize = 65_535 * WORKGROUP_SIZE as usize;
 /// Chunks start at multiples of this many rays (and of a reduction's pixel), so that bitmask chunks start on word

@@ -56,7 +56,7 @@ pub struct WgpuOptions {
     /// adapter's `max_storage_buffer_binding_size`; `None` uses the adapter's limit. Smaller chunks mean more
     /// dispatches: tests use it to split small batches.
     pub max_binding_bytes: Option<u64>,
-    /// Caps the rays of a chunk (when `None`: 2^20 for rays made on the device and reduced there, 2^18 otherwise;
+    /// Caps the rays of a chunk (when `None`: 2^21 for rays made on the device and reduced there, 2^18 otherwise;
     /// the bindings and a dispatch's workgroups cap it too). Larger chunks mean fewer dispatches but less overlap of
     /// copies with tracing: benches sweep it.
     pub max_chunk_rays: Option<usize>,
