@@ -39,8 +39,7 @@ fn packed_by<'a>(
     match rays {
         RaySource::Packed(bytes) => bytes,
         RaySource::Generated { generator, first, count } => {
-            // Every byte is made below: a reused buffer is only resized (no clearing).
-            scratch.resize(count * format.size(), 0);
+            size_for_overwrite(scratch, count * format.size());
             fill(generator, format, first, scratch);
             scratch
         }
@@ -91,10 +90,23 @@ fn trace_then_reduce<B: Backend + ?Sized>(
     let PartScratch { rays: made, hits, counts } = scratch;
     let rays = packed_by(rays, traced.ray_format, made, fill);
     let layout = traced.output_layout(rays.len())?;
-    hits.resize(layout.hits, 0);
-    counts.resize(layout.counts, 0);
+    // Every record and count is written by the trace.
+    size_for_overwrite(hits, layout.hits);
+    size_for_overwrite(counts, layout.counts);
     let stats = backend.trace(accel, traced, rays, TraceOutput { hits, counts })?;
     Ok((reduce(rays, hits, counts), stats))
+}
+
+/// Makes `buffer` `len` bytes long for contents about to be written whole: one too small is replaced by a buffer the
+/// allocator hands out zeroed (fresh pages, not written here: a batch-sized buffer zero-filled on one thread costs
+/// milliseconds, and its pages are better first touched by the threads that fill them); one with room, reused from
+/// an earlier part, keeps its stale bytes.
+fn size_for_overwrite(buffer: &mut Vec<u8>, len: usize) {
+    if buffer.capacity() < len {
+        *buffer = vec![0; len];
+    } else {
+        buffer.resize(len, 0);
+    }
 }
 
 /// The buffers of a reduced trace's piece, or of a worker's parts (reused from part to part).
