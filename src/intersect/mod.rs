@@ -97,3 +97,31 @@ impl PreparedRay {
         PreparedRay::new(&ray, RayFlags::empty())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The projection axes of a ray with direction `d`.
+    fn axes(d: [f32; 3]) -> (usize, usize, usize) {
+        let ray = PreparedRay::new(&Ray { direction: d.into(), ..Ray::default() }, RayFlags::empty());
+        (ray.kz, ray.kx, ray.ky)
+    }
+
+    #[test]
+    fn the_projection_axis_is_the_largest_component_with_ties_and_nans_resolved_in_axis_order() {
+        // Largest magnitude wins; the plane's axes follow it cyclically, swapped when that component is negative.
+        assert_eq!(axes([3.0, 1.0, 2.0]), (0, 1, 2));
+        assert_eq!(axes([-3.0, 1.0, 2.0]), (0, 2, 1));
+        assert_eq!(axes([1.0, -3.0, 2.0]), (1, 0, 2));
+        assert_eq!(axes([1.0, 2.0, 3.0]), (2, 0, 1));
+        assert_eq!(axes([1.0, 2.0, -3.0]), (2, 1, 0));
+        // Ties go to the earlier axis.
+        assert_eq!(axes([2.0, 2.0, 2.0]), (0, 1, 2));
+        assert_eq!(axes([1.0, 2.0, 2.0]), (1, 2, 0));
+        // A NaN component loses every comparison, and so does a component compared with it.
+        assert_eq!(axes([f32::NAN, 1.0, 2.0]), (2, 0, 1));
+        assert_eq!(axes([1.0, f32::NAN, 0.5]), (2, 0, 1));
+        assert_eq!(axes([1.0, 0.5, f32::NAN]), (2, 0, 1));
+    }
+}

@@ -126,8 +126,10 @@ pub fn accept_hit(
 pub struct Collector<'s> {
     /// What is being collected.
     kind: QueryKind,
-    /// The ray's own `tmax`, the cull distance of kinds that must see every hit.
-    ray_tmax: f32,
+    /// The largest `t` still worth testing ([`Collector::cull_tmax`]): the ray's own `tmax`, then, for closest-hit
+    /// queries, the closest hit's `t`. Kept up to date by [`Collector::offer`], since traversal reads it at every
+    /// leaf.
+    cull_tmax: f32,
     /// Set by the ray's or the query's `TERMINATE_ON_FIRST_HIT`.
     terminate_on_first_hit: bool,
     /// The first hit in report order so far (closest, any, count).
@@ -149,7 +151,7 @@ impl<'s> Collector<'s> {
     pub fn new(query: &Query, ray: &PreparedRay, scratch: &'s mut [Hit]) -> Self {
         Collector {
             kind: query.kind,
-            ray_tmax: ray.tmax,
+            cull_tmax: ray.tmax,
             terminate_on_first_hit: ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT),
             best: None,
             count: 0,
@@ -163,16 +165,13 @@ impl<'s> Collector<'s> {
     /// reach the tie rule), the ray's `tmax` otherwise.
     #[inline(always)]
     pub fn cull_tmax(&self) -> f32 {
-        match (self.kind, &self.best) {
-            (QueryKind::Closest, Some(best)) => best.t,
-            _ => self.ray_tmax,
-        }
+        self.cull_tmax
     }
 
     /// Makes it collect for `ray` from the start, as [`Collector::new`] would, keeping its scratch.
     #[inline(always)]
     pub fn restart(&mut self, ray: &PreparedRay) {
-        self.ray_tmax = ray.tmax;
+        self.cull_tmax = ray.tmax;
         self.terminate_on_first_hit = ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT);
         self.best = None;
         self.count = 0;
@@ -212,6 +211,9 @@ impl<'s> Collector<'s> {
         } else if self.kind == QueryKind::Any && self.best.is_some() {
             // Keep the first hit found.
         } else if self.best.is_none_or(|best| precedes(&hit, &best)) {
+            if self.kind == QueryKind::Closest {
+                self.cull_tmax = hit.t;
+            }
             self.best = Some(hit);
         }
     }
