@@ -23,7 +23,7 @@ Embree from C: embreex's loop costs time of its own around each `rtcIntersect1`,
 Embree library inside the embreex wheel) times, in the same rounds and over the same exported rays, on one thread:
 Embree's single-ray calls in a C loop, packets of 16 consecutive rays (the order rayd gets them in) and, for camera
 rays, packets of 4×4 pixel tiles (Embree's best case), each with its hit/miss agreement with rayd checked. rayd's
-own packets are 8 consecutive rays.
+own packets are 16 consecutive rays where the CPU has AVX-512, 8 where it has AVX2.
 
 Builds: each scene is then built --builds times by each side, fresh every time, and the medians compared: rayd with
 `PREFER_FAST_BUILD` and with its default preset, on every thread and on one; Embree (its default, medium quality)
