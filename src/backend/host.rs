@@ -100,7 +100,7 @@ fn trace_then_reduce<B: Backend + ?Sized>(
 /// Makes `buffer` `len` bytes long for contents about to be written whole: one too small is replaced by a buffer the
 /// allocator hands out zeroed (fresh pages, not written here: a batch-sized buffer zero-filled on one thread costs
 /// milliseconds, and its pages are better first touched by the threads that fill them); one with room, reused from
-/// an earlier part, keeps its stale bytes.
+/// an earlier part, keeps its stale bytes up to its old length (only bytes past it are zeroed).
 fn size_for_overwrite(buffer: &mut Vec<u8>, len: usize) {
     if buffer.capacity() < len {
         *buffer = vec![0; len];
