@@ -4,6 +4,7 @@
 
 use crate::error::Result;
 use crate::geometry::{GatheredTriangles, is_degenerate};
+use crate::intersect::PreparedRay;
 use crate::query::{InstanceScope, Query, TraceOutput, TraceStats, TriangleCandidate, consider_triangle, trace_batch};
 
 /// Traces `rays` against every triangle of `triangles` (static: at their first key's positions, whatever the rays'
@@ -17,6 +18,7 @@ pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: Tra
         || (),
         |_, rays, collectors, stats| {
             for (ray, collector) in rays.iter().zip(collectors) {
+                let ray = PreparedRay::from_traced(ray);
                 for &i in &hittable {
                     stats.triangle_tests += 1;
                     let id = triangles.refs[i];
@@ -26,7 +28,7 @@ pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: Tra
                         mask: triangles.mask(i),
                         geometry_flags: triangles.geometry_flags[id.geom_id as usize],
                     };
-                    consider_triangle(ray, &candidate, &InstanceScope::WORLD, collector);
+                    consider_triangle(&ray, &candidate, &InstanceScope::WORLD, collector);
                     if collector.done() {
                         break;
                     }

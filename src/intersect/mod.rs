@@ -43,10 +43,28 @@ pub struct PreparedRay {
     pub negative: [bool; 3],
 }
 
+/// `ray` as the tests see it: `query_flags` added to its own flags, and nothing accepted (`tmax` −∞) when its
+/// direction is not finite (`formats.proto`; a zero direction needs no rule of its own: its shear is NaN, which no
+/// triangle test passes). What [`PreparedRay::new`] starts from, and what batch drivers hand their backends.
+#[inline(always)]
+pub fn traced(ray: &Ray, query_flags: RayFlags) -> Ray {
+    Ray {
+        tmax: if ray.direction.is_finite() { ray.tmax } else { f32::NEG_INFINITY },
+        flags: ray.flags | query_flags,
+        ..*ray
+    }
+}
+
 impl PreparedRay {
-    /// Prepares `ray`, adding `query_flags` to its own flags.
+    /// Prepares `ray`, adding `query_flags` to its own flags ([`traced`]).
     #[inline]
     pub fn new(ray: &Ray, query_flags: RayFlags) -> PreparedRay {
+        PreparedRay::from_traced(&traced(ray, query_flags))
+    }
+
+    /// Prepares a ray that [`traced`] made (as batch drivers hand them over).
+    #[inline]
+    pub fn from_traced(ray: &Ray) -> PreparedRay {
         let d = ray.direction;
         let abs = d.abs();
         let (kz, [x, y]) = if abs.x >= abs.y && abs.x >= abs.z {
@@ -64,13 +82,11 @@ impl PreparedRay {
             origin: ray.origin,
             direction: d,
             tmin: ray.tmin,
-            // A direction that is not finite hits nothing (`formats.proto`); a zero one needs no rule of its own
-            // (its shear is NaN, which no triangle test passes).
-            tmax: if d.is_finite() { ray.tmax } else { f32::NEG_INFINITY },
+            tmax: ray.tmax,
             time: ray.time,
             mask: ray.mask,
             visibility: ray.visibility,
-            flags: ray.flags | query_flags,
+            flags: ray.flags,
             kz,
             kx,
             ky,

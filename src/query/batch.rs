@@ -1,13 +1,15 @@
 //! The batch driver of CPU-side tracing: rays are split into chunks traced in parallel with rayon; in a chunk each
 //! ray is decoded once, handed to the backend's closure in groups of consecutive rays ([`GROUP_RAYS`], so that a
-//! backend can trace coherent ones together) and written in place. Nothing is allocated per ray.
+//! backend can trace coherent ones together) and written in place. Nothing is allocated per ray. The rays are
+//! handed over decoded, not prepared ([`crate::intersect::PreparedRay`]): a backend prepares what its tests need,
+//! which for rays traced together is much less than a prepared ray each.
 
 use rayon::prelude::*;
 
 use super::{Collector, Query, QueryKind, TraceOutput, TraceStats};
 use crate::error::Result;
 use crate::format::{Hit, Ray};
-use crate::intersect::PreparedRay;
+use crate::intersect::traced;
 
 /// Rays per parallel chunk; a multiple of 8 so that bitmask outputs split on byte boundaries.
 pub const CHUNK_RAYS: usize = 1024;
@@ -16,7 +18,8 @@ pub const CHUNK_RAYS: usize = 1024;
 pub const GROUP_RAYS: usize = 16;
 
 /// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`.
-/// `traverse` gets up to [`GROUP_RAYS`] consecutive rays with a collector each, offers each ray's candidate
+/// `traverse` gets up to [`GROUP_RAYS`] consecutive rays (as [`traced`] makes them: the query's flags added) with a
+/// collector each, offers each ray's candidate
 /// triangles to its collector and adds what it did to the stats; it gets working state (a traversal stack) made
 /// once per chunk by `new_state`.
 pub fn trace_batch<S, N, F>(
@@ -28,7 +31,7 @@ pub fn trace_batch<S, N, F>(
 ) -> Result<TraceStats>
 where
     N: Fn() -> S + Sync,
-    F: Fn(&mut S, &[PreparedRay], &mut [Collector<'_>], &mut TraceStats) + Sync,
+    F: Fn(&mut S, &[Ray], &mut [Collector<'_>], &mut TraceStats) + Sync,
 {
     let layout = query.output_layout(rays.len())?;
     out.check(&layout)?;
@@ -46,8 +49,8 @@ where
         let mut scratch = vec![Hit::MISS; if all { records_per_ray * GROUP_RAYS } else { 0 }];
         let mut parts = scratch.chunks_mut(records_per_ray.max(1));
         // A group's rays and collectors, made once a chunk and restarted for every group.
-        let unused = PreparedRay::new(&Ray::default(), query.flags);
-        let mut prepared = [unused; GROUP_RAYS];
+        let unused = traced(&Ray::default(), query.flags);
+        let mut decoded = [unused; GROUP_RAYS];
         let mut collectors: [Collector<'_>; GROUP_RAYS] = std::array::from_fn(|_| {
             let part = if all { parts.next().expect("a scratch part a ray") } else { &mut [] };
             Collector::new(query, &unused, part)
@@ -59,14 +62,14 @@ where
             query.ray_format.specialized(
                 #[inline(always)]
                 |format| {
-                    let slots = prepared.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(format.size()));
+                    let slots = decoded.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(format.size()));
                     for ((ray, collector), bytes) in slots {
-                        *ray = PreparedRay::new(&format.decode(bytes), query.flags);
+                        *ray = traced(&format.decode(bytes), query.flags);
                         collector.restart(ray);
                     }
                 },
             );
-            traverse(&mut state, &prepared[..len], &mut collectors[..len], &mut stats);
+            traverse(&mut state, &decoded[..len], &mut collectors[..len], &mut stats);
             query.hit_format.specialized(
                 #[inline(always)]
                 |format| {

@@ -4,7 +4,7 @@
 use glam::{Mat3A, Vec3, Vec3A};
 
 use super::{Query, QueryKind};
-use crate::format::{Hit, HitFormat, InstancePath, RayFlags, write_u32};
+use crate::format::{Hit, HitFormat, InstancePath, Ray, RayFlags, write_u32};
 use crate::geometry::{GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
 use crate::intersect::PreparedRay;
 use crate::intersect::triangle::{self, TriangleHit};
@@ -80,28 +80,29 @@ pub fn consider_triangle(
         return;
     }
     if let Some(hit) = triangle::intersect(ray, candidate.corners) {
-        accept_hit(ray, candidate, scope, collector, hit);
+        accept_hit(ray.tmin, ray.flags, candidate, scope, collector, hit);
     }
 }
 
 /// The rest of [`consider_triangle`] once the ray's line meets the triangle at `hit` (and the mask rule let it be
-/// tested): the range, face culling, and the offer to `collector`. Tracers that intersect a triangle with many rays
-/// at once go on from here for each ray that meets it.
+/// tested): the range (from the ray's `tmin`), face culling (by the ray's `flags`), and the offer to `collector`.
+/// Tracers that intersect a triangle with many rays at once go on from here for each ray that meets it.
 #[inline(always)]
 pub fn accept_hit(
-    ray: &PreparedRay,
+    tmin: f32,
+    flags: RayFlags,
     candidate: &TriangleCandidate<'_>,
     scope: &InstanceScope,
     collector: &mut Collector<'_>,
     hit: TriangleHit,
 ) {
-    if !(hit.t >= ray.tmin && hit.t <= collector.cull_tmax()) {
+    if !(hit.t >= tmin && hit.t <= collector.cull_tmax()) {
         return;
     }
     let back_face = hit.back_face ^ scope.flip_facing;
     if !scope.no_culling && !candidate.geometry_flags.contains(GeometryFlags::DISABLE_FACE_CULLING) {
         let culled = if back_face { RayFlags::CULL_BACK_FACING } else { RayFlags::CULL_FRONT_FACING };
-        if ray.flags.contains(culled) {
+        if flags.contains(culled) {
             return;
         }
     }
@@ -145,10 +146,10 @@ pub struct Collector<'s> {
 }
 
 impl<'s> Collector<'s> {
-    /// A collector for one ray; `scratch` must hold `max_hits_per_ray` entries for `all` queries (it is unused by
-    /// the other kinds).
+    /// A collector for one ray, as [`crate::intersect::traced`] makes it; `scratch` must hold `max_hits_per_ray`
+    /// entries for `all` queries (it is unused by the other kinds).
     #[inline]
-    pub fn new(query: &Query, ray: &PreparedRay, scratch: &'s mut [Hit]) -> Self {
+    pub fn new(query: &Query, ray: &Ray, scratch: &'s mut [Hit]) -> Self {
         Collector {
             kind: query.kind,
             cull_tmax: ray.tmax,
@@ -170,7 +171,7 @@ impl<'s> Collector<'s> {
 
     /// Makes it collect for `ray` from the start, as [`Collector::new`] would, keeping its scratch.
     #[inline(always)]
-    pub fn restart(&mut self, ray: &PreparedRay) {
+    pub fn restart(&mut self, ray: &Ray) {
         self.cull_tmax = ray.tmax;
         self.terminate_on_first_hit = ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT);
         self.best = None;

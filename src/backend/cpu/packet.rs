@@ -16,11 +16,14 @@ use std::arch::x86_64::*;
 use std::mem::offset_of;
 use std::ops::Range;
 
+use glam::Vec3A;
+
 use super::blocks::Block;
 use super::filter;
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::triangles::TriangleBvh;
 use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, has_avx2, prefetch};
+use crate::format::Ray;
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
 use crate::intersect::triangle::TriangleHit;
@@ -59,13 +62,14 @@ fn has_avx512() -> bool {
 }
 
 /// Whether `rays` (with their collectors) may make a packet, by what is cheapest to check: the same direction signs
-/// and projection axes (the box test and the triangle filter treat them alike: the answers need only this), and
-/// queries that let them share an order of boxes. Most incoherent groups fail at their second ray. The rest of the
-/// test is [`PacketLanes::coherent`].
-fn may_pack(rays: &[PreparedRay], collectors: &[Collector<'_>]) -> bool {
-    let axes = |ray: &PreparedRay| (ray.kx, ray.ky, ray.kz, ray.negative);
+/// (the box test treats them alike), and queries that let them share an order of boxes. Most incoherent groups fail
+/// at their second ray. The rest of the test is [`PacketLanes::new`] (the same projection axes, which the triangle
+/// test needs) and [`PacketLanes::coherent`].
+fn may_pack(rays: &[Ray], collectors: &[Collector<'_>]) -> bool {
+    // `PreparedRay::negative`: a −0 component is not negative.
+    let signs = |ray: &Ray| ray.direction.cmplt(Vec3A::ZERO).bitmask();
     let [first, rest @ ..] = rays else { return false };
-    rest.iter().all(|ray| axes(ray) == axes(first)) && collectors.iter().all(Collector::may_share_order)
+    rest.iter().all(|ray| signs(ray) == signs(first)) && collectors.iter().all(Collector::may_share_order)
 }
 
 impl TriangleBvh {
@@ -75,7 +79,7 @@ impl TriangleBvh {
     pub(super) fn trace_packets(
         &self,
         stack: &mut [PacketEntry],
-        rays: &[PreparedRay],
+        rays: &[Ray],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> u32 {
@@ -107,7 +111,7 @@ impl TriangleBvh {
     unsafe fn trace_packet_avx2(
         &self,
         stack: &mut [PacketEntry],
-        rays: &[PreparedRay],
+        rays: &[Ray],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
@@ -123,7 +127,7 @@ impl TriangleBvh {
     unsafe fn trace_packet_avx512(
         &self,
         stack: &mut [PacketEntry],
-        rays: &[PreparedRay],
+        rays: &[Ray],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
@@ -140,13 +144,13 @@ impl TriangleBvh {
     unsafe fn trace_packet<V: RayLanes>(
         &self,
         stack: &mut [PacketEntry],
-        rays: &[PreparedRay],
+        rays: &[Ray],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
         // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
-        let lanes = unsafe { PacketLanes::<V>::new(rays) };
-        if !unsafe { lanes.coherent(rays, MAX_ORIGIN_SPREAD * self.wide.diagonal()) } {
+        let Some(lanes) = (unsafe { PacketLanes::<V>::new(rays) }) else { return false };
+        if !unsafe { lanes.coherent(&rays[0], MAX_ORIGIN_SPREAD * self.wide.diagonal()) } {
             return false;
         }
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
@@ -168,16 +172,16 @@ impl TriangleBvh {
                 // Ray by ray in lane order, as each alone would be offered the triangle: rays on an edge or a vertex
                 // through the whole scalar test (its exact rule), the others from the hit found in the lanes.
                 while candidates != 0 {
-                    let ray = candidates.trailing_zeros() as usize;
+                    let lane = candidates.trailing_zeros() as usize;
                     candidates &= candidates - 1;
-                    let (prepared, collector) = (&rays[ray], &mut collectors[ray]);
-                    if edges & (1 << ray) != 0 {
-                        consider_triangle(prepared, &candidate, &InstanceScope::WORLD, collector);
-                    } else if prepared.mask & candidate.mask == 0 {
-                        accept_hit(prepared, &candidate, &InstanceScope::WORLD, collector, met.hit(ray));
+                    let (ray, collector) = (&rays[lane], &mut collectors[lane]);
+                    if edges & (1 << lane) != 0 {
+                        consider_on_edge(ray, &candidate, collector);
+                    } else if ray.mask & candidate.mask == 0 {
+                        accept_hit(ray.tmin, ray.flags, &candidate, &InstanceScope::WORLD, collector, met.hit(lane));
                     }
                     if collector.done() {
-                        active &= !(1 << ray);
+                        active &= !(1 << lane);
                     }
                 }
                 if active == 0 {
@@ -189,6 +193,14 @@ impl TriangleBvh {
         unsafe { self.wide.walk_packet(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
         true
     }
+}
+
+/// [`consider_triangle`] for a packet's ray on an edge or a vertex of the triangle, which takes the scalar test and its
+/// exact rule: prepared alone, which is rare enough not to be worth keeping a prepared ray for every ray.
+#[cold]
+#[inline(never)]
+fn consider_on_edge(ray: &Ray, candidate: &TriangleCandidate<'_>, collector: &mut Collector<'_>) {
+    consider_triangle(&PreparedRay::from_traced(ray), candidate, &InstanceScope::WORLD, collector);
 }
 
 impl WideBvh {
@@ -321,10 +333,13 @@ impl WideBvh {
     }
 }
 
-/// A packet's rays spread over `V`'s lanes, a ray a lane, once a packet.
+/// A packet's rays spread over `V`'s lanes, a ray a lane, once a packet: what [`PreparedRay::new`] computes for a ray
+/// alone, computed for all of them at once with the same operations (so the same bits).
 struct PacketLanes<V> {
     /// Origin, by axis.
     origin: [V; 3],
+    /// Direction, by axis.
+    direction: [V; 3],
     /// `1/direction`, by axis.
     inv_direction: [V; 3],
     /// `tmin`.
@@ -359,40 +374,48 @@ struct PacketInterval {
 }
 
 impl<V: RayLanes> PacketLanes<V> {
+    /// The lanes of `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]); `None` when their projection axes differ.
+    ///
     /// # Safety
-    /// The CPU must have `V`'s instruction set and AVX; `rays` are [`RayLanes::RAYS`] that [`may_pack`].
+    /// The CPU must have `V`'s instruction set and AVX.
     #[inline(always)]
-    unsafe fn new(rays: &[PreparedRay]) -> PacketLanes<V> {
-        let first = &rays[0];
+    unsafe fn new(rays: &[Ray]) -> Option<PacketLanes<V>> {
+        // The axes are those of the first ray, and the directions' signs those of every ray (`may_pack`).
+        let first = PreparedRay::from_traced(&rays[0]);
         let axes = [first.kx, first.ky, first.kz];
         // No `map` over registers here: its closure is compiled without the instruction set and might not be inlined.
         // SAFETY (all): the CPU has the instruction sets (the caller's contract).
-        let origin = unsafe {
-            [V::gather(rays, |r| r.origin.x), V::gather(rays, |r| r.origin.y), V::gather(rays, |r| r.origin.z)]
-        };
-        let inv_direction = unsafe {
-            [
-                V::gather(rays, |r| r.inv_direction.x),
-                V::gather(rays, |r| r.inv_direction.y),
-                V::gather(rays, |r| r.inv_direction.z),
-            ]
-        };
-        let tmin = unsafe { V::gather(rays, |r| r.tmin) };
-        PacketLanes {
-            origin,
-            inv_direction,
-            tmin,
-            negative: first.negative,
-            rows: std::array::from_fn(|axis| {
-                let row = |bound: usize| bound + 4 * WIDTH * axis;
-                let (lo, hi) = (row(offset_of!(WideNode, lo)), row(offset_of!(WideNode, hi)));
-                if first.negative[axis] { (hi, lo) } else { (lo, hi) }
-            }),
-            axes,
-            projected_origin: [origin[axes[0]], origin[axes[1]], origin[axes[2]]],
-            shear: unsafe { [V::gather(rays, |r| r.shear.x), V::gather(rays, |r| r.shear.y)] },
-            shear_z: unsafe { V::gather(rays, |r| r.shear.z) },
-            interval: unsafe { PacketInterval::new(origin, inv_direction, tmin) },
+        unsafe {
+            let direction = [
+                V::gather(rays, |r| r.direction.x),
+                V::gather(rays, |r| r.direction.y),
+                V::gather(rays, |r| r.direction.z),
+            ];
+            if !same_projection_axis(direction, first.kz) {
+                return None;
+            }
+            let origin =
+                [V::gather(rays, |r| r.origin.x), V::gather(rays, |r| r.origin.y), V::gather(rays, |r| r.origin.z)];
+            let inv_direction = [reciprocal(direction[0]), reciprocal(direction[1]), reciprocal(direction[2])];
+            let tmin = V::gather(rays, |r| r.tmin);
+            let (one, along) = (V::splat(1.0), direction[axes[2]]);
+            Some(PacketLanes {
+                origin,
+                direction,
+                inv_direction,
+                tmin,
+                negative: first.negative,
+                rows: std::array::from_fn(|axis| {
+                    let row = |bound: usize| bound + 4 * WIDTH * axis;
+                    let (lo, hi) = (row(offset_of!(WideNode, lo)), row(offset_of!(WideNode, hi)));
+                    if first.negative[axis] { (hi, lo) } else { (lo, hi) }
+                }),
+                axes,
+                projected_origin: [origin[axes[0]], origin[axes[1]], origin[axes[2]]],
+                shear: [direction[axes[0]].div(along), direction[axes[1]].div(along)],
+                shear_z: one.div(along),
+                interval: PacketInterval::new(origin, inv_direction, tmin),
+            })
         }
     }
 
@@ -402,16 +425,11 @@ impl<V: RayLanes> PacketLanes<V> {
     /// # Safety
     /// The CPU must have `V`'s instruction set.
     #[inline(always)]
-    unsafe fn coherent(&self, rays: &[PreparedRay], spread: f32) -> bool {
+    unsafe fn coherent(&self, first: &Ray, spread: f32) -> bool {
         // No closures with register arithmetic here: they are compiled without the instruction set.
         // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe {
-            let first = &rays[0];
-            let direction = [
-                V::gather(rays, |r| r.direction.x),
-                V::gather(rays, |r| r.direction.y),
-                V::gather(rays, |r| r.direction.z),
-            ];
+            let direction = self.direction;
             let heading = [V::splat(first.direction.x), V::splat(first.direction.y), V::splat(first.direction.z)];
             // cos(angle)² ≥ MIN_COSINE², without a square root: dot² ≥ MIN_COSINE² · |heading|² · |d|², with dot > 0.
             let dot = dot3(direction, heading);
@@ -611,6 +629,37 @@ impl PacketInterval {
     }
 }
 
+/// `1/d` lane by lane, +∞ where `d` is 0: [`PreparedRay::inv_direction`].
+///
+/// # Safety
+/// The CPU must have `V`'s instruction set.
+#[inline(always)]
+unsafe fn reciprocal<V: RayLanes>(d: V) -> V {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe { V::select(d.eq(V::splat(0.0)), V::splat(f32::INFINITY), V::splat(1.0).div(d)) }
+}
+
+/// Whether every lane of `direction` projects along axis `kz` in the triangle test: the axis of its largest
+/// component, as [`PreparedRay::new`] picks it (ties to the earlier axis; NaN components lose every comparison).
+///
+/// # Safety
+/// The CPU must have `V`'s instruction set.
+#[inline(always)]
+unsafe fn same_projection_axis<V: RayLanes>(direction: [V; 3], kz: usize) -> bool {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe {
+        let [x, y, z] = [direction[0].abs(), direction[1].abs(), direction[2].abs()];
+        let x_largest = V::bits(V::and(y.le(x), z.le(x)));
+        let y_over_z = V::bits(z.le(y));
+        let all = (1 << V::RAYS) - 1;
+        match kz {
+            0 => x_largest == all,
+            1 => x_largest == 0 && y_over_z == all,
+            _ => x_largest == 0 && y_over_z == 0,
+        }
+    }
+}
+
 /// `a · b` lane by lane, for vectors of three registers.
 ///
 /// # Safety
@@ -658,8 +707,9 @@ mod tests {
     use super::*;
     use crate::accel::BuildOptions;
     use crate::backend::cpu::CpuAccel;
-    use crate::format::{Hit, HitFormat, Ray, RayFlags, RayFormat};
+    use crate::format::{Hit, HitFormat, RayFlags, RayFormat};
     use crate::geometry::{BuildInput, TriangleInput, gather};
+    use crate::intersect::traced;
     use crate::mesh::Mesh;
     use crate::query::{Query, QueryKind};
 
@@ -692,13 +742,13 @@ mod tests {
 
     /// Rays from a camera over the lattice through a grid of points, some through its vertices and edges, some
     /// cut short by their range, some masked; in groups of eight neighbours.
-    fn camera_rays() -> Vec<PreparedRay> {
+    fn camera_rays() -> Vec<Ray> {
         rays_from(|_| Vec3A::new(1.4, 1.6, 3.0), |target, eye| target - eye)
     }
 
     /// Rays to the same grid of points as [`camera_rays`] from origins (by pixel) along directions (by point and
     /// origin), with the same ranges and masks.
-    fn rays_from(origin: impl Fn(u32) -> Vec3A, direction: impl Fn(Vec3A, Vec3A) -> Vec3A) -> Vec<PreparedRay> {
+    fn rays_from(origin: impl Fn(u32) -> Vec3A, direction: impl Fn(Vec3A, Vec3A) -> Vec3A) -> Vec<Ray> {
         (0..64 * 64)
             .map(|pixel| {
                 let (x, y) = ((pixel % 64) as f32 / 16.0, (pixel / 64) as f32 / 16.0 - 0.5);
@@ -710,14 +760,15 @@ mod tests {
                     _ => (0.0, f32::INFINITY),
                 };
                 let mask = u32::from(pixel % 3 == 0);
-                PreparedRay::new(&Ray { origin: eye, direction, tmin, tmax, mask, ..Ray::default() }, RayFlags::empty())
+                Ray { origin: eye, direction, tmin, tmax, mask, ..Ray::default() }
             })
             .collect()
     }
 
     /// Each ray's records of `query`, traced in packets of `width` rays (8: AVX2, 16: AVX-512) where they make one
     /// (returns how many did), or each alone when `width` is 1.
-    fn trace(bvh: &TriangleBvh, query: &Query, rays: &[PreparedRay], width: usize) -> (Vec<u8>, Vec<u8>, usize) {
+    fn trace(bvh: &TriangleBvh, query: &Query, rays: &[Ray], width: usize) -> (Vec<u8>, Vec<u8>, usize) {
+        let rays: Vec<Ray> = rays.iter().map(|ray| traced(ray, query.flags)).collect();
         let accel = CpuAccel::Triangles(bvh.clone());
         let mut stacks = accel.new_stacks();
         let records = query.records_per_ray();
@@ -745,7 +796,8 @@ mod tests {
                 packed += 1;
             } else {
                 for (ray, collector) in rays.iter().zip(&mut collectors) {
-                    accel.traverse(&mut stacks.single, ray, &InstanceScope::WORLD, collector, &mut stats);
+                    let ray = PreparedRay::new(ray, RayFlags::empty());
+                    accel.traverse(&mut stacks.single, &ray, &InstanceScope::WORLD, collector, &mut stats);
                 }
             }
             for (i, collector) in collectors.iter().enumerate() {
@@ -758,7 +810,7 @@ mod tests {
 
     /// `rays` (a 64 × 64 image's, row by row) reordered for packets of `width`: rows of 8 pixels make packets of 8;
     /// packets of 16 are 4 × 4 tiles, which head closer together than 16 pixels of a row of this small image.
-    fn in_packet_order(rays: &[PreparedRay], width: usize) -> Vec<PreparedRay> {
+    fn in_packet_order(rays: &[Ray], width: usize) -> Vec<Ray> {
         match width {
             AVX2_PACKET_RAYS => rays.to_vec(),
             _ => (0..rays.len()).map(|i| rays[(i / 256 * 4 + i % 16 / 4) * 64 + i / 16 % 16 * 4 + i % 4]).collect(),
@@ -804,16 +856,13 @@ mod tests {
 
     /// `ray`, moved to start 3 units above point `pixel` of a grid as fine as a packet's origins must be close
     /// (its range and mask kept).
-    fn parallel(ray: &PreparedRay, pixel: u32) -> PreparedRay {
+    fn parallel(ray: &Ray, pixel: u32) -> Ray {
         let (x, y) = (1.0 + (pixel % 64) as f32 / 128.0, 1.0 + (pixel / 64) as f32 / 128.0);
-        let origin = Vec3A::new(x, y, 0.1) - ray.direction * 3.0;
-        let moved =
-            Ray { origin, direction: ray.direction, tmin: ray.tmin, tmax: ray.tmax, mask: ray.mask, ..Ray::default() };
-        PreparedRay::new(&moved, RayFlags::empty())
+        Ray { origin: Vec3A::new(x, y, 0.1) - ray.direction * 3.0, ..*ray }
     }
 
     /// Checks that `rays` traced in packets of `width` get the answers they get alone, for every query kind.
-    fn packets_agree(bvh: &TriangleBvh, name: &str, rays: &[PreparedRay], width: usize) {
+    fn packets_agree(bvh: &TriangleBvh, name: &str, rays: &[Ray], width: usize) {
         let groups = rays.len() / width;
         for kind in [QueryKind::Closest, QueryKind::All, QueryKind::Count, QueryKind::Any] {
             for flags in [RayFlags::empty(), RayFlags::CULL_BACK_FACING] {
@@ -847,6 +896,39 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        #[test]
+        fn lanes_share_a_projection_axis_exactly_when_their_prepared_rays_do(
+            pool in proptest::collection::vec(
+                proptest::prop_oneof![
+                    4 => -2.0f32..2.0,
+                    2 => proptest::sample::select(vec![1.0f32, -1.0, 0.5, -0.5, 0.0, -0.0]),
+                    1 => proptest::sample::select(vec![f32::NAN, f32::INFINITY]),
+                ],
+                3 * 3,
+            ),
+            picks in proptest::collection::vec(0..3usize, AVX2_PACKET_RAYS),
+        ) {
+            if has_avx2() {
+                // Each lane one of three directions (so that lanes often agree), whose components tie (the selected
+                // values), are zeros of both signs or NaN.
+                let rays: Vec<Ray> = picks
+                    .iter()
+                    .map(|&pick| Ray { direction: Vec3A::from_slice(&pool[3 * pick..3 * pick + 3]), ..Ray::default() })
+                    .collect();
+                // SAFETY: the CPU has AVX2, as just checked.
+                let direction = unsafe {
+                    [0, 1, 2].map(|axis| __m256::gather(&rays, |ray| ray.direction[axis]))
+                };
+                for kz in 0..3 {
+                    let alone = rays.iter().all(|ray| PreparedRay::from_traced(ray).kz == kz);
+                    // SAFETY: as above.
+                    proptest::prop_assert_eq!(unsafe { same_projection_axis(direction, kz) }, alone, "kz {}", kz);
+                }
+            }
+        }
+    }
+
     #[test]
     fn the_interval_test_keeps_every_lane_a_ray_enters() {
         if !has_avx2() {
@@ -862,17 +944,19 @@ mod tests {
             // boxes of all sizes in the unit cube around them.
             let base = Vec3A::new(u(&mut k), u(&mut k), u(&mut k)) * 2.0 - Vec3A::ONE;
             let heading = Vec3A::new(u(&mut k) - 0.5, u(&mut k) - 0.5, u(&mut k) - 0.5).normalize_or(Vec3A::X);
-            let rays: Vec<PreparedRay> = (0..AVX2_PACKET_RAYS)
+            let rays: Vec<Ray> = (0..AVX2_PACKET_RAYS)
                 .map(|_| {
                     let origin = base + Vec3A::new(u(&mut k), u(&mut k), u(&mut k)) * 0.3;
                     let direction = heading + Vec3A::new(u(&mut k), u(&mut k), u(&mut k)) * 0.05;
                     let tmin = if u(&mut k) < 0.2 { 0.5 } else { 0.0 };
-                    PreparedRay::new(&Ray { origin, direction, tmin, ..Ray::default() }, RayFlags::empty())
+                    Ray { origin, direction, tmin, ..Ray::default() }
                 })
                 .collect();
-            if rays.iter().any(|ray| {
-                (ray.kx, ray.ky, ray.kz, ray.negative) != (rays[0].kx, rays[0].ky, rays[0].kz, rays[0].negative)
-            }) {
+            let axes = |ray: &Ray| {
+                let ray = PreparedRay::new(ray, RayFlags::empty());
+                (ray.kx, ray.ky, ray.kz, ray.negative)
+            };
+            if rays.iter().any(|ray| axes(ray) != axes(&rays[0])) {
                 continue;
             }
             let mut node = WideNode::EMPTY;
@@ -887,7 +971,7 @@ mod tests {
                 std::array::from_fn(|_| if u(&mut k) < 0.5 { 1.5 } else { f32::INFINITY });
             // SAFETY: the CPU has AVX2, as checked above.
             unsafe {
-                let lanes = PacketLanes::<__m256>::new(&rays);
+                let lanes = PacketLanes::<__m256>::new(&rays).expect("the same axes");
                 let interval = lanes.interval.as_ref().expect("finite directions");
                 let (far, all) = (__m256::load(&cull), __m256::mask(u32::MAX));
                 let kept = interval.may_enter(&node, lanes.rows, far.most(all));
@@ -911,27 +995,20 @@ mod tests {
         let diagonal = bvh.wide.diagonal();
         for width in widths() {
             let rays = in_packet_order(&camera_rays(), width);
-            let packs = |rays: &[PreparedRay], query: &Query| trace(&bvh, query, rays, width).2 == 1;
+            let packs = |rays: &[Ray], query: &Query| trace(&bvh, query, rays, width).2 == 1;
             let neighbours = &rays[64 * 30..64 * 30 + width];
             assert!(packs(neighbours, &query), "×{width}");
             assert!(!packs(&neighbours[..width - 1], &query), "×{width}: a ray short");
             let (lo, hi) = mesh.bounds();
             let random = crate::raygen::random_rays(lo, hi, width, 5, RayFormat::OriginTminDirectionTmax);
-            let random: Vec<PreparedRay> = (0..width)
-                .map(|i| {
-                    PreparedRay::new(
-                        &RayFormat::OriginTminDirectionTmax.decode(&random[32 * i..32 * (i + 1)]),
-                        RayFlags::empty(),
-                    )
-                })
-                .collect();
+            let random: Vec<Ray> =
+                random.chunks_exact(32).map(|bytes| RayFormat::OriginTminDirectionTmax.decode(bytes)).collect();
             assert!(!packs(&random, &query), "×{width}: random rays");
             // One ray turned by 10° or moved by 2% of the scene: not a packet.
             let mut turned = neighbours.to_vec();
             let d = turned[3].direction;
-            let ray =
+            turned[3] =
                 Ray { origin: turned[3].origin, direction: glam::Quat::from_rotation_x(0.17) * d, ..Ray::default() };
-            turned[3] = PreparedRay::new(&ray, RayFlags::empty());
             assert!(!packs(&turned, &query), "×{width}: a ray turned");
             let mut moved = neighbours.to_vec();
             moved[5].origin += Vec3A::X * 0.02 * diagonal;

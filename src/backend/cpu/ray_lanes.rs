@@ -6,7 +6,7 @@
 use std::arch::x86_64::*;
 
 use super::filter;
-use crate::intersect::PreparedRay;
+use crate::format::Ray;
 
 /// The most rays a packet holds: the lanes of the widest register.
 pub(super) const MAX_PACKET_RAYS: usize = 16;
@@ -27,7 +27,7 @@ pub(super) trait RayLanes: filter::Lanes {
     unsafe fn splat(x: f32) -> Self;
 
     /// `value` of each ray of `rays` (exactly [`RayLanes::RAYS`] of them), a ray a lane.
-    unsafe fn gather(rays: &[PreparedRay], value: impl Fn(&PreparedRay) -> f32) -> Self;
+    unsafe fn gather(rays: &[Ray], value: impl Fn(&Ray) -> f32) -> Self;
 
     /// The first [`RayLanes::RAYS`] of `values`.
     unsafe fn load(values: &[f32; MAX_PACKET_RAYS]) -> Self;
@@ -55,6 +55,12 @@ pub(super) trait RayLanes: filter::Lanes {
 
     /// Where `self < other` (false with NaN).
     unsafe fn lt(self, other: Self) -> Self::Mask;
+
+    /// Where `self == other` (false with NaN; `0 == −0`).
+    unsafe fn eq(self, other: Self) -> Self::Mask;
+
+    /// `a` in the lanes set in `mask`, `b` in the others.
+    unsafe fn select(mask: Self::Mask, a: Self, b: Self) -> Self;
 
     /// Where both masks are set.
     unsafe fn and(a: Self::Mask, b: Self::Mask) -> Self::Mask;
@@ -89,7 +95,7 @@ impl RayLanes for __m256 {
     }
 
     #[inline(always)]
-    unsafe fn gather(rays: &[PreparedRay], value: impl Fn(&PreparedRay) -> f32) -> Self {
+    unsafe fn gather(rays: &[Ray], value: impl Fn(&Ray) -> f32) -> Self {
         let [a, b, c, d, e, f, g, h] = rays else { panic!("a packet of 8 rays") };
         // SAFETY: the CPU has AVX (the trait's contract).
         unsafe { _mm256_setr_ps(value(a), value(b), value(c), value(d), value(e), value(f), value(g), value(h)) }
@@ -147,6 +153,18 @@ impl RayLanes for __m256 {
     unsafe fn lt(self, other: Self) -> Self::Mask {
         // SAFETY: the CPU has AVX (the trait's contract).
         unsafe { _mm256_cmp_ps::<_CMP_LT_OQ>(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn eq(self, other: Self) -> Self::Mask {
+        // SAFETY: the CPU has AVX (the trait's contract).
+        unsafe { _mm256_cmp_ps::<_CMP_EQ_OQ>(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn select(mask: Self::Mask, a: Self, b: Self) -> Self {
+        // SAFETY: the CPU has AVX (the trait's contract).
+        unsafe { _mm256_blendv_ps(b, a, mask) }
     }
 
     #[inline(always)]
@@ -219,7 +237,7 @@ impl RayLanes for __m512 {
     }
 
     #[inline(always)]
-    unsafe fn gather(rays: &[PreparedRay], value: impl Fn(&PreparedRay) -> f32) -> Self {
+    unsafe fn gather(rays: &[Ray], value: impl Fn(&Ray) -> f32) -> Self {
         let [a, b, c, d, e, f, g, h, i, j, k, l, m, n, o, p] = rays else { panic!("a packet of 16 rays") };
         let values = [
             value(a),
@@ -295,6 +313,18 @@ impl RayLanes for __m512 {
     unsafe fn lt(self, other: Self) -> Self::Mask {
         // SAFETY: the CPU has AVX-512F (the trait's contract).
         unsafe { _mm512_cmp_ps_mask::<_CMP_LT_OQ>(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn eq(self, other: Self) -> Self::Mask {
+        // SAFETY: the CPU has AVX-512F (the trait's contract).
+        unsafe { _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn select(mask: Self::Mask, a: Self, b: Self) -> Self {
+        // SAFETY: the CPU has AVX-512F (the trait's contract).
+        unsafe { _mm512_mask_blend_ps(mask, b, a) }
     }
 
     #[inline(always)]

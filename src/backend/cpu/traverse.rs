@@ -15,6 +15,7 @@ use super::instances::{InstanceBvh, TransformNode, cpu_child};
 use super::packet::PacketEntry;
 use super::triangles::TriangleBvh;
 use super::wide::prefetch;
+use crate::format::Ray;
 use crate::geometry::motion::lerp;
 use crate::intersect::{PreparedRay, aabb, triangle};
 use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
@@ -44,12 +45,13 @@ impl CpuAccel {
         }
     }
 
-    /// Offers each of `rays` (consecutive rays of a batch, with a collector each) the triangles it reaches: together,
-    /// as packets ([`super::packet`]), where they make them through a static geometry accel; one by one otherwise.
+    /// Offers each of `rays` (consecutive rays of a batch as [`crate::intersect::traced`] makes them, with a
+    /// collector each) the triangles it reaches: together, as packets ([`super::packet`]), where they make them
+    /// through a static geometry accel; one by one otherwise.
     pub(crate) fn traverse_group(
         &self,
         stacks: &mut Stacks,
-        rays: &[PreparedRay],
+        rays: &[Ray],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) {
@@ -63,7 +65,8 @@ impl CpuAccel {
         }
         for (i, (ray, collector)) in rays.iter().zip(collectors).enumerate() {
             if traced & (1 << i) == 0 {
-                self.traverse(&mut stacks.single, ray, &InstanceScope::WORLD, collector, stats);
+                let ray = PreparedRay::from_traced(ray);
+                self.traverse(&mut stacks.single, &ray, &InstanceScope::WORLD, collector, stats);
             }
         }
     }
