@@ -141,6 +141,11 @@ impl HitFormat {
         }
     }
 
+    /// Whether records of this format carry the hit's normal (and so the tracer must compute it).
+    pub const fn has_normal(self) -> bool {
+        matches!(self, HitFormat::Full)
+    }
+
     /// Bytes needed for `records` hit records.
     pub const fn buffer_len(self, records: usize) -> usize {
         match self.size() {

@@ -106,9 +106,15 @@ pub fn accept_hit(
             return;
         }
     }
-    let [v0, v1, v2] = candidate.corners;
-    let normal = Vec3A::from((*v1 - *v0).cross(*v2 - *v0));
-    let normal = scope.normal_to_world.map_or(normal, |to_world| to_world * normal);
+    let normal = match collector.wants_normal {
+        true => {
+            let [v0, v1, v2] = candidate.corners;
+            let normal = Vec3A::from((*v1 - *v0).cross(*v2 - *v0));
+            let normal = scope.normal_to_world.map_or(normal, |to_world| to_world * normal);
+            if scope.flip_facing { -normal } else { normal }
+        }
+        false => Vec3A::ZERO,
+    };
     collector.offer(Hit {
         t: hit.t,
         prim_id: candidate.id.prim_id,
@@ -117,7 +123,7 @@ pub fn accept_hit(
         inst_path: scope.path,
         u: hit.u,
         v: hit.v,
-        normal: if scope.flip_facing { -normal } else { normal },
+        normal,
         back_face,
     });
 }
@@ -133,6 +139,9 @@ pub struct Collector<'s> {
     cull_tmax: f32,
     /// Set by the ray's or the query's `TERMINATE_ON_FIRST_HIT`.
     terminate_on_first_hit: bool,
+    /// Whether the hits' normals are written ([`HitFormat::has_normal`]); the hits offered carry a zero normal
+    /// otherwise, which saves a cross product an accepted hit.
+    wants_normal: bool,
     /// The first hit in report order so far (closest, any, count).
     best: Option<Hit>,
     /// Hits accepted so far.
@@ -154,6 +163,7 @@ impl<'s> Collector<'s> {
             kind: query.kind,
             cull_tmax: ray.tmax,
             terminate_on_first_hit: ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT),
+            wants_normal: query.hit_format.has_normal(),
             best: None,
             count: 0,
             sorted: scratch,
@@ -206,16 +216,27 @@ impl<'s> Collector<'s> {
     #[inline]
     pub fn offer(&mut self, hit: Hit) {
         self.count = self.count.saturating_add(1);
-        self.done = self.terminate_on_first_hit || self.kind == QueryKind::Any;
-        if self.kind == QueryKind::All {
-            self.insert_sorted(hit);
-        } else if self.kind == QueryKind::Any && self.best.is_some() {
-            // Keep the first hit found.
-        } else if self.best.is_none_or(|best| precedes(&hit, &best)) {
-            if self.kind == QueryKind::Closest {
-                self.cull_tmax = hit.t;
+        match self.kind {
+            QueryKind::Closest | QueryKind::Count => {
+                if self.best.is_none_or(|best| precedes(&hit, &best)) {
+                    if self.kind == QueryKind::Closest {
+                        self.cull_tmax = hit.t;
+                    }
+                    self.best = Some(hit);
+                }
+                self.done = self.terminate_on_first_hit;
             }
-            self.best = Some(hit);
+            // The first hit found is kept.
+            QueryKind::Any => {
+                if self.best.is_none() {
+                    self.best = Some(hit);
+                }
+                self.done = true;
+            }
+            QueryKind::All => {
+                self.insert_sorted(hit);
+                self.done = self.terminate_on_first_hit;
+            }
         }
     }
 
