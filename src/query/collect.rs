@@ -115,17 +115,55 @@ pub fn accept_hit(
         }
         false => Vec3A::ZERO,
     };
-    collector.offer(Hit {
-        t: hit.t,
-        prim_id: candidate.id.prim_id,
-        geom_id: candidate.id.geom_id,
-        inst_id: scope.path.last(),
-        inst_path: scope.path,
-        u: hit.u,
-        v: hit.v,
-        normal,
-        back_face,
-    });
+    collector.offer(AcceptedHit { hit, back_face, normal, id: candidate.id, path: &scope.path });
+}
+
+/// A hit [`accept_hit`] accepted, as it hands it to the collector: its parts, the instance path by reference. A hit
+/// the collector keeps is written into its place field by field ([`AcceptedHit::write_into`]): a [`Hit`] built first
+/// and then copied in whole is read back by wide loads before its narrow stores have landed, a stall that cost 10% of
+/// an any-hit camera trace.
+#[derive(Clone, Copy)]
+pub struct AcceptedHit<'a> {
+    /// The triangle test's hit (its `back_face` before the instances' flips).
+    hit: TriangleHit,
+    /// Whether the ray saw the back face, flips applied.
+    back_face: bool,
+    /// The normal, in world space, or zero where the format has none ([`HitFormat::has_normal`]).
+    normal: Vec3A,
+    /// The triangle's ids.
+    id: TriangleRef,
+    /// The instances above it.
+    path: &'a InstancePath,
+}
+
+impl AcceptedHit<'_> {
+    /// Whether it is reported before `other` ([`precedes`]).
+    #[inline(always)]
+    fn precedes(&self, other: &Hit) -> bool {
+        (self.hit.t, *self.path, self.id.geom_id, self.id.prim_id)
+            < (other.t, other.inst_path, other.geom_id, other.prim_id)
+    }
+
+    /// Overwrites `hit` with it, field by field.
+    #[inline(always)]
+    fn write_into(&self, hit: &mut Hit) {
+        hit.t = self.hit.t;
+        hit.prim_id = self.id.prim_id;
+        hit.geom_id = self.id.geom_id;
+        hit.inst_id = self.path.last();
+        hit.inst_path = *self.path;
+        hit.u = self.hit.u;
+        hit.v = self.hit.v;
+        hit.normal = self.normal;
+        hit.back_face = self.back_face;
+    }
+
+    /// It as a hit.
+    fn to_hit(self) -> Hit {
+        let mut hit = Hit::MISS;
+        self.write_into(&mut hit);
+        hit
+    }
 }
 
 /// Collects the hits of one ray according to the query kind.
@@ -142,8 +180,8 @@ pub struct Collector<'s> {
     /// Whether the hits' normals are written ([`HitFormat::has_normal`]); the hits offered carry a zero normal
     /// otherwise, which saves a cross product an accepted hit.
     wants_normal: bool,
-    /// The first hit in report order so far (closest, any, count).
-    best: Option<Hit>,
+    /// The first hit in report order so far (closest, any, count), once there is one (`count > 0`); stale before.
+    best: Hit,
     /// Hits accepted so far.
     count: u32,
     /// For `all`: the first hits in report order, sorted; `len` of them are in use.
@@ -164,7 +202,7 @@ impl<'s> Collector<'s> {
             cull_tmax: ray.tmax,
             terminate_on_first_hit: ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT),
             wants_normal: query.hit_format.has_normal(),
-            best: None,
+            best: Hit::MISS,
             count: 0,
             sorted: scratch,
             len: 0,
@@ -184,7 +222,6 @@ impl<'s> Collector<'s> {
     pub fn restart(&mut self, ray: &Ray) {
         self.cull_tmax = ray.tmax;
         self.terminate_on_first_hit = ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT);
-        self.best = None;
         self.count = 0;
         self.len = 0;
         self.done = false;
@@ -213,28 +250,29 @@ impl<'s> Collector<'s> {
     }
 
     /// Takes an accepted hit.
-    #[inline]
-    pub fn offer(&mut self, hit: Hit) {
+    #[inline(always)]
+    pub fn offer(&mut self, hit: AcceptedHit<'_>) {
+        let first = self.count == 0;
         self.count = self.count.saturating_add(1);
         match self.kind {
             QueryKind::Closest | QueryKind::Count => {
-                if self.best.is_none_or(|best| precedes(&hit, &best)) {
+                if first || hit.precedes(&self.best) {
                     if self.kind == QueryKind::Closest {
-                        self.cull_tmax = hit.t;
+                        self.cull_tmax = hit.hit.t;
                     }
-                    self.best = Some(hit);
+                    hit.write_into(&mut self.best);
                 }
                 self.done = self.terminate_on_first_hit;
             }
             // The first hit found is kept.
             QueryKind::Any => {
-                if self.best.is_none() {
-                    self.best = Some(hit);
+                if first {
+                    hit.write_into(&mut self.best);
                 }
                 self.done = true;
             }
             QueryKind::All => {
-                self.insert_sorted(hit);
+                self.insert_sorted(hit.to_hit());
                 self.done = self.terminate_on_first_hit;
             }
         }
@@ -270,7 +308,7 @@ impl<'s> Collector<'s> {
                 format.write(hits, first_record + slot, hit);
             }
         } else {
-            format.write(hits, first_record, self.best.as_ref().unwrap_or(&Hit::MISS));
+            format.write(hits, first_record, if self.count == 0 { &Hit::MISS } else { &self.best });
         }
         if self.kind.has_counts() {
             write_u32(counts, 4 * ray, self.count);

@@ -5,7 +5,7 @@ mod batch;
 mod collect;
 
 pub use batch::{CHUNK_RAYS, GROUP_RAYS, trace_batch};
-pub use collect::{Collector, InstanceScope, TriangleCandidate, accept_hit, consider_triangle};
+pub use collect::{AcceptedHit, Collector, InstanceScope, TriangleCandidate, accept_hit, consider_triangle};
 
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, RayFlags, RayFormat, read_f32};
