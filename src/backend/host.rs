@@ -6,7 +6,8 @@
 //! - in parts of [`PART_RAYS`] ([`trace_source_in_parts`], [`trace_reduced_in_parts`]): each worker makes, traces
 //!   and reduces a part while its rays and hits are in the core's cache, in buffers it reuses from part to part,
 //!   for backends that trace on the host's cores (the CPU). Nothing the size of the batch is allocated, touched for
-//!   the first time (page faults) or streamed through memory.
+//!   the first time (page faults) or streamed through memory. A part is traced on its worker's thread alone
+//!   ([`trace_on_this_thread`]): the parts are what runs in parallel.
 
 use std::ops::Range;
 use std::sync::Mutex;
@@ -70,21 +71,21 @@ pub fn trace_reduced<B: Backend + ?Sized>(
 ) -> Result<(Partial, TraceStats)> {
     let mut scratch = PartScratch::default();
     let traced = reduction.traced_query(query);
-    trace_then_reduce(backend, accel, &traced, rays, &mut scratch, Generator::fill_parallel, |rays, hits, counts| {
+    let trace = |rays: &[u8], out: TraceOutput<'_>| backend.trace(accel, &traced, rays, out);
+    trace_then_reduce(&traced, rays, &mut scratch, Generator::fill_parallel, trace, |rays, hits, counts| {
         reduction.reduce_piece_parallel(&traced, first_ray, rays, hits, counts)
     })
 }
 
-/// Packs `rays` (made by `fill` into `scratch` when generated), traces them with `traced` into `scratch`'s hit and
-/// count buffers, and reduces them with `reduce` (given the packed rays, hits and counts): what a piece or a part of
-/// a reduced trace does.
-fn trace_then_reduce<B: Backend + ?Sized>(
-    backend: &B,
-    accel: &dyn BackendAccel,
+/// Packs `rays` (made by `fill` into `scratch` when generated), traces them with `trace` (with the query `traced`)
+/// into `scratch`'s hit and count buffers, and reduces them with `reduce` (given the packed rays, hits and counts):
+/// what a piece or a part of a reduced trace does.
+fn trace_then_reduce(
     traced: &Query,
     rays: RaySource<'_>,
     scratch: &mut PartScratch,
     fill: impl FnOnce(&Generator, RayFormat, u64, &mut [u8]),
+    trace: impl FnOnce(&[u8], TraceOutput<'_>) -> Result<TraceStats>,
     reduce: impl FnOnce(&[u8], &[u8], &[u8]) -> Partial,
 ) -> Result<(Partial, TraceStats)> {
     let PartScratch { rays: made, hits, counts } = scratch;
@@ -93,8 +94,33 @@ fn trace_then_reduce<B: Backend + ?Sized>(
     // Every record and count is written by the trace.
     size_for_overwrite(hits, layout.hits);
     size_for_overwrite(counts, layout.counts);
-    let stats = backend.trace(accel, traced, rays, TraceOutput { hits, counts })?;
+    let stats = trace(rays, TraceOutput { hits, counts })?;
     Ok((reduce(rays, hits, counts), stats))
+}
+
+/// [`Backend::trace`] of `rays` a batch driver's chunk ([`CHUNK_RAYS`]) at a time, one after another on this thread:
+/// a part's trace, which the batch driver would otherwise spread over the pool again. Parts run in parallel already,
+/// and a server's scheduler workers, which trace one part each, would compete with the pool's threads for the cores.
+fn trace_on_this_thread<B: Backend + ?Sized>(
+    backend: &B,
+    accel: &dyn BackendAccel,
+    query: &Query,
+    rays: &[u8],
+    out: TraceOutput<'_>,
+) -> Result<TraceStats> {
+    let layout = query.output_layout(rays.len())?;
+    out.check(&layout)?;
+    let ray_size = query.ray_format.size();
+    // Chunks of hit records start on byte boundaries of a bitmask: `CHUNK_RAYS` is a multiple of 8.
+    let hit_bytes = query.output_layout(CHUNK_RAYS * ray_size)?.hits;
+    // Kinds without counts have none: every chunk gets an empty slice.
+    let mut counts = out.counts.chunks_mut(CHUNK_RAYS * 4);
+    let mut stats = TraceStats::default();
+    for (rays, hits) in rays.chunks(CHUNK_RAYS * ray_size).zip(out.hits.chunks_mut(hit_bytes.max(1))) {
+        let counts = counts.next().unwrap_or_default();
+        stats.add(&backend.trace(accel, query, rays, TraceOutput { hits, counts })?);
+    }
+    Ok(stats)
 }
 
 /// Makes `buffer` `len` bytes long for contents about to be written whole: one too small is replaced by a buffer the
@@ -165,7 +191,7 @@ pub fn trace_source_in_parts<B: Backend + ?Sized>(
         let index = range.start / PART_RAYS;
         let (mut hits, mut counts) = (hits[index].lock().unwrap(), counts[index].lock().unwrap());
         let rays = packed_by(rays.part(range, ray_size), query.ray_format, &mut scratch.rays, Generator::fill);
-        backend.trace(accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })
+        trace_on_this_thread(backend, accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })
     })?;
     Ok(sum(&stats))
 }
@@ -187,7 +213,8 @@ pub fn trace_reduced_in_parts<B: Backend + ?Sized>(
     let reduced = in_parts(layout.rays, PART_RAYS.div_ceil(group) * group, |scratch, range| {
         let first = first_ray + range.start as u64;
         let part = rays.part(range, ray_size);
-        trace_then_reduce(backend, accel, &traced, part, scratch, Generator::fill, |rays, hits, counts| {
+        let trace = |rays: &[u8], out: TraceOutput<'_>| trace_on_this_thread(backend, accel, &traced, rays, out);
+        trace_then_reduce(&traced, part, scratch, Generator::fill, trace, |rays, hits, counts| {
             reduction.reduce_piece(&traced, first, rays, hits, counts)
         })
     })?;

@@ -1,8 +1,8 @@
 //! Device work, queued per tenant and served fairly. Each device has a [`Scheduler`]: a few worker threads that take
 //! tasks from a [`FairQueue`] in which every tenant has its own queue, weighted by its share. A trace is cut into
-//! pieces of at most [`CHUNK_RAYS`] rays (on the CPU, well under a millisecond each), so a tenant that floods the
-//! device with million-ray batches holds a worker for one piece at a time, and another tenant's ray waits for at
-//! most one piece per worker.
+//! pieces of at most [`CHUNK_RAYS`] rays on the CPU ([`PART_RAYS`] for rays a generator makes; either well under a
+//! millisecond), so a tenant that floods the device with million-ray batches holds a worker for one piece at a
+//! time, and another tenant's ray waits for at most one piece per worker.
 //!
 //! A task that fits in one piece runs on the caller's thread when a worker slot is free and nothing is queued: an
 //! idle server answers a small trace without a hop to another thread, and a busy one queues it like any other.
@@ -15,6 +15,7 @@ use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 pub use fair::{FairQueue, Flow};
 use rayd_engine::Device;
 use rayd_engine::backend::BackendKind;
+use rayd_engine::backend::host::PART_RAYS;
 use rayd_engine::query::CHUNK_RAYS;
 
 /// Rays per piece on a GPU when the caller sends the rays: large enough for the backend to overlap its transfers
@@ -39,8 +40,10 @@ pub struct Scheduler {
     shared: Arc<Shared>,
     /// Rays per piece on this device, for rays sent.
     piece_rays: usize,
-    /// Rays per piece on this device, for rays made by a generator.
+    /// Rays per piece on this device, for rays made by a generator whose hits are returned.
     generated_piece_rays: usize,
+    /// Rays per piece on this device, for rays made by a generator whose hits are reduced.
+    reduced_piece_rays: usize,
 }
 
 /// The queue and the slots, behind one lock.
@@ -134,17 +137,26 @@ impl Scheduler {
                 })
                 .expect("a worker thread can be started");
         }
-        Scheduler { shared, piece_rays: piece_rays.max(1), generated_piece_rays: piece_rays.max(1) }
+        let piece_rays = piece_rays.max(1);
+        Scheduler { shared, piece_rays, generated_piece_rays: piece_rays, reduced_piece_rays: piece_rays }
     }
 
     /// The same, but cutting traces of rays made by a generator into pieces of `rays` rays.
     pub fn with_generated_pieces(mut self, rays: usize) -> Scheduler {
-        self.generated_piece_rays = rays.max(1);
+        (self.generated_piece_rays, self.reduced_piece_rays) = (rays.max(1), rays.max(1));
+        self
+    }
+
+    /// The same, but cutting traces of rays made by a generator and reduced into pieces of `rays` rays.
+    pub fn with_reduced_pieces(mut self, rays: usize) -> Scheduler {
+        self.reduced_piece_rays = rays.max(1);
         self
     }
 
     /// The scheduler of `device`: on the CPU one worker per core (`cpu_workers` 0) or `cpu_workers`, and pieces
-    /// of one engine chunk; on a GPU one worker (the device runs one trace at a time anyway) and pieces of
+    /// of one engine chunk, or of one engine part ([`PART_RAYS`], which a worker traces alone) for rays made by a
+    /// generator and reduced (BENCHMARKS.md, "Reduced pieces of a part on the CPU": +2–6% for counts and images;
+    /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk); on a GPU one worker (the device runs one trace at a time anyway) and pieces of
     /// [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made by a generator.
     pub fn for_device(device: &Device, cpu_workers: usize, nice: u32) -> Scheduler {
         let info = device.info();
@@ -152,6 +164,7 @@ impl Scheduler {
             BackendKind::Cpu => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
                 Scheduler::new(&info.id, if cpu_workers == 0 { cores } else { cpu_workers }, CHUNK_RAYS, nice)
+                    .with_reduced_pieces(PART_RAYS)
             }
             BackendKind::Wgpu => {
                 Scheduler::new(&info.id, 1, GPU_PIECE_RAYS, nice).with_generated_pieces(GPU_GENERATED_PIECE_RAYS)
@@ -160,9 +173,13 @@ impl Scheduler {
     }
 
     /// Rays per piece: a trace of more rays is cut into pieces of this many — of rays made by a generator when
-    /// `generated`, of rays sent otherwise.
-    pub fn piece_rays(&self, generated: bool) -> usize {
-        if generated { self.generated_piece_rays } else { self.piece_rays }
+    /// `generated` (whose hits are reduced when `reduced`), of rays sent otherwise.
+    pub fn piece_rays(&self, generated: bool, reduced: bool) -> usize {
+        match (generated, reduced) {
+            (false, _) => self.piece_rays,
+            (true, false) => self.generated_piece_rays,
+            (true, true) => self.reduced_piece_rays,
+        }
     }
 
     /// A slot for the caller to run one small task itself, if one is free and no task is waiting (so it never
@@ -258,13 +275,18 @@ mod tests {
 
     #[test]
     fn rays_made_by_a_generator_are_cut_into_their_own_pieces() {
+        let pieces = |scheduler: &Scheduler| {
+            [(false, false), (true, false), (true, true)]
+                .map(|(generated, reduced)| scheduler.piece_rays(generated, reduced))
+        };
         let scheduler = Scheduler::new("test", 1, 8, 0);
-        assert_eq!((scheduler.piece_rays(false), scheduler.piece_rays(true)), (8, 8));
+        assert_eq!(pieces(&scheduler), [8, 8, 8]);
         let scheduler = scheduler.with_generated_pieces(32);
-        assert_eq!((scheduler.piece_rays(false), scheduler.piece_rays(true)), (8, 32));
-        // The CPU's pieces are one engine chunk either way.
+        assert_eq!(pieces(&scheduler), [8, 32, 32]);
+        assert_eq!(pieces(&scheduler.with_reduced_pieces(64)), [8, 32, 64]);
+        // The CPU's pieces are one engine chunk, or one engine part for generated rays reduced.
         let cpu = Scheduler::for_device(&rayd_engine::Device::cpu(), 1, 0);
-        assert_eq!((cpu.piece_rays(false), cpu.piece_rays(true)), (CHUNK_RAYS, CHUNK_RAYS));
+        assert_eq!(pieces(&cpu), [CHUNK_RAYS, CHUNK_RAYS, PART_RAYS]);
     }
 
     #[test]

@@ -98,7 +98,8 @@ impl Tenant {
             .ok_or_else(|| ServiceError::NotFound { what: "device", name: accel.device.clone() })?;
         // Rays that reduce together stay in one piece.
         let group = reduction.as_ref().map_or(1, |r| r.group_rays());
-        let piece_rays = (scheduler.piece_rays(matches!(rays, Rays::Generated(..))) / group).max(1) * group;
+        let generated = matches!(rays, Rays::Generated(..));
+        let piece_rays = (scheduler.piece_rays(generated, reduction.is_some()) / group).max(1) * group;
         let job = Arc::new(TraceJob {
             tenant: Arc::clone(self),
             accel: Arc::clone(&accel.accel),
