@@ -216,18 +216,21 @@ fn main() {
             ("hit counts, 4 calls at once", Reduction::Counts),
         ];
         for (what, reduction) in concurrent {
+            let kernel_seconds = std::sync::Mutex::new(Vec::new());
             let (seconds, data) = timed(|| async {
                 let calls: Vec<_> = (0..CONCURRENT_CALLS)
                     .map(|_| {
                         let (client, generator, reduction) = (client.clone(), generator.clone(), reduction.clone());
                         tokio::spawn(async move {
-                            client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap().data
+                            client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap()
                         })
                     })
                     .collect();
                 let mut last = Bytes::new();
                 for call in calls {
-                    last = call.await.unwrap();
+                    let reduced = call.await.unwrap();
+                    kernel_seconds.lock().unwrap().push(reduced.stats.device_ns as f64 * 1e-9);
+                    last = reduced.data;
                 }
                 last
             })
@@ -238,6 +241,13 @@ fn main() {
                 in_process_reduced(&reduction),
                 &data,
             );
+            // The kernels of the calls in flight together: where the device is busy all the time, their rate is the
+            // end-to-end rate.
+            let kernel = median(kernel_seconds.into_inner().unwrap());
+            if kernel > 0.0 {
+                let what = "  of which the device's kernels (GPU timestamps)";
+                println!("{what:<52} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
+            }
         }
     });
 }
