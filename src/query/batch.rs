@@ -19,9 +19,8 @@ pub const GROUP_RAYS: usize = 16;
 
 /// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`.
 /// `traverse` gets up to [`GROUP_RAYS`] consecutive rays (as [`traced`] makes them: the query's flags added) with a
-/// collector each, offers each ray's candidate
-/// triangles to its collector and adds what it did to the stats; it gets working state (a traversal stack) made
-/// once per chunk by `new_state`.
+/// collector each, offers each ray's candidate triangles to its collector and adds what it did to the stats; it gets
+/// working state (a traversal stack) made once per chunk by `new_state`.
 pub fn trace_batch<S, N, F>(
     query: &Query,
     rays: &[u8],

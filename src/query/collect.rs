@@ -60,10 +60,19 @@ impl InstanceScope {
     }
 }
 
-/// Whether `a` is reported before `b`: smaller `t`, then the smaller instance path, geometry id and primitive id.
+/// What orders hits for reporting: smaller `t`, then the smaller instance path, geometry id and primitive id.
+type ReportKey = (f32, InstancePath, u32, u32);
+
+/// The report key of `hit`.
+#[inline(always)]
+fn report_key(hit: &Hit) -> ReportKey {
+    (hit.t, hit.inst_path, hit.geom_id, hit.prim_id)
+}
+
+/// Whether `a` is reported before `b`.
 #[inline]
 fn precedes(a: &Hit, b: &Hit) -> bool {
-    (a.t, a.inst_path, a.geom_id, a.prim_id) < (b.t, b.inst_path, b.geom_id, b.prim_id)
+    report_key(a) < report_key(b)
 }
 
 /// Tests one triangle, met in `scope`, against the ray (in the triangle's space) and offers the hit, if it is
@@ -140,8 +149,7 @@ impl AcceptedHit<'_> {
     /// Whether it is reported before `other` ([`precedes`]).
     #[inline(always)]
     fn precedes(&self, other: &Hit) -> bool {
-        (self.hit.t, *self.path, self.id.geom_id, self.id.prim_id)
-            < (other.t, other.inst_path, other.geom_id, other.prim_id)
+        (self.hit.t, *self.path, self.id.geom_id, self.id.prim_id) < report_key(other)
     }
 
     /// Overwrites `hit` with it, field by field.
