@@ -188,7 +188,8 @@ pub struct Collector<'s> {
     /// Whether the hits' normals are written ([`HitFormat::has_normal`]); the hits offered carry a zero normal
     /// otherwise, which saves a cross product an accepted hit.
     wants_normal: bool,
-    /// The first hit in report order so far (closest, any, count), once there is one (`count > 0`); stale before.
+    /// The first hit in report order so far (closest, any, count), once there is one ([`Collector::found`]); stale
+    /// before.
     best: Hit,
     /// Hits accepted so far.
     count: u32,
@@ -260,7 +261,7 @@ impl<'s> Collector<'s> {
     /// Takes an accepted hit.
     #[inline(always)]
     pub fn offer(&mut self, hit: AcceptedHit<'_>) {
-        let first = self.count == 0;
+        let first = !self.found();
         self.count = self.count.saturating_add(1);
         match self.kind {
             QueryKind::Closest | QueryKind::Count => {
@@ -316,7 +317,7 @@ impl<'s> Collector<'s> {
                 format.write(hits, first_record + slot, hit);
             }
         } else {
-            format.write(hits, first_record, if self.count == 0 { &Hit::MISS } else { &self.best });
+            format.write(hits, first_record, if self.found() { &self.best } else { &Hit::MISS });
         }
         if self.kind.has_counts() {
             write_u32(counts, 4 * ray, self.count);
