@@ -92,10 +92,45 @@ impl Image {
         self.channel.channels() * value
     }
 
+    /// The pixels of `rays` rays (whole pixels) whose records are `hits`, traced in `format`
+    /// ([`ImageChannel::hit_format`]), row by row.
+    #[inline(always)]
+    pub(super) fn pixels(&self, format: HitFormat, hits: &[u8], rays: usize) -> Vec<u8> {
+        match (self.channel, self.encoding, self.rays_per_pixel) {
+            // The commonest image, a float32 depth of one ray a pixel, with these as constants in its loop: no
+            // match a pixel, and each pixel a select of its record's `t` (a hit) or +∞ (a miss).
+            (ImageChannel::Depth, PixelEncoding::Float32, 1) => {
+                let depth = Image {
+                    channel: ImageChannel::Depth,
+                    encoding: PixelEncoding::Float32,
+                    rays_per_pixel: 1,
+                    ..*self
+                };
+                depth.pixels_as(format, hits, rays)
+            }
+            _ => self.pixels_as(format, hits, rays),
+        }
+    }
+
+    /// [`Image::pixels`], inlined where the image is known.
+    #[inline(always)]
+    fn pixels_as(&self, format: HitFormat, hits: &[u8], rays: usize) -> Vec<u8> {
+        let (rays_per_pixel, pixel_bytes) = (self.rays_per_pixel as usize, self.pixel_bytes());
+        let mut out = vec![0u8; rays / rays_per_pixel * pixel_bytes];
+        for (pixel, first) in out.chunks_exact_mut(pixel_bytes).zip((0..rays).step_by(rays_per_pixel)) {
+            let index = match rays_per_pixel {
+                1 => first,
+                _ => super::nearest(format, hits, first..first + rays_per_pixel),
+            };
+            self.write_pixel(format, hits, index, pixel);
+        }
+        out
+    }
+
     /// Writes into `out` ([`Image::pixel_bytes`]) the pixel of record `index` of `hits` (its pixel's nearest,
     /// traced in [`ImageChannel::hit_format`]).
     #[inline(always)]
-    pub(super) fn write_pixel(&self, format: HitFormat, hits: &[u8], index: usize, out: &mut [u8]) {
+    fn write_pixel(&self, format: HitFormat, hits: &[u8], index: usize, out: &mut [u8]) {
         match self.channel {
             ImageChannel::Depth => self.write_depth(format.hit_t(hits, index), out),
             ImageChannel::Normal => {

@@ -173,8 +173,16 @@ impl Reduction {
             || (0..ray_count * records).map(move |i| traced.hit_format.read(hits, i)).filter(|hit| hit.is_hit());
         match self {
             Reduction::Counts => {
-                let rays_hit = (0..ray_count).filter(|&ray| traced.hit_format.hit_t(hits, ray * records).is_some());
-                let rays_hit = rays_hit.count() as u64;
+                let rays_hit = match (traced.hit_format, records) {
+                    // A bit a ray (the bitmask counts are traced in): whole bytes counted at once.
+                    (HitFormat::Bitmask, 1) => {
+                        let whole = hits[..ray_count / 8].iter().map(|byte| u64::from(byte.count_ones())).sum::<u64>();
+                        let rest = (ray_count / 8 * 8..ray_count).filter(|&ray| hits[ray / 8] & (1 << (ray % 8)) != 0);
+                        whole + rest.count() as u64
+                    }
+                    _ => (0..ray_count).filter(|&ray| traced.hit_format.hit_t(hits, ray * records).is_some()).count()
+                        as u64,
+                };
                 let hit_total = match traced.kind.has_counts() {
                     true => counts.chunks_exact(4).map(|c| u64::from(u32::from_le_bytes(c.try_into().unwrap()))).sum(),
                     false => rays_hit,
@@ -218,13 +226,7 @@ impl Reduction {
                 Partial::Ordered { bytes: out, dropped: 0 }
             }
             Reduction::Image(image) => {
-                let (rays_per_pixel, pixel_bytes) = (image.rays_per_pixel as usize, image.pixel_bytes());
-                let mut out = vec![0u8; ray_count / rays_per_pixel * pixel_bytes];
-                for (pixel, first) in out.chunks_exact_mut(pixel_bytes).zip((0..ray_count).step_by(rays_per_pixel)) {
-                    let index = nearest(traced.hit_format, hits, first..first + rays_per_pixel);
-                    image.write_pixel(traced.hit_format, hits, index, pixel);
-                }
-                Partial::Ordered { bytes: out, dropped: 0 }
+                Partial::Ordered { bytes: image.pixels(traced.hit_format, hits, ray_count), dropped: 0 }
             }
             Reduction::PointCloud(cloud) => cloud.reduce(traced, first_ray, rays, hits),
             Reduction::CompactHits { t_far } => compact::encode(traced, *t_far, first_ray, rays, hits),
@@ -313,7 +315,7 @@ pub struct Reduced {
 
 /// The index of the nearest hit among `rays` (the first of equal `t`), or the first ray when all missed.
 #[inline(always)]
-fn nearest(format: HitFormat, hits: &[u8], rays: std::ops::Range<usize>) -> usize {
+pub(super) fn nearest(format: HitFormat, hits: &[u8], rays: std::ops::Range<usize>) -> usize {
     let mut nearest = (rays.start, None);
     for index in rays {
         if let Some(t) = format.hit_t(hits, index)
