@@ -47,11 +47,17 @@ impl Partial {
         }
     }
     /// Folds `parts` (the partials of the rays right after this one's, in order) into this one: [`Partial::merge`]
-    /// of each in turn, with room made once for all of their records.
+    /// of each in turn, with room made once for the records of all but the first (which an empty partial takes as
+    /// they are: a trace of one piece, as a GPU image is, is folded without copying its records).
     pub fn merge_all(&mut self, parts: Vec<Partial>) {
+        let records = |part: &Partial| if let Partial::Ordered { bytes, .. } = part { bytes.len() } else { 0 };
+        let rest: usize = parts.iter().skip(1).map(records).sum();
+        let mut parts = parts.into_iter();
+        if let Some(first) = parts.next() {
+            self.merge(first);
+        }
         if let Partial::Ordered { bytes, .. } = self {
-            let more = parts.iter().map(|part| if let Partial::Ordered { bytes, .. } = part { bytes.len() } else { 0 });
-            bytes.reserve_exact(more.sum());
+            bytes.reserve_exact(rest);
         }
         for part in parts {
             self.merge(part);
@@ -86,6 +92,13 @@ mod tests {
         let Partial::Ordered { bytes, .. } = &folded else { unreachable!() };
         assert_eq!(bytes.capacity(), 4, "sized once");
         assert_eq!(folded, Partial::Ordered { bytes: vec![1, 2, 3, 4], dropped: 3 });
+        // One part alone (a GPU image) is taken as it is.
+        let only = vec![7u8; 5];
+        let at = only.as_ptr();
+        let mut folded = Partial::Ordered { bytes: Vec::new(), dropped: 0 };
+        folded.merge_all(vec![Partial::Ordered { bytes: only, dropped: 0 }]);
+        let Partial::Ordered { bytes, .. } = &folded else { unreachable!() };
+        assert_eq!(bytes.as_ptr(), at, "the only part's records were copied");
         let mut sums = Partial::Sums(vec![1, 2]);
         sums.merge_all(vec![Partial::Sums(vec![3, 4]), Partial::Sums(vec![5, 6])]);
         assert_eq!(sums, Partial::Sums(vec![9, 12]));
