@@ -533,6 +533,44 @@ fn image_and_count_reductions_made_on_the_device_agree_with_the_hosts() {
 }
 
 #[test]
+fn traces_run_at_once_on_one_device_answer_as_each_alone() {
+    // Small chunks, so that the traces' chunks interleave on the device; rayd's GPU scheduler runs two at once.
+    let Some(device) = gpu_with(WgpuOptions { max_chunk_rays: Some(512), ..WgpuOptions::default() }) else {
+        return;
+    };
+    let scene = bunny_scene(&device);
+    let (context, accel) = (&scene.gpu.0, &*scene.gpu.1);
+    let closest = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
+    let any = Query { kind: QueryKind::Any, ..closest };
+    let (random, camera) =
+        (pack_rays(&rays(3000, 21), closest.ray_format), pack_rays(&camera_rays(3000), closest.ray_format));
+    let [generator, ..] = cameras();
+    let image = Reduction::Image(Image {
+        width: 40,
+        rays_per_pixel: 3,
+        channel: ImageChannel::Depth,
+        encoding: PixelEncoding::Float32,
+        near: 1.0,
+        far: 2.5,
+    });
+    let render = || {
+        let rays = RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
+        let (partial, _) = context.trace_reduced(accel, &closest, rays, 0, &image).unwrap();
+        (image.finish(partial, generator.count()).unwrap().bytes.to_vec(), Vec::new())
+    };
+    let traces: [&(dyn Fn() -> (Vec<u8>, Vec<u8>) + Sync); 3] =
+        [&|| trace(context, accel, &closest, &random), &|| trace(context, accel, &any, &camera), &render];
+    let alone: Vec<_> = traces.iter().map(|traced| traced()).collect();
+    std::thread::scope(|scope| {
+        let running: Vec<_> =
+            traces.iter().map(|traced| scope.spawn(move || (0..6).map(|_| traced()).collect::<Vec<_>>())).collect();
+        for ((running, alone), name) in running.into_iter().zip(&alone).zip(["closest", "any", "image"]) {
+            assert!(running.join().unwrap().iter().all(|traced| traced == alone), "{name} changed beside the others");
+        }
+    });
+}
+
+#[test]
 fn batches_larger_than_one_binding_are_split_into_chunks() {
     // 8 KiB bindings: 170 full rays a chunk at most (32 for `all`, whose 5 sorted hits a ray take 240 bytes of
     // scratch), so 5,000 rays take dozens of chunks through both slots.

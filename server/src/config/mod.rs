@@ -18,6 +18,9 @@ pub use transport::TransportConfig;
 /// The most worker threads a device's scheduler may be given.
 pub const MAX_WORKERS: u32 = 1024;
 
+/// The most traces a GPU device's scheduler may run at once.
+pub const MAX_GPU_WORKERS: u32 = 16;
+
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -54,6 +57,10 @@ pub struct Config {
 pub struct SchedulerConfig {
     /// Threads that trace on the CPU device, 0 to 1024; 0: one per core.
     pub workers: u32,
+    /// Traces a GPU device runs at once, 1 to 16: with two, one trace's host work (its first chunk's submission,
+    /// its last chunk's results copied out, its reduction finished) overlaps another's kernels (BENCHMARKS.md,
+    /// "Two traces at once on a GPU"); each trace in flight holds its own staging buffers.
+    pub gpu_workers: u32,
     /// The tracing threads' nice value, 0 to 19 (Linux): above the threads that receive calls and send answers, so
     /// those get a core at once and small traces are not held up behind large ones on a busy machine.
     pub worker_nice: u32,
@@ -61,7 +68,7 @@ pub struct SchedulerConfig {
 
 impl Default for SchedulerConfig {
     fn default() -> Self {
-        SchedulerConfig { workers: 0, worker_nice: 10 }
+        SchedulerConfig { workers: 0, gpu_workers: 2, worker_nice: 10 }
     }
 }
 
@@ -227,6 +234,12 @@ impl Config {
                 config.scheduler.worker_nice
             )));
         }
+        if !(1..=MAX_GPU_WORKERS).contains(&config.scheduler.gpu_workers) {
+            return Err(ConfigError::Invalid(format!(
+                "scheduler.gpu_workers = {} must be 1 to {MAX_GPU_WORKERS}",
+                config.scheduler.gpu_workers
+            )));
+        }
         if config.scheduler.workers > MAX_WORKERS {
             return Err(ConfigError::Invalid(format!(
                 "scheduler.workers = {} must be 0 (one per core) to {MAX_WORKERS}",
@@ -376,5 +389,12 @@ mod tests {
         assert!(error.contains("max_rayz"), "{error}");
         let error = Config::load(None, env(&[("RAYD_LIMITS_MAX_BUFFERS", "lots")])).unwrap_err().to_string();
         assert!(error.contains("max_buffers"), "{error}");
+        for (value, error) in [("0", Some("scheduler.gpu_workers = 0 must be 1 to 16")), ("16", None)] {
+            let loaded = Config::load(None, env(&[("RAYD_SCHEDULER_GPU_WORKERS", value)]));
+            match error {
+                Some(error) => assert_eq!(loaded.unwrap_err().to_string(), format!("config: {error}")),
+                None => assert_eq!(loaded.unwrap().scheduler.gpu_workers, 16),
+            }
+        }
     }
 }

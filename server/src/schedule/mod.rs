@@ -18,6 +18,8 @@ use rayd_engine::backend::BackendKind;
 use rayd_engine::backend::host::PART_RAYS;
 use rayd_engine::query::CHUNK_RAYS;
 
+use crate::config::SchedulerConfig;
+
 /// Rays per piece on a GPU when the caller sends the rays: large enough for the backend to overlap its transfers
 /// with tracing within a piece (several of its chunks), small enough that another tenant's trace waits for
 /// milliseconds, not for a whole batch.
@@ -153,22 +155,23 @@ impl Scheduler {
         self
     }
 
-    /// The scheduler of `device`: on the CPU one worker per core (`cpu_workers` 0) or `cpu_workers`, and pieces
+    /// The scheduler of `device` as `config` sets it: on the CPU one worker per core (`workers` 0) or `workers`, and
+    /// pieces
     /// of one engine chunk, or of one engine part ([`PART_RAYS`], which a worker traces alone) for rays made by a
     /// generator and reduced (BENCHMARKS.md, "Reduced pieces of a part on the CPU": +2–6% for counts and images;
-    /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk); on a GPU one worker (the device runs one trace at a time anyway) and pieces of
-    /// [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made by a generator.
-    pub fn for_device(device: &Device, cpu_workers: usize, nice: u32) -> Scheduler {
-        let info = device.info();
+    /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk); on a GPU `gpu_workers`
+    /// workers and pieces of [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made by a generator. The
+    /// workers run at `worker_nice`.
+    pub fn for_device(device: &Device, config: &SchedulerConfig) -> Scheduler {
+        let (info, nice) = (device.info(), config.worker_nice);
         match info.kind {
             BackendKind::Cpu => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-                Scheduler::new(&info.id, if cpu_workers == 0 { cores } else { cpu_workers }, CHUNK_RAYS, nice)
-                    .with_reduced_pieces(PART_RAYS)
+                let workers = if config.workers == 0 { cores } else { config.workers as usize };
+                Scheduler::new(&info.id, workers, CHUNK_RAYS, nice).with_reduced_pieces(PART_RAYS)
             }
-            BackendKind::Wgpu => {
-                Scheduler::new(&info.id, 1, GPU_PIECE_RAYS, nice).with_generated_pieces(GPU_GENERATED_PIECE_RAYS)
-            }
+            BackendKind::Wgpu => Scheduler::new(&info.id, config.gpu_workers as usize, GPU_PIECE_RAYS, nice)
+                .with_generated_pieces(GPU_GENERATED_PIECE_RAYS),
         }
     }
 
@@ -219,10 +222,9 @@ pub struct Schedulers {
 }
 
 impl Schedulers {
-    /// One scheduler per device; `cpu_workers` threads on the CPU (0: one per core), all at nice value `nice`.
-    pub fn new(devices: &[Device], cpu_workers: usize, nice: u32) -> Schedulers {
-        let by_device =
-            devices.iter().map(|d| (d.info().id.clone(), Scheduler::for_device(d, cpu_workers, nice))).collect();
+    /// One scheduler per device, as `config` sets them ([`Scheduler::for_device`]).
+    pub fn new(devices: &[Device], config: &SchedulerConfig) -> Schedulers {
+        let by_device = devices.iter().map(|d| (d.info().id.clone(), Scheduler::for_device(d, config))).collect();
         Schedulers { by_device }
     }
 
@@ -285,7 +287,8 @@ mod tests {
         assert_eq!(pieces(&scheduler), [8, 32, 32]);
         assert_eq!(pieces(&scheduler.with_reduced_pieces(64)), [8, 32, 64]);
         // The CPU's pieces are one engine chunk, or one engine part for generated rays reduced.
-        let cpu = Scheduler::for_device(&rayd_engine::Device::cpu(), 1, 0);
+        let config = SchedulerConfig { workers: 1, worker_nice: 0, ..SchedulerConfig::default() };
+        let cpu = Scheduler::for_device(&rayd_engine::Device::cpu(), &config);
         assert_eq!(pieces(&cpu), [CHUNK_RAYS, CHUNK_RAYS, PART_RAYS]);
     }
 

@@ -38,8 +38,7 @@ impl RaydService {
     /// held to its limits; with a data directory, each tenant's objects are restored from its directory (what
     /// cannot be restored is logged and skipped) and persisted there from now on.
     pub fn new(devices: Vec<Device>, config: &Config) -> Result<RaydService, ServiceError> {
-        let schedulers =
-            Arc::new(Schedulers::new(&devices, config.scheduler.workers as usize, config.scheduler.worker_nice));
+        let schedulers = Arc::new(Schedulers::new(&devices, &config.scheduler));
         let make = |name: &str, limits: Limits, share: u32| -> Result<Arc<Tenant>, ServiceError> {
             let mut tenant = Tenant::new(name, limits, share, &devices, Arc::clone(&schedulers));
             if let Some(dir) = &config.data_dir {
