@@ -2,7 +2,8 @@
 //! GetServerInfo reports them; the shared bunny, loaded by the client's mesh loader, built inline and through
 //! uploaded buffers (deleted again afterwards, even when the build fails); traces by TraceBatch and by TraceStream,
 //! chosen by the client from its options, byte for byte as the engine traces in this process; `HitView` against
-//! decoding by hand; and the server's errors surfacing with their gRPC codes.
+//! decoding by hand; the server's errors surfacing with their gRPC codes; and calls in flight together spread over
+//! the connections a client asks for.
 
 mod common;
 mod daemon;
@@ -230,4 +231,43 @@ async fn the_client_keeps_every_call_within_the_servers_max_rays_per_batch() {
         assert_traced_as_expected(&traced, &expected, &format!("{query:?} in chunks of at most {LIMIT} rays"));
     }
     assert_eq!(requests(&daemon, &["TraceBatch", "TraceStream"]), [0, 4], "6912 rays > 1000: every trace streams");
+}
+
+/// Established TCP connections of this machine whose far end is `port` (IPv4 and IPv6, from `/proc/net`).
+fn established_to(port: u16) -> usize {
+    let table = |path: &str| std::fs::read_to_string(path).unwrap_or_default();
+    let rows = table("/proc/net/tcp") + &table("/proc/net/tcp6");
+    // Columns: slot, local address:port, remote address:port, state (01: established), …; ports in hex.
+    let remote_port = |row: &str| row.split_whitespace().nth(2)?.rsplit(':').next().map(str::to_owned);
+    let state = |row: &str| row.split_whitespace().nth(3).map(str::to_owned);
+    let wanted = format!("{port:04X}");
+    rows.lines().filter(|row| remote_port(row) == Some(wanted.clone()) && state(row).as_deref() == Some("01")).count()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn calls_in_flight_together_are_spread_over_the_connections_asked_for() {
+    let daemon = Daemon::start(&[]);
+    let one = connect(&daemon, ClientOptions::default()).await;
+    let bunny = bunny();
+    one.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.expect("an inline build");
+    let port = daemon.grpc_addr().port();
+    let before = established_to(port);
+    let three = connect(&daemon, ClientOptions { connections: 3, ..ClientOptions::default() }).await;
+    let (width, height) = CAMERA;
+    let query = queries()[0];
+    let rays = bunny.camera_rays(query.ray_format, width, height);
+    let expected = bunny.trace(&query, &rays);
+    let calls: Vec<_> = (0..12)
+        .map(|_| {
+            let (client, rays) = (three.clone(), rays.clone());
+            tokio::spawn(async move { client.trace("bunny", &query, rays.into()).await })
+        })
+        .collect();
+    for call in calls {
+        let traced = call.await.expect("the call's task").expect("a trace over three connections");
+        assert_traced_as_expected(&traced, &expected, "a trace over three connections");
+    }
+    // The client's first connection (which asked for the server's limits) may linger as it closes.
+    let opened = established_to(port) - before;
+    assert!((3..=4).contains(&opened), "{opened} connections for a client of three");
 }

@@ -273,7 +273,8 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     assert!(header.contains(&format!("element vertex {}\n", expected.bytes.len() / 12)), "{header}");
     assert_same_bytes(&ply[header_end..], &expected.bytes, "the scan's points");
 
-    let args = ["bench", "--accel", "bunny", "--batch", "1000", "--concurrency", "2", "--duration", "1"];
+    let args =
+        ["bench", "--accel", "bunny", "--batch", "1000", "--concurrency", "2", "--duration", "1", "--connections", "2"];
     let report = json(&server, &args);
     assert!(number(&report, "rays_per_s") > 0.0, "{report}");
     let (p50, p90, p99) = (number(&report, "p50_ms"), number(&report, "p90_ms"), number(&report, "p99_ms"));
@@ -295,6 +296,8 @@ fn usage_errors_exit_2_before_connecting_and_an_unreachable_server_exits_1_unava
         stderr.contains("prime") && stderr.contains("origin_tmin_direction_tmax"),
         "names the valid formats: {stderr}"
     );
+    let stderr = fails(NOWHERE, &["--connections", "0", "devices"], 2);
+    assert!(stderr.contains("--connections") && stderr.contains("0"), "names the flag: {stderr}");
     let stderr = fails(NOWHERE, &["devices"], 1);
     assert!(stderr.starts_with("error: Unavailable: ") && stderr.contains(NOWHERE), "{stderr}");
 }

@@ -5,6 +5,7 @@ use rayd_proto as proto;
 use rayd_proto::rayd_client::RaydClient;
 use tonic::codec::CompressionEncoding;
 use tonic::service::interceptor::InterceptedService;
+use tonic::transport::channel::Change;
 use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity};
 
 use crate::auth::Auth;
@@ -47,6 +48,11 @@ pub struct ClientOptions {
     /// Compress the messages sent, and ask the server to compress its replies, with this encoding (rayd accepts
     /// and sends zstd and gzip). Worth it on slow links; on loopback it costs more CPU than it saves.
     pub compression: Option<CompressionEncoding>,
+    /// HTTP/2 connections the calls are spread over, at least 1: each call goes to the less busy of two of them
+    /// picked at random. One serves most callers; one with several large replies in flight at once (images, hit
+    /// buffers) has their bytes copied on as many cores at once with as many connections (a connection's bytes go
+    /// through one task at each end).
+    pub connections: usize,
 }
 
 /// The PEM files of a TLS connection.
@@ -86,6 +92,7 @@ impl Default for ClientOptions {
             stream_bytes_in_flight: 64 * MIB,
             tls: None,
             compression: None,
+            connections: 1,
         }
     }
 }
@@ -108,7 +115,8 @@ impl ClientOptions {
 /// The generated stub, with the token interceptor.
 pub(crate) type RpcClient = RaydClient<InterceptedService<Channel, Auth>>;
 
-/// A connection to one rayd server. Cheap to clone; clones share the connection and may be used concurrently.
+/// A connection to one rayd server (over [`ClientOptions::connections`] HTTP/2 connections). Cheap to clone; clones
+/// share the connections and may be used concurrently.
 #[derive(Debug, Clone)]
 pub struct Client {
     /// The generated stub, with the token interceptor and the message limits applied.
@@ -126,12 +134,17 @@ impl Client {
     /// lowers the options' message size, rays per call and stream window to the server's limits.
     pub async fn connect(url: &str, mut options: ClientOptions) -> Result<Client> {
         let auth = Auth::new(options.token.as_deref())?;
-        let channel = connect_channel(endpoint(url, options.tls.as_ref())?, url).await?;
-        let mut rpc = RaydClient::with_interceptor(channel.clone(), auth.clone());
+        let endpoint = endpoint(url, options.tls.as_ref())?;
+        let first = connect_channel(endpoint.clone(), url).await?;
+        let mut rpc = RaydClient::with_interceptor(first.clone(), auth.clone());
         let info = rpc.get_server_info(proto::GetServerInfoRequest {}).await?.into_inner();
         if let Some(limits) = info.limits {
             options.fit_to(&limits);
         }
+        let channel = match options.connections {
+            0 | 1 => first,
+            connections => spread(&endpoint, connections),
+        };
         let rpc = stub(&channel, auth.clone(), &options);
         Ok(Client { rpc, channel, auth, options })
     }
@@ -239,6 +252,18 @@ pub(crate) fn endpoint(url: &str, tls: Option<&ClientTls>) -> Result<Endpoint> {
 pub(crate) async fn connect_channel(endpoint: Endpoint, url: &str) -> Result<Channel> {
     let connected = endpoint.tcp_nodelay(true).connect().await;
     connected.map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
+}
+
+/// A channel over `connections` connections to `endpoint` (made as calls need them), each call sent on the less
+/// busy of two picked at random (tower's power-of-two-choices balancer).
+fn spread(endpoint: &Endpoint, connections: usize) -> Channel {
+    let (channel, changes) = Channel::balance_channel(connections);
+    for key in 0..connections {
+        // The change queue holds `connections` changes: each one fits.
+        let inserted = changes.try_send(Change::Insert(key, endpoint.clone().tcp_nodelay(true)));
+        inserted.expect("room in the change queue for every connection");
+    }
+    channel
 }
 
 /// The generated stub over `channel` with interceptor `auth` and `options`' message limits.

@@ -135,18 +135,18 @@ fn main() {
             rayon::current_num_threads()
         );
         println!(
-            "{:<52} {:>9} {:>8} {:>10} {:>9} {:>9} {:>9}",
+            "{:<64} {:>9} {:>8} {:>10} {:>9} {:>9} {:>9}",
             "", "Mrays/s", "% engine", "% same i-p", "B/ray", "zstd B/r", "gzip B/r"
         );
         println!(
-            "{:<52} {:>9.2} {:>8.1}",
+            "{:<64} {:>9.2} {:>8.1}",
             "engine in-process (rays made beforehand), t_triid_u_v",
             mrays(engine),
             100.0
         );
         if kernel > 0.0 {
             let what = "  of which the kernel (GPU timestamps)";
-            println!("{what:<52} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
+            println!("{what:<64} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
         }
         // A row through rayd: its rate, its share of the engine's rate with rays sent and of the same generated
         // (and reduced) trace in-process, and the bytes of its reply.
@@ -154,7 +154,7 @@ fn main() {
             let (zstd, gzip) = compressed(wire);
             let per_ray = |bytes: usize| bytes as f64 / rays_per_call;
             println!(
-                "{what:<52} {:>9.2} {:>8.1} {:>10.1} {:>9.2} {:>9.2} {:>9.2}",
+                "{what:<64} {:>9.2} {:>8.1} {:>10.1} {:>9.2} {:>9.2} {:>9.2}",
                 mrays(seconds),
                 100.0 * engine / seconds,
                 100.0 * same_in_process / seconds,
@@ -164,7 +164,7 @@ fn main() {
             );
         };
         let what = "  the same in-process: generated, every hit";
-        println!("{what:<52} {:>9.2} {:>8.1}", mrays(in_process_generated), 100.0 * engine / in_process_generated);
+        println!("{what:<64} {:>9.2} {:>8.1}", mrays(in_process_generated), 100.0 * engine / in_process_generated);
 
         let (seconds, full) =
             timed(|| async { client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() }).await;
@@ -196,26 +196,32 @@ fn main() {
             let same_in_process = in_process_reduced(&reduction);
             row(what, seconds, same_in_process, &data);
             println!(
-                "{:<52} {:>9.2} {:>8.1}",
+                "{:<64} {:>9.2} {:>8.1}",
                 "  the same in-process",
                 mrays(same_in_process),
                 100.0 * engine / same_in_process
             );
             let trace = median(trace_seconds.into_inner().unwrap());
-            println!("{:<52} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
+            println!("{:<64} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
             let kernel = median(kernel_seconds.into_inner().unwrap());
             if kernel > 0.0 {
                 let what = "  of which the device's kernels (GPU timestamps)";
-                println!("{what:<52} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
+                println!("{what:<64} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
             }
         }
 
-        // Several callers at once keep the device busy (a GPU idling between calls lowers its clock).
+        // Several callers at once keep the device busy (a GPU idling between calls lowers its clock); over one
+        // connection, and over one connection a call (whose replies are then copied on several cores at once).
+        let spread_options = ClientOptions { connections: CONCURRENT_CALLS, ..ClientOptions::default() };
+        let spread_client = Client::connect(&url, spread_options).await.unwrap();
+        let depth = image(ImageChannel::Depth, PixelEncoding::Float32, near, far);
         let concurrent = [
-            ("depth image float32, 4 calls at once", image(ImageChannel::Depth, PixelEncoding::Float32, near, far)),
-            ("hit counts, 4 calls at once", Reduction::Counts),
+            ("depth image float32, 4 calls at once", &client, depth.clone()),
+            ("hit counts, 4 calls at once", &client, Reduction::Counts),
+            ("depth image float32, 4 calls at once, 4 connections", &spread_client, depth),
+            ("hit counts, 4 calls at once, 4 connections", &spread_client, Reduction::Counts),
         ];
-        for (what, reduction) in concurrent {
+        for (what, client, reduction) in concurrent {
             let kernel_seconds = std::sync::Mutex::new(Vec::new());
             let (seconds, data) = timed(|| async {
                 let calls: Vec<_> = (0..CONCURRENT_CALLS)
@@ -246,7 +252,7 @@ fn main() {
             let kernel = median(kernel_seconds.into_inner().unwrap());
             if kernel > 0.0 {
                 let what = "  of which the device's kernels (GPU timestamps)";
-                println!("{what:<52} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
+                println!("{what:<64} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
             }
         }
     });

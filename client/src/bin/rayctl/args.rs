@@ -39,6 +39,11 @@ pub struct Cli {
     #[arg(long, value_name = "BYTES", global = true, env = "RAYD_MAX_MESSAGE_BYTES", default_value_t = 64 << 20,
           value_parser = clap::value_parser!(u64).range(1 << 16..), hide_short_help = true)]
     pub max_message_bytes: u64,
+    /// HTTP/2 connections to spread the calls over: more copy the replies of calls in flight at once (`bench
+    /// --concurrency`) on more cores.
+    #[arg(long, value_name = "N", global = true, env = "RAYD_CONNECTIONS", default_value_t = 1,
+          value_parser = clap::value_parser!(u32).range(1..=64), hide_short_help = true)]
+    pub connections: u32,
     /// What to do.
     #[command(subcommand)]
     pub command: Command,

@@ -44,6 +44,7 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         tls,
         max_message_bytes,
         batch_limit_bytes: max_message_bytes / 2,
+        connections: cli.connections as usize,
         ..ClientOptions::default()
     };
     let client = Client::connect(&cli.server, options).await?;
