@@ -138,7 +138,8 @@ impl Reduction {
     }
 
     /// The query each piece is traced with: `query` with the smallest hit format that carries what the reduction
-    /// needs.
+    /// needs, and counts of a closest-hit query traced as an any-hit one (whether a ray hits is the same either way,
+    /// and an any-hit walk stops at the first hit it finds).
     pub fn traced_query(&self, query: &Query) -> Query {
         let hit_format = match self {
             // A bit a record says hit or miss (`Hit::is_hit`, a hit behind the ray's origin too): all counts need.
@@ -151,7 +152,11 @@ impl Reduction {
             Reduction::IdCounts(IdKind::Primitive) => HitFormat::TTriid,
             Reduction::NearestPerGroup { .. } | Reduction::CompactHits { .. } => query.hit_format,
         };
-        Query { hit_format, ..*query }
+        let kind = match (self, query.kind) {
+            (Reduction::Counts, QueryKind::Closest) => QueryKind::Any,
+            (_, kind) => kind,
+        };
+        Query { hit_format, kind, ..*query }
     }
 
     /// Reduces one traced piece: its `rays` (packed in `traced.ray_format`, the first being ray `first_ray` of the

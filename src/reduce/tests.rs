@@ -318,6 +318,12 @@ fn a_piece_reduced_in_parallel_parts_equals_it_reduced_at_once() {
     // Counts trace a bitmask: its parts begin within the bytes.
     let (query, ray_bytes, hit_bytes) = batch(HitFormat::Bitmask, &rays, &hits);
     assert_eq!(Reduction::Counts.traced_query(&query).hit_format, HitFormat::Bitmask);
+    // Hit or miss needs no nearest hit: a closest-hit query's counts are traced as an any-hit one; others as they are.
+    assert_eq!(Reduction::Counts.traced_query(&query).kind, QueryKind::Any);
+    for kind in [QueryKind::All, QueryKind::Count] {
+        assert_eq!(Reduction::Counts.traced_query(&Query { kind, ..query }).kind, kind);
+    }
+    assert_eq!(Reduction::Histogram { bins: 1, t_min: 0.0, t_max: 1.0 }.traced_query(&query).kind, QueryKind::Closest);
     let parallel = Reduction::Counts.reduce_piece_parallel(&query, 0, &ray_bytes, &hit_bytes, &[]);
     let hit = hits.iter().filter(|hit| hit.is_hit()).count() as u64;
     assert_eq!(parallel, Partial::Sums(vec![count as u64, hit, hit]));
