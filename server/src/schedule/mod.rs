@@ -156,9 +156,8 @@ impl Scheduler {
     }
 
     /// The scheduler of `device` as `config` sets it: on the CPU one worker per core (`workers` 0) or `workers`, and
-    /// pieces
-    /// of one engine chunk, or of one engine part ([`PART_RAYS`], which a worker traces alone) for rays made by a
-    /// generator and reduced (BENCHMARKS.md, "Reduced pieces of a part on the CPU": +2–6% for counts and images;
+    /// pieces of one engine chunk, or of one engine part ([`PART_RAYS`], which a worker traces alone) for rays made by
+    /// a generator and reduced (BENCHMARKS.md, "Reduced pieces of a part on the CPU": +2–6% for counts and images;
     /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk); on a GPU `gpu_workers`
     /// workers and pieces of [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made by a generator. The
     /// workers run at `worker_nice`.
