@@ -164,6 +164,57 @@ fn results_are_the_same_bytes_whatever_the_thread_count_or_the_split() {
 }
 
 #[test]
+fn a_cameras_rays_traced_in_tiles_answer_as_in_runs_too_short_for_tiles() {
+    let context = Context::new(Device::cpu());
+    let packed = shared_mesh("stanford-bunny").pack();
+    let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let (lo, hi) = shared_mesh("stanford-bunny").bounds();
+    let format = RayFormat::OriginTminDirectionTmax;
+    let rays = Camera::framing(lo, hi, 96, 64).rays(format);
+    let queries = [
+        Query::closest(format, HitFormat::TTriidUV),
+        Query { kind: QueryKind::Count, ..Query::closest(format, HitFormat::TTriid) },
+        Query { kind: QueryKind::All, max_hits_per_ray: 3, ..Query::closest(format, HitFormat::T) },
+        // Which hit an `any` query stops at may depend on the rays traced with it; whether it hits does not.
+        Query { kind: QueryKind::Any, ..Query::closest(format, HitFormat::Bitmask) },
+    ];
+    let trace = |query: &Query, rays: &[u8]| {
+        let layout = query.output_layout(rays.len()).unwrap();
+        let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
+        context.trace(&accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts }).unwrap();
+        (hits, counts)
+    };
+    for query in &queries {
+        // From a row's start, and from the middle of one (its rays before the first whole row are not tiled; a
+        // bitmask's chunks then keep to bytes and the rows go unused).
+        for first in [0, 96 * 5 + 37] {
+            let rays = &rays[first * format.size()..];
+            let rows = rayd_engine::query::batch_chunks(query, rays).0;
+            let tiled = query.hit_format != HitFormat::Bitmask || first == 0;
+            assert_eq!(rows.map(|r| r.width), tiled.then_some(96), "{:?} from {first}", query.kind);
+            // Each ray's hit records (a bitmask's bit), and its count.
+            let per_ray = |(hits, counts): (Vec<u8>, Vec<u8>), rays: usize| -> Vec<(Vec<u8>, Vec<u8>)> {
+                let records = query.records_per_ray();
+                (0..rays)
+                    .map(|i| {
+                        let hit = match query.hit_format.size() {
+                            None => vec![hits[i / 8] >> (i % 8) & 1],
+                            Some(size) => hits[i * records * size..(i + 1) * records * size].to_vec(),
+                        };
+                        (hit, counts.get(4 * i..4 * i + 4).unwrap_or_default().to_vec())
+                    })
+                    .collect()
+            };
+            let size = format.size();
+            let in_runs: Vec<_> =
+                rays.chunks(7 * size).flat_map(|run| per_ray(trace(query, run), run.len() / size)).collect();
+            let whole = per_ray(trace(query, rays), rays.len() / size);
+            assert!(whole == in_runs, "{:?} from {first}", query.kind);
+        }
+    }
+}
+
+#[test]
 fn building_an_accel_never_blocks_traces_on_another() {
     let context = Arc::new(Context::new(Device::cpu()));
     let small = icosphere(3, Vec3::ZERO).pack();

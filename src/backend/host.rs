@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use super::{Backend, BackendAccel, RaySource};
 use crate::error::Result;
 use crate::format::RayFormat;
-use crate::query::{CHUNK_RAYS, Query, TraceOutput, TraceStats};
+use crate::query::{CHUNK_RAYS, Query, TraceOutput, TraceStats, batch_chunks};
 use crate::raygen::Generator;
 use crate::reduce::{Partial, Reduction};
 
@@ -98,9 +98,10 @@ fn trace_then_reduce(
     Ok((reduce(rays, hits, counts), stats))
 }
 
-/// [`Backend::trace`] of `rays` a batch driver's chunk ([`CHUNK_RAYS`]) at a time, one after another on this thread:
-/// a part's trace, which the batch driver would otherwise spread over the pool again. Parts run in parallel already,
-/// and a server's scheduler workers, which trace one part each, would compete with the pool's threads for the cores.
+/// [`Backend::trace`] of `rays` a batch driver's chunk ([`batch_chunks`]) at a time, one after another on this
+/// thread: a part's trace, which the batch driver would otherwise spread over the pool again. Parts run in parallel
+/// already, and a server's scheduler workers, which trace one part each, would compete with the pool's threads for
+/// the cores.
 fn trace_on_this_thread<B: Backend + ?Sized>(
     backend: &B,
     accel: &dyn BackendAccel,
@@ -111,14 +112,14 @@ fn trace_on_this_thread<B: Backend + ?Sized>(
     let layout = query.output_layout(rays.len())?;
     out.check(&layout)?;
     let ray_size = query.ray_format.size();
-    // Chunks of hit records start on byte boundaries of a bitmask: `CHUNK_RAYS` is a multiple of 8.
-    let hit_bytes = query.output_layout(CHUNK_RAYS * ray_size)?.hits;
-    // Kinds without counts have none: every chunk gets an empty slice.
-    let mut counts = out.counts.chunks_mut(CHUNK_RAYS * 4);
     let mut stats = TraceStats::default();
-    for (rays, hits) in rays.chunks(CHUNK_RAYS * ray_size).zip(out.hits.chunks_mut(hit_bytes.max(1))) {
-        let counts = counts.next().unwrap_or_default();
-        stats.add(&backend.trace(accel, query, rays, TraceOutput { hits, counts })?);
+    for range in batch_chunks(query, rays).1 {
+        // Chunks start on byte boundaries of a bitmask (`batch_chunks`); kinds without counts have none.
+        let hits = query.output_layout(range.start * ray_size)?.hits..query.output_layout(range.end * ray_size)?.hits;
+        let counts = if query.kind.has_counts() { 4 * range.start..4 * range.end } else { 0..0 };
+        let rays = &rays[range.start * ray_size..range.end * ray_size];
+        let out = TraceOutput { hits: &mut out.hits[hits], counts: &mut out.counts[counts] };
+        stats.add(&backend.trace(accel, query, rays, out)?);
     }
     Ok(stats)
 }

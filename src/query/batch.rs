@@ -1,26 +1,56 @@
 //! The batch driver of CPU-side tracing: rays are split into chunks traced in parallel with rayon; in a chunk each
-//! ray is decoded once, handed to the backend's closure in groups of consecutive rays ([`GROUP_RAYS`], so that a
-//! backend can trace coherent ones together) and written in place. Nothing is allocated per ray. The rays are
-//! handed over decoded, not prepared ([`crate::intersect::PreparedRay`]): a backend prepares what its tests need,
-//! which for rays traced together is much less than a prepared ray each.
+//! ray is decoded once, handed to the backend's closure in groups ([`GROUP_RAYS`], so that a backend can trace
+//! coherent ones together) and written in place. A group is 16 consecutive rays, or, where the rays follow an
+//! image's rows ([`ImageRows`]), a 4×4 tile of them. Nothing is allocated per ray. The rays are handed over decoded,
+//! not prepared ([`crate::intersect::PreparedRay`]): a backend prepares what its tests need, which for rays traced
+//! together is much less than a prepared ray each.
+
+use std::ops::Range;
 
 use rayon::prelude::*;
 
+use super::rows::{ImageRows, groups};
 use super::{Collector, Query, QueryKind, TraceOutput, TraceStats};
 use crate::error::Result;
-use crate::format::{Hit, Ray};
+use crate::format::{Hit, HitFormat, Ray};
 use crate::intersect::traced;
 
-/// Rays per parallel chunk; a multiple of 8 so that bitmask outputs split on byte boundaries.
+/// Rays per parallel chunk (at least: rays that follow an image's rows are chunked by whole bands of tiles); a
+/// multiple of 8 so that bitmask outputs split on byte boundaries.
 pub const CHUNK_RAYS: usize = 1024;
 
-/// Consecutive rays handed to the backend at once (the last group of a chunk may be smaller).
+/// Rays handed to the backend at once (the last group of a chunk may be smaller).
 pub const GROUP_RAYS: usize = 16;
 
+/// How the driver splits a batch: the image rows its rays follow, if any, and its chunks (ranges of rays, each traced
+/// on one thread; one chunk is traced on the caller's thread). Chunks are [`CHUNK_RAYS`] rays, or with rows whole
+/// bands of tiles; the first also takes the rays before the first row start, the last the rays after the last whole
+/// chunk (so that a chunk split again is one chunk). They start on multiples of 8 rays for a bitmask hit format (rows
+/// whose first start is not one are then not used).
+pub fn batch_chunks(query: &Query, rays: &[u8]) -> (Option<ImageRows>, Vec<Range<usize>>) {
+    let count = rays.len() / query.ray_format.size();
+    let bitmask = query.hit_format == HitFormat::Bitmask;
+    let rows = ImageRows::find(query.ray_format, rays).filter(|rows| !bitmask || rows.first.is_multiple_of(8));
+    let (first, chunk) = match rows {
+        None => (0, CHUNK_RAYS),
+        Some(rows) => {
+            let mut bands = CHUNK_RAYS.div_ceil(rows.band());
+            while !(bands * rows.band()).is_multiple_of(8) {
+                bands += 1;
+            }
+            (rows.first, bands * rows.band())
+        }
+    };
+    let chunks = (count.saturating_sub(first) / chunk).max(1);
+    let end = |k: usize| if k == chunks { count } else { first + k * chunk };
+    (rows, (0..chunks).map(|k| if k == 0 { 0 } else { end(k) }..end(k + 1)).collect())
+}
+
 /// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`.
-/// `traverse` gets up to [`GROUP_RAYS`] consecutive rays (as [`traced`] makes them: the query's flags added) with a
-/// collector each, offers each ray's candidate triangles to its collector and adds what it did to the stats; it gets
-/// working state (a traversal stack) made once per chunk by `new_state`.
+/// `traverse` gets a group of up to [`GROUP_RAYS`] neighbouring rays ([`batch_chunks`], [`ImageRows`]; as [`traced`]
+/// makes them: the query's flags added) with a collector each, offers each ray's candidate triangles to its
+/// collector and adds what it did to the stats; it gets working state (a traversal stack) made once per chunk by
+/// `new_state`.
 pub fn trace_batch<S, N, F>(
     query: &Query,
     rays: &[u8],
@@ -36,12 +66,13 @@ where
     out.check(&layout)?;
     let ray_size = query.ray_format.size();
     let records_per_ray = query.records_per_ray();
-    let hit_chunk = query.hit_format.buffer_len(CHUNK_RAYS * records_per_ray);
     if let Some(last) = out.hits.last_mut() {
         // Clears the unused high bits of a bitmask's last byte; every other byte is fully rewritten.
         *last = 0;
     }
-    let trace_chunk = |rays: &[u8], hits: &mut [u8], counts: &mut [u8]| {
+    let (rows, chunks) = batch_chunks(query, rays);
+    let trace_chunk = |range: Range<usize>, hits: &mut [u8], counts: &mut [u8]| {
+        let rays = &rays[range.start * ray_size..range.end * ray_size];
         let mut stats = TraceStats::default();
         let mut state = new_state();
         let all = query.kind == QueryKind::All;
@@ -54,27 +85,33 @@ where
             let part = if all { parts.next().expect("a scratch part a ray") } else { &mut [] };
             Collector::new(query, &unused, part)
         });
-        for (group, bytes) in rays.chunks(ray_size * GROUP_RAYS).enumerate() {
-            let first = group * GROUP_RAYS;
-            let len = bytes.len() / ray_size;
+        for group in groups(range, rows, GROUP_RAYS) {
             // Decoded by a loop compiled once a ray format, without a match a ray.
-            query.ray_format.specialized(
+            let len = query.ray_format.specialized(
                 #[inline(always)]
                 |format| {
-                    let slots = decoded.iter_mut().zip(&mut collectors).zip(bytes.chunks_exact(format.size()));
-                    for ((ray, collector), bytes) in slots {
-                        *ray = traced(&format.decode(bytes), query.flags);
-                        collector.restart(ray);
+                    let mut len = 0;
+                    for &(first, run) in group.runs() {
+                        let bytes = &rays[first * ray_size..(first + run) * ray_size];
+                        let slots = decoded[len..].iter_mut().zip(&mut collectors[len..]);
+                        for ((ray, collector), bytes) in slots.zip(bytes.chunks_exact(format.size())) {
+                            *ray = traced(&format.decode(bytes), query.flags);
+                            collector.restart(ray);
+                        }
+                        len += run;
                     }
+                    len
                 },
             );
             traverse(&mut state, &decoded[..len], &mut collectors[..len], &mut stats);
             query.hit_format.specialized(
                 #[inline(always)]
                 |format| {
-                    for (i, collector) in collectors[..len].iter().enumerate() {
-                        let index = first + i;
-                        collector.write(format, hits, index * records_per_ray, counts, index);
+                    let mut collectors = collectors.iter();
+                    for &(first, run) in group.runs() {
+                        for (index, collector) in (first..first + run).zip(&mut collectors) {
+                            collector.write(format, hits, index * records_per_ray, counts, index);
+                        }
                     }
                 },
             );
@@ -83,23 +120,27 @@ where
         }
         stats
     };
-    if layout.rays <= CHUNK_RAYS {
+    if let [only] = chunks.as_slice() {
         // One chunk: traced on the caller's thread, without a hop to the thread pool (small-batch latency).
-        return Ok(trace_chunk(rays, out.hits, out.counts));
+        return Ok(trace_chunk(only.clone(), out.hits, out.counts));
     }
-    let hit_chunks: Vec<&mut [u8]> = out.hits.chunks_mut(hit_chunk.max(1)).collect();
-    let count_chunks: Vec<&mut [u8]> = if query.kind.has_counts() {
-        out.counts.chunks_mut(CHUNK_RAYS * 4).collect()
-    } else {
-        hit_chunks.iter().map(|_| Default::default()).collect()
-    };
-    let stats = rays
-        .par_chunks(CHUNK_RAYS * ray_size)
-        .zip(hit_chunks.into_par_iter().zip(count_chunks))
-        .map(|(rays, (hits, counts))| trace_chunk(rays, hits, counts))
-        .reduce(TraceStats::default, |mut a, b| {
+    // Each chunk's hit records and counts, split off the outputs in turn.
+    let (mut hits, mut counts) = (out.hits, out.counts);
+    let mut outputs = Vec::with_capacity(chunks.len());
+    for range in &chunks {
+        let hit_bytes = query.hit_format.buffer_len(range.len() * records_per_ray).min(hits.len());
+        let count_bytes = if query.kind.has_counts() { 4 * range.len() } else { 0 };
+        let (chunk_hits, rest_hits) = std::mem::take(&mut hits).split_at_mut(hit_bytes);
+        let (chunk_counts, rest_counts) = std::mem::take(&mut counts).split_at_mut(count_bytes);
+        outputs.push((range.clone(), chunk_hits, chunk_counts));
+        (hits, counts) = (rest_hits, rest_counts);
+    }
+    let stats = outputs.into_par_iter().map(|(range, hits, counts)| trace_chunk(range, hits, counts)).reduce(
+        TraceStats::default,
+        |mut a, b| {
             a.add(&b);
             a
-        });
+        },
+    );
     Ok(stats)
 }

@@ -3,9 +3,11 @@
 
 mod batch;
 mod collect;
+mod rows;
 
-pub use batch::{CHUNK_RAYS, GROUP_RAYS, trace_batch};
+pub use batch::{CHUNK_RAYS, GROUP_RAYS, batch_chunks, trace_batch};
 pub use collect::{AcceptedHit, Collector, InstanceScope, TriangleCandidate, accept_hit, consider_triangle};
+pub use rows::ImageRows;
 
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, RayFlags, RayFormat, read_f32};

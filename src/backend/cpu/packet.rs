@@ -1,8 +1,9 @@
-//! Packets: coherent rays — consecutive in the batch, heading the same way from nearby origins, as a camera's or a
-//! lidar's are — traced together through a static accel's wide nodes: 16 at a time on a CPU with AVX-512, 8 with
-//! AVX2 ([`RayLanes`]: the walk is written once over the register). Each child box of a node is tested against the
-//! packet's rays at once (a ray a lane), and each leaf triangle is sorted out for them at once ([`filter`]); the rays
-//! share the loads of nodes and triangles and the traversal's bookkeeping.
+//! Packets: coherent rays — neighbours in the batch (a group of the batch driver: consecutive rays, or a 4×4 tile of
+//! rays that follow an image's rows), heading the same way from nearby origins, as a camera's or a lidar's are —
+//! traced together through a static accel's wide nodes: 16 at a time on a CPU with AVX-512, 8 with AVX2
+//! ([`RayLanes`]: the walk is written once over the register). Each child box of a node is tested against the packet's
+//! rays at once (a ray a lane), and each leaf triangle is sorted out for them at once ([`filter`]); the rays share the
+//! loads of nodes and triangles and the traversal's bookkeeping.
 //!
 //! **Same answers as alone.** A ray takes part only in the box tests of nodes it entered, with the same operations
 //! as [`super::wide`]'s lane test and its own nearest hit so far, and a popped node is re-checked against that hit.

@@ -45,8 +45,8 @@ impl CpuAccel {
         }
     }
 
-    /// Offers each of `rays` (consecutive rays of a batch as [`crate::intersect::traced`] makes them, with a
-    /// collector each) the triangles it reaches: together, as packets ([`super::packet`]), where they make them
+    /// Offers each of `rays` (a group of neighbouring rays of a batch, [`crate::query::trace_batch`]'s, as
+    /// [`crate::intersect::traced`] makes them, with a collector each) the triangles it reaches: together, as packets ([`super::packet`]), where they make them
     /// through a static geometry accel; one by one otherwise.
     pub(crate) fn traverse_group(
         &self,
