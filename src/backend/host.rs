@@ -6,8 +6,8 @@
 //! - in parts of [`PART_RAYS`] ([`trace_source_in_parts`], [`trace_reduced_in_parts`]): each worker makes, traces
 //!   and reduces a part while its rays and hits are in the core's cache, in buffers it reuses from part to part,
 //!   for backends that trace on the host's cores (the CPU). Nothing the size of the batch is allocated, touched for
-//!   the first time (page faults) or streamed through memory. A part is traced on its worker's thread alone
-//!   ([`trace_on_this_thread`]): the parts are what runs in parallel.
+//!   the first time (page faults) or streamed through memory. A part is traced on its worker's thread alone (the
+//!   backend's [`TracePart`]): the parts are what runs in parallel.
 
 use std::ops::Range;
 use std::sync::Mutex;
@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use super::{Backend, BackendAccel, RaySource};
 use crate::error::Result;
 use crate::format::RayFormat;
-use crate::query::{CHUNK_RAYS, Query, TraceOutput, TraceStats, batch_chunks};
+use crate::query::{CHUNK_RAYS, ImageRows, Query, TraceOutput, TraceStats};
 use crate::raygen::Generator;
 use crate::reduce::{Partial, Reduction};
 
@@ -98,30 +98,18 @@ fn trace_then_reduce(
     Ok((reduce(rays, hits, counts), stats))
 }
 
-/// [`Backend::trace`] of `rays` a batch driver's chunk ([`batch_chunks`]) at a time, one after another on this
-/// thread: a part's trace, which the batch driver would otherwise spread over the pool again. Parts run in parallel
-/// already, and a server's scheduler workers, which trace one part each, would compete with the pool's threads for
-/// the cores.
-fn trace_on_this_thread<B: Backend + ?Sized>(
-    backend: &B,
-    accel: &dyn BackendAccel,
-    query: &Query,
-    rays: &[u8],
-    out: TraceOutput<'_>,
-) -> Result<TraceStats> {
-    let layout = query.output_layout(rays.len())?;
-    out.check(&layout)?;
-    let ray_size = query.ray_format.size();
-    let mut stats = TraceStats::default();
-    for range in batch_chunks(query, rays).1 {
-        // Chunks start on byte boundaries of a bitmask (`batch_chunks`); kinds without counts have none.
-        let hits = query.output_layout(range.start * ray_size)?.hits..query.output_layout(range.end * ray_size)?.hits;
-        let counts = if query.kind.has_counts() { 4 * range.start..4 * range.end } else { 0..0 };
-        let rays = &rays[range.start * ray_size..range.end * ray_size];
-        let out = TraceOutput { hits: &mut out.hits[hits], counts: &mut out.counts[counts] };
-        stats.add(&backend.trace(accel, query, rays, out)?);
+/// How a backend traces a part of a trace done in parts, on the calling thread: [`Backend::trace`] of the part's
+/// packed rays, told the image rows they follow when the part's generator knows them
+/// ([`crate::query::trace_batch_here`] for the CPU).
+pub type TracePart<'a> = dyn Fn(&Query, &[u8], Option<ImageRows>, TraceOutput<'_>) -> Result<TraceStats> + Sync + 'a;
+
+/// The image rows that rays `part` of `rays` follow, in the part's ray indices: the generator's
+/// ([`Generator::image_rows`]), or for packed rays those `packed_rows` found once for all of them.
+fn part_rows(rays: &RaySource<'_>, part: &Range<usize>, packed_rows: Option<ImageRows>) -> Option<ImageRows> {
+    match rays {
+        RaySource::Generated { generator, first, .. } => generator.image_rows(first + part.start as u64),
+        RaySource::Packed(_) => packed_rows.map(|rows| rows.from_ray(part.start)),
     }
-    Ok(stats)
 }
 
 /// Makes `buffer` `len` bytes long for contents about to be written whole: one too small is replaced by a buffer the
@@ -172,6 +160,7 @@ pub fn trace_source_in_parts<B: Backend + ?Sized>(
     query: &Query,
     rays: RaySource<'_>,
     out: TraceOutput<'_>,
+    trace_part: &TracePart<'_>,
 ) -> Result<TraceStats> {
     let RaySource::Generated { .. } = rays else { return trace_source(backend, accel, query, rays, out) };
     let layout = query.output_layout(rays.packed_len(query.ray_format.size()))?;
@@ -191,30 +180,35 @@ pub fn trace_source_in_parts<B: Backend + ?Sized>(
     let stats = in_parts(layout.rays, PART_RAYS, |scratch, range| {
         let index = range.start / PART_RAYS;
         let (mut hits, mut counts) = (hits[index].lock().unwrap(), counts[index].lock().unwrap());
+        let rows = part_rows(&rays, &range, None);
         let rays = packed_by(rays.part(range, ray_size), query.ray_format, &mut scratch.rays, Generator::fill);
-        trace_on_this_thread(backend, accel, query, rays, TraceOutput { hits: &mut hits, counts: &mut counts })
+        trace_part(query, rays, rows, TraceOutput { hits: &mut hits, counts: &mut counts })
     })?;
     Ok(sum(&stats))
 }
 
 /// [`trace_reduced`] in parts of about [`PART_RAYS`] (whole groups of the reduction), each made, traced and reduced
 /// by one worker; the parts' partials folded in ray order. The same partial.
-pub fn trace_reduced_in_parts<B: Backend + ?Sized>(
-    backend: &B,
-    accel: &dyn BackendAccel,
+pub fn trace_reduced_in_parts(
     query: &Query,
     rays: RaySource<'_>,
     first_ray: u64,
     reduction: &Reduction,
+    trace_part: &TracePart<'_>,
 ) -> Result<(Partial, TraceStats)> {
     let traced = reduction.traced_query(query);
     let layout = traced.output_layout(rays.packed_len(traced.ray_format.size()))?;
+    let packed_rows = match rays {
+        RaySource::Packed(bytes) => ImageRows::find(traced.ray_format, bytes),
+        RaySource::Generated { .. } => None,
+    };
     let group = reduction.group_rays();
     let ray_size = traced.ray_format.size();
     let reduced = in_parts(layout.rays, PART_RAYS.div_ceil(group) * group, |scratch, range| {
         let first = first_ray + range.start as u64;
+        let rows = part_rows(&rays, &range, packed_rows);
         let part = rays.part(range, ray_size);
-        let trace = |rays: &[u8], out: TraceOutput<'_>| trace_on_this_thread(backend, accel, &traced, rays, out);
+        let trace = |rays: &[u8], out: TraceOutput<'_>| trace_part(&traced, rays, rows, out);
         trace_then_reduce(&traced, part, scratch, Generator::fill, trace, |rays, hits, counts| {
             reduction.reduce_piece(&traced, first, rays, hits, counts)
         })

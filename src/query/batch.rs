@@ -46,10 +46,10 @@ pub fn batch_chunks(query: &Query, rays: &[u8]) -> (Option<ImageRows>, Vec<Range
     (rows, (0..chunks).map(|k| if k == 0 { 0 } else { end(k) }..end(k + 1)).collect())
 }
 
-/// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`.
-/// `traverse` gets a group of up to [`GROUP_RAYS`] neighbouring rays ([`batch_chunks`], [`ImageRows`]; as [`traced`]
-/// makes them: the query's flags added) with a collector each, offers each ray's candidate triangles to its
-/// collector and adds what it did to the stats; it gets working state (a traversal stack) made once per chunk by
+/// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`, in the
+/// chunks of [`batch_chunks`], in parallel. `traverse` gets a group of up to [`GROUP_RAYS`] neighbouring rays (as
+/// [`traced`] makes them: the query's flags added) with a collector each, offers each ray's candidate triangles to
+/// its collector and adds what it did to the stats; it gets working state (a traversal stack) made once per chunk by
 /// `new_state`.
 pub fn trace_batch<S, N, F>(
     query: &Query,
@@ -62,63 +62,10 @@ where
     N: Fn() -> S + Sync,
     F: Fn(&mut S, &[Ray], &mut [Collector<'_>], &mut TraceStats) + Sync,
 {
-    let layout = query.output_layout(rays.len())?;
-    out.check(&layout)?;
-    let ray_size = query.ray_format.size();
-    let records_per_ray = query.records_per_ray();
-    if let Some(last) = out.hits.last_mut() {
-        // Clears the unused high bits of a bitmask's last byte; every other byte is fully rewritten.
-        *last = 0;
-    }
+    let out = checked(query, rays, out)?;
     let (rows, chunks) = batch_chunks(query, rays);
     let trace_chunk = |range: Range<usize>, hits: &mut [u8], counts: &mut [u8]| {
-        let rays = &rays[range.start * ray_size..range.end * ray_size];
-        let mut stats = TraceStats::default();
-        let mut state = new_state();
-        let all = query.kind == QueryKind::All;
-        let mut scratch = vec![Hit::MISS; if all { records_per_ray * GROUP_RAYS } else { 0 }];
-        let mut parts = scratch.chunks_mut(records_per_ray.max(1));
-        // A group's rays and collectors, made once a chunk and restarted for every group.
-        let unused = traced(&Ray::default(), query.flags);
-        let mut decoded = [unused; GROUP_RAYS];
-        let mut collectors: [Collector<'_>; GROUP_RAYS] = std::array::from_fn(|_| {
-            let part = if all { parts.next().expect("a scratch part a ray") } else { &mut [] };
-            Collector::new(query, &unused, part)
-        });
-        for group in groups(range, rows, GROUP_RAYS) {
-            // Decoded by a loop compiled once a ray format, without a match a ray.
-            let len = query.ray_format.specialized(
-                #[inline(always)]
-                |format| {
-                    let mut len = 0;
-                    for &(first, run) in group.runs() {
-                        let bytes = &rays[first * ray_size..(first + run) * ray_size];
-                        let slots = decoded[len..].iter_mut().zip(&mut collectors[len..]);
-                        for ((ray, collector), bytes) in slots.zip(bytes.chunks_exact(format.size())) {
-                            *ray = traced(&format.decode(bytes), query.flags);
-                            collector.restart(ray);
-                        }
-                        len += run;
-                    }
-                    len
-                },
-            );
-            traverse(&mut state, &decoded[..len], &mut collectors[..len], &mut stats);
-            query.hit_format.specialized(
-                #[inline(always)]
-                |format| {
-                    let mut collectors = collectors.iter();
-                    for &(first, run) in group.runs() {
-                        for (index, collector) in (first..first + run).zip(&mut collectors) {
-                            collector.write(format, hits, index * records_per_ray, counts, index);
-                        }
-                    }
-                },
-            );
-            stats.rays_hit += collectors[..len].iter().map(|collector| u64::from(collector.found())).sum::<u64>();
-            stats.rays += len as u64;
-        }
-        stats
+        trace_chunk(query, rays, rows, range, hits, counts, &new_state, &traverse)
     };
     if let [only] = chunks.as_slice() {
         // One chunk: traced on the caller's thread, without a hop to the thread pool (small-batch latency).
@@ -128,7 +75,7 @@ where
     let (mut hits, mut counts) = (out.hits, out.counts);
     let mut outputs = Vec::with_capacity(chunks.len());
     for range in &chunks {
-        let hit_bytes = query.hit_format.buffer_len(range.len() * records_per_ray).min(hits.len());
+        let hit_bytes = query.hit_format.buffer_len(range.len() * query.records_per_ray()).min(hits.len());
         let count_bytes = if query.kind.has_counts() { 4 * range.len() } else { 0 };
         let (chunk_hits, rest_hits) = std::mem::take(&mut hits).split_at_mut(hit_bytes);
         let (chunk_counts, rest_counts) = std::mem::take(&mut counts).split_at_mut(count_bytes);
@@ -143,4 +90,97 @@ where
         },
     );
     Ok(stats)
+}
+
+/// [`trace_batch`] on this thread, as one chunk, with the image rows the caller knows the rays follow (a generator's:
+/// [`crate::raygen::Generator::image_rows`]) instead of looking for them: a part of a trace that runs in parts,
+/// which are traced in parallel already.
+pub fn trace_batch_here<S, F>(
+    query: &Query,
+    rays: &[u8],
+    rows: Option<ImageRows>,
+    out: TraceOutput<'_>,
+    new_state: impl Fn() -> S,
+    traverse: F,
+) -> Result<TraceStats>
+where
+    F: Fn(&mut S, &[Ray], &mut [Collector<'_>], &mut TraceStats),
+{
+    let out = checked(query, rays, out)?;
+    let count = rays.len() / query.ray_format.size();
+    Ok(trace_chunk(query, rays, rows, 0..count, out.hits, out.counts, &new_state, &traverse))
+}
+
+/// `out`, once checked against the query's layout for `rays`, its bitmask's unused last bits cleared.
+fn checked<'o>(query: &Query, rays: &[u8], out: TraceOutput<'o>) -> Result<TraceOutput<'o>> {
+    out.check(&query.output_layout(rays.len())?)?;
+    if let Some(last) = out.hits.last_mut() {
+        // Clears the unused high bits of a bitmask's last byte; every other byte is fully rewritten.
+        *last = 0;
+    }
+    Ok(out)
+}
+
+/// Traces the rays `range` of `rays` (following `rows`, if given, in the batch's indices) in groups, writing their
+/// records and counts into `hits` and `counts` (the chunk's own, from its first ray).
+#[allow(clippy::too_many_arguments)]
+fn trace_chunk<S>(
+    query: &Query,
+    rays: &[u8],
+    rows: Option<ImageRows>,
+    range: Range<usize>,
+    hits: &mut [u8],
+    counts: &mut [u8],
+    new_state: &impl Fn() -> S,
+    traverse: &impl Fn(&mut S, &[Ray], &mut [Collector<'_>], &mut TraceStats),
+) -> TraceStats {
+    let ray_size = query.ray_format.size();
+    let records_per_ray = query.records_per_ray();
+    let rays = &rays[range.start * ray_size..range.end * ray_size];
+    let mut stats = TraceStats::default();
+    let mut state = new_state();
+    let all = query.kind == QueryKind::All;
+    let mut scratch = vec![Hit::MISS; if all { records_per_ray * GROUP_RAYS } else { 0 }];
+    let mut parts = scratch.chunks_mut(records_per_ray.max(1));
+    // A group's rays and collectors, made once a chunk and restarted for every group.
+    let unused = traced(&Ray::default(), query.flags);
+    let mut decoded = [unused; GROUP_RAYS];
+    let mut collectors: [Collector<'_>; GROUP_RAYS] = std::array::from_fn(|_| {
+        let part = if all { parts.next().expect("a scratch part a ray") } else { &mut [] };
+        Collector::new(query, &unused, part)
+    });
+    for group in groups(range, rows, GROUP_RAYS) {
+        // Decoded by a loop compiled once a ray format, without a match a ray.
+        let len = query.ray_format.specialized(
+            #[inline(always)]
+            |format| {
+                let mut len = 0;
+                for &(first, run) in group.runs() {
+                    let bytes = &rays[first * ray_size..(first + run) * ray_size];
+                    let slots = decoded[len..].iter_mut().zip(&mut collectors[len..]);
+                    for ((ray, collector), bytes) in slots.zip(bytes.chunks_exact(format.size())) {
+                        *ray = traced(&format.decode(bytes), query.flags);
+                        collector.restart(ray);
+                    }
+                    len += run;
+                }
+                len
+            },
+        );
+        traverse(&mut state, &decoded[..len], &mut collectors[..len], &mut stats);
+        query.hit_format.specialized(
+            #[inline(always)]
+            |format| {
+                let mut collectors = collectors.iter();
+                for &(first, run) in group.runs() {
+                    for (index, collector) in (first..first + run).zip(&mut collectors) {
+                        collector.write(format, hits, index * records_per_ray, counts, index);
+                    }
+                }
+            },
+        );
+        stats.rays_hit += collectors[..len].iter().map(|collector| u64::from(collector.found())).sum::<u64>();
+        stats.rays += len as u64;
+    }
+    stats
 }

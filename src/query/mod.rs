@@ -5,7 +5,7 @@ mod batch;
 mod collect;
 mod rows;
 
-pub use batch::{CHUNK_RAYS, GROUP_RAYS, batch_chunks, trace_batch};
+pub use batch::{CHUNK_RAYS, GROUP_RAYS, batch_chunks, trace_batch, trace_batch_here};
 pub use collect::{AcceptedHit, Collector, InstanceScope, TriangleCandidate, accept_hit, consider_triangle};
 pub use rows::ImageRows;
 

@@ -49,8 +49,12 @@ impl ImageRows {
         if !(step > 0.0 && step.is_finite()) {
             return None;
         }
-        let search = count.min(2 * MAX_WIDTH + 1) - 1;
-        let mut ends = (0..search).filter(|&i| apart(i, i + 1) > ROW_END * step);
+        // The steps from each ray to the next, each ray decoded once.
+        let steps = (1..count.min(2 * MAX_WIDTH + 1)).scan(ray(0), |previous, i| {
+            let next = ray(i);
+            Some(distance(&std::mem::replace(previous, next), &next))
+        });
+        let mut ends = steps.enumerate().filter(|&(_, apart)| apart > ROW_END * step).map(|(i, _)| i);
         let (end, next_end) = (ends.next()?, ends.next()?);
         let width = next_end - end;
         let first = (end + 1) % width;
@@ -62,6 +66,12 @@ impl ImageRows {
             && is_end(next_end + width)
             && apart(middle, middle + width) <= ROW_END * step;
         image.then_some(ImageRows { width, first })
+    }
+
+    /// The same rows seen from ray `offset` on (indices from there).
+    pub fn from_ray(self, offset: usize) -> ImageRows {
+        let behind = offset % self.width;
+        ImageRows { first: (self.first + self.width - behind) % self.width, ..self }
     }
 
     /// Rays of a band: the rows of a tile.
@@ -153,6 +163,9 @@ mod tests {
         // From the middle of a row: the first row start is where the next row begins.
         let from = 37 * format.size();
         assert_eq!(ImageRows::find(format, &rays[from..]), Some(ImageRows { width: 100, first: 63 }));
+        assert_eq!(ImageRows { width: 100, first: 0 }.from_ray(37), ImageRows { width: 100, first: 63 });
+        assert_eq!(ImageRows { width: 100, first: 63 }.from_ray(263), ImageRows { width: 100, first: 0 });
+        assert_eq!(ImageRows { width: 100, first: 63 }.from_ray(70), ImageRows { width: 100, first: 93 });
         // From a row's last ray.
         let from = 99 * format.size();
         assert_eq!(ImageRows::find(format, &rays[from..]), Some(ImageRows { width: 100, first: 1 }));

@@ -13,6 +13,7 @@ use rayon::prelude::*;
 use super::{Camera, Secondary, uniform};
 use crate::error::{Error, Result};
 use crate::format::{Ray, RayFormat};
+use crate::query::ImageRows;
 use crate::reduce::PARALLEL_SPLIT_RAYS;
 
 /// Most channels of a lidar and most points of a sphere generator.
@@ -213,6 +214,20 @@ impl Generator {
             Generator::Sphere(s) => s.points.len() as u64 * u64::from(s.samples),
             Generator::Secondary(s) => s.count(),
         }
+    }
+
+    /// The image rows that its rays from `first` on follow, in their indices from `first` ([`ImageRows`]): a camera's
+    /// rows of pixels (with their samples), a lidar's steps (a row of its channels each); none for the others.
+    pub fn image_rows(&self, first: u64) -> Option<ImageRows> {
+        let width = match self {
+            Generator::Pinhole(Camera { width, .. }, s) | Generator::Orthographic(Orthographic { width, .. }, s) => {
+                u64::from(*width) * u64::from(s.samples)
+            }
+            Generator::Lidar(l) => l.elevations_degrees.len() as u64,
+            Generator::Sphere(_) | Generator::Secondary(_) => return None,
+        };
+        let width = usize::try_from(width).ok().filter(|&width| width > 0)?;
+        Some(ImageRows { width, first: 0 }.from_ray((first % width as u64) as usize))
     }
 
     /// Packs rays `first .. first + out.len() / format.size()` in `format` into `out`. The generator must have
@@ -627,6 +642,42 @@ mod tests {
                 assert_eq!(part, whole[first * size..(first + 17) * size], "{generator:?} from ray {first}");
             }
         }
+    }
+
+    #[test]
+    fn cameras_and_lidars_rays_follow_rows_that_a_search_of_their_rays_finds_too() {
+        let lidar = Generator::Lidar(Lidar {
+            origin: Vec3::ZERO,
+            forward: Vec3::X,
+            up: Vec3::Z,
+            elevations_degrees: (0..16).map(|c| c as f32 - 8.0).collect(),
+            steps: 512,
+            min_range: 0.5,
+            max_range: 100.0,
+            time: (0.0, 0.0),
+        });
+        let wide = Camera { width: 40, height: 30, ..camera() };
+        let format = RayFormat::OriginTminDirectionTmax;
+        for (generator, width) in [(Generator::Pinhole(wide, CENTRES), 40), (lidar, 16)] {
+            for first in [0, 7, 40 * 3 + 39] {
+                let rows = generator.image_rows(first as u64);
+                assert_eq!(rows, Some(ImageRows { width, first: (width - first % width) % width }));
+                let rays = generator.rays(format);
+                assert_eq!(ImageRows::find(format, &rays[first * format.size()..]), rows, "{generator:?} from {first}");
+            }
+        }
+        // Samples of a pixel in turn: a row is a pixel row's rays.
+        let sampled = Generator::Pinhole(wide, PixelSampling { samples: 3, jitter_seed: Some(1) });
+        assert_eq!(sampled.image_rows(5), Some(ImageRows { width: 120, first: 115 }));
+        let sphere = Generator::Sphere(SphereSampling {
+            points: vec![Vec3::ZERO],
+            normals: vec![],
+            samples: 64,
+            min_distance: 0.0,
+            max_distance: 1.0,
+            seed: 1,
+        });
+        assert_eq!(sphere.image_rows(0), None);
     }
 
     #[test]

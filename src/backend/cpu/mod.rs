@@ -30,7 +30,7 @@ use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_counts};
-use crate::query::{Query, TraceOutput, TraceStats, trace_batch};
+use crate::query::{ImageRows, Query, TraceOutput, TraceStats, trace_batch, trace_batch_here};
 use crate::reduce::{Partial, Reduction};
 
 use bvh::Footprint;
@@ -211,7 +211,7 @@ impl Backend for CpuBackend {
         rays: RaySource<'_>,
         out: TraceOutput<'_>,
     ) -> Result<TraceStats> {
-        host::trace_source_in_parts(self, accel, query, rays, out)
+        host::trace_source_in_parts(self, accel, query, rays, out, &part_tracer(cpu(accel)?))
     }
 
     fn trace_reduced(
@@ -222,7 +222,24 @@ impl Backend for CpuBackend {
         first_ray: u64,
         reduction: &Reduction,
     ) -> Result<(Partial, TraceStats)> {
-        host::trace_reduced_in_parts(self, accel, query, rays, first_ray, reduction)
+        host::trace_reduced_in_parts(query, rays, first_ray, reduction, &part_tracer(cpu(accel)?))
+    }
+}
+
+/// How a part of a trace in parts is traced on the CPU: by the batch driver on the calling thread
+/// ([`trace_batch_here`]).
+fn part_tracer(
+    accel: &CpuAccel,
+) -> impl Fn(&Query, &[u8], Option<ImageRows>, TraceOutput<'_>) -> Result<TraceStats> + Sync {
+    move |query, rays, rows, out| {
+        trace_batch_here(
+            query,
+            rays,
+            rows,
+            out,
+            || accel.new_stacks(),
+            |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats),
+        )
     }
 }
 
