@@ -17,7 +17,7 @@ use rayon::prelude::*;
 use super::{Backend, BackendAccel, RaySource};
 use crate::error::Result;
 use crate::format::RayFormat;
-use crate::query::{CHUNK_RAYS, ImageRows, Query, TraceOutput, TraceStats};
+use crate::query::{CHUNK_RAYS, ImageRows, Query, TraceOutput, TraceStats, split_from};
 use crate::raygen::Generator;
 use crate::reduce::{Partial, Reduction};
 
@@ -135,24 +135,45 @@ struct PartScratch {
     counts: Vec<u8>,
 }
 
-/// Runs `each` on the parts of `part` rays of a trace of `rays` rays (the last may be shorter), with a worker's
-/// scratch buffers, and returns the results in ray order: a single part on the caller's thread, without a hop to
-/// the thread pool (rayd's CPU pieces are one part each), more across the pool.
-fn in_parts<R: Send>(
-    rays: usize,
-    part: usize,
-    each: impl Fn(&mut PartScratch, Range<usize>) -> Result<R> + Sync,
-) -> Result<Vec<R>> {
-    if rays <= part {
-        return Ok(vec![each(&mut PartScratch::default(), 0..rays)?]);
+/// The parts of a trace of `rays` rays: [`PART_RAYS`] (rounded up to a multiple of `align`) each; or, for rays that
+/// follow image rows (`rows`) whose bands of tiles keep to `align`, about as many rays in whole bands, the first part
+/// also taking the rays before the first row start, the last the rest — so that the parts' rays are traced in tiles
+/// however wide the image.
+fn parts(rays: usize, rows: Option<ImageRows>, align: usize) -> Vec<Range<usize>> {
+    let uniform = PART_RAYS.div_ceil(align) * align;
+    let Some(rows) = rows.filter(|rows| rows.first.is_multiple_of(align)) else { return split_from(rays, 0, uniform) };
+    // Bands a part: about a part's worth, in multiples of the fewest bands that keep to `align`.
+    let band = rows.band();
+    let step = align / greatest_common_divisor(band, align);
+    let part = (PART_RAYS / band).max(1).div_ceil(step) * step * band;
+    match part <= 4 * PART_RAYS {
+        true => split_from(rays, rows.first, part),
+        false => split_from(rays, 0, uniform),
     }
-    (0..rays.div_ceil(part))
+}
+
+/// The greatest common divisor of `a` and `b` (Euclid's).
+fn greatest_common_divisor(a: usize, b: usize) -> usize {
+    if b == 0 { a } else { greatest_common_divisor(b, a % b) }
+}
+
+/// Runs `each` on `parts` of a trace (given its index and range), with a worker's scratch buffers, and returns the
+/// results in ray order: a single part on the caller's thread, without a hop to the thread pool (rayd's CPU pieces
+/// are one part each), more across the pool.
+fn in_parts<R: Send>(
+    parts: &[Range<usize>],
+    each: impl Fn(&mut PartScratch, usize, Range<usize>) -> Result<R> + Sync,
+) -> Result<Vec<R>> {
+    if let [only] = parts {
+        return Ok(vec![each(&mut PartScratch::default(), 0, only.clone())?]);
+    }
+    (0..parts.len())
         .into_par_iter()
-        .map_init(PartScratch::default, |scratch, index| each(scratch, index * part..((index + 1) * part).min(rays)))
+        .map_init(PartScratch::default, |scratch, index| each(scratch, index, parts[index].clone()))
         .collect()
 }
 
-/// [`trace_source`] in parts of [`PART_RAYS`]: generated rays made a part at a time (packed rays go to
+/// [`trace_source`] in parts of about [`PART_RAYS`] ([`parts`]): generated rays made a part at a time (packed rays go to
 /// [`Backend::trace`] as they are). The same records.
 pub fn trace_source_in_parts<B: Backend + ?Sized>(
     backend: &B,
@@ -168,27 +189,31 @@ pub fn trace_source_in_parts<B: Backend + ?Sized>(
     if layout.rays == 0 {
         return Ok(TraceStats::default());
     }
-    // Each part's records and counts, behind a lock of their own for the worker that traces it. Parts start on
-    // byte boundaries of a bitmask: `PART_RAYS` is a multiple of 8.
-    let hit_bytes = query.output_layout(PART_RAYS * query.ray_format.size())?.hits;
-    let hits: Vec<Mutex<&mut [u8]>> = out.hits.chunks_mut(hit_bytes.max(1)).map(Mutex::new).collect();
-    let counts: Vec<Mutex<&mut [u8]>> = match query.kind.has_counts() {
-        true => out.counts.chunks_mut(PART_RAYS * 4).map(Mutex::new).collect(),
-        false => hits.iter().map(|_| Mutex::new(Default::default())).collect(),
-    };
+    // Parts start on byte boundaries of a bitmask (multiples of 8 rays); each one's records and counts, behind a lock
+    // of their own for the worker that traces it.
     let ray_size = query.ray_format.size();
-    let stats = in_parts(layout.rays, PART_RAYS, |scratch, range| {
-        let index = range.start / PART_RAYS;
-        let (mut hits, mut counts) = (hits[index].lock().unwrap(), counts[index].lock().unwrap());
+    let parts = parts(layout.rays, part_rows(&rays, &(0..layout.rays), None), 8);
+    let (mut hits, mut counts) = (out.hits, out.counts);
+    let mut outputs = Vec::with_capacity(parts.len());
+    for range in &parts {
+        let hit_bytes = query.output_layout(range.len() * ray_size)?.hits.min(hits.len());
+        let count_bytes = if query.kind.has_counts() { 4 * range.len() } else { 0 };
+        let (part_hits, rest_hits) = std::mem::take(&mut hits).split_at_mut(hit_bytes);
+        let (part_counts, rest_counts) = std::mem::take(&mut counts).split_at_mut(count_bytes);
+        outputs.push(Mutex::new((part_hits, part_counts)));
+        (hits, counts) = (rest_hits, rest_counts);
+    }
+    let stats = in_parts(&parts, |scratch, index, range| {
+        let (hits, counts) = &mut *outputs[index].lock().unwrap();
         let rows = part_rows(&rays, &range, None);
         let rays = packed_by(rays.part(range, ray_size), query.ray_format, &mut scratch.rays, Generator::fill);
-        trace_part(query, rays, rows, TraceOutput { hits: &mut hits, counts: &mut counts })
+        trace_part(query, rays, rows, TraceOutput { hits, counts })
     })?;
     Ok(sum(&stats))
 }
 
-/// [`trace_reduced`] in parts of about [`PART_RAYS`] (whole groups of the reduction), each made, traced and reduced
-/// by one worker; the parts' partials folded in ray order. The same partial.
+/// [`trace_reduced`] in parts of about [`PART_RAYS`] (whole groups of the reduction: [`parts`]), each made, traced
+/// and reduced by one worker; the parts' partials folded in ray order. The same partial.
 pub fn trace_reduced_in_parts(
     query: &Query,
     rays: RaySource<'_>,
@@ -202,9 +227,9 @@ pub fn trace_reduced_in_parts(
         RaySource::Packed(bytes) => ImageRows::find(traced.ray_format, bytes),
         RaySource::Generated { .. } => None,
     };
-    let group = reduction.group_rays();
     let ray_size = traced.ray_format.size();
-    let reduced = in_parts(layout.rays, PART_RAYS.div_ceil(group) * group, |scratch, range| {
+    let parts = parts(layout.rays, part_rows(&rays, &(0..layout.rays), packed_rows), reduction.group_rays());
+    let reduced = in_parts(&parts, |scratch, _, range| {
         let first = first_ray + range.start as u64;
         let rows = part_rows(&rays, &range, packed_rows);
         let part = rays.part(range, ray_size);
@@ -225,4 +250,26 @@ fn sum(parts: &[TraceStats]) -> TraceStats {
         all.add(part);
         all
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parts_are_whole_bands_of_tiles_where_they_keep_to_the_alignment() {
+        let lengths = |parts: Vec<Range<usize>>| parts.iter().map(|p| p.len()).collect::<Vec<_>>();
+        // No rows: parts of PART_RAYS, the last taking the rest.
+        assert_eq!(lengths(parts(3 * PART_RAYS + 5, None, 8)), [PART_RAYS, PART_RAYS, PART_RAYS + 5]);
+        // A 4K image's band is larger than a part: a band a part, from the first row start.
+        let wide = ImageRows { width: 3840, first: 40 };
+        assert_eq!(parts(40 + 3 * 15_360 + 7, Some(wide), 8)[..2], [0..15_400, 15_400..30_760]);
+        // 97 pixels of 3 samples a row, images of 3 rays a pixel: seven bands of 1,164 rays a part.
+        let sampled = ImageRows { width: 291, first: 0 };
+        assert_eq!(lengths(parts(3 * 8_148, Some(sampled), 3)), [8_148; 3]);
+        // Groups of 270 rays: the bands that keep to them are too many for a part; parts of whole groups instead.
+        assert_eq!(lengths(parts(2 * 8_370, Some(sampled), 270)), [8_370; 2]);
+        // Rows that start off the alignment: parts of whole groups.
+        assert_eq!(lengths(parts(2 * PART_RAYS, Some(ImageRows { width: 291, first: 5 }), 8)), [PART_RAYS; 2]);
+    }
 }

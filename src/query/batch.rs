@@ -9,7 +9,7 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
-use super::rows::{ImageRows, groups};
+use super::rows::{ImageRows, groups, split_from};
 use super::{Collector, Query, QueryKind, TraceOutput, TraceStats};
 use crate::error::Result;
 use crate::format::{Hit, HitFormat, Ray};
@@ -41,9 +41,7 @@ pub fn batch_chunks(query: &Query, rays: &[u8]) -> (Option<ImageRows>, Vec<Range
             (rows.first, bands * rows.band())
         }
     };
-    let chunks = (count.saturating_sub(first) / chunk).max(1);
-    let end = |k: usize| if k == chunks { count } else { first + k * chunk };
-    (rows, (0..chunks).map(|k| if k == 0 { 0 } else { end(k) }..end(k + 1)).collect())
+    (rows, split_from(count, first, chunk))
 }
 
 /// Checks the buffers, then traces every ray of `rays` with `traverse` and writes its records into `out`, in the

@@ -7,7 +7,7 @@ mod rows;
 
 pub use batch::{CHUNK_RAYS, GROUP_RAYS, batch_chunks, trace_batch, trace_batch_here};
 pub use collect::{AcceptedHit, Collector, InstanceScope, TriangleCandidate, accept_hit, consider_triangle};
-pub use rows::ImageRows;
+pub use rows::{ImageRows, split_from};
 
 use crate::error::{Error, Result};
 use crate::format::{HitFormat, RayFlags, RayFormat, read_f32};

@@ -80,6 +80,14 @@ impl ImageRows {
     }
 }
 
+/// `count` rays split into ranges of `size` from ray `first` on: the first range also takes the rays before `first`,
+/// the last the rays after the last whole range (so that one range split again is one range).
+pub fn split_from(count: usize, first: usize, size: usize) -> Vec<Range<usize>> {
+    let ranges = (count.saturating_sub(first) / size).max(1);
+    let end = |k: usize| if k == ranges { count } else { first + k * size };
+    (0..ranges).map(|k| if k == 0 { 0 } else { end(k) }..end(k + 1)).collect()
+}
+
 /// How far apart two rays are: the sum of their origins' and directions' coordinate differences.
 fn distance(a: &Ray, b: &Ray) -> f32 {
     (a.origin - b.origin).abs().element_sum() + (a.direction - b.direction).abs().element_sum()
@@ -200,6 +208,15 @@ mod tests {
             })
             .collect();
         assert_eq!(ImageRows::find(format, &turned), None);
+    }
+
+    #[test]
+    fn ranges_from_a_first_ray_take_the_rays_before_it_and_the_rest() {
+        assert_eq!(split_from(100, 3, 40), [0..43, 43..100]);
+        assert_eq!(split_from(123, 3, 40), [0..43, 43..83, 83..123]);
+        // One range, the whole.
+        assert_eq!(split_from(30, 3, 40).as_slice(), std::slice::from_ref(&(0..30)));
+        assert_eq!(split_from(0, 0, 40).as_slice(), std::slice::from_ref(&(0..0)));
     }
 
     #[test]
