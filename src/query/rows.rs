@@ -11,9 +11,6 @@ use crate::format::{Ray, RayFormat};
 /// Rays a tile row and tile rows a tile: a group of [`super::GROUP_RAYS`].
 const TILE: usize = 4;
 
-/// Narrowest image looked for: two tiles.
-const MIN_WIDTH: usize = 2 * TILE;
-
 /// Widest image looked for (the search reads up to about two of its rows).
 const MAX_WIDTH: usize = 1 << 14;
 
@@ -31,15 +28,19 @@ pub struct ImageRows {
 }
 
 impl ImageRows {
-    /// The rows that `rays` (packed in `format`) follow, if they do for at least four rows: the first two row ends
-    /// are where a ray is much farther from the one before than a row's first rays are from each other
-    /// ([`ROW_END`] times, origins and directions together), the width is the distance between them, and it holds
-    /// if the next row ends where it should and a ray's neighbour one row down is near it. Anything else — random
-    /// rays, rows too narrow or too wide, rays of several pixels' samples in turn — is not an image.
+    /// Narrowest rows traced in tiles: two tiles (narrower tiles would make groups too small for a backend's
+    /// packets).
+    pub const MIN_WIDTH: usize = 2 * TILE;
+
+    /// The rows that `rays` (packed in `format`) follow, if they do for sixteen rows (four for the narrowest): the
+    /// first two row ends are where a ray is much farther from the one before than a row's first rays are from each
+    /// other ([`ROW_END`] times, origins and directions together), the width is the distance between them, and it
+    /// holds if the next row ends where it should and a ray's neighbour one row down is near it. Anything else —
+    /// random rays, rows too narrow or too wide, rays of several pixels' samples in turn — is not an image.
     pub fn find(format: RayFormat, rays: &[u8]) -> Option<ImageRows> {
         let size = format.size();
         let count = rays.len() / size;
-        if count < TILE * MIN_WIDTH {
+        if count < TILE * Self::MIN_WIDTH {
             return None;
         }
         let ray = |i: usize| format.decode(&rays[i * size..(i + 1) * size]);
@@ -49,8 +50,10 @@ impl ImageRows {
         if !(step > 0.0 && step.is_finite()) {
             return None;
         }
-        // The steps from each ray to the next, each ray decoded once.
-        let steps = (1..count.min(2 * MAX_WIDTH + 1)).scan(ray(0), |previous, i| {
+        // The steps from each ray to the next, each ray decoded once, over an eighth of the batch at most (rows must
+        // be 16 at least: the search then costs about 1% of tracing them).
+        let searched = (count / 8).max(TILE * Self::MIN_WIDTH).min(count).min(2 * MAX_WIDTH + 1);
+        let steps = (1..searched).scan(ray(0), |previous, i| {
             let next = ray(i);
             Some(distance(&std::mem::replace(previous, next), &next))
         });
@@ -60,7 +63,7 @@ impl ImageRows {
         let first = (end + 1) % width;
         let is_end = |i: usize| i + 1 >= count || apart(i, i + 1) > ROW_END * step;
         let middle = first + width / 2;
-        let image = (MIN_WIDTH..=MAX_WIDTH).contains(&width)
+        let image = (Self::MIN_WIDTH..=MAX_WIDTH).contains(&width)
             && end < width
             && first + TILE * width <= count
             && is_end(next_end + width)

@@ -217,7 +217,8 @@ impl Generator {
     }
 
     /// The image rows that its rays from `first` on follow, in their indices from `first` ([`ImageRows`]): a camera's
-    /// rows of pixels (with their samples), a lidar's steps (a row of its channels each); none for the others.
+    /// rows of pixels (with their samples), a lidar's steps (a row of its channels each); none for the others, nor
+    /// for rows narrower than [`ImageRows::MIN_WIDTH`].
     pub fn image_rows(&self, first: u64) -> Option<ImageRows> {
         let width = match self {
             Generator::Pinhole(Camera { width, .. }, s) | Generator::Orthographic(Orthographic { width, .. }, s) => {
@@ -226,7 +227,7 @@ impl Generator {
             Generator::Lidar(l) => l.elevations_degrees.len() as u64,
             Generator::Sphere(_) | Generator::Secondary(_) => return None,
         };
-        let width = usize::try_from(width).ok().filter(|&width| width > 0)?;
+        let width = usize::try_from(width).ok().filter(|&width| width >= ImageRows::MIN_WIDTH)?;
         Some(ImageRows { width, first: 0 }.from_ray((first % width as u64) as usize))
     }
 
@@ -646,19 +647,21 @@ mod tests {
 
     #[test]
     fn cameras_and_lidars_rays_follow_rows_that_a_search_of_their_rays_finds_too() {
-        let lidar = Generator::Lidar(Lidar {
-            origin: Vec3::ZERO,
-            forward: Vec3::X,
-            up: Vec3::Z,
-            elevations_degrees: (0..16).map(|c| c as f32 - 8.0).collect(),
-            steps: 512,
-            min_range: 0.5,
-            max_range: 100.0,
-            time: (0.0, 0.0),
-        });
+        let lidar_of = |channels: usize| {
+            Generator::Lidar(Lidar {
+                origin: Vec3::ZERO,
+                forward: Vec3::X,
+                up: Vec3::Z,
+                elevations_degrees: (0..channels).map(|c| c as f32 - 8.0).collect(),
+                steps: 512,
+                min_range: 0.5,
+                max_range: 100.0,
+                time: (0.0, 0.0),
+            })
+        };
         let wide = Camera { width: 40, height: 30, ..camera() };
         let format = RayFormat::OriginTminDirectionTmax;
-        for (generator, width) in [(Generator::Pinhole(wide, CENTRES), 40), (lidar, 16)] {
+        for (generator, width) in [(Generator::Pinhole(wide, CENTRES), 40), (lidar_of(16), 16)] {
             for first in [0, 7, 40 * 3 + 39] {
                 let rows = generator.image_rows(first as u64);
                 assert_eq!(rows, Some(ImageRows { width, first: (width - first % width) % width }));
@@ -678,6 +681,8 @@ mod tests {
             seed: 1,
         });
         assert_eq!(sphere.image_rows(0), None);
+        // A lidar of four channels: too narrow for tiles.
+        assert_eq!(lidar_of(4).image_rows(0), None);
     }
 
     #[test]
