@@ -193,18 +193,9 @@ pub fn trace_source_in_parts<B: Backend + ?Sized>(
     // of their own for the worker that traces it.
     let ray_size = query.ray_format.size();
     let parts = parts(layout.rays, part_rows(&rays, &(0..layout.rays), None), 8);
-    let (mut hits, mut counts) = (out.hits, out.counts);
-    let mut outputs = Vec::with_capacity(parts.len());
-    for range in &parts {
-        let hit_bytes = query.output_layout(range.len() * ray_size)?.hits.min(hits.len());
-        let count_bytes = if query.kind.has_counts() { 4 * range.len() } else { 0 };
-        let (part_hits, rest_hits) = std::mem::take(&mut hits).split_at_mut(hit_bytes);
-        let (part_counts, rest_counts) = std::mem::take(&mut counts).split_at_mut(count_bytes);
-        outputs.push(Mutex::new((part_hits, part_counts)));
-        (hits, counts) = (rest_hits, rest_counts);
-    }
+    let outputs: Vec<Mutex<TraceOutput<'_>>> = out.split(query, &parts).into_iter().map(Mutex::new).collect();
     let stats = in_parts(&parts, |scratch, index, range| {
-        let (hits, counts) = &mut *outputs[index].lock().unwrap();
+        let TraceOutput { hits, counts } = &mut *outputs[index].lock().unwrap();
         let rows = part_rows(&rays, &range, None);
         let rays = packed_by(rays.part(range, ray_size), query.ray_format, &mut scratch.rays, Generator::fill);
         trace_part(query, rays, rows, TraceOutput { hits, counts })

@@ -69,25 +69,12 @@ where
         // One chunk: traced on the caller's thread, without a hop to the thread pool (small-batch latency).
         return Ok(trace_chunk(only.clone(), out.hits, out.counts));
     }
-    // Each chunk's hit records and counts, split off the outputs in turn.
-    let (mut hits, mut counts) = (out.hits, out.counts);
-    let mut outputs = Vec::with_capacity(chunks.len());
-    for range in &chunks {
-        let hit_bytes = query.hit_format.buffer_len(range.len() * query.records_per_ray()).min(hits.len());
-        let count_bytes = if query.kind.has_counts() { 4 * range.len() } else { 0 };
-        let (chunk_hits, rest_hits) = std::mem::take(&mut hits).split_at_mut(hit_bytes);
-        let (chunk_counts, rest_counts) = std::mem::take(&mut counts).split_at_mut(count_bytes);
-        outputs.push((range.clone(), chunk_hits, chunk_counts));
-        (hits, counts) = (rest_hits, rest_counts);
-    }
-    let stats = outputs.into_par_iter().map(|(range, hits, counts)| trace_chunk(range, hits, counts)).reduce(
-        TraceStats::default,
-        |mut a, b| {
-            a.add(&b);
-            a
-        },
-    );
-    Ok(stats)
+    let outputs = out.split(query, &chunks);
+    let stats = chunks.into_par_iter().zip(outputs).map(|(range, out)| trace_chunk(range, out.hits, out.counts));
+    Ok(stats.reduce(TraceStats::default, |mut a, b| {
+        a.add(&b);
+        a
+    }))
 }
 
 /// [`trace_batch`] on this thread, as one chunk, with the image rows the caller knows the rays follow (a generator's:

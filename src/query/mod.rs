@@ -153,7 +153,23 @@ pub struct TraceOutput<'a> {
     pub counts: &'a mut [u8],
 }
 
-impl TraceOutput<'_> {
+impl<'a> TraceOutput<'a> {
+    /// The outputs of consecutive `ranges` of rays from the first (checked outputs of `query`; ranges that start on a
+    /// byte of a bitmask), split off these in turn.
+    pub fn split(self, query: &Query, ranges: &[std::ops::Range<usize>]) -> Vec<TraceOutput<'a>> {
+        let (mut hits, mut counts) = (self.hits, self.counts);
+        let mut outputs = Vec::with_capacity(ranges.len());
+        for range in ranges {
+            let hit_bytes = query.hit_format.buffer_len(range.len() * query.records_per_ray()).min(hits.len());
+            let count_bytes = if query.kind.has_counts() { 4 * range.len() } else { 0 };
+            let (range_hits, rest_hits) = std::mem::take(&mut hits).split_at_mut(hit_bytes);
+            let (range_counts, rest_counts) = std::mem::take(&mut counts).split_at_mut(count_bytes);
+            outputs.push(TraceOutput { hits: range_hits, counts: range_counts });
+            (hits, counts) = (rest_hits, rest_counts);
+        }
+        outputs
+    }
+
     /// Checks the buffers' lengths against `layout`.
     pub fn check(&self, layout: &OutputLayout) -> Result<()> {
         if self.hits.len() != layout.hits {
