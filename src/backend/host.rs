@@ -145,10 +145,10 @@ fn parts(rays: usize, rows: Option<ImageRows>, align: usize) -> Vec<Range<usize>
     // Bands a part: about a part's worth, in multiples of the fewest bands that keep to `align`.
     let band = rows.band();
     let step = align / greatest_common_divisor(band, align);
-    let part = (PART_RAYS / band).max(1).div_ceil(step) * step * band;
-    match part <= 4 * PART_RAYS {
-        true => split_from(rays, rows.first, part),
-        false => split_from(rays, 0, uniform),
+    let part = (PART_RAYS / band).max(1).div_ceil(step).checked_mul(step).and_then(|bands| bands.checked_mul(band));
+    match part {
+        Some(part) if part <= 4 * PART_RAYS => split_from(rays, rows.first, part),
+        _ => split_from(rays, 0, uniform),
     }
 }
 
@@ -260,6 +260,9 @@ mod tests {
         assert_eq!(lengths(parts(3 * 8_148, Some(sampled), 3)), [8_148; 3]);
         // Groups of 270 rays: the bands that keep to them are too many for a part; parts of whole groups instead.
         assert_eq!(lengths(parts(2 * 8_370, Some(sampled), 270)), [8_370; 2]);
+        // Rows wider than anything traced (a generator's range of a huge image): parts of whole groups.
+        let huge = ImageRows { width: 1 << 48, first: 0 };
+        assert_eq!(lengths(parts(2 * 65_535, Some(huge), 65_535)), [65_535; 2]);
         // Rows that start off the alignment: parts of whole groups.
         assert_eq!(lengths(parts(2 * PART_RAYS, Some(ImageRows { width: 291, first: 5 }), 8)), [PART_RAYS; 2]);
     }
