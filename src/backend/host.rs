@@ -142,19 +142,10 @@ struct PartScratch {
 fn parts(rays: usize, rows: Option<ImageRows>, align: usize) -> Vec<Range<usize>> {
     let uniform = PART_RAYS.div_ceil(align) * align;
     let Some(rows) = rows.filter(|rows| rows.first.is_multiple_of(align)) else { return split_from(rays, 0, uniform) };
-    // Bands a part: about a part's worth, in multiples of the fewest bands that keep to `align`.
-    let band = rows.band();
-    let step = align / greatest_common_divisor(band, align);
-    let part = (PART_RAYS / band).max(1).div_ceil(step).checked_mul(step).and_then(|bands| bands.checked_mul(band));
-    match part {
+    match rows.bands_of(PART_RAYS, align) {
         Some(part) if part <= 4 * PART_RAYS => split_from(rays, rows.first, part),
         _ => split_from(rays, 0, uniform),
     }
-}
-
-/// The greatest common divisor of `a` and `b` (Euclid's).
-fn greatest_common_divisor(a: usize, b: usize) -> usize {
-    if b == 0 { a } else { greatest_common_divisor(b, a % b) }
 }
 
 /// Runs `each` on `parts` of a trace (given its index and range), with a worker's scratch buffers, and returns the

@@ -31,16 +31,9 @@ pub fn batch_chunks(query: &Query, rays: &[u8]) -> (Option<ImageRows>, Vec<Range
     let count = rays.len() / query.ray_format.size();
     let bitmask = query.hit_format == HitFormat::Bitmask;
     let rows = ImageRows::find(query.ray_format, rays).filter(|rows| !bitmask || rows.first.is_multiple_of(8));
-    let (first, chunk) = match rows {
-        None => (0, CHUNK_RAYS),
-        Some(rows) => {
-            let mut bands = CHUNK_RAYS.div_ceil(rows.band());
-            while !(bands * rows.band()).is_multiple_of(8) {
-                bands += 1;
-            }
-            (rows.first, bands * rows.band())
-        }
-    };
+    // Bands of rows no wider than `ImageRows::find` finds: no overflow.
+    let banded = rows.and_then(|rows| Some((rows.first, rows.bands_of(CHUNK_RAYS, 8)?)));
+    let (first, chunk) = banded.unwrap_or((0, CHUNK_RAYS));
     (rows, split_from(count, first, chunk))
 }
 

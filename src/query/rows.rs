@@ -81,6 +81,19 @@ impl ImageRows {
     pub fn band(&self) -> usize {
         TILE * self.width
     }
+
+    /// Rays in about `size` rays' worth of whole bands (at least one), in multiples of the fewest bands that make a
+    /// multiple of `align` rays; `None` where that overflows.
+    pub fn bands_of(&self, size: usize, align: usize) -> Option<usize> {
+        let band = self.band();
+        let step = align / greatest_common_divisor(band, align);
+        (size / band).max(1).div_ceil(step).checked_mul(step)?.checked_mul(band)
+    }
+}
+
+/// The greatest common divisor of `a` and `b` (Euclid's).
+fn greatest_common_divisor(a: usize, b: usize) -> usize {
+    if b == 0 { a } else { greatest_common_divisor(b, a % b) }
 }
 
 /// `count` rays split into ranges of `size` from ray `first` on: the first range also takes the rays before `first`,
