@@ -23,6 +23,7 @@
 pub mod accel;
 pub mod backend;
 mod context;
+mod cpu_features;
 pub mod error;
 pub mod format;
 pub mod geometry;

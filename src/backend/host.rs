@@ -9,6 +9,7 @@
 //!   the first time (page faults) or streamed through memory. A part is traced on its worker's thread alone (the
 //!   backend's [`TracePart`]): the parts are what runs in parallel.
 
+use std::cell::RefCell;
 use std::ops::Range;
 use std::sync::Mutex;
 
@@ -148,15 +149,28 @@ fn parts(rays: usize, rows: Option<ImageRows>, align: usize) -> Vec<Range<usize>
     }
 }
 
+thread_local! {
+    /// The scratch buffers of the single-part traces a thread runs, kept from one to the next: rayd's CPU workers
+    /// trace piece after piece of one part each, which would otherwise each take fresh buffers and have them zeroed
+    /// (a part's rays and hits, a few hundred KiB). A thread keeps its largest part's: a few times [`PART_RAYS`]
+    /// rays' worth at most ([`parts`]).
+    static SINGLE_PART_SCRATCH: RefCell<PartScratch> = RefCell::default();
+}
+
 /// Runs `each` on `parts` of a trace (given its index and range), with a worker's scratch buffers, and returns the
-/// results in ray order: a single part on the caller's thread, without a hop to the thread pool (rayd's CPU pieces
-/// are one part each), more across the pool.
+/// results in ray order: a single part on the caller's thread with the thread's own buffers, without a hop to the
+/// thread pool (rayd's CPU pieces are one part each), more across the pool.
 fn in_parts<R: Send>(
     parts: &[Range<usize>],
     each: impl Fn(&mut PartScratch, usize, Range<usize>) -> Result<R> + Sync,
 ) -> Result<Vec<R>> {
     if let [only] = parts {
-        return Ok(vec![each(&mut PartScratch::default(), 0, only.clone())?]);
+        let result = SINGLE_PART_SCRATCH.with(|scratch| match scratch.try_borrow_mut() {
+            Ok(mut scratch) => each(&mut scratch, 0, only.clone()),
+            // A trace within a trace on this thread (none today) takes buffers of its own.
+            Err(_) => each(&mut PartScratch::default(), 0, only.clone()),
+        });
+        return Ok(vec![result?]);
     }
     (0..parts.len())
         .into_par_iter()

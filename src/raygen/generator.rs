@@ -6,15 +6,21 @@
 
 use std::f32::consts::TAU;
 
-use glam::{Vec3, Vec3A, Vec4};
+use glam::{Vec3, Vec3A};
 
 use rayon::prelude::*;
 
 use super::{Camera, Secondary, uniform};
+#[cfg(target_arch = "x86_64")]
+use crate::cpu_features::{has_avx2, has_avx512};
 use crate::error::{Error, Result};
 use crate::format::{Ray, RayFormat};
 use crate::query::ImageRows;
 use crate::reduce::PARALLEL_SPLIT_RAYS;
+
+/// Rays a camera makes at once ([`CameraFrame::fill`]), a lane each: arrays the compiler keeps in vector registers
+/// (one AVX-512 register, two AVX2 ones).
+const CAMERA_BLOCK: usize = 16;
 
 /// Most channels of a lidar and most points of a sphere generator.
 pub const MAX_GENERATOR_POINTS: usize = 1 << 16;
@@ -246,11 +252,7 @@ impl Generator {
         let size = format.size();
         match self {
             Generator::Pinhole(..) | Generator::Orthographic(..) => {
-                let frame = self.camera_frame().expect("a camera");
-                let mut rays = frame.rays(first);
-                for slot in out.chunks_exact_mut(size) {
-                    format.encode(&rays.next().expect("endless"), slot);
-                }
+                self.camera_frame().expect("a camera").fill(format, first, out);
             }
             Generator::Lidar(lidar) => {
                 // Each channel's elevation and each step's azimuth worked out once, not for every ray.
@@ -358,100 +360,131 @@ impl CameraFrame {
         self.ray_in_pixel(x, y, index)
     }
 
-    /// Rays `first`, `first + 1`, … in turn, without end: [`CameraFrame::ray`] of each, the pixel stepped from ray
-    /// to ray instead of divided out of every index.
-    pub fn rays(&self, first: u64) -> CameraRays<'_> {
-        let (x, y) = self.sampling.pixel(self.width, first);
-        CameraRays {
-            frame: self,
-            index: first,
-            x,
-            y,
-            sample: (first % u64::from(self.sampling.samples)) as u32,
-            made: [Ray::default(); 4],
-            ready: 0,
+    /// Writes rays `first`, `first + 1`, … packed in `format` into `out` (a whole number of rays): the bits of
+    /// [`CameraFrame::ray`] for each, made [`CAMERA_BLOCK`] at a time, the pixel stepped from ray to ray instead of
+    /// divided out of every index; compiled for AVX-512 or AVX2 where the CPU has them (its divisions and square
+    /// roots are what making camera rays waits on).
+    pub fn fill(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx512() {
+            // SAFETY: the CPU has AVX-512F and the AVX2 features, as just checked.
+            return unsafe { self.fill_avx512(format, first, out) };
         }
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the CPU has the AVX2 features, as just checked.
+            return unsafe { self.fill_avx2(format, first, out) };
+        }
+        self.fill_blocks(format, first, out);
+    }
+
+    /// [`CameraFrame::fill_blocks`] compiled for AVX-512.
+    ///
+    /// # Safety
+    /// The CPU must have AVX-512F and the features [`has_avx2`] checks.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn fill_avx512(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        self.fill_blocks(format, first, out);
+    }
+
+    /// [`CameraFrame::fill_blocks`] compiled for AVX2.
+    ///
+    /// # Safety
+    /// The CPU must have the features [`has_avx2`] checks.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn fill_avx2(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        self.fill_blocks(format, first, out);
+    }
+
+    /// [`CameraFrame::fill`] in blocks of [`CAMERA_BLOCK`] rays, compiled once a format.
+    #[inline(always)]
+    fn fill_blocks(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        format.specialized(
+            #[inline(always)]
+            |format| {
+                let size = format.size();
+                let samples = self.sampling.samples;
+                let (mut x, mut y) = self.sampling.pixel(self.width, first);
+                let (mut sample, mut index) = ((first % u64::from(samples)) as u32, first);
+                let (mut px, mut py) = ([0.0; CAMERA_BLOCK], [0.0; CAMERA_BLOCK]);
+                // One ray a pixel through its centre ([`PixelSampling::point`]'s (0.5, 0.5)).
+                let centres = samples == 1 && self.sampling.jitter_seed.is_none();
+                for block in out.chunks_mut(CAMERA_BLOCK * size) {
+                    if centres && x + CAMERA_BLOCK as u32 <= self.width {
+                        // A block of pixel centres within a row: the common case, without a test a lane.
+                        for lane in 0..CAMERA_BLOCK {
+                            (px[lane], py[lane]) = ((x + lane as u32) as f32 + 0.5, y as f32 + 0.5);
+                        }
+                        x += CAMERA_BLOCK as u32;
+                        if x == self.width {
+                            (x, y) = (0, y + 1);
+                        }
+                    } else {
+                        // Every lane is made, also past the end of a last, short block (its rays are dropped).
+                        for lane in 0..CAMERA_BLOCK {
+                            let (dx, dy) = self.sampling.point(index + lane as u64);
+                            (px[lane], py[lane]) = (x as f32 + dx, y as f32 + dy);
+                            sample += 1;
+                            if sample == samples {
+                                (sample, x) = (0, x + 1);
+                                if x == self.width {
+                                    (x, y) = (0, y + 1);
+                                }
+                            }
+                        }
+                    }
+                    index += CAMERA_BLOCK as u64;
+                    let [ax, ay, az] = self.through(&px, &py);
+                    for (lane, slot) in block.chunks_exact_mut(size).enumerate() {
+                        let point = Vec3A::new(ax[lane], ay[lane], az[lane]);
+                        let (origin, direction) =
+                            if self.pinhole { (self.eye.into(), point) } else { (point, self.forward.into()) };
+                        format.encode(&Ray { origin, direction, ..Ray::default() }, slot);
+                    }
+                }
+            },
+        );
     }
 
     /// Ray `index`, in pixel (`x`, `y`).
     #[inline(always)]
     fn ray_in_pixel(&self, x: u32, y: u32, index: u64) -> Ray {
         let (dx, dy) = self.sampling.point(index);
-        self.rays_through(Vec4::splat(x as f32 + dx), Vec4::splat(y as f32 + dy))[0]
+        let [[x], [y], [z]] = self.through(&[x as f32 + dx], &[y as f32 + dy]);
+        let point = Vec3A::new(x, y, z);
+        let (origin, direction) = if self.pinhole { (self.eye.into(), point) } else { (point, self.forward.into()) };
+        Ray { origin, direction, ..Ray::default() }
     }
 
-    /// The rays through four image points (`px`, `py`) in pixels, a lane each, in glam's four-lane vectors (SIMD
-    /// where the CPU has it: a quarter of the divisions and square roots a ray, which bound making rays one at a
-    /// time). Lane by lane these are the IEEE operations of the formula in [`CameraFrame::ray`] in the order of
-    /// glam's `Vec3` arithmetic and `normalize`, so a ray has the same bits whichever lane makes it.
+    /// The points the rays through `N` image points (`px`, `py`) in pixels are made of, a lane each, axis by axis:
+    /// a pinhole's unit directions `forward + right·sx + up·sy`, an orthographic camera's origins `eye + right·sx +
+    /// up·sy` (`sx`, `sy` as in [`CameraFrame::ray`]). Lane by lane, the same IEEE operations in the same order
+    /// (no fused multiply-adds), so a ray has the same bits whichever block and lane make it; plain loops over the
+    /// lanes, which the compiler turns into vector instructions as wide as the features it compiles for.
     #[inline(always)]
-    fn rays_through(&self, px: Vec4, py: Vec4) -> [Ray; 4] {
-        let sx = (px / self.size.0 * 2.0 - 1.0) * self.half.0;
-        let sy = (1.0 - py / self.size.1 * 2.0) * self.half.1;
-        // Pinhole: the direction `forward + right·sx + up·sy`, normalized; orthographic: the origin `eye + right·sx
-        // + up·sy`.
+    fn through<const N: usize>(&self, px: &[f32; N], py: &[f32; N]) -> [[f32; N]; 3] {
+        let (mut sx, mut sy) = ([0.0; N], [0.0; N]);
+        for lane in 0..N {
+            sx[lane] = (px[lane] / self.size.0 * 2.0 - 1.0) * self.half.0;
+            sy[lane] = (1.0 - py[lane] / self.size.1 * 2.0) * self.half.1;
+        }
         let base = if self.pinhole { self.forward } else { self.eye };
-        let along = |axis: usize| base[axis] + self.right[axis] * sx + self.up[axis] * sy;
-        let (mut x, mut y, mut z) = (along(0), along(1), along(2));
-        if self.pinhole {
-            let recip = (x * x + y * y + z * z).sqrt().recip();
-            (x, y, z) = (x * recip, y * recip, z * recip);
-        }
-        let (x, y, z) = (x.to_array(), y.to_array(), z.to_array());
-        std::array::from_fn(|lane| {
-            let point = Vec3A::new(x[lane], y[lane], z[lane]);
-            let (origin, direction) =
-                if self.pinhole { (self.eye.into(), point) } else { (point, self.forward.into()) };
-            Ray { origin, direction, ..Ray::default() }
-        })
-    }
-}
-
-/// A camera's rays in turn, from [`CameraFrame::rays`]: made four at a time ([`CameraFrame::rays_through`]).
-#[derive(Debug, Clone)]
-pub struct CameraRays<'a> {
-    /// The camera.
-    frame: &'a CameraFrame,
-    /// The index of the next ray to make.
-    index: u64,
-    /// Its pixel's column.
-    x: u32,
-    /// Its pixel's row.
-    y: u32,
-    /// Its sample in the pixel.
-    sample: u32,
-    /// The last four rays made, …
-    made: [Ray; 4],
-    /// … of which the last `ready` are still to be handed out.
-    ready: usize,
-}
-
-impl Iterator for CameraRays<'_> {
-    type Item = Ray;
-
-    #[inline(always)]
-    fn next(&mut self) -> Option<Ray> {
-        if self.ready == 0 {
-            let (mut px, mut py) = ([0.0; 4], [0.0; 4]);
-            for lane in 0..4 {
-                let (dx, dy) = self.frame.sampling.point(self.index + lane as u64);
-                (px[lane], py[lane]) = (self.x as f32 + dx, self.y as f32 + dy);
-                self.sample += 1;
-                if self.sample == self.frame.sampling.samples {
-                    self.sample = 0;
-                    self.x += 1;
-                    if self.x == self.frame.width {
-                        self.x = 0;
-                        self.y += 1;
-                    }
-                }
+        let mut points = [[0.0; N]; 3];
+        for (axis, along) in points.iter_mut().enumerate() {
+            for lane in 0..N {
+                along[lane] = base[axis] + self.right[axis] * sx[lane] + self.up[axis] * sy[lane];
             }
-            self.made = self.frame.rays_through(Vec4::from_array(px), Vec4::from_array(py));
-            self.index += 4;
-            self.ready = 4;
         }
-        self.ready -= 1;
-        Some(self.made[3 - self.ready])
+        if self.pinhole {
+            let [x, y, z] = &mut points;
+            for lane in 0..N {
+                let recip = 1.0 / (x[lane] * x[lane] + y[lane] * y[lane] + z[lane] * z[lane]).sqrt();
+                (x[lane], y[lane], z[lane]) = (x[lane] * recip, y[lane] * recip, z[lane] * recip);
+            }
+        }
+        points
     }
 }
 
@@ -686,19 +719,27 @@ mod tests {
     }
 
     #[test]
-    fn camera_rays_made_in_turn_are_those_made_by_index() {
-        // 4 samples a pixel, 8 pixels a row: starts within a pixel, at a row's end and at the last ray; blocks of
-        // rays made at once that end anywhere.
-        let sampling = PixelSampling { samples: 4, jitter_seed: Some(9) };
+    fn camera_rays_made_in_blocks_are_those_made_by_index() {
+        // 4 samples a pixel (jittered or not), 8 pixels a row: starts within a pixel, at a row's end and at the last
+        // ray; blocks of rays made at once that end anywhere; every format.
         let Camera { eye, target, up, width, height, .. } = camera();
         let orthographic = Orthographic { eye, target, up, view_height: 3.0, width, height };
-        for generator in [Generator::Pinhole(camera(), sampling), Generator::Orthographic(orthographic, sampling)] {
-            let frame = generator.camera_frame().unwrap();
-            let count = 8 * 6 * 4;
-            for first in [0, 3, 5, 31, 32, 33, 101, count - 1] {
-                let in_turn: Vec<Ray> = frame.rays(first).take((count - first) as usize).collect();
-                let by_index: Vec<Ray> = (first..count).map(|index| frame.ray(index)).collect();
-                assert_eq!(in_turn, by_index, "{generator:?} from ray {first}");
+        for jitter_seed in [Some(9), None] {
+            let sampling = PixelSampling { samples: 4, jitter_seed };
+            for generator in [Generator::Pinhole(camera(), sampling), Generator::Orthographic(orthographic, sampling)] {
+                let frame = generator.camera_frame().unwrap();
+                let count = 8 * 6 * 4;
+                for (first, format) in
+                    [0, 3, 5, 31, 32, 33, 101, count - 1].into_iter().zip(RayFormat::ALL.iter().cycle())
+                {
+                    let mut made = vec![0; (count - first) as usize * format.size()];
+                    frame.fill(*format, first, &mut made);
+                    for (index, slot) in (first..count).zip(made.chunks_exact(format.size())) {
+                        let mut expected = vec![0; format.size()];
+                        format.encode(&frame.ray(index), &mut expected);
+                        assert_eq!(slot, expected, "{generator:?} from ray {first} in {format:?}: ray {index}");
+                    }
+                }
             }
         }
     }

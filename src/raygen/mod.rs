@@ -6,7 +6,7 @@ mod generator;
 mod secondary;
 
 pub use generator::{
-    CameraFrame, CameraRays, Generator, Lidar, LidarChannel, LidarFrame, LidarStep, MAX_GENERATOR_POINTS, Orthographic,
+    CameraFrame, Generator, Lidar, LidarChannel, LidarFrame, LidarStep, MAX_GENERATOR_POINTS, Orthographic,
     PixelSampling, SphereSampling,
 };
 pub use secondary::{Bounce, Primary, Secondary};

@@ -23,7 +23,8 @@ use super::blocks::Block;
 use super::filter;
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::triangles::TriangleBvh;
-use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, has_avx2, prefetch};
+use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, prefetch};
+use crate::cpu_features::{has_avx2, has_avx512};
 use crate::format::Ray;
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
@@ -52,14 +53,6 @@ pub(crate) struct PacketEntry {
     lane_ref: u32,
     /// A bit per ray that enters it.
     rays: u32,
-}
-
-/// Whether the CPU has AVX-512F besides what [`has_avx2`] checks (detected once, then read from a cache).
-#[inline(always)]
-fn has_avx512() -> bool {
-    static AVX512: std::sync::LazyLock<bool> =
-        std::sync::LazyLock::new(|| has_avx2() && std::arch::is_x86_feature_detected!("avx512f"));
-    *AVX512
 }
 
 /// Whether `rays` (with their collectors) may make a packet, by what is cheapest to check: the same direction signs

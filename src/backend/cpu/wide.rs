@@ -18,6 +18,8 @@ use super::blocks::CornerBlocks;
 use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::traverse::StackEntry;
+#[cfg(target_arch = "x86_64")]
+use crate::cpu_features::has_avx2;
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
 use crate::query::{Collector, TraceStats};
@@ -255,23 +257,6 @@ impl WideBvh {
             }
         }
     }
-}
-
-/// Whether the CPU has every feature the AVX2 kernels are compiled with (`#[target_feature(enable =
-/// "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]`): CPUs with AVX2 have the others too, but each is checked (detected once,
-/// then read from a cache).
-#[cfg(target_arch = "x86_64")]
-#[inline(always)]
-pub(super) fn has_avx2() -> bool {
-    static AVX2: std::sync::LazyLock<bool> = std::sync::LazyLock::new(|| {
-        std::arch::is_x86_feature_detected!("avx2")
-            && std::arch::is_x86_feature_detected!("fma")
-            && std::arch::is_x86_feature_detected!("bmi1")
-            && std::arch::is_x86_feature_detected!("bmi2")
-            && std::arch::is_x86_feature_detected!("lzcnt")
-            && std::arch::is_x86_feature_detected!("popcnt")
-    });
-    *AVX2
 }
 
 /// Bytes of a cache line on x86-64 CPUs.
