@@ -2,7 +2,8 @@
 //! loopback, with every hit returned (plain, gRPC zstd, compact encoding) and with reductions (depth and normal
 //! images, counts), against the engine in-process. Prints one table with rays/s, two shares — of the engine's rate
 //! tracing the same rays made beforehand ("% engine"), and of the engine's rate doing the very same generated (and
-//! reduced) trace in-process ("% same i-p", the rate of the work rayd wraps) — and the bytes a ray puts on the wire
+//! reduced) trace in-process ("% same i-p", the rate of the work rayd wraps), both in-process traces timed between
+//! the row's own calls so that a share compares runs of the same few seconds — and the bytes a ray puts on the wire
 //! (and what zstd/gzip would make of them). Run with `cargo bench -p rayd-server --bench reductions`;
 //! `RAYD_BENCH_DEVICE=wgpu:0` measures on a GPU device instead of `cpu:0` (the in-process rows then trace on that
 //! device too, and the kernel time of the rays-sent trace is printed below it). With `RUST_LOG` set (e.g.
@@ -40,16 +41,37 @@ fn median(mut values: Vec<f64>) -> f64 {
     values[values.len() / 2]
 }
 
-/// The median seconds of `RUNS` calls of `run` after a warm-up, and the bytes the last call returned.
-async fn timed<F: std::future::Future<Output = Bytes>>(mut run: impl FnMut() -> F) -> (f64, Bytes) {
-    let mut last = run().await;
-    let mut times = Vec::new();
+/// What a row measured: medians over `RUNS` rounds of seconds a call through rayd, and of the in-process traces run
+/// between its calls; and the bytes the last call returned.
+struct Timings {
+    /// Seconds a call through rayd.
+    call: f64,
+    /// Seconds the engine takes in-process with the rays made beforehand (the reference of "% engine").
+    engine: f64,
+    /// Seconds the same work takes in-process (the reference of "% same i-p").
+    same: f64,
+    /// The last call's reply.
+    last: Bytes,
+}
+
+/// Times `call` (a call through rayd) after a warm-up, `RUNS` rounds, each also timing `in_process` (seconds of the
+/// engine's trace of the rays made beforehand, and of the same work in-process) right after the call: a row's shares
+/// compare runs of the same few seconds, not of the bench's start (this machine's rate drifts by ±10% over a run).
+async fn interleaved<F: std::future::Future<Output = Bytes>>(
+    mut call: impl FnMut() -> F,
+    mut in_process: impl FnMut() -> (f64, f64),
+) -> Timings {
+    let mut last = call().await;
+    let (mut calls, mut engine, mut same) = (Vec::new(), Vec::new(), Vec::new());
     for _ in 0..RUNS {
         let start = Instant::now();
-        last = run().await;
-        times.push(start.elapsed().as_secs_f64());
+        last = call().await;
+        calls.push(start.elapsed().as_secs_f64());
+        let (engine_seconds, same_seconds) = in_process();
+        engine.push(engine_seconds);
+        same.push(same_seconds);
     }
-    (median(times), last)
+    Timings { call: median(calls), engine: median(engine), same: median(same), last }
 }
 
 /// Bytes of `data` compressed as gRPC would with zstd (level 3, tonic's default) and gzip (level 6).
@@ -81,43 +103,33 @@ fn main() {
     let packed = bunny.pack();
     let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
     let rays = generator.rays(query.ray_format);
-    let mut hits = vec![0u8; rays.len() / query.ray_format.size() * 16];
-    let (engine, kernel): (Vec<f64>, Vec<f64>) = (0..RUNS)
-        .map(|_| {
-            let start = Instant::now();
-            let stats = context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
-            (start.elapsed().as_secs_f64(), stats.device_nanos as f64 * 1e-9)
-        })
-        .unzip();
-    let (engine, kernel) = (median(engine), median(kernel));
-    // In-process, the rays made and the hits reduced where they are traced (on a GPU: in the kernel): what each
-    // row through rayd does, without the service around it.
-    let in_process_reduced = |reduction: &Reduction| {
-        let all_rays = RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
-        median(
-            (0..RUNS)
-                .map(|_| {
-                    let start = Instant::now();
-                    let (partial, _) = context.trace_reduced(&accel, &query, all_rays, 0, reduction).unwrap();
-                    reduction.finish(partial, generator.count()).unwrap();
-                    start.elapsed().as_secs_f64()
-                })
-                .collect(),
-        )
+    let hits = std::sync::Mutex::new(vec![0u8; rays.len() / query.ray_format.size() * 16]);
+    // Seconds (and kernel seconds, on a GPU) of the engine tracing the rays made beforehand.
+    let trace_sent = || {
+        let mut hits = hits.lock().unwrap();
+        let start = Instant::now();
+        let stats = context.trace(&accel, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
+        (start.elapsed().as_secs_f64(), stats.device_nanos as f64 * 1e-9)
     };
-    let in_process_generated = median(
-        (0..RUNS)
-            .map(|_| {
-                let all_rays =
-                    RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
-                let start = Instant::now();
-                context
-                    .trace_source(&accel, &query, all_rays, TraceOutput { hits: &mut hits, counts: &mut [] })
-                    .unwrap();
-                start.elapsed().as_secs_f64()
-            })
-            .collect(),
-    );
+    let engine_seconds = || trace_sent().0;
+    let (engine, kernel): (Vec<f64>, Vec<f64>) = (0..RUNS).map(|_| trace_sent()).unzip();
+    let (engine, kernel) = (median(engine), median(kernel));
+    let all_rays = RaySource::Generated { generator: &generator, first: 0, count: generator.count() as usize };
+    // Seconds of the same generated trace in-process, every hit returned.
+    let generated_every_hit = || {
+        let mut hits = hits.lock().unwrap();
+        let start = Instant::now();
+        context.trace_source(&accel, &query, all_rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap();
+        start.elapsed().as_secs_f64()
+    };
+    // Seconds of the same generated trace in-process, the hits reduced where they are traced (on a GPU: in the
+    // kernel): what each reduced row through rayd does, without the service around it.
+    let generated_reduced = |reduction: &Reduction| {
+        let start = Instant::now();
+        let (partial, _) = context.trace_reduced(&accel, &query, all_rays, 0, reduction).unwrap();
+        reduction.finish(partial, generator.count()).unwrap();
+        start.elapsed().as_secs_f64()
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
     runtime.block_on(async {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
@@ -149,31 +161,40 @@ fn main() {
             println!("{what:<64} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
         }
         // A row through rayd: its rate, its share of the engine's rate with rays sent and of the same generated
-        // (and reduced) trace in-process, and the bytes of its reply.
-        let row = |what: &str, seconds: f64, same_in_process: f64, wire: &Bytes| {
-            let (zstd, gzip) = compressed(wire);
+        // (and reduced) trace in-process, both timed between its calls, and the bytes of its reply.
+        let row = |what: &str, timings: &Timings| {
+            let (zstd, gzip) = compressed(&timings.last);
             let per_ray = |bytes: usize| bytes as f64 / rays_per_call;
             println!(
                 "{what:<64} {:>9.2} {:>8.1} {:>10.1} {:>9.2} {:>9.2} {:>9.2}",
-                mrays(seconds),
-                100.0 * engine / seconds,
-                100.0 * same_in_process / seconds,
-                per_ray(wire.len()),
+                mrays(timings.call),
+                100.0 * timings.engine / timings.call,
+                100.0 * timings.same / timings.call,
+                per_ray(timings.last.len()),
                 per_ray(zstd),
                 per_ray(gzip)
             );
         };
-        let what = "  the same in-process: generated, every hit";
-        println!("{what:<64} {:>9.2} {:>8.1}", mrays(in_process_generated), 100.0 * engine / in_process_generated);
+        // An in-process rate and its share of the engine's, both timed in the same rounds.
+        let in_process_row = |what: &str, timings: &Timings| {
+            println!("{what:<64} {:>9.2} {:>8.1}", mrays(timings.same), 100.0 * timings.engine / timings.same);
+        };
+        let every_hit = || (engine_seconds(), generated_every_hit());
 
-        let (seconds, full) =
-            timed(|| async { client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() }).await;
-        assert_eq!(full.len(), hits.len(), "every hit");
-        row("generated, every hit t_triid_u_v", seconds, in_process_generated, &full);
-        let (seconds, _) =
-            timed(|| async { zstd_client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() })
-                .await;
-        row("generated, every hit t_triid_u_v, gRPC zstd", seconds, in_process_generated, &full);
+        let full = interleaved(
+            || async { client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() },
+            every_hit,
+        )
+        .await;
+        assert_eq!(full.last.len(), rays.len() / query.ray_format.size() * 16, "every hit");
+        in_process_row("  the same in-process: generated, every hit", &full);
+        row("generated, every hit t_triid_u_v", &full);
+        let zstd = interleaved(
+            || async { zstd_client.trace_generated("bunny", &query, &generator).await.unwrap().hits().clone() },
+            every_hit,
+        )
+        .await;
+        row("generated, every hit t_triid_u_v, gRPC zstd", &Timings { last: full.last.clone(), ..zstd });
 
         let (near, far) = (0.0, (hi - lo).length() * 4.0);
         let reductions = [
@@ -186,27 +207,26 @@ fn main() {
         for (what, reduction) in reductions {
             let (trace_seconds, kernel_seconds) =
                 (std::sync::Mutex::new(Vec::new()), std::sync::Mutex::new(Vec::new()));
-            let (seconds, data) = timed(|| async {
-                let reduced = client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap();
-                trace_seconds.lock().unwrap().push(reduced.stats.trace_ns as f64 * 1e-9);
-                kernel_seconds.lock().unwrap().push(reduced.stats.device_ns as f64 * 1e-9);
-                reduced.data
-            })
+            let timings = interleaved(
+                || async {
+                    let reduced =
+                        client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap();
+                    trace_seconds.lock().unwrap().push(reduced.stats.trace_ns as f64 * 1e-9);
+                    kernel_seconds.lock().unwrap().push(reduced.stats.device_ns as f64 * 1e-9);
+                    reduced.data
+                },
+                || (engine_seconds(), generated_reduced(&reduction)),
+            )
             .await;
-            let same_in_process = in_process_reduced(&reduction);
-            row(what, seconds, same_in_process, &data);
-            println!(
-                "{:<64} {:>9.2} {:>8.1}",
-                "  the same in-process",
-                mrays(same_in_process),
-                100.0 * engine / same_in_process
-            );
+            row(what, &timings);
+            in_process_row("  the same in-process", &timings);
             let trace = median(trace_seconds.into_inner().unwrap());
-            println!("{:<64} {:>9.2} {:>8.1}", "  of which the server's trace", mrays(trace), 100.0 * engine / trace);
+            let what = "  of which the server's trace";
+            println!("{what:<64} {:>9.2} {:>8.1}", mrays(trace), 100.0 * timings.engine / trace);
             let kernel = median(kernel_seconds.into_inner().unwrap());
             if kernel > 0.0 {
                 let what = "  of which the device's kernels (GPU timestamps)";
-                println!("{what:<64} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * engine / kernel);
+                println!("{what:<64} {:>9.2} {:>8.1}", mrays(kernel), 100.0 * timings.engine / kernel);
             }
         }
 
@@ -223,30 +243,29 @@ fn main() {
         ];
         for (what, client, reduction) in concurrent {
             let kernel_seconds = std::sync::Mutex::new(Vec::new());
-            let (seconds, data) = timed(|| async {
-                let calls: Vec<_> = (0..CONCURRENT_CALLS)
-                    .map(|_| {
-                        let (client, generator, reduction) = (client.clone(), generator.clone(), reduction.clone());
-                        tokio::spawn(async move {
-                            client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap()
+            let timings = interleaved(
+                || async {
+                    let calls: Vec<_> = (0..CONCURRENT_CALLS)
+                        .map(|_| {
+                            let (client, generator, reduction) = (client.clone(), generator.clone(), reduction.clone());
+                            tokio::spawn(async move {
+                                client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap()
+                            })
                         })
-                    })
-                    .collect();
-                let mut last = Bytes::new();
-                for call in calls {
-                    let reduced = call.await.unwrap();
-                    kernel_seconds.lock().unwrap().push(reduced.stats.device_ns as f64 * 1e-9);
-                    last = reduced.data;
-                }
-                last
-            })
+                        .collect();
+                    let mut last = Bytes::new();
+                    for call in calls {
+                        let reduced = call.await.unwrap();
+                        kernel_seconds.lock().unwrap().push(reduced.stats.device_ns as f64 * 1e-9);
+                        last = reduced.data;
+                    }
+                    last
+                },
+                || (engine_seconds(), generated_reduced(&reduction)),
+            )
             .await;
-            row(
-                &format!("generated, {what}"),
-                seconds / CONCURRENT_CALLS as f64,
-                in_process_reduced(&reduction),
-                &data,
-            );
+            let engine = timings.engine;
+            row(&format!("generated, {what}"), &Timings { call: timings.call / CONCURRENT_CALLS as f64, ..timings });
             // The kernels of the calls in flight together: where the device is busy all the time, their rate is the
             // end-to-end rate.
             let kernel = median(kernel_seconds.into_inner().unwrap());
