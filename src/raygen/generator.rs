@@ -438,10 +438,7 @@ impl CameraFrame {
                     index += CAMERA_BLOCK as u64;
                     let [ax, ay, az] = self.through(&px, &py);
                     for (lane, slot) in block.chunks_exact_mut(size).enumerate() {
-                        let point = Vec3A::new(ax[lane], ay[lane], az[lane]);
-                        let (origin, direction) =
-                            if self.pinhole { (self.eye.into(), point) } else { (point, self.forward.into()) };
-                        format.encode(&Ray { origin, direction, ..Ray::default() }, slot);
+                        format.encode(&self.ray_through(Vec3A::new(ax[lane], ay[lane], az[lane])), slot);
                     }
                 }
             },
@@ -453,7 +450,13 @@ impl CameraFrame {
     fn ray_in_pixel(&self, x: u32, y: u32, index: u64) -> Ray {
         let (dx, dy) = self.sampling.point(index);
         let [[x], [y], [z]] = self.through(&[x as f32 + dx], &[y as f32 + dy]);
-        let point = Vec3A::new(x, y, z);
+        self.ray_through(Vec3A::new(x, y, z))
+    }
+
+    /// The ray made of a point [`CameraFrame::through`] gives: from the eye along it (pinhole), or from it along the
+    /// view direction (orthographic).
+    #[inline(always)]
+    fn ray_through(&self, point: Vec3A) -> Ray {
         let (origin, direction) = if self.pinhole { (self.eye.into(), point) } else { (point, self.forward.into()) };
         Ray { origin, direction, ..Ray::default() }
     }
