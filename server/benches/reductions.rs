@@ -1,6 +1,7 @@
 //! Rays made and hits reduced on the server: a 4-megapixel camera render of the bunny through `rayd` over
 //! loopback, with every hit returned (plain, gRPC zstd, compact encoding) and with reductions (depth and normal
-//! images, counts), against the engine in-process. Prints one table with rays/s, two shares — of the engine's rate
+//! images, counts), one call at a time and several in flight (rounds of calls, and a flow of calls each started as
+//! another ends), against the engine in-process. Prints one table with rays/s, two shares — of the engine's rate
 //! tracing the same rays made beforehand ("% engine"), and of the engine's rate doing the very same generated (and
 //! reduced) trace in-process ("% same i-p", the rate of the work rayd wraps), both in-process traces timed between
 //! the row's own calls so that a share compares runs of the same few seconds — and the bytes a ray puts on the wire
@@ -34,7 +35,9 @@ const SIDE: u32 = 2048;
 /// Timed runs of each row (after one warm-up); the median is reported.
 const RUNS: usize = 5;
 /// Calls in flight at once in the concurrent rows.
-const CONCURRENT_CALLS: usize = 4;
+const IN_FLIGHT: usize = 4;
+/// Calls of a flow row, `IN_FLIGHT` of them at a time.
+const FLOW_CALLS: usize = 16;
 
 fn median(mut values: Vec<f64>) -> f64 {
     values.sort_by(f64::total_cmp);
@@ -231,33 +234,38 @@ fn main() {
         }
 
         // Several callers at once keep the device busy (a GPU idling between calls lowers its clock); over one
-        // connection, and over one connection a call (whose replies are then copied on several cores at once).
-        let spread_options = ClientOptions { connections: CONCURRENT_CALLS, ..ClientOptions::default() };
+        // connection, and over one connection a call (whose replies are then copied on several cores at once). A
+        // round of calls started together and awaited together; and a flow of calls, a new one started as each ends,
+        // as a caller rendering frame after frame keeps the device fed.
+        let spread_options = ClientOptions { connections: IN_FLIGHT, ..ClientOptions::default() };
         let spread_client = Client::connect(&url, spread_options).await.unwrap();
         let depth = image(ImageChannel::Depth, PixelEncoding::Float32, near, far);
         let concurrent = [
-            ("depth image float32, 4 calls at once", &client, depth.clone()),
-            ("hit counts, 4 calls at once", &client, Reduction::Counts),
-            ("depth image float32, 4 calls at once, 4 connections", &spread_client, depth),
-            ("hit counts, 4 calls at once, 4 connections", &spread_client, Reduction::Counts),
+            ("depth image float32, 4 calls at once", &client, depth.clone(), IN_FLIGHT),
+            ("hit counts, 4 calls at once", &client, Reduction::Counts, IN_FLIGHT),
+            ("depth image float32, 4 calls at once, 4 connections", &spread_client, depth.clone(), IN_FLIGHT),
+            ("hit counts, 4 calls at once, 4 connections", &spread_client, Reduction::Counts, IN_FLIGHT),
+            ("depth image float32, 16 calls 4 in flight, 4 connections", &spread_client, depth, FLOW_CALLS),
+            ("hit counts, 16 calls 4 in flight, 4 connections", &spread_client, Reduction::Counts, FLOW_CALLS),
         ];
-        for (what, client, reduction) in concurrent {
+        for (what, client, reduction, calls) in concurrent {
             let kernel_seconds = std::sync::Mutex::new(Vec::new());
             let timings = interleaved(
                 || async {
-                    let calls: Vec<_> = (0..CONCURRENT_CALLS)
-                        .map(|_| {
-                            let (client, generator, reduction) = (client.clone(), generator.clone(), reduction.clone());
-                            tokio::spawn(async move {
-                                client.trace_generated_reduced("bunny", &query, &generator, &reduction).await.unwrap()
-                            })
-                        })
-                        .collect();
-                    let mut last = Bytes::new();
-                    for call in calls {
-                        let reduced = call.await.unwrap();
+                    let call = || {
+                        let (client, generator, reduction) = (client.clone(), generator.clone(), reduction.clone());
+                        async move { client.trace_generated_reduced("bunny", &query, &generator, &reduction).await }
+                    };
+                    let mut in_flight: tokio::task::JoinSet<_> = (0..IN_FLIGHT).map(|_| call()).collect();
+                    let (mut started, mut last) = (IN_FLIGHT, Bytes::new());
+                    while let Some(ended) = in_flight.join_next().await {
+                        let reduced = ended.unwrap().unwrap();
                         kernel_seconds.lock().unwrap().push(reduced.stats.device_ns as f64 * 1e-9);
                         last = reduced.data;
+                        if started < calls {
+                            in_flight.spawn(call());
+                            started += 1;
+                        }
                     }
                     last
                 },
@@ -265,7 +273,7 @@ fn main() {
             )
             .await;
             let engine = timings.engine;
-            row(&format!("generated, {what}"), &Timings { call: timings.call / CONCURRENT_CALLS as f64, ..timings });
+            row(&format!("generated, {what}"), &Timings { call: timings.call / calls as f64, ..timings });
             // The kernels of the calls in flight together: where the device is busy all the time, their rate is the
             // end-to-end rate.
             let kernel = median(kernel_seconds.into_inner().unwrap());
