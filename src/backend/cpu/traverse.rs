@@ -15,6 +15,8 @@ use super::instances::{InstanceBvh, TransformNode, cpu_child};
 use super::packet::PacketEntry;
 use super::triangles::TriangleBvh;
 use super::wide::prefetch;
+#[cfg(target_arch = "x86_64")]
+use crate::cpu_features::has_avx2;
 use crate::format::Ray;
 use crate::geometry::motion::lerp;
 use crate::intersect::{PreparedRay, aabb, triangle};
@@ -63,8 +65,19 @@ impl CpuAccel {
         {
             traced = bvh.trace_packets(&mut stacks.packet, rays, collectors, stats);
         }
+        let alone = !traced & ((1u64 << rays.len()) - 1) as u32;
+        #[cfg(target_arch = "x86_64")]
+        if let CpuAccel::Triangles(bvh) = self
+            && bvh.node_keys.is_none()
+            && !binary_traversal()
+            && has_avx2()
+        {
+            // SAFETY: the CPU has AVX2 and the other features, as just checked; the accel is static.
+            unsafe { bvh.traverse_alone_avx2(&mut stacks.single, rays, collectors, alone, stats) };
+            return;
+        }
         for (i, (ray, collector)) in rays.iter().zip(collectors).enumerate() {
-            if traced & (1 << i) == 0 {
+            if alone & (1 << i) != 0 {
                 let ray = PreparedRay::from_traced(ray);
                 self.traverse(&mut stacks.single, &ray, &InstanceScope::WORLD, collector, stats);
             }
@@ -110,10 +123,8 @@ impl TriangleBvh {
         let Some(at) = self.motion.locate(ray.time) else { return };
         match &self.node_keys {
             None => {
-                let (blocks, block_ray) = (&self.wide.blocks, BlockRay::new(ray));
-                let candidates = |block, lanes| blocks.block_candidates(&block_ray, block) & lanes;
-                // The corners from the blocks too: a leaf's triangles are read from one place.
-                let leaf = self.offer_leaf(|slot| blocks.corners(slot), candidates, ray, scope);
+                let block_ray = BlockRay::new(ray);
+                let leaf = self.static_leaf(&block_ray, ray, scope);
                 match binary_traversal() {
                     true => {
                         let leaf = with_stack(leaf);
@@ -141,6 +152,50 @@ impl TriangleBvh {
         }
     }
 
+    /// Offers each of `rays` whose bit is set in `alone` the triangles of the leaves it reaches in this static accel,
+    /// one ray after another: [`TriangleBvh::traverse`] of each ray as [`CpuAccel::traverse_group`] would call it,
+    /// compiled for AVX2 as one loop, so that preparing a ray and starting its walk take no calls.
+    ///
+    /// # Safety
+    /// The CPU must have the features [`has_avx2`] checks; the accel must be static (no `node_keys`).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn traverse_alone_avx2(
+        &self,
+        stack: &mut [StackEntry],
+        rays: &[Ray],
+        collectors: &mut [Collector<'_>],
+        alone: u32,
+        stats: &mut TraceStats,
+    ) {
+        let mut alone = alone;
+        while alone != 0 {
+            let i = alone.trailing_zeros() as usize;
+            alone &= alone - 1;
+            let ray = PreparedRay::from_traced(&rays[i]);
+            let block_ray = BlockRay::new(&ray);
+            let leaf = self.static_leaf(&block_ray, &ray, &InstanceScope::WORLD);
+            let prefetch_leaf = |slots| self.prefetch_leaf(slots);
+            // SAFETY: the CPU has the features (this function's contract).
+            unsafe { self.wide.walk_avx2(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+        }
+    }
+
+    /// What a walk of a static accel does at a leaf ([`TriangleBvh::offer_leaf`]): its triangles sorted out a block
+    /// at a time by `block_ray`, their corners read from the blocks too, so that a leaf's triangles are read from
+    /// one place.
+    #[inline(always)]
+    fn static_leaf<'a>(
+        &'a self,
+        block_ray: &'a BlockRay<'a>,
+        ray: &'a PreparedRay,
+        scope: &'a InstanceScope,
+    ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
+        let blocks = &self.wide.blocks;
+        let candidates = |block, lanes| blocks.block_candidates(block_ray, block) & lanes;
+        self.offer_leaf(|slot| blocks.corners(slot), candidates, ray, scope)
+    }
+
     /// Starts loading the data of the leaf over `slots` of a static accel: its first block of corners and its ids.
     #[inline(always)]
     pub(super) fn prefetch_leaf(&self, slots: Range<usize>) {
@@ -163,6 +218,7 @@ impl TriangleBvh {
         ray: &'a PreparedRay,
         scope: &'a InstanceScope,
     ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
+        #[inline(always)]
         move |slots, collector, stats| {
             for block in slots.start / BLOCK..slots.end.div_ceil(BLOCK) {
                 let mut candidates = candidates(block, lanes_within(block, &slots));

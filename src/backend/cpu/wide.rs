@@ -154,7 +154,8 @@ impl WideBvh {
     /// The CPU must have the features [`has_avx2`] checks.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn walk_avx2(
+    #[inline]
+    pub(super) unsafe fn walk_avx2(
         &self,
         stack: &mut [StackEntry],
         ray: &PreparedRay,
