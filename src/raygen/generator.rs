@@ -723,15 +723,18 @@ mod tests {
 
     #[test]
     fn camera_rays_made_in_blocks_are_those_made_by_index() {
-        // 4 samples a pixel (jittered or not), 8 pixels a row: starts within a pixel, at a row's end and at the last
-        // ray; blocks of rays made at once that end anywhere; every format.
-        let Camera { eye, target, up, width, height, .. } = camera();
-        let orthographic = Orthographic { eye, target, up, view_height: 3.0, width, height };
-        for jitter_seed in [Some(9), None] {
-            let sampling = PixelSampling { samples: 4, jitter_seed };
-            for generator in [Generator::Pinhole(camera(), sampling), Generator::Orthographic(orthographic, sampling)] {
+        // 4 samples a pixel (jittered or not), 8 pixels a row; and one ray a pixel through its centre, 40 or 32
+        // pixels a row (whole blocks of a row's centres, ending at the row's end or before a block that crosses it). Starts within a pixel or a block,
+        // at a row's end and at the last ray; blocks of rays made at once that end anywhere; every format.
+        let Camera { eye, target, up, height, .. } = camera();
+        let cases = [(4, Some(9), 8), (4, None, 8), (1, None, 40), (1, None, 32)];
+        for (samples, jitter_seed, width) in cases {
+            let sampling = PixelSampling { samples, jitter_seed };
+            let pinhole = Camera { width, ..camera() };
+            let orthographic = Orthographic { eye, target, up, view_height: 3.0, width, height };
+            for generator in [Generator::Pinhole(pinhole, sampling), Generator::Orthographic(orthographic, sampling)] {
                 let frame = generator.camera_frame().unwrap();
-                let count = 8 * 6 * 4;
+                let count = u64::from(width * height * samples);
                 for (first, format) in
                     [0, 3, 5, 31, 32, 33, 101, count - 1].into_iter().zip(RayFormat::ALL.iter().cycle())
                 {
