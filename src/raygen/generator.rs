@@ -724,8 +724,9 @@ mod tests {
     #[test]
     fn camera_rays_made_in_blocks_are_those_made_by_index() {
         // 4 samples a pixel (jittered or not), 8 pixels a row; and one ray a pixel through its centre, 40 or 32
-        // pixels a row (whole blocks of a row's centres, ending at the row's end or before a block that crosses it). Starts within a pixel or a block,
-        // at a row's end and at the last ray; blocks of rays made at once that end anywhere; every format.
+        // pixels a row (whole blocks of a row's centres, ending at the row's end or before a block that crosses
+        // it). Starts within a pixel or a block, at a row's end and at the last ray; blocks of rays made at once that
+        // end anywhere; every format.
         let Camera { eye, target, up, height, .. } = camera();
         let cases = [(4, Some(9), 8), (4, None, 8), (1, None, 40), (1, None, 32)];
         for (samples, jitter_seed, width) in cases {
