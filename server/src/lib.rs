@@ -38,6 +38,7 @@ pub async fn run(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> Result<(), Box<dyn std::error::Error + Send + Sync>> {
     let metrics = metrics::install();
+    rayd_engine::backend::cpu::large_pages::set_enabled(config.large_pages);
     let max_message = usize::try_from(config.limits.max_message_bytes).unwrap_or(usize::MAX);
     // Compressed messages are accepted, and replies compressed for clients that ask (grpc-accept-encoding).
     let rayd = RaydServer::new(RaydService::new(Device::all(), &config)?)

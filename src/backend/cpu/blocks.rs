@@ -9,6 +9,7 @@ use glam::Vec3;
 use super::bvh::{Footprint, VecLen};
 #[cfg(target_arch = "x86_64")]
 use super::filter;
+use super::large_pages::LargePageArray;
 use crate::intersect::PreparedRay;
 
 /// Slots a block.
@@ -24,26 +25,23 @@ pub(super) type Block = [[f32; BLOCK]; ROWS];
 #[derive(Debug, Clone, Default)]
 pub(super) struct CornerBlocks {
     /// Block `b` holds slots `b·BLOCK .. (b + 1)·BLOCK`.
-    blocks: Vec<Block>,
+    blocks: LargePageArray<Block>,
 }
 
 impl CornerBlocks {
     /// The blocks of `corners` (one triangle a slot).
     pub fn new(corners: &[[Vec3; 3]]) -> CornerBlocks {
-        let blocks = corners
-            .chunks(BLOCK)
-            .map(|triangles| {
-                let mut block = [[f32::NAN; BLOCK]; ROWS];
-                for (lane, triangle) in triangles.iter().enumerate() {
-                    for (corner, point) in triangle.iter().enumerate() {
-                        for axis in 0..3 {
-                            block[3 * corner + axis][lane] = point[axis];
-                        }
+        let blocks = LargePageArray::from_fn(corners.len().div_ceil(BLOCK), |b| {
+            let mut block = [[f32::NAN; BLOCK]; ROWS];
+            for (lane, triangle) in corners[b * BLOCK..].iter().take(BLOCK).enumerate() {
+                for (corner, point) in triangle.iter().enumerate() {
+                    for axis in 0..3 {
+                        block[3 * corner + axis][lane] = point[axis];
                     }
                 }
-                block
-            })
-            .collect();
+            }
+            block
+        });
         CornerBlocks { blocks }
     }
 

@@ -10,6 +10,7 @@ pub(crate) mod collapse;
 #[cfg(target_arch = "x86_64")]
 mod filter;
 mod instances;
+pub mod large_pages;
 #[cfg(target_arch = "x86_64")]
 mod packet;
 mod persist;

@@ -17,6 +17,7 @@ use glam::{Vec3, Vec3A};
 use super::blocks::CornerBlocks;
 use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
+use super::large_pages::LargePageArray;
 use super::traverse::StackEntry;
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::has_avx2;
@@ -71,7 +72,7 @@ impl WideNode {
 #[derive(Debug, Clone, Default)]
 pub(super) struct WideBvh {
     /// Nodes, the root first; empty when the binary BVH was.
-    pub(super) nodes: Vec<WideNode>,
+    pub(super) nodes: LargePageArray<WideNode>,
     /// Children of each node: its first lanes, the rest are empty.
     pub(super) children: Vec<u8>,
     /// The root's box (the binary root's).
@@ -87,23 +88,24 @@ impl WideBvh {
     pub fn collapse(binary: &[Node], corners: &[[Vec3; 3]]) -> WideBvh {
         let Some(root) = binary.first() else { return WideBvh::default() };
         let collapsed = collapse(binary, WIDTH);
-        let mut wide = WideBvh {
-            nodes: Vec::with_capacity(collapsed.lanes.len() / WIDTH),
-            children: Vec::with_capacity(collapsed.lanes.len() / WIDTH),
+        let occupied = |lanes: &[Lane]| lanes.iter().take_while(|l| l.binary != EMPTY_LANE).count();
+        let nodes = LargePageArray::from_fn(collapsed.lanes.len() / WIDTH, |n| {
+            let lanes = &collapsed.lanes[n * WIDTH..(n + 1) * WIDTH];
+            let mut node = WideNode::EMPTY;
+            for (lane, &Lane { binary: b, child }) in lanes[..occupied(lanes)].iter().enumerate() {
+                let b = &binary[b as usize];
+                node.set_lane(lane, b, if b.count > 0 { b.index } else { child });
+            }
+            node
+        });
+        let children = collapsed.lanes.chunks(WIDTH).map(|lanes| occupied(lanes) as u8).collect();
+        let wide = WideBvh {
+            nodes,
+            children,
             root: (root.min.into(), root.max.into()),
             depth: collapsed.depth,
             blocks: CornerBlocks::new(corners),
         };
-        for lanes in collapsed.lanes.chunks(WIDTH) {
-            let mut node = WideNode::EMPTY;
-            let occupied = lanes.iter().take_while(|l| l.binary != EMPTY_LANE).count();
-            for (lane, &Lane { binary: n, child }) in lanes[..occupied].iter().enumerate() {
-                let n = &binary[n as usize];
-                node.set_lane(lane, n, if n.count > 0 { n.index } else { child });
-            }
-            wide.nodes.push(node);
-            wide.children.push(occupied as u8);
-        }
         // What the walks rely on (see the type's documentation); a failure here is a bug of `collapse`.
         let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).all(|(node, &children)| {
             (0..usize::from(children)).all(|l| node.count[l] > 0 || (node.index[l] as usize) < wide.nodes.len())
