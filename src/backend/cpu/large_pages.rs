@@ -1,7 +1,8 @@
 //! Arrays that a traversal reads at random places (the wide nodes, the corner blocks), placed so that Linux can back
 //! them with 2 MiB pages: each incoherent ray touches a few lines of each of several pages, and with 4 KiB pages a
 //! large accel's pages are far more than the CPU's address-translation caches hold, so that most node and block reads
-//! also wait for a page-table walk (BENCHMARKS.md, "Large pages for the traversal's arrays").
+//! also wait for a page-table walk (BENCHMARKS.md, "A random ray against Embree's, visit by visit; and the
+//! traversal's arrays on large pages").
 //!
 //! An array of at least [`LARGE_PAGE`] bytes starts on a 2 MiB boundary and its whole 2 MiB stretches are marked
 //! `MADV_HUGEPAGE` before anything is written to them, so that their first touch maps large pages wherever the
