@@ -2,8 +2,7 @@
 //! them with 2 MiB pages: each incoherent ray touches a few lines of each of several pages, and with 4 KiB pages a
 //! large accel's pages are far more than the CPU's address-translation caches hold, so that most node and block reads
 //! also wait for a page-table walk (BENCHMARKS.md, "A random ray against Embree's, visit by visit; and the
-//! traversal's arrays on large pages"); and the scratch copies of a batch traced in runs of neighbours
-//! ([`super::reorder`]), which are written and read at a few hundred places at once.
+//! traversal's arrays on large pages").
 //!
 //! An array of at least [`LARGE_PAGE`] bytes starts on a 2 MiB boundary and its whole 2 MiB stretches are marked
 //! `MADV_HUGEPAGE` before anything is written to them, so that their first touch maps large pages wherever the
@@ -14,11 +13,9 @@
 
 use std::alloc::{Layout, alloc, dealloc, handle_alloc_error};
 use std::fmt;
-use std::ops::{Deref, DerefMut};
+use std::ops::Deref;
 use std::ptr::NonNull;
 use std::sync::atomic::{AtomicBool, Ordering};
-
-use rayon::prelude::*;
 
 use super::bvh::VecLen;
 
@@ -50,24 +47,17 @@ unsafe impl<T: Copy + Sync> Sync for LargePageArray<T> {}
 impl<T: Copy> LargePageArray<T> {
     /// An array of `len` elements, element `i` being `element(i)`, written in order after the large-page advice.
     pub fn from_fn(len: usize, mut element: impl FnMut(usize) -> T) -> LargePageArray<T> {
-        let Some(start) = Self::allocate(len) else { return LargePageArray::default() };
-        for i in 0..len {
-            // SAFETY: `i` is within the allocation of `len` elements, each written once.
-            unsafe { start.as_ptr().add(i).write(element(i)) };
-        }
-        LargePageArray { start, len }
-    }
-
-    /// Room for `len` elements, not yet written, advised to large pages where it fills one; `None` when nothing needs
-    /// allocating.
-    fn allocate(len: usize) -> Option<NonNull<T>> {
-        let layout = Self::layout(len)?;
+        let Some(layout) = Self::layout(len) else { return LargePageArray::default() };
         // SAFETY: the layout's size is not zero (`layout` gives none for an empty array or a zero-sized `T`).
         let Some(start) = NonNull::new(unsafe { alloc(layout) }.cast::<T>()) else { handle_alloc_error(layout) };
         if layout.align() == LARGE_PAGE && ENABLED.load(Ordering::Relaxed) {
             advise_large_pages(start.as_ptr().cast(), layout.size() / LARGE_PAGE * LARGE_PAGE);
         }
-        Some(start)
+        for i in 0..len {
+            // SAFETY: `i` is within the allocation of `len` elements, each written once.
+            unsafe { start.as_ptr().add(i).write(element(i)) };
+        }
+        LargePageArray { start, len }
     }
 
     /// How an array of `len` elements is allocated: aligned to [`LARGE_PAGE`] when it fills at least one; none when
@@ -113,28 +103,6 @@ impl<T: Copy> Deref for LargePageArray<T> {
     fn deref(&self) -> &[T] {
         // SAFETY: `len` initialised elements from `start` (dangling and aligned when there are none).
         unsafe { std::slice::from_raw_parts(self.start.as_ptr(), self.len) }
-    }
-}
-
-impl<T: Copy> DerefMut for LargePageArray<T> {
-    fn deref_mut(&mut self) -> &mut [T] {
-        // SAFETY: the elements were all written when the array was made, and the array owns them.
-        unsafe { std::slice::from_raw_parts_mut(self.start.as_ptr(), self.len) }
-    }
-}
-
-impl LargePageArray<u8> {
-    /// `len` zero bytes, a scratch buffer: zeroed a large page at a time across the rayon pool (so that each page is
-    /// first touched, and faulted in, by one of the threads that will work on it).
-    pub fn zeroed(len: usize) -> LargePageArray<u8> {
-        let Some(start) = Self::allocate(len) else { return LargePageArray::default() };
-        let address = start.as_ptr() as usize;
-        (0..len.div_ceil(LARGE_PAGE)).into_par_iter().for_each(|page| {
-            let first = page * LARGE_PAGE;
-            // SAFETY: each page's bytes lie within the allocation of `len` bytes, and are written by this task alone.
-            unsafe { (address as *mut u8).add(first).write_bytes(0, LARGE_PAGE.min(len - first)) };
-        });
-        LargePageArray { start, len }
     }
 }
 

@@ -16,7 +16,6 @@ mod packet;
 mod persist;
 #[cfg(target_arch = "x86_64")]
 mod ray_lanes;
-mod reorder;
 mod traverse;
 mod triangles;
 mod wide;
@@ -30,18 +29,15 @@ use crate::accel::{BuildOptions, MemoryUsage};
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, RaySource, Shape, host};
 use crate::context::Accel;
 use crate::error::{Error, Result};
-use crate::format::Ray;
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_counts};
-use crate::query::{Collector, ImageRows, Query, TraceOutput, TraceStats, trace_batch, trace_batch_here};
+use crate::query::{ImageRows, Query, TraceOutput, TraceStats, trace_batch, trace_batch_here};
 use crate::reduce::{Partial, Reduction};
 
 use bvh::Footprint;
 #[cfg(feature = "wgpu")]
 pub(crate) use instances::cpu_child;
 pub use instances::{InstanceBvh, TransformNode};
-use reorder::trace_in_locality_order;
-use traverse::Stacks;
 pub use triangles::TriangleBvh;
 
 /// The CPU device. It uses rayon's current thread pool, so a caller can bound its threads with
@@ -200,11 +196,13 @@ impl Backend for CpuBackend {
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
         let accel = cpu(accel)?;
-        let trace = |rays: &[u8], out: TraceOutput<'_>| {
-            trace_batch(query, rays, out, || accel.new_stacks(), group_traversal(accel))
-        };
-        // Incoherent batches in runs of rays that start near each other and head the same way.
-        trace_in_locality_order(accel, query, rays, out, trace)
+        trace_batch(
+            query,
+            rays,
+            out,
+            || accel.new_stacks(),
+            |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats),
+        )
     }
 
     fn trace_source(
@@ -235,15 +233,15 @@ fn part_tracer(
     accel: &CpuAccel,
 ) -> impl Fn(&Query, &[u8], Option<ImageRows>, TraceOutput<'_>) -> Result<TraceStats> + Sync {
     move |query, rays, rows, out| {
-        trace_batch_here(query, rays, rows, out, || accel.new_stacks(), group_traversal(accel))
+        trace_batch_here(
+            query,
+            rays,
+            rows,
+            out,
+            || accel.new_stacks(),
+            |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats),
+        )
     }
-}
-
-/// How the batch driver hands `accel` a group of rays ([`CpuAccel::traverse_group`]).
-fn group_traversal(
-    accel: &CpuAccel,
-) -> impl Fn(&mut Stacks, &[Ray], &mut [Collector<'_>], &mut TraceStats) + Sync + '_ {
-    move |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats)
 }
 
 /// The CPU structure of `accel`; FAILED_PRECONDITION for an accel of another device.
