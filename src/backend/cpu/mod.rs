@@ -18,6 +18,7 @@ mod persist;
 mod ray_lanes;
 mod traverse;
 mod triangles;
+mod turns;
 mod wide;
 
 use std::any::Any;

@@ -695,7 +695,7 @@ impl<V: RayLanes> filter::Corners<V> for Splat<'_> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use glam::{Vec3, Vec3A};
 
     use super::*;
@@ -709,7 +709,7 @@ mod tests {
 
     /// A bumpy lattice (shared edges and vertices that rays pass exactly through), with a floor and slivers across
     /// it, and a Prime mask on every fifth triangle.
-    fn scene() -> (TriangleBvh, Mesh) {
+    pub(in crate::backend::cpu) fn scene() -> (TriangleBvh, Mesh) {
         let side = 24;
         let height = |i: u32, j: u32| ((i * 7 + j * 3) % 5) as f32 * 0.05;
         let mut lattice = Mesh::default();
@@ -742,7 +742,10 @@ mod tests {
 
     /// Rays to the same grid of points as [`camera_rays`] from origins (by pixel) along directions (by point and
     /// origin), with the same ranges and masks.
-    fn rays_from(origin: impl Fn(u32) -> Vec3A, direction: impl Fn(Vec3A, Vec3A) -> Vec3A) -> Vec<Ray> {
+    pub(in crate::backend::cpu) fn rays_from(
+        origin: impl Fn(u32) -> Vec3A,
+        direction: impl Fn(Vec3A, Vec3A) -> Vec3A,
+    ) -> Vec<Ray> {
         (0..64 * 64)
             .map(|pixel| {
                 let (x, y) = ((pixel % 64) as f32 / 16.0, (pixel / 64) as f32 / 16.0 - 0.5);

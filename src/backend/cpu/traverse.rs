@@ -14,6 +14,8 @@ use super::instances::{InstanceBvh, TransformNode, cpu_child};
 #[cfg(target_arch = "x86_64")]
 use super::packet::PacketEntry;
 use super::triangles::TriangleBvh;
+#[cfg(target_arch = "x86_64")]
+use super::turns::TURNS;
 use super::wide::prefetch;
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::has_avx2;
@@ -25,13 +27,17 @@ use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, cons
 /// A node waiting on the traversal stack, with the distance at which the ray enters its box.
 pub(crate) type StackEntry = (u32, f32);
 
-/// The traversal stacks a chunk of rays reuses: one for rays traced alone, one for packets.
+/// The traversal stacks a chunk of rays reuses: one for rays traced alone, one for packets, one for rays walked in
+/// turns.
 pub(crate) struct Stacks {
     /// For a ray traced alone.
     pub(super) single: Vec<StackEntry>,
     /// For a packet (empty where there are none: other accels, other CPUs).
     #[cfg(target_arch = "x86_64")]
     pub(super) packet: Vec<PacketEntry>,
+    /// For the rays of a group walked in turns, one stack after another (empty where none are).
+    #[cfg(target_arch = "x86_64")]
+    pub(super) turns: Vec<StackEntry>,
 }
 
 impl CpuAccel {
@@ -43,6 +49,11 @@ impl CpuAccel {
             packet: match self {
                 CpuAccel::Triangles(bvh) => vec![PacketEntry::default(); bvh.wide.stack_size()],
                 CpuAccel::Instances(_) | CpuAccel::Transform(_) => Vec::new(),
+            },
+            #[cfg(target_arch = "x86_64")]
+            turns: match self {
+                CpuAccel::Triangles(bvh) if bvh.wide.in_turns => vec![(0, 0.0); TURNS * bvh.wide.stack_size()],
+                _ => Vec::new(),
             },
         }
     }
@@ -72,8 +83,14 @@ impl CpuAccel {
             && !binary_traversal()
             && has_avx2()
         {
-            // SAFETY: the CPU has AVX2 and the other features, as just checked; the accel is static.
-            unsafe { bvh.traverse_alone_avx2(&mut stacks.single, rays, collectors, alone, stats) };
+            // SAFETY: the CPU has AVX2 and the other features, as just checked; the accel is static; a group holds
+            // at most `TURNS` rays.
+            unsafe {
+                match bvh.wide.in_turns && alone.count_ones() > 1 {
+                    true => bvh.traverse_in_turns_avx2(&mut stacks.turns, rays, collectors, alone, stats),
+                    false => bvh.traverse_alone_avx2(&mut stacks.single, rays, collectors, alone, stats),
+                }
+            }
             return;
         }
         for (i, (ray, collector)) in rays.iter().zip(collectors).enumerate() {
@@ -185,7 +202,7 @@ impl TriangleBvh {
     /// at a time by `block_ray`, their corners read from the blocks too, so that a leaf's triangles are read from
     /// one place.
     #[inline(always)]
-    fn static_leaf<'a>(
+    pub(super) fn static_leaf<'a>(
         &'a self,
         block_ray: &'a BlockRay<'a>,
         ray: &'a PreparedRay,

@@ -19,6 +19,7 @@ use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::large_pages::LargePageArray;
 use super::traverse::StackEntry;
+use super::turns::walks_in_turns;
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::has_avx2;
 use crate::intersect::PreparedRay;
@@ -81,6 +82,9 @@ pub(super) struct WideBvh {
     depth: usize,
     /// The triangles' corners in blocks, for the leaves' first test.
     pub(super) blocks: CornerBlocks,
+    /// Whether incoherent rays are walked in turns ([`super::turns`]): the nodes and blocks exceed the CPU's
+    /// last-level cache.
+    pub(super) in_turns: bool,
 }
 
 impl WideBvh {
@@ -99,13 +103,15 @@ impl WideBvh {
             node
         });
         let children = collapsed.lanes.chunks(WIDTH).map(|lanes| occupied(lanes) as u8).collect();
-        let wide = WideBvh {
+        let mut wide = WideBvh {
             nodes,
             children,
             root: (root.min.into(), root.max.into()),
             depth: collapsed.depth,
             blocks: CornerBlocks::new(corners),
+            in_turns: false,
         };
+        wide.in_turns = walks_in_turns(wide.size_bytes(Footprint::Exact));
         // What the walks rely on (see the type's documentation); a failure here is a bug of `collapse`.
         let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).all(|(node, &children)| {
             (0..usize::from(children)).all(|l| node.count[l] > 0 || (node.index[l] as usize) < wide.nodes.len())
@@ -248,7 +254,7 @@ impl WideBvh {
     /// `prefetch_leaf`), so that the memory is on its way while the nearer lanes are visited: random rays spend
     /// much of their time waiting for nodes and triangles that are not in the cache.
     #[inline(always)]
-    fn prefetch_lanes(&self, owner: &WideNode, entered: u32, prefetch_leaf: &impl Fn(Range<usize>)) {
+    pub(super) fn prefetch_lanes(&self, owner: &WideNode, entered: u32, prefetch_leaf: &impl Fn(Range<usize>)) {
         let mut bits = entered;
         while bits != 0 {
             let lane = bits.trailing_zeros() as usize;
@@ -312,7 +318,7 @@ fn enter_lanes(node: &WideNode, ray: &PreparedRay, tmax: f32) -> (u32, [f32; WID
 /// `vminps` keep their second operand when the first is NaN, as the portable test's `a > b ? a : b` does), the
 /// entered lanes taken from the comparison's sign bits in one instruction.
 #[cfg(target_arch = "x86_64")]
-mod avx {
+pub(super) mod avx {
     use std::arch::x86_64::*;
     use std::mem::offset_of;
 
@@ -320,7 +326,7 @@ mod avx {
     use crate::intersect::PreparedRay;
 
     /// A ray's numbers spread over the lanes once a walk.
-    pub(super) struct RayLanes {
+    pub(in crate::backend::cpu) struct RayLanes {
         /// Origin, by axis.
         origin: [__m256; 3],
         /// `1/direction`, by axis.
@@ -337,7 +343,7 @@ mod avx {
         /// # Safety
         /// The CPU must have AVX.
         #[inline(always)]
-        pub(super) unsafe fn new(ray: &PreparedRay) -> RayLanes {
+        pub(in crate::backend::cpu) unsafe fn new(ray: &PreparedRay) -> RayLanes {
             // SAFETY: the CPU has AVX (the caller's contract).
             unsafe {
                 RayLanes {
@@ -358,7 +364,7 @@ mod avx {
         /// # Safety
         /// The CPU must have AVX.
         #[inline(always)]
-        pub(super) unsafe fn enter(&self, node: &WideNode, tmax: f32) -> (u32, [f32; WIDTH]) {
+        pub(in crate::backend::cpu) unsafe fn enter(&self, node: &WideNode, tmax: f32) -> (u32, [f32; WIDTH]) {
             // SAFETY: the CPU has AVX (the caller's contract); the loads read whole rows of the node (32-byte aligned:
             // the node is aligned to 64 and its rows are 32 bytes long).
             unsafe {
@@ -391,7 +397,7 @@ mod avx {
 /// # Safety
 /// `stack` must have room for `WIDTH − 1` entries from `*len` on.
 #[inline(always)]
-unsafe fn visit_order(
+pub(super) unsafe fn visit_order(
     node: usize,
     entered: u32,
     near: &[f32; WIDTH],

@@ -1,0 +1,271 @@
+//! The walk in turns ([`super`]), in AVX2: where a ray is between its turns, and the loop that gives them.
+
+use std::mem::MaybeUninit;
+use std::ops::Range;
+
+use crate::backend::cpu::blocks::BlockRay;
+use crate::backend::cpu::traverse::StackEntry;
+use crate::backend::cpu::triangles::TriangleBvh;
+use crate::backend::cpu::wide::{WIDTH, WideBvh, avx, visit_order};
+use crate::format::Ray;
+use crate::intersect::PreparedRay;
+use crate::query::{Collector, InstanceScope, TraceStats};
+
+/// Rays walked in turns together, at most: a group of the batch driver's.
+pub(in crate::backend::cpu) const TURNS: usize = crate::query::GROUP_RAYS;
+
+/// Where a ray walked in turns is: what it visits at its next turn (a lane's index and count: an inner node's
+/// count is 0), its stack's depth and its cull distance.
+#[derive(Debug, Clone, Copy)]
+struct Turn {
+    index: u32,
+    count: u32,
+    len: u32,
+    tmax: f32,
+}
+
+impl TriangleBvh {
+    /// Offers each of `rays` whose bit is set in `walking` the triangles of the leaves it reaches in this static accel,
+    /// the rays walked in turns: what [`TriangleBvh::traverse_alone_avx2`] does one ray after another.
+    ///
+    /// # Safety
+    /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks; the accel must be static (no
+    /// `node_keys`); `rays` holds at most [`TURNS`] rays.
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    pub(in crate::backend::cpu) unsafe fn traverse_in_turns_avx2(
+        &self,
+        stacks: &mut [StackEntry],
+        rays: &[Ray],
+        collectors: &mut [Collector<'_>],
+        walking: u32,
+        stats: &mut TraceStats,
+    ) {
+        let mut prepared = [const { MaybeUninit::<PreparedRay>::uninit() }; TURNS];
+        for i in bits(walking) {
+            prepared[i].write(PreparedRay::from_traced(&rays[i]));
+        }
+        // SAFETY (here and below): ray `i` walks, so it was prepared just above.
+        let prepared = |i: usize| unsafe { prepared.get_unchecked(i).assume_init_ref() };
+        let mut block_rays = [const { MaybeUninit::<BlockRay<'_>>::uninit() }; TURNS];
+        let mut lanes = [const { MaybeUninit::<avx::RayLanes>::uninit() }; TURNS];
+        for i in bits(walking) {
+            block_rays[i].write(BlockRay::new(prepared(i)));
+            // SAFETY: the CPU has AVX2 (this function's contract), so AVX too.
+            lanes[i].write(unsafe { avx::RayLanes::new(prepared(i)) });
+        }
+        let leaf = {
+            #[inline(always)]
+            |i: usize, slots, collector: &mut Collector<'_>, stats: &mut TraceStats| {
+                // SAFETY: ray `i` walks, so its block test's numbers were made just above.
+                let block_ray = unsafe { block_rays.get_unchecked(i).assume_init_ref() };
+                (self.static_leaf(block_ray, prepared(i), &InstanceScope::WORLD))(slots, collector, stats)
+            }
+        };
+        let prefetch_leaf = |slots| self.prefetch_leaf(slots);
+        // SAFETY: the CPU has the features (this function's contract); each walking ray's lanes were made above.
+        unsafe { self.wide.walk_in_turns_avx2(stacks, &lanes, walking, collectors, stats, leaf, prefetch_leaf) };
+    }
+}
+
+impl WideBvh {
+    /// Walks the rays whose bit is set in `walking` in turns (see the module's documentation), each with its box
+    /// test's numbers in `lanes` and its collector in `collectors`, and hands each leaf a ray reaches to `leaf` with
+    /// the ray's index (see [`WideBvh::walk`]).
+    ///
+    /// Panics when `stacks` holds fewer than [`WideBvh::stack_size`] entries for each of [`TURNS`] rays.
+    ///
+    /// # Safety
+    /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks; `lanes` holds the numbers of every
+    /// ray walked.
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn walk_in_turns_avx2(
+        &self,
+        stacks: &mut [StackEntry],
+        lanes: &[MaybeUninit<avx::RayLanes>; TURNS],
+        walking: u32,
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+        mut leaf: impl FnMut(usize, Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
+        prefetch_leaf: impl Fn(Range<usize>),
+    ) {
+        if self.nodes.is_empty() || walking == 0 {
+            return;
+        }
+        let size = self.stack_size();
+        assert!(stacks.len() >= TURNS * size, "stacks of {} entries for {TURNS} of {size}", stacks.len());
+        let nearest_first = collectors[walking.trailing_zeros() as usize].wants_nearest_first();
+        let mut turns = [Turn { index: 0, count: 0, len: 0, tmax: 0.0 }; TURNS];
+        for i in bits(walking) {
+            turns[i].tmax = collectors[i].cull_tmax();
+        }
+        let mut boxes = 0u64;
+        let mut walking = walking;
+        while walking != 0 {
+            let mut round = walking;
+            while round != 0 {
+                let i = round.trailing_zeros() as usize;
+                round &= round - 1;
+                // SAFETY: `i < TURNS` (a bit of `walking`, whose rays have collectors), ray `i`'s stack lies within
+                // `stacks` (checked above), and its lanes were made (this function's contract).
+                let (turn, stack, collector, ray_lanes) = unsafe {
+                    (
+                        turns.get_unchecked_mut(i),
+                        stacks.get_unchecked_mut(i * size..(i + 1) * size),
+                        collectors.get_unchecked_mut(i),
+                        lanes.get_unchecked(i).assume_init_ref(),
+                    )
+                };
+                let Turn { mut index, mut count, len, mut tmax } = *turn;
+                let mut len = len as usize;
+                // The ray's turn: up to the next lane it enters, whose data was only now asked for. A lane taken off
+                // the stack was asked for when it was pushed, and is visited at once.
+                let walks_on = loop {
+                    if count == 0 {
+                        let node = index as usize;
+                        // SAFETY: `node` is the root or an inner lane's index, below `nodes.len()`, and `children`
+                        // has an entry a node (the type's invariants).
+                        let (owner, children) =
+                            unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
+                        boxes += u64::from(children);
+                        // SAFETY: the CPU has AVX (this function's contract).
+                        let (entered, near) = unsafe { ray_lanes.enter(owner, tmax) };
+                        // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
+                        let entered = entered & ((1u32 << children) - 1);
+                        self.prefetch_lanes(owner, entered, &prefetch_leaf);
+                        // SAFETY: a walk leaves at most `WIDTH − 1` lanes waiting a level: `stack_size` entries.
+                        if let Some(lane_ref) =
+                            unsafe { visit_order(node, entered, &near, stack, &mut len, nearest_first) }
+                        {
+                            let lane = lane_ref as usize % WIDTH;
+                            (index, count) = (owner.index[lane], owner.count[lane]);
+                            break true;
+                        }
+                    } else {
+                        if leaf(i, index as usize..(index + count) as usize, collector, stats) {
+                            break false;
+                        }
+                        tmax = collector.cull_tmax();
+                    }
+                    match self.pop(stack, &mut len, tmax) {
+                        Some(lane) => (index, count) = lane,
+                        None => break false,
+                    }
+                };
+                *turn = Turn { index, count, len: len as u32, tmax };
+                if !walks_on {
+                    walking &= !(1 << i);
+                }
+            }
+        }
+        stats.nodes_visited += boxes;
+    }
+
+    /// Takes the next entry off `stack` (of `len` entries) that the ray may still enter within `tmax` and returns its
+    /// lane's index and count; `None` when there is none.
+    #[inline(always)]
+    fn pop(&self, stack: &[StackEntry], len: &mut usize, tmax: f32) -> Option<(u32, u32)> {
+        while *len > 0 {
+            *len -= 1;
+            // SAFETY: below the entries pushed.
+            let (lane_ref, near) = unsafe { *stack.get_unchecked(*len) };
+            if near <= tmax {
+                // SAFETY: a lane reference names a node visited before (the type's invariants).
+                let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
+                let lane = lane_ref as usize % WIDTH;
+                return Some((owner.index[lane], owner.count[lane]));
+            }
+        }
+        None
+    }
+}
+
+/// The indices of the set bits of `mask`, lowest first.
+#[inline(always)]
+fn bits(mask: u32) -> impl Iterator<Item = usize> {
+    let mut rest = mask;
+    std::iter::from_fn(move || {
+        let bit = (rest != 0).then(|| rest.trailing_zeros() as usize);
+        rest &= rest.wrapping_sub(1);
+        bit
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3A;
+
+    use super::*;
+    use crate::backend::cpu::CpuAccel;
+    use crate::backend::cpu::packet::tests::{rays_from, scene};
+    use crate::cpu_features::has_avx2;
+    use crate::format::{Hit, HitFormat, Ray, RayFlags, RayFormat};
+    use crate::intersect::traced;
+    use crate::query::{Collector, Query, QueryKind, TraceStats};
+
+    /// Each ray's records and counts of `query`, and the statistics, traced in the batch driver's groups through
+    /// `bvh` with its incoherent rays walked in turns or one after another.
+    fn trace(bvh: &TriangleBvh, query: &Query, rays: &[Ray], in_turns: bool) -> (Vec<u8>, Vec<u8>, TraceStats) {
+        let mut bvh = bvh.clone();
+        bvh.wide.in_turns = in_turns;
+        let accel = CpuAccel::Triangles(bvh);
+        let mut stacks = accel.new_stacks();
+        let records = query.records_per_ray();
+        let mut hits = vec![0u8; query.hit_format.buffer_len(rays.len() * records)];
+        let mut counts = vec![0u8; 4 * rays.len()];
+        let mut scratch = vec![Hit::MISS; TURNS * records];
+        let mut stats = TraceStats::default();
+        for (group, rays) in rays.chunks(TURNS).enumerate() {
+            let rays: Vec<Ray> = rays.iter().map(|ray| traced(ray, query.flags)).collect();
+            let mut parts = scratch.chunks_mut(records);
+            let mut collectors: Vec<Collector<'_>> =
+                rays.iter().map(|ray| Collector::new(query, ray, parts.next().expect("a part a ray"))).collect();
+            accel.traverse_group(&mut stacks, &rays, &mut collectors, &mut stats);
+            for (i, collector) in collectors.iter().enumerate() {
+                let index = group * TURNS + i;
+                collector.write(query.hit_format, &mut hits, index * records, &mut counts, index);
+            }
+        }
+        (hits, counts, stats)
+    }
+
+    #[test]
+    fn rays_walked_in_turns_get_the_answers_and_statistics_of_rays_walked_alone() {
+        if !has_avx2() {
+            return;
+        }
+        let (bvh, _) = scene();
+        // Origins scattered around and inside the lattice, ray to ray (no two neighbours make a packet), towards its
+        // grid points, some of them vertices and edges; ranges and masks as the scene's other tests have them; and
+        // rays that reach nothing or everything: a NaN origin, a zero direction, an empty range.
+        let scatter = |pixel: u32, k: u32| ((pixel.wrapping_mul(2_654_435_761) >> (k * 8)) & 255) as f32 / 64.0;
+        let mut rays = rays_from(
+            |pixel| Vec3A::new(scatter(pixel, 0) - 0.5, scatter(pixel, 1) - 0.5, scatter(pixel, 2) / 2.0 - 1.0),
+            |target, eye| target - eye,
+        );
+        let nan = Vec3A::new(f32::NAN, 1.0, 1.0);
+        rays[5].origin = nan;
+        rays[17].direction = Vec3A::ZERO;
+        rays[40].tmin = 2.0;
+        rays[40].tmax = 1.0;
+        for kind in [QueryKind::Closest, QueryKind::Any, QueryKind::All, QueryKind::Count] {
+            for flags in [RayFlags::empty(), RayFlags::CULL_BACK_FACING, RayFlags::TERMINATE_ON_FIRST_HIT] {
+                let query = Query {
+                    kind,
+                    flags,
+                    max_hits_per_ray: 4,
+                    ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV)
+                };
+                let alone = trace(&bvh, &query, &rays, false);
+                let in_turns = trace(&bvh, &query, &rays, true);
+                let first_record = |ray: usize| ray * query.records_per_ray();
+                let hits = (0..rays.len())
+                    .filter(|&ray| HitFormat::TTriidUV.read(&alone.0, first_record(ray)).is_hit())
+                    .count();
+                assert!(hits > rays.len() / 4 && hits < rays.len(), "{kind:?} {flags:?}: {hits} rays hit");
+                assert!(alone == in_turns, "{kind:?} {flags:?}: {:?} against {:?}", in_turns.2, alone.2);
+            }
+        }
+    }
+}
