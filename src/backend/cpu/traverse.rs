@@ -120,7 +120,8 @@ impl CpuAccel {
 
 /// Whether static accels walk their binary nodes instead of their wide ones: `RAYD_CPU_TRAVERSAL=binary`, read once,
 /// for A/B benchmarks of the traversal (BENCHMARKS.md, "CPU traversal step 1"); the answers are the same either way
-/// except which hit a ray that terminates on its first hit stops at.
+/// except which hit a ray that terminates on its first hit stops at. (`turns` and `alone` choose how incoherent rays
+/// walk the wide nodes instead: [`super::turns::walks_in_turns`].)
 fn binary_traversal() -> bool {
     static BINARY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *BINARY.get_or_init(|| std::env::var("RAYD_CPU_TRAVERSAL").as_deref() == Ok("binary"))

@@ -1,14 +1,15 @@
 //! Incoherent rays walked in turns through a static accel larger than the CPU's last-level cache: each ray of a
 //! group takes one step of its walk at a time (up to the next node or leaf it enters, whose data its step only just
 //! asked for), then the next ray does, so that the memory one ray waits for arrives while the others work, instead of
-//! the core standing still. Each ray's walk is [`WideBvh::walk_lanes`]'s, visit for visit (the same boxes in the same
-//! order, the same leaves, the same pruning), so its answer and the statistics are those of walking the rays one
-//! after another; only the interleaving differs.
+//! the core standing still. Each ray's walk is [`super::wide::WideBvh::walk_lanes`]'s, visit for visit (the same
+//! boxes in the same order, the same leaves, the same pruning), so its answer and the statistics are those of walking
+//! the rays one after another; only the interleaving differs.
 //!
-//! Turns cost instructions (each step reloads its ray's state), which pays only where the walk waits on memory
-//! rather than on the caches: an accel that does not fit the last-level cache. With one that fits, they lost up to
-//! 11% on a 16-core Xeon and 25% here on a scene of uneven triangles; with one that does not, they gained 12–45% on
-//! the Xeon (1 to 16 threads) and 16–44% here (BENCHMARKS.md, "Random rays walked in turns").
+//! Turns cost instructions (each step reloads its ray's state: about a fifth more a ray), which pays only where the
+//! walk waits on memory rather than on the caches: an accel that does not fit the last-level cache. With one that
+//! fits, they lost up to 11% on a 16-core Xeon and 25% on a 2-vCPU AMD EPYC (a scene of uneven triangles); with one
+//! that does not, they gained 10–45% on the Xeon (16 threads to 1) and 16–31% on the EPYC (BENCHMARKS.md,
+//! "Incoherent rays walked in turns").
 
 use std::sync::OnceLock;
 #[cfg(target_arch = "x86_64")]
