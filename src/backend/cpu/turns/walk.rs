@@ -107,8 +107,8 @@ impl WideBvh {
             while round != 0 {
                 let i = round.trailing_zeros() as usize;
                 round &= round - 1;
-                // SAFETY: `i < TURNS` (a bit of `walking`, whose rays have collectors), ray `i`'s stack lies within
-                // `stacks` (checked above), and its lanes were made (this function's contract).
+                // SAFETY: `i` is a bit of `walking`, whose every bit indexed `turns` and `collectors` with checks
+                // above; ray `i`'s stack lies within `stacks` (checked above); its lanes were made (the contract).
                 let (turn, stack, collector, ray_lanes) = unsafe {
                     (
                         turns.get_unchecked_mut(i),
