@@ -207,36 +207,16 @@ impl WideBvh {
         let mut len = 0usize;
         let mut node = 0usize;
         'walk: loop {
-            // SAFETY: `node` is the root or an inner lane's index, below `nodes.len()`, and `children` has an entry a
-            // node (the type's invariants).
-            let (owner, children) = unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
-            boxes += u64::from(children);
-            let (entered, near) = enter(owner, tmax);
-            // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
-            let entered = entered & ((1u32 << children) - 1);
-            self.prefetch_lanes(owner, entered, &prefetch_leaf);
-            // SAFETY: a walk leaves at most `WIDTH − 1` lanes waiting a level: `stack_size` entries, checked above.
-            let mut next = unsafe { visit_order(node, entered, &near, stack, &mut len, nearest_first) };
+            // SAFETY: `node` is the root or an inner lane's index; a walk leaves at most `WIDTH − 1` lanes waiting a
+            // level: `stack_size` entries, checked above.
+            let mut next = unsafe {
+                self.visit_node(node, tmax, &enter, stack, &mut len, nearest_first, &prefetch_leaf, &mut boxes)
+            };
             // Leaves are handled as they come; the first inner lane reached is visited next.
             loop {
-                let lane_ref = match next.take() {
-                    Some(lane_ref) => lane_ref,
-                    None => loop {
-                        if len == 0 {
-                            break 'walk;
-                        }
-                        len -= 1;
-                        // SAFETY: below the entries pushed.
-                        let (lane_ref, near) = unsafe { *stack.get_unchecked(len) };
-                        if near <= tmax {
-                            break lane_ref;
-                        }
-                    },
-                };
-                // SAFETY: a lane reference names a node visited before (it fits a `u32`: the type's invariants).
-                let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
-                let lane = lane_ref as usize % WIDTH;
-                let (index, count) = (owner.index[lane] as usize, owner.count[lane] as usize);
+                let Some(lane_ref) = next.take().or_else(|| pop(stack, &mut len, tmax)) else { break 'walk };
+                let (index, count) = self.lane(lane_ref);
+                let (index, count) = (index as usize, count as usize);
                 if count == 0 {
                     node = index;
                     break;
@@ -250,11 +230,51 @@ impl WideBvh {
         stats.nodes_visited += boxes;
     }
 
+    /// Visits inner node `node`: tests its lanes' boxes with `enter` within `tmax` (adding them to `boxes`), starts
+    /// loading what the entered lanes lead to, pushes all of them but the one visited next ([`visit_order`]) and
+    /// returns that one's lane reference; `None` when the ray enters none.
+    ///
+    /// # Safety
+    /// `node` is the root or an inner lane's index, and `stack` has room for `WIDTH − 1` entries from `*len` on.
+    #[allow(clippy::too_many_arguments)]
+    #[inline(always)]
+    pub(super) unsafe fn visit_node(
+        &self,
+        node: usize,
+        tmax: f32,
+        enter: &impl Fn(&WideNode, f32) -> (u32, [f32; WIDTH]),
+        stack: &mut [StackEntry],
+        len: &mut usize,
+        nearest_first: bool,
+        prefetch_leaf: &impl Fn(Range<usize>),
+        boxes: &mut u64,
+    ) -> Option<u32> {
+        // SAFETY: `node` is below `nodes.len()` (the contract), and `children` has an entry a node (the type's
+        // invariants).
+        let (owner, children) = unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
+        *boxes += u64::from(children);
+        let (entered, near) = enter(owner, tmax);
+        // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
+        let entered = entered & ((1u32 << children) - 1);
+        self.prefetch_lanes(owner, entered, prefetch_leaf);
+        // SAFETY: there is room for the entries pushed (the contract).
+        unsafe { visit_order(node, entered, &near, stack, len, nearest_first) }
+    }
+
+    /// The index and count of the lane `lane_ref` names (`node · WIDTH + lane`: a node visited before).
+    #[inline(always)]
+    pub(super) fn lane(&self, lane_ref: u32) -> (u32, u32) {
+        // SAFETY: a lane reference names a node visited before (it fits a `u32`: the type's invariants).
+        let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
+        let lane = lane_ref as usize % WIDTH;
+        (owner.index[lane], owner.count[lane])
+    }
+
     /// Starts loading what the entered lanes of `owner` lead to (their nodes; their leaves' data through
     /// `prefetch_leaf`), so that the memory is on its way while the nearer lanes are visited: random rays spend
     /// much of their time waiting for nodes and triangles that are not in the cache.
     #[inline(always)]
-    pub(super) fn prefetch_lanes(&self, owner: &WideNode, entered: u32, prefetch_leaf: &impl Fn(Range<usize>)) {
+    fn prefetch_lanes(&self, owner: &WideNode, entered: u32, prefetch_leaf: &impl Fn(Range<usize>)) {
         let mut bits = entered;
         while bits != 0 {
             let lane = bits.trailing_zeros() as usize;
@@ -390,6 +410,21 @@ pub(super) mod avx {
     }
 }
 
+/// Takes entries off `stack` (of `len` entries) until one the ray may still enter within `tmax`, and returns its lane
+/// reference; `None` when there is none.
+#[inline(always)]
+pub(super) fn pop(stack: &[StackEntry], len: &mut usize, tmax: f32) -> Option<u32> {
+    while *len > 0 {
+        *len -= 1;
+        // SAFETY: below the entries pushed.
+        let (lane_ref, near) = unsafe { *stack.get_unchecked(*len) };
+        if near <= tmax {
+            return Some(lane_ref);
+        }
+    }
+    None
+}
+
 /// Pushes the entered lanes of `node` but one on the stack and returns that one, the lane visited next: `by_distance`,
 /// the nearest (the others pushed farthest first); otherwise the first in lane order (the others pushed so that the
 /// next lane is on top), which costs no sort.
@@ -397,7 +432,7 @@ pub(super) mod avx {
 /// # Safety
 /// `stack` must have room for `WIDTH − 1` entries from `*len` on.
 #[inline(always)]
-pub(super) unsafe fn visit_order(
+unsafe fn visit_order(
     node: usize,
     entered: u32,
     near: &[f32; WIDTH],

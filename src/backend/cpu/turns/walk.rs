@@ -6,7 +6,7 @@ use std::ops::Range;
 use crate::backend::cpu::blocks::BlockRay;
 use crate::backend::cpu::traverse::StackEntry;
 use crate::backend::cpu::triangles::TriangleBvh;
-use crate::backend::cpu::wide::{WIDTH, WideBvh, avx, visit_order};
+use crate::backend::cpu::wide::{WideBvh, WideNode, avx, pop};
 use crate::format::Ray;
 use crate::intersect::PreparedRay;
 use crate::query::{Collector, InstanceScope, TraceStats};
@@ -123,23 +123,23 @@ impl WideBvh {
                 // the stack was asked for when it was pushed, and is visited at once.
                 let walks_on = loop {
                     if count == 0 {
-                        let node = index as usize;
-                        // SAFETY: `node` is the root or an inner lane's index, below `nodes.len()`, and `children`
-                        // has an entry a node (the type's invariants).
-                        let (owner, children) =
-                            unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
-                        boxes += u64::from(children);
-                        // SAFETY: the CPU has AVX (this function's contract).
-                        let (entered, near) = unsafe { ray_lanes.enter(owner, tmax) };
-                        // Lanes past the children are empty; a ray with a NaN origin "enters" every box, theirs too.
-                        let entered = entered & ((1u32 << children) - 1);
-                        self.prefetch_lanes(owner, entered, &prefetch_leaf);
-                        // SAFETY: a walk leaves at most `WIDTH − 1` lanes waiting a level: `stack_size` entries.
-                        if let Some(lane_ref) =
-                            unsafe { visit_order(node, entered, &near, stack, &mut len, nearest_first) }
-                        {
-                            let lane = lane_ref as usize % WIDTH;
-                            (index, count) = (owner.index[lane], owner.count[lane]);
+                        // SAFETY: `index` is the root or an inner lane's index; a walk leaves at most `WIDTH − 1`
+                        // lanes waiting a level: `stack_size` entries.
+                        let next = unsafe {
+                            let enter = |node: &WideNode, tmax| ray_lanes.enter(node, tmax);
+                            self.visit_node(
+                                index as usize,
+                                tmax,
+                                &enter,
+                                stack,
+                                &mut len,
+                                nearest_first,
+                                &prefetch_leaf,
+                                &mut boxes,
+                            )
+                        };
+                        if let Some(lane_ref) = next {
+                            (index, count) = self.lane(lane_ref);
                             break true;
                         }
                     } else {
@@ -148,8 +148,8 @@ impl WideBvh {
                         }
                         tmax = collector.cull_tmax();
                     }
-                    match self.pop(stack, &mut len, tmax) {
-                        Some(lane) => (index, count) = lane,
+                    match pop(stack, &mut len, tmax) {
+                        Some(lane_ref) => (index, count) = self.lane(lane_ref),
                         None => break false,
                     }
                 };
@@ -160,24 +160,6 @@ impl WideBvh {
             }
         }
         stats.nodes_visited += boxes;
-    }
-
-    /// Takes the next entry off `stack` (of `len` entries) that the ray may still enter within `tmax` and returns its
-    /// lane's index and count; `None` when there is none.
-    #[inline(always)]
-    fn pop(&self, stack: &[StackEntry], len: &mut usize, tmax: f32) -> Option<(u32, u32)> {
-        while *len > 0 {
-            *len -= 1;
-            // SAFETY: below the entries pushed.
-            let (lane_ref, near) = unsafe { *stack.get_unchecked(*len) };
-            if near <= tmax {
-                // SAFETY: a lane reference names a node visited before (the type's invariants).
-                let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
-                let lane = lane_ref as usize % WIDTH;
-                return Some((owner.index[lane], owner.count[lane]));
-            }
-        }
-        None
     }
 }
 
