@@ -44,13 +44,16 @@ const MIN_COSINE: f32 = 0.99;
 /// How far a packet's origins may lie from its first ray's, as a fraction of the scene box's diagonal.
 const MAX_ORIGIN_SPREAD: f32 = 0.01;
 
-/// A node lane waiting on a packet's stack: the rays that enter its box, and the distance at which each does.
+/// A node lane waiting on a packet's stack: its index and count (as its node holds them), the rays that enter its
+/// box, and the distance at which each does.
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct PacketEntry {
     /// Per ray, the distance at which it enters the lane's box (the first [`RayLanes::RAYS`] in use).
     near: [f32; MAX_PACKET_RAYS],
-    /// The lane, as `node · WIDTH + lane`.
-    lane_ref: u32,
+    /// The lane's child node or first primitive slot.
+    index: u32,
+    /// The lane's primitives; 0 for an inner lane.
+    count: u32,
     /// A bit per ray that enters it.
     rays: u32,
 }
@@ -281,14 +284,15 @@ impl WideBvh {
                 }
             }
             for &(rays_in, _, lane) in entered[..count].iter().skip(1).rev() {
-                stack[len] = PacketEntry { near: near[lane], lane_ref: (node * WIDTH + lane) as u32, rays: rays_in };
+                let (index, count) = (owner.index[lane], owner.count[lane]);
+                stack[len] = PacketEntry { near: near[lane], index, count, rays: rays_in };
                 len += 1;
             }
-            let mut next = (count > 0).then(|| ((node * WIDTH + entered[0].2) as u32, entered[0].0));
+            let mut next = (count > 0).then(|| (owner.index[entered[0].2], owner.count[entered[0].2], entered[0].0));
             // Leaves are handled as they come; the first inner lane reached is visited next, with its rays.
             rays_in_node = 0;
             while rays_in_node == 0 {
-                let (lane_ref, rays_in) = match next.take() {
+                let (index, size, rays_in) = match next.take() {
                     Some(next) => next,
                     None => {
                         if len == 0 {
@@ -297,14 +301,13 @@ impl WideBvh {
                         len -= 1;
                         let entry = &stack[len];
                         let within = unsafe { V::bits(V::load(&entry.near).le(V::load(&cull))) };
-                        (entry.lane_ref, entry.rays & alive & within)
+                        (entry.index, entry.count, entry.rays & alive & within)
                     }
                 };
                 if rays_in == 0 {
                     continue;
                 }
-                let (owner, lane) = (&self.nodes[lane_ref as usize / WIDTH], lane_ref as usize % WIDTH);
-                let (index, size) = (owner.index[lane] as usize, owner.count[lane] as usize);
+                let (index, size) = (index as usize, size as usize);
                 if size == 0 {
                     (node, rays_in_node) = (index, rays_in);
                     continue;

@@ -24,8 +24,19 @@ use crate::geometry::motion::lerp;
 use crate::intersect::{PreparedRay, aabb, triangle};
 use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
 
-/// A node waiting on the traversal stack, with the distance at which the ray enters its box.
-pub(crate) type StackEntry = (u32, f32);
+/// What waits on a traversal stack, with the distance at which the ray enters its box: a binary node (its index;
+/// `count` 0), or a wide node's lane as [`super::wide::WideNode`] holds it (its child node or first primitive slot,
+/// and its primitives: 0 for an inner lane), so that a wide walk takes the lane off the stack without reading its
+/// node again.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub(crate) struct StackEntry {
+    /// The node, or the lane's index.
+    pub(super) index: u32,
+    /// The lane's primitives; 0 for a binary node or an inner lane.
+    pub(super) count: u32,
+    /// Where the ray enters the box.
+    pub(super) near: f32,
+}
 
 /// The traversal stacks a chunk of rays reuses: one for rays traced alone, one for packets, one for rays walked in
 /// turns.
@@ -44,7 +55,7 @@ impl CpuAccel {
     /// Stacks for [`CpuAccel::traverse_group`], deep enough for this accel and everything below it.
     pub(crate) fn new_stacks(&self) -> Stacks {
         Stacks {
-            single: vec![(0, 0.0); self.stack_size()],
+            single: vec![StackEntry::default(); self.stack_size()],
             #[cfg(target_arch = "x86_64")]
             packet: match self {
                 CpuAccel::Triangles(bvh) => vec![PacketEntry::default(); bvh.wide.stack_size()],
@@ -52,7 +63,9 @@ impl CpuAccel {
             },
             #[cfg(target_arch = "x86_64")]
             turns: match self {
-                CpuAccel::Triangles(bvh) if bvh.wide.in_turns => vec![(0, 0.0); TURNS * bvh.wide.stack_size()],
+                CpuAccel::Triangles(bvh) if bvh.wide.in_turns => {
+                    vec![StackEntry::default(); TURNS * bvh.wide.stack_size()]
+                }
                 _ => Vec::new(),
             },
         }
@@ -395,7 +408,7 @@ fn walk(
             next = match (near_left, near_right) {
                 (Some(l), Some(r)) => {
                     let (first, second) = if r < l { ((right, r), (left, l)) } else { ((left, l), (right, r)) };
-                    stack[len] = second;
+                    stack[len] = StackEntry { index: second.0, count: 0, near: second.1 };
                     len += 1;
                     Some(first.0)
                 }
@@ -411,9 +424,9 @@ fn walk(
                     return;
                 }
                 len -= 1;
-                let (node, near) = stack[len];
+                let StackEntry { index, near, .. } = stack[len];
                 if near <= collector.cull_tmax() {
-                    break node;
+                    break index;
                 }
             },
         };

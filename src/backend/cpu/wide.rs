@@ -69,7 +69,7 @@ impl WideNode {
 /// A static BVH collapsed to [`WIDTH`] children a node.
 ///
 /// What the walks read without bounds checks, and [`WideBvh::collapse`] makes sure of: `children` has an entry a
-/// node; every inner lane's index is below `nodes.len()`; a lane reference `node · WIDTH + lane` fits a `u32`.
+/// node; every inner lane's index is below `nodes.len()`, which a `u32` holds.
 #[derive(Debug, Clone, Default)]
 pub(super) struct WideBvh {
     /// Nodes, the root first; empty when the binary BVH was.
@@ -116,7 +116,7 @@ impl WideBvh {
         let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).all(|(node, &children)| {
             (0..usize::from(children)).all(|l| node.count[l] > 0 || (node.index[l] as usize) < wide.nodes.len())
         });
-        assert!(inner_lanes_in_range && wide.nodes.len() <= (u32::MAX as usize) / WIDTH, "a malformed wide BVH");
+        assert!(inner_lanes_in_range && wide.nodes.len() <= u32::MAX as usize, "a malformed wide BVH");
         wide
     }
 
@@ -179,8 +179,10 @@ impl WideBvh {
     }
 
     /// The walk itself, for whatever instruction set it is compiled with, with `enter` as the box test of a node's
-    /// lanes ([`enter_lanes`]). Stack entries name a lane (`node · WIDTH + lane`) with the distance at which the ray
-    /// enters its box. The collector's cull distance changes only at leaves, so it is read again only after one.
+    /// lanes ([`enter_lanes`]). Stack entries hold a lane's index and count with the distance at which the ray enters
+    /// its box, so that a lane taken off the stack is visited without reading its node again (that read waited on the
+    /// cache whenever the node had left it). The collector's cull distance changes only at leaves, so it is read again
+    /// only after one.
     ///
     /// Nodes and stack entries are read without bounds checks: the stack's depth is checked once here, and every
     /// node index the walk follows is the root's or an inner lane's, below `nodes.len()` by construction
@@ -214,8 +216,7 @@ impl WideBvh {
             };
             // Leaves are handled as they come; the first inner lane reached is visited next.
             loop {
-                let Some(lane_ref) = next.take().or_else(|| pop(stack, &mut len, tmax)) else { break 'walk };
-                let (index, count) = self.lane(lane_ref);
+                let Some((index, count)) = next.take().or_else(|| pop(stack, &mut len, tmax)) else { break 'walk };
                 let (index, count) = (index as usize, count as usize);
                 if count == 0 {
                     node = index;
@@ -232,7 +233,7 @@ impl WideBvh {
 
     /// Visits inner node `node`: tests its lanes' boxes with `enter` within `tmax` (adding them to `boxes`), starts
     /// loading what the entered lanes lead to, pushes all of them but the one visited next ([`visit_order`]) and
-    /// returns that one's lane reference; `None` when the ray enters none.
+    /// returns that one's index and count; `None` when the ray enters none.
     ///
     /// # Safety
     /// `node` is the root or an inner lane's index, and `stack` has room for `WIDTH − 1` entries from `*len` on.
@@ -248,7 +249,7 @@ impl WideBvh {
         nearest_first: bool,
         prefetch_leaf: &impl Fn(Range<usize>),
         boxes: &mut u64,
-    ) -> Option<u32> {
+    ) -> Option<(u32, u32)> {
         // SAFETY: `node` is below `nodes.len()` (the contract), and `children` has an entry a node (the type's
         // invariants).
         let (owner, children) = unsafe { (self.nodes.get_unchecked(node), *self.children.get_unchecked(node)) };
@@ -258,16 +259,7 @@ impl WideBvh {
         let entered = entered & ((1u32 << children) - 1);
         self.prefetch_lanes(owner, entered, prefetch_leaf);
         // SAFETY: there is room for the entries pushed (the contract).
-        unsafe { visit_order(node, entered, &near, stack, len, nearest_first) }
-    }
-
-    /// The index and count of the lane `lane_ref` names (`node · WIDTH + lane`: a node visited before).
-    #[inline(always)]
-    pub(super) fn lane(&self, lane_ref: u32) -> (u32, u32) {
-        // SAFETY: a lane reference names a node visited before (it fits a `u32`: the type's invariants).
-        let owner = unsafe { self.nodes.get_unchecked(lane_ref as usize / WIDTH) };
-        let lane = lane_ref as usize % WIDTH;
-        (owner.index[lane], owner.count[lane])
+        unsafe { visit_order(owner, entered, &near, stack, len, nearest_first) }
     }
 
     /// Starts loading what the entered lanes of `owner` lead to (their nodes; their leaves' data through
@@ -410,40 +402,41 @@ pub(super) mod avx {
     }
 }
 
-/// Takes entries off `stack` (of `len` entries) until one the ray may still enter within `tmax`, and returns its lane
-/// reference; `None` when there is none.
+/// Takes entries off `stack` (of `len` entries) until one the ray may still enter within `tmax`, and returns its
+/// lane's index and count; `None` when there is none.
 #[inline(always)]
-pub(super) fn pop(stack: &[StackEntry], len: &mut usize, tmax: f32) -> Option<u32> {
+pub(super) fn pop(stack: &[StackEntry], len: &mut usize, tmax: f32) -> Option<(u32, u32)> {
     while *len > 0 {
         *len -= 1;
         // SAFETY: below the entries pushed.
-        let (lane_ref, near) = unsafe { *stack.get_unchecked(*len) };
+        let StackEntry { index, count, near } = unsafe { *stack.get_unchecked(*len) };
         if near <= tmax {
-            return Some(lane_ref);
+            return Some((index, count));
         }
     }
     None
 }
 
-/// Pushes the entered lanes of `node` but one on the stack and returns that one, the lane visited next: `by_distance`,
-/// the nearest (the others pushed farthest first); otherwise the first in lane order (the others pushed so that the
-/// next lane is on top), which costs no sort.
+/// Pushes the entered lanes of `owner` but one on the stack and returns that one's index and count, the lane visited
+/// next: `by_distance`, the nearest (the others pushed farthest first); otherwise the first in lane order (the others
+/// pushed so that the next lane is on top), which costs no sort.
 ///
 /// # Safety
 /// `stack` must have room for `WIDTH − 1` entries from `*len` on.
 #[inline(always)]
 unsafe fn visit_order(
-    node: usize,
+    owner: &WideNode,
     entered: u32,
     near: &[f32; WIDTH],
     stack: &mut [StackEntry],
     len: &mut usize,
     by_distance: bool,
-) -> Option<u32> {
-    let lane_ref = |lane: u32| (node * WIDTH) as u32 + lane;
-    let mut push = |lane: u32, distance: f32| {
+) -> Option<(u32, u32)> {
+    let index_and_count = |lane: u32| (owner.index[lane as usize], owner.count[lane as usize]);
+    let mut push = |lane: u32, near: f32| {
+        let (index, count) = index_and_count(lane);
         // SAFETY: at most `WIDTH − 1` entries are pushed a call, and there is room for them (the contract).
-        unsafe { *stack.get_unchecked_mut(*len) = (lane_ref(lane), distance) };
+        unsafe { *stack.get_unchecked_mut(*len) = StackEntry { index, count, near } };
         *len += 1;
     };
     let first = entered.trailing_zeros();
@@ -451,7 +444,7 @@ unsafe fn visit_order(
     if entered == 0 {
         None
     } else if rest == 0 {
-        Some(lane_ref(first))
+        Some(index_and_count(first))
     } else if !by_distance {
         let mut rest = rest;
         while rest != 0 {
@@ -459,14 +452,14 @@ unsafe fn visit_order(
             rest &= !(1 << lane);
             push(lane, near[lane as usize]);
         }
-        Some(lane_ref(first))
+        Some(index_and_count(first))
     } else if rest & rest.wrapping_sub(1) == 0 {
         // Two lanes: the farther waits (the first in lane order when they are equally far, as the sort below does).
         let second = rest.trailing_zeros();
         let (d0, d1) = (near[first as usize], near[second as usize]);
         let (nearer, farther) = if d1 < d0 { (second, first) } else { (first, second) };
         push(farther, near[farther as usize]);
-        Some(lane_ref(nearer))
+        Some(index_and_count(nearer))
     } else {
         let mut order = [(0f32, 0u32); WIDTH];
         let mut count = 0;
@@ -487,7 +480,7 @@ unsafe fn visit_order(
         for &(d, lane) in order[1..count].iter().rev() {
             push(lane, d);
         }
-        Some(lane_ref(order[0].1))
+        Some(index_and_count(order[0].1))
     }
 }
 

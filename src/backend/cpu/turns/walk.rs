@@ -138,8 +138,8 @@ impl WideBvh {
                                 &mut boxes,
                             )
                         };
-                        if let Some(lane_ref) = next {
-                            (index, count) = self.lane(lane_ref);
+                        if let Some(lane) = next {
+                            (index, count) = lane;
                             break true;
                         }
                     } else {
@@ -149,7 +149,7 @@ impl WideBvh {
                         tmax = collector.cull_tmax();
                     }
                     match pop(stack, &mut len, tmax) {
-                        Some(lane_ref) => (index, count) = self.lane(lane_ref),
+                        Some(lane) => (index, count) = lane,
                         None => break false,
                     }
                 };
