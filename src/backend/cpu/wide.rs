@@ -3,9 +3,11 @@
 //! The lane loops are written so that the compiler turns them into SIMD: 8 lanes in one AVX2 register where the CPU
 //! has AVX2 (detected at run time), two SSE registers otherwise.
 //!
-//! The box test is [`crate::intersect::aabb::intersect`] lane by lane: same operations in the same order, the same
-//! NaN rule (a NaN slab distance leaves the interval as it was) and the same [`SLACK`], so a lane is entered exactly
-//! when the binary BVH would enter that node. Children are visited nearest first for closest-hit queries (which prune
+//! The box test is [`crate::intersect::aabb::intersect`]'s slab test lane by lane, with the same NaN rule (a NaN slab
+//! distance leaves the interval as it was) and the same relative widening by [`SLACK`], which a ray that starts at or
+//! after its origin (`tmin ≥ 0`) takes in its reciprocals once a walk instead of at every node ([`SlabRay`]). Both
+//! tests are conservative, so which lanes a ray enters may differ from the binary walk's in the last bits of a
+//! distance, never in a hit. Children are visited nearest first for closest-hit queries (which prune
 //! by their nearest hit) and in lane order for the others (which must see every hit, or stop at any); which
 //! triangles a ray can hit, and so every query's answer but which hit an `any` query stops at, does not depend on the
 //! order.
@@ -152,7 +154,8 @@ impl WideBvh {
             unsafe { self.walk_avx2(stack, ray, collector, stats, leaf, prefetch_leaf) };
             return;
         }
-        let enter = |node: &WideNode, tmax: f32| enter_lanes(node, ray, tmax);
+        let slab = SlabRay::new(ray);
+        let enter = |node: &WideNode, tmax: f32| enter_lanes(node, &slab, tmax);
         self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
     }
 
@@ -300,28 +303,87 @@ pub(super) fn prefetch<const LINES: usize>(start: *const impl Sized) {
 #[inline(always)]
 pub(super) fn prefetch<const LINES: usize>(_start: *const impl Sized) {}
 
-/// Which lanes of `node` the ray enters within `[ray.tmin, tmax]` (bit per lane), and at what distance.
+/// `1 − SLACK` and `1 + SLACK`: the factors a near and a far distance are shrunk and grown by where [`SlabRay`] folds
+/// the slack into a ray's reciprocals.
+const SHRINK: f32 = 1.0 - SLACK;
+const GROW: f32 = 1.0 + SLACK;
+
+/// A ray as the wide box test takes it, prepared once a walk.
+///
+/// A ray with `tmin ≥ 0` has the slack folded into its reciprocals: near planes' distances are taken with
+/// `(1/d)·(1 − SLACK)`, far planes' with `(1/d)·(1 + SLACK)`, the interval starts from `tmin·(1 − SLACK)` and
+/// `tmax·(1 + SLACK)`, and a node visit widens nothing (six operations fewer on the walk's dependent chain). That stays
+/// conservative: a near distance decides the entry only when it is ≥ `tmin` ≥ 0, where shrinking lowers it (a
+/// negative one stays below `tmin`'s); a negative far distance puts the box behind the origin, out of reach either
+/// way; and the subtraction, the reciprocal, the folded factor and the product round by at most 4 units of 2⁻²⁴
+/// (relative) in all, against the slack's 16–17: a margin of about 12 at either end, as the per-node form leaves,
+/// which must cover the triangle test's `t` so that ties reach the tie rule. Other rays (`tmin` < 0 or NaN) are
+/// widened at every node as [`crate::intersect::aabb::intersect`] does.
+#[derive(Debug, Clone, Copy)]
+struct SlabRay {
+    /// Origin, by axis.
+    origin: [f32; 3],
+    /// Per axis, the reciprocals the near and the far planes' distances are taken with.
+    inv_direction: [(f32, f32); 3],
+    /// Per axis, whether the direction is negative: whether the box's maxima are the near planes.
+    negative: [bool; 3],
+    /// Where a node's interval starts: `tmin`, shrunk when the slack is in the reciprocals.
+    near_start: f32,
+    /// What `tmax` is multiplied by where a node's interval ends before its planes cut it: 1, or `1 + SLACK` when the
+    /// slack is in the reciprocals.
+    far_factor: f32,
+    /// Whether the slack is applied at every node instead of in the reciprocals.
+    slack_at_nodes: bool,
+}
+
+impl SlabRay {
+    /// `ray`'s numbers for the box test.
+    #[inline(always)]
+    fn new(ray: &PreparedRay) -> SlabRay {
+        // `tmin` NaN widens at every node too.
+        let slack_in_reciprocals = ray.tmin >= 0.0;
+        let (shrink, grow) = if slack_in_reciprocals { (SHRINK, GROW) } else { (1.0, 1.0) };
+        let inv = ray.inv_direction;
+        SlabRay {
+            origin: ray.origin.into(),
+            inv_direction: [
+                (inv.x * shrink, inv.x * grow),
+                (inv.y * shrink, inv.y * grow),
+                (inv.z * shrink, inv.z * grow),
+            ],
+            negative: ray.negative,
+            near_start: ray.tmin * shrink,
+            far_factor: grow,
+            slack_at_nodes: !slack_in_reciprocals,
+        }
+    }
+}
+
+/// Which lanes of `node` the ray enters within `[tmin, tmax]` (bit per lane), and at what distance.
 #[inline(always)]
-fn enter_lanes(node: &WideNode, ray: &PreparedRay, tmax: f32) -> (u32, [f32; WIDTH]) {
-    let mut near = [ray.tmin; WIDTH];
-    let mut far = [tmax; WIDTH];
+fn enter_lanes(node: &WideNode, ray: &SlabRay, tmax: f32) -> (u32, [f32; WIDTH]) {
+    let mut near = [ray.near_start; WIDTH];
+    let mut far = [tmax * ray.far_factor; WIDTH];
     for axis in 0..3 {
         let (lo, hi) =
             if ray.negative[axis] { (&node.hi[axis], &node.lo[axis]) } else { (&node.lo[axis], &node.hi[axis]) };
-        let (origin, inv) = (ray.origin[axis], ray.inv_direction[axis]);
+        let (origin, (inv_near, inv_far)) = (ray.origin[axis], ray.inv_direction[axis]);
         for lane in 0..WIDTH {
             // `a > b ? a : b` keeps `b` when `a` is NaN, as `f32::max` does in the scalar test.
-            let t0 = (lo[lane] - origin) * inv;
+            let t0 = (lo[lane] - origin) * inv_near;
             near[lane] = if t0 > near[lane] { t0 } else { near[lane] };
-            let t1 = (hi[lane] - origin) * inv;
+            let t1 = (hi[lane] - origin) * inv_far;
             far[lane] = if t1 < far[lane] { t1 } else { far[lane] };
+        }
+    }
+    if ray.slack_at_nodes {
+        for lane in 0..WIDTH {
+            (near[lane], far[lane]) = (near[lane] - near[lane].abs() * SLACK, far[lane] + far[lane].abs() * SLACK);
         }
     }
     let mut entered = 0u32;
     for lane in 0..WIDTH {
-        let (n, f) = (near[lane] - near[lane].abs() * SLACK, far[lane] + far[lane].abs() * SLACK);
-        near[lane] = n;
-        entered |= u32::from(n <= f) << lane;
+        entered |= u32::from(near[lane] <= far[lane]) << lane;
     }
     (entered, near)
 }
@@ -334,21 +396,25 @@ pub(super) mod avx {
     use std::arch::x86_64::*;
     use std::mem::offset_of;
 
-    use super::{SLACK, WIDTH, WideNode};
+    use super::{SLACK, SlabRay, WIDTH, WideNode};
     use crate::intersect::PreparedRay;
 
-    /// A ray's numbers spread over the lanes once a walk.
+    /// A ray's numbers ([`SlabRay`]'s) spread over the lanes once a walk.
     pub(in crate::backend::cpu) struct RayLanes {
         /// Origin, by axis.
         origin: [__m256; 3],
-        /// `1/direction`, by axis.
-        inv_direction: [__m256; 3],
+        /// Per axis, the reciprocals the near and the far planes' distances are taken with.
+        inv_direction: [(__m256, __m256); 3],
         /// Per axis, where in a node the row of the planes the ray meets first lies, and the row of those it meets
         /// last (byte offsets: the minima's row when the direction is positive, the maxima's when negative), chosen
         /// once a walk instead of at every node.
         rows: [(usize, usize); 3],
-        /// `tmin`.
-        tmin: __m256,
+        /// Where a node's interval starts.
+        near_start: __m256,
+        /// What `tmax` is multiplied by where a node's interval ends before its planes cut it.
+        far_factor: f32,
+        /// Whether the slack is applied at every node.
+        slack_at_nodes: bool,
     }
 
     impl RayLanes {
@@ -356,18 +422,26 @@ pub(super) mod avx {
         /// The CPU must have AVX.
         #[inline(always)]
         pub(in crate::backend::cpu) unsafe fn new(ray: &PreparedRay) -> RayLanes {
+            let slab = SlabRay::new(ray);
             // SAFETY: the CPU has AVX (the caller's contract).
             unsafe {
-                RayLanes {
-                    origin: std::array::from_fn(|axis| _mm256_set1_ps(ray.origin[axis])),
-                    inv_direction: std::array::from_fn(|axis| _mm256_set1_ps(ray.inv_direction[axis])),
-                    rows: std::array::from_fn(|axis| {
-                        let (lo, hi) =
-                            (offset_of!(WideNode, lo) + 4 * WIDTH * axis, offset_of!(WideNode, hi) + 4 * WIDTH * axis);
-                        if ray.negative[axis] { (hi, lo) } else { (lo, hi) }
-                    }),
-                    tmin: _mm256_set1_ps(ray.tmin),
+                let mut lanes = RayLanes {
+                    origin: [_mm256_setzero_ps(); 3],
+                    inv_direction: [(_mm256_setzero_ps(), _mm256_setzero_ps()); 3],
+                    rows: [(0, 0); 3],
+                    near_start: _mm256_set1_ps(slab.near_start),
+                    far_factor: slab.far_factor,
+                    slack_at_nodes: slab.slack_at_nodes,
+                };
+                for axis in 0..3 {
+                    let (inv_near, inv_far) = slab.inv_direction[axis];
+                    lanes.origin[axis] = _mm256_set1_ps(slab.origin[axis]);
+                    lanes.inv_direction[axis] = (_mm256_set1_ps(inv_near), _mm256_set1_ps(inv_far));
+                    let (lo, hi) =
+                        (offset_of!(WideNode, lo) + 4 * WIDTH * axis, offset_of!(WideNode, hi) + 4 * WIDTH * axis);
+                    lanes.rows[axis] = if slab.negative[axis] { (hi, lo) } else { (lo, hi) };
                 }
+                lanes
             }
         }
 
@@ -380,19 +454,21 @@ pub(super) mod avx {
             // SAFETY: the CPU has AVX (the caller's contract); the loads read whole rows of the node (32-byte aligned:
             // the node is aligned to 64 and its rows are 32 bytes long).
             unsafe {
-                let (mut near, mut far) = (self.tmin, _mm256_set1_ps(tmax));
+                let (mut near, mut far) = (self.near_start, _mm256_set1_ps(tmax * self.far_factor));
                 let row = |offset: usize| (node as *const WideNode).cast::<u8>().add(offset).cast::<f32>();
                 for axis in 0..3 {
                     let (first, last) = self.rows[axis];
-                    let (origin, inv) = (self.origin[axis], self.inv_direction[axis]);
-                    let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_load_ps(row(first)), origin), inv);
+                    let (origin, (inv_near, inv_far)) = (self.origin[axis], self.inv_direction[axis]);
+                    let t0 = _mm256_mul_ps(_mm256_sub_ps(_mm256_load_ps(row(first)), origin), inv_near);
                     near = _mm256_max_ps(t0, near);
-                    let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_load_ps(row(last)), origin), inv);
+                    let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_load_ps(row(last)), origin), inv_far);
                     far = _mm256_min_ps(t1, far);
                 }
-                let (slack, magnitude) = (_mm256_set1_ps(SLACK), _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
-                let near = _mm256_sub_ps(near, _mm256_mul_ps(_mm256_and_ps(near, magnitude), slack));
-                let far = _mm256_add_ps(far, _mm256_mul_ps(_mm256_and_ps(far, magnitude), slack));
+                if self.slack_at_nodes {
+                    let (slack, magnitude) = (_mm256_set1_ps(SLACK), _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
+                    near = _mm256_sub_ps(near, _mm256_mul_ps(_mm256_and_ps(near, magnitude), slack));
+                    far = _mm256_add_ps(far, _mm256_mul_ps(_mm256_and_ps(far, magnitude), slack));
+                }
                 let entered = _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(near, far)) as u32;
                 let mut distances = [0.0; WIDTH];
                 _mm256_storeu_ps(distances.as_mut_ptr(), near);
@@ -506,6 +582,15 @@ mod tests {
         ]
     }
 
+    /// A node whose lanes' minima and then maxima (by axis, then lane) are `bounds`.
+    fn node_with_bounds(bounds: &[f32]) -> WideNode {
+        let mut node = WideNode::EMPTY;
+        for (value, bound) in bounds.iter().zip(node.lo.iter_mut().chain(&mut node.hi).flatten()) {
+            *bound = *value;
+        }
+        node
+    }
+
     proptest! {
         #[test]
         fn the_avx_box_test_is_the_portable_one_bit_for_bit(
@@ -516,18 +601,137 @@ mod tests {
         ) {
             #[cfg(target_arch = "x86_64")]
             if std::arch::is_x86_feature_detected!("avx") {
-                let mut node = WideNode::EMPTY;
-                for (value, bound) in bounds.iter().zip(node.lo.iter_mut().chain(&mut node.hi).flatten()) {
-                    *bound = *value;
-                }
+                let node = node_with_bounds(&bounds);
                 let ray = Ray { origin: origin.into(), direction: direction.into(), tmin, tmax, ..Ray::default() };
                 let ray = PreparedRay::new(&ray, RayFlags::empty());
-                let (entered, near) = enter_lanes(&node, &ray, tmax);
+                let (entered, near) = enter_lanes(&node, &SlabRay::new(&ray), tmax);
                 // SAFETY: the CPU has AVX, as just checked.
                 let (avx_entered, avx_near) = unsafe { avx::RayLanes::new(&ray).enter(&node, tmax) };
                 prop_assert_eq!(entered, avx_entered);
                 prop_assert_eq!(near.map(f32::to_bits), avx_near.map(f32::to_bits));
             }
+        }
+    }
+
+    /// Finite ray coordinates: ordinary, zeros of both signs, tiny.
+    fn finite_coordinate() -> impl Strategy<Value = f32> {
+        prop_oneof![6 => -10.0f32..10.0, 1 => Just(0.0f32), 1 => Just(-0.0f32), 1 => Just(1e-39f32)]
+    }
+
+    /// Direction components whose reciprocals `f32` holds (a subnormal one's overflows, and the ray then takes it as
+    /// zero), zeros of both signs included.
+    fn direction_component() -> impl Strategy<Value = f32> {
+        prop_oneof![
+            6 => (-10.0f32..10.0).prop_map(|d| if d.abs() < 1e-30 { 0.0 } else { d }),
+            1 => Just(0.0f32),
+            1 => Just(-0.0f32),
+            1 => prop_oneof![Just(1e-20f32), Just(-1e-20f32)],
+        ]
+    }
+
+    /// The relative margin by which the box test must widen a box's exact interval at either end, beyond its own
+    /// rounding: what covers the rounding of the triangle test's `t`, so that a hit at a box's entry distance is
+    /// still reached with `tmax` at that distance (ties).
+    const MARGIN: f64 = 8.0 / (1u32 << 24) as f64;
+
+    /// `x` moved by [`MARGIN`] of itself towards −∞ (`direction` −1) or +∞ (1); infinities stay.
+    fn widened(x: f64, direction: f64) -> f64 {
+        if x.is_finite() { x + direction * x.abs() * MARGIN } else { x }
+    }
+
+    /// What the checks allow for the rounding of subnormal distances, which is absolute: the smallest normal `f32`.
+    const SUBNORMAL_ROUNDING: f64 = f32::MIN_POSITIVE as f64;
+
+    /// The interval the ray spends in each lane's box within `[tmin, tmax]`, in `f64` (the slab test's own rounding,
+    /// 2⁻⁵³ relative, is far below [`MARGIN`]) with the ray's conventions: a zero direction component's reciprocal is
+    /// +∞, a NaN distance leaves the interval as it was.
+    fn exact_intervals(node: &WideNode, ray: &PreparedRay, tmax: f32) -> [(f64, f64); WIDTH] {
+        std::array::from_fn(|lane| {
+            let (mut near, mut far) = (ray.tmin as f64, tmax as f64);
+            for axis in 0..3 {
+                let d = ray.direction[axis] as f64;
+                let inv = if d == 0.0 { f64::INFINITY } else { 1.0 / d };
+                let (lo, hi) = (node.lo[axis][lane] as f64, node.hi[axis][lane] as f64);
+                let (first, last) = if ray.negative[axis] { (hi, lo) } else { (lo, hi) };
+                let o = ray.origin[axis] as f64;
+                let (t0, t1) = ((first - o) * inv, (last - o) * inv);
+                near = if t0 > near { t0 } else { near };
+                far = if t1 < far { t1 } else { far };
+            }
+            (near, far)
+        })
+    }
+
+    /// Checks that the box test enters every lane whose exact interval, widened by [`MARGIN`], is not empty and starts
+    /// within `f32`'s range (one that starts beyond it holds no hit: neither one past `f32::MAX` nor one at +∞, where a
+    /// ray with a zero direction component meets a slab off its origin), at a distance no farther than the widened
+    /// interval's start.
+    fn check_conservative(node: &WideNode, ray: &PreparedRay, tmax: f32) -> Result<(), TestCaseError> {
+        let (entered, near) = enter_lanes(node, &SlabRay::new(ray), tmax);
+        for (lane, (exact_near, exact_far)) in exact_intervals(node, ray, tmax).into_iter().enumerate() {
+            let (near_bound, far_bound) = (widened(exact_near, -1.0), widened(exact_far, 1.0));
+            if exact_near <= f32::MAX as f64 && near_bound + SUBNORMAL_ROUNDING <= far_bound - SUBNORMAL_ROUNDING {
+                prop_assert!(entered & 1 << lane != 0, "lane {lane} ({exact_near} ..= {exact_far}) not entered");
+                prop_assert!(
+                    near[lane] as f64 <= near_bound + SUBNORMAL_ROUNDING,
+                    "lane {lane} entered at {} beyond {near_bound} (exact {exact_near})",
+                    near[lane]
+                );
+            }
+        }
+        Ok(())
+    }
+
+    proptest! {
+        #[test]
+        fn the_box_test_enters_every_box_the_ray_meets_with_a_margin(
+            bounds in proptest::collection::vec(coordinate(), 2 * 3 * WIDTH),
+            origin in proptest::array::uniform3(finite_coordinate()),
+            direction in proptest::array::uniform3(direction_component()),
+            tmin in prop_oneof![2 => Just(0.0f32), 1 => Just(-0.0f32), 2 => 0.0f32..10.0, 2 => -10.0f32..0.0],
+            tmax in prop_oneof![3 => -1.0f32..20.0, 1 => Just(f32::INFINITY)],
+        ) {
+            let node = node_with_bounds(&bounds);
+            let ray = Ray { origin: origin.into(), direction: direction.into(), tmin, tmax, ..Ray::default() };
+            let ray = PreparedRay::new(&ray, RayFlags::empty());
+            check_conservative(&node, &ray, tmax)?;
+            // The ties: `tmax` at each lane's exact entry distance, as after a hit there, must still enter it.
+            for (exact_near, _) in exact_intervals(&node, &ray, tmax) {
+                if exact_near.is_finite() {
+                    check_conservative(&node, &ray, exact_near as f32)?;
+                }
+            }
+        }
+    }
+
+    proptest! {
+        /// Boxes the ray grazes: it leaves them through one axis's last plane where it enters through another's first
+        /// (up to the planes' rounding), or passes them by less than the two ends' margins (`gap`, in units of 2⁻²⁴
+        /// relative), so that only the test's widening keeps it from culling them.
+        #[test]
+        fn the_box_test_enters_boxes_the_ray_grazes(
+            origin in proptest::array::uniform3(-10.0f32..10.0),
+            direction in proptest::array::uniform3(prop_oneof![-10.0f32..-0.01, 0.01f32..10.0]),
+            t in 0.01f32..10.0,
+            gap in 0.0f32..15.0,
+            (entry_axis, exit_axis) in (0..3usize, 1..3usize).prop_map(|(a, step)| (a, (a + step) % 3)),
+            tmin in prop_oneof![Just(0.0f32), Just(-1.0f32)],
+        ) {
+            let ray = Ray { origin: origin.into(), direction: direction.into(), tmin, ..Ray::default() };
+            let ray = PreparedRay::new(&ray, RayFlags::empty());
+            let mut node = WideNode::EMPTY;
+            for axis in 0..3 {
+                let (mut first, mut last) = (-1e3 * direction[axis].signum(), 1e3 * direction[axis].signum());
+                if axis == entry_axis {
+                    first = origin[axis] + t * direction[axis];
+                }
+                if axis == exit_axis {
+                    last = origin[axis] + t * (1.0 - gap * f32::EPSILON / 2.0) * direction[axis];
+                }
+                (node.lo[axis][0], node.hi[axis][0]) = if ray.negative[axis] { (last, first) } else { (first, last) };
+            }
+            check_conservative(&node, &ray, f32::INFINITY)?;
+            check_conservative(&node, &ray, t)?;
         }
     }
 
