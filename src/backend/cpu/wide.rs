@@ -175,10 +175,16 @@ impl WideBvh {
         leaf: impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
         prefetch_leaf: impl Fn(Range<usize>),
     ) {
-        // SAFETY (both): the CPU has AVX2 (this function's contract), so AVX too.
+        // SAFETY (all three): the CPU has AVX2 (this function's contract), so AVX too.
         let lanes = unsafe { avx::RayLanes::new(ray) };
-        let enter = |node: &WideNode, tmax: f32| unsafe { lanes.enter(node, tmax) };
-        self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
+        // One walk for each place of the slack, so that the node visits of the common one (`tmin ≥ 0`) do not ask.
+        if lanes.slack_at_nodes() {
+            let enter = |node: &WideNode, tmax: f32| unsafe { lanes.enter_with::<true>(node, tmax) };
+            self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
+        } else {
+            let enter = |node: &WideNode, tmax: f32| unsafe { lanes.enter_with::<false>(node, tmax) };
+            self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
+        }
     }
 
     /// The walk itself, for whatever instruction set it is compiled with, with `enter` as the box test of a node's
@@ -396,7 +402,7 @@ pub(super) mod avx {
     use std::arch::x86_64::*;
     use std::mem::offset_of;
 
-    use super::{SLACK, SlabRay, WIDTH, WideNode};
+    use super::{GROW, SLACK, SlabRay, WIDTH, WideNode};
     use crate::intersect::PreparedRay;
 
     /// A ray's numbers ([`SlabRay`]'s) spread over the lanes once a walk.
@@ -411,8 +417,6 @@ pub(super) mod avx {
         rows: [(usize, usize); 3],
         /// Where a node's interval starts.
         near_start: __m256,
-        /// What `tmax` is multiplied by where a node's interval ends before its planes cut it.
-        far_factor: f32,
         /// Whether the slack is applied at every node.
         slack_at_nodes: bool,
     }
@@ -425,24 +429,27 @@ pub(super) mod avx {
             let slab = SlabRay::new(ray);
             // SAFETY: the CPU has AVX (the caller's contract).
             unsafe {
-                let mut lanes = RayLanes {
-                    origin: [_mm256_setzero_ps(); 3],
-                    inv_direction: [(_mm256_setzero_ps(), _mm256_setzero_ps()); 3],
-                    rows: [(0, 0); 3],
+                RayLanes {
+                    origin: std::array::from_fn(|axis| _mm256_set1_ps(slab.origin[axis])),
+                    inv_direction: std::array::from_fn(|axis| {
+                        let (inv_near, inv_far) = slab.inv_direction[axis];
+                        (_mm256_set1_ps(inv_near), _mm256_set1_ps(inv_far))
+                    }),
+                    rows: std::array::from_fn(|axis| {
+                        let (lo, hi) =
+                            (offset_of!(WideNode, lo) + 4 * WIDTH * axis, offset_of!(WideNode, hi) + 4 * WIDTH * axis);
+                        if slab.negative[axis] { (hi, lo) } else { (lo, hi) }
+                    }),
                     near_start: _mm256_set1_ps(slab.near_start),
-                    far_factor: slab.far_factor,
                     slack_at_nodes: slab.slack_at_nodes,
-                };
-                for axis in 0..3 {
-                    let (inv_near, inv_far) = slab.inv_direction[axis];
-                    lanes.origin[axis] = _mm256_set1_ps(slab.origin[axis]);
-                    lanes.inv_direction[axis] = (_mm256_set1_ps(inv_near), _mm256_set1_ps(inv_far));
-                    let (lo, hi) =
-                        (offset_of!(WideNode, lo) + 4 * WIDTH * axis, offset_of!(WideNode, hi) + 4 * WIDTH * axis);
-                    lanes.rows[axis] = if slab.negative[axis] { (hi, lo) } else { (lo, hi) };
                 }
-                lanes
             }
+        }
+
+        /// Whether the slack is applied at every node (the ray's `tmin` is negative or NaN).
+        #[inline(always)]
+        pub(in crate::backend::cpu) fn slack_at_nodes(&self) -> bool {
+            self.slack_at_nodes
         }
 
         /// Which lanes of `node` the ray enters within `[tmin, tmax]` (bit per lane), and at what distance.
@@ -451,10 +458,32 @@ pub(super) mod avx {
         /// The CPU must have AVX.
         #[inline(always)]
         pub(in crate::backend::cpu) unsafe fn enter(&self, node: &WideNode, tmax: f32) -> (u32, [f32; WIDTH]) {
+            // SAFETY: the CPU has AVX (the caller's contract).
+            unsafe {
+                match self.slack_at_nodes {
+                    true => self.enter_with::<true>(node, tmax),
+                    false => self.enter_with::<false>(node, tmax),
+                }
+            }
+        }
+
+        /// [`RayLanes::enter`] for a walk that knows where its slack is (`SLACK_AT_NODES`, which must be
+        /// [`RayLanes::slack_at_nodes`]), so that its node visits do not ask.
+        ///
+        /// # Safety
+        /// The CPU must have AVX.
+        #[inline(always)]
+        pub(in crate::backend::cpu) unsafe fn enter_with<const SLACK_AT_NODES: bool>(
+            &self,
+            node: &WideNode,
+            tmax: f32,
+        ) -> (u32, [f32; WIDTH]) {
+            debug_assert_eq!(SLACK_AT_NODES, self.slack_at_nodes);
             // SAFETY: the CPU has AVX (the caller's contract); the loads read whole rows of the node (32-byte aligned:
             // the node is aligned to 64 and its rows are 32 bytes long).
             unsafe {
-                let (mut near, mut far) = (self.near_start, _mm256_set1_ps(tmax * self.far_factor));
+                let far_start = if SLACK_AT_NODES { tmax } else { tmax * GROW };
+                let (mut near, mut far) = (self.near_start, _mm256_set1_ps(far_start));
                 let row = |offset: usize| (node as *const WideNode).cast::<u8>().add(offset).cast::<f32>();
                 for axis in 0..3 {
                     let (first, last) = self.rows[axis];
@@ -464,7 +493,7 @@ pub(super) mod avx {
                     let t1 = _mm256_mul_ps(_mm256_sub_ps(_mm256_load_ps(row(last)), origin), inv_far);
                     far = _mm256_min_ps(t1, far);
                 }
-                if self.slack_at_nodes {
+                if SLACK_AT_NODES {
                     let (slack, magnitude) = (_mm256_set1_ps(SLACK), _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX)));
                     near = _mm256_sub_ps(near, _mm256_mul_ps(_mm256_and_ps(near, magnitude), slack));
                     far = _mm256_add_ps(far, _mm256_mul_ps(_mm256_and_ps(far, magnitude), slack));
