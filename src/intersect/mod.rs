@@ -76,8 +76,9 @@ impl PreparedRay {
         };
         let axes = d.to_array();
         let (kx, ky) = if axes[kz] < 0.0 { (y, x) } else { (x, y) };
-        let shear = Vec3A::new(axes[kx] / axes[kz], axes[ky] / axes[kz], 1.0 / axes[kz]);
-        let inv = |c: f32| if c == 0.0 { f32::INFINITY } else { 1.0 / c };
+        // One division of three lanes each (the same quotients as three scalar ones).
+        let shear = Vec3A::new(axes[kx], axes[ky], 1.0) / Vec3A::splat(axes[kz]);
+        let inv_direction = Vec3A::select(d.cmpeq(Vec3A::ZERO), Vec3A::INFINITY, Vec3A::ONE / d);
         PreparedRay {
             origin: ray.origin,
             direction: d,
@@ -91,7 +92,7 @@ impl PreparedRay {
             kx,
             ky,
             shear,
-            inv_direction: Vec3A::new(inv(d.x), inv(d.y), inv(d.z)),
+            inv_direction,
             negative: [d.x < 0.0, d.y < 0.0, d.z < 0.0],
         }
     }
