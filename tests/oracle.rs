@@ -139,6 +139,41 @@ fn any_reports_a_real_hit_and_query_flags_apply_to_every_ray() {
     }
 }
 
+/// Rays whose range reaches behind their origin (a negative `tmin`; some with a negative `tmax` too, so only behind)
+/// and rays starting at `tmin` −0: the box test widens their intervals at every node where rays with `tmin ≥ 0` carry
+/// the widening in their reciprocals, and both must give the oracle's bytes.
+#[test]
+fn ranges_reaching_behind_the_origin_give_the_oracles_bytes() {
+    let scene = Scene::new(300, 31);
+    let mut rays = rays_without_early_exit(600, 32);
+    for (i, ray) in rays.iter_mut().enumerate() {
+        // The rays head for the soup: turned around, they find it behind them.
+        match i % 4 {
+            0 => (ray.direction, ray.tmin) = (-ray.direction, -3.0),
+            1 => (ray.direction, ray.tmin, ray.tmax) = (-ray.direction, -3.0, -0.25),
+            2 => ray.tmin = -0.0,
+            _ => {}
+        }
+    }
+    let rays = pack_rays(&rays, RayFormat::OriginTminDirectionTmax);
+    for kind in QueryKind::ALL {
+        let hit_format = if kind == QueryKind::Any { HitFormat::Bitmask } else { HitFormat::TTriid };
+        let query =
+            Query { kind, max_hits_per_ray: 3, ..Query::closest(RayFormat::OriginTminDirectionTmax, hit_format) };
+        let [cpu_hits, cpu_counts, oracle_hits, oracle_counts] =
+            trace_both(&scene, BuildOptions::default(), &query, &rays);
+        assert_eq!(cpu_counts, oracle_counts, "{}: counts", kind.name());
+        assert_eq!(cpu_hits, oracle_hits, "{}: hits", kind.name());
+        if kind == QueryKind::Closest {
+            // Hits behind the origin are there: closest hits at negative distances.
+            let behind = (0..600)
+                .filter(|&r| common::f32_at(&cpu_hits, 2 * r) < 0.0 && u32_at(&cpu_hits, 2 * r + 1) != u32::MAX);
+            let behind = behind.count();
+            assert!(behind > 60, "{behind} hits behind their origins");
+        }
+    }
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 48, ..ProptestConfig::default() })]
 
