@@ -335,9 +335,6 @@ struct SlabRay {
     negative: [bool; 3],
     /// Where a node's interval starts: `tmin`, shrunk when the slack is in the reciprocals.
     near_start: f32,
-    /// What `tmax` is multiplied by where a node's interval ends before its planes cut it: 1, or `1 + SLACK` when the
-    /// slack is in the reciprocals.
-    far_factor: f32,
     /// Whether the slack is applied at every node instead of in the reciprocals.
     slack_at_nodes: bool,
 }
@@ -359,17 +356,22 @@ impl SlabRay {
             ],
             negative: ray.negative,
             near_start: ray.tmin * shrink,
-            far_factor: grow,
             slack_at_nodes: !slack_in_reciprocals,
         }
     }
+}
+
+/// Where a node's interval ends before its planes cut it: `tmax`, grown when the slack is in the reciprocals.
+#[inline(always)]
+fn far_start(slack_at_nodes: bool, tmax: f32) -> f32 {
+    if slack_at_nodes { tmax } else { tmax * GROW }
 }
 
 /// Which lanes of `node` the ray enters within `[tmin, tmax]` (bit per lane), and at what distance.
 #[inline(always)]
 fn enter_lanes(node: &WideNode, ray: &SlabRay, tmax: f32) -> (u32, [f32; WIDTH]) {
     let mut near = [ray.near_start; WIDTH];
-    let mut far = [tmax * ray.far_factor; WIDTH];
+    let mut far = [far_start(ray.slack_at_nodes, tmax); WIDTH];
     for axis in 0..3 {
         let (lo, hi) =
             if ray.negative[axis] { (&node.hi[axis], &node.lo[axis]) } else { (&node.lo[axis], &node.hi[axis]) };
@@ -402,7 +404,7 @@ pub(super) mod avx {
     use std::arch::x86_64::*;
     use std::mem::offset_of;
 
-    use super::{GROW, SLACK, SlabRay, WIDTH, WideNode};
+    use super::{SLACK, SlabRay, WIDTH, WideNode, far_start};
     use crate::intersect::PreparedRay;
 
     /// A ray's numbers ([`SlabRay`]'s) spread over the lanes once a walk.
@@ -482,8 +484,7 @@ pub(super) mod avx {
             // SAFETY: the CPU has AVX (the caller's contract); the loads read whole rows of the node (32-byte aligned:
             // the node is aligned to 64 and its rows are 32 bytes long).
             unsafe {
-                let far_start = if SLACK_AT_NODES { tmax } else { tmax * GROW };
-                let (mut near, mut far) = (self.near_start, _mm256_set1_ps(far_start));
+                let (mut near, mut far) = (self.near_start, _mm256_set1_ps(far_start(SLACK_AT_NODES, tmax)));
                 let row = |offset: usize| (node as *const WideNode).cast::<u8>().add(offset).cast::<f32>();
                 for axis in 0..3 {
                     let (first, last) = self.rows[axis];
