@@ -16,7 +16,9 @@ default) and with RAYON_NUM_THREADS=1, and the 1-thread figures are the like-for
 medians of --repeat runs and exclude scene builds, which are reported apart (Embree builds with all its TBB
 threads). The 1-thread timings run in --rounds rounds, rayd then Embree in each, for closest and any hit; the ratio
 reported is the median of the rounds' ratios, with their range, so that a machine whose speed drifts (a shared
-host) biases neither side. rayd's `any` answers are checked against Embree's occlusion ray by ray (hit or miss).
+host) biases neither side. rayd's `any` query writes the `bitmask` hit format, one bit a ray (hit or miss: what
+Embree's occlusion query answers; until 2026-11-27 it wrote 16-byte `t_triid_u_v` records, 2–5% slower on camera
+rays), and its answers are checked against Embree's occlusion ray by ray.
 
 Embree from C: embreex's loop costs time of its own around each `rtcIntersect1`, and Embree's 16-wide packets
 (`rtcIntersect16`, `rtcOccluded16`) are not in embreex. So bench/embree_packets.c (compiled here with gcc against the
@@ -108,6 +110,13 @@ def load_export(directory):
     # t_triid_u_v: t f32, prim id i32, u f32, v f32 (16 bytes); a miss has t = -1 and prim id -1.
     hits = np.fromfile(directory / "hits.bin", dtype="<f4").reshape(-1, 4)
     return vertices, indices, rays, hits
+
+
+def load_hit_bits(directory, rays):
+    """The exported rayd hits of a `bitmask` trace of `rays` rays, a bool a ray (bit i of byte i / 8, least
+    significant first)."""
+    bits = np.unpackbits(np.fromfile(directory / "hits.bin", dtype=np.uint8), bitorder="little")
+    return bits[:rays].astype(bool)
 
 
 def build_embree(vertices, indices, origins, directions):
@@ -264,13 +273,14 @@ def embree_packets(export, repeat, query, camera):
 def interleaved_speeds(args, scene, origins, directions, options, export, packets, camera):
     """{"closest": [(rayd, Embree, the packet harness's report or None) M rays/s a round], "any": [...]}, 1 thread
     each, rayd then Embree (then, with `packets`, the packet harness over `export`) in every round; the first round's
-    rayd `any` trace exports its hits to `export / "any"`."""
+    rayd `any` trace (in the `bitmask` hit format, as occlusion) exports its hits to `export / "any"`."""
     rays = len(origins)
     speeds = {"closest": [], "any": []}
     for round in range(options.rounds):
         for query, embree_query in (("closest", "INTERSECT"), ("any", "OCCLUDED")):
             any_export = export / "any" if query == "any" and round == 0 else None
-            rayd = run_rayd(args + ["--query", query], options.repeat, threads=1, export=any_export)
+            hit_format = ["--hit-format", "bitmask"] if query == "any" else []
+            rayd = run_rayd(args + ["--query", query] + hit_format, options.repeat, threads=1, export=any_export)
             embree_ms, _ = time_embree(scene, origins, directions, options.repeat, embree_query)
             packed = embree_packets(export, options.repeat, query, camera) if packets else None
             speeds[query].append((rayd["mrays_per_s"], rays / embree_ms / 1e3, packed))
@@ -342,9 +352,9 @@ def main():
                   flush=True)
             camera = name.endswith("camera")
             speeds = interleaved_speeds(args, scene, origins, directions, options, export, packets, camera)
-            rayd_any = load_export(export / "any")[3]
+            rayd_any = load_hit_bits(export / "any", len(rays))
             _, embree_occluded = time_embree(scene, origins, directions, 1, "OCCLUDED")
-            any_agree = 100.0 * np.mean((rayd_any[:, 0] >= 0) == (np.asarray(embree_occluded) >= 0))
+            any_agree = 100.0 * np.mean(rayd_any == (np.asarray(embree_occluded) >= 0))
             rows.append((name, len(rays), rayd_all, rayd_one, embree_build, speeds, result, any_agree))
             if result["agree"] < REQUIRED_AGREEMENT:
                 failures.append(f"{name}: {result['agree']:.4f}% of rays agree, below {REQUIRED_AGREEMENT}%")

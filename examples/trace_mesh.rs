@@ -9,12 +9,13 @@
 //! The meshes are concatenated into one geometry (or, with `--tiled`, laid out by [`Mesh::tiled`]; with
 //! `--slivers`, a floor and long thin triangles are added by [`Mesh::with_floor_and_slivers`]); rays are
 //! camera rays framing the scene or random rays in its box, packed `origin_tmin_direction_tmax`; hits are
-//! `t_triid_u_v`. The JSON has `build_ms` (median of `--builds` builds), `trace_ms` (median of `--repeat` traces),
-//! `mrays_per_s`, `rays`, `hits`, `triangles`, `threads` (rayon's; set `RAYON_NUM_THREADS` to change it), and the
-//! trace's `nodes_per_ray` and `triangles_per_ray` (boxes tested and triangles tested a ray: what the speed pays for).
-//! `--export DIR` writes the raw little-endian buffers (`vertices.f32`, `indices.u32`, `rays.bin`, `hits.bin`) so
-//! that another tracer can run exactly the same rays; `--png FILE` writes the camera image, shaded by the cosine
-//! between ray and normal.
+//! `t_triid_u_v` unless `--hit-format` names another (`t`, or `bitmask`: one bit a ray, what an occlusion query
+//! such as Embree's `rtcOccluded` answers). The JSON has `build_ms` (median of `--builds` builds), `trace_ms`
+//! (median of `--repeat` traces), `mrays_per_s`, `rays`, `hits`, `triangles`, `threads` (rayon's; set
+//! `RAYON_NUM_THREADS` to change it), and the trace's `nodes_per_ray` and `triangles_per_ray` (boxes tested and
+//! triangles tested a ray: what the speed pays for). `--export DIR` writes the raw little-endian buffers
+//! (`vertices.f32`, `indices.u32`, `rays.bin`, `hits.bin`) so that another tracer can run exactly the same rays;
+//! `--png FILE` writes the camera image, shaded by the cosine between ray and normal.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -30,8 +31,6 @@ use rayd_engine::{Context, Device};
 
 /// The ray layout every trace uses.
 const RAY_FORMAT: RayFormat = RayFormat::OriginTminDirectionTmax;
-/// The hit layout every trace uses.
-const HIT_FORMAT: HitFormat = HitFormat::TTriidUV;
 
 /// Command-line options.
 #[derive(Debug, Parser)]
@@ -64,6 +63,9 @@ struct Args {
     /// Query kind.
     #[arg(long, value_enum, default_value_t = Kind::Closest)]
     query: Kind,
+    /// Hit record layout.
+    #[arg(long, value_enum, default_value_t = Format::TTriidUV)]
+    hit_format: Format,
     /// Traces to time; the median is reported.
     #[arg(long, default_value_t = 5, value_parser = clap::value_parser!(u32).range(1..))]
     repeat: u32,
@@ -105,10 +107,36 @@ enum Kind {
     Any,
 }
 
+/// `--hit-format` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Format {
+    /// `t_triid_u_v`: distance, triangle id and barycentrics, 16 bytes a ray.
+    #[value(name = "t-triid-u-v")]
+    TTriidUV,
+    /// `t`: the distance alone, 4 bytes a ray.
+    T,
+    /// `bitmask`: one bit a ray, 1 = hit.
+    Bitmask,
+}
+
+impl Format {
+    /// The engine's hit format.
+    fn hit_format(self) -> HitFormat {
+        match self {
+            Format::TTriidUV => HitFormat::TTriidUV,
+            Format::T => HitFormat::T,
+            Format::Bitmask => HitFormat::Bitmask,
+        }
+    }
+}
+
 fn main() -> Result<(), Box<dyn std::error::Error>> {
     let args = Args::parse();
     if args.png.is_some() && args.rays != Rays::Camera {
         return Err("--png needs --rays camera".into());
+    }
+    if args.png.is_some() && args.hit_format != Format::TTriidUV {
+        return Err("--png needs --hit-format t-triid-u-v".into());
     }
     let meshes = args.meshes.iter().map(Mesh::load_obj).collect::<Result<Vec<_>, _>>()?;
     let scene = match args.tiled {
@@ -148,9 +176,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         Kind::Closest => QueryKind::Closest,
         Kind::Any => QueryKind::Any,
     };
-    let query = Query { kind, ..Query::closest(RAY_FORMAT, HIT_FORMAT) };
+    let hit_format = args.hit_format.hit_format();
+    let query = Query { kind, ..Query::closest(RAY_FORMAT, hit_format) };
     let ray_count = rays.len() / RAY_FORMAT.size();
-    let mut hits = vec![0u8; HIT_FORMAT.buffer_len(ray_count)];
+    let mut hits = vec![0u8; hit_format.buffer_len(ray_count)];
     let mut times_ms = Vec::new();
     let mut stats = TraceStats::default();
     for _ in 0..args.repeat {
@@ -209,7 +238,7 @@ fn write_png(
     rays: &[u8],
     hits: &[u8],
 ) -> Result<(), Box<dyn std::error::Error>> {
-    let hit_size = HIT_FORMAT.size().expect("a byte format");
+    let hit_size = HitFormat::TTriidUV.size().expect("a byte format");
     let pixels: Vec<u8> = rays
         .chunks_exact(RAY_FORMAT.size())
         .zip(hits.chunks_exact(hit_size))

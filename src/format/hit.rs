@@ -237,12 +237,9 @@ impl HitFormat {
     #[inline(always)]
     pub fn write(self, buffer: &mut [u8], index: usize, hit: &Hit) {
         let Some(size) = self.size() else {
-            let bit = 1u8 << (index % 8);
-            if hit.is_hit() {
-                buffer[index / 8] |= bit;
-            } else {
-                buffer[index / 8] &= !bit;
-            }
+            // Without a branch: hits and misses come in no order a predictor could learn.
+            let (byte, shift) = (&mut buffer[index / 8], index % 8);
+            *byte = (*byte & !(1 << shift)) | (u8::from(hit.is_hit()) << shift);
             return;
         };
         let b = &mut buffer[index * size..(index + 1) * size];
@@ -286,6 +283,23 @@ impl HitFormat {
     }
 }
 
+/// Writes `len` consecutive records of a [`HitFormat::Bitmask`] buffer from record `first` at once (`len` ≤ 32):
+/// bit `i` of `bits` is record `first + i`'s (1 = hit); the buffer's other bits are kept. One merge a byte
+/// instead of one a record: the records of neighbouring rays share bytes, and a merge a record makes each wait on the
+/// store before it. `buffer` starts on a byte boundary, as for [`HitFormat::write`].
+#[inline(always)]
+pub fn write_bitmask_run(buffer: &mut [u8], first: usize, bits: u32, len: usize) {
+    debug_assert!(len <= 32);
+    let shift = first % 8;
+    let mask = ((1u64 << len) - 1) << shift;
+    let value = (u64::from(bits) << shift) & mask;
+    let bytes = &mut buffer[first / 8..(first + len).div_ceil(8)];
+    for (k, byte) in bytes.iter_mut().enumerate() {
+        let (mask, value) = ((mask >> (8 * k)) as u8, (value >> (8 * k)) as u8);
+        *byte = (*byte & !mask) | value;
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -300,6 +314,30 @@ mod tests {
         assert_eq!(bits, [0b0000_0001, 0b0000_0010]);
         HitFormat::Bitmask.write(&mut bits, 0, &Hit::MISS);
         assert_eq!(bits, [0, 0b0000_0010]);
+    }
+
+    #[test]
+    fn a_run_of_bitmask_records_is_written_as_record_by_record_and_keeps_its_neighbours() {
+        let mut next = 0x2545_f491_4f6c_dd1d_u64;
+        let mut random = move || {
+            next ^= next << 13;
+            next ^= next >> 7;
+            next ^= next << 17;
+            next
+        };
+        for first in 0..20 {
+            for len in 0..=32 {
+                let before: Vec<u8> = (0..8).map(|_| random() as u8).collect();
+                let bits = random() as u32;
+                let (mut by_run, mut by_record) = (before.clone(), before.clone());
+                write_bitmask_run(&mut by_run, first, bits, len);
+                for i in 0..len {
+                    let hit = if bits >> i & 1 == 1 { Hit { t: 1.0, ..Hit::MISS } } else { Hit::MISS };
+                    HitFormat::Bitmask.write(&mut by_record, first + i, &hit);
+                }
+                assert_eq!(by_run, by_record, "{len} records from {first}");
+            }
+        }
     }
 
     #[test]

@@ -149,11 +149,10 @@ fn trace_chunk<S>(
         query.hit_format.specialized(
             #[inline(always)]
             |format| {
-                let mut collectors = collectors.iter();
+                let mut at = 0;
                 for &(first, run) in group.runs() {
-                    for (index, collector) in (first..first + run).zip(&mut collectors) {
-                        collector.write(format, hits, index * records_per_ray, counts, index);
-                    }
+                    Collector::write_run(&collectors[at..at + run], format, hits, records_per_ray, first, counts);
+                    at += run;
                 }
             },
         );

@@ -4,6 +4,7 @@
 use glam::{Mat3A, Vec3, Vec3A};
 
 use super::{Query, QueryKind};
+use crate::format::hit::write_bitmask_run;
 use crate::format::{Hit, HitFormat, InstancePath, Ray, RayFlags, write_u32};
 use crate::geometry::{GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
 use crate::intersect::PreparedRay;
@@ -321,6 +322,36 @@ impl<'s> Collector<'s> {
         }
         if self.kind.has_counts() {
             write_u32(counts, 4 * ray, self.count);
+        }
+    }
+
+    /// Writes the records (`records_per_ray` a ray) and counts of `run`, the collectors of consecutive rays from ray
+    /// `first`, as [`Collector::write`] does each. A bitmask of one record a ray is written a run at once
+    /// ([`write_bitmask_run`]): neighbouring rays' bits share bytes.
+    #[inline(always)]
+    pub fn write_run(
+        run: &[Collector<'_>],
+        format: HitFormat,
+        hits: &mut [u8],
+        records_per_ray: usize,
+        first: usize,
+        counts: &mut [u8],
+    ) {
+        let Some(kind) = run.first().map(|collector| collector.kind) else { return };
+        if format == HitFormat::Bitmask && kind != QueryKind::All {
+            let mut bits = 0;
+            for (bit, (ray, collector)) in (first..).zip(run).enumerate() {
+                // A one-record kind writes its best hit if it found one (a hit), else a miss.
+                bits |= u32::from(collector.found()) << bit;
+                if kind.has_counts() {
+                    write_u32(counts, 4 * ray, collector.count);
+                }
+            }
+            write_bitmask_run(hits, first, bits, run.len());
+            return;
+        }
+        for (ray, collector) in (first..).zip(run) {
+            collector.write(format, hits, ray * records_per_ray, counts, ray);
         }
     }
 }
