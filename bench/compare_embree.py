@@ -22,9 +22,10 @@ rays), and its answers are checked against Embree's occlusion ray by ray.
 
 Embree from C: embreex's loop costs time of its own around each `rtcIntersect1`, and Embree's 16-wide packets
 (`rtcIntersect16`, `rtcOccluded16`) are not in embreex. So bench/embree_packets.c (compiled here with gcc against the
-Embree library inside the embreex wheel) times, in the same rounds and over the same exported rays, on one thread:
-Embree's single-ray calls in a C loop, packets of 16 consecutive rays (the order rayd gets them in) and, for camera
-rays, packets of 4×4 pixel tiles (Embree's best case), each with its hit/miss agreement with rayd checked. rayd's
+Embree library inside the embreex wheel) times, in the same rounds and over the same exported rays, on one thread
+and then on --threads threads (default 2; rayd is timed on as many right before it): Embree's single-ray calls in a
+C loop, packets of 16 consecutive rays (the order rayd gets them in) and, for camera rays, packets of 4×4 pixel
+tiles (Embree's best case), each with its hit/miss agreement with rayd checked. rayd's
 own packets are 16 consecutive rays where the CPU has AVX-512, 8 where it has AVX2.
 
 Builds: each scene is then built --builds times by each side, fresh every time, and the medians compared: rayd with
@@ -252,7 +253,7 @@ def build_packet_harness():
     if not libraries:
         print("no Embree library in the embreex wheel: Embree's packets are not timed", flush=True)
         return False
-    command = ["gcc", "-O2", "-o", str(PACKET_HARNESS), str(BENCH / "embree_packets.c"), str(libraries[0]),
+    command = ["gcc", "-O2", "-pthread", "-o", str(PACKET_HARNESS), str(BENCH / "embree_packets.c"), str(libraries[0]),
                f"-Wl,-rpath,{libraries[0].parent}", "-lm"]
     try:
         subprocess.run(command, check=True)
@@ -262,29 +263,35 @@ def build_packet_harness():
     return True
 
 
-def embree_packets(export, repeat, query, camera):
-    """Embree's 1-thread speeds over an exported case from the packet harness: single rays, packets of 16
-    consecutive rays, 4×4 tiles for a `camera` case (else 0), and each one's hit/miss agreement with rayd."""
-    command = [str(PACKET_HARNESS), str(export), str(repeat), query] + ([str(CAMERA_WIDTH)] if camera else [])
+def embree_packets(export, repeat, query, camera, threads=1):
+    """Embree's speeds on `threads` threads over an exported case from the packet harness: single rays, packets of
+    16 consecutive rays, 4×4 tiles for a `camera` case (else 0), and each one's hit/miss agreement with rayd."""
+    command = [str(PACKET_HARNESS), str(export), str(repeat), query, str(threads)]
+    command += [str(CAMERA_WIDTH)] if camera else []
     output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
     return json.loads(output.strip().splitlines()[-1])
 
 
 def interleaved_speeds(args, scene, origins, directions, options, export, packets, camera):
-    """{"closest": [(rayd, Embree, the packet harness's report or None) M rays/s a round], "any": [...]}, 1 thread
-    each, rayd then Embree (then, with `packets`, the packet harness over `export`) in every round; the first round's
-    rayd `any` trace (in the `bitmask` hit format, as occlusion) exports its hits to `export / "any"`."""
+    """Two dicts, each {"closest": [a tuple a round], "any": [...]} of M rays/s: on 1 thread each (rayd, Embree, the
+    packet harness's report or None), and on --threads threads each (rayd, the packet harness's report or None).
+    In every round rayd then Embree (then, with `packets`, the packet harness over `export`) on 1 thread, then rayd
+    and the harness on --threads; the first round's rayd `any` trace (in the `bitmask` hit format, as occlusion)
+    exports its hits to `export / "any"`."""
     rays = len(origins)
-    speeds = {"closest": [], "any": []}
+    speeds, wide = {"closest": [], "any": []}, {"closest": [], "any": []}
     for round in range(options.rounds):
         for query, embree_query in (("closest", "INTERSECT"), ("any", "OCCLUDED")):
             any_export = export / "any" if query == "any" and round == 0 else None
-            hit_format = ["--hit-format", "bitmask"] if query == "any" else []
-            rayd = run_rayd(args + ["--query", query] + hit_format, options.repeat, threads=1, export=any_export)
+            query_args = args + ["--query", query] + (["--hit-format", "bitmask"] if query == "any" else [])
+            rayd = run_rayd(query_args, options.repeat, threads=1, export=any_export)
             embree_ms, _ = time_embree(scene, origins, directions, options.repeat, embree_query)
             packed = embree_packets(export, options.repeat, query, camera) if packets else None
             speeds[query].append((rayd["mrays_per_s"], rays / embree_ms / 1e3, packed))
-    return speeds
+            rayd = run_rayd(query_args, options.repeat, threads=options.threads)
+            packed = embree_packets(export, options.repeat, query, camera, options.threads) if packets else None
+            wide[query].append((rayd["mrays_per_s"], packed))
+    return speeds, wide
 
 
 def machine():
@@ -306,6 +313,26 @@ def machine():
             f"loop, 1 thread); numpy {np.__version__}")
 
 
+def print_packet_table(rows):
+    """Prints rayd's speeds against the packet harness's, per case and query: `rows` are (name, {query: [(rayd M
+    rays/s, the harness's report) a round]})."""
+    print(f"{'case':<13} {'query':<8} {'rayd':>11} {'Embree 1-ray':>13} {'ratio':>18} {'16 in a row':>12} "
+          f"{'ratio':>18} {'4×4 tiles':>10} {'ratio':>18}")
+    for name, speeds in rows:
+        for query, rounds in speeds.items():
+            cells = []
+            for way in ("single", "packet", "tile"):
+                if not rounds[0][1][f"{way}_mrays_per_s"]:
+                    cells += ["–", "–"]
+                    continue
+                ratios = sorted(r / p[f"{way}_mrays_per_s"] for r, p in rounds)
+                cells.append(f"{np.median([p[f'{way}_mrays_per_s'] for _, p in rounds]):.2f}")
+                cells.append(f"{np.median(ratios):.2f} ({ratios[0]:.2f}–{ratios[-1]:.2f})")
+            print(f"{name:<13} {query:<8} {np.median([r for r, _ in rounds]):>11.2f} {cells[0]:>13} "
+                  f"{cells[1]:>18} {cells[2]:>12} {cells[3]:>18} {cells[4]:>10} {cells[5]:>18}")
+    print()
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeat", type=int, default=5, help="timed traces per tracer and case (median reported)")
@@ -313,6 +340,8 @@ def main():
     parser.add_argument("--builds", type=int, default=5, help="fresh builds per builder and scene (median reported)")
     parser.add_argument("--rounds", type=int, default=3,
                         help="rounds of 1-thread timings, rayd then Embree in each (medians reported)")
+    parser.add_argument("--threads", type=int, default=2,
+                        help="the second thread count rayd and the packet harness are timed on, in every round")
     parser.add_argument("--scene", action="append", choices=sorted({name.split()[0] for name, _ in cases()}),
                         help="run only this scene's cases (repeat for several; default: every scene)")
     options = parser.parse_args()
@@ -351,15 +380,15 @@ def main():
             print(f"{name}: rayd and Embree, 1 thread each, closest and any hit, {options.rounds} rounds ...",
                   flush=True)
             camera = name.endswith("camera")
-            speeds = interleaved_speeds(args, scene, origins, directions, options, export, packets, camera)
+            speeds, wide = interleaved_speeds(args, scene, origins, directions, options, export, packets, camera)
             rayd_any = load_hit_bits(export / "any", len(rays))
             _, embree_occluded = time_embree(scene, origins, directions, 1, "OCCLUDED")
             any_agree = 100.0 * np.mean(rayd_any == (np.asarray(embree_occluded) >= 0))
-            rows.append((name, len(rays), rayd_all, rayd_one, embree_build, speeds, result, any_agree))
+            rows.append((name, len(rays), rayd_all, rayd_one, embree_build, speeds, result, any_agree, wide))
             if result["agree"] < REQUIRED_AGREEMENT:
                 failures.append(f"{name}: {result['agree']:.4f}% of rays agree, below {REQUIRED_AGREEMENT}%")
-            for query, rounds in speeds.items():
-                for _, _, packed in rounds:
+            for query in speeds:
+                for *_, packed in speeds[query] + wide[query]:
                     for way in ("single", "packet") + (("tile",) if camera else ()):
                         if packed and packed[f"{way}_agreement"] < REQUIRED_AGREEMENT:
                             failures.append(f"{name}: Embree's {way}s ({query}) agree with rayd on hit/miss for "
@@ -379,11 +408,11 @@ def main():
           f"hits at tiny t, from origins next to a surface).")
     print(f"{'case':<13} {'tris':>9} {'rays':>9} {'hit rate':>8} {'hit/miss':>9} {'prim id':>9} {'ties':>5} "
           f"{'max abs':>9} {'max rel':>9} {'p99.9 rel':>9} {'agree':>9}")
-    for name, count, rayd_all, _, _, _, r, _ in rows:
+    for name, count, rayd_all, _, _, _, r, _, _ in rows:
         print(f"{name:<13} {rayd_all['triangles']:>9} {count:>9} {r['hit_rate']:>7.2f}% {r['hit_miss']:>8.4f}% "
               f"{r['prim']:>8.4f}% {r['ties']:>5} {r['dt_abs']:>9.2e} {r['dt_max']:>9.2e} {r['dt_p999']:>9.2e} {r['agree']:>8.4f}%")
     print("Any hit: hit/miss agreement of rayd's `any` query with Embree's rtcOccluded1: " +
-          ", ".join(f"{name} {any_agree:.4f}%" for name, *_, any_agree in rows))
+          ", ".join(f"{name} {any_agree:.4f}%" for name, *_, any_agree, _ in rows))
     print()
     print(f"Speed, M rays/s. rayd {threads} thr: closest hit, median of {options.repeat} traces. 1 thread each "
           f"(the like-for-like comparison; embreex runs one thread): {options.rounds} rounds, each timing rayd then "
@@ -393,7 +422,7 @@ def main():
     print(f"{'case':<13} {f'rayd {threads} thr':>12} {'rayd 1 thr':>11} {'Embree 1 thr':>13} {'ratio 1/1':>18} "
           f"{'any: rayd 1 thr':>16} {'Embree 1 thr':>13} {'ratio 1/1':>18} {f'rayd build ms ({threads} thr)':>22} "
           f"{'Embree build ms (TBB)':>22}")
-    for name, _, rayd_all, _, embree_build, speeds, _, _ in rows:
+    for name, _, rayd_all, _, embree_build, speeds, _, _, _ in rows:
         cells = []
         for query, width in (("closest", 11), ("any", 16)):
             rounds = speeds[query]
@@ -404,27 +433,16 @@ def main():
         print(f"{name:<13} {rayd_all['mrays_per_s']:>12.2f} {cells[0]} {cells[1]} {rayd_all['build_ms']:>22.1f} "
               f"{embree_build:>22.1f}")
     print()
-    packet_rows = [(name, speeds) for name, _, _, _, _, speeds, _, _ in rows if speeds["closest"][0][2]]
-    if packet_rows:
+    if rows and rows[0][5]["closest"][0][2]:
         print(f"Against Embree from C (bench/embree_packets.c, the same Embree library, 1 thread, the same "
               f"{options.rounds} rounds): single rays in a C loop, packets of 16 consecutive rays, 4×4 pixel tiles "
               f"(camera rays); M rays/s, medians over the rounds, and the median and range of the rounds' ratios "
               f"rayd / Embree.")
-        print(f"{'case':<13} {'query':<8} {'rayd 1 thr':>11} {'Embree 1-ray':>13} {'ratio':>18} {'16 in a row':>12} "
-              f"{'ratio':>18} {'4×4 tiles':>10} {'ratio':>18}")
-        for name, speeds in packet_rows:
-            for query, rounds in speeds.items():
-                cells = []
-                for way in ("single", "packet", "tile"):
-                    if not rounds[0][2][f"{way}_mrays_per_s"]:
-                        cells += ["–", "–"]
-                        continue
-                    ratios = sorted(r / p[f"{way}_mrays_per_s"] for r, _, p in rounds)
-                    cells.append(f"{np.median([p[f'{way}_mrays_per_s'] for _, _, p in rounds]):.2f}")
-                    cells.append(f"{np.median(ratios):.2f} ({ratios[0]:.2f}–{ratios[-1]:.2f})")
-                print(f"{name:<13} {query:<8} {np.median([r for r, _, _ in rounds]):>11.2f} {cells[0]:>13} "
-                      f"{cells[1]:>18} {cells[2]:>12} {cells[3]:>18} {cells[4]:>10} {cells[5]:>18}")
-        print()
+        print_packet_table([(name, {q: [(r, p) for r, _, p in rounds] for q, rounds in speeds.items()})
+                            for name, *_, speeds, _, _, _ in rows])
+        print(f"The same on {options.threads} threads each (rayd's rayon pool; the harness's threads taking chunks "
+              f"of 1,024 rays from a shared counter), in the same rounds.")
+        print_packet_table([(name, wide) for name, *_, wide in rows])
     if failures:
         print("FAIL:\n  " + "\n  ".join(failures))
         sys.exit(1)

@@ -4,15 +4,19 @@
  * it against the Embree library that the embreex wheel ships (which comes without headers: the few declarations
  * used are below, as Embree 4's rtcore headers define them).
  *
- *     embree_packets DIR REPEAT closest|any [WIDTH]
+ *     embree_packets DIR REPEAT closest|any THREADS [WIDTH]
  *
  * DIR holds vertices.f32, indices.u32, rays.bin (origin_tmin_direction_tmax, 32 bytes a ray) and hits.bin
  * (rayd's t_triid_u_v records, 16 bytes a ray). Packets are 16 consecutive rays of the buffer, the order rayd
  * gets them in; with WIDTH (the rays being an image's pixels, row by row, WIDTH a row, both sides multiples of 4)
- * also 4×4 tiles of pixels, Embree's best case. Prints one line of JSON: M rays/s of the median of REPEAT traces
- * each way, and the hit/miss agreement of each way with rayd. */
+ * also 4×4 tiles of pixels, Embree's best case. THREADS threads trace each batch together, taking chunks of
+ * 1,024 rays (of the way's order) from a shared counter, as rayd's chunks are shared out; with 1 the calling
+ * thread traces alone. Prints one line of JSON: M rays/s of the median of REPEAT traces each way, and the hit/miss
+ * agreement of each way with rayd. */
 
 #include <math.h>
+#include <pthread.h>
+#include <stdatomic.h>
 #include <stdint.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -28,6 +32,7 @@ enum { RTC_BUFFER_TYPE_INDEX = 0, RTC_BUFFER_TYPE_VERTEX = 1 };
 enum { RTC_FORMAT_UINT3 = 0x5003, RTC_FORMAT_FLOAT3 = 0x9003 };
 #define RTC_INVALID_GEOMETRY_ID ((unsigned int)-1)
 #define LANES 16
+#define CHUNK_RAYS 1024 /* rays a thread takes at once; a multiple of LANES */
 
 struct RTCRay {
     float org_x, org_y, org_z, tnear, dir_x, dir_y, dir_z, time, tfar;
@@ -101,11 +106,13 @@ static int by_value(const void *a, const void *b) {
 /* Rays as exported: origin, tmin, direction, tmax. */
 typedef struct { float o[3], tmin, d[3], tmax; } Ray;
 
-/* Traces every ray in packets of 16 (`order`: the rays in packet order, 16 a packet) or one by one (`order`
- * NULL), closest or any hit; hit[i] = 1 where ray i hits. */
-static void trace(RTCScene scene, const Ray *rays, size_t n, const size_t *order, int any, unsigned char *hit) {
+/* Traces rays first .. first + count (of `order`: the rays in packet order, 16 a packet) in packets of 16, or one
+ * by one (`order` NULL), closest or any hit; hit[i] = 1 where ray i hits. */
+static void trace_range(RTCScene scene, const Ray *rays, size_t first, size_t count, const size_t *order, int any,
+                        unsigned char *hit) {
+    size_t end = first + count;
     if (!order) {
-        for (size_t i = 0; i < n; i++) {
+        for (size_t i = first; i < end; i++) {
             struct RTCRayHit rh;
             const Ray *r = &rays[i];
             rh.ray = (struct RTCRay){r->o[0], r->o[1], r->o[2], r->tmin, r->d[0], r->d[1], r->d[2],
@@ -122,12 +129,12 @@ static void trace(RTCScene scene, const Ray *rays, size_t n, const size_t *order
         return;
     }
     /* Generous room after the packet: Embree may know more hit fields than declared here. */
-    static struct { struct RTCRayHit16 rh; char spare[4096]; } p __attribute__((aligned(64)));
-    for (size_t first = 0; first < n; first += LANES) {
+    struct { struct RTCRayHit16 rh; char spare[4096]; } p __attribute__((aligned(64)));
+    for (size_t at = first; at < end; at += LANES) {
         int valid[LANES];
         for (int l = 0; l < LANES; l++) {
-            valid[l] = first + l < n ? -1 : 0;
-            const Ray *r = &rays[order[first + l < n ? first + l : first]];
+            valid[l] = at + l < end ? -1 : 0;
+            const Ray *r = &rays[order[at + l < end ? at + l : at]];
             p.rh.ray.org_x[l] = r->o[0], p.rh.ray.org_y[l] = r->o[1], p.rh.ray.org_z[l] = r->o[2];
             p.rh.ray.dir_x[l] = r->d[0], p.rh.ray.dir_y[l] = r->d[1], p.rh.ray.dir_z[l] = r->d[2];
             p.rh.ray.tnear[l] = r->tmin, p.rh.ray.tfar[l] = r->tmax, p.rh.ray.time[l] = 0.0f;
@@ -136,18 +143,51 @@ static void trace(RTCScene scene, const Ray *rays, size_t n, const size_t *order
         }
         if (any) rtcOccluded16(valid, scene, &p.rh.ray, NULL);
         else rtcIntersect16(valid, scene, &p.rh, NULL);
-        for (int l = 0; l < LANES && first + l < n; l++)
-            hit[order[first + l]] = any ? p.rh.ray.tfar[l] == -INFINITY : p.rh.hit.geomID[l] != RTC_INVALID_GEOMETRY_ID;
+        for (int l = 0; l < LANES && at + l < end; l++)
+            hit[order[at + l]] = any ? p.rh.ray.tfar[l] == -INFINITY : p.rh.hit.geomID[l] != RTC_INVALID_GEOMETRY_ID;
     }
 }
 
+/* One trace of a whole batch, shared by its threads: each takes the next CHUNK_RAYS rays until none are left. */
+typedef struct {
+    RTCScene scene;
+    const Ray *rays;
+    size_t n;
+    const size_t *order;
+    int any;
+    unsigned char *hit;
+    atomic_size_t next;
+} Batch;
+
+static void *trace_chunks(void *arg) {
+    Batch *b = arg;
+    for (;;) {
+        size_t first = atomic_fetch_add(&b->next, CHUNK_RAYS);
+        if (first >= b->n) return NULL;
+        trace_range(b->scene, b->rays, first, b->n - first < CHUNK_RAYS ? b->n - first : CHUNK_RAYS, b->order,
+                    b->any, b->hit);
+    }
+}
+
+/* Traces every ray with `threads` threads (the calling one among them). */
+static void trace(RTCScene scene, const Ray *rays, size_t n, const size_t *order, int any, int threads,
+                  unsigned char *hit) {
+    Batch batch = {scene, rays, n, order, any, hit, 0};
+    pthread_t helpers[threads > 1 ? threads - 1 : 1];
+    for (int k = 0; k < threads - 1; k++) {
+        if (pthread_create(&helpers[k], NULL, trace_chunks, &batch)) { fprintf(stderr, "pthread_create\n"); exit(1); }
+    }
+    trace_chunks(&batch);
+    for (int k = 0; k < threads - 1; k++) pthread_join(helpers[k], NULL);
+}
+
 /* Median M rays/s of `repeat` traces. */
-static double speed(RTCScene scene, const Ray *rays, size_t n, const size_t *order, int any, int repeat,
+static double speed(RTCScene scene, const Ray *rays, size_t n, const size_t *order, int any, int threads, int repeat,
                     unsigned char *hit) {
     double *times = malloc(sizeof(double) * (size_t)repeat);
     for (int k = 0; k < repeat; k++) {
         double start = now_s();
-        trace(scene, rays, n, order, any, hit);
+        trace(scene, rays, n, order, any, threads, hit);
         times[k] = now_s() - start;
     }
     qsort(times, (size_t)repeat, sizeof(double), by_value);
@@ -168,11 +208,12 @@ static double agreement(const unsigned char *rayd_hits, const unsigned char *hit
 }
 
 int main(int argc, char **argv) {
-    if (argc < 4 || argc > 5 || (strcmp(argv[3], "closest") && strcmp(argv[3], "any"))) {
-        fprintf(stderr, "usage: %s DIR REPEAT closest|any [WIDTH]\n", argv[0]);
+    if (argc < 5 || argc > 6 || (strcmp(argv[3], "closest") && strcmp(argv[3], "any")) || atoi(argv[4]) < 1) {
+        fprintf(stderr, "usage: %s DIR REPEAT closest|any THREADS [WIDTH]\n", argv[0]);
         return 2;
     }
-    size_t width = argc == 5 ? (size_t)atol(argv[4]) : 0;
+    int threads = atoi(argv[4]);
+    size_t width = argc == 6 ? (size_t)atol(argv[5]) : 0;
     const char *dir = argv[1];
     int repeat = atoi(argv[2]), any = !strcmp(argv[3], "any");
     if (repeat < 1) repeat = 1;
@@ -199,11 +240,11 @@ int main(int argc, char **argv) {
 
     unsigned char *hit = malloc(n);
     double single_agreement, packet_agreement, tile_agreement = 0.0, tiles = 0.0;
-    double single = speed(scene, rays, n, NULL, any, repeat, hit);
+    double single = speed(scene, rays, n, NULL, any, threads, repeat, hit);
     single_agreement = agreement(rayd_hits, hit, n);
     size_t *order = calloc(n, sizeof(size_t));
     for (size_t i = 0; i < n; i++) order[i] = i;
-    double packets = speed(scene, rays, n, order, any, repeat, hit);
+    double packets = speed(scene, rays, n, order, any, threads, repeat, hit);
     packet_agreement = agreement(rayd_hits, hit, n);
     if (width) {
         size_t height = n / width;
@@ -213,7 +254,7 @@ int main(int argc, char **argv) {
             for (size_t tx = 0; tx < width; tx += 4)
                 for (size_t dy = 0; dy < 4; dy++)
                     for (size_t dx = 0; dx < 4; dx++) order[k++] = (ty + dy) * width + tx + dx;
-        tiles = speed(scene, rays, n, order, any, repeat, hit);
+        tiles = speed(scene, rays, n, order, any, threads, repeat, hit);
         tile_agreement = agreement(rayd_hits, hit, n);
     }
     printf("{\"rays\": %zu, \"single_mrays_per_s\": %.3f, \"packet_mrays_per_s\": %.3f, "
