@@ -45,10 +45,11 @@ const MIN_COSINE: f32 = 0.99;
 const MAX_ORIGIN_SPREAD: f32 = 0.01;
 
 /// A node lane waiting on a packet's stack: its index and count (as its node holds them), the rays that enter its
-/// box, and the distance at which each does.
+/// box, and (in a closest-hit walk) the distance at which each does.
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct PacketEntry {
-    /// Per ray, the distance at which it enters the lane's box (the first [`RayLanes::RAYS`] in use).
+    /// Per ray, the distance at which it enters the lane's box (the first [`RayLanes::RAYS`] in use); kept by
+    /// closest-hit walks only, stale in the others'.
     near: [f32; MAX_PACKET_RAYS],
     /// The lane's child node or first primitive slot.
     index: u32,
@@ -113,7 +114,12 @@ impl TriangleBvh {
         stats: &mut TraceStats,
     ) -> bool {
         // SAFETY: the CPU has AVX2 (this function's contract).
-        unsafe { self.trace_packet::<__m256>(stack, rays, collectors, stats) }
+        unsafe {
+            match collectors[0].wants_nearest_first() {
+                true => self.trace_packet::<__m256, true>(stack, rays, collectors, stats),
+                false => self.trace_packet::<__m256, false>(stack, rays, collectors, stats),
+            }
+        }
     }
 
     /// [`TriangleBvh::trace_packet`] in AVX-512 registers, 16 rays.
@@ -129,16 +135,22 @@ impl TriangleBvh {
         stats: &mut TraceStats,
     ) -> bool {
         // SAFETY: the CPU has AVX-512F and AVX2 (this function's contract).
-        unsafe { self.trace_packet::<__m512>(stack, rays, collectors, stats) }
+        unsafe {
+            match collectors[0].wants_nearest_first() {
+                true => self.trace_packet::<__m512, true>(stack, rays, collectors, stats),
+                false => self.trace_packet::<__m512, false>(stack, rays, collectors, stats),
+            }
+        }
     }
 
     /// Traces `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]) as a packet in `V` registers if they head the
-    /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did.
+    /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did. A walk is compiled for each
+    /// visit order ([`WideBvh::walk_packet`]'s `NEAREST_FIRST`, which must be what the collectors want).
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
     #[inline(always)]
-    unsafe fn trace_packet<V: RayLanes>(
+    unsafe fn trace_packet<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
         stack: &mut [PacketEntry],
         rays: &[Ray],
@@ -187,7 +199,7 @@ impl TriangleBvh {
             }
         };
         let prefetch_leaf = |slots: Range<usize>| self.prefetch_leaf(slots);
-        unsafe { self.wide.walk_packet(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
+        unsafe { self.wide.walk_packet::<V, NEAREST_FIRST>(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
         true
     }
 }
@@ -206,15 +218,21 @@ impl WideBvh {
         (self.root.1 - self.root.0).length()
     }
 
-    /// Walks the nodes with a packet of rays, nearest first (by the nearest of the rays entering a box) when the
-    /// collectors want it, and hands each leaf some of them reach (its slots and those rays, a bit each) to `leaf`.
-    /// `prefetch_leaf` starts loading a leaf's data as soon as a ray enters the leaf's box.
+    /// Walks the nodes with a packet of rays, nearest first (by the nearest of the rays entering a box) when
+    /// `NEAREST_FIRST` (which must be what the collectors want, [`Collector::wants_nearest_first`]), and hands each
+    /// leaf some of them reach (its slots and those rays, a bit each) to `leaf`. `prefetch_leaf` starts loading a
+    /// leaf's data as soon as a ray enters the leaf's box.
+    ///
+    /// Only a closest-hit query moves a ray's cull distance during the walk (to its nearest hit): a lane waiting on
+    /// the stack keeps its rays' entry distances, to drop the rays whose hit has come nearer by the time it is taken
+    /// off. The other kinds keep their rays' `tmax` as cull distance, so their rays are checked against it as the lane
+    /// is pushed (the same rays as when taken off), and the entry holds no distances.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn walk_packet<V: RayLanes>(
+    unsafe fn walk_packet<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
         stack: &mut [PacketEntry],
         lanes: &PacketLanes<V>,
@@ -239,7 +257,7 @@ impl WideBvh {
             lanes.enter_box(first, last, far, all, &mut [0.0; MAX_PACKET_RAYS])
         };
         stats.nodes_visited += V::RAYS as u64;
-        let nearest_first = collectors[0].wants_nearest_first();
+        debug_assert_eq!(NEAREST_FIRST, collectors[0].wants_nearest_first());
         let (mut len, mut node, mut rays_in_node) = (0usize, 0usize, alive);
         while rays_in_node != 0 {
             let active = rays_in_node;
@@ -273,7 +291,7 @@ impl WideBvh {
                     leaf_size => prefetch_leaf(index..index + leaf_size),
                 }
             }
-            if nearest_first {
+            if NEAREST_FIRST {
                 // Insertion by distance, nearest first.
                 for at in 1..count {
                     let mut at = at;
@@ -285,7 +303,13 @@ impl WideBvh {
             }
             for &(rays_in, _, lane) in entered[..count].iter().skip(1).rev() {
                 let (index, count) = (owner.index[lane], owner.count[lane]);
-                stack[len] = PacketEntry { near: near[lane], index, count, rays: rays_in };
+                let entry = &mut stack[len];
+                if NEAREST_FIRST {
+                    *entry = PacketEntry { near: near[lane], index, count, rays: rays_in };
+                } else {
+                    let within = unsafe { V::bits(V::load(&near[lane]).le(V::load(&cull))) };
+                    (entry.index, entry.count, entry.rays) = (index, count, rays_in & within);
+                }
                 len += 1;
             }
             let mut next = (count > 0).then(|| (owner.index[entered[0].2], owner.count[entered[0].2], entered[0].0));
@@ -300,7 +324,10 @@ impl WideBvh {
                         }
                         len -= 1;
                         let entry = &stack[len];
-                        let within = unsafe { V::bits(V::load(&entry.near).le(V::load(&cull))) };
+                        let within = match NEAREST_FIRST {
+                            true => unsafe { V::bits(V::load(&entry.near).le(V::load(&cull))) },
+                            false => u32::MAX,
+                        };
                         (entry.index, entry.count, entry.rays & alive & within)
                     }
                 };
@@ -317,7 +344,9 @@ impl WideBvh {
                 while bits != 0 {
                     let ray = bits.trailing_zeros() as usize;
                     bits &= bits - 1;
-                    cull[ray] = collectors[ray].cull_tmax();
+                    if NEAREST_FIRST {
+                        cull[ray] = collectors[ray].cull_tmax();
+                    }
                     if collectors[ray].done() {
                         alive &= !(1 << ray);
                     }
