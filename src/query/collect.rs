@@ -189,6 +189,9 @@ pub struct Collector<'s> {
     /// Whether the hits' normals are written ([`HitFormat::has_normal`]); the hits offered carry a zero normal
     /// otherwise, which saves a cross product an accepted hit.
     wants_normal: bool,
+    /// Whether an `any` query keeps the hit it stops at: not for the bitmask format, whose record says only whether
+    /// there is one ([`Collector::found`]).
+    keeps_any_hit: bool,
     /// The first hit in report order so far (closest, any, count), once there is one ([`Collector::found`]); stale
     /// before.
     best: Hit,
@@ -212,6 +215,7 @@ impl<'s> Collector<'s> {
             cull_tmax: ray.tmax,
             terminate_on_first_hit: ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT),
             wants_normal: query.hit_format.has_normal(),
+            keeps_any_hit: query.hit_format != HitFormat::Bitmask,
             best: Hit::MISS,
             count: 0,
             sorted: scratch,
@@ -276,7 +280,7 @@ impl<'s> Collector<'s> {
             }
             // The first hit found is kept.
             QueryKind::Any => {
-                if first {
+                if first && self.keeps_any_hit {
                     hit.write_into(&mut self.best);
                 }
                 self.done = true;
@@ -317,6 +321,9 @@ impl<'s> Collector<'s> {
                 let hit = if slot < self.len { &self.sorted[slot] } else { &Hit::MISS };
                 format.write(hits, first_record + slot, hit);
             }
+        } else if format == HitFormat::Bitmask {
+            // Whether there is a hit, which is all the record says (an `any` query keeps no hit for it).
+            write_bitmask_run(hits, first_record, u32::from(self.found()), 1);
         } else {
             format.write(hits, first_record, if self.found() { &self.best } else { &Hit::MISS });
         }
@@ -352,6 +359,40 @@ impl<'s> Collector<'s> {
         }
         for (ray, collector) in (first..).zip(run) {
             collector.write(format, hits, ray * records_per_ray, counts, ray);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::format::RayFormat;
+    use crate::geometry::TriangleRef;
+
+    #[test]
+    fn a_bitmask_record_says_whether_the_ray_found_a_hit_for_every_one_record_kind() {
+        let corners = [Vec3::ZERO, Vec3::X, Vec3::Y];
+        let candidate = TriangleCandidate {
+            corners: &corners,
+            id: TriangleRef { geom_id: 0, prim_id: 5 },
+            mask: 0,
+            geometry_flags: GeometryFlags::empty(),
+        };
+        let met = TriangleHit { t: 2.0, u: 0.25, v: 0.5, back_face: false };
+        for kind in [QueryKind::Any, QueryKind::Closest, QueryKind::Count] {
+            let query = Query { kind, ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Bitmask) };
+            let ray = Ray::default();
+            let (mut hit, missed) = (Collector::new(&query, &ray, &mut []), Collector::new(&query, &ray, &mut []));
+            accept_hit(0.0, RayFlags::empty(), &candidate, &InstanceScope::WORLD, &mut hit, met);
+            // Record 1 hits and record 2 misses, written one by one and as a run; the other bits are kept.
+            let mut counts = [0u8; 12];
+            let mut one_by_one = [0b1111_0101u8];
+            hit.write(HitFormat::Bitmask, &mut one_by_one, 1, &mut counts, 1);
+            missed.write(HitFormat::Bitmask, &mut one_by_one, 2, &mut counts, 2);
+            let mut as_a_run = [0b1111_0101u8];
+            Collector::write_run(&[hit, missed], HitFormat::Bitmask, &mut as_a_run, 1, 1, &mut counts);
+            assert_eq!(one_by_one, [0b1111_0011], "{kind:?}");
+            assert_eq!(as_a_run, one_by_one, "{kind:?}");
         }
     }
 }
