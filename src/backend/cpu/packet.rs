@@ -67,7 +67,9 @@ fn may_pack(rays: &[Ray], collectors: &[Collector<'_>]) -> bool {
     // `PreparedRay::negative`: a −0 component is not negative.
     let signs = |ray: &Ray| ray.direction.cmplt(Vec3A::ZERO).bitmask();
     let [first, rest @ ..] = rays else { return false };
-    rest.iter().all(|ray| signs(ray) == signs(first)) && collectors.iter().all(Collector::may_share_order)
+    // Only closest-hit rays may not share an order (the query kind is every collector's).
+    let share_order = || !collectors[0].wants_nearest_first() || collectors.iter().all(Collector::may_share_order);
+    rest.iter().all(|ray| signs(ray) == signs(first)) && share_order()
 }
 
 impl TriangleBvh {
