@@ -166,7 +166,7 @@ impl TriangleBvh {
         }
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
-            let mut met = MetLanes::default();
+            let (mut met, mut finished) = (MetLanes::default(), 0u32);
             for slot in slots {
                 let (edges, hits) = unsafe { lanes.intersect(self.wide.blocks.lane_of(slot), active, &mut met) };
                 let mut candidates = edges | hits;
@@ -191,14 +191,15 @@ impl TriangleBvh {
                     } else if ray.mask & candidate.mask == 0 {
                         accept_hit(ray.tmin, ray.flags, &candidate, &InstanceScope::WORLD, collector, met.hit(lane));
                     }
-                    if collector.done() {
-                        active &= !(1 << lane);
-                    }
+                    // Without a branch: which rays a triangle finishes is hard to predict.
+                    finished |= u32::from(collector.done()) << lane;
                 }
+                active &= !finished;
                 if active == 0 {
-                    return;
+                    break;
                 }
             }
+            finished
         };
         let prefetch_leaf = |slots: Range<usize>| self.prefetch_leaf(slots);
         unsafe { self.wide.walk_packet::<V, NEAREST_FIRST>(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
@@ -222,8 +223,8 @@ impl WideBvh {
 
     /// Walks the nodes with a packet of rays, nearest first (by the nearest of the rays entering a box) when
     /// `NEAREST_FIRST` (which must be what the collectors want, [`Collector::wants_nearest_first`]), and hands each
-    /// leaf some of them reach (its slots and those rays, a bit each) to `leaf`. `prefetch_leaf` starts loading a
-    /// leaf's data as soon as a ray enters the leaf's box.
+    /// leaf some of them reach (its slots and those rays, a bit each) to `leaf`, which returns the rays it finished
+    /// (their collectors done). `prefetch_leaf` starts loading a leaf's data as soon as a ray enters the leaf's box.
     ///
     /// Only a closest-hit query moves a ray's cull distance during the walk (to its nearest hit): a lane waiting on
     /// the stack keeps its rays' entry distances, to drop the rays whose hit has come nearer by the time it is taken
@@ -240,7 +241,7 @@ impl WideBvh {
         lanes: &PacketLanes<V>,
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
-        mut leaf: impl FnMut(Range<usize>, u32, &mut [Collector<'_>], &mut TraceStats),
+        mut leaf: impl FnMut(Range<usize>, u32, &mut [Collector<'_>], &mut TraceStats) -> u32,
         prefetch_leaf: impl Fn(Range<usize>),
     ) {
         if self.nodes.is_empty() {
@@ -341,16 +342,13 @@ impl WideBvh {
                     (node, rays_in_node) = (index, rays_in);
                     continue;
                 }
-                leaf(index..index + size, rays_in, collectors, stats);
-                let mut bits = rays_in;
-                while bits != 0 {
-                    let ray = bits.trailing_zeros() as usize;
-                    bits &= bits - 1;
-                    if NEAREST_FIRST {
+                alive &= !leaf(index..index + size, rays_in, collectors, stats);
+                if NEAREST_FIRST {
+                    let mut bits = rays_in;
+                    while bits != 0 {
+                        let ray = bits.trailing_zeros() as usize;
+                        bits &= bits - 1;
                         cull[ray] = collectors[ray].cull_tmax();
-                    }
-                    if collectors[ray].done() {
-                        alive &= !(1 << ray);
                     }
                 }
                 if alive == 0 {
