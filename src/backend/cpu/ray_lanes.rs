@@ -82,6 +82,10 @@ pub(super) trait RayLanes: filter::Lanes {
 
     /// The largest lane (the lanes hold no NaN).
     unsafe fn largest(self) -> f32;
+
+    /// The lanes folded to eight, for a reduction over all of them: lane by lane the smaller and the larger of the
+    /// two halves of sixteen lanes, or eight lanes themselves twice (the lanes hold no NaN).
+    unsafe fn fold_to_eight(self) -> (__m256, __m256);
 }
 
 impl RayLanes for __m256 {
@@ -223,6 +227,11 @@ impl RayLanes for __m256 {
             let quarter = _mm_max_ps(half, _mm_movehl_ps(half, half));
             _mm_cvtss_f32(_mm_max_ss(quarter, _mm_shuffle_ps::<0b01>(quarter, quarter)))
         }
+    }
+
+    #[inline(always)]
+    unsafe fn fold_to_eight(self) -> (__m256, __m256) {
+        (self, self)
     }
 }
 
@@ -368,6 +377,15 @@ impl RayLanes for __m512 {
     unsafe fn largest(self) -> f32 {
         // SAFETY: the CPU has AVX-512F (the trait's contract).
         unsafe { _mm256_max_ps(_mm512_castps512_ps256(self), upper_half(self)).largest() }
+    }
+
+    #[inline(always)]
+    unsafe fn fold_to_eight(self) -> (__m256, __m256) {
+        // SAFETY: the CPU has AVX-512F (the trait's contract).
+        unsafe {
+            let (low, high) = (_mm512_castps512_ps256(self), upper_half(self));
+            (_mm256_min_ps(low, high), _mm256_max_ps(low, high))
+        }
     }
 }
 
