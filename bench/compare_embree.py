@@ -17,7 +17,7 @@ medians of --repeat runs and exclude scene builds, which are reported apart (Emb
 threads). The 1-thread timings run in --rounds rounds, rayd then Embree in each, for closest and any hit; the ratio
 reported is the median of the rounds' ratios, with their range, so that a machine whose speed drifts (a shared
 host) biases neither side. rayd's `any` query writes the `bitmask` hit format, one bit a ray (hit or miss: what
-Embree's occlusion query answers; until 2026-11-27 it wrote 16-byte `t_triid_u_v` records, 2–5% slower on camera
+Embree's occlusion query answers; until 2026-11-27 it wrote 16-byte `t_triid_u_v` records, 1–5% slower on camera
 rays), and its answers are checked against Embree's occlusion ray by ray.
 
 Embree from C: embreex's loop costs time of its own around each `rtcIntersect1`, and Embree's 16-wide packets
