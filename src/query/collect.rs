@@ -327,6 +327,12 @@ impl<'s> Collector<'s> {
         } else {
             format.write(hits, first_record, if self.found() { &self.best } else { &Hit::MISS });
         }
+        self.write_count(counts, ray);
+    }
+
+    /// For counting kinds, writes this ray's count at u32 index `ray` of `counts`.
+    #[inline(always)]
+    fn write_count(&self, counts: &mut [u8], ray: usize) {
         if self.kind.has_counts() {
             write_u32(counts, 4 * ray, self.count);
         }
@@ -350,9 +356,7 @@ impl<'s> Collector<'s> {
             for (bit, (ray, collector)) in (first..).zip(run).enumerate() {
                 // A one-record kind writes its best hit if it found one (a hit), else a miss.
                 bits |= u32::from(collector.found()) << bit;
-                if kind.has_counts() {
-                    write_u32(counts, 4 * ray, collector.count);
-                }
+                collector.write_count(counts, ray);
             }
             write_bitmask_run(hits, first, bits, run.len());
             return;

@@ -116,12 +116,7 @@ impl TriangleBvh {
         stats: &mut TraceStats,
     ) -> bool {
         // SAFETY: the CPU has AVX2 (this function's contract).
-        unsafe {
-            match collectors[0].wants_nearest_first() {
-                true => self.trace_packet::<__m256, true>(stack, rays, collectors, stats),
-                false => self.trace_packet::<__m256, false>(stack, rays, collectors, stats),
-            }
-        }
+        unsafe { self.trace_packet::<__m256>(stack, rays, collectors, stats) }
     }
 
     /// [`TriangleBvh::trace_packet`] in AVX-512 registers, 16 rays.
@@ -137,22 +132,39 @@ impl TriangleBvh {
         stats: &mut TraceStats,
     ) -> bool {
         // SAFETY: the CPU has AVX-512F and AVX2 (this function's contract).
-        unsafe {
-            match collectors[0].wants_nearest_first() {
-                true => self.trace_packet::<__m512, true>(stack, rays, collectors, stats),
-                false => self.trace_packet::<__m512, false>(stack, rays, collectors, stats),
-            }
-        }
+        unsafe { self.trace_packet::<__m512>(stack, rays, collectors, stats) }
     }
 
     /// Traces `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]) as a packet in `V` registers if they head the
-    /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did. A walk is compiled for each
-    /// visit order ([`WideBvh::walk_packet`]'s `NEAREST_FIRST`, which must be what the collectors want).
+    /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did: compiled once for each
+    /// visit order ([`WideBvh::walk_packet`]'s `NEAREST_FIRST`), the one the collectors want.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
     #[inline(always)]
-    unsafe fn trace_packet<V: RayLanes, const NEAREST_FIRST: bool>(
+    unsafe fn trace_packet<V: RayLanes>(
+        &self,
+        stack: &mut [PacketEntry],
+        rays: &[Ray],
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> bool {
+        // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        unsafe {
+            match collectors[0].wants_nearest_first() {
+                true => self.trace_packet_in_order::<V, true>(stack, rays, collectors, stats),
+                false => self.trace_packet_in_order::<V, false>(stack, rays, collectors, stats),
+            }
+        }
+    }
+
+    /// [`TriangleBvh::trace_packet`] for the visit order `NEAREST_FIRST` (each has its own leaf closure, so that
+    /// the walk inlines it).
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set and AVX2.
+    #[inline(always)]
+    unsafe fn trace_packet_in_order<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
         stack: &mut [PacketEntry],
         rays: &[Ray],
