@@ -19,7 +19,11 @@ bitflags::bitflags! {
 
 /// A decoded ray. Formats without a field give it its default: `tmin` 0, `tmax` +∞, `time` 0, `mask` 0,
 /// `visibility` 0xFF, `flags` empty.
+///
+/// Laid out in field order (`repr(C)`): the CPU's packets read the first 48 bytes (origin, direction, then `tmin`,
+/// `tmax`, `time` and `mask`) 16 at a time.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C)]
 pub struct Ray {
     /// Origin, in world units.
     pub origin: Vec3A,

@@ -424,18 +424,15 @@ impl<V: RayLanes> PacketLanes<V> {
         // No `map` over registers here: its closure is compiled without the instruction set and might not be inlined.
         // SAFETY (all): the CPU has the instruction sets (the caller's contract).
         unsafe {
-            let direction = [
-                V::gather(rays, |r| r.direction.x),
-                V::gather(rays, |r| r.direction.y),
-                V::gather(rays, |r| r.direction.z),
-            ];
+            let [dx, dy, dz, _] = V::columns(rays, offset_of!(Ray, direction));
+            let direction = [dx, dy, dz];
             if !same_projection_axis(direction, first.kz) {
                 return None;
             }
-            let origin =
-                [V::gather(rays, |r| r.origin.x), V::gather(rays, |r| r.origin.y), V::gather(rays, |r| r.origin.z)];
+            let [ox, oy, oz, _] = V::columns(rays, offset_of!(Ray, origin));
+            let origin = [ox, oy, oz];
             let inv_direction = [reciprocal(direction[0]), reciprocal(direction[1]), reciprocal(direction[2])];
-            let tmin = V::gather(rays, |r| r.tmin);
+            let [tmin, ..] = V::columns(rays, offset_of!(Ray, tmin));
             let (one, along) = (V::splat(1.0), direction[axes[2]]);
             Some(PacketLanes {
                 origin,
@@ -992,9 +989,8 @@ pub(super) mod tests {
                     .map(|&pick| Ray { direction: Vec3A::from_slice(&pool[3 * pick..3 * pick + 3]), ..Ray::default() })
                     .collect();
                 // SAFETY: the CPU has AVX2, as just checked.
-                let direction = unsafe {
-                    [0, 1, 2].map(|axis| __m256::gather(&rays, |ray| ray.direction[axis]))
-                };
+                let [x, y, z, _] = unsafe { __m256::columns(&rays, offset_of!(Ray, direction)) };
+                let direction = [x, y, z];
                 for kz in 0..3 {
                     let alone = rays.iter().all(|ray| PreparedRay::from_traced(ray).kz == kz);
                     // SAFETY: as above.

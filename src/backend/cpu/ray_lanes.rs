@@ -4,6 +4,7 @@
 //! bits whichever register it is traced in.
 
 use std::arch::x86_64::*;
+use std::mem::offset_of;
 
 use super::filter;
 use crate::format::Ray;
@@ -26,8 +27,12 @@ pub(super) trait RayLanes: filter::Lanes {
     /// `x` in every lane.
     unsafe fn splat(x: f32) -> Self;
 
-    /// `value` of each ray of `rays` (exactly [`RayLanes::RAYS`] of them), a ray a lane.
-    unsafe fn gather(rays: &[Ray], value: impl Fn(&Ray) -> f32) -> Self;
+    /// The four floats at byte `offset` of each ray of `rays` (exactly [`RayLanes::RAYS`] of them), a register for
+    /// each float, a ray a lane: `origin` or `direction` (`x`, `y`, `z`, padding), or `tmin` and the three fields
+    /// after it. The rays' 16-byte quarters are read whole and transposed, four rays at a time.
+    ///
+    /// Panics unless the four floats lie within a ray.
+    unsafe fn columns(rays: &[Ray], offset: usize) -> [Self; 4];
 
     /// The first [`RayLanes::RAYS`] of `values`.
     unsafe fn load(values: &[f32; MAX_PACKET_RAYS]) -> Self;
@@ -99,10 +104,26 @@ impl RayLanes for __m256 {
     }
 
     #[inline(always)]
-    unsafe fn gather(rays: &[Ray], value: impl Fn(&Ray) -> f32) -> Self {
-        let [a, b, c, d, e, f, g, h] = rays else { panic!("a packet of 8 rays") };
-        // SAFETY: the CPU has AVX (the trait's contract).
-        unsafe { _mm256_setr_ps(value(a), value(b), value(c), value(d), value(e), value(f), value(g), value(h)) }
+    unsafe fn columns(rays: &[Ray], offset: usize) -> [Self; 4] {
+        let q = quarters::<{ Self::RAYS }>(rays, offset);
+        // No closures with intrinsics here: they are compiled without the instruction set and might not be inlined.
+        // SAFETY: the CPU has AVX (the trait's contract); each pointer reads 16 bytes within a ray (`quarters`).
+        // Register `j` holds ray `j` in its low half and ray `j + 4` in its high half, so that transposing the halves
+        // alike leaves ray `i` in lane `i`.
+        unsafe {
+            let (a, b) = (_mm256_loadu2_m128(q[4], q[0]), _mm256_loadu2_m128(q[5], q[1]));
+            let (c, d) = (_mm256_loadu2_m128(q[6], q[2]), _mm256_loadu2_m128(q[7], q[3]));
+            let (ab_low, cd_low) =
+                (_mm256_castps_pd(_mm256_unpacklo_ps(a, b)), _mm256_castps_pd(_mm256_unpacklo_ps(c, d)));
+            let (ab_high, cd_high) =
+                (_mm256_castps_pd(_mm256_unpackhi_ps(a, b)), _mm256_castps_pd(_mm256_unpackhi_ps(c, d)));
+            [
+                _mm256_castpd_ps(_mm256_unpacklo_pd(ab_low, cd_low)),
+                _mm256_castpd_ps(_mm256_unpackhi_pd(ab_low, cd_low)),
+                _mm256_castpd_ps(_mm256_unpacklo_pd(ab_high, cd_high)),
+                _mm256_castpd_ps(_mm256_unpackhi_pd(ab_high, cd_high)),
+            ]
+        }
     }
 
     #[inline(always)]
@@ -246,28 +267,26 @@ impl RayLanes for __m512 {
     }
 
     #[inline(always)]
-    unsafe fn gather(rays: &[Ray], value: impl Fn(&Ray) -> f32) -> Self {
-        let [a, b, c, d, e, f, g, h, i, j, k, l, m, n, o, p] = rays else { panic!("a packet of 16 rays") };
-        let values = [
-            value(a),
-            value(b),
-            value(c),
-            value(d),
-            value(e),
-            value(f),
-            value(g),
-            value(h),
-            value(i),
-            value(j),
-            value(k),
-            value(l),
-            value(m),
-            value(n),
-            value(o),
-            value(p),
-        ];
-        // SAFETY: the CPU has AVX-512F (the trait's contract).
-        unsafe { _mm512_loadu_ps(values.as_ptr()) }
+    unsafe fn columns(rays: &[Ray], offset: usize) -> [Self; 4] {
+        let q = quarters::<{ Self::RAYS }>(rays, offset);
+        // No closures with intrinsics here: they are compiled without the instruction set and might not be inlined.
+        // SAFETY: the CPU has AVX-512F (the trait's contract); each pointer reads 16 bytes within a ray (`quarters`).
+        // Register `j` holds rays `j`, `j + 4`, `j + 8` and `j + 12` in its four 128-bit blocks, so that transposing
+        // the blocks alike leaves ray `i` in lane `i`.
+        unsafe {
+            let (a, b) = (blocks_of_four(q[0], q[4], q[8], q[12]), blocks_of_four(q[1], q[5], q[9], q[13]));
+            let (c, d) = (blocks_of_four(q[2], q[6], q[10], q[14]), blocks_of_four(q[3], q[7], q[11], q[15]));
+            let (ab_low, cd_low) =
+                (_mm512_castps_pd(_mm512_unpacklo_ps(a, b)), _mm512_castps_pd(_mm512_unpacklo_ps(c, d)));
+            let (ab_high, cd_high) =
+                (_mm512_castps_pd(_mm512_unpackhi_ps(a, b)), _mm512_castps_pd(_mm512_unpackhi_ps(c, d)));
+            [
+                _mm512_castpd_ps(_mm512_unpacklo_pd(ab_low, cd_low)),
+                _mm512_castpd_ps(_mm512_unpackhi_pd(ab_low, cd_low)),
+                _mm512_castpd_ps(_mm512_unpacklo_pd(ab_high, cd_high)),
+                _mm512_castpd_ps(_mm512_unpackhi_pd(ab_high, cd_high)),
+            ]
+        }
     }
 
     #[inline(always)]
@@ -397,4 +416,115 @@ impl RayLanes for __m512 {
 unsafe fn upper_half(v: __m512) -> __m256 {
     // SAFETY: the CPU has AVX-512F (the caller's contract).
     unsafe { _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(v))) }
+}
+
+/// Pointers to the 16 bytes at byte `offset` of each of `rays` (exactly `RAYS` of them).
+///
+/// Panics unless there are `RAYS` rays and the 16 bytes are four of a ray's floats: whole fields before `visibility`
+/// (after it lies padding). glam's `Vec3A` is an SSE register on x86-64, so its fourth float is a value too.
+#[inline(always)]
+fn quarters<const RAYS: usize>(rays: &[Ray], offset: usize) -> [*const f32; RAYS] {
+    let fields = offset_of!(Ray, visibility);
+    assert!(
+        rays.len() == RAYS && offset.is_multiple_of(4) && offset + 16 <= fields,
+        "{} rays, bytes {offset}..",
+        rays.len()
+    );
+    // No `array::from_fn`: its closure might not be inlined.
+    let mut quarters = [std::ptr::null(); RAYS];
+    for (quarter, ray) in quarters.iter_mut().zip(rays) {
+        *quarter = (&raw const *ray).cast::<u8>().wrapping_add(offset).cast::<f32>();
+    }
+    quarters
+}
+
+/// The 16 bytes `a`, `b`, `c` and `d` point to as the four 128-bit blocks of an AVX-512 register.
+///
+/// # Safety
+/// The CPU must have AVX-512F; each pointer must be valid for reading 16 bytes.
+#[inline(always)]
+unsafe fn blocks_of_four(a: *const f32, b: *const f32, c: *const f32, d: *const f32) -> __m512 {
+    // SAFETY: the CPU has AVX-512F, and the pointers are valid (the caller's contract).
+    unsafe {
+        let v = _mm512_castps128_ps512(_mm_loadu_ps(a));
+        let v = _mm512_insertf32x4::<1>(v, _mm_loadu_ps(b));
+        let v = _mm512_insertf32x4::<2>(v, _mm_loadu_ps(c));
+        _mm512_insertf32x4::<3>(v, _mm_loadu_ps(d))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3A;
+
+    use super::*;
+    use crate::cpu_features::{has_avx2, has_avx512};
+
+    /// Sixteen rays whose fields all differ: ray `i`'s `k`-th float of the first 48 bytes is `100·i + k`.
+    fn numbered_rays() -> Vec<Ray> {
+        (0..16)
+            .map(|i| {
+                let f = |k: usize| (100 * i + k) as f32;
+                Ray {
+                    origin: Vec3A::new(f(0), f(1), f(2)),
+                    direction: Vec3A::new(f(4), f(5), f(6)),
+                    tmin: f(8),
+                    tmax: f(9),
+                    time: f(10),
+                    mask: f(11).to_bits(),
+                    ..Ray::default()
+                }
+            })
+            .collect()
+    }
+
+    /// Checks `columns` of `V` against each ray's fields: lane `i` of column `k` at `offset` is ray `i`'s float there.
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set.
+    unsafe fn columns_hold_each_rays_fields<V: RayLanes>() {
+        let rays = numbered_rays();
+        let rays = &rays[..V::RAYS];
+        for (offset, first) in
+            [(offset_of!(Ray, origin), 0), (offset_of!(Ray, direction), 4), (offset_of!(Ray, tmin), 8)]
+        {
+            // SAFETY: the CPU has the instruction set (this function's contract).
+            let columns = unsafe { V::columns(rays, offset) };
+            for (k, column) in columns.into_iter().enumerate() {
+                let mut lanes = [0.0; MAX_PACKET_RAYS];
+                // SAFETY: as above.
+                unsafe { column.store(&mut lanes) };
+                let expected: Vec<f32> = (0..V::RAYS).map(|i| (100 * i + first + k) as f32).collect();
+                // The origin's and the direction's fourth float is glam's copy of `z`.
+                let expected = match (first, k) {
+                    (0 | 4, 3) => expected.iter().map(|v| v - 1.0).collect(),
+                    _ => expected,
+                };
+                assert_eq!(lanes[..V::RAYS], expected[..], "offset {offset}, column {k}");
+            }
+        }
+    }
+
+    #[test]
+    fn columns_hold_each_rays_fields_a_ray_a_lane() {
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2, as just checked.
+            unsafe { columns_hold_each_rays_fields::<__m256>() };
+        }
+        if has_avx512() {
+            // SAFETY: the CPU has AVX-512F, as just checked.
+            unsafe { columns_hold_each_rays_fields::<__m512>() };
+        }
+    }
+
+    #[test]
+    #[should_panic(expected = "bytes 48..")]
+    fn columns_refuse_the_padding_after_the_fields() {
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2, as just checked.
+            unsafe { __m256::columns(&numbered_rays()[..8], offset_of!(Ray, visibility)) };
+        } else {
+            panic!("bytes 48.. (no AVX2 here: the check is the same)");
+        }
+    }
 }
