@@ -284,15 +284,22 @@ impl HitFormat {
 }
 
 /// Writes `len` consecutive records of a [`HitFormat::Bitmask`] buffer from record `first` at once (`len` ≤ 32):
-/// bit `i` of `bits` is record `first + i`'s (1 = hit); the buffer's other bits are kept. One merge a byte
-/// instead of one a record: the records of neighbouring rays share bytes, and a merge a record makes each wait on the
-/// store before it. `buffer` starts on a byte boundary, as for [`HitFormat::write`].
+/// bit `i` of `bits` is record `first + i`'s (1 = hit); the buffer's other bits are kept. One merge a run (of the
+/// eight bytes from the run's first; a merge a byte near the buffer's end) instead of one a record: the records of
+/// neighbouring rays share bytes, and a merge a record makes each wait on the store before it. `buffer` starts on a
+/// byte boundary, as for [`HitFormat::write`].
 #[inline(always)]
 pub fn write_bitmask_run(buffer: &mut [u8], first: usize, bits: u32, len: usize) {
     debug_assert!(len <= 32);
     let shift = first % 8;
     let mask = ((1u64 << len) - 1) << shift;
     let value = (u64::from(bits) << shift) & mask;
+    // One merge of the eight bytes from the first, where the buffer has them (the run's bits, at most 39, lie in them).
+    if let Some(window) = buffer.get_mut(first / 8..first / 8 + 8) {
+        let window: &mut [u8; 8] = window.try_into().expect("eight bytes");
+        *window = ((u64::from_le_bytes(*window) & !mask) | value).to_le_bytes();
+        return;
+    }
     let bytes = &mut buffer[first / 8..(first + len).div_ceil(8)];
     for (k, byte) in bytes.iter_mut().enumerate() {
         let (mask, value) = ((mask >> (8 * k)) as u8, (value >> (8 * k)) as u8);

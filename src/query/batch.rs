@@ -146,17 +146,15 @@ fn trace_chunk<S>(
             },
         );
         traverse(&mut state, &decoded[..len], &mut collectors[..len], &mut stats);
+        let found = Collector::found_bits(&collectors[..len]);
+        let group_collectors = &collectors[..len];
         query.hit_format.specialized(
             #[inline(always)]
             |format| {
-                let mut at = 0;
-                for &(first, run) in group.runs() {
-                    Collector::write_run(&collectors[at..at + run], format, hits, records_per_ray, first, counts);
-                    at += run;
-                }
+                Collector::write_group(group_collectors, found, group.runs(), format, hits, records_per_ray, counts)
             },
         );
-        stats.rays_hit += collectors[..len].iter().map(|collector| u64::from(collector.found())).sum::<u64>();
+        stats.rays_hit += u64::from(found.count_ones());
         stats.rays += len as u64;
     }
     stats

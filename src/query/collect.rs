@@ -338,31 +338,53 @@ impl<'s> Collector<'s> {
         }
     }
 
-    /// Writes the records (`records_per_ray` a ray) and counts of `run`, the collectors of consecutive rays from ray
-    /// `first`, as [`Collector::write`] does each. A bitmask of one record a ray is written a run at once
+    /// A bit for each of `collectors` (at most 32; the first in bit 0) that found a hit, gathered without a branch.
+    #[inline(always)]
+    pub fn found_bits(collectors: &[Collector<'_>]) -> u32 {
+        debug_assert!(collectors.len() <= 32);
+        collectors.iter().enumerate().fold(0, |bits, (bit, collector)| bits | u32::from(collector.found()) << bit)
+    }
+
+    /// Writes the records (`records_per_ray` a ray) and counts of a group of `collectors`, whose rays are `runs` of
+    /// consecutive rays ((first ray, rays), in the collectors' order), as [`Collector::write`] does each; `found` is
+    /// their [`Collector::found_bits`]. A bitmask of one record a ray is written from `found` a run at once
     /// ([`write_bitmask_run`]): neighbouring rays' bits share bytes.
     #[inline(always)]
-    pub fn write_run(
-        run: &[Collector<'_>],
+    pub fn write_group(
+        collectors: &[Collector<'_>],
+        found: u32,
+        runs: &[(usize, usize)],
         format: HitFormat,
         hits: &mut [u8],
         records_per_ray: usize,
-        first: usize,
         counts: &mut [u8],
     ) {
-        let Some(kind) = run.first().map(|collector| collector.kind) else { return };
+        let Some(kind) = collectors.first().map(|collector| collector.kind) else { return };
+        // Runs, each with its collectors.
+        let runs = || {
+            runs.iter().scan(0, |at, &(first, run)| {
+                *at += run;
+                Some((first, run, &collectors[*at - run..*at]))
+            })
+        };
         if format == HitFormat::Bitmask && kind != QueryKind::All {
-            let mut bits = 0;
-            for (bit, (ray, collector)) in (first..).zip(run).enumerate() {
-                // A one-record kind writes its best hit if it found one (a hit), else a miss.
-                bits |= u32::from(collector.found()) << bit;
-                collector.write_count(counts, ray);
+            // A one-record kind writes its best hit if it found one (a hit), else a miss.
+            let mut at = 0;
+            for (first, run, run_collectors) in runs() {
+                write_bitmask_run(hits, first, found >> at, run);
+                at += run;
+                if kind.has_counts() {
+                    for (ray, collector) in (first..).zip(run_collectors) {
+                        collector.write_count(counts, ray);
+                    }
+                }
             }
-            write_bitmask_run(hits, first, bits, run.len());
             return;
         }
-        for (ray, collector) in (first..).zip(run) {
-            collector.write(format, hits, ray * records_per_ray, counts, ray);
+        for (first, _, run_collectors) in runs() {
+            for (ray, collector) in (first..).zip(run_collectors) {
+                collector.write(format, hits, ray * records_per_ray, counts, ray);
+            }
         }
     }
 }
@@ -394,7 +416,9 @@ mod tests {
             hit.write(HitFormat::Bitmask, &mut one_by_one, 1, &mut counts, 1);
             missed.write(HitFormat::Bitmask, &mut one_by_one, 2, &mut counts, 2);
             let mut as_a_run = [0b1111_0101u8];
-            Collector::write_run(&[hit, missed], HitFormat::Bitmask, &mut as_a_run, 1, 1, &mut counts);
+            let group = [hit, missed];
+            let found = Collector::found_bits(&group);
+            Collector::write_group(&group, found, &[(1, 2)], HitFormat::Bitmask, &mut as_a_run, 1, &mut counts);
             assert_eq!(one_by_one, [0b1111_0011], "{kind:?}");
             assert_eq!(as_a_run, one_by_one, "{kind:?}");
         }
