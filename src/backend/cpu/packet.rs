@@ -59,17 +59,17 @@ pub(crate) struct PacketEntry {
     rays: u32,
 }
 
-/// Whether `rays` (with their collectors) may make a packet, by what is cheapest to check: the same direction signs
-/// (the box test treats them alike), and queries that let them share an order of boxes. Most incoherent groups fail
-/// at their second ray. The rest of the test is [`PacketLanes::new`] (the same projection axes, which the triangle
-/// test needs) and [`PacketLanes::coherent`].
+/// Whether `rays` (with their collectors) may make a packet, by what is cheapest to check: queries that let them share
+/// an order of boxes, and the same direction signs for the first two rays and the last (most incoherent groups fail
+/// there). The rest of the test is [`PacketLanes::new`] (every ray's signs, which the box test treats alike, and the
+/// same projection axes, which the triangle test needs) and [`PacketLanes::coherent`].
 fn may_pack(rays: &[Ray], collectors: &[Collector<'_>]) -> bool {
     // `PreparedRay::negative`: a −0 component is not negative.
     let signs = |ray: &Ray| ray.direction.cmplt(Vec3A::ZERO).bitmask();
-    let [first, rest @ ..] = rays else { return false };
+    let [first, second, .., last] = rays else { return false };
     // Only closest-hit rays may not share an order (the query kind is every collector's).
     let share_order = || !collectors[0].wants_nearest_first() || collectors.iter().all(Collector::may_share_order);
-    rest.iter().all(|ray| signs(ray) == signs(first)) && share_order()
+    signs(second) == signs(first) && signs(last) == signs(first) && share_order()
 }
 
 impl TriangleBvh {
@@ -412,20 +412,24 @@ struct PacketInterval {
 }
 
 impl<V: RayLanes> PacketLanes<V> {
-    /// The lanes of `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]); `None` when their projection axes differ.
+    /// The lanes of `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]); `None` when their directions' signs or
+    /// their projection axes differ.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX.
     #[inline(always)]
     unsafe fn new(rays: &[Ray]) -> Option<PacketLanes<V>> {
-        // The axes are those of the first ray, and the directions' signs those of every ray (`may_pack`).
-        let first = PreparedRay::from_traced(&rays[0]);
-        let axes = [first.kx, first.ky, first.kz];
         // No `map` over registers here: its closure is compiled without the instruction set and might not be inlined.
         // SAFETY (all): the CPU has the instruction sets (the caller's contract).
         unsafe {
             let [dx, dy, dz, _] = V::columns(rays, offset_of!(Ray, direction));
             let direction = [dx, dy, dz];
+            if !same_signs(direction) {
+                return None;
+            }
+            // The axes are those of the first ray, and the directions' signs those of every ray (just checked).
+            let first = PreparedRay::from_traced(&rays[0]);
+            let axes = [first.kx, first.ky, first.kz];
             if !same_projection_axis(direction, first.kz) {
                 return None;
             }
@@ -671,6 +675,24 @@ impl PacketInterval {
 unsafe fn reciprocal<V: RayLanes>(d: V) -> V {
     // SAFETY: the CPU has the instruction set (the caller's contract).
     unsafe { V::select(d.eq(V::splat(0.0)), V::splat(f32::INFINITY), V::splat(1.0).div(d)) }
+}
+
+/// Whether every lane of `direction` has the same signs: each component negative in all lanes or in none, as
+/// [`PreparedRay::negative`] has it (a −0 or NaN component is not negative).
+///
+/// # Safety
+/// The CPU must have `V`'s instruction set.
+#[inline(always)]
+unsafe fn same_signs<V: RayLanes>(direction: [V; 3]) -> bool {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe {
+        let zero = V::splat(0.0);
+        let all = (1 << V::RAYS) - 1;
+        let uniform = |negative: u32| negative == 0 || negative == all;
+        let [x, y, z] =
+            [V::bits(direction[0].lt(zero)), V::bits(direction[1].lt(zero)), V::bits(direction[2].lt(zero))];
+        uniform(x) && uniform(y) && uniform(z)
+    }
 }
 
 /// Whether every lane of `direction` projects along axis `kz` in the triangle test: the axis of its largest
@@ -1124,6 +1146,13 @@ pub(super) mod tests {
             turned[3] =
                 Ray { origin: turned[3].origin, direction: glam::Quat::from_rotation_x(0.17) * d, ..Ray::default() };
             assert!(!packs(&turned, &query), "×{width}: a ray turned");
+            // Rays whose x components are all a negligible +1e-7 make a packet; one of them at −1e-7 has a sign of
+            // its own (its box test would take the other rays' planes): not a packet.
+            let mut flipped: Vec<Ray> =
+                neighbours.iter().map(|ray| Ray { direction: ray.direction.with_x(1e-7), ..*ray }).collect();
+            assert!(packs(&flipped, &query), "×{width}: x components of +1e-7");
+            flipped[5].direction.x = -1e-7;
+            assert!(!packs(&flipped, &query), "×{width}: a sign of its own");
             let mut moved = neighbours.to_vec();
             moved[5].origin += Vec3A::X * 0.02 * diagonal;
             assert!(!packs(&moved, &query), "×{width}: an origin moved");
