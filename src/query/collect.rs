@@ -360,19 +360,17 @@ impl<'s> Collector<'s> {
         counts: &mut [u8],
     ) {
         let Some(kind) = collectors.first().map(|collector| collector.kind) else { return };
-        // Runs, each with its collectors.
+        // Runs: each one's first ray, where its collectors start in the group, and its collectors.
         let runs = || {
             runs.iter().scan(0, |at, &(first, run)| {
                 *at += run;
-                Some((first, run, &collectors[*at - run..*at]))
+                Some((first, *at - run, &collectors[*at - run..*at]))
             })
         };
         if format == HitFormat::Bitmask && kind != QueryKind::All {
             // A one-record kind writes its best hit if it found one (a hit), else a miss.
-            let mut at = 0;
-            for (first, run, run_collectors) in runs() {
-                write_bitmask_run(hits, first, found >> at, run);
-                at += run;
+            for (first, start, run_collectors) in runs() {
+                write_bitmask_run(hits, first, found >> start, run_collectors.len());
                 if kind.has_counts() {
                     for (ray, collector) in (first..).zip(run_collectors) {
                         collector.write_count(counts, ray);
@@ -396,7 +394,7 @@ mod tests {
     use crate::geometry::TriangleRef;
 
     #[test]
-    fn a_bitmask_record_says_whether_the_ray_found_a_hit_for_every_one_record_kind() {
+    fn a_group_is_written_as_its_records_one_by_one_and_a_bitmask_bit_says_whether_the_ray_found_a_hit() {
         let corners = [Vec3::ZERO, Vec3::X, Vec3::Y];
         let candidate = TriangleCandidate {
             corners: &corners,
@@ -408,19 +406,38 @@ mod tests {
         for kind in [QueryKind::Any, QueryKind::Closest, QueryKind::Count] {
             let query = Query { kind, ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Bitmask) };
             let ray = Ray::default();
-            let (mut hit, missed) = (Collector::new(&query, &ray, &mut []), Collector::new(&query, &ray, &mut []));
-            accept_hit(0.0, RayFlags::empty(), &candidate, &InstanceScope::WORLD, &mut hit, met);
-            // Record 1 hits and record 2 misses, written one by one and as a run; the other bits are kept.
+            let collector = |hits: bool| {
+                let mut collector = Collector::new(&query, &ray, &mut []);
+                if hits {
+                    accept_hit(0.0, RayFlags::empty(), &candidate, &InstanceScope::WORLD, &mut collector, met);
+                }
+                collector
+            };
+            let (hit, missed) = (collector(true), collector(false));
+            // Record 1 hits and record 2 misses, written one by one; the other bits are kept.
             let mut counts = [0u8; 12];
             let mut one_by_one = [0b1111_0101u8];
             hit.write(HitFormat::Bitmask, &mut one_by_one, 1, &mut counts, 1);
             missed.write(HitFormat::Bitmask, &mut one_by_one, 2, &mut counts, 2);
-            let mut as_a_run = [0b1111_0101u8];
-            let group = [hit, missed];
-            let found = Collector::found_bits(&group);
-            Collector::write_group(&group, found, &[(1, 2)], HitFormat::Bitmask, &mut as_a_run, 1, &mut counts);
             assert_eq!(one_by_one, [0b1111_0011], "{kind:?}");
-            assert_eq!(as_a_run, one_by_one, "{kind:?}");
+            // A group of four in two runs (rays 1, 2 and 6, 7: a hit, a miss, a miss, a hit), in every format, as
+            // its records and counts written one by one; the other records and counts are kept.
+            let group = [collector(true), collector(false), collector(false), collector(true)];
+            let (runs, rays) = ([(1, 2), (6, 2)], [1, 2, 6, 7]);
+            for format in HitFormat::ALL {
+                let before: Vec<u8> = (0..format.buffer_len(9)).map(|i| (37 * i + 11) as u8).collect();
+                let counts_before: Vec<u8> = (0..4 * 9).map(|i| (29 * i + 3) as u8).collect();
+                let (mut by_group, mut by_record) = (before.clone(), before.clone());
+                let (mut group_counts, mut record_counts) = (counts_before.clone(), counts_before.clone());
+                let found = Collector::found_bits(&group);
+                assert_eq!(found, 0b1001, "{kind:?}");
+                Collector::write_group(&group, found, &runs, format, &mut by_group, 1, &mut group_counts);
+                for (collector, ray) in group.iter().zip(rays) {
+                    collector.write(format, &mut by_record, ray, &mut record_counts, ray);
+                }
+                assert_eq!(by_group, by_record, "{kind:?} {format:?}");
+                assert_eq!(group_counts, record_counts, "{kind:?} {format:?}");
+            }
         }
     }
 }
