@@ -1,6 +1,6 @@
 //! Ray formats: OptiX Prime's three, and two that carry a per-ray time for motion blur.
 
-use glam::Vec3A;
+use glam::{Vec3A, Vec4};
 
 use super::{read_f32, read_u32, write_f32, write_u32};
 
@@ -126,7 +126,11 @@ impl RayFormat {
     /// Decodes one ray from exactly [`RayFormat::size`] bytes.
     #[inline(always)]
     pub fn decode(self, b: &[u8]) -> Ray {
-        let vec3 = |offset| Vec3A::new(read_f32(b, offset), read_f32(b, offset + 4), read_f32(b, offset + 8));
+        // Where the record has 16 bytes from a vector, they are read whole (a `Vec3A`'s fourth float is unused).
+        let vec3 = |offset: usize| match b.get(offset..offset + 16) {
+            Some(quarter) => Vec3A::from_vec4(Vec4::from_array(std::array::from_fn(|i| read_f32(quarter, 4 * i)))),
+            None => Vec3A::new(read_f32(b, offset), read_f32(b, offset + 4), read_f32(b, offset + 8)),
+        };
         let origin = vec3(0);
         let direction = if matches!(self, RayFormat::OriginDirection) { vec3(12) } else { vec3(16) };
         let mut ray = Ray { origin, direction, ..Ray::default() };
