@@ -263,6 +263,21 @@ impl<'s> Collector<'s> {
         self.done
     }
 
+    /// Whether an accepted hit tells it only that the ray has one, which ends it: an `any` query that keeps no hit
+    /// (the bitmask format). A hit is then offered without its parts ([`Collector::offer_found`]).
+    #[inline(always)]
+    pub fn keeps_no_hit(&self) -> bool {
+        self.kind == QueryKind::Any && !self.keeps_any_hit
+    }
+
+    /// Takes an accepted hit when it [`Collector::keeps_no_hit`], as [`Collector::offer`] would.
+    #[inline(always)]
+    pub fn offer_found(&mut self) {
+        debug_assert!(self.keeps_no_hit());
+        self.count = self.count.saturating_add(1);
+        self.done = true;
+    }
+
     /// Takes an accepted hit.
     #[inline(always)]
     pub fn offer(&mut self, hit: AcceptedHit<'_>) {

@@ -25,7 +25,7 @@ use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::triangles::TriangleBvh;
 use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, prefetch};
 use crate::cpu_features::{has_avx2, has_avx512};
-use crate::format::Ray;
+use crate::format::{Ray, RayFlags};
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
 use crate::intersect::triangle::TriangleHit;
@@ -176,6 +176,9 @@ impl TriangleBvh {
         if !unsafe { lanes.coherent(&rays[0], MAX_ORIGIN_SPREAD * self.wide.diagonal()) } {
             return false;
         }
+        // An any-hit query that keeps no hit, without face culling: a hit in a ray's range is all that matters to it.
+        let culling = RayFlags::CULL_BACK_FACING | RayFlags::CULL_FRONT_FACING;
+        let accepts_in_lanes = collectors[0].keeps_no_hit() && !rays.iter().any(|ray| ray.flags.intersects(culling));
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
             let (mut met, mut finished) = (MetLanes::default(), 0u32);
@@ -192,6 +195,17 @@ impl TriangleBvh {
                     mask: self.masks.as_ref().map_or(0, |m| m[slot]),
                     geometry_flags: self.geometry_flags[id.geom_id as usize],
                 };
+                if accepts_in_lanes && candidate.mask == 0 {
+                    // What `accept_hit` would ask of each hit ray, asked in the lanes: its range.
+                    let accepted = hits & unsafe { lanes.within_range(&met.t) };
+                    let mut bits = accepted;
+                    while bits != 0 {
+                        collectors[bits.trailing_zeros() as usize].offer_found();
+                        bits &= bits - 1;
+                    }
+                    finished |= accepted;
+                    candidates = edges;
+                }
                 // Ray by ray in lane order, as each alone would be offered the triangle: rays on an edge or a vertex
                 // through the whole scalar test (its exact rule), the others from the hit found in the lanes.
                 while candidates != 0 {
@@ -382,6 +396,8 @@ struct PacketLanes<V> {
     inv_direction: [V; 3],
     /// `tmin`.
     tmin: V,
+    /// `tmax`.
+    tmax: V,
     /// Per axis, whether the rays meet the boxes' maxima first (the same for every ray of a packet).
     negative: [bool; 3],
     /// Per axis, where in a node the row of the planes the rays meet first lies, and the row of those they meet last
@@ -436,13 +452,14 @@ impl<V: RayLanes> PacketLanes<V> {
             let [ox, oy, oz, _] = V::columns(rays, offset_of!(Ray, origin));
             let origin = [ox, oy, oz];
             let inv_direction = [reciprocal(direction[0]), reciprocal(direction[1]), reciprocal(direction[2])];
-            let [tmin, ..] = V::columns(rays, offset_of!(Ray, tmin));
+            let [tmin, tmax, ..] = V::columns(rays, offset_of!(Ray, tmin));
             let (one, along) = (V::splat(1.0), direction[axes[2]]);
             Some(PacketLanes {
                 origin,
                 direction,
                 inv_direction,
                 tmin,
+                tmax,
                 negative: first.negative,
                 rows: std::array::from_fn(|axis| {
                     let row = |bound: usize| bound + 4 * WIDTH * axis;
@@ -536,6 +553,20 @@ impl<V: RayLanes> PacketLanes<V> {
             let inside = V::and(entry.le(exit), active);
             entry.store(near);
             (V::bits(inside), entry.least(inside))
+        }
+    }
+
+    /// The rays whose distance `t` (a ray a lane) lies within their `[tmin, tmax]`, a bit each, as [`accept_hit`] asks
+    /// it (false with NaN).
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set.
+    #[inline(always)]
+    unsafe fn within_range(&self, t: &[f32; MAX_PACKET_RAYS]) -> u32 {
+        // SAFETY: the CPU has the instruction set (the caller's contract).
+        unsafe {
+            let t = V::load(t);
+            V::bits(V::and(self.tmin.le(t), t.le(self.tmax)))
         }
     }
 
@@ -848,9 +879,13 @@ pub(super) mod tests {
                 let (x, y) = ((pixel % 64) as f32 / 16.0, (pixel / 64) as f32 / 16.0 - 0.5);
                 let eye = origin(pixel);
                 let direction = direction(Vec3A::new(x, y, 0.1), eye);
+                // Some ranges end or start at the grid's points, among the lattice's bumps (a camera ray's `t` is 1
+                // there): they cut hits short inside leaves.
                 let (tmin, tmax) = match pixel % 7 {
                     0 => (0.5, f32::INFINITY),
                     1 => (0.0, 0.9),
+                    2 => (1.0, f32::INFINITY),
+                    3 => (0.0, 1.0),
                     _ => (0.0, f32::INFINITY),
                 };
                 let mask = u32::from(pixel % 3 == 0);
@@ -955,19 +990,36 @@ pub(super) mod tests {
         Ray { origin: Vec3A::new(x, y, 0.1) - ray.direction * 3.0, ..*ray }
     }
 
-    /// Checks that `rays` traced in packets of `width` get the answers they get alone, for every query kind.
+    /// Checks that `rays` traced in packets of `width` get the answers they get alone, for every query kind, without
+    /// face culling, with the query's, and with some rays' own; `any` in the bitmask format too.
     fn packets_agree(bvh: &TriangleBvh, name: &str, rays: &[Ray], width: usize) {
         let groups = rays.len() / width;
-        for kind in [QueryKind::Closest, QueryKind::All, QueryKind::Count, QueryKind::Any] {
-            for flags in [RayFlags::empty(), RayFlags::CULL_BACK_FACING] {
+        let culling = [(RayFlags::empty(), false), (RayFlags::CULL_BACK_FACING, false), (RayFlags::empty(), true)];
+        let kinds = [QueryKind::Closest, QueryKind::All, QueryKind::Count, QueryKind::Any];
+        let formats = [HitFormat::TTriidUV, HitFormat::Bitmask];
+        let cases = kinds.into_iter().flat_map(|kind| formats.map(|format| (kind, format)));
+        for (kind, format) in cases.filter(|&(kind, format)| format == HitFormat::TTriidUV || kind == QueryKind::Any) {
+            for (flags, some_rays_cull) in culling {
+                // Every fifth ray culls front faces itself.
+                let rays: Vec<Ray> = (rays.iter().enumerate())
+                    .map(|(i, ray)| match some_rays_cull && i % 5 == 0 {
+                        true => Ray { flags: RayFlags::CULL_FRONT_FACING, ..*ray },
+                        false => *ray,
+                    })
+                    .collect();
                 let query = Query {
                     kind,
                     flags,
                     max_hits_per_ray: 4,
-                    ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV)
+                    ..Query::closest(RayFormat::OriginTminDirectionTmax, format)
                 };
-                let (alone, alone_counts, _) = trace(bvh, &query, rays, 1);
-                let (packed, packed_counts, packets) = trace(bvh, &query, rays, width);
+                let (alone, alone_counts, _) = trace(bvh, &query, &rays, 1);
+                let (packed, packed_counts, packets) = trace(bvh, &query, &rays, width);
+                if format == HitFormat::Bitmask {
+                    // A bit a ray: whether it hits, which packets must not change.
+                    assert!(alone == packed, "{name} {kind:?} {flags:?} ×{width}: bitmasks differ");
+                    continue;
+                }
                 // Pinhole groups across a change of direction signs are traced alone.
                 assert!(packets > groups * 3 / 4, "{name} {kind:?} ×{width}: {packets} of {groups} groups packed");
                 assert!(name != "pinhole" || packets < groups, "{name} ×{width}: no group traced alone");
