@@ -15,18 +15,23 @@ use std::sync::OnceLock;
 #[cfg(target_arch = "x86_64")]
 pub(super) use walk::TURNS;
 
-/// Whether a static accel whose traversal arrays (wide nodes and corner blocks) take `bytes` has its incoherent
-/// rays walked in turns: when they are larger than the CPU's last-level cache (read from Linux's sysfs once; where
-/// it cannot be read, never). `RAYD_CPU_TRAVERSAL=turns` or `alone`, read once, sets it for every accel, for A/B
-/// benchmarks.
-pub(super) fn walks_in_turns(bytes: u64) -> bool {
+/// Whether a static accel has its incoherent rays walked in turns: when its traversal arrays exceed the CPU's
+/// last-level cache ([`exceed_last_level_cache`]). `RAYD_CPU_TRAVERSAL=turns` or `alone`, read once, sets it for
+/// every accel, for A/B benchmarks.
+pub(super) fn walks_in_turns(exceeding_cache: bool) -> bool {
     static FORCED: OnceLock<Option<bool>> = OnceLock::new();
     let forced = FORCED.get_or_init(|| match std::env::var("RAYD_CPU_TRAVERSAL").as_deref() {
         Ok("turns") => Some(true),
         Ok("alone") => Some(false),
         _ => None,
     });
-    forced.unwrap_or_else(|| last_level_cache_bytes().is_some_and(|cache| bytes > cache))
+    forced.unwrap_or(exceeding_cache)
+}
+
+/// Whether traversal arrays (wide nodes and corner blocks) of `bytes` are larger than the CPU's last-level cache
+/// (read from Linux's sysfs once; where it cannot be read, never).
+pub(super) fn exceed_last_level_cache(bytes: u64) -> bool {
+    last_level_cache_bytes().is_some_and(|cache| bytes > cache)
 }
 
 /// Bytes of the largest cache of CPU 0, the last level, as Linux reports it.

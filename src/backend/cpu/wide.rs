@@ -21,7 +21,7 @@ use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::large_pages::LargePageArray;
 use super::traverse::StackEntry;
-use super::turns::walks_in_turns;
+use super::turns::{exceed_last_level_cache, walks_in_turns};
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::has_avx2;
 use crate::intersect::PreparedRay;
@@ -84,8 +84,11 @@ pub(super) struct WideBvh {
     depth: usize,
     /// The triangles' corners in blocks, for the leaves' first test.
     pub(super) blocks: CornerBlocks,
-    /// Whether incoherent rays are walked in turns ([`super::turns`]): the nodes and blocks exceed the CPU's
-    /// last-level cache.
+    /// Whether the nodes and blocks fit the CPU's last-level cache, where a node visited in vain costs little:
+    /// packets that want no distances then enter inner nodes by their interval alone ([`WideBvh::walk_packet`]).
+    pub(super) in_cache: bool,
+    /// Whether incoherent rays are walked in turns ([`super::turns`]): as a rule, where the nodes and blocks exceed
+    /// the CPU's last-level cache.
     pub(super) in_turns: bool,
 }
 
@@ -111,9 +114,11 @@ impl WideBvh {
             root: (root.min.into(), root.max.into()),
             depth: collapsed.depth,
             blocks: CornerBlocks::new(corners),
+            in_cache: true,
             in_turns: false,
         };
-        wide.in_turns = walks_in_turns(wide.size_bytes(Footprint::Exact));
+        let exceeding_cache = exceed_last_level_cache(wide.size_bytes(Footprint::Exact));
+        (wide.in_cache, wide.in_turns) = (!exceeding_cache, walks_in_turns(exceeding_cache));
         // What the walks rely on (see the type's documentation); a failure here is a bug of `collapse`.
         let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).all(|(node, &children)| {
             (0..usize::from(children)).all(|l| node.count[l] > 0 || (node.index[l] as usize) < wide.nodes.len())
