@@ -298,14 +298,15 @@ impl WideBvh {
         debug_assert_eq!(NEAREST_FIRST, collectors[0].wants_nearest_first());
         let (mut len, mut node, mut rays_in_node) = (0usize, 0usize, alive);
         let inner_by_interval = !NEAREST_FIRST && self.in_cache && lanes.interval.is_some();
+        // A node's entered lanes: (rays entering, the nearest of their distances, lane); each one's distances. Made
+        // once a walk: a node reads only what it wrote.
+        let mut entered = [(0u32, 0f32, 0usize); WIDTH];
+        let mut near = [[0f32; MAX_PACKET_RAYS]; WIDTH];
         while rays_in_node != 0 {
             let active = rays_in_node;
             let owner = &self.nodes[node];
             let children = usize::from(self.children[node]);
             stats.nodes_visited += (children * active.count_ones() as usize) as u64;
-            // The entered lanes: (rays entering, the nearest of their distances, lane); each one's distances.
-            let mut entered = [(0u32, 0f32, 0usize); WIDTH];
-            let mut near = [[0f32; MAX_PACKET_RAYS]; WIDTH];
             let mut count = 0;
             // The lanes some active ray may enter, by the packet's interval; then each of them exactly.
             let (far, active_lanes) = unsafe { (V::load(&cull), V::mask(active)) };
