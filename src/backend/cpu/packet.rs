@@ -6,8 +6,10 @@
 //! loads of nodes and triangles and the traversal's bookkeeping.
 //!
 //! **Same answers as alone.** A ray takes part only in the box tests of nodes it entered, with the same operations
-//! as [`super::wide`]'s lane test and its own nearest hit so far, and a popped node is re-checked against that hit.
-//! The triangles it meets go to its own collector through the same test. So every triangle that the ray alone
+//! as [`super::wide`]'s lane test and its own nearest hit so far, and a popped node is re-checked against that hit
+//! (walks that want no distances may enter inner nodes by the packet's interval alone, but test leaves ray by ray:
+//! the same leaves, [`WideBvh::walk_packet`]). The triangles it meets go to its own collector through the same test
+//! (or, for an `any` query that keeps no hit, the same range test in the lanes). So every triangle that the ray alone
 //! would find nearest is offered to it, and the tie rule (distance, then ids) picks the same hit whatever the
 //! order: closest, `all` and `count` answers are byte for byte those of tracing each ray alone; only which hit an
 //! `any` query stops at may differ. Nodes are visited in the packet's order: nearest first by the nearest of the
