@@ -300,6 +300,7 @@ impl WideBvh {
         debug_assert_eq!(NEAREST_FIRST, collectors[0].wants_nearest_first());
         let (mut len, mut node, mut rays_in_node) = (0usize, 0usize, alive);
         let inner_by_interval = !NEAREST_FIRST && self.in_cache && lanes.interval.is_some();
+        let most_at_root = unsafe { V::load(&cull).most(V::mask(alive)) };
         // A node's entered lanes: (rays entering, the nearest of their distances, lane); each one's distances. Made
         // once a walk: a node reads only what it wrote.
         let mut entered = [(0u32, 0f32, 0usize); WIDTH];
@@ -312,9 +313,14 @@ impl WideBvh {
             let mut count = 0;
             // The lanes some active ray may enter, by the packet's interval; then each of them exactly.
             let (far, active_lanes) = unsafe { (V::load(&cull), V::mask(active)) };
+            // The largest cull distance of the active rays (a NaN one counts as −∞: that ray enters nothing); of the
+            // rays alive at the root where cull distances do not move (at least the active rays').
+            let most = match NEAREST_FIRST {
+                true => unsafe { far.most(active_lanes) },
+                false => most_at_root,
+            };
             let mut lanes_left = match &lanes.interval {
-                // The largest cull distance of the active rays (a NaN one counts as −∞: that ray enters nothing).
-                Some(interval) => unsafe { interval.may_enter(owner, lanes.rows, far.most(active_lanes)) },
+                Some(interval) => unsafe { interval.may_enter(owner, lanes.rows, most) },
                 None => u32::MAX,
             } & ((1 << children) - 1);
             // Where the walk wants no distances, an inner lane the interval lets in is taken with all the active rays
