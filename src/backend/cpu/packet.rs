@@ -294,7 +294,7 @@ impl WideBvh {
         // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         let (mut alive, _) = unsafe {
             let (far, all) = (V::load(&cull), V::mask((1 << V::RAYS) - 1));
-            lanes.enter_box(first, last, far, all, &mut [0.0; MAX_PACKET_RAYS])
+            lanes.enter_box::<false>(first, last, far, all, &mut [0.0; MAX_PACKET_RAYS])
         };
         stats.nodes_visited += V::RAYS as u64;
         debug_assert_eq!(NEAREST_FIRST, collectors[0].wants_nearest_first());
@@ -332,7 +332,7 @@ impl WideBvh {
                 let near = &mut near[lane];
                 let (rays_in, nearest) = match by_interval(lane) {
                     true => (active, 0.0),
-                    false => unsafe { lanes.enter(owner, lane, far, active_lanes, near) },
+                    false => unsafe { lanes.enter::<NEAREST_FIRST>(owner, lane, far, active_lanes, near) },
                 };
                 // Kept or overwritten by the next lane, without a branch (which lanes are entered is hard to predict).
                 entered[count] = (rays_in, nearest, lane);
@@ -535,7 +535,7 @@ impl<V: RayLanes> PacketLanes<V> {
     /// # Safety
     /// The CPU must have `V`'s instruction set; `lane` must be below [`WIDTH`].
     #[inline(always)]
-    unsafe fn enter(
+    unsafe fn enter<const NEAREST: bool>(
         &self,
         node: &WideNode,
         lane: usize,
@@ -548,18 +548,19 @@ impl<V: RayLanes> PacketLanes<V> {
             |offset: usize| unsafe { *(node as *const WideNode).cast::<u8>().add(offset).cast::<f32>().add(lane) };
         let (first, last) = (self.rows.map(|(first, _)| plane(first)), self.rows.map(|(_, last)| plane(last)));
         // SAFETY: the CPU has the instruction set (the caller's contract).
-        unsafe { self.enter_box(first, last, far, active, near) }
+        unsafe { self.enter_box::<NEAREST>(first, last, far, active, near) }
     }
 
     /// Which of the `active` rays enter the box whose planes they meet first are `first` and last are `last` (by
     /// axis), within `[tmin, far]`, a bit each: the lane test of [`super::wide`] (so
     /// [`crate::intersect::aabb::intersect`]'s) with the rays in the lanes. Stores each ray's entry distance into
-    /// `near` and returns the rays with the nearest of their distances.
+    /// `near` and returns the rays with, when `NEAREST`, the nearest of their distances (else 0: a walk that does not
+    /// order its lanes saves the reduction).
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set.
     #[inline(always)]
-    unsafe fn enter_box(
+    unsafe fn enter_box<const NEAREST: bool>(
         &self,
         first: [f32; 3],
         last: [f32; 3],
@@ -580,7 +581,7 @@ impl<V: RayLanes> PacketLanes<V> {
             let exit = exit.add(exit.abs().mul(slack));
             let inside = V::and(entry.le(exit), active);
             entry.store(near);
-            (V::bits(inside), entry.least(inside))
+            (V::bits(inside), if NEAREST { entry.least(inside) } else { 0.0 })
         }
     }
 
@@ -1198,7 +1199,7 @@ pub(super) mod tests {
                 let (far, all) = (__m256::load(&cull), __m256::mask(u32::MAX));
                 let kept = interval.may_enter(&node, lanes.rows, far.most(all));
                 for lane in 0..WIDTH {
-                    let (rays_in, _) = lanes.enter(&node, lane, far, all, &mut [0.0; MAX_PACKET_RAYS]);
+                    let (rays_in, _) = lanes.enter::<false>(&node, lane, far, all, &mut [0.0; MAX_PACKET_RAYS]);
                     if rays_in != 0 {
                         entered_lanes += 1;
                         assert!(kept & (1 << lane) != 0, "lane {lane} entered by rays {rays_in:#b} but ruled out");
