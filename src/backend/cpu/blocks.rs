@@ -84,6 +84,29 @@ impl CornerBlocks {
         unsafe { filter::may_hit_lanes(&rows, ray.origin, ray.shear) }
     }
 
+    /// Of the lanes of block `block` set in `lanes`, those whose triangle the ray meets at a `t` within `[tmin,
+    /// tmax]` as the watertight test finds it, and those on an edge or a vertex of theirs, which need the test's
+    /// exact rule ([`filter::meet`]), a bit each; SSE, four lanes in one register.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub fn met_within(&self, ray: &BlockRay<'_>, block: usize, lanes: u32, (tmin, tmax): (f32, f32)) -> (u32, u32) {
+        use std::arch::x86_64::{__m128, _mm_set1_ps};
+
+        use filter::Lanes;
+        let rows = BlockRows { rows: &self.blocks[block], axes: ray.axes };
+        // SAFETY: SSE is part of x86-64.
+        unsafe {
+            let sheared = filter::shear(&rows, ray.origin, ray.shear);
+            let [u, v, w] = sheared.edges;
+            let may_hit = <__m128 as Lanes>::zero_or_not_mixed(u, v, w) & lanes;
+            if may_hit == 0 {
+                return (0, 0);
+            }
+            let meeting = filter::meet(&sheared, ray.shear_z, may_hit);
+            (meeting.met & meeting.t.within(_mm_set1_ps(tmin), _mm_set1_ps(tmax)), meeting.on_edge)
+        }
+    }
+
     /// The lanes of block `block` the ray may hit, a bit each: [`crate::intersect::triangle::may_hit`] lane by lane.
     #[cfg(not(target_arch = "x86_64"))]
     #[inline(always)]
@@ -95,8 +118,8 @@ impl CornerBlocks {
     }
 }
 
-/// What the block test needs of a ray, made once a ray: on x86-64 its origin on its projection axes and its first
-/// two shear constants, each in every lane of an SSE register.
+/// What the block test needs of a ray, made once a ray: on x86-64 its origin on its projection axes and its shear
+/// constants, each in every lane of an SSE register.
 #[derive(Clone, Copy)]
 pub(super) struct BlockRay<'r> {
     /// The ray.
@@ -111,6 +134,9 @@ pub(super) struct BlockRay<'r> {
     /// `shear.x`, `shear.y`.
     #[cfg(target_arch = "x86_64")]
     shear: [std::arch::x86_64::__m128; 2],
+    /// `shear.z`.
+    #[cfg(target_arch = "x86_64")]
+    shear_z: std::arch::x86_64::__m128,
 }
 
 impl<'r> BlockRay<'r> {
@@ -130,6 +156,7 @@ impl<'r> BlockRay<'r> {
                     axes,
                     origin: axes.map(|axis| _mm_set1_ps(origin[axis])),
                     shear: [_mm_set1_ps(ray.shear.x), _mm_set1_ps(ray.shear.y)],
+                    shear_z: _mm_set1_ps(ray.shear.z),
                 }
             }
         }

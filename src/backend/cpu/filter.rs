@@ -19,6 +19,36 @@ pub(super) trait Lanes: Copy {
     /// The CPU must have the register's instruction set.
     unsafe fn mul(self, other: Self) -> Self;
 
+    /// `self + other`, lane by lane.
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn add(self, other: Self) -> Self;
+
+    /// `self / other`, lane by lane.
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn div(self, other: Self) -> Self;
+
+    /// A bit per lane: `0 < |self|` (false with NaN).
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn nonzero(self) -> u32;
+
+    /// A bit per lane: `|self| < ∞` (false with NaN).
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn finite(self) -> u32;
+
+    /// A bit per lane: `low ≤ self ≤ high` (false with NaN).
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn within(self, low: Self, high: Self) -> u32;
+
     /// A bit per lane: some of `u`, `v`, `w` is 0, or they are not of mixed signs (comparisons with NaN are false,
     /// as Rust's are).
     ///
@@ -38,6 +68,46 @@ impl Lanes for __m128 {
     unsafe fn mul(self, other: Self) -> Self {
         // SAFETY: SSE is part of x86-64.
         unsafe { _mm_mul_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn add(self, other: Self) -> Self {
+        // SAFETY: SSE is part of x86-64.
+        unsafe { _mm_add_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn div(self, other: Self) -> Self {
+        // SAFETY: SSE is part of x86-64.
+        unsafe { _mm_div_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn nonzero(self) -> u32 {
+        // SAFETY: SSE is part of x86-64.
+        unsafe {
+            _mm_movemask_ps(_mm_cmplt_ps(
+                _mm_setzero_ps(),
+                _mm_and_ps(self, _mm_castsi128_ps(_mm_set1_epi32(i32::MAX))),
+            )) as u32
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn finite(self) -> u32 {
+        // SAFETY: SSE is part of x86-64.
+        unsafe {
+            _mm_movemask_ps(_mm_cmplt_ps(
+                _mm_and_ps(self, _mm_castsi128_ps(_mm_set1_epi32(i32::MAX))),
+                _mm_set1_ps(f32::INFINITY),
+            )) as u32
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn within(self, low: Self, high: Self) -> u32 {
+        // SAFETY: SSE is part of x86-64.
+        unsafe { _mm_movemask_ps(_mm_and_ps(_mm_cmple_ps(low, self), _mm_cmple_ps(self, high))) as u32 }
     }
 
     #[inline(always)]
@@ -65,6 +135,51 @@ impl Lanes for __m256 {
     unsafe fn mul(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX (the caller's contract).
         unsafe { _mm256_mul_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn add(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe { _mm256_add_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn div(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe { _mm256_div_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn nonzero(self) -> u32 {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe {
+            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(
+                _mm256_setzero_ps(),
+                _mm256_and_ps(self, _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX))),
+            )) as u32
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn finite(self) -> u32 {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe {
+            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(
+                _mm256_and_ps(self, _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX))),
+                _mm256_set1_ps(f32::INFINITY),
+            )) as u32
+        }
+    }
+
+    #[inline(always)]
+    unsafe fn within(self, low: Self, high: Self) -> u32 {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe {
+            _mm256_movemask_ps(_mm256_and_ps(
+                _mm256_cmp_ps::<_CMP_LE_OQ>(low, self),
+                _mm256_cmp_ps::<_CMP_LE_OQ>(self, high),
+            )) as u32
+        }
     }
 
     #[inline(always)]
@@ -103,6 +218,36 @@ impl Lanes for __m512 {
     unsafe fn mul(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX-512F (the caller's contract).
         unsafe { _mm512_mul_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn add(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { _mm512_add_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn div(self, other: Self) -> Self {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { _mm512_div_ps(self, other) }
+    }
+
+    #[inline(always)]
+    unsafe fn nonzero(self) -> u32 {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { u32::from(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_setzero_ps(), _mm512_abs_ps(self))) }
+    }
+
+    #[inline(always)]
+    unsafe fn finite(self) -> u32 {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { u32::from(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_abs_ps(self), _mm512_set1_ps(f32::INFINITY))) }
+    }
+
+    #[inline(always)]
+    unsafe fn within(self, low: Self, high: Self) -> u32 {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { u32::from(_mm512_cmp_ps_mask::<_CMP_LE_OQ>(low, self) & _mm512_cmp_ps_mask::<_CMP_LE_OQ>(self, high)) }
     }
 
     #[inline(always)]
@@ -174,6 +319,39 @@ pub(super) unsafe fn may_hit_lanes<L: Lanes>(corners: &impl Corners<L>, origin: 
     unsafe {
         let [u, v, w] = self::shear(corners, origin, shear).edges;
         L::zero_or_not_mixed(u, v, w)
+    }
+}
+
+/// Where the lanes of `may_hit` (those [`may_hit_lanes`] leaves) meet the `sheared` triangle, as
+/// [`crate::intersect::triangle::intersect`] finds it with the same operations in the same order, as far as it goes
+/// without its exact rule for edges and vertices.
+pub(super) struct Meeting<L> {
+    /// The lanes with an f32 edge function exactly 0, on an edge or a vertex: they are to take the scalar test.
+    pub on_edge: u32,
+    /// The lanes whose line meets the triangle at a finite `t` (its edge functions all nonzero, their sum finite and
+    /// nonzero): the scalar test's hit, found here.
+    pub met: u32,
+    /// Where they meet it.
+    pub t: L,
+    /// The sums of the edge functions: `u` and `v` of the hit are the second and third edge functions over it.
+    pub det: L,
+}
+
+/// The rest of the watertight test of the lanes of `may_hit` against the `sheared` triangle ([`Meeting`]);
+/// `shear_z` is the rays' third shear constant.
+///
+/// # Safety
+/// The CPU must have the registers' instruction set.
+#[inline(always)]
+pub(super) unsafe fn meet<L: Lanes>(sheared: &Sheared<L>, shear_z: L, may_hit: u32) -> Meeting<L> {
+    // SAFETY: the CPU has the instruction set (the caller's contract).
+    unsafe {
+        let ([u, v, w], [az, bz, cz]) = (sheared.edges, sheared.along);
+        let nonzero = u.nonzero() & v.nonzero() & w.nonzero();
+        let det = u.add(v).add(w);
+        let t = u.mul(shear_z.mul(az)).add(v.mul(shear_z.mul(bz))).add(w.mul(shear_z.mul(cz))).div(det);
+        let met = may_hit & nonzero & det.nonzero() & det.finite() & t.finite();
+        Meeting { on_edge: may_hit & !nonzero, met, t, det }
     }
 }
 

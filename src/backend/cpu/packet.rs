@@ -593,10 +593,7 @@ impl<V: RayLanes> PacketLanes<V> {
     #[inline(always)]
     unsafe fn within_range(&self, t: &[f32; MAX_PACKET_RAYS]) -> u32 {
         // SAFETY: the CPU has the instruction set (the caller's contract).
-        unsafe {
-            let t = V::load(t);
-            V::bits(V::and(self.tmin.le(t), t.le(self.tmax)))
-        }
+        unsafe { V::load(t).within(self.tmin, self.tmax) }
     }
 
     /// The watertight test ([`crate::intersect::triangle::intersect`]) of the triangle in lane `lane` of a block
@@ -612,27 +609,20 @@ impl<V: RayLanes> PacketLanes<V> {
         let corners = Splat { rows, lane, axes: self.axes };
         // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe {
-            let filter::Sheared { edges: [u, v, w], along: [az, bz, cz] } =
-                filter::shear(&corners, self.projected_origin, self.shear);
-            let may_hit = V::zero_or_not_mixed(u, v, w) & active;
+            let sheared = filter::shear(&corners, self.projected_origin, self.shear);
+            let [_, v, w] = sheared.edges;
+            let may_hit = V::zero_or_not_mixed(sheared.edges[0], v, w) & active;
             if may_hit == 0 {
                 return (0, 0);
             }
-            let (zero, infinity) = (V::splat(0.0), V::splat(f32::INFINITY));
-            let nonzero = V::and(V::and(zero.lt(u.abs()), zero.lt(v.abs())), zero.lt(w.abs()));
-            let edges = may_hit & !V::bits(nonzero);
-            let det = u.add(v).add(w);
-            let sz = self.shear_z;
-            let t = u.mul(sz.mul(az)).add(v.mul(sz.mul(bz))).add(w.mul(sz.mul(cz))).div(det);
-            let det_ok = V::and(det.abs().lt(infinity), zero.lt(det.abs()));
-            let hits = may_hit & V::bits(V::and(V::and(nonzero, det_ok), t.abs().lt(infinity)));
+            let filter::Meeting { on_edge, met: hits, t, det } = filter::meet(&sheared, self.shear_z, may_hit);
             if hits != 0 {
                 t.store(&mut met.t);
                 det.store(&mut met.det);
                 v.store(&mut met.v);
                 w.store(&mut met.w);
             }
-            (edges, hits)
+            (on_edge, hits)
         }
     }
 }
@@ -867,6 +857,11 @@ pub(super) mod tests {
     /// A bumpy lattice (shared edges and vertices that rays pass exactly through), with a floor and slivers across
     /// it, and a Prime mask on every fifth triangle.
     pub(in crate::backend::cpu) fn scene() -> (TriangleBvh, Mesh) {
+        lattice(true)
+    }
+
+    /// [`scene`]'s triangles, with its masks or without.
+    pub(in crate::backend::cpu) fn lattice(masked: bool) -> (TriangleBvh, Mesh) {
         let side = 24;
         let height = |i: u32, j: u32| ((i * 7 + j * 3) % 5) as f32 * 0.05;
         let mut lattice = Mesh::default();
@@ -886,7 +881,7 @@ pub(super) mod tests {
         let packed = mesh.pack();
         let masks: Vec<u8> =
             (0..mesh.triangles.len() as u32).flat_map(|t| u32::from(t % 5 == 0).to_le_bytes()).collect();
-        let input = TriangleInput { masks: Some(&masks), ..packed.input() };
+        let input = TriangleInput { masks: masked.then_some(&masks[..]), ..packed.input() };
         let triangles = gather(&[BuildInput::Triangles(input)], 1).expect("valid scene");
         (TriangleBvh::build(triangles, &BuildOptions::default()), mesh)
     }

@@ -40,12 +40,6 @@ pub(super) trait RayLanes: filter::Lanes {
     /// Stores the lanes into the first [`RayLanes::RAYS`] of `values`.
     unsafe fn store(self, values: &mut [f32; MAX_PACKET_RAYS]);
 
-    /// `self + other`, lane by lane.
-    unsafe fn add(self, other: Self) -> Self;
-
-    /// `self / other`, lane by lane.
-    unsafe fn div(self, other: Self) -> Self;
-
     /// The smaller lane by lane; `other` where either is NaN (as `vminps` does).
     unsafe fn min(self, other: Self) -> Self;
 
@@ -136,18 +130,6 @@ impl RayLanes for __m256 {
     unsafe fn store(self, values: &mut [f32; MAX_PACKET_RAYS]) {
         // SAFETY: the CPU has AVX (the trait's contract); the first eight of sixteen floats are written.
         unsafe { _mm256_storeu_ps(values.as_mut_ptr(), self) }
-    }
-
-    #[inline(always)]
-    unsafe fn add(self, other: Self) -> Self {
-        // SAFETY: the CPU has AVX (the trait's contract).
-        unsafe { _mm256_add_ps(self, other) }
-    }
-
-    #[inline(always)]
-    unsafe fn div(self, other: Self) -> Self {
-        // SAFETY: the CPU has AVX (the trait's contract).
-        unsafe { _mm256_div_ps(self, other) }
     }
 
     #[inline(always)]
@@ -299,18 +281,6 @@ impl RayLanes for __m512 {
     unsafe fn store(self, values: &mut [f32; MAX_PACKET_RAYS]) {
         // SAFETY: the CPU has AVX-512F (the trait's contract).
         unsafe { _mm512_storeu_ps(values.as_mut_ptr(), self) }
-    }
-
-    #[inline(always)]
-    unsafe fn add(self, other: Self) -> Self {
-        // SAFETY: the CPU has AVX-512F (the trait's contract).
-        unsafe { _mm512_add_ps(self, other) }
-    }
-
-    #[inline(always)]
-    unsafe fn div(self, other: Self) -> Self {
-        // SAFETY: the CPU has AVX-512F (the trait's contract).
-        unsafe { _mm512_div_ps(self, other) }
     }
 
     #[inline(always)]

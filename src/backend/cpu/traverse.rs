@@ -90,6 +90,9 @@ impl CpuAccel {
             traced = bvh.trace_packets(&mut stacks.packet, rays, collectors, stats);
         }
         let alone = !traced & ((1u64 << rays.len()) - 1) as u32;
+        if alone == 0 {
+            return;
+        }
         #[cfg(target_arch = "x86_64")]
         if let CpuAccel::Triangles(bvh) = self
             && bvh.node_keys.is_none()
@@ -99,9 +102,12 @@ impl CpuAccel {
             // SAFETY: the CPU has AVX2 and the other features, as just checked; the accel is static; a group holds
             // at most `TURNS` rays.
             unsafe {
-                match bvh.wide.in_turns && alone.count_ones() > 1 {
-                    true => bvh.traverse_in_turns_avx2(&mut stacks.turns, rays, collectors, alone, stats),
-                    false => bvh.traverse_alone_avx2(&mut stacks.single, rays, collectors, alone, stats),
+                let (turns, single) = (&mut stacks.turns, &mut stacks.single);
+                match (bvh.wide.in_turns && alone.count_ones() > 1, bvh.find_in_lanes(rays, collectors, alone)) {
+                    (true, true) => bvh.traverse_in_turns_avx2::<true>(turns, rays, collectors, alone, stats),
+                    (true, false) => bvh.traverse_in_turns_avx2::<false>(turns, rays, collectors, alone, stats),
+                    (false, true) => bvh.traverse_alone_avx2::<true>(single, rays, collectors, alone, stats),
+                    (false, false) => bvh.traverse_alone_avx2::<false>(single, rays, collectors, alone, stats),
                 }
             }
             return;
@@ -171,11 +177,12 @@ impl TriangleBvh {
                         (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
                     std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
                 };
-                let candidates = |block: usize, lanes: u32| {
-                    (0..BLOCK).fold(0, |bits, lane| match lanes >> lane & 1 {
+                let candidates = |block: usize, lanes: u32, _: f32| {
+                    let may_hit = (0..BLOCK).fold(0, |bits, lane| match lanes >> lane & 1 {
                         0 => bits,
                         _ => bits | u32::from(triangle::may_hit(ray, &corners(block * BLOCK + lane))) << lane,
-                    })
+                    });
+                    (0, may_hit)
                 };
                 let leaf = with_stack(self.offer_leaf(corners, candidates, ray, scope));
                 walk(&self.nodes, |node| keys.at(node, at), stack, ray, collector, stats, leaf)
@@ -187,11 +194,14 @@ impl TriangleBvh {
     /// one ray after another: [`TriangleBvh::traverse`] of each ray as [`CpuAccel::traverse_group`] would call it,
     /// compiled for AVX2 as one loop, so that preparing a ray and starting its walk take no calls.
     ///
+    /// With `FOUND_IN_LANES`, the rays take their leaves' hits from the blocks' lanes ([`TriangleBvh::found_leaf`]):
+    /// they must be rays that [`TriangleBvh::find_in_lanes`].
+    ///
     /// # Safety
     /// The CPU must have the features [`has_avx2`] checks; the accel must be static (no `node_keys`).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn traverse_alone_avx2(
+    unsafe fn traverse_alone_avx2<const FOUND_IN_LANES: bool>(
         &self,
         stack: &mut [StackEntry],
         rays: &[Ray],
@@ -205,11 +215,50 @@ impl TriangleBvh {
             alone &= alone - 1;
             let ray = PreparedRay::from_traced(&rays[i]);
             let block_ray = BlockRay::new(&ray);
-            let leaf = self.static_leaf(&block_ray, &ray, &InstanceScope::WORLD);
             let prefetch_leaf = |slots| self.prefetch_leaf(slots);
-            // SAFETY: the CPU has the features (this function's contract).
-            unsafe { self.wide.walk_avx2(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+            // SAFETY (both): the CPU has the features (this function's contract).
+            if FOUND_IN_LANES {
+                let leaf = self.found_leaf(&block_ray, &ray);
+                unsafe { self.wide.walk_avx2(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+            } else {
+                let leaf = self.static_leaf(&block_ray, &ray, &InstanceScope::WORLD);
+                unsafe { self.wide.walk_avx2(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+            }
         }
+    }
+
+    /// Whether the rays of `walking` (a bit each) need to know only that they hit, which [`TriangleBvh::found_leaf`]
+    /// tells them: their collectors keep no hit ([`Collector::keeps_no_hit`]), they cull no faces, and the accel
+    /// has no Prime masks.
+    #[cfg(target_arch = "x86_64")]
+    pub(super) fn find_in_lanes(&self, rays: &[Ray], collectors: &[Collector<'_>], walking: u32) -> bool {
+        use crate::format::RayFlags;
+        let culling = RayFlags::CULL_BACK_FACING | RayFlags::CULL_FRONT_FACING;
+        let mut bits = walking;
+        let mut finds = self.masks.is_none();
+        while finds && bits != 0 {
+            let i = bits.trailing_zeros() as usize;
+            bits &= bits - 1;
+            finds = collectors[i].keeps_no_hit() && !rays[i].flags.intersects(culling);
+        }
+        finds
+    }
+
+    /// What a walk of a static accel does at a leaf for a ray that [`TriangleBvh::find_in_lanes`]: as
+    /// [`TriangleBvh::static_leaf`], but each block's triangles met within the ray's range are found in the block's
+    /// lanes ([`super::blocks::CornerBlocks::met_within`]) and the collector told only that there is a hit
+    /// ([`Collector::offer_found`]); the lanes on an edge or a vertex take the scalar test. Slots are taken in the
+    /// same order, so the answers and the statistics are those of the scalar test.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub(super) fn found_leaf<'a>(
+        &'a self,
+        block_ray: &'a BlockRay<'a>,
+        ray: &'a PreparedRay,
+    ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
+        let blocks = &self.wide.blocks;
+        let found = |block, lanes, cull_tmax| blocks.met_within(block_ray, block, lanes, (ray.tmin, cull_tmax));
+        self.offer_leaf(|slot| blocks.corners(slot), found, ray, &InstanceScope::WORLD)
     }
 
     /// What a walk of a static accel does at a leaf ([`TriangleBvh::offer_leaf`]): its triangles sorted out a block
@@ -223,7 +272,7 @@ impl TriangleBvh {
         scope: &'a InstanceScope,
     ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
         let blocks = &self.wide.blocks;
-        let candidates = |block, lanes| blocks.block_candidates(block_ray, block) & lanes;
+        let candidates = |block, lanes, _| (0, blocks.block_candidates(block_ray, block) & lanes);
         self.offer_leaf(|slot| blocks.corners(slot), candidates, ray, scope)
     }
 
@@ -237,25 +286,33 @@ impl TriangleBvh {
 
     /// What a walk does at a leaf: offers each of its triangles, with its corners from `corners` (by slot), in slot
     /// order, and says whether the collector is done. The triangles the ray's line cannot cross are first sorted out,
-    /// a block of [`BLOCK`] slots at a time, by `candidates` (given a block and a bit for each of its lanes in the
-    /// leaf, the bits of those the ray may hit: [`triangle::may_hit`], or the same test on the block at once); the
-    /// rest are offered as before, so the answers and the statistics (triangles tested up to where the collector is
-    /// done) are those of offering every one.
+    /// a block of [`BLOCK`] slots at a time, by `sort_out` (given a block, a bit for each of its lanes in the leaf
+    /// and the collector's cull distance, two sets of those bits: the lanes whose hit it found for a collector that
+    /// [`Collector::keeps_no_hit`], which is told only that there is one, and the lanes the ray may hit, by
+    /// [`triangle::may_hit`] or the same test on the block at once); the rest are offered as before, so the answers
+    /// and the statistics (triangles tested up to where the collector is done) are those of offering every one.
     #[inline(always)]
     fn offer_leaf<'a>(
         &'a self,
         corners: impl Fn(usize) -> [Vec3; 3] + 'a,
-        candidates: impl Fn(usize, u32) -> u32 + 'a,
+        sort_out: impl Fn(usize, u32, f32) -> (u32, u32) + 'a,
         ray: &'a PreparedRay,
         scope: &'a InstanceScope,
     ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
         #[inline(always)]
         move |slots, collector, stats| {
             for block in slots.start / BLOCK..slots.end.div_ceil(BLOCK) {
-                let mut candidates = candidates(block, lanes_within(block, &slots));
-                while candidates != 0 {
-                    let slot = block * BLOCK + candidates.trailing_zeros() as usize;
-                    candidates &= candidates - 1;
+                let (found, candidates) = sort_out(block, lanes_within(block, &slots), collector.cull_tmax());
+                let mut lanes = found | candidates;
+                while lanes != 0 {
+                    let lane = lanes.trailing_zeros();
+                    lanes &= lanes - 1;
+                    let slot = block * BLOCK + lane as usize;
+                    if found & (1 << lane) != 0 {
+                        collector.offer_found();
+                        stats.triangle_tests += (slot + 1 - slots.start) as u64;
+                        return true;
+                    }
                     let id = self.refs[slot];
                     let candidate = TriangleCandidate {
                         corners: &corners(slot),
@@ -430,5 +487,107 @@ fn walk(
                 }
             },
         };
+    }
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+pub(super) mod tests {
+    use glam::Vec3A;
+
+    use super::*;
+    use crate::backend::cpu::packet::tests::{lattice, rays_from};
+    use crate::format::{Hit, HitFormat, RayFlags, RayFormat};
+    use crate::intersect::traced;
+    use crate::query::{Query, QueryKind};
+
+    /// How [`trace`] walks a static accel.
+    #[derive(Debug, Clone, Copy, PartialEq)]
+    pub(in crate::backend::cpu) enum Walk {
+        /// Each ray through [`CpuAccel::traverse`], the leaves' scalar test.
+        OneByOne,
+        /// In the batch driver's groups through [`CpuAccel::traverse_group`], incoherent rays one after another.
+        Alone,
+        /// The same, incoherent rays in turns ([`super::super::turns`]).
+        InTurns,
+    }
+
+    /// Each ray's records and counts of `query`, and the statistics, traced through `bvh` as `walk` says.
+    pub(in crate::backend::cpu) fn trace(
+        bvh: &TriangleBvh,
+        query: &Query,
+        rays: &[Ray],
+        walk: Walk,
+    ) -> (Vec<u8>, Vec<u8>, TraceStats) {
+        let mut bvh = bvh.clone();
+        bvh.wide.in_turns = walk == Walk::InTurns;
+        let accel = CpuAccel::Triangles(bvh);
+        let mut stacks = accel.new_stacks();
+        let records = query.records_per_ray();
+        let mut hits = vec![0u8; query.hit_format.buffer_len(rays.len() * records)];
+        let mut counts = vec![0u8; 4 * rays.len()];
+        let mut scratch = vec![Hit::MISS; TURNS * records];
+        let mut stats = TraceStats::default();
+        for (group, rays) in rays.chunks(TURNS).enumerate() {
+            let rays: Vec<Ray> = rays.iter().map(|ray| traced(ray, query.flags)).collect();
+            let mut parts = scratch.chunks_mut(records);
+            let mut collectors: Vec<Collector<'_>> =
+                rays.iter().map(|ray| Collector::new(query, ray, parts.next().expect("a part a ray"))).collect();
+            if walk == Walk::OneByOne {
+                for (ray, collector) in rays.iter().zip(&mut collectors) {
+                    let ray = PreparedRay::from_traced(ray);
+                    accel.traverse(&mut stacks.single, &ray, &InstanceScope::WORLD, collector, &mut stats);
+                }
+            } else {
+                accel.traverse_group(&mut stacks, &rays, &mut collectors, &mut stats);
+            }
+            for (i, collector) in collectors.iter().enumerate() {
+                let index = group * TURNS + i;
+                collector.write(query.hit_format, &mut hits, index * records, &mut counts, index);
+            }
+        }
+        (hits, counts, stats)
+    }
+
+    /// Rays from origins scattered around and inside [`lattice`], ray to ray (no two neighbours make a packet),
+    /// towards its grid points, some of them vertices and edges, with [`rays_from`]'s ranges and masks; and rays that
+    /// reach nothing or everything: a NaN origin, a zero direction, an empty range.
+    pub(in crate::backend::cpu) fn scattered_rays() -> Vec<Ray> {
+        let scatter = |pixel: u32, k: u32| ((pixel.wrapping_mul(2_654_435_761) >> (k * 8)) & 255) as f32 / 64.0;
+        let mut rays = rays_from(
+            |pixel| Vec3A::new(scatter(pixel, 0) - 0.5, scatter(pixel, 1) - 0.5, scatter(pixel, 2) / 2.0 - 1.0),
+            |target, eye| target - eye,
+        );
+        rays[5].origin = Vec3A::new(f32::NAN, 1.0, 1.0);
+        rays[17].direction = Vec3A::ZERO;
+        (rays[40].tmin, rays[40].tmax) = (2.0, 1.0);
+        rays
+    }
+
+    #[test]
+    fn rays_that_keep_no_hit_find_it_in_the_blocks_lanes_as_the_scalar_test_tells_them() {
+        if !has_avx2() {
+            return;
+        }
+        let rays = scattered_rays();
+        // Face culling and Prime masks (on every fifth triangle and every third ray) take the scalar test.
+        let cases = [false, true].into_iter().flat_map(|masked| {
+            [RayFlags::empty(), RayFlags::TERMINATE_ON_FIRST_HIT, RayFlags::CULL_BACK_FACING].map(|f| (masked, f))
+        });
+        for (masked, flags) in cases {
+            let (bvh, _) = lattice(masked);
+            let query = Query {
+                kind: QueryKind::Any,
+                flags,
+                ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Bitmask)
+            };
+            let case = format!("{flags:?}, masked {masked}");
+            let one_by_one = trace(&bvh, &query, &rays, Walk::OneByOne);
+            let hits = one_by_one.0.iter().map(|byte| byte.count_ones() as usize).sum::<usize>();
+            assert!(hits > rays.len() / 4 && hits < rays.len(), "{case}: {hits} rays hit");
+            for walk in [Walk::Alone, Walk::InTurns] {
+                let grouped = trace(&bvh, &query, &rays, walk);
+                assert!(grouped == one_by_one, "{case}, {walk:?}: {:?} against {:?}", grouped.2, one_by_one.2);
+            }
+        }
     }
 }

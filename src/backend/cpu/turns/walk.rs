@@ -26,13 +26,14 @@ struct Turn {
 
 impl TriangleBvh {
     /// Offers each of `rays` whose bit is set in `walking` the triangles of the leaves it reaches in this static accel,
-    /// the rays walked in turns: what [`TriangleBvh::traverse_alone_avx2`] does one ray after another.
+    /// the rays walked in turns: what [`TriangleBvh::traverse_alone_avx2`] does one ray after another (with
+    /// `FOUND_IN_LANES` as there).
     ///
     /// # Safety
     /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks; the accel must be static (no
     /// `node_keys`); `rays` holds at most [`TURNS`] rays.
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    pub(in crate::backend::cpu) unsafe fn traverse_in_turns_avx2(
+    pub(in crate::backend::cpu) unsafe fn traverse_in_turns_avx2<const FOUND_IN_LANES: bool>(
         &self,
         stacks: &mut [StackEntry],
         rays: &[Ray],
@@ -58,7 +59,10 @@ impl TriangleBvh {
             |i: usize, slots, collector: &mut Collector<'_>, stats: &mut TraceStats| {
                 // SAFETY: ray `i` walks, so its block test's numbers were made just above.
                 let block_ray = unsafe { block_rays.get_unchecked(i).assume_init_ref() };
-                (self.static_leaf(block_ray, prepared(i), &InstanceScope::WORLD))(slots, collector, stats)
+                match FOUND_IN_LANES {
+                    true => (self.found_leaf(block_ray, prepared(i)))(slots, collector, stats),
+                    false => (self.static_leaf(block_ray, prepared(i), &InstanceScope::WORLD))(slots, collector, stats),
+                }
             }
         };
         let prefetch_leaf = |slots| self.prefetch_leaf(slots);
@@ -176,41 +180,11 @@ fn bits(mask: u32) -> impl Iterator<Item = usize> {
 
 #[cfg(test)]
 mod tests {
-    use glam::Vec3A;
-
-    use super::*;
-    use crate::backend::cpu::CpuAccel;
-    use crate::backend::cpu::packet::tests::{rays_from, scene};
+    use crate::backend::cpu::packet::tests::scene;
+    use crate::backend::cpu::traverse::tests::{Walk, scattered_rays, trace};
     use crate::cpu_features::has_avx2;
-    use crate::format::{Hit, HitFormat, Ray, RayFlags, RayFormat};
-    use crate::intersect::traced;
-    use crate::query::{Collector, Query, QueryKind, TraceStats};
-
-    /// Each ray's records and counts of `query`, and the statistics, traced in the batch driver's groups through
-    /// `bvh` with its incoherent rays walked in turns or one after another.
-    fn trace(bvh: &TriangleBvh, query: &Query, rays: &[Ray], in_turns: bool) -> (Vec<u8>, Vec<u8>, TraceStats) {
-        let mut bvh = bvh.clone();
-        bvh.wide.in_turns = in_turns;
-        let accel = CpuAccel::Triangles(bvh);
-        let mut stacks = accel.new_stacks();
-        let records = query.records_per_ray();
-        let mut hits = vec![0u8; query.hit_format.buffer_len(rays.len() * records)];
-        let mut counts = vec![0u8; 4 * rays.len()];
-        let mut scratch = vec![Hit::MISS; TURNS * records];
-        let mut stats = TraceStats::default();
-        for (group, rays) in rays.chunks(TURNS).enumerate() {
-            let rays: Vec<Ray> = rays.iter().map(|ray| traced(ray, query.flags)).collect();
-            let mut parts = scratch.chunks_mut(records);
-            let mut collectors: Vec<Collector<'_>> =
-                rays.iter().map(|ray| Collector::new(query, ray, parts.next().expect("a part a ray"))).collect();
-            accel.traverse_group(&mut stacks, &rays, &mut collectors, &mut stats);
-            for (i, collector) in collectors.iter().enumerate() {
-                let index = group * TURNS + i;
-                collector.write(query.hit_format, &mut hits, index * records, &mut counts, index);
-            }
-        }
-        (hits, counts, stats)
-    }
+    use crate::format::{HitFormat, RayFlags, RayFormat};
+    use crate::query::{Query, QueryKind};
 
     #[test]
     fn rays_walked_in_turns_get_the_answers_and_statistics_of_rays_walked_alone() {
@@ -218,19 +192,7 @@ mod tests {
             return;
         }
         let (bvh, _) = scene();
-        // Origins scattered around and inside the lattice, ray to ray (no two neighbours make a packet), towards its
-        // grid points, some of them vertices and edges; ranges and masks as the scene's other tests have them; and
-        // rays that reach nothing or everything: a NaN origin, a zero direction, an empty range.
-        let scatter = |pixel: u32, k: u32| ((pixel.wrapping_mul(2_654_435_761) >> (k * 8)) & 255) as f32 / 64.0;
-        let mut rays = rays_from(
-            |pixel| Vec3A::new(scatter(pixel, 0) - 0.5, scatter(pixel, 1) - 0.5, scatter(pixel, 2) / 2.0 - 1.0),
-            |target, eye| target - eye,
-        );
-        let nan = Vec3A::new(f32::NAN, 1.0, 1.0);
-        rays[5].origin = nan;
-        rays[17].direction = Vec3A::ZERO;
-        rays[40].tmin = 2.0;
-        rays[40].tmax = 1.0;
+        let rays = scattered_rays();
         for kind in [QueryKind::Closest, QueryKind::Any, QueryKind::All, QueryKind::Count] {
             for flags in [RayFlags::empty(), RayFlags::CULL_BACK_FACING, RayFlags::TERMINATE_ON_FIRST_HIT] {
                 let query = Query {
@@ -239,8 +201,8 @@ mod tests {
                     max_hits_per_ray: 4,
                     ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV)
                 };
-                let alone = trace(&bvh, &query, &rays, false);
-                let in_turns = trace(&bvh, &query, &rays, true);
+                let alone = trace(&bvh, &query, &rays, Walk::Alone);
+                let in_turns = trace(&bvh, &query, &rays, Walk::InTurns);
                 let first_record = |ray: usize| ray * query.records_per_ray();
                 let hits = (0..rays.len())
                     .filter(|&ray| HitFormat::TTriidUV.read(&alone.0, first_record(ray)).is_hit())
