@@ -41,6 +41,15 @@ pub struct TriangleHit {
     pub back_face: bool,
 }
 
+impl TriangleHit {
+    /// The hit at `t` of a triangle whose edge functions are `u`, `v`, `w` with sum `det`: `v / det` and `w / det`
+    /// are the barycentric weights of v1 and v2, and the ray sees the back face where `det < 0`.
+    #[inline(always)]
+    pub fn from_edges(t: f32, det: f32, v: f32, w: f32) -> TriangleHit {
+        TriangleHit { t, u: v / det, v: w / det, back_face: det < 0.0 }
+    }
+}
+
 /// The sign that an edge function which is exactly 0 takes once the ray is moved by the infinitesimal offset
 /// `(δ, δ²)` in the projection plane. For the function `cross2(p, q)` of the edge from `p` to `q` the derivative
 /// along that offset is `-(q−p).y` first, then `(q−p).x`.
@@ -142,7 +151,7 @@ pub fn intersect(ray: &PreparedRay, corners: &[Vec3; 3]) -> Option<TriangleHit> 
     if !t.is_finite() {
         return None;
     }
-    Some(TriangleHit { t, u: v / det, v: w / det, back_face: det < 0.0 })
+    Some(TriangleHit::from_edges(t, det, v, w))
 }
 
 #[cfg(test)]

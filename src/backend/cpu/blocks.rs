@@ -11,6 +11,7 @@ use super::bvh::{Footprint, VecLen};
 use super::filter;
 use super::large_pages::LargePageArray;
 use crate::intersect::PreparedRay;
+use crate::intersect::triangle::TriangleHit;
 
 /// Slots a block.
 pub(super) const BLOCK: usize = 4;
@@ -20,6 +21,37 @@ const ROWS: usize = 9;
 
 /// One block: for each corner and axis, that coordinate of the block's [`BLOCK`] triangles.
 pub(super) type Block = [[f32; BLOCK]; ROWS];
+
+/// Where `N` lanes' rays met triangles (a ray against a block's triangles, or a packet's rays against a triangle), as
+/// the watertight test in lanes left it (`filter::meet`, kept by `MetLanes::keep`): what the scalar test's hit is
+/// made of, lane by lane.
+pub(super) struct MetLanes<const N: usize> {
+    /// Distances.
+    pub(super) t: [f32; N],
+    /// The sums of the edge functions.
+    pub(super) det: [f32; N],
+    /// The second edge functions.
+    pub(super) v: [f32; N],
+    /// The third edge functions.
+    pub(super) w: [f32; N],
+}
+
+impl<const N: usize> MetLanes<N> {
+    /// Nothing met yet.
+    pub const NONE: MetLanes<N> = MetLanes { t: [0.0; N], det: [0.0; N], v: [0.0; N], w: [0.0; N] };
+
+    /// The distances.
+    #[cfg(target_arch = "x86_64")]
+    pub fn t(&self) -> &[f32; N] {
+        &self.t
+    }
+
+    /// Lane `lane`'s hit, as the scalar test reports it.
+    #[inline(always)]
+    pub fn hit(&self, lane: usize) -> TriangleHit {
+        TriangleHit::from_edges(self.t[lane], self.det[lane], self.v[lane], self.w[lane])
+    }
+}
 
 /// Every slot's corners, in blocks; slots past the last triangle are NaN (and never asked for).
 #[derive(Debug, Clone, Default)]
@@ -85,11 +117,18 @@ impl CornerBlocks {
     }
 
     /// Of the lanes of block `block` set in `lanes`, those whose triangle the ray meets at a `t` within `[tmin,
-    /// tmax]` as the watertight test finds it, and those on an edge or a vertex of theirs, which need the test's
-    /// exact rule ([`filter::meet`]), a bit each; SSE, four lanes in one register.
+    /// tmax]` as the watertight test finds it, whose hits it leaves in `met`, and those on an edge or a vertex of
+    /// theirs, which need the test's exact rule ([`filter::meet`]), a bit each; SSE, four lanes in one register.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    pub fn met_within(&self, ray: &BlockRay<'_>, block: usize, lanes: u32, (tmin, tmax): (f32, f32)) -> (u32, u32) {
+    pub fn met_within(
+        &self,
+        ray: &BlockRay<'_>,
+        block: usize,
+        lanes: u32,
+        (tmin, tmax): (f32, f32),
+        met: &mut MetLanes<BLOCK>,
+    ) -> (u32, u32) {
         use std::arch::x86_64::{__m128, _mm_set1_ps};
 
         use filter::Lanes;
@@ -103,7 +142,11 @@ impl CornerBlocks {
                 return (0, 0);
             }
             let meeting = filter::meet(&sheared, ray.shear_z, may_hit);
-            (meeting.met & meeting.t.within(_mm_set1_ps(tmin), _mm_set1_ps(tmax)), meeting.on_edge)
+            let within = meeting.met & meeting.t.within(_mm_set1_ps(tmin), _mm_set1_ps(tmax));
+            if within != 0 {
+                met.keep(&meeting, &sheared);
+            }
+            (within, meeting.on_edge)
         }
     }
 

@@ -5,8 +5,19 @@
 
 use std::arch::x86_64::*;
 
+pub(super) use super::blocks::MetLanes;
+
 /// A SIMD register of f32 lanes, with what the filter needs of it.
 pub(super) trait Lanes: Copy {
+    /// Lanes a register.
+    const LANES: usize;
+
+    /// Stores the lanes into the first [`Lanes::LANES`] of `values`.
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set; `values` must hold at least [`Lanes::LANES`] floats.
+    unsafe fn write_to(self, values: &mut [f32]);
+
     /// `self − other`, lane by lane.
     ///
     /// # Safety
@@ -58,6 +69,14 @@ pub(super) trait Lanes: Copy {
 }
 
 impl Lanes for __m128 {
+    const LANES: usize = 4;
+
+    #[inline(always)]
+    unsafe fn write_to(self, values: &mut [f32]) {
+        // SAFETY: SSE is part of x86-64; `values` holds 4 floats at least (the caller's contract).
+        unsafe { _mm_storeu_ps(values.as_mut_ptr(), self) }
+    }
+
     #[inline(always)]
     unsafe fn sub(self, other: Self) -> Self {
         // SAFETY: SSE is part of x86-64.
@@ -125,6 +144,14 @@ impl Lanes for __m128 {
 }
 
 impl Lanes for __m256 {
+    const LANES: usize = 8;
+
+    #[inline(always)]
+    unsafe fn write_to(self, values: &mut [f32]) {
+        // SAFETY: the CPU has AVX, and `values` holds 8 floats at least (the caller's contract).
+        unsafe { _mm256_storeu_ps(values.as_mut_ptr(), self) }
+    }
+
     #[inline(always)]
     unsafe fn sub(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX (the caller's contract).
@@ -208,6 +235,14 @@ impl Lanes for __m256 {
 }
 
 impl Lanes for __m512 {
+    const LANES: usize = 16;
+
+    #[inline(always)]
+    unsafe fn write_to(self, values: &mut [f32]) {
+        // SAFETY: the CPU has AVX-512F, and `values` holds 16 floats at least (the caller's contract).
+        unsafe { _mm512_storeu_ps(values.as_mut_ptr(), self) }
+    }
+
     #[inline(always)]
     unsafe fn sub(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX-512F (the caller's contract).
@@ -335,6 +370,25 @@ pub(super) struct Meeting<L> {
     pub t: L,
     /// The sums of the edge functions: `u` and `v` of the hit are the second and third edge functions over it.
     pub det: L,
+}
+
+impl<const N: usize> MetLanes<N> {
+    /// Keeps what `meeting` found of the `sheared` triangle.
+    ///
+    /// # Safety
+    /// The CPU must have the registers' instruction set.
+    #[inline(always)]
+    pub unsafe fn keep<L: Lanes>(&mut self, meeting: &Meeting<L>, sheared: &Sheared<L>) {
+        const { assert!(N >= L::LANES, "a lane for every lane of the register") };
+        let [_, v, w] = sheared.edges;
+        // SAFETY: the CPU has the instruction set (the caller's contract); each array holds the register's lanes.
+        unsafe {
+            meeting.t.write_to(&mut self.t);
+            meeting.det.write_to(&mut self.det);
+            v.write_to(&mut self.v);
+            w.write_to(&mut self.w);
+        }
+    }
 }
 
 /// The rest of the watertight test of the lanes of `may_hit` against the `sheared` triangle ([`Meeting`]);

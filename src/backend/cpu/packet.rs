@@ -22,7 +22,7 @@ use std::ops::Range;
 use glam::Vec3A;
 
 use super::blocks::Block;
-use super::filter;
+use super::filter::{self, MetLanes};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::triangles::TriangleBvh;
 use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, prefetch};
@@ -30,7 +30,6 @@ use crate::cpu_features::{has_avx2, has_avx512};
 use crate::format::{Ray, RayFlags};
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
-use crate::intersect::triangle::TriangleHit;
 use crate::query::{
     Collector, GROUP_RAYS, InstanceScope, TraceStats, TriangleCandidate, accept_hit, consider_triangle,
 };
@@ -183,7 +182,7 @@ impl TriangleBvh {
         let accepts_in_lanes = collectors[0].keeps_no_hit() && !rays.iter().any(|ray| ray.flags.intersects(culling));
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
-            let (mut met, mut finished) = (MetLanes::default(), 0u32);
+            let (mut met, mut finished) = (MetLanes::NONE, 0u32);
             for slot in slots {
                 let (edges, hits) = unsafe { lanes.intersect(self.wide.blocks.lane_of(slot), active, &mut met) };
                 let mut candidates = edges | hits;
@@ -199,7 +198,7 @@ impl TriangleBvh {
                 };
                 if accepts_in_lanes && candidate.mask == 0 {
                     // What `accept_hit` would ask of each hit ray, asked in the lanes: its range.
-                    let accepted = hits & unsafe { lanes.within_range(&met.t) };
+                    let accepted = hits & unsafe { lanes.within_range(met.t()) };
                     let mut bits = accepted;
                     while bits != 0 {
                         collectors[bits.trailing_zeros() as usize].offer_found();
@@ -605,47 +604,27 @@ impl<V: RayLanes> PacketLanes<V> {
     /// # Safety
     /// The CPU must have `V`'s instruction set.
     #[inline(always)]
-    unsafe fn intersect(&self, (rows, lane): (&Block, usize), active: u32, met: &mut MetLanes) -> (u32, u32) {
+    unsafe fn intersect(
+        &self,
+        (rows, lane): (&Block, usize),
+        active: u32,
+        met: &mut MetLanes<MAX_PACKET_RAYS>,
+    ) -> (u32, u32) {
         let corners = Splat { rows, lane, axes: self.axes };
         // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe {
             let sheared = filter::shear(&corners, self.projected_origin, self.shear);
-            let [_, v, w] = sheared.edges;
-            let may_hit = V::zero_or_not_mixed(sheared.edges[0], v, w) & active;
+            let [u, v, w] = sheared.edges;
+            let may_hit = V::zero_or_not_mixed(u, v, w) & active;
             if may_hit == 0 {
                 return (0, 0);
             }
-            let filter::Meeting { on_edge, met: hits, t, det } = filter::meet(&sheared, self.shear_z, may_hit);
-            if hits != 0 {
-                t.store(&mut met.t);
-                det.store(&mut met.det);
-                v.store(&mut met.v);
-                w.store(&mut met.w);
+            let meeting = filter::meet(&sheared, self.shear_z, may_hit);
+            if meeting.met != 0 {
+                met.keep(&meeting, &sheared);
             }
-            (on_edge, hits)
+            (meeting.on_edge, meeting.met)
         }
-    }
-}
-
-/// Where a packet's rays meet a triangle, a ray a lane, as [`PacketLanes::intersect`] left it.
-#[derive(Default)]
-struct MetLanes {
-    /// Distances.
-    t: [f32; MAX_PACKET_RAYS],
-    /// The sums of the edge functions.
-    det: [f32; MAX_PACKET_RAYS],
-    /// The second edge function, `u` of the hit times `det`.
-    v: [f32; MAX_PACKET_RAYS],
-    /// The third edge function, `v` of the hit times `det`.
-    w: [f32; MAX_PACKET_RAYS],
-}
-
-impl MetLanes {
-    /// Ray `ray`'s hit, as the scalar test reports it.
-    #[inline(always)]
-    fn hit(&self, ray: usize) -> TriangleHit {
-        let det = self.det[ray];
-        TriangleHit { t: self.t[ray], u: self.v[ray] / det, v: self.w[ray] / det, back_face: det < 0.0 }
     }
 }
 

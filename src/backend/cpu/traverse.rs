@@ -8,7 +8,7 @@ use std::ops::Range;
 use glam::{Vec3, Vec3A};
 
 use super::CpuAccel;
-use super::blocks::{BLOCK, BlockRay};
+use super::blocks::{BLOCK, BlockRay, MetLanes};
 use super::bvh::Node;
 use super::instances::{InstanceBvh, TransformNode, cpu_child};
 #[cfg(target_arch = "x86_64")]
@@ -22,7 +22,7 @@ use crate::cpu_features::has_avx2;
 use crate::format::Ray;
 use crate::geometry::motion::lerp;
 use crate::intersect::{PreparedRay, aabb, triangle};
-use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, consider_triangle};
+use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, accept_hit, consider_triangle};
 
 /// What waits on a traversal stack, with the distance at which the ray enters its box: a binary node (its index;
 /// `count` 0), or a wide node's lane as [`super::wide::WideNode`] holds it (its child node or first primitive slot,
@@ -103,7 +103,7 @@ impl CpuAccel {
             // at most `TURNS` rays.
             unsafe {
                 let (turns, single) = (&mut stacks.turns, &mut stacks.single);
-                match (bvh.wide.in_turns && alone.count_ones() > 1, bvh.find_in_lanes(rays, collectors, alone)) {
+                match (bvh.wide.in_turns && alone.count_ones() > 1, bvh.masks.is_none()) {
                     (true, true) => bvh.traverse_in_turns_avx2::<true>(turns, rays, collectors, alone, stats),
                     (true, false) => bvh.traverse_in_turns_avx2::<false>(turns, rays, collectors, alone, stats),
                     (false, true) => bvh.traverse_alone_avx2::<true>(single, rays, collectors, alone, stats),
@@ -177,14 +177,14 @@ impl TriangleBvh {
                         (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
                     std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
                 };
-                let candidates = |block: usize, lanes: u32, _: f32| {
+                let candidates = |block: usize, lanes: u32, _: f32, _: &mut MetLanes<BLOCK>| {
                     let may_hit = (0..BLOCK).fold(0, |bits, lane| match lanes >> lane & 1 {
                         0 => bits,
                         _ => bits | u32::from(triangle::may_hit(ray, &corners(block * BLOCK + lane))) << lane,
                     });
                     (0, may_hit)
                 };
-                let leaf = with_stack(self.offer_leaf(corners, candidates, ray, scope));
+                let leaf = with_stack(self.offer_leaf(corners, candidates, false, ray, scope));
                 walk(&self.nodes, |node| keys.at(node, at), stack, ray, collector, stats, leaf)
             }
         }
@@ -194,14 +194,14 @@ impl TriangleBvh {
     /// one ray after another: [`TriangleBvh::traverse`] of each ray as [`CpuAccel::traverse_group`] would call it,
     /// compiled for AVX2 as one loop, so that preparing a ray and starting its walk take no calls.
     ///
-    /// With `FOUND_IN_LANES`, the rays take their leaves' hits from the blocks' lanes ([`TriangleBvh::found_leaf`]):
-    /// they must be rays that [`TriangleBvh::find_in_lanes`].
+    /// With `IN_LANES`, the rays take their leaves' hits from the blocks' lanes ([`TriangleBvh::lanes_leaf`]): the
+    /// accel must have no Prime masks.
     ///
     /// # Safety
     /// The CPU must have the features [`has_avx2`] checks; the accel must be static (no `node_keys`).
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn traverse_alone_avx2<const FOUND_IN_LANES: bool>(
+    unsafe fn traverse_alone_avx2<const IN_LANES: bool>(
         &self,
         stack: &mut [StackEntry],
         rays: &[Ray],
@@ -217,8 +217,8 @@ impl TriangleBvh {
             let block_ray = BlockRay::new(&ray);
             let prefetch_leaf = |slots| self.prefetch_leaf(slots);
             // SAFETY (both): the CPU has the features (this function's contract).
-            if FOUND_IN_LANES {
-                let leaf = self.found_leaf(&block_ray, &ray);
+            if IN_LANES {
+                let leaf = self.lanes_leaf(&block_ray, &ray, collectors[i].keeps_no_hit());
                 unsafe { self.wide.walk_avx2(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
             } else {
                 let leaf = self.static_leaf(&block_ray, &ray, &InstanceScope::WORLD);
@@ -227,38 +227,28 @@ impl TriangleBvh {
         }
     }
 
-    /// Whether the rays of `walking` (a bit each) need to know only that they hit, which [`TriangleBvh::found_leaf`]
-    /// tells them: their collectors keep no hit ([`Collector::keeps_no_hit`]), they cull no faces, and the accel
-    /// has no Prime masks.
-    #[cfg(target_arch = "x86_64")]
-    pub(super) fn find_in_lanes(&self, rays: &[Ray], collectors: &[Collector<'_>], walking: u32) -> bool {
-        use crate::format::RayFlags;
-        let culling = RayFlags::CULL_BACK_FACING | RayFlags::CULL_FRONT_FACING;
-        let mut bits = walking;
-        let mut finds = self.masks.is_none();
-        while finds && bits != 0 {
-            let i = bits.trailing_zeros() as usize;
-            bits &= bits - 1;
-            finds = collectors[i].keeps_no_hit() && !rays[i].flags.intersects(culling);
-        }
-        finds
-    }
-
-    /// What a walk of a static accel does at a leaf for a ray that [`TriangleBvh::find_in_lanes`]: as
-    /// [`TriangleBvh::static_leaf`], but each block's triangles met within the ray's range are found in the block's
-    /// lanes ([`super::blocks::CornerBlocks::met_within`]) and the collector told only that there is a hit
-    /// ([`Collector::offer_found`]); the lanes on an edge or a vertex take the scalar test. Slots are taken in the
-    /// same order, so the answers and the statistics are those of the scalar test.
+    /// What a walk of a static accel without Prime masks does at a leaf: as [`TriangleBvh::static_leaf`], but the
+    /// rest of the watertight test runs in the block's lanes too ([`super::blocks::CornerBlocks::met_within`]), and
+    /// the hits met within the ray's range are offered from there: where the collector keeps no hit (`keeps_no_hit`:
+    /// [`Collector::keeps_no_hit`]) and the ray culls no faces, it is told only that there is one
+    /// ([`Collector::offer_found`]); otherwise it is handed the hit ([`accept_hit`]). The lanes on an edge or a
+    /// vertex take the scalar test and slots are taken in the same order, so the answers and the statistics are those
+    /// of the scalar test.
     #[cfg(target_arch = "x86_64")]
     #[inline(always)]
-    pub(super) fn found_leaf<'a>(
+    pub(super) fn lanes_leaf<'a>(
         &'a self,
         block_ray: &'a BlockRay<'a>,
         ray: &'a PreparedRay,
+        keeps_no_hit: bool,
     ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
         let blocks = &self.wide.blocks;
-        let found = |block, lanes, cull_tmax| blocks.met_within(block_ray, block, lanes, (ray.tmin, cull_tmax));
-        self.offer_leaf(|slot| blocks.corners(slot), found, ray, &InstanceScope::WORLD)
+        let met = |block, lanes, cull_tmax, met: &mut MetLanes<BLOCK>| {
+            blocks.met_within(block_ray, block, lanes, (ray.tmin, cull_tmax), met)
+        };
+        let culling = crate::format::RayFlags::CULL_BACK_FACING | crate::format::RayFlags::CULL_FRONT_FACING;
+        let found_only = keeps_no_hit && !ray.flags.intersects(culling);
+        self.offer_leaf(|slot| blocks.corners(slot), met, found_only, ray, &InstanceScope::WORLD)
     }
 
     /// What a walk of a static accel does at a leaf ([`TriangleBvh::offer_leaf`]): its triangles sorted out a block
@@ -272,8 +262,9 @@ impl TriangleBvh {
         scope: &'a InstanceScope,
     ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
         let blocks = &self.wide.blocks;
-        let candidates = |block, lanes, _| (0, blocks.block_candidates(block_ray, block) & lanes);
-        self.offer_leaf(|slot| blocks.corners(slot), candidates, ray, scope)
+        let candidates =
+            |block, lanes, _, _: &mut MetLanes<BLOCK>| (0, blocks.block_candidates(block_ray, block) & lanes);
+        self.offer_leaf(|slot| blocks.corners(slot), candidates, false, ray, scope)
     }
 
     /// Starts loading the data of the leaf over `slots` of a static accel: its first block of corners and its ids.
@@ -286,41 +277,51 @@ impl TriangleBvh {
 
     /// What a walk does at a leaf: offers each of its triangles, with its corners from `corners` (by slot), in slot
     /// order, and says whether the collector is done. The triangles the ray's line cannot cross are first sorted out,
-    /// a block of [`BLOCK`] slots at a time, by `sort_out` (given a block, a bit for each of its lanes in the leaf
-    /// and the collector's cull distance, two sets of those bits: the lanes whose hit it found for a collector that
-    /// [`Collector::keeps_no_hit`], which is told only that there is one, and the lanes the ray may hit, by
-    /// [`triangle::may_hit`] or the same test on the block at once); the rest are offered as before, so the answers
-    /// and the statistics (triangles tested up to where the collector is done) are those of offering every one.
+    /// a block of [`BLOCK`] slots at a time, by `sort_out`: given a block, a bit for each of its lanes in the leaf, the
+    /// collector's cull distance and room for the hits it finds, it returns the lanes whose hit within the ray's
+    /// range it found (left in that room), and the lanes the ray may hit otherwise, which take the scalar test
+    /// ([`triangle::may_hit`], or the same test on the block at once, rules out the rest). A found hit is offered
+    /// as it is: with `found_only`, the collector is told only that there is one ([`Collector::offer_found`]; it
+    /// must [`Collector::keeps_no_hit`] and the ray cull no faces). The answers and the statistics (triangles
+    /// tested up to where the collector is done) are those of offering every one to the scalar test.
     #[inline(always)]
     fn offer_leaf<'a>(
         &'a self,
         corners: impl Fn(usize) -> [Vec3; 3] + 'a,
-        sort_out: impl Fn(usize, u32, f32) -> (u32, u32) + 'a,
+        sort_out: impl Fn(usize, u32, f32, &mut MetLanes<BLOCK>) -> (u32, u32) + 'a,
+        found_only: bool,
         ray: &'a PreparedRay,
         scope: &'a InstanceScope,
     ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
         #[inline(always)]
         move |slots, collector, stats| {
+            let mut met = MetLanes::NONE;
             for block in slots.start / BLOCK..slots.end.div_ceil(BLOCK) {
-                let (found, candidates) = sort_out(block, lanes_within(block, &slots), collector.cull_tmax());
+                let (found, candidates) = sort_out(block, lanes_within(block, &slots), collector.cull_tmax(), &mut met);
                 let mut lanes = found | candidates;
                 while lanes != 0 {
-                    let lane = lanes.trailing_zeros();
+                    let lane = lanes.trailing_zeros() as usize;
                     lanes &= lanes - 1;
-                    let slot = block * BLOCK + lane as usize;
-                    if found & (1 << lane) != 0 {
+                    let slot = block * BLOCK + lane;
+                    let was_found = found & (1 << lane) != 0;
+                    if was_found && found_only {
                         collector.offer_found();
-                        stats.triangle_tests += (slot + 1 - slots.start) as u64;
-                        return true;
+                    } else {
+                        let id = self.refs[slot];
+                        let candidate = TriangleCandidate {
+                            corners: &corners(slot),
+                            id,
+                            mask: self.masks.as_ref().map_or(0, |m| m[slot]),
+                            geometry_flags: self.geometry_flags[id.geom_id as usize],
+                        };
+                        match was_found {
+                            true if ray.mask & candidate.mask == 0 => {
+                                accept_hit(ray.tmin, ray.flags, &candidate, scope, collector, met.hit(lane));
+                            }
+                            true => {}
+                            false => consider_triangle(ray, &candidate, scope, collector),
+                        }
                     }
-                    let id = self.refs[slot];
-                    let candidate = TriangleCandidate {
-                        corners: &corners(slot),
-                        id,
-                        mask: self.masks.as_ref().map_or(0, |m| m[slot]),
-                        geometry_flags: self.geometry_flags[id.geom_id as usize],
-                    };
-                    consider_triangle(ray, &candidate, scope, collector);
                     if collector.done() {
                         stats.triangle_tests += (slot + 1 - slots.start) as u64;
                         return true;
@@ -564,29 +565,40 @@ pub(super) mod tests {
     }
 
     #[test]
-    fn rays_that_keep_no_hit_find_it_in_the_blocks_lanes_as_the_scalar_test_tells_them() {
+    fn hits_found_in_the_blocks_lanes_are_the_scalar_tests() {
         if !has_avx2() {
             return;
         }
         let rays = scattered_rays();
-        // Face culling and Prime masks (on every fifth triangle and every third ray) take the scalar test.
-        let cases = [false, true].into_iter().flat_map(|masked| {
-            [RayFlags::empty(), RayFlags::TERMINATE_ON_FIRST_HIT, RayFlags::CULL_BACK_FACING].map(|f| (masked, f))
-        });
-        for (masked, flags) in cases {
-            let (bvh, _) = lattice(masked);
-            let query = Query {
-                kind: QueryKind::Any,
+        let kinds = [QueryKind::Closest, QueryKind::All, QueryKind::Count, QueryKind::Any];
+        let queries = kinds.into_iter().flat_map(|kind| {
+            let flags = [RayFlags::empty(), RayFlags::TERMINATE_ON_FIRST_HIT, RayFlags::CULL_BACK_FACING];
+            flags.map(|flags| Query {
+                kind,
                 flags,
-                ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Bitmask)
-            };
-            let case = format!("{flags:?}, masked {masked}");
-            let one_by_one = trace(&bvh, &query, &rays, Walk::OneByOne);
-            let hits = one_by_one.0.iter().map(|byte| byte.count_ones() as usize).sum::<usize>();
-            assert!(hits > rays.len() / 4 && hits < rays.len(), "{case}: {hits} rays hit");
-            for walk in [Walk::Alone, Walk::InTurns] {
-                let grouped = trace(&bvh, &query, &rays, walk);
-                assert!(grouped == one_by_one, "{case}, {walk:?}: {:?} against {:?}", grouped.2, one_by_one.2);
+                max_hits_per_ray: 4,
+                ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV)
+            })
+        });
+        // Any hit in the bitmask format too, whose collectors are told only that there is one; Prime masks (on every
+        // fifth triangle and every third ray) take the scalar test.
+        let bitmask = |query: &Query| Query { hit_format: HitFormat::Bitmask, ..*query };
+        let queries: Vec<Query> = queries.flat_map(|query| [query, bitmask(&query)]).collect();
+        for masked in [false, true] {
+            let (bvh, _) = lattice(masked);
+            for query in queries.iter().filter(|q| q.hit_format == HitFormat::TTriidUV || q.kind == QueryKind::Any) {
+                let case = format!("{:?} {:?} {:?}, masked {masked}", query.kind, query.hit_format, query.flags);
+                let one_by_one = trace(&bvh, query, &rays, Walk::OneByOne);
+                let hit = |ray: usize| match query.hit_format {
+                    HitFormat::Bitmask => one_by_one.0[ray / 8] >> (ray % 8) & 1 == 1,
+                    _ => HitFormat::TTriidUV.read(&one_by_one.0, ray * query.records_per_ray()).is_hit(),
+                };
+                let hits = (0..rays.len()).filter(|&ray| hit(ray)).count();
+                assert!(hits > rays.len() / 4 && hits < rays.len(), "{case}: {hits} rays hit");
+                for walk in [Walk::Alone, Walk::InTurns] {
+                    let grouped = trace(&bvh, query, &rays, walk);
+                    assert!(grouped == one_by_one, "{case}, {walk:?}: {:?} against {:?}", grouped.2, one_by_one.2);
+                }
             }
         }
     }

@@ -27,13 +27,13 @@ struct Turn {
 impl TriangleBvh {
     /// Offers each of `rays` whose bit is set in `walking` the triangles of the leaves it reaches in this static accel,
     /// the rays walked in turns: what [`TriangleBvh::traverse_alone_avx2`] does one ray after another (with
-    /// `FOUND_IN_LANES` as there).
+    /// `IN_LANES` as there).
     ///
     /// # Safety
     /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks; the accel must be static (no
     /// `node_keys`); `rays` holds at most [`TURNS`] rays.
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    pub(in crate::backend::cpu) unsafe fn traverse_in_turns_avx2<const FOUND_IN_LANES: bool>(
+    pub(in crate::backend::cpu) unsafe fn traverse_in_turns_avx2<const IN_LANES: bool>(
         &self,
         stacks: &mut [StackEntry],
         rays: &[Ray],
@@ -59,8 +59,10 @@ impl TriangleBvh {
             |i: usize, slots, collector: &mut Collector<'_>, stats: &mut TraceStats| {
                 // SAFETY: ray `i` walks, so its block test's numbers were made just above.
                 let block_ray = unsafe { block_rays.get_unchecked(i).assume_init_ref() };
-                match FOUND_IN_LANES {
-                    true => (self.found_leaf(block_ray, prepared(i)))(slots, collector, stats),
+                match IN_LANES {
+                    true => {
+                        (self.lanes_leaf(block_ray, prepared(i), collector.keeps_no_hit()))(slots, collector, stats)
+                    }
                     false => (self.static_leaf(block_ray, prepared(i), &InstanceScope::WORLD))(slots, collector, stats),
                 }
             }
