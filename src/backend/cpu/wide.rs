@@ -78,7 +78,8 @@ pub(super) struct WideBvh {
     pub(super) nodes: LargePageArray<WideNode>,
     /// Children of each node: its first lanes, the rest are empty.
     pub(super) children: Vec<u8>,
-    /// The root's box (the binary root's).
+    /// The root's box (the binary root's), which the packets read (x86-64 only).
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     pub(super) root: (Vec3A, Vec3A),
     /// Longest root-to-leaf path, in wide nodes.
     depth: usize,
