@@ -1,8 +1,10 @@
 //! The corners of a static accel's triangles regrouped [`BLOCK`] slots a block, one row per corner and axis
 //! (structure of arrays), so that a leaf's triangles are sorted out four at a time: the same first step of the
 //! watertight test as [`crate::intersect::triangle::may_hit`], in SSE on x86-64 (elsewhere `may_hit` itself, lane by
-//! lane), and a leaf's corners are read from here. A block starts at a slot that is a multiple of [`BLOCK`], whatever leaf the slots belong to, so a
-//! leaf finds its blocks by its slots alone; a leaf's triangles fill one or two blocks.
+//! lane), and on x86-64 the rest of the test for the triangles left, four at a time too
+//! ([`CornerBlocks::met_within`]); a leaf's corners are read from here. A block starts at a slot that is a multiple of
+//! [`BLOCK`], whatever leaf the slots belong to, so a leaf finds its blocks by its slots alone; a leaf's triangles fill
+//! one or two blocks.
 
 use glam::Vec3;
 

@@ -1,11 +1,12 @@
-//! [`crate::intersect::triangle::may_hit`] on SIMD lanes: the same operations in the same order, so each lane's
-//! answer is bit for bit the scalar one. Written once over [`Lanes`] and used two ways: four triangles against one
-//! ray in SSE ([`super::blocks`]), and one triangle against a packet's 8 rays in AVX or 16 in AVX-512
-//! ([`super::packet`]).
+//! The watertight triangle test on SIMD lanes: [`crate::intersect::triangle::may_hit`] ([`may_hit_lanes`]) and the
+//! rest of [`crate::intersect::triangle::intersect`] short of its exact rule for edges and vertices ([`meet`]), with
+//! the same operations in the same order, so each lane's answer is bit for bit the scalar one. Written once over
+//! [`Lanes`] and used two ways: four triangles against one ray in SSE ([`super::blocks`]), and one triangle against a
+//! packet's 8 rays in AVX or 16 in AVX-512 ([`super::packet`]).
 
 use std::arch::x86_64::*;
 
-pub(super) use super::blocks::MetLanes;
+use super::blocks::MetLanes;
 
 /// A SIMD register of f32 lanes, with what the filter needs of it.
 pub(super) trait Lanes: Copy {

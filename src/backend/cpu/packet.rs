@@ -21,8 +21,8 @@ use std::ops::Range;
 
 use glam::Vec3A;
 
-use super::blocks::Block;
-use super::filter::{self, MetLanes};
+use super::blocks::{Block, MetLanes};
+use super::filter;
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::triangles::TriangleBvh;
 use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, prefetch};
