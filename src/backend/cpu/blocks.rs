@@ -42,12 +42,6 @@ impl<const N: usize> MetLanes<N> {
     /// Nothing met yet.
     pub const NONE: MetLanes<N> = MetLanes { t: [0.0; N], det: [0.0; N], v: [0.0; N], w: [0.0; N] };
 
-    /// The distances.
-    #[cfg(target_arch = "x86_64")]
-    pub fn t(&self) -> &[f32; N] {
-        &self.t
-    }
-
     /// Lane `lane`'s hit, as the scalar test reports it.
     #[inline(always)]
     pub fn hit(&self, lane: usize) -> TriangleHit {

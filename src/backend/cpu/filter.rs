@@ -43,6 +43,12 @@ pub(super) trait Lanes: Copy {
     /// The CPU must have the register's instruction set.
     unsafe fn div(self, other: Self) -> Self;
 
+    /// `|self|`, lane by lane.
+    ///
+    /// # Safety
+    /// The CPU must have the register's instruction set.
+    unsafe fn abs(self) -> Self;
+
     /// A bit per lane: `0 < |self|` (false with NaN).
     ///
     /// # Safety
@@ -103,25 +109,21 @@ impl Lanes for __m128 {
     }
 
     #[inline(always)]
+    unsafe fn abs(self) -> Self {
+        // SAFETY: SSE is part of x86-64.
+        unsafe { _mm_and_ps(self, _mm_castsi128_ps(_mm_set1_epi32(i32::MAX))) }
+    }
+
+    #[inline(always)]
     unsafe fn nonzero(self) -> u32 {
         // SAFETY: SSE is part of x86-64.
-        unsafe {
-            _mm_movemask_ps(_mm_cmplt_ps(
-                _mm_setzero_ps(),
-                _mm_and_ps(self, _mm_castsi128_ps(_mm_set1_epi32(i32::MAX))),
-            )) as u32
-        }
+        unsafe { _mm_movemask_ps(_mm_cmplt_ps(_mm_setzero_ps(), self.abs())) as u32 }
     }
 
     #[inline(always)]
     unsafe fn finite(self) -> u32 {
         // SAFETY: SSE is part of x86-64.
-        unsafe {
-            _mm_movemask_ps(_mm_cmplt_ps(
-                _mm_and_ps(self, _mm_castsi128_ps(_mm_set1_epi32(i32::MAX))),
-                _mm_set1_ps(f32::INFINITY),
-            )) as u32
-        }
+        unsafe { _mm_movemask_ps(_mm_cmplt_ps(self.abs(), _mm_set1_ps(f32::INFINITY))) as u32 }
     }
 
     #[inline(always)]
@@ -178,25 +180,21 @@ impl Lanes for __m256 {
     }
 
     #[inline(always)]
+    unsafe fn abs(self) -> Self {
+        // SAFETY: the CPU has AVX (the caller's contract).
+        unsafe { _mm256_and_ps(self, _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX))) }
+    }
+
+    #[inline(always)]
     unsafe fn nonzero(self) -> u32 {
         // SAFETY: the CPU has AVX (the caller's contract).
-        unsafe {
-            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(
-                _mm256_setzero_ps(),
-                _mm256_and_ps(self, _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX))),
-            )) as u32
-        }
+        unsafe { _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_setzero_ps(), self.abs())) as u32 }
     }
 
     #[inline(always)]
     unsafe fn finite(self) -> u32 {
         // SAFETY: the CPU has AVX (the caller's contract).
-        unsafe {
-            _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(
-                _mm256_and_ps(self, _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX))),
-                _mm256_set1_ps(f32::INFINITY),
-            )) as u32
-        }
+        unsafe { _mm256_movemask_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(self.abs(), _mm256_set1_ps(f32::INFINITY))) as u32 }
     }
 
     #[inline(always)]
@@ -269,15 +267,21 @@ impl Lanes for __m512 {
     }
 
     #[inline(always)]
+    unsafe fn abs(self) -> Self {
+        // SAFETY: the CPU has AVX-512F (the caller's contract).
+        unsafe { _mm512_abs_ps(self) }
+    }
+
+    #[inline(always)]
     unsafe fn nonzero(self) -> u32 {
         // SAFETY: the CPU has AVX-512F (the caller's contract).
-        unsafe { u32::from(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_setzero_ps(), _mm512_abs_ps(self))) }
+        unsafe { u32::from(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_setzero_ps(), self.abs())) }
     }
 
     #[inline(always)]
     unsafe fn finite(self) -> u32 {
         // SAFETY: the CPU has AVX-512F (the caller's contract).
-        unsafe { u32::from(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(_mm512_abs_ps(self), _mm512_set1_ps(f32::INFINITY))) }
+        unsafe { u32::from(_mm512_cmp_ps_mask::<_CMP_LT_OQ>(self.abs(), _mm512_set1_ps(f32::INFINITY))) }
     }
 
     #[inline(always)]

@@ -198,7 +198,7 @@ impl TriangleBvh {
                 };
                 if accepts_in_lanes && candidate.mask == 0 {
                     // What `accept_hit` would ask of each hit ray, asked in the lanes: its range.
-                    let accepted = hits & unsafe { lanes.within_range(met.t()) };
+                    let accepted = hits & unsafe { lanes.within_range(&met.t) };
                     let mut bits = accepted;
                     while bits != 0 {
                         collectors[bits.trailing_zeros() as usize].offer_found();
@@ -579,7 +579,7 @@ impl<V: RayLanes> PacketLanes<V> {
             let entry = entry.sub(entry.abs().mul(slack));
             let exit = exit.add(exit.abs().mul(slack));
             let inside = V::and(entry.le(exit), active);
-            entry.store(near);
+            entry.write_to(near);
             (V::bits(inside), if NEAREST { entry.least(inside) } else { 0.0 })
         }
     }

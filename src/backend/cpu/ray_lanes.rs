@@ -37,17 +37,11 @@ pub(super) trait RayLanes: filter::Lanes {
     /// The first [`RayLanes::RAYS`] of `values`.
     unsafe fn load(values: &[f32; MAX_PACKET_RAYS]) -> Self;
 
-    /// Stores the lanes into the first [`RayLanes::RAYS`] of `values`.
-    unsafe fn store(self, values: &mut [f32; MAX_PACKET_RAYS]);
-
     /// The smaller lane by lane; `other` where either is NaN (as `vminps` does).
     unsafe fn min(self, other: Self) -> Self;
 
     /// The larger lane by lane; `other` where either is NaN (as `vmaxps` does).
     unsafe fn max(self, other: Self) -> Self;
-
-    /// `|self|`, lane by lane.
-    unsafe fn abs(self) -> Self;
 
     /// Where `self ≤ other` (false with NaN).
     unsafe fn le(self, other: Self) -> Self::Mask;
@@ -127,12 +121,6 @@ impl RayLanes for __m256 {
     }
 
     #[inline(always)]
-    unsafe fn store(self, values: &mut [f32; MAX_PACKET_RAYS]) {
-        // SAFETY: the CPU has AVX (the trait's contract); the first eight of sixteen floats are written.
-        unsafe { _mm256_storeu_ps(values.as_mut_ptr(), self) }
-    }
-
-    #[inline(always)]
     unsafe fn min(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX (the trait's contract).
         unsafe { _mm256_min_ps(self, other) }
@@ -142,12 +130,6 @@ impl RayLanes for __m256 {
     unsafe fn max(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX (the trait's contract).
         unsafe { _mm256_max_ps(self, other) }
-    }
-
-    #[inline(always)]
-    unsafe fn abs(self) -> Self {
-        // SAFETY: the CPU has AVX (the trait's contract).
-        unsafe { _mm256_and_ps(self, _mm256_castsi256_ps(_mm256_set1_epi32(i32::MAX))) }
     }
 
     #[inline(always)]
@@ -278,12 +260,6 @@ impl RayLanes for __m512 {
     }
 
     #[inline(always)]
-    unsafe fn store(self, values: &mut [f32; MAX_PACKET_RAYS]) {
-        // SAFETY: the CPU has AVX-512F (the trait's contract).
-        unsafe { _mm512_storeu_ps(values.as_mut_ptr(), self) }
-    }
-
-    #[inline(always)]
     unsafe fn min(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX-512F (the trait's contract).
         unsafe { _mm512_min_ps(self, other) }
@@ -293,12 +269,6 @@ impl RayLanes for __m512 {
     unsafe fn max(self, other: Self) -> Self {
         // SAFETY: the CPU has AVX-512F (the trait's contract).
         unsafe { _mm512_max_ps(self, other) }
-    }
-
-    #[inline(always)]
-    unsafe fn abs(self) -> Self {
-        // SAFETY: the CPU has AVX-512F (the trait's contract).
-        unsafe { _mm512_abs_ps(self) }
     }
 
     #[inline(always)]
@@ -463,7 +433,7 @@ mod tests {
             for (k, column) in columns.into_iter().enumerate() {
                 let mut lanes = [0.0; MAX_PACKET_RAYS];
                 // SAFETY: as above.
-                unsafe { column.store(&mut lanes) };
+                unsafe { column.write_to(&mut lanes) };
                 let expected: Vec<f32> = (0..V::RAYS).map(|i| (100 * i + first + k) as f32).collect();
                 // The origin's and the direction's fourth float is glam's copy of `z`.
                 let expected = match (first, k) {
