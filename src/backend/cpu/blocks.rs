@@ -2,9 +2,11 @@
 //! (structure of arrays), so that a leaf's triangles are sorted out four at a time: the same first step of the
 //! watertight test as [`crate::intersect::triangle::may_hit`], in SSE on x86-64 (elsewhere `may_hit` itself, lane by
 //! lane), and on x86-64 the rest of the test for the triangles left, four at a time too
-//! ([`CornerBlocks::met_within`]); a leaf's corners are read from here. A block starts at a slot that is a multiple of
-//! [`BLOCK`], whatever leaf the slots belong to, so a leaf finds its blocks by its slots alone; a leaf's triangles fill
-//! one or two blocks.
+//! ([`CornerBlocks::met_within`]); a leaf's corners are read from here. The blocks have slots of their own: each
+//! leaf's triangles lie in as few blocks as they fit ([`Placement`]), a slot left empty where a leaf would otherwise
+//! span one block more.
+
+use std::ops::Range;
 
 use glam::Vec3;
 
@@ -49,19 +51,74 @@ impl<const N: usize> MetLanes<N> {
     }
 }
 
-/// Every slot's corners, in blocks; slots past the last triangle are NaN (and never asked for).
+/// Where the triangles of an accel's leaves lie in the blocks' slots: each leaf's in order, in as few blocks as they
+/// fit (a leaf of up to [`BLOCK`] triangles in one, of up to 2·[`BLOCK`] in two), so that a leaf visit sorts out no
+/// block more than it must. A leaf starts where the one before it ends unless it would then span one block more: it
+/// starts the next block instead and the slots skipped stay empty, as long as the empty slots stay within a quarter
+/// of the triangles ([`Placement::most_slots`]).
+#[derive(Debug)]
+pub(super) struct Placement {
+    /// For each of the accel's slots in a leaf, its slot in the blocks.
+    slot_of: Vec<u32>,
+    /// For each slot of the blocks, the accel's slot it holds; `u32::MAX` for one left empty.
+    held: Vec<u32>,
+}
+
+impl Placement {
+    /// Places `leaves`, the slot ranges of an accel's leaves, disjoint and in slot order, from slot 0 on.
+    pub fn of_leaves(leaves: impl IntoIterator<Item = Range<usize>>) -> Placement {
+        let leaves: Vec<Range<usize>> = leaves.into_iter().collect();
+        let triangles = leaves.last().map_or(0, |leaf| leaf.end);
+        let mut budget = triangles / 4;
+        let mut held = Vec::with_capacity(Self::most_slots(triangles));
+        for leaf in leaves {
+            let (taken, count) = (held.len() % BLOCK, leaf.len());
+            let skipped = BLOCK - taken;
+            if taken + count > count.div_ceil(BLOCK) * BLOCK && skipped <= budget {
+                budget -= skipped;
+                held.resize(held.len() + skipped, u32::MAX);
+            }
+            held.extend(leaf.map(|slot| slot as u32));
+        }
+        let mut slot_of = vec![u32::MAX; triangles];
+        for (placed, &slot) in held.iter().enumerate().filter(|(_, slot)| **slot != u32::MAX) {
+            slot_of[slot as usize] = placed as u32;
+        }
+        Placement { slot_of, held }
+    }
+
+    /// The most slots the blocks of `triangles` triangles in leaves take: a quarter more.
+    pub const fn most_slots(triangles: usize) -> usize {
+        triangles + triangles / 4
+    }
+
+    /// The slot in the blocks of the accel's slot `slot`, which must be in a leaf.
+    pub fn slot_of(&self, slot: usize) -> usize {
+        self.slot_of[slot] as usize
+    }
+
+    /// The items of the accel's slots (`items`, one a slot) in the blocks' slots, `empty` in those left empty.
+    pub fn gather<T: Copy>(&self, items: &[T], empty: T) -> Vec<T> {
+        self.held.iter().map(|&slot| items.get(slot as usize).copied().unwrap_or(empty)).collect()
+    }
+}
+
+/// The corners of the triangles in leaves, in blocks; empty slots, and slots past the last triangle, are NaN (and
+/// never asked for).
 #[derive(Debug, Clone, Default)]
 pub(super) struct CornerBlocks {
-    /// Block `b` holds slots `b·BLOCK .. (b + 1)·BLOCK`.
+    /// Block `b` holds the blocks' slots `b·BLOCK .. (b + 1)·BLOCK`.
     blocks: LargePageArray<Block>,
 }
 
 impl CornerBlocks {
-    /// The blocks of `corners` (one triangle a slot).
-    pub fn new(corners: &[[Vec3; 3]]) -> CornerBlocks {
-        let blocks = LargePageArray::from_fn(corners.len().div_ceil(BLOCK), |b| {
+    /// The blocks of `corners` (one triangle a slot of the accel) as `placement` places them.
+    pub fn new(corners: &[[Vec3; 3]], placement: &Placement) -> CornerBlocks {
+        let held = &placement.held;
+        let blocks = LargePageArray::from_fn(held.len().div_ceil(BLOCK), |b| {
             let mut block = [[f32::NAN; BLOCK]; ROWS];
-            for (lane, triangle) in corners[b * BLOCK..].iter().take(BLOCK).enumerate() {
+            for (lane, &slot) in held[b * BLOCK..].iter().take(BLOCK).enumerate() {
+                let Some(triangle) = corners.get(slot as usize) else { continue };
                 for (corner, point) in triangle.iter().enumerate() {
                     for axis in 0..3 {
                         block[3 * corner + axis][lane] = point[axis];
@@ -73,9 +130,9 @@ impl CornerBlocks {
         CornerBlocks { blocks }
     }
 
-    /// Bytes the blocks of `triangles` slots take.
+    /// The most bytes the blocks of `triangles` triangles in leaves take.
     pub const fn bytes_for(triangles: u64) -> u64 {
-        triangles.div_ceil(BLOCK as u64) * size_of::<Block>() as u64
+        (Placement::most_slots(triangles as usize) as u64).div_ceil(BLOCK as u64) * size_of::<Block>() as u64
     }
 
     /// Bytes they occupy.
@@ -83,7 +140,7 @@ impl CornerBlocks {
         (footprint.of(&self.blocks as &dyn VecLen) * size_of::<Block>()) as u64
     }
 
-    /// The corners of the triangle in `slot`, as [`CornerBlocks::new`] was given them.
+    /// The corners of the triangle in the blocks' slot `slot`, as [`CornerBlocks::new`] was given them.
     #[inline(always)]
     pub fn corners(&self, slot: usize) -> [Vec3; 3] {
         let (rows, lane) = (&self.blocks[slot / BLOCK], slot % BLOCK);
@@ -232,6 +289,50 @@ mod tests {
     use crate::format::{Ray, RayFlags};
     use crate::intersect::triangle::may_hit;
 
+    /// Leaves of `sizes` triangles, one after another from slot 0.
+    fn leaves_of(sizes: &[usize]) -> Vec<Range<usize>> {
+        sizes.iter().scan(0, |next, &size| Some((*next, *next += size).0..*next)).collect()
+    }
+
+    #[test]
+    fn a_placement_puts_each_leaf_in_as_few_blocks_as_it_fits_in_order() {
+        // Sizes of every kind up to two blocks, in an order that leaves blocks part full.
+        let sizes: Vec<usize> = (0..400).map(|i| 1 + (i * 7 + i / 3) % 8).collect();
+        let leaves = leaves_of(&sizes);
+        let placement = Placement::of_leaves(leaves.clone());
+        let triangles = leaves.last().unwrap().end;
+        let mut last = None;
+        for leaf in &leaves {
+            let placed: Vec<usize> = leaf.clone().map(|slot| placement.slot_of(slot)).collect();
+            assert!(placed.windows(2).all(|pair| pair[1] == pair[0] + 1), "{leaf:?} at {placed:?}: not in a row");
+            assert!(last < Some(placed[0]), "{leaf:?} at {placed:?}: out of order");
+            let blocks = placed[placed.len() - 1] / BLOCK - placed[0] / BLOCK + 1;
+            assert_eq!(blocks, leaf.len().div_ceil(BLOCK), "{leaf:?} at {placed:?}");
+            last = placed.last().copied();
+        }
+        let empty = placement.held.len() - triangles;
+        assert!(empty > 0 && empty <= triangles / 4, "{empty} empty slots for {triangles} triangles");
+        let items: Vec<usize> = (0..triangles).collect();
+        let gathered = placement.gather(&items, usize::MAX);
+        assert!((0..triangles).all(|slot| gathered[placement.slot_of(slot)] == slot), "gathered");
+        assert_eq!(gathered.iter().filter(|&&item| item == usize::MAX).count(), empty);
+    }
+
+    #[test]
+    fn a_placement_leaves_no_more_than_a_quarter_of_its_slots_empty() {
+        // Leaves of three from lane 3 on would each skip a slot of every four; the budget runs out first.
+        let sizes: Vec<usize> = std::iter::once(3).chain(std::iter::repeat_n([2, 3], 200).flatten()).collect();
+        let leaves = leaves_of(&sizes);
+        let placement = Placement::of_leaves(leaves.clone());
+        let triangles = leaves.last().unwrap().end;
+        assert!(placement.held.len() <= Placement::most_slots(triangles), "{} slots", placement.held.len());
+        let spanning = leaves.iter().filter(|leaf| {
+            let (first, last) = (placement.slot_of(leaf.start), placement.slot_of(leaf.end - 1));
+            last / BLOCK != first / BLOCK
+        });
+        assert!(spanning.count() > 0, "the budget never ran out");
+    }
+
     #[test]
     fn blocks_give_back_the_corners_and_sort_out_exactly_what_the_scalar_test_does() {
         // Eleven triangles of a fan and strays (the last block half full), rays from several directions through
@@ -243,7 +344,7 @@ mod tests {
                 [Vec3::ZERO, p, p + Vec3::new(-0.3, 0.5, 0.2)]
             })
             .collect();
-        let blocks = CornerBlocks::new(&corners);
+        let blocks = CornerBlocks::new(&corners, &Placement::of_leaves(std::iter::once(0..corners.len())));
         assert!((0..corners.len()).all(|slot| blocks.corners(slot) == corners[slot]), "corners read back");
         let mut ruled_out = 0;
         for direction in [-Vec3A::Z, Vec3A::new(0.3, -0.2, -1.0), Vec3A::new(1.0, 0.1, 0.2), Vec3A::new(0.0, -1.0, 0.0)]

@@ -52,7 +52,7 @@ pub(crate) struct PacketEntry {
     /// Per ray, the distance at which it enters the lane's box (the first [`RayLanes::RAYS`] in use); kept by
     /// closest-hit walks only, stale in the others'.
     near: [f32; MAX_PACKET_RAYS],
-    /// The lane's child node or first primitive slot.
+    /// The lane's child node or first slot in the blocks.
     index: u32,
     /// The lane's primitives; 0 for an inner lane.
     count: u32,
@@ -189,11 +189,11 @@ impl TriangleBvh {
                 if candidates == 0 {
                     continue;
                 }
-                let (corners, id) = (self.wide.blocks.corners(slot), self.refs[slot]);
+                let (corners, id) = (self.wide.blocks.corners(slot), self.wide.ids[slot]);
                 let candidate = TriangleCandidate {
                     corners: &corners,
                     id,
-                    mask: self.masks.as_ref().map_or(0, |m| m[slot]),
+                    mask: self.wide.masks.as_ref().map_or(0, |m| m[slot]),
                     geometry_flags: self.geometry_flags[id.geom_id as usize],
                 };
                 if accepts_in_lanes && candidate.mask == 0 {

@@ -20,12 +20,13 @@ use super::wide::prefetch;
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::has_avx2;
 use crate::format::Ray;
+use crate::geometry::TriangleRef;
 use crate::geometry::motion::lerp;
 use crate::intersect::{PreparedRay, aabb, triangle};
 use crate::query::{Collector, InstanceScope, TraceStats, TriangleCandidate, accept_hit, consider_triangle};
 
 /// What waits on a traversal stack, with the distance at which the ray enters its box: a binary node (its index;
-/// `count` 0), or a wide node's lane as [`super::wide::WideNode`] holds it (its child node or first primitive slot,
+/// `count` 0), or a wide node's lane as [`super::wide::WideNode`] holds it (its child node or first slot in the blocks,
 /// and its primitives: 0 for an inner lane), so that a wide walk takes the lane off the stack without reading its
 /// node again.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -158,36 +159,47 @@ impl TriangleBvh {
         stats: &mut TraceStats,
     ) {
         let Some(at) = self.motion.locate(ray.time) else { return };
-        match &self.node_keys {
-            None => {
+        match (&self.node_keys, binary_traversal()) {
+            (None, false) => {
                 let block_ray = BlockRay::new(ray);
                 let leaf = self.static_leaf(&block_ray, ray, scope);
-                match binary_traversal() {
-                    true => {
-                        let leaf = with_stack(leaf);
-                        walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, leaf)
-                    }
-                    false => self.wide.walk(stack, ray, collector, stats, leaf, |slots| self.prefetch_leaf(slots)),
-                }
+                self.wide.walk(stack, ray, collector, stats, leaf, |slots| self.prefetch_leaf(slots))
             }
-            Some(keys) => {
+            (None, true) => {
+                let leaf = with_stack(self.binary_leaf(|slot| self.corners[slot], ray, scope));
+                walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, leaf)
+            }
+            (Some(keys), _) => {
                 let stride = keys.keys;
                 let corners = move |slot: usize| {
                     let (a, b) =
                         (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
                     std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
                 };
-                let candidates = |block: usize, lanes: u32, _: f32, _: &mut MetLanes<BLOCK>| {
-                    let may_hit = (0..BLOCK).fold(0, |bits, lane| match lanes >> lane & 1 {
-                        0 => bits,
-                        _ => bits | u32::from(triangle::may_hit(ray, &corners(block * BLOCK + lane))) << lane,
-                    });
-                    (0, may_hit)
-                };
-                let leaf = with_stack(self.offer_leaf(corners, candidates, false, ray, scope));
+                let leaf = with_stack(self.binary_leaf(corners, ray, scope));
                 walk(&self.nodes, |node| keys.at(node, at), stack, ray, collector, stats, leaf)
             }
         }
+    }
+
+    /// What a walk of the binary nodes does at a leaf ([`TriangleBvh::offer_leaf`] over the accel's own slots): each
+    /// triangle, its corners from `corners` (by slot), sorted out by the scalar test's first step.
+    #[inline(always)]
+    fn binary_leaf<'a>(
+        &'a self,
+        corners: impl Fn(usize) -> [Vec3; 3] + Copy + 'a,
+        ray: &'a PreparedRay,
+        scope: &'a InstanceScope,
+    ) -> impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool + 'a {
+        let candidates = move |block: usize, lanes: u32, _: f32, _: &mut MetLanes<BLOCK>| {
+            let may_hit = (0..BLOCK).fold(0, |bits, lane| match lanes >> lane & 1 {
+                0 => bits,
+                _ => bits | u32::from(triangle::may_hit(ray, &corners(block * BLOCK + lane))) << lane,
+            });
+            (0, may_hit)
+        };
+        let slots = LeafSlots { ids: &self.refs, masks: self.masks.as_deref() };
+        self.offer_leaf(slots, corners, candidates, false, ray, scope)
     }
 
     /// Offers each of `rays` whose bit is set in `alone` the triangles of the leaves it reaches in this static accel,
@@ -248,7 +260,14 @@ impl TriangleBvh {
         };
         let culling = crate::format::RayFlags::CULL_BACK_FACING | crate::format::RayFlags::CULL_FRONT_FACING;
         let found_only = keeps_no_hit && !ray.flags.intersects(culling);
-        self.offer_leaf(|slot| blocks.corners(slot), met, found_only, ray, &InstanceScope::WORLD)
+        self.offer_leaf(
+            self.wide.leaf_slots(),
+            |slot| blocks.corners(slot),
+            met,
+            found_only,
+            ray,
+            &InstanceScope::WORLD,
+        )
     }
 
     /// What a walk of a static accel does at a leaf ([`TriangleBvh::offer_leaf`]): its triangles sorted out a block
@@ -264,29 +283,32 @@ impl TriangleBvh {
         let blocks = &self.wide.blocks;
         let candidates =
             |block, lanes, _, _: &mut MetLanes<BLOCK>| (0, blocks.block_candidates(block_ray, block) & lanes);
-        self.offer_leaf(|slot| blocks.corners(slot), candidates, false, ray, scope)
+        self.offer_leaf(self.wide.leaf_slots(), |slot| blocks.corners(slot), candidates, false, ray, scope)
     }
 
-    /// Starts loading the data of the leaf over `slots` of a static accel: its first block of corners and its ids.
+    /// Starts loading the data of the leaf over the blocks' `slots` of a static accel: its first block of corners and
+    /// its ids.
     #[inline(always)]
     pub(super) fn prefetch_leaf(&self, slots: Range<usize>) {
         // A block is 144 bytes: three cache lines from the one it starts in hold it whole.
         prefetch::<3>(self.wide.blocks.block_ptr(slots.start));
-        prefetch::<1>(self.refs.as_ptr().wrapping_add(slots.start));
+        prefetch::<1>(self.wide.ids.as_ptr().wrapping_add(slots.start));
     }
 
-    /// What a walk does at a leaf: offers each of its triangles, with its corners from `corners` (by slot), in slot
-    /// order, and says whether the collector is done. The triangles the ray's line cannot cross are first sorted out,
-    /// a block of [`BLOCK`] slots at a time, by `sort_out`: given a block, a bit for each of its lanes in the leaf, the
-    /// collector's cull distance and room for the hits it finds, it returns the lanes whose hit within the ray's
-    /// range it found (left in that room), and the lanes the ray may hit otherwise, which take the scalar test
-    /// ([`triangle::may_hit`], or the same test on the block at once, rules out the rest). A found hit is offered
-    /// as it is: with `found_only`, the collector is told only that there is one ([`Collector::offer_found`]; it
-    /// must [`Collector::keeps_no_hit`] and the ray cull no faces). The answers and the statistics (triangles
-    /// tested up to where the collector is done) are those of offering every one to the scalar test.
+    /// What a walk does at a leaf: offers each of its triangles, with its corners from `corners` and its ids and mask
+    /// from `leaf_slots` (by slot), in slot order, and says whether the collector is done. The triangles the ray's line
+    /// cannot cross are first sorted out, a block of [`BLOCK`] slots at a time, by `sort_out`: given a block, a bit for
+    /// each of its lanes in the leaf, the collector's cull distance and room for the hits it finds, it returns the
+    /// lanes whose hit within the ray's range it found (left in that room), and the lanes the ray may hit otherwise,
+    /// which take the scalar test ([`triangle::may_hit`], or the same test on the block at once, rules out the rest). A
+    /// found hit is offered as it is: with `found_only`, the collector is told only that there is one
+    /// ([`Collector::offer_found`]; it must [`Collector::keeps_no_hit`] and the ray cull no faces). The answers and the
+    /// statistics (triangles tested up to where the collector is done) are those of offering every one to the scalar
+    /// test.
     #[inline(always)]
     fn offer_leaf<'a>(
         &'a self,
+        leaf_slots: LeafSlots<'a>,
         corners: impl Fn(usize) -> [Vec3; 3] + 'a,
         sort_out: impl Fn(usize, u32, f32, &mut MetLanes<BLOCK>) -> (u32, u32) + 'a,
         found_only: bool,
@@ -307,11 +329,11 @@ impl TriangleBvh {
                     if was_found && found_only {
                         collector.offer_found();
                     } else {
-                        let id = self.refs[slot];
+                        let id = leaf_slots.ids[slot];
                         let candidate = TriangleCandidate {
                             corners: &corners(slot),
                             id,
-                            mask: self.masks.as_ref().map_or(0, |m| m[slot]),
+                            mask: leaf_slots.masks.map_or(0, |m| m[slot]),
                             geometry_flags: self.geometry_flags[id.geom_id as usize],
                         };
                         match was_found {
@@ -332,6 +354,16 @@ impl TriangleBvh {
             false
         }
     }
+}
+
+/// What a leaf's slots hold besides corners: the slots of the accel ([`TriangleBvh::refs`], [`TriangleBvh::masks`])
+/// for a binary walk, those of the wide BVH's blocks ([`super::wide::WideBvh::ids`]) for a wide one.
+#[derive(Clone, Copy)]
+pub(super) struct LeafSlots<'a> {
+    /// Each slot's triangle ids.
+    pub(super) ids: &'a [TriangleRef],
+    /// Each slot's Prime mask, where the accel has masks.
+    pub(super) masks: Option<&'a [u32]>,
 }
 
 /// A bit for each lane of block `block` whose slot is in `slots`.

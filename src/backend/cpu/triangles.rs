@@ -4,7 +4,7 @@
 use glam::Vec3;
 use obvhs::aabb::Aabb;
 
-use super::blocks::CornerBlocks;
+use super::blocks::{CornerBlocks, Placement};
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
 use super::wide::{WIDTH, WideBvh, WideNode};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
@@ -71,7 +71,10 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     let wide_nodes = if keys > 1 { 0 } else { (4 * n).div_ceil(WIDTH as u64 - 1) + 1 };
     // … and copy their corners into blocks for the leaves' first test.
     let blocks = if keys > 1 { 0 } else { CornerBlocks::bytes_for(n) };
-    let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1) + blocks;
+    // … with the ids (and masks) of the blocks' slots.
+    let slots = if keys > 1 { 0 } else { Placement::most_slots(triangles) as u64 };
+    let slot_ids = slots * (size_of::<TriangleRef>() as u64 + if masks { 4 } else { 0 });
+    let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1) + blocks + slot_ids;
     let per_triangle =
         (keys as usize * size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
     let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
@@ -114,7 +117,7 @@ impl TriangleBvh {
     /// Derives the wide nodes from the binary ones (static accels only).
     pub(super) fn collapse_wide(&mut self) {
         self.wide = match self.node_keys {
-            None => WideBvh::collapse(&self.nodes, &self.corners),
+            None => WideBvh::collapse(&self.nodes, &self.corners, &self.refs, self.masks.as_deref()),
             Some(_) => WideBvh::default(),
         };
     }

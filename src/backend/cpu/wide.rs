@@ -16,14 +16,15 @@ use std::ops::Range;
 
 use glam::{Vec3, Vec3A};
 
-use super::blocks::CornerBlocks;
+use super::blocks::{CornerBlocks, Placement};
 use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::large_pages::LargePageArray;
-use super::traverse::StackEntry;
+use super::traverse::{LeafSlots, StackEntry};
 use super::turns::{exceed_last_level_cache, walks_in_turns};
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::has_avx2;
+use crate::geometry::TriangleRef;
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
 use crate::query::{Collector, TraceStats};
@@ -33,8 +34,9 @@ pub(super) const WIDTH: usize = 8;
 
 /// One node, 256 bytes (four cache lines, aligned to them): `0 lo[axis][lane] f32×24 | 96 hi[axis][lane] f32×24 |
 /// 192 index u32×8 | 224 count u32×8`.
-/// Lane `l` is a child: an inner node (`count[l]` 0, its node at `index[l]`), a leaf (its primitive slots
-/// `index[l] .. index[l] + count[l]`), or empty (box `+∞ .. −∞`; the children come first, the empty lanes after).
+/// Lane `l` is a child: an inner node (`count[l]` 0, its node at `index[l]`), a leaf (its slots in the blocks,
+/// `index[l] .. index[l] + count[l]`: [`WideBvh::ids`]), or empty (box `+∞ .. −∞`; the children come first, the
+/// empty lanes after).
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[repr(C, align(64))]
 pub(super) struct WideNode {
@@ -42,7 +44,7 @@ pub(super) struct WideNode {
     pub(super) lo: [[f32; WIDTH]; 3],
     /// Box maxima, by axis then lane.
     pub(super) hi: [[f32; WIDTH]; 3],
-    /// Per lane: the child node (inner) or the first primitive slot (leaf).
+    /// Per lane: the child node (inner) or the leaf's first slot in the blocks.
     pub(super) index: [u32; WIDTH],
     /// Per lane: primitives of a leaf, 0 for an inner or empty lane.
     pub(super) count: [u32; WIDTH],
@@ -83,8 +85,12 @@ pub(super) struct WideBvh {
     pub(super) root: (Vec3A, Vec3A),
     /// Longest root-to-leaf path, in wide nodes.
     depth: usize,
-    /// The triangles' corners in blocks, for the leaves' first test.
+    /// The leaves' triangles' corners in blocks, each leaf in as few blocks as it fits ([`Placement`]).
     pub(super) blocks: CornerBlocks,
+    /// The ids of the triangles in the blocks' slots (a slot left empty before a leaf holds a stand-in).
+    pub(super) ids: Vec<TriangleRef>,
+    /// Their Prime masks, where the accel has masks.
+    pub(super) masks: Option<Vec<u32>>,
     /// Whether the nodes and blocks fit the CPU's last-level cache, where a node visited in vain costs little:
     /// packets that want no distances then enter inner nodes by their interval alone ([`WideBvh::walk_packet`]).
     pub(super) in_cache: bool,
@@ -94,17 +100,23 @@ pub(super) struct WideBvh {
 }
 
 impl WideBvh {
-    /// Collapses a depth-first binary BVH ([`collapse`]) over triangles whose slots hold `corners`.
-    pub fn collapse(binary: &[Node], corners: &[[Vec3; 3]]) -> WideBvh {
+    /// Collapses a depth-first binary BVH ([`collapse`]) over triangles whose slots hold `corners`, `refs` and
+    /// `masks` (where the accel has masks); the leaves' triangles are copied into blocks ([`Placement`]).
+    pub fn collapse(binary: &[Node], corners: &[[Vec3; 3]], refs: &[TriangleRef], masks: Option<&[u32]>) -> WideBvh {
         let Some(root) = binary.first() else { return WideBvh::default() };
         let collapsed = collapse(binary, WIDTH);
         let occupied = |lanes: &[Lane]| lanes.iter().take_while(|l| l.binary != EMPTY_LANE).count();
+        let mut leaves: Vec<Range<usize>> =
+            binary.iter().filter(|b| b.count > 0).map(|b| b.index as usize..(b.index + b.count) as usize).collect();
+        leaves.sort_unstable_by_key(|leaf| leaf.start);
+        let placement = Placement::of_leaves(leaves);
         let nodes = LargePageArray::from_fn(collapsed.lanes.len() / WIDTH, |n| {
             let lanes = &collapsed.lanes[n * WIDTH..(n + 1) * WIDTH];
             let mut node = WideNode::EMPTY;
             for (lane, &Lane { binary: b, child }) in lanes[..occupied(lanes)].iter().enumerate() {
                 let b = &binary[b as usize];
-                node.set_lane(lane, b, if b.count > 0 { b.index } else { child });
+                let index = if b.count > 0 { placement.slot_of(b.index as usize) as u32 } else { child };
+                node.set_lane(lane, b, index);
             }
             node
         });
@@ -114,7 +126,9 @@ impl WideBvh {
             children,
             root: (root.min.into(), root.max.into()),
             depth: collapsed.depth,
-            blocks: CornerBlocks::new(corners),
+            blocks: CornerBlocks::new(corners, &placement),
+            ids: placement.gather(refs, TriangleRef { geom_id: 0, prim_id: 0 }),
+            masks: masks.map(|masks| placement.gather(masks, 0)),
             in_cache: true,
             in_turns: false,
         };
@@ -128,6 +142,11 @@ impl WideBvh {
         wide
     }
 
+    /// What the leaves' slots in the blocks hold besides corners.
+    pub(super) fn leaf_slots(&self) -> LeafSlots<'_> {
+        LeafSlots { ids: &self.ids, masks: self.masks.as_deref() }
+    }
+
     /// Stack entries a traversal needs: each node visited leaves at most `WIDTH − 1` children waiting.
     pub fn stack_size(&self) -> usize {
         self.depth * (WIDTH - 1) + 1
@@ -135,12 +154,15 @@ impl WideBvh {
 
     /// Bytes it occupies.
     pub fn size_bytes(&self, footprint: Footprint) -> u64 {
-        (footprint.of(&self.nodes as &dyn VecLen) * size_of::<WideNode>() + footprint.of(&self.children)) as u64
+        (footprint.of(&self.nodes as &dyn VecLen) * size_of::<WideNode>()
+            + footprint.of(&self.children)
+            + footprint.of(&self.ids) * size_of::<TriangleRef>()
+            + self.masks.as_ref().map_or(0, |masks| footprint.of(masks) * 4)) as u64
             + self.blocks.size_bytes(footprint)
     }
 
-    /// Walks the nodes front to back and hands each leaf the ray reaches (its primitive slots, the collector and the
-    /// statistics) to `leaf`, which returns whether the collector is done. `prefetch_leaf` starts loading a leaf's
+    /// Walks the nodes front to back and hands each leaf the ray reaches (its slots in the blocks, the collector and
+    /// the statistics) to `leaf`, which returns whether the collector is done. `prefetch_leaf` starts loading a leaf's
     /// data (by its slots) as soon as the ray enters the leaf's box.
     ///
     /// Panics when `stack` holds fewer than [`WideBvh::stack_size`] entries.
@@ -787,13 +809,16 @@ mod tests {
             node(2.0, 3.0, 2, 1),
             node(4.0, 9.0, 3, 2),
         ];
-        let wide = WideBvh::collapse(&binary, &[]);
+        let refs: Vec<TriangleRef> = (0..5).map(|prim_id| TriangleRef { geom_id: 0, prim_id }).collect();
+        let wide = WideBvh::collapse(&binary, &[], &refs, None);
         assert_eq!((wide.nodes.len(), wide.children.as_slice(), wide.depth), (1, &[3u8][..], 1));
         let root = &wide.nodes[0];
-        // The leaf first, then the inner node's two children in its place and after.
+        // The leaf first, then the inner node's two children in its place and after; the last leaf starts the second
+        // block (from slot 3 on it would span two), at slot 4 of the blocks, which hold the leaves' ids there.
         let lanes: Vec<(f32, f32, u32, u32)> =
             (0..3).map(|l| (root.lo[0][l], root.hi[2][l], root.index[l], root.count[l])).collect();
-        assert_eq!(lanes, [(0.0, 1.0, 0, 2), (2.0, 3.0, 2, 1), (4.0, 9.0, 3, 2)]);
+        assert_eq!(lanes, [(0.0, 1.0, 0, 2), (2.0, 3.0, 2, 1), (4.0, 9.0, 4, 2)]);
+        assert_eq!(wide.ids.iter().map(|id| id.prim_id).collect::<Vec<_>>(), [0, 1, 2, 0, 3, 4]);
         assert!((3..WIDTH).all(|l| root.lo[1][l] == f32::INFINITY && root.hi[1][l] == f32::NEG_INFINITY));
         assert_eq!(wide.root, (Vec3A::ZERO, Vec3A::splat(9.0)));
     }
