@@ -789,6 +789,9 @@ fn hostile_blobs_with_valid_checksums_are_refused_without_panics_or_huge_allocat
     let node_count = u64_at(&blob, nodes);
     assert!(node_count >= 3, "the geometry accel has inner nodes");
     let leaf_count = (0..node_count as usize).map(|i| nodes + 8 + 32 * i + 28).find(|&at| blob[at] != 0).unwrap();
+    let mut leaves = (0..node_count as usize).map(|i| nodes + 8 + 32 * i).filter(|&at| blob[at + 28] != 0);
+    let (first_leaf, second_leaf) = (leaves.next().unwrap(), leaves.next().expect("two leaves"));
+    let first_leaf_index: [u8; 4] = blob[first_leaf + 12..first_leaf + 16].try_into().unwrap();
     let cases: Vec<Tamper> = vec![
         write_at("root's children at itself", "inner node 0", nodes + 8 + 12, 0u32.to_le_bytes()),
         write_at("root's children past the end", "inner node 0", nodes + 8 + 12, u32::MAX.to_le_bytes()),
@@ -805,6 +808,7 @@ fn hostile_blobs_with_valid_checksums_are_refused_without_panics_or_huge_allocat
         write_at("node count lowered", "node key boxes", nodes, (node_count - 1).to_le_bytes()),
         write_at("node count huge", "elements of 32 bytes", nodes, (u64::MAX / 4).to_le_bytes()),
         write_at("a leaf's count huge", "leaf node", leaf_count, u32::MAX.to_le_bytes()),
+        write_at("two leaves sharing slots", "which another leaf holds", second_leaf + 12, first_leaf_index),
         write_at("triangle count", "do not add up", geometry + 24, 13u64.to_le_bytes()),
         write_at("geometry count", "structure of 1 inputs", geometry + 32, 2u32.to_le_bytes()),
         write_at("motion keys 0", "motion keys", geometry + 8, 0u32.to_le_bytes()),

@@ -65,10 +65,11 @@ pub(super) struct Placement {
 }
 
 impl Placement {
-    /// Places `leaves`, the slot ranges of an accel's leaves, disjoint and in slot order, from slot 0 on.
+    /// Places `leaves`, the slot ranges of an accel's leaves, in slot order; no slot may be in two (builds make none
+    /// such, and loaded accels are checked for them).
     pub fn of_leaves(leaves: impl IntoIterator<Item = Range<usize>>) -> Placement {
         let leaves: Vec<Range<usize>> = leaves.into_iter().collect();
-        let triangles = leaves.last().map_or(0, |leaf| leaf.end);
+        let triangles = leaves.iter().map(|leaf| leaf.end).max().unwrap_or(0);
         let mut budget = triangles / 4;
         let mut held = Vec::with_capacity(Self::most_slots(triangles));
         for leaf in leaves {
@@ -82,6 +83,7 @@ impl Placement {
         }
         let mut slot_of = vec![u32::MAX; triangles];
         for (placed, &slot) in held.iter().enumerate().filter(|(_, slot)| **slot != u32::MAX) {
+            debug_assert_eq!(slot_of[slot as usize], u32::MAX, "slot {slot} in two leaves");
             slot_of[slot as usize] = placed as u32;
         }
         Placement { slot_of, held }

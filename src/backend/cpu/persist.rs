@@ -182,7 +182,8 @@ fn read_nodes(
 
 /// Checks a depth-first node array over `slots` primitive slots: each inner node's children (at `index` and
 /// `index + 1`) come after it in the array, every node but the root is the child of exactly one node (so the
-/// nodes form one tree), and each leaf's primitives lie within the slots. Returns the longest root-to-leaf path,
+/// nodes form one tree), and each leaf's primitives lie within the slots, no slot in two leaves (the wide BVH
+/// copies each leaf's triangles into blocks of its own: [`super::blocks::Placement`]). Returns the longest root-to-leaf path,
 /// in nodes (what the traversal stack is sized by).
 fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
     if nodes.len() > u32::MAX as usize {
@@ -194,6 +195,7 @@ fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
         *root = 1;
     }
     let mut depth = 0;
+    let mut in_a_leaf = vec![false; slots];
     for (i, node) in nodes.iter().enumerate() {
         let here = level[i];
         if here == 0 {
@@ -207,6 +209,14 @@ fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
                     node.index, node.count
                 )));
             }
+            let leaf = &mut in_a_leaf[node.index as usize..(node.index + node.count) as usize];
+            if let Some(shared) = leaf.iter().position(|&taken| taken) {
+                return Err(invalid(format!(
+                    "leaf node {i} holds slot {}, which another leaf holds",
+                    node.index as usize + shared
+                )));
+            }
+            leaf.fill(true);
             continue;
         }
         let first = node.index as usize;
