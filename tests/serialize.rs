@@ -808,7 +808,7 @@ fn hostile_blobs_with_valid_checksums_are_refused_without_panics_or_huge_allocat
         write_at("node count lowered", "node key boxes", nodes, (node_count - 1).to_le_bytes()),
         write_at("node count huge", "elements of 32 bytes", nodes, (u64::MAX / 4).to_le_bytes()),
         write_at("a leaf's count huge", "leaf node", leaf_count, u32::MAX.to_le_bytes()),
-        write_at("two leaves sharing slots", "which another leaf holds", second_leaf + 12, first_leaf_index),
+        write_at("two leaves sharing slots", "which leaf node", second_leaf + 12, first_leaf_index),
         write_at("triangle count", "do not add up", geometry + 24, 13u64.to_le_bytes()),
         write_at("geometry count", "structure of 1 inputs", geometry + 32, 2u32.to_le_bytes()),
         write_at("motion keys 0", "motion keys", geometry + 8, 0u32.to_le_bytes()),

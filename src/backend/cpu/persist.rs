@@ -195,7 +195,9 @@ fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
         *root = 1;
     }
     let mut depth = 0;
-    let mut in_a_leaf = vec![false; slots];
+    // The leaves' slot ranges and nodes, to check that no two share a slot (sized by the nodes, which the blob holds,
+    // not by `slots`, which it only claims).
+    let mut leaves = Vec::new();
     for (i, node) in nodes.iter().enumerate() {
         let here = level[i];
         if here == 0 {
@@ -209,14 +211,7 @@ fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
                     node.index, node.count
                 )));
             }
-            let leaf = &mut in_a_leaf[node.index as usize..(node.index + node.count) as usize];
-            if let Some(shared) = leaf.iter().position(|&taken| taken) {
-                return Err(invalid(format!(
-                    "leaf node {i} holds slot {}, which another leaf holds",
-                    node.index as usize + shared
-                )));
-            }
-            leaf.fill(true);
+            leaves.push((node.index, node.index + node.count, i));
             continue;
         }
         let first = node.index as usize;
@@ -229,6 +224,11 @@ fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
             }
             level[child] = here + 1;
         }
+    }
+    leaves.sort_unstable();
+    if let Some(pair) = leaves.windows(2).find(|pair| pair[1].0 < pair[0].1) {
+        let ((_, _, first), (shared, _, second)) = (pair[0], pair[1]);
+        return Err(invalid(format!("leaf node {second} holds slot {shared}, which leaf node {first} holds")));
     }
     Ok(depth as usize)
 }
