@@ -180,6 +180,7 @@ impl TriangleBvh {
         // An any-hit query that keeps no hit, without face culling: a hit in a ray's range is all that matters to it.
         let culling = RayFlags::CULL_BACK_FACING | RayFlags::CULL_FRONT_FACING;
         let accepts_in_lanes = collectors[0].keeps_no_hit() && !rays.iter().any(|ray| ray.flags.intersects(culling));
+        let leaf_slots = self.wide.leaf_slots();
         let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
             let (mut met, mut finished) = (MetLanes::NONE, 0u32);
@@ -189,11 +190,11 @@ impl TriangleBvh {
                 if candidates == 0 {
                     continue;
                 }
-                let (corners, id) = (self.wide.blocks.corners(slot), self.wide.ids[slot]);
+                let (corners, (id, mask)) = (self.wide.blocks.corners(slot), leaf_slots.id_and_mask(slot));
                 let candidate = TriangleCandidate {
                     corners: &corners,
                     id,
-                    mask: self.wide.masks.as_ref().map_or(0, |m| m[slot]),
+                    mask,
                     geometry_flags: self.geometry_flags[id.geom_id as usize],
                 };
                 if accepts_in_lanes && candidate.mask == 0 {

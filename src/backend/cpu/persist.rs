@@ -183,8 +183,8 @@ fn read_nodes(
 /// Checks a depth-first node array over `slots` primitive slots: each inner node's children (at `index` and
 /// `index + 1`) come after it in the array, every node but the root is the child of exactly one node (so the
 /// nodes form one tree), and each leaf's primitives lie within the slots, no slot in two leaves (the wide BVH
-/// copies each leaf's triangles into blocks of its own: [`super::blocks::Placement`]). Returns the longest root-to-leaf path,
-/// in nodes (what the traversal stack is sized by).
+/// copies each leaf's triangles into blocks of its own: [`super::blocks::Placement`]). Returns the longest
+/// root-to-leaf path, in nodes (what the traversal stack is sized by).
 fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
     if nodes.len() > u32::MAX as usize {
         return Err(invalid(format!("{} nodes, more than a u32 index reaches", nodes.len())));

@@ -334,11 +334,11 @@ impl TriangleBvh {
                     if was_found && found_only {
                         collector.offer_found();
                     } else {
-                        let id = leaf_slots.ids[slot];
+                        let (id, mask) = leaf_slots.id_and_mask(slot);
                         let candidate = TriangleCandidate {
                             corners: &corners(slot),
                             id,
-                            mask: leaf_slots.masks.map_or(0, |m| m[slot]),
+                            mask,
                             geometry_flags: self.geometry_flags[id.geom_id as usize],
                         };
                         match was_found {
@@ -369,6 +369,14 @@ pub(super) struct LeafSlots<'a> {
     pub(super) ids: &'a [TriangleRef],
     /// Each slot's Prime mask, where the accel has masks.
     pub(super) masks: Option<&'a [u32]>,
+}
+
+impl LeafSlots<'_> {
+    /// The ids and the Prime mask (0 without masks) of the triangle in `slot`.
+    #[inline(always)]
+    pub(super) fn id_and_mask(&self, slot: usize) -> (TriangleRef, u32) {
+        (self.ids[slot], self.masks.map_or(0, |m| m[slot]))
+    }
 }
 
 /// A bit for each lane of block `block` whose slot is in `slots`.
