@@ -18,7 +18,7 @@ use super::triangles::TriangleBvh;
 use super::turns::TURNS;
 use super::wide::{CACHE_LINE, prefetch};
 #[cfg(target_arch = "x86_64")]
-use crate::cpu_features::has_avx2;
+use crate::cpu_features::{has_avx2, has_avx512vl};
 use crate::format::Ray;
 use crate::geometry::TriangleRef;
 use crate::geometry::motion::lerp;
@@ -73,8 +73,8 @@ impl CpuAccel {
     }
 
     /// Offers each of `rays` (a group of neighbouring rays of a batch, [`crate::query::trace_batch`]'s, as
-    /// [`crate::intersect::traced`] makes them, with a collector each) the triangles it reaches: together, as packets ([`super::packet`]), where they make them
-    /// through a static geometry accel; one by one otherwise.
+    /// [`crate::intersect::traced`] makes them, with a collector each) the triangles it reaches: together, as packets
+    /// ([`super::packet`]), where they make them through a static geometry accel; one by one otherwise.
     pub(crate) fn traverse_group(
         &self,
         stacks: &mut Stacks,
@@ -100,15 +100,12 @@ impl CpuAccel {
             && !binary_traversal()
             && has_avx2()
         {
-            // SAFETY: the CPU has AVX2 and the other features, as just checked; the accel is static; a group holds
-            // at most `TURNS` rays.
+            // SAFETY: the CPU has AVX2 and the other features (and AVX-512VL where it is asked for), as just checked;
+            // the accel is static; a group holds at most `TURNS` rays.
             unsafe {
-                let (turns, single) = (&mut stacks.turns, &mut stacks.single);
-                match (bvh.wide.in_turns && alone.count_ones() > 1, bvh.masks.is_none()) {
-                    (true, true) => bvh.traverse_in_turns_avx2::<true>(turns, rays, collectors, alone, stats),
-                    (true, false) => bvh.traverse_in_turns_avx2::<false>(turns, rays, collectors, alone, stats),
-                    (false, true) => bvh.traverse_alone_avx2::<true>(single, rays, collectors, alone, stats),
-                    (false, false) => bvh.traverse_alone_avx2::<false>(single, rays, collectors, alone, stats),
+                match has_avx512vl() {
+                    true => bvh.traverse_static_avx512(stacks, rays, collectors, alone, stats),
+                    false => bvh.traverse_static_avx2(stacks, rays, collectors, alone, stats),
                 }
             }
             return;
@@ -137,6 +134,48 @@ impl CpuAccel {
         }
     }
 }
+
+/// Defines `$name`, [`TriangleBvh::traverse_static`] compiled with the target features `$features`: its builds for
+/// the CPUs that have them.
+#[cfg(target_arch = "x86_64")]
+macro_rules! traverse_static_compiled_for {
+    ($(#[$doc:meta])* $name:ident, $features:literal) => {
+        impl TriangleBvh {
+            $(#[$doc])*
+            ///
+            /// # Safety
+            /// As [`TriangleBvh::traverse_static`]'s, and the CPU must have the features this build is compiled with.
+            #[target_feature(enable = $features)]
+            unsafe fn $name(
+                &self,
+                stacks: &mut Stacks,
+                rays: &[Ray],
+                collectors: &mut [Collector<'_>],
+                walking: u32,
+                stats: &mut TraceStats,
+            ) {
+                // SAFETY: the CPU has the features (this function's contract), the rest is the caller's.
+                unsafe { self.traverse_static(stacks, rays, collectors, walking, stats) }
+            }
+        }
+    };
+}
+
+#[cfg(target_arch = "x86_64")]
+traverse_static_compiled_for!(
+    /// [`TriangleBvh::traverse_static`] compiled for AVX2 (what [`has_avx2`] checks).
+    traverse_static_avx2,
+    "avx2,fma,bmi1,bmi2,lzcnt,popcnt"
+);
+
+#[cfg(target_arch = "x86_64")]
+traverse_static_compiled_for!(
+    /// [`TriangleBvh::traverse_static`] compiled for AVX2 with AVX-512VL (what [`has_avx512vl`] checks): the same
+    /// 8-lane instructions, which then reach 32 vector registers, so that the walk keeps its ray's numbers in them
+    /// (random rays +4–10%, BENCHMARKS.md, "Single rays walked with 32 vector registers").
+    traverse_static_avx512,
+    "avx512f,avx512vl,avx2,fma,bmi1,bmi2,lzcnt,popcnt"
+);
 
 /// Whether static accels walk their binary nodes instead of their wide ones: `RAYD_CPU_TRAVERSAL=binary`, read once,
 /// for A/B benchmarks of the traversal (BENCHMARKS.md, "CPU traversal step 1"); the answers are the same either way
@@ -202,18 +241,48 @@ impl TriangleBvh {
         self.offer_leaf(slots, corners, candidates, false, ray, scope)
     }
 
+    /// Offers each of `rays` whose bit is set in `walking` the triangles of the leaves it reaches in this static
+    /// accel, in turns where the accel walks them so and more than one does, one after another otherwise, with
+    /// their leaves' hits taken from the blocks' lanes where the accel has no Prime masks.
+    ///
+    /// # Safety
+    /// The CPU must have the features [`has_avx2`] checks (the caller is compiled with them); the accel must be
+    /// static (no `node_keys`); a group holds at most [`TURNS`] rays.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn traverse_static(
+        &self,
+        stacks: &mut Stacks,
+        rays: &[Ray],
+        collectors: &mut [Collector<'_>],
+        walking: u32,
+        stats: &mut TraceStats,
+    ) {
+        let (turns, single) = (&mut stacks.turns, &mut stacks.single);
+        // SAFETY: this function's contract is theirs.
+        unsafe {
+            match (self.wide.in_turns && walking.count_ones() > 1, self.masks.is_none()) {
+                (true, true) => self.traverse_in_turns::<true>(turns, rays, collectors, walking, stats),
+                (true, false) => self.traverse_in_turns::<false>(turns, rays, collectors, walking, stats),
+                (false, true) => self.traverse_alone::<true>(single, rays, collectors, walking, stats),
+                (false, false) => self.traverse_alone::<false>(single, rays, collectors, walking, stats),
+            }
+        }
+    }
+
     /// Offers each of `rays` whose bit is set in `alone` the triangles of the leaves it reaches in this static accel,
     /// one ray after another: [`TriangleBvh::traverse`] of each ray as [`CpuAccel::traverse_group`] would call it,
-    /// compiled for AVX2 as one loop, so that preparing a ray and starting its walk take no calls.
+    /// inlined into one loop, so that preparing a ray and starting its walk take no calls.
     ///
     /// With `IN_LANES`, the rays take their leaves' hits from the blocks' lanes ([`TriangleBvh::lanes_leaf`]): the
     /// accel must have no Prime masks.
     ///
     /// # Safety
-    /// The CPU must have the features [`has_avx2`] checks; the accel must be static (no `node_keys`).
+    /// The CPU must have the features [`has_avx2`] checks (the caller is compiled with them); the accel must be
+    /// static (no `node_keys`).
     #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn traverse_alone_avx2<const IN_LANES: bool>(
+    #[inline(always)]
+    unsafe fn traverse_alone<const IN_LANES: bool>(
         &self,
         stack: &mut [StackEntry],
         rays: &[Ray],
@@ -231,10 +300,10 @@ impl TriangleBvh {
             // SAFETY (both): the CPU has the features (this function's contract).
             if IN_LANES {
                 let leaf = self.lanes_leaf(&block_ray, &ray, collectors[i].keeps_no_hit());
-                unsafe { self.wide.walk_avx2(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+                unsafe { self.wide.walk_avx(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
             } else {
                 let leaf = self.static_leaf(&block_ray, &ray, &InstanceScope::WORLD);
-                unsafe { self.wide.walk_avx2(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+                unsafe { self.wide.walk_avx(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
             }
         }
     }
@@ -555,6 +624,9 @@ pub(super) mod tests {
         Alone,
         /// The same, incoherent rays in turns ([`super::super::turns`]).
         InTurns,
+        /// Every ray of a group through [`TriangleBvh::traverse_static_avx2`], alone or in turns: the build of the
+        /// static walks that CPUs with AVX-512VL do not run otherwise.
+        Avx2 { in_turns: bool },
     }
 
     /// Each ray's records and counts of `query`, and the statistics, traced through `bvh` as `walk` says.
@@ -565,7 +637,7 @@ pub(super) mod tests {
         walk: Walk,
     ) -> (Vec<u8>, Vec<u8>, TraceStats) {
         let mut bvh = bvh.clone();
-        bvh.wide.in_turns = walk == Walk::InTurns;
+        bvh.wide.in_turns = matches!(walk, Walk::InTurns | Walk::Avx2 { in_turns: true });
         let accel = CpuAccel::Triangles(bvh);
         let mut stacks = accel.new_stacks();
         let records = query.records_per_ray();
@@ -578,13 +650,20 @@ pub(super) mod tests {
             let mut parts = scratch.chunks_mut(records);
             let mut collectors: Vec<Collector<'_>> =
                 rays.iter().map(|ray| Collector::new(query, ray, parts.next().expect("a part a ray"))).collect();
-            if walk == Walk::OneByOne {
-                for (ray, collector) in rays.iter().zip(&mut collectors) {
-                    let ray = PreparedRay::from_traced(ray);
-                    accel.traverse(&mut stacks.single, &ray, &InstanceScope::WORLD, collector, &mut stats);
+            match (walk, &accel) {
+                (Walk::OneByOne, _) => {
+                    for (ray, collector) in rays.iter().zip(&mut collectors) {
+                        let ray = PreparedRay::from_traced(ray);
+                        accel.traverse(&mut stacks.single, &ray, &InstanceScope::WORLD, collector, &mut stats);
+                    }
                 }
-            } else {
-                accel.traverse_group(&mut stacks, &rays, &mut collectors, &mut stats);
+                (Walk::Avx2 { .. }, CpuAccel::Triangles(bvh)) if has_avx2() => {
+                    let every_ray = ((1u64 << rays.len()) - 1) as u32;
+                    // SAFETY: the CPU has AVX2 and the rest, as just checked; the accel is static; a group holds
+                    // `TURNS` rays at most.
+                    unsafe { bvh.traverse_static_avx2(&mut stacks, &rays, &mut collectors, every_ray, &mut stats) };
+                }
+                _ => accel.traverse_group(&mut stacks, &rays, &mut collectors, &mut stats),
             }
             for (i, collector) in collectors.iter().enumerate() {
                 let index = group * TURNS + i;
@@ -640,7 +719,8 @@ pub(super) mod tests {
                 };
                 let hits = (0..rays.len()).filter(|&ray| hit(ray)).count();
                 assert!(hits > rays.len() / 4 && hits < rays.len(), "{case}: {hits} rays hit");
-                for walk in [Walk::Alone, Walk::InTurns] {
+                for walk in [Walk::Alone, Walk::InTurns, Walk::Avx2 { in_turns: false }, Walk::Avx2 { in_turns: true }]
+                {
                     let grouped = trace(&bvh, query, &rays, walk);
                     assert!(grouped == one_by_one, "{case}, {walk:?}: {:?} against {:?}", grouped.2, one_by_one.2);
                 }

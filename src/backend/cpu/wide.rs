@@ -187,14 +187,35 @@ impl WideBvh {
         self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
     }
 
-    /// [`WideBvh::walk_lanes`] compiled for AVX2, its box tests written with AVX intrinsics.
+    /// [`WideBvh::walk_avx`] compiled for AVX2.
     ///
     /// # Safety
     /// The CPU must have the features [`has_avx2`] checks.
     #[cfg(target_arch = "x86_64")]
     #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
     #[inline]
-    pub(super) unsafe fn walk_avx2(
+    unsafe fn walk_avx2(
+        &self,
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+        leaf: impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
+        prefetch_leaf: impl Fn(Range<usize>),
+    ) {
+        // SAFETY: the CPU has the features (this function's contract).
+        unsafe { self.walk_avx(stack, ray, collector, stats, leaf, prefetch_leaf) }
+    }
+
+    /// [`WideBvh::walk_lanes`] with its box tests written with AVX intrinsics, inlined into its caller, which is
+    /// compiled for AVX2 or for more (the static accels' walks of single rays also for AVX-512VL, whose 32 vector
+    /// registers keep the ray's numbers).
+    ///
+    /// # Safety
+    /// The CPU must have the features [`has_avx2`] checks, and the caller be compiled with them.
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    pub(super) unsafe fn walk_avx(
         &self,
         stack: &mut [StackEntry],
         ray: &PreparedRay,
@@ -206,11 +227,19 @@ impl WideBvh {
         // SAFETY (all three): the CPU has AVX2 (this function's contract), so AVX too.
         let lanes = unsafe { avx::RayLanes::new(ray) };
         // One walk for each place of the slack, so that the node visits of the common one (`tmin ≥ 0`) do not ask.
+        // The box tests are closures inlined at once: a closure left to itself is compiled without the features of
+        // the function it is inlined into (and its intrinsics become calls).
         if lanes.slack_at_nodes() {
-            let enter = |node: &WideNode, tmax: f32| unsafe { lanes.enter_with::<true>(node, tmax) };
+            let enter = {
+                #[inline(always)]
+                |node: &WideNode, tmax: f32| unsafe { lanes.enter_with::<true>(node, tmax) }
+            };
             self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
         } else {
-            let enter = |node: &WideNode, tmax: f32| unsafe { lanes.enter_with::<false>(node, tmax) };
+            let enter = {
+                #[inline(always)]
+                |node: &WideNode, tmax: f32| unsafe { lanes.enter_with::<false>(node, tmax) }
+            };
             self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
         }
     }

@@ -26,14 +26,14 @@ struct Turn {
 
 impl TriangleBvh {
     /// Offers each of `rays` whose bit is set in `walking` the triangles of the leaves it reaches in this static accel,
-    /// the rays walked in turns: what [`TriangleBvh::traverse_alone_avx2`] does one ray after another (with
-    /// `IN_LANES` as there).
+    /// the rays walked in turns: what [`TriangleBvh::traverse_alone`] does one ray after another (with `IN_LANES` as
+    /// there).
     ///
     /// # Safety
-    /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks; the accel must be static (no
-    /// `node_keys`); `rays` holds at most [`TURNS`] rays.
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    pub(in crate::backend::cpu) unsafe fn traverse_in_turns_avx2<const IN_LANES: bool>(
+    /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks (the caller is compiled with them);
+    /// the accel must be static (no `node_keys`); `rays` holds at most [`TURNS`] rays.
+    #[inline(always)]
+    pub(in crate::backend::cpu) unsafe fn traverse_in_turns<const IN_LANES: bool>(
         &self,
         stacks: &mut [StackEntry],
         rays: &[Ray],
@@ -69,7 +69,7 @@ impl TriangleBvh {
         };
         let prefetch_leaf = |slots| self.prefetch_leaf(slots);
         // SAFETY: the CPU has the features (this function's contract); each walking ray's lanes were made above.
-        unsafe { self.wide.walk_in_turns_avx2(stacks, &lanes, walking, collectors, stats, leaf, prefetch_leaf) };
+        unsafe { self.wide.walk_in_turns(stacks, &lanes, walking, collectors, stats, leaf, prefetch_leaf) };
     }
 }
 
@@ -81,12 +81,11 @@ impl WideBvh {
     /// Panics when `stacks` holds fewer than [`WideBvh::stack_size`] entries for each of [`TURNS`] rays.
     ///
     /// # Safety
-    /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks; `lanes` holds the numbers of every
-    /// ray walked.
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    #[inline]
+    /// The CPU must have the features [`crate::cpu_features::has_avx2`] checks (the caller is compiled with them);
+    /// `lanes` holds the numbers of every ray walked.
+    #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn walk_in_turns_avx2(
+    unsafe fn walk_in_turns(
         &self,
         stacks: &mut [StackEntry],
         lanes: &[MaybeUninit<avx::RayLanes>; TURNS],
@@ -132,7 +131,10 @@ impl WideBvh {
                         // SAFETY: `index` is the root or an inner lane's index; a walk leaves at most `WIDTH − 1`
                         // lanes waiting a level: `stack_size` entries.
                         let next = unsafe {
-                            let enter = |node: &WideNode, tmax| ray_lanes.enter(node, tmax);
+                            let enter = {
+                                #[inline(always)]
+                                |node: &WideNode, tmax| ray_lanes.enter(node, tmax)
+                            };
                             self.visit_node(
                                 index as usize,
                                 tmax,
