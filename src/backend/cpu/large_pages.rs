@@ -17,6 +17,8 @@ use std::ops::Deref;
 use std::ptr::NonNull;
 use std::sync::atomic::{AtomicBool, Ordering};
 
+use rayon::prelude::*;
+
 use super::bvh::VecLen;
 
 /// Bytes of a large page (x86-64 and most 64-bit Linux platforms).
@@ -45,18 +47,37 @@ unsafe impl<T: Copy + Send> Send for LargePageArray<T> {}
 unsafe impl<T: Copy + Sync> Sync for LargePageArray<T> {}
 
 impl<T: Copy> LargePageArray<T> {
-    /// An array of `len` elements, element `i` being `element(i)`, written in order after the large-page advice.
-    pub fn from_fn(len: usize, mut element: impl FnMut(usize) -> T) -> LargePageArray<T> {
+    /// An array of `len` elements, element `i` being `element(i)`, written after the large-page advice by rayon's
+    /// threads, a large page's worth of neighbours at least each (an accel's arrays are made once a build: the
+    /// writes, and the kernel's zeroing of the pages they touch first, spread over the cores).
+    pub fn from_fn(len: usize, element: impl Fn(usize) -> T + Sync) -> LargePageArray<T>
+    where
+        T: Send,
+    {
+        /// The array's first element, shared by the threads that write it.
+        struct Start<T>(NonNull<T>);
+        // SAFETY: each thread writes elements no other thread writes (below), and `T` may be sent between threads.
+        unsafe impl<T: Send> Sync for Start<T> {}
+        impl<T> Start<T> {
+            /// Where element `i` goes.
+            fn at(&self, i: usize) -> *mut T {
+                self.0.as_ptr().wrapping_add(i)
+            }
+        }
+
         let Some(layout) = Self::layout(len) else { return LargePageArray::default() };
         // SAFETY: the layout's size is not zero (`layout` gives none for an empty array or a zero-sized `T`).
         let Some(start) = NonNull::new(unsafe { alloc(layout) }.cast::<T>()) else { handle_alloc_error(layout) };
         if layout.align() == LARGE_PAGE && ENABLED.load(Ordering::Relaxed) {
             advise_large_pages(start.as_ptr().cast(), layout.size() / LARGE_PAGE * LARGE_PAGE);
         }
-        for i in 0..len {
-            // SAFETY: `i` is within the allocation of `len` elements, each written once.
-            unsafe { start.as_ptr().add(i).write(element(i)) };
-        }
+        let shared = Start(start);
+        // Whole large pages a thread, so that no two threads wait on the same page's first touch.
+        let run = (LARGE_PAGE / size_of::<T>()).max(1);
+        (0..len).into_par_iter().with_min_len(run).for_each(|i| {
+            // SAFETY: `i` is within the allocation of `len` elements, and each is written once, by one thread.
+            unsafe { shared.at(i).write(element(i)) };
+        });
         LargePageArray { start, len }
     }
 
@@ -106,7 +127,7 @@ impl<T: Copy> Deref for LargePageArray<T> {
     }
 }
 
-impl<T: Copy> Clone for LargePageArray<T> {
+impl<T: Copy + Send + Sync> Clone for LargePageArray<T> {
     fn clone(&self) -> Self {
         LargePageArray::from_fn(self.len, |i| self[i])
     }

@@ -3,6 +3,7 @@
 
 use glam::Vec3;
 use obvhs::aabb::Aabb;
+use rayon::prelude::*;
 
 use super::blocks::{CornerBlocks, Placement};
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
@@ -94,10 +95,11 @@ impl TriangleBvh {
     pub fn build(triangles: GatheredTriangles, options: &BuildOptions) -> TriangleBvh {
         let moving = !options.motion.is_static();
         let hittable: Vec<u32> = (0..triangles.len() as u32)
+            .into_par_iter()
             .filter(|&i| moving || !is_degenerate(&triangles.vertices[i as usize]))
             .collect();
         let boxes: Vec<Aabb> = hittable
-            .iter()
+            .par_iter()
             .map(|&i| {
                 let (min, max) = corner_bounds(triangles.corners(i as usize));
                 Aabb::new(min.into(), max.into())
@@ -145,10 +147,14 @@ impl TriangleBvh {
             in_leaves[i as usize] = true;
         }
         order.extend((0..total as u32).filter(|&i| !in_leaves[i as usize]));
-        let mut corners: Vec<[Vec3; 3]> = Vec::with_capacity(total * triangles.keys);
-        corners.extend(order.iter().flat_map(|&i| triangles.corners(i as usize)));
-        let refs: Vec<TriangleRef> = order.iter().map(|&i| triangles.refs[i as usize]).collect();
-        let masks = triangles.masks.as_ref().map(|m| order.iter().map(|&i| m[i as usize]).collect());
+        // Gathered by rayon's threads: a random read a triangle, which one core would wait on alone.
+        let mut corners = vec![[Vec3::ZERO; 3]; total * triangles.keys];
+        corners
+            .par_chunks_mut(triangles.keys)
+            .zip(order.par_iter())
+            .for_each(|(slot, &i)| slot.copy_from_slice(triangles.corners(i as usize)));
+        let refs = gather(&order, &triangles.refs);
+        let masks = triangles.masks.as_ref().map(|m| gather(&order, m));
         let random_access = options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS).then(|| {
             let mut slots = vec![0u32; total];
             for (slot, &i) in order.iter().enumerate() {
@@ -235,6 +241,14 @@ impl TriangleBvh {
         let index = first.checked_add(prim_id.checked_sub(offset)?)?;
         (index < end).then(|| self.corners[access.slots[index as usize] as usize * self.motion.keys as usize])
     }
+}
+
+/// `items` in the order of `order` (indices into them), gathered by rayon's threads into a vector of exactly their
+/// number (an accel's arrays count as allocated: [`Footprint::Allocated`]).
+fn gather<T: Copy + Send + Sync>(order: &[u32], items: &[T]) -> Vec<T> {
+    let mut gathered = Vec::with_capacity(order.len());
+    order.par_iter().map(|&i| items[i as usize]).collect_into_vec(&mut gathered);
+    gathered
 }
 
 /// The box around a run of triangles' corners.
