@@ -7,11 +7,12 @@
 //! distance leaves the interval as it was) and the same relative widening by [`SLACK`], which a ray that starts at or
 //! after its origin (`tmin ≥ 0`) takes in its reciprocals once a walk instead of at every node ([`SlabRay`]). Both
 //! tests are conservative, so which lanes a ray enters may differ from the binary walk's in the last bits of a
-//! distance, never in a hit. Children are visited nearest first for closest-hit queries (which prune
-//! by their nearest hit) and in lane order for the others (which must see every hit, or stop at any); which
-//! triangles a ray can hit, and so every query's answer but which hit an `any` query stops at, does not depend on the
-//! order.
+//! distance, never in a hit. For closest-hit queries (which prune by their nearest hit) the nearest child is visited
+//! first, the second nearest next and the others after them in lane order; for the others (which must see every hit,
+//! or stop at any) all in lane order. Which triangles a ray can hit, and so every query's answer but which hit an `any` query or a ray that stops at
+//! its first hit stops at, does not depend on the order.
 
+use std::hint::select_unpredictable;
 use std::ops::Range;
 
 use glam::{Vec3, Vec3A};
@@ -581,8 +582,10 @@ pub(super) fn pop(stack: &[StackEntry], len: &mut usize, tmax: f32) -> Option<(u
 }
 
 /// Pushes the entered lanes of `owner` but one on the stack and returns that one's index and count, the lane visited
-/// next: `by_distance`, the nearest (the others pushed farthest first); otherwise the first in lane order (the others
-/// pushed so that the next lane is on top), which costs no sort.
+/// next: `by_distance`, the nearest ([`nearest_lane`]), with the second nearest waiting on top of the others;
+/// otherwise the first in lane order. The others wait in lane order (pushed so that the lowest is on top): for a
+/// closest-hit walk the two nearest lanes first are most of what an order by distance saves, and finding them takes no
+/// branch, where a sort of all took as much time as it saved (BENCHMARKS.md, "The two nearest lanes without a sort").
 ///
 /// # Safety
 /// `stack` must have room for `WIDTH − 1` entries from `*len` on.
@@ -596,55 +599,59 @@ unsafe fn visit_order(
     by_distance: bool,
 ) -> Option<(u32, u32)> {
     let index_and_count = |lane: u32| (owner.index[lane as usize], owner.count[lane as usize]);
-    let mut push = |lane: u32, near: f32| {
-        let (index, count) = index_and_count(lane);
-        // SAFETY: at most `WIDTH − 1` entries are pushed a call, and there is room for them (the contract).
-        unsafe { *stack.get_unchecked_mut(*len) = StackEntry { index, count, near } };
-        *len += 1;
-    };
     let first = entered.trailing_zeros();
     let rest = entered & entered.wrapping_sub(1);
     if entered == 0 {
-        None
-    } else if rest == 0 {
-        Some(index_and_count(first))
-    } else if !by_distance {
-        let mut rest = rest;
-        while rest != 0 {
-            let lane = 31 - rest.leading_zeros();
-            rest &= !(1 << lane);
-            push(lane, near[lane as usize]);
-        }
-        Some(index_and_count(first))
-    } else if rest & rest.wrapping_sub(1) == 0 {
-        // Two lanes: the farther waits (the first in lane order when they are equally far, as the sort below does).
-        let second = rest.trailing_zeros();
-        let (d0, d1) = (near[first as usize], near[second as usize]);
-        let (nearer, farther) = if d1 < d0 { (second, first) } else { (first, second) };
-        push(farther, near[farther as usize]);
-        Some(index_and_count(nearer))
-    } else {
-        let mut order = [(0f32, 0u32); WIDTH];
-        let mut count = 0;
-        let mut bits = entered;
-        while bits != 0 {
-            let lane = bits.trailing_zeros();
-            bits &= bits - 1;
-            // Insertion by distance, nearest first.
-            let d = near[lane as usize];
-            let mut at = count;
-            while at > 0 && order[at - 1].0 > d {
-                order[at] = order[at - 1];
-                at -= 1;
-            }
-            order[at] = (d, lane);
-            count += 1;
-        }
-        for &(d, lane) in order[1..count].iter().rev() {
-            push(lane, d);
-        }
-        Some(index_and_count(order[0].1))
+        return None;
     }
+    // `next` is visited next; `then` (a single lane or none) waits on top of the others, which wait in lane order.
+    let (next, then) = if !by_distance || rest == 0 {
+        (first, 0)
+    } else if rest & rest.wrapping_sub(1) == 0 {
+        // Two lanes: the nearer, the first when they are equally near (as `nearest_lane` chooses).
+        let second = rest.trailing_zeros();
+        (if near[second as usize] < near[first as usize] { second } else { first }, 0)
+    } else {
+        let next = nearest_lane(entered, near);
+        (next, 1 << nearest_lane(entered & !(1 << next), near))
+    };
+    let mut push = |lane: u32| {
+        let (index, count) = index_and_count(lane);
+        // SAFETY: at most `WIDTH − 1` entries are pushed a call, and there is room for them (the contract).
+        unsafe { *stack.get_unchecked_mut(*len) = StackEntry { index, count, near: near[lane as usize] } };
+        *len += 1;
+    };
+    let mut waiting = entered & !(1 << next) & !then;
+    while waiting != 0 {
+        let lane = 31 - waiting.leading_zeros();
+        waiting &= !(1 << lane);
+        push(lane);
+    }
+    if then != 0 {
+        push(then.trailing_zeros());
+    }
+    Some(index_and_count(next))
+}
+
+/// The nearest of the `entered` lanes (at least one) by their distances `near`, the lowest of equally near ones, found
+/// without a branch: a tournament of neighbouring pairs, round after round, in which the higher lane wins only when it
+/// is nearer. Lanes not entered play at +∞, nearer than no entered lane (an entered lane's distance is below its far
+/// one, finite for a finite box); should one win all the same, the first entered lane is taken.
+#[inline(always)]
+fn nearest_lane(entered: u32, near: &[f32; WIDTH]) -> u32 {
+    let mut round: [(u32, f32); WIDTH] =
+        std::array::from_fn(|lane| (lane as u32, if entered >> lane & 1 != 0 { near[lane] } else { f32::INFINITY }));
+    let mut players = WIDTH;
+    while players > 1 {
+        players /= 2;
+        for pair in 0..players {
+            let ((low, low_near), (high, high_near)) = (round[2 * pair], round[2 * pair + 1]);
+            let take = high_near < low_near;
+            round[pair] = (select_unpredictable(take, high, low), select_unpredictable(take, high_near, low_near));
+        }
+    }
+    let winner = round[0].0;
+    select_unpredictable(entered >> winner & 1 != 0, winner, entered.trailing_zeros())
 }
 
 #[cfg(test)]
@@ -850,5 +857,48 @@ mod tests {
         assert_eq!(wide.ids.iter().map(|id| id.prim_id).collect::<Vec<_>>(), [0, 1, 2, 0, 3, 4]);
         assert!((3..WIDTH).all(|l| root.lo[1][l] == f32::INFINITY && root.hi[1][l] == f32::NEG_INFINITY));
         assert_eq!(wide.root, (Vec3A::ZERO, Vec3A::splat(9.0)));
+    }
+
+    /// The order `visit_order` gives entered lanes, written plainly: the lane visited next, then the others as they
+    /// will pop. By distance: the nearest, the second nearest, the rest in lane order (equally near ones by lane);
+    /// otherwise all in lane order.
+    fn expected_order(entered: u32, near: &[f32; WIDTH], by_distance: bool) -> Vec<u32> {
+        let mut lanes: Vec<u32> = (0..WIDTH as u32).filter(|lane| entered >> lane & 1 != 0).collect();
+        if by_distance {
+            for place in 0..lanes.len().min(2) {
+                let nearest =
+                    (place..lanes.len()).min_by(|&a, &b| near[lanes[a] as usize].total_cmp(&near[lanes[b] as usize]));
+                let lane = lanes.remove(nearest.expect("a lane is left"));
+                lanes.insert(place, lane);
+            }
+        }
+        lanes
+    }
+
+    proptest! {
+        #[test]
+        fn entered_lanes_are_visited_the_two_nearest_first_then_in_lane_order(
+            entered in 1u32..1 << WIDTH,
+            // Few distinct distances, so that ties are common.
+            near in proptest::array::uniform8(prop_oneof![(0u8..4).prop_map(f32::from), -1e30f32..1e30]),
+            by_distance: bool,
+        ) {
+            let mut node = WideNode::EMPTY;
+            node.index = std::array::from_fn(|lane| 100 + lane as u32);
+            node.count = std::array::from_fn(|lane| lane as u32);
+            let mut stack = [StackEntry::default(); WIDTH];
+            let mut len = 0;
+            // SAFETY: the stack has room for `WIDTH` entries.
+            let next = unsafe { visit_order(&node, entered, &near, &mut stack, &mut len, by_distance) };
+            let (index, count) = next.expect("a lane was entered");
+            prop_assert_eq!(index, 100 + count);
+            let mut order = vec![count];
+            for entry in stack[..len].iter().rev() {
+                prop_assert_eq!(entry.index, 100 + entry.count);
+                prop_assert_eq!(entry.near.to_bits(), near[entry.count as usize].to_bits());
+                order.push(entry.count);
+            }
+            prop_assert_eq!(order, expected_order(entered, &near, by_distance));
+        }
     }
 }
