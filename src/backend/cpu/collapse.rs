@@ -125,8 +125,9 @@ impl<'a> Plan<'a> {
 
     /// Fills `lanes` with the lanes of inner node `n`'s wide node as the plan lays them out. They are opened in the
     /// order a greedy collapse would open them, the largest in surface area first, each opened node's place taken by
-    /// the last lane and its children appended: the lane order an any-hit walk follows, which the greedy collapse
-    /// made good for occlusion (a large leaf near the root, such as a floor, keeps an early lane).
+    /// the last lane and its children appended: the lane order the GPU's any-hit walk follows, which the greedy
+    /// collapse made good for occlusion (a large leaf near the root, such as a floor, keeps an early lane). The CPU's
+    /// wide nodes rank their lanes again, by their chance of stopping a ray for its cost ([`super::occlusion`]).
     fn open(&self, n: usize, lanes: &mut Vec<usize>) {
         // Each lane with the lanes it may take.
         let mut budgets: Vec<(usize, usize)> = self.split(n, self.width).to_vec();

@@ -1,8 +1,9 @@
 //! The CPU backend: BVHs built by `obvhs` ([`bvh`]) over triangles ([`triangles`]) or placed instances
 //! ([`instances`]), traced by [`traverse`] over rayon chunks. A static geometry accel is also collapsed to 8-wide
-//! nodes ([`wide`], from [`collapse`]) with its corners in blocks of four ([`blocks`]): one ray walks them with AVX2
-//! box tests; coherent rays walk them together as packets of 8 (AVX2) or 16 (AVX-512) (`packet`, its registers in
-//! `ray_lanes`, the triangle filter both share in `filter`). Answers are the same whichever way a ray is traced.
+//! nodes ([`wide`], from [`collapse`], lanes ranked by `occlusion`) with its corners in blocks of four ([`blocks`]): one
+//! ray walks them with AVX2 box tests; coherent rays walk them together as packets of 8 (AVX2) or 16 (AVX-512)
+//! (`packet`, its registers in `ray_lanes`, the triangle filter both share in `filter`). Answers are the same whichever
+//! way a ray is traced.
 
 mod blocks;
 pub(crate) mod bvh;
@@ -11,6 +12,7 @@ pub(crate) mod collapse;
 mod filter;
 mod instances;
 pub mod large_pages;
+mod occlusion;
 #[cfg(target_arch = "x86_64")]
 mod packet;
 mod persist;

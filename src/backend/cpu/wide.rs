@@ -9,8 +9,9 @@
 //! tests are conservative, so which lanes a ray enters may differ from the binary walk's in the last bits of a
 //! distance, never in a hit. For closest-hit queries (which prune by their nearest hit) the nearest child is visited
 //! first, the second nearest next and the others after them in lane order; for the others (which must see every hit,
-//! or stop at any) all in lane order. Which triangles a ray can hit, and so every query's answer but which hit an `any` query or a ray that stops at
-//! its first hit stops at, does not depend on the order.
+//! or stop at any) all in lane order. A node's lanes are ranked by how likely each child is to stop an any-hit ray for
+//! what it costs ([`super::occlusion`]). Which triangles a ray can hit, and so every query's answer but which hit an
+//! `any` query or a ray that stops at its first hit stops at, does not depend on the order.
 
 use std::hint::select_unpredictable;
 use std::ops::Range;
@@ -21,6 +22,7 @@ use super::blocks::{CornerBlocks, Placement};
 use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
 use super::large_pages::LargePageArray;
+use super::occlusion::stop_chance_per_cost;
 use super::traverse::{LeafSlots, StackEntry};
 use super::turns::{exceed_last_level_cache, walks_in_turns};
 #[cfg(target_arch = "x86_64")]
@@ -111,10 +113,16 @@ impl WideBvh {
             binary.iter().filter(|b| b.count > 0).map(|b| b.index as usize..(b.index + b.count) as usize).collect();
         leaves.sort_unstable_by_key(|leaf| leaf.start);
         let placement = Placement::of_leaves(leaves);
+        let rank = stop_chance_per_cost(binary, corners);
         let nodes = LargePageArray::from_fn(collapsed.lanes.len() / WIDTH, |n| {
             let lanes = &collapsed.lanes[n * WIDTH..(n + 1) * WIDTH];
             let mut node = WideNode::EMPTY;
-            for (lane, &Lane { binary: b, child }) in lanes[..occupied(lanes)].iter().enumerate() {
+            let occupied = occupied(lanes);
+            let mut lanes = <[Lane; WIDTH]>::try_from(lanes).expect("a wide node's lanes");
+            let lanes = &mut lanes[..occupied];
+            // Stable: equally ranked lanes keep the collapse's order.
+            lanes.sort_by(|a, b| rank[b.binary as usize].total_cmp(&rank[a.binary as usize]));
+            for (lane, &Lane { binary: b, child }) in lanes.iter().enumerate() {
                 let b = &binary[b as usize];
                 let index = if b.count > 0 { placement.slot_of(b.index as usize) as u32 } else { child };
                 node.set_lane(lane, b, index);
@@ -846,7 +854,7 @@ mod tests {
             node(4.0, 9.0, 3, 2),
         ];
         let refs: Vec<TriangleRef> = (0..5).map(|prim_id| TriangleRef { geom_id: 0, prim_id }).collect();
-        let wide = WideBvh::collapse(&binary, &[], &refs, None);
+        let wide = WideBvh::collapse(&binary, &[[Vec3::ZERO; 3]; 5], &refs, None);
         assert_eq!((wide.nodes.len(), wide.children.as_slice(), wide.depth), (1, &[3u8][..], 1));
         let root = &wide.nodes[0];
         // The leaf first, then the inner node's two children in its place and after; the last leaf starts the second
@@ -857,6 +865,24 @@ mod tests {
         assert_eq!(wide.ids.iter().map(|id| id.prim_id).collect::<Vec<_>>(), [0, 1, 2, 0, 3, 4]);
         assert!((3..WIDTH).all(|l| root.lo[1][l] == f32::INFINITY && root.hi[1][l] == f32::NEG_INFINITY));
         assert_eq!(wide.root, (Vec3A::ZERO, Vec3A::splat(9.0)));
+    }
+
+    #[test]
+    fn lanes_are_ordered_by_their_chance_of_stopping_a_ray_for_its_cost() {
+        // A root over two unit-cube leaves along x: the first holds a sliver, the second a triangle across its box.
+        let node = |min: Vec3, max: Vec3, index: u32, count: u32| Node { min, index, max, count };
+        let binary = [
+            node(Vec3::ZERO, Vec3::new(2.0, 1.0, 1.0), 1, 0),
+            node(Vec3::ZERO, Vec3::ONE, 0, 1),
+            node(Vec3::X, Vec3::new(2.0, 1.0, 1.0), 1, 1),
+        ];
+        let corners = [
+            [Vec3::ZERO, Vec3::new(1e-3, 0.0, 0.0), Vec3::Y],
+            [Vec3::X, Vec3::new(2.0, 0.0, 0.0), Vec3::new(1.0, 1.0, 1.0)],
+        ];
+        let refs: Vec<TriangleRef> = (0..2).map(|prim_id| TriangleRef { geom_id: 0, prim_id }).collect();
+        let root = WideBvh::collapse(&binary, &corners, &refs, None).nodes[0];
+        assert_eq!((root.lo[0][0], root.lo[0][1]), (1.0, 0.0));
     }
 
     /// The order `visit_order` gives entered lanes, written plainly: the lane visited next, then the others as they
