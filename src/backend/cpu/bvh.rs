@@ -25,6 +25,14 @@ pub(crate) struct Node {
     pub count: u32,
 }
 
+impl Node {
+    /// Half the surface area of the node's box.
+    pub fn half_area(&self) -> f32 {
+        let d = self.max - self.min;
+        d.x * d.y + d.y * d.z + d.z * d.x
+    }
+}
+
 /// Bytes an accel needs besides its arrays: its own struct and the context's handle record around it.
 pub(super) const FIXED_BYTES: u64 = 1024;
 

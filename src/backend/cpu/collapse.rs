@@ -154,8 +154,7 @@ impl<'a> Plan<'a> {
 
     /// Node `n`'s surface area (half of it).
     fn area(&self, n: usize) -> f32 {
-        let d = self.binary[n].max - self.binary[n].min;
-        d.x * d.y + d.y * d.z + d.z * d.x
+        self.binary[n].half_area()
     }
 }
 
@@ -249,8 +248,7 @@ mod tests {
 
     /// Half the surface area of binary node `n`'s box.
     fn area(binary: &[Node], n: usize) -> f32 {
-        let d = binary[n].max - binary[n].min;
-        d.x * d.y + d.y * d.z + d.z * d.x
+        binary[n].half_area()
     }
 
     /// The least summed area of wide nodes over every way to collapse `binary` into nodes of `width` lanes, by trying

@@ -24,26 +24,20 @@ pub(super) fn stop_chance_per_cost(binary: &[Node], corners: &[[Vec3; 3]]) -> Ve
     let mut cost = vec![0.0f32; binary.len()];
     for n in (0..binary.len()).rev() {
         let node = &binary[n];
-        let area = half_surface(node).max(f32::MIN_POSITIVE);
+        let area = node.half_area().max(f32::MIN_POSITIVE);
         let slots = node.index as usize..(node.index + node.count) as usize;
         (chance[n], cost[n]) = if node.count > 0 {
             let triangles: f32 = corners[slots].iter().map(|[a, b, c]| 0.5 * (*b - *a).cross(*c - *a).length()).sum();
             ((triangles / area).min(1.0), 1.0 + node.count as f32)
         } else {
             let children = [slots.start, slots.start + 1];
-            let entered = children.map(|child| half_surface(&binary[child]) / area);
+            let entered = children.map(|child| binary[child].half_area() / area);
             let [left, right] = [0, 1].map(|i| (entered[i] * chance[children[i]]).min(1.0));
             let expected_cost = 1.0 + entered[0] * cost[children[0]] + entered[1] * cost[children[1]];
             (1.0 - (1.0 - left) * (1.0 - right), expected_cost)
         };
     }
     chance.iter().zip(&cost).map(|(chance, cost)| chance / cost).collect()
-}
-
-/// Half the surface area of a node's box.
-fn half_surface(node: &Node) -> f32 {
-    let extent = (node.max - node.min).max(Vec3::ZERO);
-    extent.x * extent.y + extent.y * extent.z + extent.z * extent.x
 }
 
 #[cfg(test)]

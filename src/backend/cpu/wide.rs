@@ -107,22 +107,22 @@ impl WideBvh {
     /// `masks` (where the accel has masks); the leaves' triangles are copied into blocks ([`Placement`]).
     pub fn collapse(binary: &[Node], corners: &[[Vec3; 3]], refs: &[TriangleRef], masks: Option<&[u32]>) -> WideBvh {
         let Some(root) = binary.first() else { return WideBvh::default() };
-        let collapsed = collapse(binary, WIDTH);
+        let mut collapsed = collapse(binary, WIDTH);
         let occupied = |lanes: &[Lane]| lanes.iter().take_while(|l| l.binary != EMPTY_LANE).count();
+        let rank = stop_chance_per_cost(binary, corners);
+        for lanes in collapsed.lanes.chunks_mut(WIDTH) {
+            let occupied = occupied(lanes);
+            // Stable: equally ranked lanes keep the collapse's order.
+            lanes[..occupied].sort_by(|a, b| rank[b.binary as usize].total_cmp(&rank[a.binary as usize]));
+        }
         let mut leaves: Vec<Range<usize>> =
             binary.iter().filter(|b| b.count > 0).map(|b| b.index as usize..(b.index + b.count) as usize).collect();
         leaves.sort_unstable_by_key(|leaf| leaf.start);
         let placement = Placement::of_leaves(leaves);
-        let rank = stop_chance_per_cost(binary, corners);
         let nodes = LargePageArray::from_fn(collapsed.lanes.len() / WIDTH, |n| {
             let lanes = &collapsed.lanes[n * WIDTH..(n + 1) * WIDTH];
             let mut node = WideNode::EMPTY;
-            let occupied = occupied(lanes);
-            let mut lanes = <[Lane; WIDTH]>::try_from(lanes).expect("a wide node's lanes");
-            let lanes = &mut lanes[..occupied];
-            // Stable: equally ranked lanes keep the collapse's order.
-            lanes.sort_by(|a, b| rank[b.binary as usize].total_cmp(&rank[a.binary as usize]));
-            for (lane, &Lane { binary: b, child }) in lanes.iter().enumerate() {
+            for (lane, &Lane { binary: b, child }) in lanes[..occupied(lanes)].iter().enumerate() {
                 let b = &binary[b as usize];
                 let index = if b.count > 0 { placement.slot_of(b.index as usize) as u32 } else { child };
                 node.set_lane(lane, b, index);
