@@ -259,6 +259,10 @@ impl WideBvh {
     /// cache whenever the node had left it). The collector's cull distance changes only at leaves, so it is read again
     /// only after one.
     ///
+    /// The walk is one loop over the lane at hand, its index and count, so that the compiler keeps them in registers:
+    /// with the leaves handled in an inner loop of their own, the next node's index went through the stack, a store
+    /// and a load on the path of every node visit (BENCHMARKS.md, "The node at hand kept in registers").
+    ///
     /// Nodes and stack entries are read without bounds checks: the stack's depth is checked once here, and every
     /// node index the walk follows is the root's or an inner lane's, below `nodes.len()` by construction
     /// ([`WideBvh::collapse`] builds the nodes from a binary BVH whose children come after their parents).
@@ -282,26 +286,29 @@ impl WideBvh {
         let mut boxes = 0u64;
         let nearest_first = collector.wants_nearest_first();
         let mut len = 0usize;
-        let mut node = 0usize;
-        'walk: loop {
-            // SAFETY: `node` is the root or an inner lane's index; a walk leaves at most `WIDTH − 1` lanes waiting a
-            // level: `stack_size` entries, checked above.
-            let mut next = unsafe {
-                self.visit_node(node, tmax, &enter, stack, &mut len, nearest_first, &prefetch_leaf, &mut boxes)
-            };
-            // Leaves are handled as they come; the first inner lane reached is visited next.
-            loop {
-                let Some((index, count)) = next.take().or_else(|| pop(stack, &mut len, tmax)) else { break 'walk };
-                let (index, count) = (index as usize, count as usize);
-                if count == 0 {
-                    node = index;
-                    break;
+        // The lane at hand: an inner node's (`count` 0) or a leaf's; the root first.
+        let (mut index, mut count) = (0u32, 0u32);
+        loop {
+            if count == 0 {
+                let node = index as usize;
+                // SAFETY: `node` is the root or an inner lane's index; a walk leaves at most `WIDTH − 1` lanes waiting
+                // a level: `stack_size` entries, checked above.
+                let next = unsafe {
+                    self.visit_node(node, tmax, &enter, stack, &mut len, nearest_first, &prefetch_leaf, &mut boxes)
+                };
+                if let Some(next) = next {
+                    (index, count) = next;
+                    continue;
                 }
-                if leaf(index..index + count, collector, stats) {
-                    break 'walk;
+            } else {
+                let slots = index as usize..index as usize + count as usize;
+                if leaf(slots, collector, stats) {
+                    break;
                 }
                 tmax = collector.cull_tmax();
             }
+            let Some(next) = pop(stack, &mut len, tmax) else { break };
+            (index, count) = next;
         }
         stats.nodes_visited += boxes;
     }
