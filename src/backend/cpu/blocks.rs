@@ -13,7 +13,7 @@ use glam::Vec3;
 use super::bvh::{Footprint, VecLen};
 #[cfg(target_arch = "x86_64")]
 use super::filter;
-use super::large_pages::LargePageArray;
+use super::large_pages::{LargePageArray, LargePages};
 use crate::intersect::PreparedRay;
 use crate::intersect::triangle::TriangleHit;
 
@@ -99,6 +99,11 @@ impl Placement {
         self.slot_of[slot] as usize
     }
 
+    /// The accel's slot the blocks' slot `slot` holds, which must not be one left empty.
+    pub fn held(&self, slot: usize) -> usize {
+        self.held[slot] as usize
+    }
+
     /// The items of the accel's slots (`items`, one a slot) in the blocks' slots, `empty` in those left empty.
     pub fn gather<T: Copy>(&self, items: &[T], empty: T) -> Vec<T> {
         self.held.iter().map(|&slot| items.get(slot as usize).copied().unwrap_or(empty)).collect()
@@ -114,10 +119,16 @@ pub(super) struct CornerBlocks {
 }
 
 impl CornerBlocks {
-    /// The blocks of `corners` (one triangle a slot of the accel) as `placement` places them.
-    pub fn new(corners: &[[Vec3; 3]], placement: &Placement) -> CornerBlocks {
+    /// Blocks for the slots of `placement`.
+    pub fn count(placement: &Placement) -> usize {
+        placement.held.len().div_ceil(BLOCK)
+    }
+
+    /// The blocks of `corners` (one triangle a slot of the accel) as `placement` places them, made in `pages` (which
+    /// must have room for [`CornerBlocks::count`] blocks next).
+    pub fn new(corners: &[[Vec3; 3]], placement: &Placement, pages: &mut LargePages) -> CornerBlocks {
         let held = &placement.held;
-        let blocks = LargePageArray::from_fn(held.len().div_ceil(BLOCK), |b| {
+        let blocks = pages.array_from_fn(Self::count(placement), |b| {
             let mut block = [[f32::NAN; BLOCK]; ROWS];
             for (lane, &slot) in held[b * BLOCK..].iter().take(BLOCK).enumerate() {
                 let Some(triangle) = corners.get(slot as usize) else { continue };
@@ -288,6 +299,7 @@ mod tests {
     use glam::Vec3A;
 
     use super::*;
+    use crate::backend::cpu::large_pages::Room;
     use crate::format::{Ray, RayFlags};
     use crate::intersect::triangle::may_hit;
 
@@ -346,7 +358,9 @@ mod tests {
                 [Vec3::ZERO, p, p + Vec3::new(-0.3, 0.5, 0.2)]
             })
             .collect();
-        let blocks = CornerBlocks::new(&corners, &Placement::of_leaves(std::iter::once(0..corners.len())));
+        let placement = Placement::of_leaves(std::iter::once(0..corners.len()));
+        let mut pages = LargePages::new(Room::default().and::<Block>(CornerBlocks::count(&placement)));
+        let blocks = CornerBlocks::new(&corners, &placement, &mut pages);
         assert!((0..corners.len()).all(|slot| blocks.corners(slot) == corners[slot]), "corners read back");
         let mut ruled_out = 0;
         for direction in [-Vec3A::Z, Vec3A::new(0.3, -0.2, -1.0), Vec3A::new(1.0, 0.1, 0.2), Vec3A::new(0.0, -1.0, 0.0)]

@@ -51,8 +51,8 @@ pub struct CpuBackend;
 /// A CPU accel of any kind.
 #[derive(Debug, Clone)]
 pub enum CpuAccel {
-    /// A geometry accel.
-    Triangles(TriangleBvh),
+    /// A geometry accel (boxed: its arrays' headers make it several times the size of the other kinds).
+    Triangles(Box<TriangleBvh>),
     /// An instance accel.
     Instances(InstanceBvh),
     /// A static transform.
@@ -142,7 +142,7 @@ impl Backend for CpuBackend {
     fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
         options.validate()?;
         let triangles = gather(inputs, options.motion.keys as usize)?;
-        Ok(Box::new(CpuAccel::Triangles(TriangleBvh::build(triangles, options))))
+        Ok(Box::new(CpuAccel::Triangles(Box::new(TriangleBvh::build(triangles, options)))))
     }
 
     fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
@@ -164,7 +164,7 @@ impl Backend for CpuBackend {
         };
         let triangles = gather(inputs, bvh.motion.keys as usize)?;
         let refitted = bvh.refit(&triangles).ok_or_else(instances::not_updatable)?;
-        Ok(Box::new(CpuAccel::Triangles(refitted)))
+        Ok(Box::new(CpuAccel::Triangles(Box::new(refitted))))
     }
 
     fn update_instances(

@@ -902,7 +902,7 @@ pub(super) mod tests {
     /// (returns how many did), or each alone when `width` is 1.
     fn trace(bvh: &TriangleBvh, query: &Query, rays: &[Ray], width: usize) -> (Vec<u8>, Vec<u8>, usize) {
         let rays: Vec<Ray> = rays.iter().map(|ray| traced(ray, query.flags)).collect();
-        let accel = CpuAccel::Triangles(bvh.clone());
+        let accel = CpuAccel::Triangles(Box::new(bvh.clone()));
         let mut stacks = accel.new_stacks();
         let records = query.records_per_ray();
         let mut hits = vec![0u8; query.hit_format.buffer_len(rays.len() * records)];

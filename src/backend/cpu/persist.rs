@@ -146,7 +146,7 @@ impl CpuAccel {
     ) -> Result<CpuAccel> {
         let mut reader = Reader::new(payload);
         let accel = match shape.kind {
-            AccelKind::Triangles => CpuAccel::Triangles(TriangleBvh::decode(&mut reader, shape, options)?),
+            AccelKind::Triangles => CpuAccel::Triangles(Box::new(TriangleBvh::decode(&mut reader, shape, options)?)),
             AccelKind::Instances => CpuAccel::Instances(InstanceBvh::decode(&mut reader, shape, options, children)?),
             kind => return Err(invalid(format!("a {kind:?} accel has no CPU payload"))),
         };

@@ -638,7 +638,7 @@ pub(super) mod tests {
     ) -> (Vec<u8>, Vec<u8>, TraceStats) {
         let mut bvh = bvh.clone();
         bvh.wide.in_turns = matches!(walk, Walk::InTurns | Walk::Avx2 { in_turns: true });
-        let accel = CpuAccel::Triangles(bvh);
+        let accel = CpuAccel::Triangles(Box::new(bvh));
         let mut stacks = accel.new_stacks();
         let records = query.records_per_ray();
         let mut hits = vec![0u8; query.hit_format.buffer_len(rays.len() * records)];

@@ -203,7 +203,9 @@ impl TriangleBvh {
             }
         }
         next.refit_nodes();
-        next.collapse_wide();
+        if next.node_keys.is_none() {
+            next.wide = self.wide.refit(&next.nodes, &next.corners, next.masks.as_deref());
+        }
         next.bounds = corner_bounds(&next.corners);
         Some(next)
     }

@@ -18,16 +18,18 @@ use std::ops::Range;
 
 use glam::{Vec3, Vec3A};
 
-use super::blocks::{CornerBlocks, Placement};
+use super::blocks::{Block, CornerBlocks, Placement};
 use super::bvh::{Footprint, Node, VecLen};
 use super::collapse::{EMPTY_LANE, Lane, collapse};
-use super::large_pages::LargePageArray;
+use super::large_pages::{LargePageArray, LargePages, Room};
 use super::occlusion::stop_chance_per_cost;
 use super::traverse::{LeafSlots, StackEntry};
+use super::triangles::corner_bounds;
 use super::turns::{exceed_last_level_cache, walks_in_turns};
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::has_avx2;
 use crate::geometry::TriangleRef;
+use crate::geometry::motion::{Bounds, EMPTY, union};
 use crate::intersect::PreparedRay;
 use crate::intersect::aabb::SLACK;
 use crate::query::{Collector, TraceStats};
@@ -64,12 +66,23 @@ impl WideNode {
 
     /// Puts binary node `node` in lane `lane`, pointing at `index`.
     fn set_lane(&mut self, lane: usize, node: &Node, index: u32) {
-        for axis in 0..3 {
-            self.lo[axis][lane] = node.min[axis];
-            self.hi[axis][lane] = node.max[axis];
-        }
+        self.set_box(lane, node.min, node.max);
         self.index[lane] = index;
         self.count[lane] = node.count;
+    }
+
+    /// Makes `min .. max` the box of lane `lane`.
+    fn set_box(&mut self, lane: usize, min: Vec3, max: Vec3) {
+        for axis in 0..3 {
+            self.lo[axis][lane] = min[axis];
+            self.hi[axis][lane] = max[axis];
+        }
+    }
+
+    /// The box of lane `lane`.
+    fn lane_box(&self, lane: usize) -> Bounds {
+        let (lo, hi) = (self.lo.map(|row| row[lane]), self.hi.map(|row| row[lane]));
+        (Vec3::from_array(lo), Vec3::from_array(hi))
     }
 }
 
@@ -91,7 +104,7 @@ pub(super) struct WideBvh {
     /// The leaves' triangles' corners in blocks, each leaf in as few blocks as it fits ([`Placement`]).
     pub(super) blocks: CornerBlocks,
     /// The ids of the triangles in the blocks' slots (a slot left empty before a leaf holds a stand-in).
-    pub(super) ids: Vec<TriangleRef>,
+    pub(super) ids: LargePageArray<TriangleRef>,
     /// Their Prime masks, where the accel has masks.
     pub(super) masks: Option<Vec<u32>>,
     /// Whether the nodes and blocks fit the CPU's last-level cache, where a node visited in vain costs little:
@@ -115,11 +128,8 @@ impl WideBvh {
             // Stable: equally ranked lanes keep the collapse's order.
             lanes[..occupied].sort_by(|a, b| rank[b.binary as usize].total_cmp(&rank[a.binary as usize]));
         }
-        let mut leaves: Vec<Range<usize>> =
-            binary.iter().filter(|b| b.count > 0).map(|b| b.index as usize..(b.index + b.count) as usize).collect();
-        leaves.sort_unstable_by_key(|leaf| leaf.start);
-        let placement = Placement::of_leaves(leaves);
-        let nodes = LargePageArray::from_fn(collapsed.lanes.len() / WIDTH, |n| {
+        let placement = placement_of_leaves(binary);
+        let node = |n: usize| {
             let lanes = &collapsed.lanes[n * WIDTH..(n + 1) * WIDTH];
             let mut node = WideNode::EMPTY;
             for (lane, &Lane { binary: b, child }) in lanes[..occupied(lanes)].iter().enumerate() {
@@ -128,24 +138,78 @@ impl WideBvh {
                 node.set_lane(lane, b, index);
             }
             node
-        });
-        let children = collapsed.lanes.chunks(WIDTH).map(|lanes| occupied(lanes) as u8).collect();
-        let mut wide = WideBvh {
-            nodes,
-            children,
+        };
+        let shape = Shape {
+            children: collapsed.lanes.chunks(WIDTH).map(|lanes| occupied(lanes) as u8).collect(),
             root: (root.min.into(), root.max.into()),
             depth: collapsed.depth,
-            blocks: CornerBlocks::new(corners, &placement),
-            ids: placement.gather(refs, TriangleRef { geom_id: 0, prim_id: 0 }),
+        };
+        let ids = placement.gather(refs, TriangleRef { geom_id: 0, prim_id: 0 });
+        WideBvh::lay_out(shape, node, corners, &placement, &ids, masks)
+    }
+
+    /// This wide BVH refitted to the triangles' new `corners` (and `masks`), `binary` being its binary BVH refitted
+    /// to them: the same nodes, lanes, leaves and slots, each lane's box made again bottom-up — a leaf's the bounds of
+    /// its triangles' corners, an inner lane's the union of its node's lanes' — and the blocks made again. Minima and
+    /// maxima are exact, so every box is the one the refitted binary node in its lane has, which a collapse of
+    /// `binary` would have put there; the collapse's choice of lanes and their ranking are kept instead of made again
+    /// (what a refit is for: BENCHMARKS.md, "Refit against rebuild").
+    pub fn refit(&self, binary: &[Node], corners: &[[Vec3; 3]], masks: Option<&[u32]>) -> WideBvh {
+        let Some(root) = binary.first() else { return WideBvh::default() };
+        let placement = placement_of_leaves(binary);
+        let mut nodes = self.nodes.to_vec();
+        // Inner lanes point to later nodes (checked by `lay_out`), so a node's children are refitted before it.
+        for n in (0..nodes.len()).rev() {
+            for lane in 0..usize::from(self.children[n]) {
+                let (index, count) = (nodes[n].index[lane] as usize, nodes[n].count[lane] as usize);
+                let (min, max) = match count {
+                    0 => (0..usize::from(self.children[index])).map(|l| nodes[index].lane_box(l)).fold(EMPTY, union),
+                    _ => {
+                        let first = placement.held(index);
+                        corner_bounds(&corners[first..first + count])
+                    }
+                };
+                nodes[n].set_box(lane, min, max);
+            }
+        }
+        let shape =
+            Shape { children: self.children.clone(), root: (root.min.into(), root.max.into()), depth: self.depth };
+        WideBvh::lay_out(shape, |n| nodes[n], corners, &placement, &self.ids, masks)
+    }
+
+    /// A wide BVH of `shape` whose node `n` is `node(n)`, its leaves' triangles (`corners`, `ids` of the blocks' slots,
+    /// the accel slots' `masks`) placed in blocks by `placement`: nodes, blocks and ids in one allocation, in that
+    /// order, so that the ids, read least, take the ordinary pages at its end ([`super::large_pages`]). Checks what
+    /// the walks and [`WideBvh::refit`] rely on.
+    fn lay_out(
+        shape: Shape,
+        node: impl Fn(usize) -> WideNode + Sync,
+        corners: &[[Vec3; 3]],
+        placement: &Placement,
+        ids: &[TriangleRef],
+        masks: Option<&[u32]>,
+    ) -> WideBvh {
+        let node_count = shape.children.len();
+        let room = Room::default().and::<WideNode>(node_count);
+        let mut pages =
+            LargePages::new(room.and::<Block>(CornerBlocks::count(placement)).and::<TriangleRef>(ids.len()));
+        let mut wide = WideBvh {
+            nodes: pages.array_from_fn(node_count, node),
+            children: shape.children,
+            root: shape.root,
+            depth: shape.depth,
+            blocks: CornerBlocks::new(corners, placement, &mut pages),
+            ids: pages.array_from_fn(ids.len(), |i| ids[i]),
             masks: masks.map(|masks| placement.gather(masks, 0)),
             in_cache: true,
             in_turns: false,
         };
         let exceeding_cache = exceed_last_level_cache(wide.size_bytes(Footprint::Exact));
         (wide.in_cache, wide.in_turns) = (!exceeding_cache, walks_in_turns(exceeding_cache));
-        // What the walks rely on (see the type's documentation); a failure here is a bug of `collapse`.
-        let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).all(|(node, &children)| {
-            (0..usize::from(children)).all(|l| node.count[l] > 0 || (node.index[l] as usize) < wide.nodes.len())
+        // What the walks and refits rely on (see the type's documentation); a failure here is a bug of `collapse`.
+        let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).enumerate().all(|(n, (node, &children))| {
+            (0..usize::from(children))
+                .all(|l| node.count[l] > 0 || (n + 1..wide.nodes.len()).contains(&(node.index[l] as usize)))
         });
         assert!(inner_lanes_in_range && wide.nodes.len() <= u32::MAX as usize, "a malformed wide BVH");
         wide
@@ -360,6 +424,24 @@ impl WideBvh {
             }
         }
     }
+}
+
+/// What a wide BVH is besides its nodes' boxes and its leaves' triangles.
+struct Shape {
+    /// Children of each node ([`WideBvh::children`]).
+    children: Vec<u8>,
+    /// The root's box.
+    root: (Vec3A, Vec3A),
+    /// Longest root-to-leaf path, in wide nodes.
+    depth: usize,
+}
+
+/// Where the triangles of the leaves of `binary` go in the blocks ([`Placement`]).
+fn placement_of_leaves(binary: &[Node]) -> Placement {
+    let mut leaves: Vec<Range<usize>> =
+        binary.iter().filter(|b| b.count > 0).map(|b| b.index as usize..(b.index + b.count) as usize).collect();
+    leaves.sort_unstable_by_key(|leaf| leaf.start);
+    Placement::of_leaves(leaves)
 }
 
 /// Bytes of a cache line on x86-64 CPUs.
@@ -872,6 +954,55 @@ mod tests {
         assert_eq!(wide.ids.iter().map(|id| id.prim_id).collect::<Vec<_>>(), [0, 1, 2, 0, 3, 4]);
         assert!((3..WIDTH).all(|l| root.lo[1][l] == f32::INFINITY && root.hi[1][l] == f32::NEG_INFINITY));
         assert_eq!(wide.root, (Vec3A::ZERO, Vec3A::splat(9.0)));
+    }
+
+    #[test]
+    fn a_refit_keeps_the_lanes_and_gives_each_the_bounds_of_its_new_corners() {
+        let (bvh, _) = crate::backend::cpu::packet::tests::lattice(true);
+        let old = &bvh.wide;
+        // Twisted about z and lifted by x: every box moves; the masks change too.
+        let corners: Vec<[Vec3; 3]> = bvh
+            .corners
+            .iter()
+            .map(|c| c.map(|p| Vec3::new(p.x - 0.4 * p.y, p.y + 0.3 * p.x, p.z + 0.5 * p.x * p.x)))
+            .collect();
+        let masks: Vec<u32> = bvh.masks.as_ref().expect("a masked lattice").iter().map(|m| m ^ 1).collect();
+        let mut binary = bvh.nodes.clone();
+        super::super::bvh::refit(&mut binary, None, |slots, _| corner_bounds(&corners[slots]));
+        let wide = old.refit(&binary, &corners, Some(&masks));
+
+        assert_eq!((wide.children.as_slice(), wide.depth), (old.children.as_slice(), old.depth));
+        assert_eq!(&wide.ids[..], &old.ids[..]);
+        assert_eq!(wide.root, (binary[0].min.into(), binary[0].max.into()));
+        let slot_of: std::collections::HashMap<TriangleRef, usize> =
+            bvh.refs.iter().enumerate().map(|(slot, &id)| (id, slot)).collect();
+        // Each lane's box is the bounds of the new corners of the triangles under it, found by walking down to them.
+        fn under(wide: &WideBvh, node: usize, lane: usize, slots: &mut Vec<usize>) {
+            let (index, count) = (wide.nodes[node].index[lane] as usize, wide.nodes[node].count[lane] as usize);
+            match count {
+                0 => (0..usize::from(wide.children[index])).for_each(|l| under(wide, index, l, slots)),
+                _ => slots.extend(index..index + count),
+            }
+        }
+        let (mut lanes, mut moved) = (0, 0);
+        for (n, (node, old_node)) in wide.nodes.iter().zip(old.nodes.iter()).enumerate() {
+            assert_eq!((node.index, node.count), (old_node.index, old_node.count), "node {n}");
+            for lane in 0..usize::from(wide.children[n]) {
+                let mut slots = Vec::new();
+                under(&wide, n, lane, &mut slots);
+                let accel_slots: Vec<usize> = slots.iter().map(|&s| slot_of[&wide.ids[s]]).collect();
+                let triangles: Vec<[Vec3; 3]> = accel_slots.iter().map(|&slot| corners[slot]).collect();
+                assert_eq!(node.lane_box(lane), corner_bounds(&triangles), "node {n} lane {lane}");
+                moved += usize::from(node.lane_box(lane) != old_node.lane_box(lane));
+                for (&s, &slot) in slots.iter().zip(&accel_slots) {
+                    assert_eq!(wide.blocks.corners(s), corners[slot], "block slot {s}");
+                    assert_eq!(wide.masks.as_ref().unwrap()[s], masks[slot], "block slot {s}");
+                }
+                lanes += 1;
+            }
+        }
+        assert!(lanes > 2 * wide.nodes.len(), "{lanes} lanes in {} nodes", wide.nodes.len());
+        assert!(moved * 10 > lanes * 9, "{moved} of {lanes} lanes moved");
     }
 
     #[test]
