@@ -4,15 +4,16 @@
 //! node and block reads also wait for a page-table walk (BENCHMARKS.md, "A random ray against Embree's, visit by
 //! visit; and the traversal's arrays on large pages").
 //!
-//! The arrays of one accel lie one after another in one allocation ([`LargePages`]), so that only the last of them
-//! ends on ordinary pages: a bunny-sized accel's 0.85 MB of nodes, which alone would not fill a large page, share one
-//! with its blocks (BENCHMARKS.md, "One allocation for an accel's traversal arrays"). An allocation of at least
-//! [`LARGE_PAGE`] bytes starts on a 2 MiB boundary and its whole 2 MiB stretches are marked `MADV_HUGEPAGE` before
-//! anything is written to them, so that their first touch maps large pages wherever the kernel's transparent huge
-//! pages are `always` or `madvise` (the common default) and memory allows; the rest of it (less than 2 MiB) and
-//! smaller allocations use ordinary pages, so no memory is spent beyond what the arrays hold. Where the kernel offers
-//! no large pages (another OS, `never`, fragmented memory) the same arrays work with small ones. [`set_enabled`] turns
-//! the advice off for allocations made afterwards.
+//! The arrays of one accel lie one after another in one allocation (`LargePages`), so that only the last of them ends
+//! on ordinary pages: a bunny-sized accel's 0.85 MB of nodes, which alone would not fill a large page, share one with
+//! its blocks; and copies of the arrays share the allocation, which makes the copy a refit starts from free
+//! (BENCHMARKS.md, "2026-11-29: refits had slowed below the goal…"). An allocation of at least [`LARGE_PAGE`] bytes
+//! starts on a 2 MiB boundary and its whole 2 MiB stretches are marked `MADV_HUGEPAGE` before anything is written to
+//! them, so that their first touch maps large pages wherever the kernel's transparent huge pages are `always` or
+//! `madvise` (the common default) and memory allows; the rest of it (less than 2 MiB) and smaller allocations use
+//! ordinary pages, so no memory is spent beyond what the arrays hold. Where the kernel offers no large pages (another
+//! OS, `never`, fragmented memory) the same arrays work with small ones. [`set_enabled`] turns the advice off for
+//! allocations made afterwards.
 
 use std::alloc::{Layout, alloc, dealloc, handle_alloc_error};
 use std::fmt;
