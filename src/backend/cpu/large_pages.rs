@@ -156,7 +156,8 @@ impl LargePages {
     }
 }
 
-/// A fixed-length array of `T` in a [`LargePages`] allocation, alone or with others; otherwise a boxed slice. A copy shares the elements (they are never written again).
+/// A fixed-length array of `T` in a [`LargePages`] allocation, alone or with others; otherwise a boxed slice. A copy
+/// shares the elements (they are never written again).
 pub(super) struct LargePageArray<T: Copy> {
     /// The first element; dangling when the array is empty.
     start: NonNull<T>,

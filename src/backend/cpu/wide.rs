@@ -139,13 +139,13 @@ impl WideBvh {
             }
             node
         };
-        let shape = Shape {
+        let skeleton = Skeleton {
             children: collapsed.lanes.chunks(WIDTH).map(|lanes| occupied(lanes) as u8).collect(),
             root: (root.min.into(), root.max.into()),
             depth: collapsed.depth,
         };
         let ids = placement.gather(refs, TriangleRef { geom_id: 0, prim_id: 0 });
-        WideBvh::lay_out(shape, node, corners, &placement, &ids, masks)
+        WideBvh::lay_out(skeleton, node, corners, &placement, &ids, masks)
     }
 
     /// This wide BVH refitted to the triangles' new `corners` (and `masks`), `binary` being its binary BVH refitted
@@ -172,32 +172,32 @@ impl WideBvh {
                 nodes[n].set_box(lane, min, max);
             }
         }
-        let shape =
-            Shape { children: self.children.clone(), root: (root.min.into(), root.max.into()), depth: self.depth };
-        WideBvh::lay_out(shape, |n| nodes[n], corners, &placement, &self.ids, masks)
+        let skeleton =
+            Skeleton { children: self.children.clone(), root: (root.min.into(), root.max.into()), depth: self.depth };
+        WideBvh::lay_out(skeleton, |n| nodes[n], corners, &placement, &self.ids, masks)
     }
 
-    /// A wide BVH of `shape` whose node `n` is `node(n)`, its leaves' triangles (`corners`, `ids` of the blocks' slots,
-    /// the accel slots' `masks`) placed in blocks by `placement`: nodes, blocks and ids in one allocation, in that
-    /// order, so that the ids, read least, take the ordinary pages at its end ([`super::large_pages`]). Checks what
-    /// the walks and [`WideBvh::refit`] rely on.
+    /// A wide BVH of `skeleton` whose node `n` is `node(n)`, its leaves' triangles (`corners`, `ids` of the blocks'
+    /// slots, the accel slots' `masks`) placed in blocks by `placement`: nodes, blocks and ids in one allocation, in
+    /// that order, so that the ids, read least, take the ordinary pages at its end ([`super::large_pages`]). Checks
+    /// what the walks and [`WideBvh::refit`] rely on.
     fn lay_out(
-        shape: Shape,
+        skeleton: Skeleton,
         node: impl Fn(usize) -> WideNode + Sync,
         corners: &[[Vec3; 3]],
         placement: &Placement,
         ids: &[TriangleRef],
         masks: Option<&[u32]>,
     ) -> WideBvh {
-        let node_count = shape.children.len();
+        let node_count = skeleton.children.len();
         let room = Room::default().and::<WideNode>(node_count);
         let mut pages =
             LargePages::new(room.and::<Block>(CornerBlocks::count(placement)).and::<TriangleRef>(ids.len()));
         let mut wide = WideBvh {
             nodes: pages.array_from_fn(node_count, node),
-            children: shape.children,
-            root: shape.root,
-            depth: shape.depth,
+            children: skeleton.children,
+            root: skeleton.root,
+            depth: skeleton.depth,
             blocks: CornerBlocks::new(corners, placement, &mut pages),
             ids: pages.array_from_fn(ids.len(), |i| ids[i]),
             masks: masks.map(|masks| placement.gather(masks, 0)),
@@ -427,7 +427,7 @@ impl WideBvh {
 }
 
 /// What a wide BVH is besides its nodes' boxes and its leaves' triangles.
-struct Shape {
+struct Skeleton {
     /// Children of each node ([`WideBvh::children`]).
     children: Vec<u8>,
     /// The root's box.
