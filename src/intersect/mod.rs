@@ -78,7 +78,7 @@ impl PreparedRay {
         let (kx, ky) = if axes[kz] < 0.0 { (y, x) } else { (x, y) };
         // One division of three lanes each (the same quotients as three scalar ones).
         let shear = Vec3A::new(axes[kx], axes[ky], 1.0) / Vec3A::splat(axes[kz]);
-        let inv_direction = Vec3A::select(d.cmpeq(Vec3A::ZERO), Vec3A::INFINITY, Vec3A::ONE / d);
+        let inv_direction = aabb::reciprocals(d);
         PreparedRay {
             origin: ray.origin,
             direction: d,
@@ -93,7 +93,7 @@ impl PreparedRay {
             ky,
             shear,
             inv_direction,
-            negative: [d.x < 0.0, d.y < 0.0, d.z < 0.0],
+            negative: aabb::negative(d),
         }
     }
 
@@ -101,9 +101,24 @@ impl PreparedRay {
     /// carried over unnormalized.
     #[inline]
     pub fn transformed(&self, to: &Affine3A) -> PreparedRay {
+        let (origin, direction) = self.carried(to);
+        self.moved(origin, direction)
+    }
+
+    /// This ray's origin and direction in the space `to` maps into: what [`PreparedRay::transformed`] prepares, before
+    /// it is (to test a box there first: [`aabb::reaches`]).
+    #[inline(always)]
+    pub fn carried(&self, to: &Affine3A) -> (Vec3A, Vec3A) {
+        (to.transform_point3a(self.origin), to.transform_vector3a(self.direction))
+    }
+
+    /// This ray from `origin` along `direction` (as [`PreparedRay::carried`] gives them), with its range, time,
+    /// masks and flags, prepared.
+    #[inline]
+    pub fn moved(&self, origin: Vec3A, direction: Vec3A) -> PreparedRay {
         let ray = Ray {
-            origin: to.transform_point3a(self.origin),
-            direction: to.transform_vector3a(self.direction),
+            origin,
+            direction,
             tmin: self.tmin,
             tmax: self.tmax,
             time: self.time,

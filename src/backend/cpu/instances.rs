@@ -34,6 +34,9 @@ pub struct InstanceBvh {
     pub(crate) motion: MotionOptions,
     /// The instances in leaf order, then those with empty boxes (never traversed).
     pub(crate) instances: Vec<PlacedInstance>,
+    /// The box of each slot's child in its own space over all of time ([`child_boxes`]), which a ray tests before it
+    /// is prepared there: the placed boxes of turned children are loose, and most rays that reach one miss the child.
+    pub(super) child_boxes: Vec<Bounds>,
     /// Stack entries a trace through it needs: its own path and its deepest child's stack.
     pub(super) stack_size: usize,
     /// The box around every placed child at every time.
@@ -81,13 +84,19 @@ pub(super) fn memory_bounds(instances: usize, options: &BuildOptions) -> MemoryU
     let node_keys = if keys > 1 { keys * size_of::<Bounds>() as u64 } else { 0 };
     let nodes = (2 * n).saturating_sub(1) * (size_of::<Node>() as u64 + node_keys);
     let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
-    let output_bytes = FIXED_BYTES + nodes + n * size_of::<PlacedInstance>() as u64 + if updatable { 4 * n } else { 0 };
+    let per_instance = (size_of::<PlacedInstance>() + size_of::<Bounds>()) as u64;
+    let output_bytes = FIXED_BYTES + nodes + n * per_instance + if updatable { 4 * n } else { 0 };
     MemoryUsage {
         output_bytes,
         temp_bytes: BUILD_TEMP_FIXED_BYTES + n * (BUILD_TEMP_BYTES_PER_INSTANCE + keys * size_of::<Bounds>() as u64),
         // An update checks the new instances and writes a refitted copy.
         temp_update_bytes: if updatable { output_bytes + n * size_of::<PlacedInstance>() as u64 } else { 0 },
     }
+}
+
+/// The box of each of `instances`' children in its own space, over all of time.
+pub(super) fn child_boxes(instances: &[PlacedInstance]) -> Vec<Bounds> {
+    instances.iter().map(|instance| instance.child.backend_accel().bounds_during(TimeSpan::ALL)).collect()
 }
 
 /// The box of each instance at each of `motion`'s keys (`keys` a row, in input order): their interpolation holds
@@ -127,11 +136,13 @@ impl InstanceBvh {
             in_leaves[i as usize] = true;
         }
         order.extend((0..instances.len() as u32).filter(|&i| !in_leaves[i as usize]));
+        let instances: Vec<PlacedInstance> = order.iter().map(|&i| instances[i as usize].clone()).collect();
         let mut bvh = InstanceBvh {
             nodes,
             node_keys: (keys > 1).then(|| NodeKeys::new(0, keys)),
             motion: options.motion,
-            instances: order.iter().map(|&i| instances[i as usize].clone()).collect(),
+            child_boxes: child_boxes(&instances),
+            instances,
             stack_size: depth + 1 + child_stack,
             bounds,
             update_order: None,
@@ -177,6 +188,7 @@ impl InstanceBvh {
             }
             next.instances[slot] = instances[i as usize].clone();
         }
+        next.child_boxes = child_boxes(&next.instances);
         let key_boxes = instance_key_boxes(instances, &self.motion);
         next.refit_boxes(order, &key_boxes);
         next.bounds = key_boxes.iter().copied().fold(EMPTY, union);
@@ -188,6 +200,7 @@ impl InstanceBvh {
         FIXED_BYTES
             + (footprint.of(&self.nodes) * size_of::<Node>()) as u64
             + (footprint.of(&self.instances) * size_of::<PlacedInstance>()) as u64
+            + (footprint.of(&self.child_boxes) * size_of::<Bounds>()) as u64
             + self.node_keys.as_ref().map_or(0, |k| (footprint.of(&k.boxes) * size_of::<Bounds>()) as u64)
             + self.update_order.as_ref().map_or(0, |o| 4 * footprint.of(o) as u64)
     }

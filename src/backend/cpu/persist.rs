@@ -31,7 +31,7 @@ use glam::Vec3;
 
 use super::CpuAccel;
 use super::bvh::{Node, NodeKeys};
-use super::instances::{InstanceBvh, cpu_child};
+use super::instances::{InstanceBvh, child_boxes, cpu_child};
 use super::triangles::{RandomAccess, TriangleBvh, corner_bounds};
 use super::wide::WideBvh;
 use crate::accel::{AccelKind, BuildFlags, BuildOptions};
@@ -428,6 +428,7 @@ impl InstanceBvh {
             nodes,
             node_keys,
             motion: options.motion,
+            child_boxes: child_boxes(&instances),
             instances,
             stack_size: depth + 1 + child_stack,
             bounds,
