@@ -9,7 +9,7 @@ use std::rc::Rc;
 use std::sync::Arc;
 
 use common::{f32_at, icosphere, pack_rays, random_soup, u32_at};
-use glam::{Affine3A, Mat3, Quat, Vec3, Vec3A};
+use glam::{Affine3A, Mat3, Quat, UVec3, Vec3, Vec3A};
 use rayd_engine::accel::{AccelKind, BuildOptions};
 use rayd_engine::format::{HitFormat, MISS_ID, Ray, RayFlags, RayFormat};
 use rayd_engine::geometry::{
@@ -541,4 +541,26 @@ fn a_ray_through_a_turned_childs_placed_box_that_misses_the_child_tests_only_the
     assert!(outside_t < 0.0 && corner_t < 0.0 && strip_t == 10.0, "{outside_t} {corner_t} {strip_t}");
     assert_eq!(corner, outside + 1, "in the placed box's corner: the child's own box, and none of its nodes");
     assert!(on_strip > corner + 1, "on the strip: the child's nodes too ({on_strip} boxes against {corner})");
+}
+
+#[test]
+fn a_turned_childs_instance_box_holds_its_placed_vertices_and_little_else() {
+    let context = Context::new(Device::cpu());
+    // A unit sphere turned 45° about z and 30° about x: its own box (a cube) placed reaches √2 from the centre along x
+    // and beyond along y and z, where the sphere reaches 1.
+    let sphere = icosphere(3, Vec3::ZERO);
+    let turn = Affine3A::from_quat(Quat::from_rotation_x(0.5) * Quat::from_rotation_z(std::f32::consts::FRAC_PI_4));
+    let child = triangles(&context, vec![sphere.clone()]);
+    let flags = InstanceFlags::empty();
+    let scene =
+        instances(&context, vec![Placed { transform: Placement::rows(&turn), id: 0, mask: 0xFF, flags, child }]);
+    let (lo, hi) = scene.accel.info().bounds;
+    for p in sphere.positions.iter().map(|&p| turn.transform_point3(p)) {
+        assert!(p.cmpge(lo).all() && p.cmple(hi).all(), "{p} outside {lo} .. {hi}");
+    }
+    let cube = (0..8).map(|c| turn.transform_point3(UVec3::new(c & 1, c >> 1 & 1, c >> 2).as_vec3() * 2.0 - 1.0));
+    let (cube_lo, cube_hi) = cube.fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(l, h), p| (l.min(p), h.max(p)));
+    let volume = |(lo, hi): (Vec3, Vec3)| (hi - lo).element_product();
+    let share = volume((lo, hi)) / volume((cube_lo, cube_hi));
+    assert!(share < 0.75, "{lo} .. {hi}: {share} of the placed own box {cube_lo} .. {cube_hi}");
 }

@@ -102,13 +102,20 @@ pub(super) fn child_boxes(instances: &[PlacedInstance]) -> Vec<Bounds> {
 /// The box of each instance at each of `motion`'s keys (`keys` a row, in input order): their interpolation holds
 /// the placed child at every time (see [`MotionOptions::fit_key_bounds`]).
 fn instance_key_boxes(instances: &[PlacedInstance], motion: &MotionOptions) -> Vec<Bounds> {
-    instances
-        .iter()
-        .flat_map(|instance| {
-            let child = instance.child.backend_accel();
-            motion.fit_key_bounds(FIT_CUTS, |span| instance.placement.place_bounds(child.bounds_during(span)))
-        })
-        .collect()
+    instances.iter().flat_map(|instance| motion.fit_key_bounds(FIT_CUTS, |span| placed_child(instance, span))).collect()
+}
+
+/// A box around `instance`'s child, placed, during `span`: for a static triangle accel, which is the same at every
+/// time, the placed boxes of its wide nodes' lanes ([`super::wide::WideBvh::placed_bounds`]), which leave out most of
+/// what the placed box of a turned child holds besides it (BENCHMARKS.md, "Instances entered through their children's
+/// own boxes"); otherwise its box during `span`, placed.
+fn placed_child(instance: &PlacedInstance, span: TimeSpan) -> Bounds {
+    match cpu_child(&instance.child) {
+        Ok(CpuAccel::Triangles(bvh)) if bvh.node_keys.is_none() => {
+            bvh.wide.placed_bounds(|bounds| instance.placement.place_bounds(bounds))
+        }
+        _ => instance.placement.place_bounds(instance.child.backend_accel().bounds_during(span)),
+    }
 }
 
 impl InstanceBvh {

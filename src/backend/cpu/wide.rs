@@ -215,6 +215,23 @@ impl WideBvh {
         wide
     }
 
+    /// The union of the images under `place` of the boxes of the lanes [`PLACED_LEVELS`] nodes down from the root
+    /// (or of a leaf's lane where the path ends sooner): a box around the triangles as `place` moves them (e.g. an
+    /// instance's placement), tighter than the image of the root's box when `place` turns it; empty without nodes.
+    pub fn placed_bounds(&self, place: impl Fn(Bounds) -> Bounds) -> Bounds {
+        let mut bounds = EMPTY;
+        let mut opened = if self.nodes.is_empty() { vec![] } else { vec![(0, 1)] };
+        while let Some((node, level)) = opened.pop() {
+            for lane in 0..usize::from(self.children[node]) {
+                match self.nodes[node].count[lane] {
+                    0 if level < PLACED_LEVELS => opened.push((self.nodes[node].index[lane] as usize, level + 1)),
+                    _ => bounds = union(bounds, place(self.nodes[node].lane_box(lane))),
+                }
+            }
+        }
+        bounds
+    }
+
     /// What the leaves' slots in the blocks hold besides corners.
     pub(super) fn leaf_slots(&self) -> LeafSlots<'_> {
         LeafSlots { ids: &self.ids, masks: self.masks.as_deref() }
@@ -425,6 +442,9 @@ impl WideBvh {
         }
     }
 }
+
+/// Levels of nodes whose lanes' boxes [`WideBvh::placed_bounds`] places one by one: at most `WIDTH²` boxes.
+const PLACED_LEVELS: usize = 2;
 
 /// What a wide BVH is besides its nodes' boxes and its leaves' triangles.
 struct Skeleton {
