@@ -7,6 +7,7 @@ use obvhs::aabb::Aabb;
 
 use super::CpuAccel;
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, refit};
+use super::wide::{WideNode, WideTree};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::{Error, Result};
@@ -30,6 +31,8 @@ pub struct InstanceBvh {
     /// With motion: each node's box at each key, fitted so that their interpolation holds the placed children at
     /// every time.
     pub(crate) node_keys: Option<NodeKeys>,
+    /// Without motion: the nodes collapsed to wide ones, which rays walk instead (empty with motion).
+    pub(super) wide: WideTree,
     /// The motion options (static without motion).
     pub(crate) motion: MotionOptions,
     /// The instances in leaf order, then those with empty boxes (never traversed).
@@ -83,9 +86,11 @@ pub(super) fn memory_bounds(instances: usize, options: &BuildOptions) -> MemoryU
     let keys = u64::from(options.motion.keys);
     let node_keys = if keys > 1 { keys * size_of::<Bounds>() as u64 } else { 0 };
     let nodes = (2 * n).saturating_sub(1) * (size_of::<Node>() as u64 + node_keys);
+    let wide_nodes =
+        if keys > 1 { 0 } else { WideTree::most_nodes(instances) as u64 * (size_of::<WideNode>() as u64 + 1) };
     let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
     let per_instance = (size_of::<PlacedInstance>() + size_of::<Bounds>()) as u64;
-    let output_bytes = FIXED_BYTES + nodes + n * per_instance + if updatable { 4 * n } else { 0 };
+    let output_bytes = FIXED_BYTES + nodes + wide_nodes + n * per_instance + if updatable { 4 * n } else { 0 };
     MemoryUsage {
         output_bytes,
         temp_bytes: BUILD_TEMP_FIXED_BYTES + n * (BUILD_TEMP_BYTES_PER_INSTANCE + keys * size_of::<Bounds>() as u64),
@@ -147,19 +152,31 @@ impl InstanceBvh {
         let mut bvh = InstanceBvh {
             nodes,
             node_keys: (keys > 1).then(|| NodeKeys::new(0, keys)),
+            wide: WideTree::default(),
             motion: options.motion,
             child_boxes: child_boxes(&instances),
             instances,
-            stack_size: depth + 1 + child_stack,
+            stack_size: 0,
             bounds,
             update_order: None,
         };
         bvh.refit_boxes(&order, &key_boxes);
+        bvh.collapse(depth, child_stack);
         if options.flags.contains(BuildFlags::ALLOW_UPDATE) {
             order.shrink_to_fit();
             bvh.update_order = Some(order);
         }
         Ok(bvh)
+    }
+
+    /// Collapses the nodes of a static accel into its wide ones, and sets its stack size for walks of either, the
+    /// binary nodes being `depth` deep and the children needing `child_stack` entries: enough for any collapse of
+    /// nodes of that depth ([`WideTree::stack_size_within`]), so that a refit's collapse fits it too.
+    pub(super) fn collapse(&mut self, depth: usize, child_stack: usize) {
+        if self.node_keys.is_none() {
+            self.wide = WideTree::collapse(&self.nodes);
+        }
+        self.stack_size = WideTree::stack_size_within(depth) + child_stack;
     }
 
     /// Refits the nodes (and their key boxes) to `key_boxes` of the instances in input order; `order` gives the
@@ -198,6 +215,9 @@ impl InstanceBvh {
         next.child_boxes = child_boxes(&next.instances);
         let key_boxes = instance_key_boxes(instances, &self.motion);
         next.refit_boxes(order, &key_boxes);
+        if next.node_keys.is_none() {
+            next.wide = WideTree::collapse(&next.nodes);
+        }
         next.bounds = key_boxes.iter().copied().fold(EMPTY, union);
         Ok(next)
     }
@@ -208,6 +228,7 @@ impl InstanceBvh {
             + (footprint.of(&self.nodes) * size_of::<Node>()) as u64
             + (footprint.of(&self.instances) * size_of::<PlacedInstance>()) as u64
             + (footprint.of(&self.child_boxes) * size_of::<Bounds>()) as u64
+            + self.wide.size_bytes(footprint)
             + self.node_keys.as_ref().map_or(0, |k| (footprint.of(&k.boxes) * size_of::<Bounds>()) as u64)
             + self.update_order.as_ref().map_or(0, |o| 4 * footprint.of(o) as u64)
     }

@@ -34,6 +34,7 @@ use super::bvh::{Node, NodeKeys};
 use super::instances::{InstanceBvh, child_boxes, cpu_child};
 use super::triangles::{RandomAccess, TriangleBvh, corner_bounds};
 use super::wide::WideBvh;
+use super::wide::WideTree;
 use crate::accel::{AccelKind, BuildFlags, BuildOptions};
 use crate::backend::Shape;
 use crate::context::Accel;
@@ -424,15 +425,18 @@ impl InstanceBvh {
             .iter()
             .map(|c| cpu_child(c).map(CpuAccel::stack_size))
             .try_fold(0, |deepest, s| s.map(|s| deepest.max(s)))?;
-        Ok(InstanceBvh {
+        let mut bvh = InstanceBvh {
             nodes,
             node_keys,
+            wide: WideTree::default(),
             motion: options.motion,
             child_boxes: child_boxes(&instances),
             instances,
-            stack_size: depth + 1 + child_stack,
+            stack_size: 0,
             bounds,
             update_order,
-        })
+        };
+        bvh.collapse(depth, child_stack);
+        Ok(bvh)
     }
 }

@@ -202,7 +202,7 @@ impl TriangleBvh {
             (None, false) => {
                 let block_ray = BlockRay::new(ray);
                 let leaf = self.static_leaf(&block_ray, ray, scope);
-                self.wide.walk(stack, ray, collector, stats, leaf, |slots| self.prefetch_leaf(slots))
+                self.wide.tree().walk(stack, ray, collector, stats, leaf, |slots| self.prefetch_leaf(slots))
             }
             (None, true) => {
                 let leaf = with_stack(self.binary_leaf(|slot| self.corners[slot], ray, scope));
@@ -290,7 +290,7 @@ impl TriangleBvh {
         alone: u32,
         stats: &mut TraceStats,
     ) {
-        let mut alone = alone;
+        let (mut alone, tree) = (alone, self.wide.tree());
         while alone != 0 {
             let i = alone.trailing_zeros() as usize;
             alone &= alone - 1;
@@ -300,10 +300,10 @@ impl TriangleBvh {
             // SAFETY (both): the CPU has the features (this function's contract).
             if IN_LANES {
                 let leaf = self.lanes_leaf(&block_ray, &ray, collectors[i].keeps_no_hit());
-                unsafe { self.wide.walk_avx(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+                unsafe { tree.walk_avx(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
             } else {
                 let leaf = self.static_leaf(&block_ray, &ray, &InstanceScope::WORLD);
-                unsafe { self.wide.walk_avx(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
+                unsafe { tree.walk_avx(stack, &ray, &mut collectors[i], stats, leaf, prefetch_leaf) };
             }
         }
     }
@@ -466,7 +466,7 @@ fn with_stack<L: FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> boo
 
 impl InstanceBvh {
     /// Traverses the child of every visible instance whose box the ray reaches (at its time), in the instance's
-    /// space.
+    /// space: through the wide nodes of a static accel, the binary ones with their boxes at the ray's time otherwise.
     fn traverse(
         &self,
         stack: &mut [StackEntry],
@@ -477,44 +477,57 @@ impl InstanceBvh {
     ) {
         let Some(at) = self.motion.locate(ray.time) else { return };
         match &self.node_keys {
-            None => self.walk_instances(static_boxes(&self.nodes), stack, ray, scope, collector, stats),
-            Some(keys) => self.walk_instances(|node| keys.at(node, at), stack, ray, scope, collector, stats),
+            None => {
+                let (own, rest) = stack.split_at_mut(self.wide.stack_size());
+                let leaf = |slots, collector: &mut Collector<'_>, stats: &mut TraceStats| {
+                    self.enter_instances(slots, rest, ray, scope, collector, stats)
+                };
+                self.wide.tree().walk(own, ray, collector, stats, leaf, |_| {});
+            }
+            Some(keys) => walk(
+                &self.nodes,
+                |node| keys.at(node, at),
+                stack,
+                ray,
+                collector,
+                stats,
+                |slots, rest, c, s| self.enter_instances(slots, rest, ray, scope, c, s),
+            ),
         }
     }
 
-    /// Walks the nodes with their boxes from `node_box` and traverses each reached instance's child.
+    /// Traverses the child of each visible instance in `slots` that the ray reaches, with the free part of the stack
+    /// `rest`, and says whether the collector is done.
     #[inline(always)]
-    fn walk_instances(
+    fn enter_instances(
         &self,
-        node_box: impl Fn(u32) -> (Vec3A, Vec3A),
-        stack: &mut [StackEntry],
+        slots: Range<usize>,
+        rest: &mut [StackEntry],
         ray: &PreparedRay,
         scope: &InstanceScope,
         collector: &mut Collector<'_>,
         stats: &mut TraceStats,
-    ) {
-        walk(&self.nodes, node_box, stack, ray, collector, stats, |slots, rest, collector, stats| {
-            for (instance, &(min, max)) in self.instances[slots.clone()].iter().zip(&self.child_boxes[slots]) {
-                if ray.visibility & instance.mask == 0 {
-                    continue;
-                }
-                let Ok(child) = cpu_child(&instance.child) else { continue };
-                // The child's own box first, in its space, before the ray is prepared there and the child's walk
-                // starts: most rays that reach a turned child's placed box miss the child (BENCHMARKS.md,
-                // "Instances entered through their children's own boxes").
-                let (origin, direction) = ray.carried(&instance.placement.world_to_object);
-                stats.nodes_visited += 1;
-                if !aabb::reaches(origin, direction, min.into(), max.into(), ray.tmin, collector.cull_tmax()) {
-                    continue;
-                }
-                let local = ray.moved(origin, direction);
-                child.traverse(rest, &local, &scope.enter(instance), collector, stats);
-                if collector.done() {
-                    return true;
-                }
+    ) -> bool {
+        for (instance, &(min, max)) in self.instances[slots.clone()].iter().zip(&self.child_boxes[slots]) {
+            if ray.visibility & instance.mask == 0 {
+                continue;
             }
-            false
-        });
+            let Ok(child) = cpu_child(&instance.child) else { continue };
+            // The child's own box first, in its space, before the ray is prepared there and the child's walk starts:
+            // most rays that reach a turned child's placed box miss the child (BENCHMARKS.md, "Instances entered
+            // through their children's own boxes").
+            let (origin, direction) = ray.carried(&instance.placement.world_to_object);
+            stats.nodes_visited += 1;
+            if !aabb::reaches(origin, direction, min.into(), max.into(), ray.tmin, collector.cull_tmax()) {
+                continue;
+            }
+            let local = ray.moved(origin, direction);
+            child.traverse(rest, &local, &scope.enter(instance), collector, stats);
+            if collector.done() {
+                return true;
+            }
+        }
+        false
     }
 }
 

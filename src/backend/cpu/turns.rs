@@ -1,7 +1,7 @@
 //! Incoherent rays walked in turns through a static accel larger than the CPU's last-level cache: each ray of a
 //! group takes one step of its walk at a time (up to the next node or leaf it enters, whose data its step only just
 //! asked for), then the next ray does, so that the memory one ray waits for arrives while the others work, instead of
-//! the core standing still. Each ray's walk is [`super::wide::WideBvh::walk_lanes`]'s, visit for visit (the same
+//! the core standing still. Each ray's walk is [`super::wide::Tree::walk_lanes`]'s, visit for visit (the same
 //! boxes in the same order, the same leaves, the same pruning), so its answer and the statistics are those of walking
 //! the rays one after another; only the interleaving differs.
 //!

@@ -121,7 +121,6 @@ impl WideBvh {
     pub fn collapse(binary: &[Node], corners: &[[Vec3; 3]], refs: &[TriangleRef], masks: Option<&[u32]>) -> WideBvh {
         let Some(root) = binary.first() else { return WideBvh::default() };
         let mut collapsed = collapse(binary, WIDTH);
-        let occupied = |lanes: &[Lane]| lanes.iter().take_while(|l| l.binary != EMPTY_LANE).count();
         let rank = stop_chance_per_cost(binary, corners);
         for lanes in collapsed.lanes.chunks_mut(WIDTH) {
             let occupied = occupied(lanes);
@@ -129,16 +128,8 @@ impl WideBvh {
             lanes[..occupied].sort_by(|a, b| rank[b.binary as usize].total_cmp(&rank[a.binary as usize]));
         }
         let placement = placement_of_leaves(binary);
-        let node = |n: usize| {
-            let lanes = &collapsed.lanes[n * WIDTH..(n + 1) * WIDTH];
-            let mut node = WideNode::EMPTY;
-            for (lane, &Lane { binary: b, child }) in lanes[..occupied(lanes)].iter().enumerate() {
-                let b = &binary[b as usize];
-                let index = if b.count > 0 { placement.slot_of(b.index as usize) as u32 } else { child };
-                node.set_lane(lane, b, index);
-            }
-            node
-        };
+        let leaf_slot = |leaf: &Node| placement.slot_of(leaf.index as usize) as u32;
+        let node = |n: usize| wide_node(binary, &collapsed.lanes[n * WIDTH..(n + 1) * WIDTH], leaf_slot);
         let skeleton = Skeleton {
             children: collapsed.lanes.chunks(WIDTH).map(|lanes| occupied(lanes) as u8).collect(),
             root: (root.min.into(), root.max.into()),
@@ -206,12 +197,7 @@ impl WideBvh {
         };
         let exceeding_cache = exceed_last_level_cache(wide.size_bytes(Footprint::Exact));
         (wide.in_cache, wide.in_turns) = (!exceeding_cache, walks_in_turns(exceeding_cache));
-        // What the walks and refits rely on (see the type's documentation); a failure here is a bug of `collapse`.
-        let inner_lanes_in_range = wide.nodes.iter().zip(&wide.children).enumerate().all(|(n, (node, &children))| {
-            (0..usize::from(children))
-                .all(|l| node.count[l] > 0 || (n + 1..wide.nodes.len()).contains(&(node.index[l] as usize)))
-        });
-        assert!(inner_lanes_in_range && wide.nodes.len() <= u32::MAX as usize, "a malformed wide BVH");
+        assert_well_formed(&wide.nodes, &wide.children);
         wide
     }
 
@@ -251,11 +237,31 @@ impl WideBvh {
             + self.blocks.size_bytes(footprint)
     }
 
+    /// Its nodes as a walk reads them.
+    #[inline(always)]
+    pub(super) fn tree(&self) -> Tree<'_> {
+        Tree { nodes: &self.nodes, children: &self.children, stack_size: self.stack_size() }
+    }
+}
+
+/// Wide nodes as a walk reads them: a [`WideBvh`]'s ([`WideBvh::tree`]) or a [`WideTree`]'s, whose leaves are other
+/// things than triangles (an instance accel's instances).
+#[derive(Clone, Copy)]
+pub(super) struct Tree<'a> {
+    /// Nodes, the root first (every inner lane's index below their count, a `u32`).
+    nodes: &'a [WideNode],
+    /// Children of each node: its first lanes, the rest are empty.
+    children: &'a [u8],
+    /// Stack entries a walk needs.
+    stack_size: usize,
+}
+
+impl Tree<'_> {
     /// Walks the nodes front to back and hands each leaf the ray reaches (its slots in the blocks, the collector and
     /// the statistics) to `leaf`, which returns whether the collector is done. `prefetch_leaf` starts loading a leaf's
     /// data (by its slots) as soon as the ray enters the leaf's box.
     ///
-    /// Panics when `stack` holds fewer than [`WideBvh::stack_size`] entries.
+    /// Panics when `stack` holds fewer than [`WideBvh::stack_size`] (the tree's `stack_size`) entries.
     #[inline(always)]
     pub fn walk(
         &self,
@@ -277,7 +283,7 @@ impl WideBvh {
         self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
     }
 
-    /// [`WideBvh::walk_avx`] compiled for AVX2.
+    /// [`Tree::walk_avx`] compiled for AVX2.
     ///
     /// # Safety
     /// The CPU must have the features [`has_avx2`] checks.
@@ -297,7 +303,7 @@ impl WideBvh {
         unsafe { self.walk_avx(stack, ray, collector, stats, leaf, prefetch_leaf) }
     }
 
-    /// [`WideBvh::walk_lanes`] with its box tests written with AVX intrinsics, inlined into its caller, which is
+    /// [`Tree::walk_lanes`] with its box tests written with AVX intrinsics, inlined into its caller, which is
     /// compiled for AVX2 or for more (the static accels' walks of single rays also for AVX-512VL, whose 32 vector
     /// registers keep the ray's numbers).
     ///
@@ -360,7 +366,7 @@ impl WideBvh {
         if self.nodes.is_empty() {
             return;
         }
-        assert!(stack.len() >= self.stack_size(), "a stack of {} entries for {}", stack.len(), self.stack_size());
+        assert!(stack.len() >= self.stack_size, "a stack of {} entries for {}", stack.len(), self.stack_size);
         let mut tmax = collector.cull_tmax();
         // Boxes tested, added to the statistics at the end. The root's own box is not tested: its lanes are, and a
         // ray that misses the root's box misses them (it is their union) at the cost of one node test.
@@ -440,6 +446,93 @@ impl WideBvh {
                 _ => prefetch_leaf(index..index + count),
             }
         }
+    }
+}
+
+/// The wide node of `lanes` (a node's lanes of a [`collapse`] of `binary`): each lane's box and count its binary
+/// node's, its index the wide node of an inner lane, `leaf_index` of a leaf.
+fn wide_node(binary: &[Node], lanes: &[Lane], leaf_index: impl Fn(&Node) -> u32) -> WideNode {
+    let mut node = WideNode::EMPTY;
+    for (lane, &Lane { binary: b, child }) in lanes[..occupied(lanes)].iter().enumerate() {
+        let b = &binary[b as usize];
+        node.set_lane(lane, b, if b.count > 0 { leaf_index(b) } else { child });
+    }
+    node
+}
+
+/// How many of a collapsed node's `lanes` are occupied (they come first).
+fn occupied(lanes: &[Lane]) -> usize {
+    lanes.iter().take_while(|lane| lane.binary != EMPTY_LANE).count()
+}
+
+/// Checks what the walks (which read nodes without bounds checks) and refits rely on: every inner lane leads to a
+/// later node, and a `u32` holds every node's index. A failure is a bug of [`collapse`].
+fn assert_well_formed(nodes: &[WideNode], children: &[u8]) {
+    let inner_lanes_in_range = nodes.iter().zip(children).enumerate().all(|(n, (node, &children))| {
+        (0..usize::from(children))
+            .all(|l| node.count[l] > 0 || (n + 1..nodes.len()).contains(&(node.index[l] as usize)))
+    });
+    assert!(
+        inner_lanes_in_range && children.len() == nodes.len() && nodes.len() <= u32::MAX as usize,
+        "a malformed wide BVH"
+    );
+}
+
+/// Wide nodes over leaves of other things than triangles (an instance accel's instances): a binary BVH collapsed,
+/// each leaf lane holding its binary leaf's slots as they are. Walked as [`Tree`].
+#[derive(Debug, Clone, Default)]
+pub(super) struct WideTree {
+    /// Nodes, the root first; empty when the binary BVH was.
+    nodes: Vec<WideNode>,
+    /// Children of each node: its first lanes, the rest are empty.
+    children: Vec<u8>,
+    /// Longest root-to-leaf path, in wide nodes.
+    depth: usize,
+}
+
+impl WideTree {
+    /// Collapses the depth-first binary BVH `binary` ([`collapse`]); lanes in the collapse's order.
+    pub fn collapse(binary: &[Node]) -> WideTree {
+        if binary.is_empty() {
+            return WideTree::default();
+        }
+        let collapsed = collapse(binary, WIDTH);
+        let lanes = collapsed.lanes.chunks(WIDTH);
+        let tree = WideTree {
+            nodes: lanes.clone().map(|lanes| wide_node(binary, lanes, |leaf| leaf.index)).collect(),
+            children: lanes.map(|lanes| occupied(lanes) as u8).collect(),
+            depth: collapsed.depth,
+        };
+        assert_well_formed(&tree.nodes, &tree.children);
+        tree
+    }
+
+    /// The most nodes a collapse of a binary BVH of `leaves` leaves makes: each is an inner binary node but for a root
+    /// that is a leaf, so there are fewer than leaves.
+    pub const fn most_nodes(leaves: usize) -> usize {
+        leaves
+    }
+
+    /// Stack entries a walk needs: each node visited leaves at most `WIDTH − 1` children waiting.
+    pub fn stack_size(&self) -> usize {
+        self.depth * (WIDTH - 1) + 1
+    }
+
+    /// Stack entries enough for a walk of a collapse of binary nodes `depth` deep (a collapse is no deeper than
+    /// `depth + 1` wide nodes), and for a walk of the binary nodes themselves (`depth + 1`).
+    pub const fn stack_size_within(depth: usize) -> usize {
+        (depth + 1) * (WIDTH - 1) + 1
+    }
+
+    /// Bytes it occupies.
+    pub fn size_bytes(&self, footprint: Footprint) -> u64 {
+        (footprint.of(&self.nodes) * size_of::<WideNode>() + footprint.of(&self.children)) as u64
+    }
+
+    /// Its nodes as a walk reads them.
+    #[inline(always)]
+    pub fn tree(&self) -> Tree<'_> {
+        Tree { nodes: &self.nodes, children: &self.children, stack_size: self.stack_size() }
     }
 }
 
@@ -946,22 +1039,20 @@ mod tests {
         }
     }
 
-    #[test]
-    fn lanes_hold_their_childrens_boxes_and_leaves_their_slots() {
-        // A root over a leaf of 2 triangles (slots 0..2) and an inner node over two leaves (slots 2..3, 3..5).
+    /// A binary BVH: a root over a leaf of slots 0..2 and an inner node over two leaves (slots 2..3, 3..5).
+    fn three_leaves() -> [Node; 5] {
         let node = |min: f32, max: f32, index: u32, count: u32| Node {
             min: Vec3::splat(min),
             index,
             max: Vec3::splat(max),
             count,
         };
-        let binary = [
-            node(0.0, 9.0, 1, 0),
-            node(0.0, 1.0, 0, 2),
-            node(2.0, 9.0, 3, 0),
-            node(2.0, 3.0, 2, 1),
-            node(4.0, 9.0, 3, 2),
-        ];
+        [node(0.0, 9.0, 1, 0), node(0.0, 1.0, 0, 2), node(2.0, 9.0, 3, 0), node(2.0, 3.0, 2, 1), node(4.0, 9.0, 3, 2)]
+    }
+
+    #[test]
+    fn lanes_hold_their_childrens_boxes_and_leaves_their_slots() {
+        let binary = three_leaves();
         let refs: Vec<TriangleRef> = (0..5).map(|prim_id| TriangleRef { geom_id: 0, prim_id }).collect();
         let wide = WideBvh::collapse(&binary, &[[Vec3::ZERO; 3]; 5], &refs, None);
         assert_eq!((wide.nodes.len(), wide.children.as_slice(), wide.depth), (1, &[3u8][..], 1));
@@ -974,6 +1065,19 @@ mod tests {
         assert_eq!(wide.ids.iter().map(|id| id.prim_id).collect::<Vec<_>>(), [0, 1, 2, 0, 3, 4]);
         assert!((3..WIDTH).all(|l| root.lo[1][l] == f32::INFINITY && root.hi[1][l] == f32::NEG_INFINITY));
         assert_eq!(wide.root, (Vec3A::ZERO, Vec3A::splat(9.0)));
+    }
+
+    #[test]
+    fn a_tree_of_other_leaves_keeps_each_binary_leafs_slots_and_box() {
+        let binary = three_leaves();
+        let tree = WideTree::collapse(&binary);
+        assert_eq!((tree.nodes.len(), tree.children.as_slice(), tree.depth), (1, &[3u8][..], 1));
+        let root = &tree.nodes[0];
+        let lanes: Vec<(f32, f32, u32, u32)> =
+            (0..3).map(|l| (root.lo[0][l], root.hi[2][l], root.index[l], root.count[l])).collect();
+        assert_eq!(lanes, [(0.0, 1.0, 0, 2), (2.0, 3.0, 2, 1), (4.0, 9.0, 3, 2)]);
+        assert!(WideTree::collapse(&[]).nodes.is_empty());
+        assert!(tree.stack_size() <= WideTree::stack_size_within(2), "the binary nodes are 2 deep below the root");
     }
 
     #[test]

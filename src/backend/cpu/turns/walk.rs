@@ -76,7 +76,7 @@ impl TriangleBvh {
 impl WideBvh {
     /// Walks the rays whose bit is set in `walking` in turns (see the module's documentation), each with its box
     /// test's numbers in `lanes` and its collector in `collectors`, and hands each leaf a ray reaches to `leaf` with
-    /// the ray's index (see [`WideBvh::walk`]).
+    /// the ray's index (see [`crate::backend::cpu::wide::Tree::walk`]).
     ///
     /// Panics when `stacks` holds fewer than [`WideBvh::stack_size`] entries for each of [`TURNS`] rays.
     ///
@@ -135,7 +135,7 @@ impl WideBvh {
                                 #[inline(always)]
                                 |node: &WideNode, tmax| ray_lanes.enter(node, tmax)
                             };
-                            self.visit_node(
+                            self.tree().visit_node(
                                 index as usize,
                                 tmax,
                                 &enter,
