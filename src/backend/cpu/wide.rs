@@ -536,8 +536,10 @@ impl WideTree {
     }
 }
 
-/// Levels of nodes whose lanes' boxes [`WideBvh::placed_bounds`] places one by one: at most `WIDTH²` boxes.
-const PLACED_LEVELS: usize = 2;
+/// Levels of nodes whose lanes' boxes [`WideBvh::placed_bounds`] places one by one: the root's, at most [`WIDTH`]
+/// boxes (two levels, up to `WIDTH²` boxes, traced no faster for eight times the instance build's time: BENCHMARKS.md,
+/// "Instances entered through their children's own boxes").
+const PLACED_LEVELS: usize = 1;
 
 /// What a wide BVH is besides its nodes' boxes and its leaves' triangles.
 struct Skeleton {
