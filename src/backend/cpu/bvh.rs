@@ -85,12 +85,15 @@ pub(super) struct Layout {
 }
 
 impl Layout {
-    /// Builds a BVH over `boxes`, the boxes of the caller's primitives `primitives` (parallel to them).
-    pub fn build(boxes: &[Aabb], primitives: &[u32], flags: BuildFlags) -> Layout {
+    /// Builds a BVH over `boxes`, the boxes of the caller's primitives `primitives` (parallel to them), with leaves
+    /// of at most `max_leaf` primitives (fewer as the builder's cost model finds best).
+    pub fn build(boxes: &[Aabb], primitives: &[u32], flags: BuildFlags, max_leaf: u32) -> Layout {
         if boxes.is_empty() {
             return Layout::default();
         }
-        let bvh = build_bvh2(boxes, build_params(flags));
+        let mut params = build_params(flags);
+        params.max_prims_per_leaf = params.max_prims_per_leaf.min(max_leaf);
+        let bvh = build_bvh2(boxes, params);
         let mut layout = Layout { nodes: Vec::with_capacity(bvh.nodes.len()), ..Layout::default() };
         layout.nodes.push(Node { min: Vec3::ZERO, index: 0, max: Vec3::ZERO, count: 0 });
         let mut pending = vec![(0usize, 0usize, 1usize)];
@@ -211,5 +214,31 @@ pub(super) fn refit(
             }),
         };
         nodes[i] = Node { min, max, ..node };
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn leaves_hold_at_most_the_primitives_asked_for() {
+        // 64 small boxes in a row, close enough together that the builder's cost model makes leaves of several.
+        let boxes: Vec<Aabb> = (0..64)
+            .map(|i| {
+                let x = i as f32 * 0.1;
+                Aabb::new(Vec3::new(x, 0.0, 0.0).into(), Vec3::new(x + 0.05, 0.05, 0.05).into())
+            })
+            .collect();
+        let primitives: Vec<u32> = (100..164).collect();
+        let largest = |max_leaf| {
+            let layout = Layout::build(&boxes, &primitives, BuildFlags::empty(), max_leaf);
+            let mut order = layout.order.clone();
+            order.sort_unstable();
+            assert_eq!(order, primitives, "every primitive in one leaf");
+            layout.nodes.iter().map(|node| node.count).max().unwrap()
+        };
+        assert!(largest(u32::MAX) > 1, "the builder's own leaves hold several");
+        assert_eq!(largest(1), 1);
     }
 }

@@ -16,6 +16,11 @@ use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, is_empty, map_bounds, union};
 use crate::geometry::{MotionOptions, PlacedInstance, Transform};
 
+/// Instances a leaf of the BVH holds at most: one, so that a walk tests each instance's box in the nodes' lanes before
+/// it carries the ray into the instance's space (BENCHMARKS.md, "Instances entered through their children's own
+/// boxes").
+const MAX_LEAF: u32 = 1;
+
 /// Parts each motion segment is checked in when an instance's key boxes are fitted.
 const FIT_CUTS: usize = 8;
 
@@ -166,7 +171,7 @@ impl InstanceBvh {
                 bounds = union(bounds, (min, max));
             }
         }
-        let Layout { nodes, mut order, depth } = Layout::build(&boxes, &hittable, options.flags);
+        let Layout { nodes, mut order, depth } = Layout::build(&boxes, &hittable, options.flags, MAX_LEAF);
         let mut in_leaves = vec![false; instances.len()];
         for &i in &order {
             in_leaves[i as usize] = true;

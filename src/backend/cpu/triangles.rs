@@ -105,7 +105,7 @@ impl TriangleBvh {
                 Aabb::new(min.into(), max.into())
             })
             .collect();
-        let layout = Layout::build(&boxes, &hittable, options.flags);
+        let layout = Layout::build(&boxes, &hittable, options.flags, u32::MAX);
         drop(boxes);
         let mut bvh = Self::lay_out(&triangles, layout, options);
         if moving {
