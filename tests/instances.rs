@@ -515,29 +515,35 @@ fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_chil
     context.destroy_accel(triangle.accel.handle()).expect("nothing places it any more");
 }
 
+/// A thin strip along x from −2 to 2, 0.02 wide (128 triangles: several lanes at its root).
+fn strip() -> Mesh {
+    let positions = (0..=64).flat_map(|i| [-0.01, 0.01].map(|y| Vec3::new(i as f32 / 16.0 - 2.0, y, 0.0))).collect();
+    let triangles_of = |i: u32| [[2 * i, 2 * i + 2, 2 * i + 1], [2 * i + 1, 2 * i + 2, 2 * i + 3]];
+    Mesh { positions, triangles: (0..64).flat_map(triangles_of).collect() }
+}
+
+/// The `t` of the closest hit (negative for a miss) of a ray down from `(x, y, 10)`, and the boxes it tested.
+fn down_at(context: &Context, accel: &Accel, x: f32, y: f32) -> (f32, u64) {
+    let query = Query::closest(RayFormat::Full, HitFormat::TTriidUV);
+    let ray = Ray { origin: Vec3A::new(x, y, 10.0), direction: -Vec3A::Z, ..Ray::default() };
+    let bytes = pack_rays(&[ray], RayFormat::Full);
+    let mut hits = vec![0u8; query.output_layout(bytes.len()).unwrap().hits];
+    let stats = context.trace(accel, &query, &bytes, TraceOutput { hits: &mut hits, counts: &mut [] });
+    (f32_at(&hits, 0), stats.unwrap().nodes_visited)
+}
+
 #[test]
 fn a_ray_through_a_turned_childs_placed_box_that_misses_the_child_tests_only_the_childs_own_box() {
     let context = Context::new(Device::cpu());
-    // A thin strip along x (128 triangles: several lanes at its root), turned 45° about z: its placed box is a square
-    // about a diagonal strip, most of which the strip does not cover.
-    let positions = (0..=64).flat_map(|i| [-0.01, 0.01].map(|y| Vec3::new(i as f32 / 16.0 - 2.0, y, 0.0))).collect();
-    let triangles_of = |i: u32| [[2 * i, 2 * i + 2, 2 * i + 1], [2 * i + 1, 2 * i + 2, 2 * i + 3]];
-    let strip = Mesh { positions, triangles: (0..64).flat_map(triangles_of).collect() };
+    // A thin strip turned 45° about z: its placed box is a square about a diagonal strip, most of which the strip does
+    // not cover.
     let turn = Placement::rows(&Affine3A::from_rotation_z(std::f32::consts::FRAC_PI_4));
-    let child = triangles(&context, vec![strip]);
+    let child = triangles(&context, vec![strip()]);
     let scene =
         instances(&context, vec![Placed { transform: turn, id: 0, mask: 0xFF, flags: InstanceFlags::empty(), child }]);
-    let query = Query::closest(RayFormat::Full, HitFormat::TTriidUV);
-    let down_at = |x: f32, y: f32| {
-        let ray = Ray { origin: Vec3A::new(x, y, 10.0), direction: -Vec3A::Z, ..Ray::default() };
-        let bytes = pack_rays(&[ray], RayFormat::Full);
-        let mut hits = vec![0u8; query.output_layout(bytes.len()).unwrap().hits];
-        let stats = context.trace(&scene.accel, &query, &bytes, TraceOutput { hits: &mut hits, counts: &mut [] });
-        (f32_at(&hits, 0), stats.unwrap().nodes_visited)
-    };
-    let (outside_t, outside) = down_at(5.0, 5.0);
-    let (corner_t, corner) = down_at(1.0, -1.0);
-    let (strip_t, on_strip) = down_at(0.5, 0.5);
+    let (outside_t, outside) = down_at(&context, &scene.accel, 5.0, 5.0);
+    let (corner_t, corner) = down_at(&context, &scene.accel, 1.0, -1.0);
+    let (strip_t, on_strip) = down_at(&context, &scene.accel, 0.5, 0.5);
     assert!(outside_t < 0.0 && corner_t < 0.0 && strip_t == 10.0, "{outside_t} {corner_t} {strip_t}");
     assert_eq!(corner, outside + 1, "in the placed box's corner: the child's own box, and none of its nodes");
     assert!(on_strip > corner + 1, "on the strip: the child's nodes too ({on_strip} boxes against {corner})");
@@ -563,4 +569,16 @@ fn a_turned_childs_instance_box_holds_its_placed_vertices_and_little_else() {
     let volume = |(lo, hi): (Vec3, Vec3)| (hi - lo).element_product();
     let share = volume((lo, hi)) / volume((cube_lo, cube_hi));
     assert!(share < 0.75, "{lo} .. {hi}: {share} of the placed own box {cube_lo} .. {cube_hi}");
+}
+
+#[test]
+fn a_ray_through_a_turned_transforms_placed_box_that_misses_the_child_tests_only_the_childs_own_box() {
+    let context = Context::new(Device::cpu());
+    let turn = Placement::rows(&Affine3A::from_rotation_z(std::f32::consts::FRAC_PI_4));
+    let placed = transform(&context, turn, triangles(&context, vec![strip()]));
+    let (corner_t, corner) = down_at(&context, &placed.accel, 1.0, -1.0);
+    let (strip_t, on_strip) = down_at(&context, &placed.accel, 0.5, 0.5);
+    assert!(corner_t < 0.0 && strip_t == 10.0, "{corner_t} {strip_t}");
+    assert_eq!(corner, 1, "in the placed box's corner: the child's own box, and none of its nodes");
+    assert!(on_strip > 2, "on the strip: the child's nodes too ({on_strip} boxes)");
 }

@@ -66,6 +66,8 @@ pub struct TransformNode {
     pub(super) stack_size: usize,
     /// The child's box, placed, over all of time.
     bounds: Bounds,
+    /// The child's box in its own space over all of time, which a ray tests before it is prepared there.
+    pub(super) child_box: Bounds,
 }
 
 /// The host structure of a child accel (a CPU accel, or the host side of another backend's); FAILED_PRECONDITION
@@ -275,7 +277,14 @@ impl TransformNode {
     /// Places `child` with `transform`.
     pub fn build(transform: &Transform, child: &Arc<Accel>) -> Result<TransformNode> {
         let stack_size = cpu_child(child)?.stack_size();
-        let node = TransformNode { transform: transform.clone(), child: Arc::clone(child), stack_size, bounds: EMPTY };
+        let child_box = child.backend_accel().bounds_during(TimeSpan::ALL);
+        let node = TransformNode {
+            transform: transform.clone(),
+            child: Arc::clone(child),
+            stack_size,
+            bounds: EMPTY,
+            child_box,
+        };
         Ok(TransformNode { bounds: node.bounds_during(TimeSpan::ALL), ..node })
     }
 
