@@ -3,7 +3,6 @@
 
 use std::sync::Arc;
 
-use glam::{Affine3A, Mat3A, Vec3, Vec3A};
 use obvhs::aabb::Aabb;
 use rayon::prelude::*;
 
@@ -13,7 +12,7 @@ use super::wide::{WideNode, WideTree};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::{Error, Result};
-use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, is_empty, map_bounds, union};
+use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, is_empty, union};
 use crate::geometry::{MotionOptions, PlacedInstance, Transform};
 
 /// Instances a leaf of the BVH holds at most: one, so that a walk tests each instance's box in the nodes' lanes before
@@ -127,30 +126,9 @@ fn instance_key_boxes(instances: &[PlacedInstance], motion: &MotionOptions) -> V
 fn placed_child(instance: &PlacedInstance, span: TimeSpan) -> Bounds {
     match cpu_child(&instance.child) {
         Ok(CpuAccel::Triangles(bvh)) if bvh.node_keys.is_none() => {
-            bvh.wide.placed_bounds(|bounds| placed_box(&instance.placement.object_to_world, bounds))
+            bvh.wide.placed_bounds(|bounds| instance.placement.place_bounds(bounds))
         }
         _ => instance.placement.place_bounds(instance.child.backend_accel().bounds_during(span)),
-    }
-}
-
-/// Relative margin [`placed_box`] grows a box by: a few times the rounding of its arithmetic.
-const PLACED_MARGIN: f32 = 1e-6;
-
-/// A box around the box `(min, max)` (not empty) placed by `to_world`, from its centre and half extents (the absolute
-/// matrix spreads the extents: the exact bounds of the placed corners, in a fifth of the arithmetic of placing all
-/// eight), grown by [`PLACED_MARGIN`] of the magnitudes it was computed from, so that rounding leaves no placed
-/// corner out; the eight corners placed ([`map_bounds`]) where that arithmetic overflows.
-fn placed_box(to_world: &Affine3A, (min, max): Bounds) -> Bounds {
-    let (centre, half) = ((min + max) * 0.5, (max - min) * 0.5);
-    let spread = Mat3A::from_cols(to_world.x_axis.abs(), to_world.y_axis.abs(), to_world.z_axis.abs());
-    let (placed_centre, placed_half) = (to_world.transform_point3(centre), Vec3::from(spread * Vec3A::from(half)));
-    let magnitude =
-        Vec3::from(spread * Vec3A::from(centre.abs())) + Vec3::from(to_world.translation.abs()) + placed_half;
-    let reach = placed_half + magnitude * PLACED_MARGIN;
-    let placed = (placed_centre - reach, placed_centre + reach);
-    match placed.0.is_finite() && placed.1.is_finite() {
-        true => placed,
-        false => map_bounds(to_world, (min, max)),
     }
 }
 
@@ -307,35 +285,5 @@ impl TransformNode {
     /// The placed child's box over all of time.
     pub fn bounds(&self) -> Bounds {
         self.bounds
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use glam::{Quat, Vec3};
-
-    use super::*;
-
-    #[test]
-    fn a_placed_box_holds_every_placed_corner_and_little_more() {
-        let boxes = [(Vec3::new(-1.0, 0.0, 2.0), Vec3::new(3.0, 0.5, 2.0)), (Vec3::splat(-1e-3), Vec3::splat(7e4))];
-        for k in 0..64 {
-            let turn = Quat::from_euler(glam::EulerRot::XYZ, k as f32 * 0.7, k as f32 * 1.3, k as f32 * 0.1);
-            let scale = Vec3::new(1.0 + k as f32, if k % 3 == 0 { -0.5 } else { 0.01 }, 1.0);
-            let shift = Vec3::new(1e6 * (k % 5) as f32, -3.0 * k as f32, 0.25);
-            let to_world = Affine3A::from_scale_rotation_translation(scale, turn, shift);
-            for bounds in boxes {
-                let (lo, hi) = placed_box(&to_world, bounds);
-                let corners = map_bounds(&to_world, bounds);
-                assert!(corners.0.cmpge(lo).all() && corners.1.cmple(hi).all(), "{corners:?} outside {lo} .. {hi}");
-                let slack = (hi - lo) - (corners.1 - corners.0);
-                let size = (corners.1 - corners.0).max_element() + shift.abs().max_element();
-                assert!(slack.max_element() <= size * 1e-5, "{lo} .. {hi} against {corners:?}");
-            }
-        }
-        // Extents that overflow: the corners placed, as far as f32 reaches (infinite here), never NaN.
-        let huge = (Vec3::splat(-3e38), Vec3::splat(3e38));
-        let (lo, hi) = placed_box(&Affine3A::from_rotation_z(0.3), huge);
-        assert!(!lo.is_nan() && !hi.is_nan() && lo.cmple(huge.0).all() && hi.cmpge(huge.1).all(), "{lo} .. {hi}");
     }
 }
