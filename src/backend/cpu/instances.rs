@@ -165,12 +165,12 @@ impl InstanceBvh {
             motion: options.motion,
             child_boxes: child_boxes(&instances),
             instances,
-            stack_size: 0,
+            stack_size: WideTree::stack_size_within(depth) + child_stack,
             bounds,
             update_order: None,
         };
         bvh.refit_boxes(&order, &key_boxes);
-        bvh.collapse(depth, child_stack);
+        bvh.collapse();
         if options.flags.contains(BuildFlags::ALLOW_UPDATE) {
             order.shrink_to_fit();
             bvh.update_order = Some(order);
@@ -178,14 +178,12 @@ impl InstanceBvh {
         Ok(bvh)
     }
 
-    /// Collapses the nodes of a static accel into its wide ones, and sets its stack size for walks of either, the
-    /// binary nodes being `depth` deep and the children needing `child_stack` entries: enough for any collapse of
-    /// nodes of that depth ([`WideTree::stack_size_within`]), so that a refit's collapse fits it too.
-    pub(super) fn collapse(&mut self, depth: usize, child_stack: usize) {
+    /// Collapses the nodes of a static accel into its wide ones (after a build, a refit or a read). Its stack size,
+    /// set from the binary nodes' depth ([`WideTree::stack_size_within`]), holds a walk of either and of any collapse.
+    pub(super) fn collapse(&mut self) {
         if self.node_keys.is_none() {
             self.wide = WideTree::collapse(&self.nodes);
         }
-        self.stack_size = WideTree::stack_size_within(depth) + child_stack;
     }
 
     /// Refits the nodes (and their key boxes) to `key_boxes` of the instances in input order; `order` gives the
@@ -224,9 +222,7 @@ impl InstanceBvh {
         next.child_boxes = child_boxes(&next.instances);
         let key_boxes = instance_key_boxes(instances, &self.motion);
         next.refit_boxes(order, &key_boxes);
-        if next.node_keys.is_none() {
-            next.wide = WideTree::collapse(&next.nodes);
-        }
+        next.collapse();
         next.bounds = key_boxes.iter().copied().fold(EMPTY, union);
         Ok(next)
     }

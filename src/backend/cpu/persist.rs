@@ -33,8 +33,7 @@ use super::CpuAccel;
 use super::bvh::{Node, NodeKeys};
 use super::instances::{InstanceBvh, child_boxes, cpu_child};
 use super::triangles::{RandomAccess, TriangleBvh, corner_bounds};
-use super::wide::WideBvh;
-use super::wide::WideTree;
+use super::wide::{WideBvh, WideTree};
 use crate::accel::{AccelKind, BuildFlags, BuildOptions};
 use crate::backend::Shape;
 use crate::context::Accel;
@@ -432,11 +431,11 @@ impl InstanceBvh {
             motion: options.motion,
             child_boxes: child_boxes(&instances),
             instances,
-            stack_size: 0,
+            stack_size: WideTree::stack_size_within(depth) + child_stack,
             bounds,
             update_order,
         };
-        bvh.collapse(depth, child_stack);
+        bvh.collapse();
         Ok(bvh)
     }
 }

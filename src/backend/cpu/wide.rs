@@ -201,21 +201,13 @@ impl WideBvh {
         wide
     }
 
-    /// The union of the images under `place` of the boxes of the lanes [`PLACED_LEVELS`] nodes down from the root
-    /// (or of a leaf's lane where the path ends sooner): a box around the triangles as `place` moves them (e.g. an
-    /// instance's placement), tighter than the image of the root's box when `place` turns it; empty without nodes.
+    /// The union of the images under `place` of the boxes of the root's lanes: a box around the triangles as `place`
+    /// moves them (e.g. an instance's placement), tighter than the image of the root's box when `place` turns it;
+    /// empty without nodes. (The lanes a level further down, up to `WIDTH²` boxes, traced no faster for eight times
+    /// the instance build's time: BENCHMARKS.md, "Instances entered through their children's own boxes".)
     pub fn placed_bounds(&self, place: impl Fn(Bounds) -> Bounds) -> Bounds {
-        let mut bounds = EMPTY;
-        let mut opened = if self.nodes.is_empty() { vec![] } else { vec![(0, 1)] };
-        while let Some((node, level)) = opened.pop() {
-            for lane in 0..usize::from(self.children[node]) {
-                match self.nodes[node].count[lane] {
-                    0 if level < PLACED_LEVELS => opened.push((self.nodes[node].index[lane] as usize, level + 1)),
-                    _ => bounds = union(bounds, place(self.nodes[node].lane_box(lane))),
-                }
-            }
-        }
-        bounds
+        let Some(root) = self.nodes.first() else { return EMPTY };
+        (0..usize::from(self.children[0])).map(|lane| place(root.lane_box(lane))).fold(EMPTY, union)
     }
 
     /// What the leaves' slots in the blocks hold besides corners.
@@ -223,9 +215,9 @@ impl WideBvh {
         LeafSlots { ids: &self.ids, masks: self.masks.as_deref() }
     }
 
-    /// Stack entries a traversal needs: each node visited leaves at most `WIDTH − 1` children waiting.
+    /// Stack entries a traversal needs ([`stack_size_of`]).
     pub fn stack_size(&self) -> usize {
-        self.depth * (WIDTH - 1) + 1
+        stack_size_of(self.depth)
     }
 
     /// Bytes it occupies.
@@ -460,6 +452,11 @@ fn wide_node(binary: &[Node], lanes: &[Lane], leaf_index: impl Fn(&Node) -> u32)
     node
 }
 
+/// Stack entries a walk of wide nodes `depth` deep needs: each node visited leaves at most `WIDTH − 1` lanes waiting.
+const fn stack_size_of(depth: usize) -> usize {
+    depth * (WIDTH - 1) + 1
+}
+
 /// How many of a collapsed node's `lanes` are occupied (they come first).
 fn occupied(lanes: &[Lane]) -> usize {
     lanes.iter().take_while(|lane| lane.binary != EMPTY_LANE).count()
@@ -513,15 +510,15 @@ impl WideTree {
         leaves
     }
 
-    /// Stack entries a walk needs: each node visited leaves at most `WIDTH − 1` children waiting.
+    /// Stack entries a walk needs ([`stack_size_of`]).
     pub fn stack_size(&self) -> usize {
-        self.depth * (WIDTH - 1) + 1
+        stack_size_of(self.depth)
     }
 
     /// Stack entries enough for a walk of a collapse of binary nodes `depth` deep (a collapse is no deeper than
     /// `depth + 1` wide nodes), and for a walk of the binary nodes themselves (`depth + 1`).
     pub const fn stack_size_within(depth: usize) -> usize {
-        (depth + 1) * (WIDTH - 1) + 1
+        stack_size_of(depth + 1)
     }
 
     /// Bytes it occupies.
@@ -535,11 +532,6 @@ impl WideTree {
         Tree { nodes: &self.nodes, children: &self.children, stack_size: self.stack_size() }
     }
 }
-
-/// Levels of nodes whose lanes' boxes [`WideBvh::placed_bounds`] places one by one: the root's, at most [`WIDTH`]
-/// boxes (two levels, up to `WIDTH²` boxes, traced no faster for eight times the instance build's time: BENCHMARKS.md,
-/// "Instances entered through their children's own boxes").
-const PLACED_LEVELS: usize = 1;
 
 /// What a wide BVH is besides its nodes' boxes and its leaves' triangles.
 struct Skeleton {
