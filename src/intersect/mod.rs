@@ -109,7 +109,7 @@ impl PreparedRay {
     /// it is (to test a box there first: [`aabb::reaches`]).
     #[inline(always)]
     pub fn carried(&self, to: &Affine3A) -> (Vec3A, Vec3A) {
-        (to.transform_point3a(self.origin), to.transform_vector3a(self.direction))
+        carry(self.origin, self.direction, to)
     }
 
     /// This ray from `origin` along `direction` (as [`PreparedRay::carried`] gives them), with its range, time,
@@ -128,6 +128,21 @@ impl PreparedRay {
         };
         PreparedRay::new(&ray, RayFlags::empty())
     }
+}
+
+/// `origin` and `direction` in the space `to` maps into.
+#[inline(always)]
+fn carry(origin: Vec3A, direction: Vec3A, to: &Affine3A) -> (Vec3A, Vec3A) {
+    (to.transform_point3a(origin), to.transform_vector3a(direction))
+}
+
+/// `ray` (as [`traced`] makes it) carried into the space `to` maps into, as [`traced`] makes it there: the ray that
+/// [`PreparedRay::transformed`] prepares from `ray` prepared, bit for bit (so that rays carried together into an
+/// instance, [`PreparedRay::from_traced`] of each, meet what each meets alone).
+#[inline(always)]
+pub fn carried(ray: &Ray, to: &Affine3A) -> Ray {
+    let (origin, direction) = carry(ray.origin, ray.direction, to);
+    traced(&Ray { origin, direction, ..*ray }, RayFlags::empty())
 }
 
 #[cfg(test)]

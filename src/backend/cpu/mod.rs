@@ -10,6 +10,8 @@ pub(crate) mod bvh;
 pub(crate) mod collapse;
 #[cfg(target_arch = "x86_64")]
 mod filter;
+#[cfg(target_arch = "x86_64")]
+mod instance_packets;
 mod instances;
 pub mod large_pages;
 mod occlusion;

@@ -8,7 +8,7 @@
 //! **Same answers as alone.** A ray takes part only in the box tests of nodes it entered, with the same operations
 //! as [`super::wide`]'s lane test and its own nearest hit so far, and a popped node is re-checked against that hit
 //! (walks that want no distances may enter inner nodes by the packet's interval alone, but test leaves ray by ray:
-//! the same leaves, [`WideBvh::walk_packet`]). The triangles it meets go to its own collector through the same test
+//! the same leaves, [`PacketTree::walk`]). The triangles it meets go to its own collector through the same test
 //! (or, for an `any` query that keeps no hit, the same range test in the lanes). So every triangle that the ray alone
 //! would find nearest is offered to it, and the tie rule (distance, then ids) picks the same hit whatever the
 //! order: closest, `all` and `count` answers are byte for byte those of tracing each ray alone; only which hit an
@@ -24,8 +24,9 @@ use glam::Vec3A;
 use super::blocks::{Block, MetLanes};
 use super::filter;
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
+use super::traverse::Stacks;
 use super::triangles::TriangleBvh;
-use super::wide::{CACHE_LINE, WIDTH, WideBvh, WideNode, prefetch};
+use super::wide::{CACHE_LINE, Tree, WIDTH, WideBvh, WideNode, prefetch};
 use crate::cpu_features::{has_avx2, has_avx512};
 use crate::format::{Ray, RayFlags};
 use crate::intersect::PreparedRay;
@@ -43,7 +44,7 @@ const _: () = assert!(MAX_PACKET_RAYS == GROUP_RAYS && GROUP_RAYS.is_multiple_of
 const MIN_COSINE: f32 = 0.99;
 
 /// How far a packet's origins may lie from its first ray's, as a fraction of the scene box's diagonal.
-const MAX_ORIGIN_SPREAD: f32 = 0.01;
+pub(super) const MAX_ORIGIN_SPREAD: f32 = 0.01;
 
 /// A node lane waiting on a packet's stack: its index and count (as its node holds them), the rays that enter its
 /// box, and (in a closest-hit walk) the distance at which each does.
@@ -64,7 +65,7 @@ pub(crate) struct PacketEntry {
 /// an order of boxes, and the same direction signs for the first two rays and the last (most incoherent groups fail
 /// there). The rest of the test is [`PacketLanes::new`] (every ray's signs, which the box test treats alike, and the
 /// same projection axes, which the triangle test needs) and [`PacketLanes::coherent`].
-fn may_pack(rays: &[Ray], collectors: &[Collector<'_>]) -> bool {
+pub(super) fn may_pack(rays: &[Ray], collectors: &[Collector<'_>]) -> bool {
     // `PreparedRay::negative`: a −0 component is not negative.
     let signs = |ray: &Ray| ray.direction.cmplt(Vec3A::ZERO).bitmask();
     let [first, second, .., last] = rays else { return false };
@@ -73,164 +74,227 @@ fn may_pack(rays: &[Ray], collectors: &[Collector<'_>]) -> bool {
     signs(second) == signs(first) && signs(last) == signs(first) && share_order()
 }
 
-impl TriangleBvh {
-    /// Traces those of `rays` (a group of the batch driver's) that make packets through a static accel, and says
-    /// which it traced (a bit a ray): the whole group as one AVX-512 packet where the CPU has AVX-512 and the rays
-    /// make one, else each half as an AVX2 packet where it makes one. The rest are to be traced alone.
-    pub(super) fn trace_packets(
-        &self,
-        stack: &mut [PacketEntry],
-        rays: &[Ray],
-        collectors: &mut [Collector<'_>],
-        stats: &mut TraceStats,
-    ) -> u32 {
-        if self.node_keys.is_some() || !has_avx2() {
-            return 0;
-        }
-        if rays.len() == MAX_PACKET_RAYS && has_avx512() && may_pack(rays, collectors) {
-            // SAFETY: the CPU has AVX-512F and the AVX2 features, as just checked.
-            if unsafe { self.trace_packet_avx512(stack, rays, collectors, stats) } {
-                return (1 << MAX_PACKET_RAYS) - 1;
-            }
-        }
-        let mut traced = 0;
-        let halves = rays.chunks_exact(AVX2_PACKET_RAYS).zip(collectors.chunks_exact_mut(AVX2_PACKET_RAYS));
-        for (half, (rays, collectors)) in halves.enumerate() {
-            // SAFETY: the CPU has the AVX2 features, as checked above.
-            if may_pack(rays, collectors) && unsafe { self.trace_packet_avx2(stack, rays, collectors, stats) } {
-                traced |= ((1 << AVX2_PACKET_RAYS) - 1) << (half * AVX2_PACKET_RAYS);
-            }
-        }
-        traced
-    }
-
-    /// [`TriangleBvh::trace_packet`] in AVX2 registers, 8 rays.
-    ///
-    /// # Safety
-    /// The CPU must have the features [`has_avx2`] checks; `rays` are 8.
-    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn trace_packet_avx2(
-        &self,
-        stack: &mut [PacketEntry],
-        rays: &[Ray],
-        collectors: &mut [Collector<'_>],
-        stats: &mut TraceStats,
-    ) -> bool {
-        // SAFETY: the CPU has AVX2 (this function's contract).
-        unsafe { self.trace_packet::<__m256>(stack, rays, collectors, stats) }
-    }
-
-    /// [`TriangleBvh::trace_packet`] in AVX-512 registers, 16 rays.
-    ///
-    /// # Safety
-    /// The CPU must have AVX-512F and the features [`has_avx2`] checks; `rays` are 16.
-    #[target_feature(enable = "avx512f,avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-    unsafe fn trace_packet_avx512(
-        &self,
-        stack: &mut [PacketEntry],
-        rays: &[Ray],
-        collectors: &mut [Collector<'_>],
-        stats: &mut TraceStats,
-    ) -> bool {
-        // SAFETY: the CPU has AVX-512F and AVX2 (this function's contract).
-        unsafe { self.trace_packet::<__m512>(stack, rays, collectors, stats) }
-    }
+/// A static accel whose coherent rays are walked together as packets: a geometry accel ([`TriangleBvh`]), or an
+/// instance accel, whose packets are carried into the instances' spaces ([`super::instance_packets`]).
+pub(super) trait PacketAccel {
+    /// Whether packets walk it (a static accel).
+    fn walks_packets(&self) -> bool;
 
     /// Traces `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]) as a packet in `V` registers if they head the
-    /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did: compiled once for each
-    /// visit order ([`WideBvh::walk_packet`]'s `NEAREST_FIRST`), the one the collectors want.
+    /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did, for the visit order
+    /// `NEAREST_FIRST` (which must be what the collectors want, [`Collector::wants_nearest_first`]).
     ///
     /// # Safety
-    /// The CPU must have `V`'s instruction set and AVX2.
-    #[inline(always)]
-    unsafe fn trace_packet<V: RayLanes>(
+    /// The CPU must have `V`'s instruction set and AVX2, and the caller be compiled with them.
+    unsafe fn trace_packet_in_order<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
-        stack: &mut [PacketEntry],
+        stacks: &mut Stacks,
         rays: &[Ray],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
-    ) -> bool {
-        // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
-        unsafe {
-            match collectors[0].wants_nearest_first() {
-                true => self.trace_packet_in_order::<V, true>(stack, rays, collectors, stats),
-                false => self.trace_packet_in_order::<V, false>(stack, rays, collectors, stats),
-            }
+    ) -> bool;
+}
+
+/// Traces those of `rays` (a group of the batch driver's) that make packets through `accel`, and says which it traced
+/// (a bit a ray): the whole group as one AVX-512 packet where the CPU has AVX-512 and the rays make one, else each
+/// half as an AVX2 packet where it makes one. The rest are to be traced alone.
+pub(super) fn trace_packets(
+    accel: &impl PacketAccel,
+    stacks: &mut Stacks,
+    rays: &[Ray],
+    collectors: &mut [Collector<'_>],
+    stats: &mut TraceStats,
+) -> u32 {
+    if !accel.walks_packets() || !has_avx2() {
+        return 0;
+    }
+    if rays.len() == MAX_PACKET_RAYS && has_avx512() && may_pack(rays, collectors) {
+        // SAFETY: the CPU has AVX-512F and the AVX2 features, as just checked.
+        if unsafe { trace_packet_avx512(accel, stacks, rays, collectors, stats) } {
+            return (1 << MAX_PACKET_RAYS) - 1;
         }
     }
+    let mut traced = 0;
+    let halves = rays.chunks_exact(AVX2_PACKET_RAYS).zip(collectors.chunks_exact_mut(AVX2_PACKET_RAYS));
+    for (half, (rays, collectors)) in halves.enumerate() {
+        // SAFETY: the CPU has the AVX2 features, as checked above.
+        if may_pack(rays, collectors) && unsafe { trace_packet_avx2(accel, stacks, rays, collectors, stats) } {
+            traced |= ((1 << AVX2_PACKET_RAYS) - 1) << (half * AVX2_PACKET_RAYS);
+        }
+    }
+    traced
+}
 
-    /// [`TriangleBvh::trace_packet`] for the visit order `NEAREST_FIRST` (each has its own leaf closure, so that
-    /// the walk inlines it).
-    ///
-    /// # Safety
-    /// The CPU must have `V`'s instruction set and AVX2.
+/// Defines `$name`, [`trace_packet`] in `$lanes` registers compiled with the target features `$features`.
+macro_rules! trace_packet_compiled_for {
+    ($(#[$doc:meta])* $name:ident, $lanes:ty, $features:literal) => {
+        $(#[$doc])*
+        ///
+        /// # Safety
+        /// The CPU must have the features this build is compiled with; `rays` are as many as its registers' lanes.
+        #[target_feature(enable = $features)]
+        unsafe fn $name(
+            accel: &impl PacketAccel,
+            stacks: &mut Stacks,
+            rays: &[Ray],
+            collectors: &mut [Collector<'_>],
+            stats: &mut TraceStats,
+        ) -> bool {
+            // SAFETY: the CPU has the features (this function's contract).
+            unsafe { trace_packet::<$lanes>(accel, stacks, rays, collectors, stats) }
+        }
+    };
+}
+
+trace_packet_compiled_for!(
+    /// [`trace_packet`] in AVX2 registers, 8 rays (the features [`has_avx2`] checks).
+    trace_packet_avx2,
+    __m256,
+    "avx2,fma,bmi1,bmi2,lzcnt,popcnt"
+);
+
+trace_packet_compiled_for!(
+    /// [`trace_packet`] in AVX-512 registers, 16 rays (AVX-512F and the features [`has_avx2`] checks).
+    trace_packet_avx512,
+    __m512,
+    "avx512f,avx2,fma,bmi1,bmi2,lzcnt,popcnt"
+);
+
+/// [`PacketAccel::trace_packet_in_order`] compiled once for each visit order, the one the collectors want.
+///
+/// # Safety
+/// The CPU must have `V`'s instruction set and AVX2.
+#[inline(always)]
+unsafe fn trace_packet<V: RayLanes>(
+    accel: &impl PacketAccel,
+    stacks: &mut Stacks,
+    rays: &[Ray],
+    collectors: &mut [Collector<'_>],
+    stats: &mut TraceStats,
+) -> bool {
+    // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
+    unsafe {
+        match collectors[0].wants_nearest_first() {
+            true => accel.trace_packet_in_order::<V, true>(stacks, rays, collectors, stats),
+            false => accel.trace_packet_in_order::<V, false>(stacks, rays, collectors, stats),
+        }
+    }
+}
+
+impl PacketAccel for TriangleBvh {
+    fn walks_packets(&self) -> bool {
+        self.node_keys.is_none()
+    }
+
     #[inline(always)]
     unsafe fn trace_packet_in_order<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
+        stacks: &mut Stacks,
+        rays: &[Ray],
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> bool {
+        let every_ray = (1 << V::RAYS) - 1;
+        // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        unsafe {
+            self.walk_packet::<V, NEAREST_FIRST>(
+                &mut stacks.packet,
+                rays,
+                every_ray,
+                &InstanceScope::WORLD,
+                collectors,
+                stats,
+            )
+        }
+    }
+}
+
+impl TriangleBvh {
+    /// Walks the rays of `rays` ([`RayLanes::RAYS`] of them, as [`crate::intersect::traced`] makes them, in this
+    /// accel's space) whose bits are set in `active` as a packet, in `scope`, if all of them head the same way from
+    /// nearby origins ([`PacketLanes::coherent`]), and says whether it did; for the visit order `NEAREST_FIRST`,
+    /// which must be what the collectors want. The accel must be static.
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set and AVX2.
+    #[inline(always)]
+    pub(super) unsafe fn walk_packet<V: RayLanes, const NEAREST_FIRST: bool>(
+        &self,
         stack: &mut [PacketEntry],
         rays: &[Ray],
+        active: u32,
+        scope: &InstanceScope,
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
         // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         let Some(lanes) = (unsafe { PacketLanes::<V>::new(rays) }) else { return false };
-        if !unsafe { lanes.coherent(&rays[0], MAX_ORIGIN_SPREAD * self.wide.diagonal()) } {
+        let tree = self.wide.packet_tree();
+        if !unsafe { lanes.coherent(&rays[0], MAX_ORIGIN_SPREAD * tree.diagonal()) } {
             return false;
         }
         // An any-hit query that keeps no hit, without face culling: a hit in a ray's range is all that matters to it.
         let culling = RayFlags::CULL_BACK_FACING | RayFlags::CULL_FRONT_FACING;
         let accepts_in_lanes = collectors[0].keeps_no_hit() && !rays.iter().any(|ray| ray.flags.intersects(culling));
         let leaf_slots = self.wide.leaf_slots();
-        let leaf = |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
-            stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
-            let (mut met, mut finished) = (MetLanes::NONE, 0u32);
-            for slot in slots {
-                let (edges, hits) = unsafe { lanes.intersect(self.wide.blocks.lane_of(slot), active, &mut met) };
-                let mut candidates = edges | hits;
-                if candidates == 0 {
-                    continue;
-                }
-                let (corners, (id, mask)) = (self.wide.blocks.corners(slot), leaf_slots.id_and_mask(slot));
-                let candidate = TriangleCandidate {
-                    corners: &corners,
-                    id,
-                    mask,
-                    geometry_flags: self.geometry_flags[id.geom_id as usize],
-                };
-                if accepts_in_lanes && candidate.mask == 0 {
-                    // What `accept_hit` would ask of each hit ray, asked in the lanes: its range.
-                    let accepted = hits & unsafe { lanes.within_range(&met.t) };
-                    let mut bits = accepted;
-                    while bits != 0 {
-                        collectors[bits.trailing_zeros() as usize].offer_found();
-                        bits &= bits - 1;
+        // The closures are inlined at once: one left to itself is compiled without the instruction sets of the
+        // function it is called from, and its intrinsics become calls.
+        let leaf = {
+            #[inline(always)]
+            |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
+                stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
+                let (mut met, mut finished) = (MetLanes::NONE, 0u32);
+                for slot in slots {
+                    let (edges, hits) = unsafe { lanes.intersect(self.wide.blocks.lane_of(slot), active, &mut met) };
+                    let mut candidates = edges | hits;
+                    if candidates == 0 {
+                        continue;
                     }
-                    finished |= accepted;
-                    candidates = edges;
-                }
-                // Ray by ray in lane order, as each alone would be offered the triangle: rays on an edge or a vertex
-                // through the whole scalar test (its exact rule), the others from the hit found in the lanes.
-                while candidates != 0 {
-                    let lane = candidates.trailing_zeros() as usize;
-                    candidates &= candidates - 1;
-                    let (ray, collector) = (&rays[lane], &mut collectors[lane]);
-                    if edges & (1 << lane) != 0 {
-                        consider_on_edge(ray, &candidate, collector);
-                    } else if ray.mask & candidate.mask == 0 {
-                        accept_hit(ray.tmin, ray.flags, &candidate, &InstanceScope::WORLD, collector, met.hit(lane));
+                    let (corners, (id, mask)) = (self.wide.blocks.corners(slot), leaf_slots.id_and_mask(slot));
+                    let candidate = TriangleCandidate {
+                        corners: &corners,
+                        id,
+                        mask,
+                        geometry_flags: self.geometry_flags[id.geom_id as usize],
+                    };
+                    if accepts_in_lanes && candidate.mask == 0 {
+                        // What `accept_hit` would ask of each hit ray, asked in the lanes: its range.
+                        let accepted = hits & unsafe { lanes.within_range(&met.t) };
+                        let mut bits = accepted;
+                        while bits != 0 {
+                            collectors[bits.trailing_zeros() as usize].offer_found();
+                            bits &= bits - 1;
+                        }
+                        finished |= accepted;
+                        candidates = edges;
                     }
-                    // Without a branch: which rays a triangle finishes is hard to predict.
-                    finished |= u32::from(collector.done()) << lane;
+                    // Ray by ray in lane order, as each alone would be offered the triangle: rays on an edge or a vertex
+                    // through the whole scalar test (its exact rule), the others from the hit found in the lanes.
+                    while candidates != 0 {
+                        let lane = candidates.trailing_zeros() as usize;
+                        candidates &= candidates - 1;
+                        let (ray, collector) = (&rays[lane], &mut collectors[lane]);
+                        if edges & (1 << lane) != 0 {
+                            consider_on_edge(ray, &candidate, scope, collector);
+                        } else if ray.mask & candidate.mask == 0 {
+                            accept_hit(ray.tmin, ray.flags, &candidate, scope, collector, met.hit(lane));
+                        }
+                        // Without a branch: which rays a triangle finishes is hard to predict.
+                        finished |= u32::from(collector.done()) << lane;
+                    }
+                    active &= !finished;
+                    if active == 0 {
+                        break;
+                    }
                 }
-                active &= !finished;
-                if active == 0 {
-                    break;
-                }
+                finished
             }
-            finished
         };
-        let prefetch_leaf = |slots: Range<usize>| self.prefetch_leaf(slots);
-        unsafe { self.wide.walk_packet::<V, NEAREST_FIRST>(stack, &lanes, collectors, stats, leaf, prefetch_leaf) };
+        let prefetch_leaf = {
+            #[inline(always)]
+            |slots: Range<usize>| self.prefetch_leaf(slots)
+        };
+        unsafe { tree.walk::<V, NEAREST_FIRST>(stack, &lanes, active, collectors, stats, leaf, prefetch_leaf) };
         true
     }
 }
@@ -239,20 +303,44 @@ impl TriangleBvh {
 /// exact rule: prepared alone, which is rare enough not to be worth keeping a prepared ray for every ray.
 #[cold]
 #[inline(never)]
-fn consider_on_edge(ray: &Ray, candidate: &TriangleCandidate<'_>, collector: &mut Collector<'_>) {
-    consider_triangle(&PreparedRay::from_traced(ray), candidate, &InstanceScope::WORLD, collector);
+fn consider_on_edge(
+    ray: &Ray,
+    candidate: &TriangleCandidate<'_>,
+    scope: &InstanceScope,
+    collector: &mut Collector<'_>,
+) {
+    consider_triangle(&PreparedRay::from_traced(ray), candidate, scope, collector);
+}
+
+/// Wide nodes as a packet walks them: the nodes, the box around them all, and whether they fit the CPU's last-level
+/// cache, where a node visited in vain costs little ([`PacketTree::walk`]).
+pub(super) struct PacketTree<'a> {
+    /// The nodes.
+    pub(super) tree: Tree<'a>,
+    /// The box around them (the root's).
+    pub(super) root: (Vec3A, Vec3A),
+    /// Whether they fit the last-level cache.
+    pub(super) in_cache: bool,
 }
 
 impl WideBvh {
+    /// Its nodes as a packet walks them.
+    fn packet_tree(&self) -> PacketTree<'_> {
+        PacketTree { tree: self.tree(), root: self.root, in_cache: self.in_cache }
+    }
+}
+
+impl PacketTree<'_> {
     /// The length of the root box's diagonal (0 when there are no nodes).
-    fn diagonal(&self) -> f32 {
+    pub(super) fn diagonal(&self) -> f32 {
         (self.root.1 - self.root.0).length()
     }
 
-    /// Walks the nodes with a packet of rays, nearest first (by the nearest of the rays entering a box) when
-    /// `NEAREST_FIRST` (which must be what the collectors want, [`Collector::wants_nearest_first`]), and hands each
-    /// leaf some of them reach (its slots and those rays, a bit each) to `leaf`, which returns the rays it finished
-    /// (their collectors done). `prefetch_leaf` starts loading a leaf's data as soon as a ray enters the leaf's box.
+    /// Walks the nodes with the rays of a packet whose bits are set in `rays`, nearest first (by the nearest of the
+    /// rays entering a box) when `NEAREST_FIRST` (which must be what the collectors want,
+    /// [`Collector::wants_nearest_first`]), and hands each leaf some of them reach (its slots and those rays, a bit
+    /// each) to `leaf`, which returns the rays it finished (their collectors done). `prefetch_leaf` starts loading a
+    /// leaf's data as soon as a ray enters the leaf's box.
     ///
     /// Only a closest-hit query moves a ray's cull distance during the walk (to its nearest hit): a lane waiting on
     /// the stack keeps its rays' entry distances, to drop the rays whose hit has come nearer by the time it is taken
@@ -260,7 +348,7 @@ impl WideBvh {
     /// is pushed (the same rays as when taken off), and the entry holds no distances.
     ///
     /// The other kinds want no distances to order the lanes either, so where the packet has its interval and the
-    /// accel fits the cache ([`WideBvh::in_cache`]), an inner lane is entered by all the active rays as soon as the
+    /// nodes fit the cache ([`PacketTree::in_cache`]), an inner lane is entered by all the active rays as soon as the
     /// interval lets some of them in: each ray's own box test waits for the leaves, which are tested ray by ray
     /// before their triangles are. A ray then walks nodes it would not enter alone (a box it misses inside one its
     /// packet's interval meets), but it meets the same leaves and triangles: a leaf's box lies within its ancestors',
@@ -272,16 +360,18 @@ impl WideBvh {
     /// The CPU must have `V`'s instruction set and AVX2.
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    unsafe fn walk_packet<V: RayLanes, const NEAREST_FIRST: bool>(
+    pub(super) unsafe fn walk<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
         stack: &mut [PacketEntry],
         lanes: &PacketLanes<V>,
+        rays: u32,
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
         mut leaf: impl FnMut(Range<usize>, u32, &mut [Collector<'_>], &mut TraceStats) -> u32,
         prefetch_leaf: impl Fn(Range<usize>),
     ) {
-        if self.nodes.is_empty() {
+        let Tree { nodes, children, .. } = self.tree;
+        if nodes.is_empty() {
             return;
         }
         let mut cull = [0f32; MAX_PACKET_RAYS];
@@ -293,10 +383,10 @@ impl WideBvh {
         let last = std::array::from_fn(|axis| if lanes.negative[axis] { lo[axis] } else { hi[axis] });
         // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         let (mut alive, _) = unsafe {
-            let (far, all) = (V::load(&cull), V::mask((1 << V::RAYS) - 1));
-            lanes.enter_box::<false>(first, last, far, all, &mut [0.0; MAX_PACKET_RAYS])
+            let (far, given) = (V::load(&cull), V::mask(rays));
+            lanes.enter_box::<false>(first, last, far, given, &mut [0.0; MAX_PACKET_RAYS])
         };
-        stats.nodes_visited += V::RAYS as u64;
+        stats.nodes_visited += u64::from(rays.count_ones());
         debug_assert_eq!(NEAREST_FIRST, collectors[0].wants_nearest_first());
         let (mut len, mut node, mut rays_in_node) = (0usize, 0usize, alive);
         let inner_by_interval = !NEAREST_FIRST && self.in_cache && lanes.interval.is_some();
@@ -307,8 +397,8 @@ impl WideBvh {
         let mut near = [[0f32; MAX_PACKET_RAYS]; WIDTH];
         while rays_in_node != 0 {
             let active = rays_in_node;
-            let owner = &self.nodes[node];
-            let children = usize::from(self.children[node]);
+            let owner = &nodes[node];
+            let children = usize::from(children[node]);
             stats.nodes_visited += (children * active.count_ones() as usize) as u64;
             let mut count = 0;
             // The lanes some active ray may enter, by the packet's interval; then each of them exactly.
@@ -324,7 +414,7 @@ impl WideBvh {
                 None => u32::MAX,
             } & ((1 << children) - 1);
             // Where the walk wants no distances, an inner lane the interval lets in is taken with all the active rays
-            // ([`WideBvh::walk_packet`]); only leaves are tested ray by ray.
+            // ([`PacketTree::walk`]); only leaves are tested ray by ray.
             let by_interval = |lane: usize| inner_by_interval && owner.count[lane] == 0;
             while lanes_left != 0 {
                 let lane = lanes_left.trailing_zeros() as usize;
@@ -341,7 +431,7 @@ impl WideBvh {
             for &(_, _, lane) in &entered[..count] {
                 let index = owner.index[lane] as usize;
                 match owner.count[lane] as usize {
-                    0 => prefetch::<{ size_of::<WideNode>() / CACHE_LINE }>(self.nodes.as_ptr().wrapping_add(index)),
+                    0 => prefetch::<{ size_of::<WideNode>() / CACHE_LINE }>(nodes.as_ptr().wrapping_add(index)),
                     leaf_size => prefetch_leaf(index..index + leaf_size),
                 }
             }
@@ -415,7 +505,7 @@ impl WideBvh {
 
 /// A packet's rays spread over `V`'s lanes, a ray a lane, once a packet: what [`PreparedRay::new`] computes for a ray
 /// alone, computed for all of them at once with the same operations (so the same bits).
-struct PacketLanes<V> {
+pub(super) struct PacketLanes<V> {
     /// Origin, by axis.
     origin: [V; 3],
     /// Direction, by axis.
@@ -462,7 +552,7 @@ impl<V: RayLanes> PacketLanes<V> {
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX.
     #[inline(always)]
-    unsafe fn new(rays: &[Ray]) -> Option<PacketLanes<V>> {
+    pub(super) unsafe fn new(rays: &[Ray]) -> Option<PacketLanes<V>> {
         // No `map` over registers here: its closure is compiled without the instruction set and might not be inlined.
         // SAFETY (all): the CPU has the instruction sets (the caller's contract).
         unsafe {
@@ -509,7 +599,7 @@ impl<V: RayLanes> PacketLanes<V> {
     /// # Safety
     /// The CPU must have `V`'s instruction set.
     #[inline(always)]
-    unsafe fn coherent(&self, first: &Ray, spread: f32) -> bool {
+    pub(super) unsafe fn coherent(&self, first: &Ray, spread: f32) -> bool {
         // No closures with register arithmetic here: they are compiled without the instruction set.
         // SAFETY: the CPU has the instruction set (the caller's contract).
         unsafe {
@@ -868,7 +958,7 @@ pub(super) mod tests {
 
     /// Rays from a camera over the lattice through a grid of points, some through its vertices and edges, some
     /// cut short by their range, some masked; in groups of eight neighbours.
-    fn camera_rays() -> Vec<Ray> {
+    pub(in crate::backend::cpu) fn camera_rays() -> Vec<Ray> {
         rays_from(|_| Vec3A::new(1.4, 1.6, 3.0), |target, eye| target - eye)
     }
 
@@ -900,9 +990,13 @@ pub(super) mod tests {
 
     /// Each ray's records of `query`, traced in packets of `width` rays (8: AVX2, 16: AVX-512) where they make one
     /// (returns how many did), or each alone when `width` is 1.
-    fn trace(bvh: &TriangleBvh, query: &Query, rays: &[Ray], width: usize) -> (Vec<u8>, Vec<u8>, usize) {
+    pub(in crate::backend::cpu) fn trace(
+        accel: &CpuAccel,
+        query: &Query,
+        rays: &[Ray],
+        width: usize,
+    ) -> (Vec<u8>, Vec<u8>, usize) {
         let rays: Vec<Ray> = rays.iter().map(|ray| traced(ray, query.flags)).collect();
-        let accel = CpuAccel::Triangles(Box::new(bvh.clone()));
         let mut stacks = accel.new_stacks();
         let records = query.records_per_ray();
         let mut hits = vec![0u8; query.hit_format.buffer_len(rays.len() * records)];
@@ -918,11 +1012,20 @@ pub(super) mod tests {
             // SAFETY: the tests call this only where the CPU has the width's instruction set.
             let traced = packet
                 && unsafe {
-                    match width {
-                        AVX2_PACKET_RAYS => {
-                            bvh.trace_packet_avx2(&mut stacks.packet, rays, &mut collectors, &mut stats)
+                    match (accel, width) {
+                        (CpuAccel::Triangles(bvh), AVX2_PACKET_RAYS) => {
+                            trace_packet_avx2(bvh.as_ref(), &mut stacks, rays, &mut collectors, &mut stats)
                         }
-                        _ => bvh.trace_packet_avx512(&mut stacks.packet, rays, &mut collectors, &mut stats),
+                        (CpuAccel::Triangles(bvh), _) => {
+                            trace_packet_avx512(bvh.as_ref(), &mut stacks, rays, &mut collectors, &mut stats)
+                        }
+                        (CpuAccel::Instances(bvh), AVX2_PACKET_RAYS) => {
+                            trace_packet_avx2(bvh, &mut stacks, rays, &mut collectors, &mut stats)
+                        }
+                        (CpuAccel::Instances(bvh), _) => {
+                            trace_packet_avx512(bvh, &mut stacks, rays, &mut collectors, &mut stats)
+                        }
+                        (CpuAccel::Transform(_), _) => false,
                     }
                 };
             if traced {
@@ -943,7 +1046,7 @@ pub(super) mod tests {
 
     /// `rays` (a 64 × 64 image's, row by row) reordered for packets of `width`: rows of 8 pixels make packets of 8;
     /// packets of 16 are 4 × 4 tiles, which head closer together than 16 pixels of a row of this small image.
-    fn in_packet_order(rays: &[Ray], width: usize) -> Vec<Ray> {
+    pub(in crate::backend::cpu) fn in_packet_order(rays: &[Ray], width: usize) -> Vec<Ray> {
         match width {
             AVX2_PACKET_RAYS => rays.to_vec(),
             _ => (0..rays.len()).map(|i| rays[(i / 256 * 4 + i % 16 / 4) * 64 + i / 16 % 16 * 4 + i % 4]).collect(),
@@ -951,7 +1054,7 @@ pub(super) mod tests {
     }
 
     /// The packet widths this CPU runs: 8 with AVX2, and 16 too with AVX-512.
-    fn widths() -> Vec<usize> {
+    pub(in crate::backend::cpu) fn widths() -> Vec<usize> {
         [(AVX2_PACKET_RAYS, has_avx2()), (MAX_PACKET_RAYS, has_avx512())]
             .into_iter()
             .filter_map(|(width, runs)| runs.then_some(width))
@@ -984,11 +1087,11 @@ pub(super) mod tests {
         let accels = [true, false].map(|in_cache| {
             let mut bvh = bvh.clone();
             bvh.wide.in_cache = in_cache;
-            bvh
+            CpuAccel::Triangles(Box::new(bvh))
         });
-        for (width, bvh) in widths().into_iter().flat_map(|width| accels.iter().map(move |bvh| (width, bvh))) {
+        for (width, accel) in widths().into_iter().flat_map(|width| accels.iter().map(move |accel| (width, accel))) {
             for (name, rays) in &ray_sets {
-                packets_agree(bvh, name, &in_packet_order(rays, width), width);
+                packets_agree(accel, name, &in_packet_order(rays, width), width, HitFormat::TTriidUV);
             }
         }
     }
@@ -1001,14 +1104,21 @@ pub(super) mod tests {
     }
 
     /// Checks that `rays` traced in packets of `width` get the answers they get alone, for every query kind, without
-    /// face culling, with the query's, and with some rays' own; `any` in the bitmask format too.
-    fn packets_agree(bvh: &TriangleBvh, name: &str, rays: &[Ray], width: usize) {
+    /// face culling, with the query's, and with some rays' own, in records of `records` (a format that holds `t`);
+    /// `any` in the bitmask format too.
+    pub(in crate::backend::cpu) fn packets_agree(
+        accel: &CpuAccel,
+        name: &str,
+        rays: &[Ray],
+        width: usize,
+        records: HitFormat,
+    ) {
         let groups = rays.len() / width;
         let culling = [(RayFlags::empty(), false), (RayFlags::CULL_BACK_FACING, false), (RayFlags::empty(), true)];
         let kinds = [QueryKind::Closest, QueryKind::All, QueryKind::Count, QueryKind::Any];
-        let formats = [HitFormat::TTriidUV, HitFormat::Bitmask];
+        let formats = [records, HitFormat::Bitmask];
         let cases = kinds.into_iter().flat_map(|kind| formats.map(|format| (kind, format)));
-        for (kind, format) in cases.filter(|&(kind, format)| format == HitFormat::TTriidUV || kind == QueryKind::Any) {
+        for (kind, format) in cases.filter(|&(kind, format)| format == records || kind == QueryKind::Any) {
             for (flags, some_rays_cull) in culling {
                 // Every fifth ray culls front faces itself.
                 let rays: Vec<Ray> = (rays.iter().enumerate())
@@ -1023,8 +1133,8 @@ pub(super) mod tests {
                     max_hits_per_ray: 4,
                     ..Query::closest(RayFormat::OriginTminDirectionTmax, format)
                 };
-                let (alone, alone_counts, _) = trace(bvh, &query, &rays, 1);
-                let (packed, packed_counts, packets) = trace(bvh, &query, &rays, width);
+                let (alone, alone_counts, _) = trace(accel, &query, &rays, 1);
+                let (packed, packed_counts, packets) = trace(accel, &query, &rays, width);
                 if format == HitFormat::Bitmask {
                     // A bit a ray: whether it hits, which packets must not change.
                     assert!(alone == packed, "{name} {kind:?} {flags:?} ×{width}: bitmasks differ");
@@ -1034,7 +1144,7 @@ pub(super) mod tests {
                 assert!(packets > groups * 3 / 4, "{name} {kind:?} ×{width}: {packets} of {groups} groups packed");
                 assert!(name != "pinhole" || packets < groups, "{name} ×{width}: no group traced alone");
                 let first_record = |ray: usize| ray * query.records_per_ray();
-                let hit = |hits: &[u8], ray: usize| HitFormat::TTriidUV.read(hits, first_record(ray)).is_hit();
+                let hit = |hits: &[u8], ray: usize| records.read(hits, first_record(ray)).is_hit();
                 let hits = (0..rays.len()).filter(|&ray| hit(&alone, ray)).count();
                 assert!(hits > rays.len() / 3 && hits < rays.len(), "{name} {kind:?}: {hits} rays hit");
                 match kind {
@@ -1190,7 +1300,8 @@ pub(super) mod tests {
     fn only_neighbours_heading_the_same_way_make_a_packet() {
         let (bvh, mesh) = scene();
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
-        let diagonal = bvh.wide.diagonal();
+        let diagonal = bvh.wide.packet_tree().diagonal();
+        let bvh = CpuAccel::Triangles(Box::new(bvh));
         for width in widths() {
             let rays = in_packet_order(&camera_rays(), width);
             let packs = |rays: &[Ray], query: &Query| trace(&bvh, query, rays, width).2 == 1;

@@ -12,7 +12,7 @@ use super::blocks::{BLOCK, BlockRay, MetLanes};
 use super::bvh::Node;
 use super::instances::{InstanceBvh, TransformNode, cpu_child};
 #[cfg(target_arch = "x86_64")]
-use super::packet::PacketEntry;
+use super::packet::{PacketAccel, PacketEntry, trace_packets};
 use super::triangles::TriangleBvh;
 #[cfg(target_arch = "x86_64")]
 use super::turns::TURNS;
@@ -60,6 +60,8 @@ impl CpuAccel {
             #[cfg(target_arch = "x86_64")]
             packet: match self {
                 CpuAccel::Triangles(bvh) => vec![PacketEntry::default(); bvh.wide.stack_size()],
+                // The instance nodes' walk, then a child's ([`super::instance_packets`]).
+                CpuAccel::Instances(bvh) if bvh.walks_packets() => vec![PacketEntry::default(); bvh.stack_size],
                 CpuAccel::Instances(_) | CpuAccel::Transform(_) => Vec::new(),
             },
             #[cfg(target_arch = "x86_64")]
@@ -74,7 +76,8 @@ impl CpuAccel {
 
     /// Offers each of `rays` (a group of neighbouring rays of a batch, [`crate::query::trace_batch`]'s, as
     /// [`crate::intersect::traced`] makes them, with a collector each) the triangles it reaches: together, as packets
-    /// ([`super::packet`]), where they make them through a static geometry accel; one by one otherwise.
+    /// ([`super::packet`]), where they make them through a static geometry accel or a static instance accel
+    /// ([`super::instance_packets`]); one by one otherwise.
     pub(crate) fn traverse_group(
         &self,
         stacks: &mut Stacks,
@@ -85,10 +88,12 @@ impl CpuAccel {
         #[allow(unused_mut)]
         let mut traced = 0u32;
         #[cfg(target_arch = "x86_64")]
-        if let CpuAccel::Triangles(bvh) = self
-            && !binary_traversal()
-        {
-            traced = bvh.trace_packets(&mut stacks.packet, rays, collectors, stats);
+        if !binary_traversal() {
+            traced = match self {
+                CpuAccel::Triangles(bvh) => trace_packets(bvh.as_ref(), stacks, rays, collectors, stats),
+                CpuAccel::Instances(bvh) => trace_packets(bvh, stacks, rays, collectors, stats),
+                CpuAccel::Transform(_) => 0,
+            };
         }
         let alone = !traced & ((1u64 << rays.len()) - 1) as u32;
         if alone == 0 {
@@ -548,7 +553,7 @@ impl TransformNode {
 /// several times the test, and counted as a box tested. Most rays that reach a turned child's placed box miss the
 /// child (BENCHMARKS.md, "Instances entered through their children's own boxes").
 #[inline(always)]
-fn carried_into(
+pub(super) fn carried_into(
     ray: &PreparedRay,
     to_object: &Affine3A,
     (min, max): Bounds,

@@ -108,7 +108,7 @@ pub(super) struct WideBvh {
     /// Their Prime masks, where the accel has masks.
     pub(super) masks: Option<Vec<u32>>,
     /// Whether the nodes and blocks fit the CPU's last-level cache, where a node visited in vain costs little:
-    /// packets that want no distances then enter inner nodes by their interval alone ([`WideBvh::walk_packet`]).
+    /// packets that want no distances then enter inner nodes by their interval alone ([`super::packet::PacketTree::walk`]).
     pub(super) in_cache: bool,
     /// Whether incoherent rays are walked in turns ([`super::turns`]): as a rule, where the nodes and blocks exceed
     /// the CPU's last-level cache.
@@ -241,9 +241,9 @@ impl WideBvh {
 #[derive(Clone, Copy)]
 pub(super) struct Tree<'a> {
     /// Nodes, the root first (every inner lane's index below their count, a `u32`).
-    nodes: &'a [WideNode],
+    pub(super) nodes: &'a [WideNode],
     /// Children of each node: its first lanes, the rest are empty.
-    children: &'a [u8],
+    pub(super) children: &'a [u8],
     /// Stack entries a walk needs.
     stack_size: usize,
 }

@@ -1,0 +1,263 @@
+//! Packets through a static instance accel: a packet of coherent rays walks the instance accel's wide nodes together
+//! ([`PacketTree::walk`], each instance's box tested ray by ray in the lanes), and the rays that reach an instance are
+//! carried into its space together and walk its child there as a packet ([`TriangleBvh::walk_packet`]) where the
+//! child is a static geometry accel and the carried rays still make one. Otherwise each of them enters the instance as
+//! it would alone ([`carried_into`], then the child's own walk).
+//!
+//! **Same answers as alone.** Each ray is carried as [`crate::intersect::PreparedRay::transformed`] carries it alone
+//! ([`carried`]), and a packet gives its rays the answers they get alone ([`super::packet`]); the instance's box and the
+//! child's are tested with margins ([`PacketTree::walk`], [`crate::intersect::aabb::reaches`]), which only decide
+//! where a ray looks, not what it finds.
+
+use std::ops::Range;
+
+use super::CpuAccel;
+use super::instances::{InstanceBvh, cpu_child};
+use super::packet::{MAX_ORIGIN_SPREAD, PacketAccel, PacketEntry, PacketLanes, PacketTree};
+use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
+use super::traverse::{StackEntry, Stacks, carried_into};
+use crate::format::Ray;
+use crate::intersect::{PreparedRay, carried};
+use crate::query::{Collector, InstanceScope, TraceStats};
+
+impl PacketAccel for InstanceBvh {
+    fn walks_packets(&self) -> bool {
+        self.node_keys.is_none()
+    }
+
+    #[inline(always)]
+    unsafe fn trace_packet_in_order<V: RayLanes, const NEAREST_FIRST: bool>(
+        &self,
+        stacks: &mut Stacks,
+        rays: &[Ray],
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> bool {
+        // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        let Some(lanes) = (unsafe { PacketLanes::<V>::new(rays) }) else { return false };
+        // The instance nodes are few and small; their boxes are tested exactly, ray by ray, at every node.
+        let root = (self.bounds.0.into(), self.bounds.1.into());
+        let tree = PacketTree { tree: self.wide.tree(), root, in_cache: false };
+        if !unsafe { lanes.coherent(&rays[0], MAX_ORIGIN_SPREAD * tree.diagonal()) } {
+            return false;
+        }
+        let (own, rest) = stacks.packet.split_at_mut(self.wide.stack_size());
+        let single = &mut stacks.single;
+        // Inlined at once, so that it is compiled with the instruction sets of the function it is called from.
+        let leaf = {
+            #[inline(always)]
+            |slots: Range<usize>, active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
+                let mut finished = 0;
+                for slot in slots {
+                    let walking = active & !finished;
+                    finished |= unsafe {
+                        self.enter_instance::<V, NEAREST_FIRST>(slot, rays, walking, (rest, single), collectors, stats)
+                    };
+                }
+                finished
+            }
+        };
+        unsafe { tree.walk::<V, NEAREST_FIRST>(own, &lanes, (1 << V::RAYS) - 1, collectors, stats, leaf, |_| {}) };
+        true
+    }
+}
+
+impl InstanceBvh {
+    /// Walks the child of the instance in `slot` with those of `rays` (a packet's, [`RayLanes::RAYS`] of them) whose
+    /// bits are set in `active` and whose visibility mask sees the instance: carried into its space as a packet where
+    /// they make one there and the child is a static geometry accel (on the packet stack `stacks.0`), each on its own
+    /// otherwise (on the single-ray stack `stacks.1`). Returns the rays it finished (their collectors done).
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set and AVX2.
+    #[inline(always)]
+    unsafe fn enter_instance<V: RayLanes, const NEAREST_FIRST: bool>(
+        &self,
+        slot: usize,
+        rays: &[Ray],
+        active: u32,
+        (packet_stack, single_stack): (&mut [PacketEntry], &mut [StackEntry]),
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> u32 {
+        let instance = &self.instances[slot];
+        let visible = lanes_where(active, |lane| rays[lane].visibility & instance.mask != 0);
+        if visible == 0 {
+            return 0;
+        }
+        let Ok(child) = cpu_child(&instance.child) else { return 0 };
+        let scope = InstanceScope::WORLD.enter(instance);
+        // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        let packed = unsafe {
+            self.carry_packet::<V, NEAREST_FIRST>(slot, child, rays, visible, &scope, packet_stack, collectors, stats)
+        };
+        if !packed {
+            let mut bits = visible;
+            while bits != 0 {
+                let lane = bits.trailing_zeros() as usize;
+                bits &= bits - 1;
+                let (ray, collector) = (PreparedRay::from_traced(&rays[lane]), &mut collectors[lane]);
+                let (to_object, child_box) = (&instance.placement.world_to_object, self.child_boxes[slot]);
+                if let Some(local) = carried_into(&ray, to_object, child_box, collector.cull_tmax(), stats) {
+                    child.traverse(single_stack, &local, &scope, collector, stats);
+                }
+            }
+        }
+        lanes_where(visible, |lane| collectors[lane].done())
+    }
+
+    /// Walks `child`, the child of the instance in `slot`, in `scope` (the instance's) with those of `rays` whose bits
+    /// are set in `active`, carried into the instance's space together as a packet, and says whether it did: only a
+    /// static geometry accel is walked so, and only where the carried rays make a packet there.
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set and AVX2.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn carry_packet<V: RayLanes, const NEAREST_FIRST: bool>(
+        &self,
+        slot: usize,
+        child: &CpuAccel,
+        rays: &[Ray],
+        active: u32,
+        scope: &InstanceScope,
+        stack: &mut [PacketEntry],
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> bool {
+        let CpuAccel::Triangles(bvh) = child else { return false };
+        if !bvh.walks_packets() {
+            return false;
+        }
+        let to_object = &self.instances[slot].placement.world_to_object;
+        let mut local = [Ray::default(); MAX_PACKET_RAYS];
+        for (local, ray) in local.iter_mut().zip(&rays[..V::RAYS]) {
+            *local = carried(ray, to_object);
+        }
+        // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        unsafe { bvh.walk_packet::<V, NEAREST_FIRST>(stack, &local[..V::RAYS], active, scope, collectors, stats) }
+    }
+}
+
+/// The lanes set in `lanes` for which `keep` holds, a bit each.
+#[inline(always)]
+fn lanes_where(lanes: u32, keep: impl Fn(usize) -> bool) -> u32 {
+    let (mut bits, mut kept) = (lanes, 0);
+    while bits != 0 {
+        let lane = bits.trailing_zeros();
+        bits &= bits - 1;
+        kept |= u32::from(keep(lane as usize)) << lane;
+    }
+    kept
+}
+
+#[cfg(test)]
+mod tests {
+    use std::arch::x86_64::__m256;
+    use std::sync::Arc;
+
+    use glam::{Affine3A, Quat, Vec3};
+
+    use super::*;
+    use crate::accel::BuildOptions;
+    use crate::backend::cpu::packet::tests::{camera_rays, in_packet_order, lattice, packets_agree, widths};
+    use crate::cpu_features::has_avx2;
+    use crate::format::{Hit, HitFormat, RayFlags, RayFormat};
+    use crate::geometry::{BuildInput, Instance, InstanceFlags, Placement, TriangleInput};
+    use crate::intersect::traced;
+    use crate::query::Query;
+    use crate::{Accel, Context, Device};
+
+    /// An instance of `child` placed by `to_world`.
+    fn instance(id: u32, to_world: Affine3A, mask: u8, flags: InstanceFlags, child: &Arc<Accel>) -> Instance {
+        Instance { transform: Placement::rows(&to_world), instance_id: id, mask, flags, child: Arc::clone(child) }
+    }
+
+    /// The packet tests' lattice (with its Prime masks) placed as itself, turned and shrunk (its faces flipped),
+    /// mirrored (its faces never culled), tilted, and inside an instance accel of its own (which rays enter one by
+    /// one), each seen by other visibility bits; with the lattice's geometry accel.
+    fn scene(context: &Context) -> (Arc<Accel>, Arc<Accel>) {
+        let (_, mesh) = lattice(true);
+        let packed = mesh.pack();
+        let masks: Vec<u8> =
+            (0..mesh.triangles.len() as u32).flat_map(|t| u32::from(t % 5 == 0).to_le_bytes()).collect();
+        let input = TriangleInput { masks: Some(&masks), ..packed.input() };
+        let lattice = context.build_accel(&[BuildInput::Triangles(input)], &BuildOptions::default()).unwrap();
+        let lifted = Affine3A::from_translation(Vec3::new(0.1, 0.2, 0.4));
+        let nested = [instance(9, lifted, 0xFF, InstanceFlags::empty(), &lattice)];
+        let nested = context.build_instance_accel(&nested, &BuildOptions::default()).unwrap();
+        let turned = Affine3A::from_scale_rotation_translation(
+            Vec3::splat(0.8),
+            Quat::from_rotation_z(0.5),
+            Vec3::new(0.6, -0.3, 0.25),
+        );
+        let mirrored =
+            Affine3A::from_translation(Vec3::new(6.0, 0.0, 0.05)) * Affine3A::from_scale(Vec3::new(-1.0, 1.0, 1.0));
+        let tilted = Affine3A::from_translation(Vec3::new(0.5, 1.0, 0.6)) * Affine3A::from_rotation_x(0.6);
+        let instances = [
+            instance(1, Affine3A::IDENTITY, 0x01, InstanceFlags::empty(), &lattice),
+            instance(2, turned, 0x02, InstanceFlags::FLIP_FACING, &lattice),
+            instance(3, mirrored, 0x03, InstanceFlags::DISABLE_FACE_CULLING, &lattice),
+            instance(4, tilted, 0x04, InstanceFlags::empty(), &lattice),
+            instance(5, Affine3A::from_translation(Vec3::new(-0.2, 0.1, 0.3)), 0x08, InstanceFlags::empty(), &nested),
+        ];
+        let scene = context.build_instance_accel(&instances, &BuildOptions::default()).unwrap();
+        (scene, lattice)
+    }
+
+    /// [`camera_rays`], pixel by pixel seen by all instances or by some.
+    fn rays() -> Vec<Ray> {
+        let visibility = [0xFF, 0x01, 0x06, 0x0B, 0x18];
+        let rays = camera_rays().into_iter().enumerate();
+        rays.map(|(pixel, ray)| Ray { visibility: visibility[pixel / 3 % visibility.len()], ..ray }).collect()
+    }
+
+    #[test]
+    fn packets_through_instances_give_every_ray_the_answer_it_gets_alone() {
+        let context = Context::new(Device::cpu());
+        let (scene, _) = scene(&context);
+        let accel = cpu_child(&scene).unwrap();
+        for width in widths() {
+            let rays = in_packet_order(&rays(), width);
+            // The full format: instance ids and paths, world normals and facing, which the instances' scopes make.
+            packets_agree(accel, "pinhole through instances", &rays, width, HitFormat::Full);
+        }
+    }
+
+    /// [`InstanceBvh::carry_packet`] of 8 rays in AVX2 registers, for a closest-hit query.
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn carry_packet(bvh: &InstanceBvh, slot: usize, rays: &[Ray]) -> bool {
+        let child = cpu_child(&bvh.instances[slot].child).unwrap();
+        let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+        let rays: Vec<Ray> = rays.iter().map(|ray| traced(ray, RayFlags::empty())).collect();
+        let mut parts = vec![Hit::MISS; rays.len()];
+        let mut parts = parts.chunks_mut(1);
+        let mut collectors: Vec<Collector<'_>> =
+            rays.iter().map(|ray| Collector::new(&query, ray, parts.next().unwrap())).collect();
+        let mut stack = vec![PacketEntry::default(); bvh.stack_size];
+        let scope = InstanceScope::WORLD.enter(&bvh.instances[slot]);
+        let mut stats = TraceStats::default();
+        // SAFETY: the CPU has AVX2 and the rest (this function's contract).
+        unsafe {
+            bvh.carry_packet::<__m256, true>(slot, child, &rays, 0xFF, &scope, &mut stack, &mut collectors, &mut stats)
+        }
+    }
+
+    #[test]
+    fn rays_that_make_a_packet_make_one_in_a_turned_instance_but_enter_an_instance_accel_one_by_one() {
+        if !has_avx2() {
+            return;
+        }
+        let context = Context::new(Device::cpu());
+        let (scene, _) = scene(&context);
+        let CpuAccel::Instances(bvh) = cpu_child(&scene).unwrap() else { panic!("an instance accel") };
+        let slot = |id: u32| bvh.instances.iter().position(|instance| instance.instance_id == id).unwrap();
+        let rays = camera_rays();
+        let neighbours = &rays[64 * 30..64 * 30 + 8];
+        // SAFETY (all): the CPU has AVX2 and the rest, as checked above.
+        for id in [1, 2, 3, 4] {
+            assert!(unsafe { carry_packet(bvh, slot(id), neighbours) }, "instance {id}");
+        }
+        assert!(!unsafe { carry_packet(bvh, slot(5), neighbours) }, "the nested instance accel");
+    }
+}
