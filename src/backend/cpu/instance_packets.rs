@@ -33,6 +33,37 @@ impl PacketAccel for InstanceBvh {
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
+        let (stacks, every_ray) = ((&mut stacks.packet[..], &mut stacks.single[..]), (1 << V::RAYS) - 1);
+        // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        unsafe {
+            self.walk_packet::<V, NEAREST_FIRST>(stacks, rays, every_ray, &InstanceScope::WORLD, collectors, stats)
+        }
+    }
+}
+
+/// The packet stack (for the instance nodes' walk, then a child's) and the single-ray stack (for rays that enter an
+/// instance one by one) of a packet's walk through an instance accel.
+type PacketStacks<'a> = (&'a mut [PacketEntry], &'a mut [StackEntry]);
+
+impl InstanceBvh {
+    /// Walks the rays of `rays` ([`RayLanes::RAYS`] of them, as [`crate::intersect::traced`] makes them, in this
+    /// accel's space) whose bits are set in `active` as a packet, in `scope`, if all of them head the same way from
+    /// nearby origins ([`PacketLanes::coherent`]), and says whether it did; for the visit order `NEAREST_FIRST`, which
+    /// must be what the collectors want. The accel must be static, and the packet stack hold its
+    /// [`InstanceBvh::stack_size`] entries.
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set and AVX2.
+    #[inline(always)]
+    unsafe fn walk_packet<V: RayLanes, const NEAREST_FIRST: bool>(
+        &self,
+        (packet_stack, single_stack): PacketStacks<'_>,
+        rays: &[Ray],
+        active: u32,
+        scope: &InstanceScope,
+        collectors: &mut [Collector<'_>],
+        stats: &mut TraceStats,
+    ) -> bool {
         // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         let Some(lanes) = (unsafe { PacketLanes::<V>::new(rays) }) else { return false };
         // The instance nodes are few and small; their boxes are tested exactly, ray by ray, at every node.
@@ -41,42 +72,41 @@ impl PacketAccel for InstanceBvh {
         if !unsafe { lanes.coherent(&rays[0], MAX_ORIGIN_SPREAD * tree.diagonal()) } {
             return false;
         }
-        let (own, rest) = stacks.packet.split_at_mut(self.wide.stack_size());
-        let single = &mut stacks.single;
+        let (own, rest) = packet_stack.split_at_mut(self.wide.stack_size());
         // Inlined at once, so that it is compiled with the instruction sets of the function it is called from.
         let leaf = {
             #[inline(always)]
             |slots: Range<usize>, active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
                 let mut finished = 0;
                 for slot in slots {
-                    let walking = active & !finished;
+                    let (walking, stacks) = (active & !finished, (&mut rest[..], &mut single_stack[..]));
                     finished |= unsafe {
-                        self.enter_instance::<V, NEAREST_FIRST>(slot, rays, walking, (rest, single), collectors, stats)
+                        self.enter_instance::<V, NEAREST_FIRST>(slot, rays, walking, stacks, scope, collectors, stats)
                     };
                 }
                 finished
             }
         };
-        unsafe { tree.walk::<V, NEAREST_FIRST>(own, &lanes, (1 << V::RAYS) - 1, collectors, stats, leaf, |_| {}) };
+        unsafe { tree.walk::<V, NEAREST_FIRST>(own, &lanes, active, collectors, stats, leaf, |_| {}) };
         true
     }
-}
 
-impl InstanceBvh {
     /// Walks the child of the instance in `slot` with those of `rays` (a packet's, [`RayLanes::RAYS`] of them) whose
-    /// bits are set in `active` and whose visibility mask sees the instance: carried into its space as a packet where
-    /// they make one there and the child is a static geometry accel (on the packet stack `stacks.0`), each on its own
-    /// otherwise (on the single-ray stack `stacks.1`). Returns the rays it finished (their collectors done).
+    /// bits are set in `active` and whose visibility mask sees the instance, below `scope`: carried into its space as a
+    /// packet where they make one there and the child is a static accel (geometry or instances), each on its own
+    /// otherwise (on the single-ray stack). Returns the rays it finished (their collectors done).
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
     #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
     unsafe fn enter_instance<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
         slot: usize,
         rays: &[Ray],
         active: u32,
-        (packet_stack, single_stack): (&mut [PacketEntry], &mut [StackEntry]),
+        (packet_stack, single_stack): PacketStacks<'_>,
+        scope: &InstanceScope,
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> u32 {
@@ -86,10 +116,11 @@ impl InstanceBvh {
             return 0;
         }
         let Ok(child) = cpu_child(&instance.child) else { return 0 };
-        let scope = InstanceScope::WORLD.enter(instance);
+        let scope = scope.enter(instance);
+        let stacks = (&mut packet_stack[..], &mut single_stack[..]);
         // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
         let packed = unsafe {
-            self.carry_packet::<V, NEAREST_FIRST>(slot, child, rays, visible, &scope, packet_stack, collectors, stats)
+            self.carry_packet::<V, NEAREST_FIRST>(slot, child, rays, visible, stacks, &scope, collectors, stats)
         };
         if !packed {
             let mut bits = visible;
@@ -108,7 +139,7 @@ impl InstanceBvh {
 
     /// Walks `child`, the child of the instance in `slot`, in `scope` (the instance's) with those of `rays` whose bits
     /// are set in `active`, carried into the instance's space together as a packet, and says whether it did: only a
-    /// static geometry accel is walked so, and only where the carried rays make a packet there.
+    /// static accel (geometry or instances) is walked so, and only where the carried rays make a packet there.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
@@ -120,13 +151,17 @@ impl InstanceBvh {
         child: &CpuAccel,
         rays: &[Ray],
         active: u32,
+        stacks: PacketStacks<'_>,
         scope: &InstanceScope,
-        stack: &mut [PacketEntry],
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
-        let CpuAccel::Triangles(bvh) = child else { return false };
-        if !bvh.walks_packets() {
+        let walks_packets = match child {
+            CpuAccel::Triangles(bvh) => bvh.walks_packets(),
+            CpuAccel::Instances(bvh) => bvh.walks_packets(),
+            CpuAccel::Transform(_) => false,
+        };
+        if !walks_packets {
             return false;
         }
         let to_object = &self.instances[slot].placement.world_to_object;
@@ -134,10 +169,80 @@ impl InstanceBvh {
         for (local, ray) in local.iter_mut().zip(&rays[..V::RAYS]) {
             *local = carried(ray, to_object);
         }
-        // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
-        unsafe { bvh.walk_packet::<V, NEAREST_FIRST>(stack, &local[..V::RAYS], active, scope, collectors, stats) }
+        let local = &local[..V::RAYS];
+        // SAFETY (both): the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        match child {
+            CpuAccel::Triangles(bvh) => unsafe {
+                bvh.walk_packet::<V, NEAREST_FIRST>(stacks.0, local, active, scope, collectors, stats)
+            },
+            _ => unsafe { walk_nested::<V, NEAREST_FIRST>(child, stacks, local, active, scope, collectors, stats) },
+        }
     }
 }
+
+/// [`InstanceBvh::walk_packet`] of `child` (an instance accel placed in another) through an entry compiled for `V`'s
+/// instruction set: the walks of a packet inline into one function for each instruction set, and an instance accel
+/// inside another calls that function again (the call cannot be inlined, and a function that is not compiled for the
+/// instruction set makes calls of its intrinsics).
+///
+/// # Safety
+/// The CPU must have `V`'s instruction set and AVX2.
+#[inline(always)]
+unsafe fn walk_nested<V: RayLanes, const NEAREST_FIRST: bool>(
+    child: &CpuAccel,
+    stacks: PacketStacks<'_>,
+    rays: &[Ray],
+    active: u32,
+    scope: &InstanceScope,
+    collectors: &mut [Collector<'_>],
+    stats: &mut TraceStats,
+) -> bool {
+    let CpuAccel::Instances(bvh) = child else { return false };
+    // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract): AVX-512F where `V` has 16 lanes.
+    unsafe {
+        match V::RAYS {
+            8 => walk_nested_avx2::<NEAREST_FIRST>(bvh, stacks, rays, active, scope, collectors, stats),
+            _ => walk_nested_avx512::<NEAREST_FIRST>(bvh, stacks, rays, active, scope, collectors, stats),
+        }
+    }
+}
+
+/// Defines `$name`, [`InstanceBvh::walk_packet`] in `$lanes` registers compiled with the target features `$features`.
+macro_rules! walk_nested_compiled_for {
+    ($(#[$doc:meta])* $name:ident, $lanes:ty, $features:literal) => {
+        $(#[$doc])*
+        ///
+        /// # Safety
+        /// The CPU must have the features this build is compiled with; `rays` are as many as its registers' lanes.
+        #[target_feature(enable = $features)]
+        unsafe fn $name<const NEAREST_FIRST: bool>(
+            bvh: &InstanceBvh,
+            stacks: PacketStacks<'_>,
+            rays: &[Ray],
+            active: u32,
+            scope: &InstanceScope,
+            collectors: &mut [Collector<'_>],
+            stats: &mut TraceStats,
+        ) -> bool {
+            // SAFETY: the CPU has the features (this function's contract).
+            unsafe { bvh.walk_packet::<$lanes, NEAREST_FIRST>(stacks, rays, active, scope, collectors, stats) }
+        }
+    };
+}
+
+walk_nested_compiled_for!(
+    /// [`InstanceBvh::walk_packet`] in AVX2 registers, 8 rays.
+    walk_nested_avx2,
+    std::arch::x86_64::__m256,
+    "avx2,fma,bmi1,bmi2,lzcnt,popcnt"
+);
+
+walk_nested_compiled_for!(
+    /// [`InstanceBvh::walk_packet`] in AVX-512 registers, 16 rays.
+    walk_nested_avx512,
+    std::arch::x86_64::__m512,
+    "avx512f,avx2,fma,bmi1,bmi2,lzcnt,popcnt"
+);
 
 /// The lanes set in `lanes` for which `keep` holds, a bit each.
 #[inline(always)]
@@ -163,7 +268,7 @@ mod tests {
     use crate::backend::cpu::packet::tests::{camera_rays, in_packet_order, lattice, packets_agree, widths};
     use crate::cpu_features::has_avx2;
     use crate::format::{Hit, HitFormat, RayFlags, RayFormat};
-    use crate::geometry::{BuildInput, Instance, InstanceFlags, Placement, TriangleInput};
+    use crate::geometry::{BuildInput, Instance, InstanceFlags, Placement, TransformInput, TriangleInput};
     use crate::intersect::traced;
     use crate::query::Query;
     use crate::{Accel, Context, Device};
@@ -174,8 +279,8 @@ mod tests {
     }
 
     /// The packet tests' lattice (with its Prime masks) placed as itself, turned and shrunk (its faces flipped),
-    /// mirrored (its faces never culled), tilted, and inside an instance accel of its own (which rays enter one by
-    /// one), each seen by other visibility bits; with the lattice's geometry accel.
+    /// mirrored (its faces never culled), tilted, inside an instance accel of its own, and under a static transform
+    /// (which rays enter one by one), each seen by other visibility bits; with the lattice's geometry accel.
     fn scene(context: &Context) -> (Arc<Accel>, Arc<Accel>) {
         let (_, mesh) = lattice(true);
         let packed = mesh.pack();
@@ -186,6 +291,8 @@ mod tests {
         let lifted = Affine3A::from_translation(Vec3::new(0.1, 0.2, 0.4));
         let nested = [instance(9, lifted, 0xFF, InstanceFlags::empty(), &lattice)];
         let nested = context.build_instance_accel(&nested, &BuildOptions::default()).unwrap();
+        let lowered = Placement::rows(&Affine3A::from_translation(Vec3::new(0.0, -0.2, -0.3)));
+        let moved = context.build_transform(&TransformInput::Static(lowered), &lattice).unwrap();
         let turned = Affine3A::from_scale_rotation_translation(
             Vec3::splat(0.8),
             Quat::from_rotation_z(0.5),
@@ -200,6 +307,7 @@ mod tests {
             instance(3, mirrored, 0x03, InstanceFlags::DISABLE_FACE_CULLING, &lattice),
             instance(4, tilted, 0x04, InstanceFlags::empty(), &lattice),
             instance(5, Affine3A::from_translation(Vec3::new(-0.2, 0.1, 0.3)), 0x08, InstanceFlags::empty(), &nested),
+            instance(6, Affine3A::from_translation(Vec3::new(0.3, 0.0, 0.7)), 0x10, InstanceFlags::empty(), &moved),
         ];
         let scene = context.build_instance_accel(&instances, &BuildOptions::default()).unwrap();
         (scene, lattice)
@@ -234,17 +342,19 @@ mod tests {
         let mut parts = parts.chunks_mut(1);
         let mut collectors: Vec<Collector<'_>> =
             rays.iter().map(|ray| Collector::new(&query, ray, parts.next().unwrap())).collect();
-        let mut stack = vec![PacketEntry::default(); bvh.stack_size];
+        let (mut packet_stack, mut single_stack) =
+            (vec![PacketEntry::default(); bvh.stack_size], vec![StackEntry::default(); bvh.stack_size]);
+        let stacks = (&mut packet_stack[..], &mut single_stack[..]);
         let scope = InstanceScope::WORLD.enter(&bvh.instances[slot]);
         let mut stats = TraceStats::default();
         // SAFETY: the CPU has AVX2 and the rest (this function's contract).
         unsafe {
-            bvh.carry_packet::<__m256, true>(slot, child, &rays, 0xFF, &scope, &mut stack, &mut collectors, &mut stats)
+            bvh.carry_packet::<__m256, true>(slot, child, &rays, 0xFF, stacks, &scope, &mut collectors, &mut stats)
         }
     }
 
     #[test]
-    fn rays_that_make_a_packet_make_one_in_a_turned_instance_but_enter_an_instance_accel_one_by_one() {
+    fn rays_that_make_a_packet_make_one_in_turned_and_nested_instances_but_enter_a_transform_one_by_one() {
         if !has_avx2() {
             return;
         }
@@ -255,9 +365,9 @@ mod tests {
         let rays = camera_rays();
         let neighbours = &rays[64 * 30..64 * 30 + 8];
         // SAFETY (all): the CPU has AVX2 and the rest, as checked above.
-        for id in [1, 2, 3, 4] {
+        for id in [1, 2, 3, 4, 5] {
             assert!(unsafe { carry_packet(bvh, slot(id), neighbours) }, "instance {id}");
         }
-        assert!(!unsafe { carry_packet(bvh, slot(5), neighbours) }, "the nested instance accel");
+        assert!(!unsafe { carry_packet(bvh, slot(6), neighbours) }, "the transform");
     }
 }
