@@ -1,12 +1,13 @@
 //! Packets through a static instance accel: a packet of coherent rays walks the instance accel's wide nodes together
 //! ([`PacketTree::walk`], each instance's box tested ray by ray in the lanes), and the rays that reach an instance are
-//! carried into its space together and walk its child there as a packet ([`TriangleBvh::walk_packet`]) where the
-//! child is a static geometry accel and the carried rays still make one. Otherwise each of them enters the instance as
-//! it would alone ([`carried_into`], then the child's own walk).
+//! carried into its space together and walk its child there as a packet where the child is a static geometry accel
+//! ([`super::triangles::TriangleBvh::walk_packet`]) or a static instance accel (this walk again) and the carried rays
+//! still make one. Otherwise each of them enters the instance as it would alone ([`carried_into`], then the child's own
+//! walk).
 //!
 //! **Same answers as alone.** Each ray is carried as [`crate::intersect::PreparedRay::transformed`] carries it alone
-//! ([`carried`]), and a packet gives its rays the answers they get alone ([`super::packet`]); the instance's box and the
-//! child's are tested with margins ([`PacketTree::walk`], [`crate::intersect::aabb::reaches`]), which only decide
+//! ([`carried`]), and a packet gives its rays the answers they get alone ([`super::packet`]); the instance's box and
+//! the child's are tested with margins ([`PacketTree::walk`], [`crate::intersect::aabb::reaches`]), which only decide
 //! where a ray looks, not what it finds.
 
 use std::ops::Range;

@@ -268,8 +268,9 @@ impl TriangleBvh {
                         finished |= accepted;
                         candidates = edges;
                     }
-                    // Ray by ray in lane order, as each alone would be offered the triangle: rays on an edge or a vertex
-                    // through the whole scalar test (its exact rule), the others from the hit found in the lanes.
+                    // Ray by ray in lane order, as each alone would be offered the triangle: rays on an edge or a
+                    // vertex through the whole scalar test (its exact rule), the others from the hit found in the
+                    // lanes.
                     while candidates != 0 {
                         let lane = candidates.trailing_zeros() as usize;
                         candidates &= candidates - 1;

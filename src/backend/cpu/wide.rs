@@ -108,7 +108,8 @@ pub(super) struct WideBvh {
     /// Their Prime masks, where the accel has masks.
     pub(super) masks: Option<Vec<u32>>,
     /// Whether the nodes and blocks fit the CPU's last-level cache, where a node visited in vain costs little:
-    /// packets that want no distances then enter inner nodes by their interval alone ([`super::packet::PacketTree::walk`]).
+    /// packets that want no distances then enter inner nodes by their interval alone
+    /// ([`super::packet::PacketTree::walk`]).
     pub(super) in_cache: bool,
     /// Whether incoherent rays are walked in turns ([`super::turns`]): as a rule, where the nodes and blocks exceed
     /// the CPU's last-level cache.
