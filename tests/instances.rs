@@ -301,25 +301,28 @@ fn instanced_scenes_hit_as_their_flattened_triangles() {
         let mut flat = Vec::new();
         flatten(&scene, Affine3A::IDENTITY, &[], (false, false), visibility, &mut flat);
         let (flat_scene, index) = flat_accel(&context, &flat);
-        let rays: Vec<Ray> = (0..4000u64)
+        let flags = |i: u64| match i % 6 {
+            0 | 1 => RayFlags::CULL_BACK_FACING,
+            2 => RayFlags::CULL_FRONT_FACING,
+            _ => RayFlags::empty(),
+        };
+        let mut rays: Vec<Ray> = (0..4000u64)
             .map(|i| {
                 let u = |j: u64| uniform(seed + 1 + group as u64, i * 16 + j);
                 let inside = |j: u64| lo + (hi - lo) * Vec3::new(u(j), u(j + 1), u(j + 2));
                 let origin = inside(0) * 1.5;
-                let flags = match i % 6 {
-                    0 | 1 => RayFlags::CULL_BACK_FACING,
-                    2 => RayFlags::CULL_FRONT_FACING,
-                    _ => RayFlags::empty(),
-                };
-                Ray {
-                    origin: origin.into(),
-                    direction: (inside(3) - origin).into(),
-                    visibility,
-                    flags,
-                    ..Ray::default()
-                }
+                let direction = (inside(3) - origin).into();
+                Ray { origin: origin.into(), direction, visibility, flags: flags(i), ..Ray::default() }
             })
             .collect();
+        // And a camera's rays, in rows of 64: neighbours make packets, carried into the instances together.
+        let (centre, size) = ((lo + hi) * 0.5, hi - lo);
+        let eye = centre + size * Vec3::new(0.2, 0.3, 1.5);
+        rays.extend((0..64 * 64u64).map(|pixel| {
+            let (x, y) = ((pixel % 64) as f32 / 63.0 - 0.5, (pixel / 64) as f32 / 63.0 - 0.5);
+            let direction = (centre + size * Vec3::new(x, y, 0.0) - eye).into();
+            Ray { origin: eye.into(), direction, visibility, flags: flags(pixel), ..Ray::default() }
+        }));
         let closest = Query::closest(RayFormat::Full, HitFormat::Full);
         let count = Query { kind: QueryKind::Count, ..Query::closest(RayFormat::Full, HitFormat::T) };
         let (hits, _) = trace(&context, &scene.accel, &closest, &rays);
