@@ -15,6 +15,7 @@ mod filter;
 mod instance_packets;
 mod instances;
 pub mod large_pages;
+mod moving_wide;
 mod occlusion;
 #[cfg(target_arch = "x86_64")]
 mod packet;

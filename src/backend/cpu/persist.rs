@@ -32,6 +32,7 @@ use glam::Vec3;
 use super::CpuAccel;
 use super::bvh::{Node, NodeKeys};
 use super::instances::{InstanceBvh, child_boxes, cpu_child};
+use super::moving_wide::MovingWideTree;
 use super::triangles::{RandomAccess, TriangleBvh, corner_bounds};
 use super::wide::{WideBvh, WideTree};
 use crate::accel::{AccelKind, BuildFlags, BuildOptions};
@@ -326,6 +327,7 @@ impl TriangleBvh {
             nodes,
             node_keys,
             wide: WideBvh::default(),
+            moving: MovingWideTree::default(),
             motion: options.motion,
             bounds: corner_bounds(&corners),
             corners,

@@ -213,15 +213,21 @@ impl TriangleBvh {
                 let leaf = with_stack(self.binary_leaf(|slot| self.corners[slot], ray, scope));
                 walk(&self.nodes, static_boxes(&self.nodes), stack, ray, collector, stats, leaf)
             }
-            (Some(keys), _) => {
+            (Some(keys), binary) => {
                 let stride = keys.keys;
                 let corners = move |slot: usize| {
                     let (a, b) =
                         (&self.corners[slot * stride + at.segment], &self.corners[slot * stride + at.segment + 1]);
                     std::array::from_fn(|c| lerp(a[c], b[c], at.fraction))
                 };
-                let leaf = with_stack(self.binary_leaf(corners, ray, scope));
-                walk(&self.nodes, |node| keys.at(node, at), stack, ray, collector, stats, leaf)
+                let leaf = self.binary_leaf(corners, ray, scope);
+                match binary {
+                    false => {
+                        let boxes_at = |node: usize| self.moving.boxes_at(node, at);
+                        self.moving.tree().walk_moving(stack, ray, collector, stats, leaf, boxes_at)
+                    }
+                    true => walk(&self.nodes, |node| keys.at(node, at), stack, ray, collector, stats, with_stack(leaf)),
+                }
             }
         }
     }

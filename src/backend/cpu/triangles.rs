@@ -7,6 +7,7 @@ use rayon::prelude::*;
 
 use super::blocks::{CornerBlocks, Placement};
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
+use super::moving_wide::MovingWideTree;
 use super::wide::{WIDTH, WideBvh, WideNode};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, union};
@@ -28,6 +29,9 @@ pub struct TriangleBvh {
     pub(crate) node_keys: Option<NodeKeys>,
     /// Without motion: the nodes collapsed to 8 children a node, which traversal uses (empty with motion).
     pub(super) wide: WideBvh,
+    /// With motion: the nodes collapsed to 8 children a node with their boxes at each key, which traversal uses
+    /// (empty without motion).
+    pub(super) moving: MovingWideTree,
     /// The motion options (static without motion).
     pub(crate) motion: MotionOptions,
     /// Triangle corners, `motion.keys` sets a triangle (slot `i`'s at key `k` at `i·keys + k`): first those of the
@@ -75,7 +79,9 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     // … with the ids (and masks) of the blocks' slots.
     let slots = if keys > 1 { 0 } else { Placement::most_slots(triangles) as u64 };
     let slot_ids = slots * (size_of::<TriangleRef>() as u64 + if masks { 4 } else { 0 });
-    let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1) + blocks + slot_ids;
+    // Moving accels collapse theirs too, with their lanes' boxes at each key.
+    let moving = if keys > 1 { MovingWideTree::most_bytes(n, keys) } else { 0 };
+    let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1) + blocks + slot_ids + moving;
     let per_triangle =
         (keys as usize * size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
     let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
@@ -116,17 +122,21 @@ impl TriangleBvh {
         bvh
     }
 
-    /// Derives the wide nodes from the binary ones (static accels only).
+    /// Derives the wide nodes from the binary ones: with their corners in blocks for a static accel, with their boxes
+    /// at each key for a moving one.
     pub(super) fn collapse_wide(&mut self) {
-        self.wide = match self.node_keys {
-            None => WideBvh::collapse(&self.nodes, &self.corners, &self.refs, self.masks.as_deref()),
-            Some(_) => WideBvh::default(),
+        (self.wide, self.moving) = match &self.node_keys {
+            None => (
+                WideBvh::collapse(&self.nodes, &self.corners, &self.refs, self.masks.as_deref()),
+                MovingWideTree::default(),
+            ),
+            Some(keys) => (WideBvh::default(), MovingWideTree::collapse(&self.nodes, keys)),
         };
     }
 
     /// Stack entries a traversal needs.
     pub(super) fn stack_size(&self) -> usize {
-        (self.depth + 1).max(self.wide.stack_size())
+        (self.depth + 1).max(self.wide.stack_size()).max(self.moving.stack_size())
     }
 
     /// Recomputes the nodes' boxes (and key boxes) from the corners.
@@ -176,6 +186,7 @@ impl TriangleBvh {
             nodes,
             node_keys: None,
             wide: WideBvh::default(),
+            moving: MovingWideTree::default(),
             motion: options.motion,
             bounds: corner_bounds(&corners),
             corners,
@@ -203,8 +214,9 @@ impl TriangleBvh {
             }
         }
         next.refit_nodes();
-        if next.node_keys.is_none() {
-            next.wide = self.wide.refit(&next.nodes, &next.corners, next.masks.as_deref());
+        match &next.node_keys {
+            None => next.wide = self.wide.refit(&next.nodes, &next.corners, next.masks.as_deref()),
+            Some(keys) => next.moving = MovingWideTree::collapse(&next.nodes, keys),
         }
         next.bounds = corner_bounds(&next.corners);
         Some(next)
@@ -218,6 +230,7 @@ impl TriangleBvh {
         FIXED_BYTES
             + bytes(&self.nodes, size_of::<Node>())
             + self.wide.size_bytes(footprint)
+            + self.moving.size_bytes(footprint)
             + self.node_keys.as_ref().map_or(0, |k| bytes(&k.boxes, size_of::<Bounds>()))
             + bytes(&self.corners, size_of::<[Vec3; 3]>())
             + bytes(&self.refs, size_of::<TriangleRef>())

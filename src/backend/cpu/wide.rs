@@ -72,7 +72,7 @@ impl WideNode {
     }
 
     /// Makes `min .. max` the box of lane `lane`.
-    fn set_box(&mut self, lane: usize, min: Vec3, max: Vec3) {
+    pub(super) fn set_box(&mut self, lane: usize, min: Vec3, max: Vec3) {
         for axis in 0..3 {
             self.lo[axis][lane] = min[axis];
             self.hi[axis][lane] = max[axis];
@@ -276,6 +276,59 @@ impl Tree<'_> {
         self.walk_lanes(stack, collector, stats, enter, leaf, prefetch_leaf);
     }
 
+    /// [`Tree::walk`] of nodes whose boxes move with time: the box test of node `n` reads its lanes' boxes from
+    /// `boxes_at(n)` (a [`WideNode`] whose `lo` and `hi` are the boxes at the ray's time) instead of from the node; no
+    /// leaf data is prefetched.
+    ///
+    /// Panics when `stack` holds fewer than the tree's `stack_size` entries.
+    #[inline]
+    pub fn walk_moving(
+        &self,
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+        leaf: impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
+        boxes_at: impl Fn(usize) -> WideNode,
+    ) {
+        let first = self.nodes.as_ptr();
+        // SAFETY: the walk hands the box test references into `nodes` only.
+        let index = move |node: &WideNode| unsafe { (node as *const WideNode).offset_from(first) as usize };
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2 and the other features, as just checked.
+            unsafe { self.walk_moving_avx2(stack, ray, collector, stats, leaf, move |node| boxes_at(index(node))) };
+            return;
+        }
+        let slab = SlabRay::new(ray);
+        let enter = |node: &WideNode, tmax: f32| enter_lanes(&boxes_at(index(node)), &slab, tmax);
+        self.walk_lanes(stack, collector, stats, enter, leaf, |_| {});
+    }
+
+    /// [`Tree::walk_moving`]'s walk compiled for AVX2, the boxes of each node visited given by `boxes_of`.
+    ///
+    /// # Safety
+    /// The CPU must have the features [`has_avx2`] checks.
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
+    unsafe fn walk_moving_avx2(
+        &self,
+        stack: &mut [StackEntry],
+        ray: &PreparedRay,
+        collector: &mut Collector<'_>,
+        stats: &mut TraceStats,
+        leaf: impl FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> bool,
+        boxes_of: impl Fn(&WideNode) -> WideNode,
+    ) {
+        // SAFETY (both): the CPU has AVX2 (this function's contract), so AVX too.
+        let lanes = unsafe { avx::RayLanes::new(ray) };
+        let enter = {
+            #[inline(always)]
+            |node: &WideNode, tmax: f32| unsafe { lanes.enter(&boxes_of(node), tmax) }
+        };
+        self.walk_lanes(stack, collector, stats, enter, leaf, |_| {});
+    }
+
     /// [`Tree::walk_avx`] compiled for AVX2.
     ///
     /// # Safety
@@ -459,7 +512,7 @@ const fn stack_size_of(depth: usize) -> usize {
 }
 
 /// How many of a collapsed node's `lanes` are occupied (they come first).
-fn occupied(lanes: &[Lane]) -> usize {
+pub(super) fn occupied(lanes: &[Lane]) -> usize {
     lanes.iter().take_while(|lane| lane.binary != EMPTY_LANE).count()
 }
 
@@ -491,8 +544,13 @@ pub(super) struct WideTree {
 impl WideTree {
     /// Collapses the depth-first binary BVH `binary` ([`collapse`]); lanes in the collapse's order.
     pub fn collapse(binary: &[Node]) -> WideTree {
+        Self::collapse_with_lanes(binary).0
+    }
+
+    /// [`WideTree::collapse`], with the collapse's lanes: [`WIDTH`] a node, each naming the binary node in it.
+    pub fn collapse_with_lanes(binary: &[Node]) -> (WideTree, Vec<Lane>) {
         if binary.is_empty() {
-            return WideTree::default();
+            return (WideTree::default(), Vec::new());
         }
         let collapsed = collapse(binary, WIDTH);
         let lanes = collapsed.lanes.chunks(WIDTH);
@@ -502,7 +560,7 @@ impl WideTree {
             depth: collapsed.depth,
         };
         assert_well_formed(&tree.nodes, &tree.children);
-        tree
+        (tree, collapsed.lanes)
     }
 
     /// The most nodes a collapse of a binary BVH of `leaves` leaves makes: each is an inner binary node but for a root
