@@ -182,10 +182,10 @@ traverse_static_compiled_for!(
     "avx512f,avx512vl,avx2,fma,bmi1,bmi2,lzcnt,popcnt"
 );
 
-/// Whether static accels walk their binary nodes instead of their wide ones: `RAYD_CPU_TRAVERSAL=binary`, read once,
-/// for A/B benchmarks of the traversal (BENCHMARKS.md, "CPU traversal step 1"); the answers are the same either way
-/// except which hit a ray that terminates on its first hit stops at. (`turns` and `alone` choose how incoherent rays
-/// walk the wide nodes instead: [`super::turns::walks_in_turns`].)
+/// Whether geometry accels (static or moving) walk their binary nodes instead of their wide ones:
+/// `RAYD_CPU_TRAVERSAL=binary`, read once, for A/B benchmarks of the traversal (BENCHMARKS.md, "CPU traversal step 1");
+/// the answers are the same either way except which hit a ray that terminates on its first hit stops at. (`turns` and
+/// `alone` choose how incoherent rays walk the wide nodes instead: [`super::turns::walks_in_turns`].)
 fn binary_traversal() -> bool {
     static BINARY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
     *BINARY.get_or_init(|| std::env::var("RAYD_CPU_TRAVERSAL").as_deref() == Ok("binary"))
@@ -193,7 +193,8 @@ fn binary_traversal() -> bool {
 
 impl TriangleBvh {
     /// Offers the triangles of the leaves the ray reaches, as they are at the ray's time: a static accel through its
-    /// wide nodes, a moving one through its binary nodes with their boxes at that time.
+    /// wide nodes, a moving one through its wide nodes with their boxes at that time ([`super::moving_wide`]); the
+    /// binary nodes instead with `RAYD_CPU_TRAVERSAL=binary`.
     fn traverse(
         &self,
         stack: &mut [StackEntry],
