@@ -8,6 +8,7 @@ use rayon::prelude::*;
 
 use super::CpuAccel;
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, refit};
+use super::moving_wide::MovingWideTree;
 use super::wide::{WideNode, WideTree};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::context::Accel;
@@ -39,6 +40,9 @@ pub struct InstanceBvh {
     pub(crate) node_keys: Option<NodeKeys>,
     /// Without motion: the nodes collapsed to wide ones, which rays walk instead (empty with motion).
     pub(super) wide: WideTree,
+    /// With motion: the nodes collapsed to wide ones with their boxes at each key, which rays walk instead (empty
+    /// without motion).
+    pub(super) moving: MovingWideTree,
     /// The motion options (static without motion).
     pub(crate) motion: MotionOptions,
     /// The instances in leaf order, then those with empty boxes (never traversed).
@@ -94,8 +98,10 @@ pub(super) fn memory_bounds(instances: usize, options: &BuildOptions) -> MemoryU
     let keys = u64::from(options.motion.keys);
     let node_keys = if keys > 1 { keys * size_of::<Bounds>() as u64 } else { 0 };
     let nodes = (2 * n).saturating_sub(1) * (size_of::<Node>() as u64 + node_keys);
-    let wide_nodes =
-        if keys > 1 { 0 } else { WideTree::most_nodes(instances) as u64 * (size_of::<WideNode>() as u64 + 1) };
+    let wide_nodes = match keys > 1 {
+        true => MovingWideTree::most_bytes(n, keys),
+        false => WideTree::most_nodes(instances) as u64 * (size_of::<WideNode>() as u64 + 1),
+    };
     let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
     let per_instance = (size_of::<PlacedInstance>() + size_of::<Bounds>()) as u64;
     let output_bytes = FIXED_BYTES + nodes + wide_nodes + n * per_instance + if updatable { 4 * n } else { 0 };
@@ -162,6 +168,7 @@ impl InstanceBvh {
             nodes,
             node_keys: (keys > 1).then(|| NodeKeys::new(0, keys)),
             wide: WideTree::default(),
+            moving: MovingWideTree::default(),
             motion: options.motion,
             child_boxes: child_boxes(&instances),
             instances,
@@ -178,11 +185,13 @@ impl InstanceBvh {
         Ok(bvh)
     }
 
-    /// Collapses the nodes of a static accel into its wide ones (after a build, a refit or a read). Its stack size,
-    /// set from the binary nodes' depth ([`WideTree::stack_size_within`]), holds a walk of either and of any collapse.
+    /// Collapses the nodes into wide ones (after a build, a refit or a read): with their boxes at each key for a
+    /// motion accel. Its stack size, set from the binary nodes' depth ([`WideTree::stack_size_within`]), holds a walk
+    /// of either and of any collapse.
     pub(super) fn collapse(&mut self) {
-        if self.node_keys.is_none() {
-            self.wide = WideTree::collapse(&self.nodes);
+        match &self.node_keys {
+            None => self.wide = WideTree::collapse(&self.nodes),
+            Some(keys) => self.moving = MovingWideTree::collapse(&self.nodes, keys),
         }
     }
 
@@ -234,6 +243,7 @@ impl InstanceBvh {
             + (footprint.of(&self.instances) * size_of::<PlacedInstance>()) as u64
             + (footprint.of(&self.child_boxes) * size_of::<Bounds>()) as u64
             + self.wide.size_bytes(footprint)
+            + self.moving.size_bytes(footprint)
             + self.node_keys.as_ref().map_or(0, |k| (footprint.of(&k.boxes) * size_of::<Bounds>()) as u64)
             + self.update_order.as_ref().map_or(0, |o| 4 * footprint.of(o) as u64)
     }

@@ -430,6 +430,7 @@ impl InstanceBvh {
             nodes,
             node_keys,
             wide: WideTree::default(),
+            moving: MovingWideTree::default(),
             motion: options.motion,
             child_boxes: child_boxes(&instances),
             instances,

@@ -478,7 +478,8 @@ fn with_stack<L: FnMut(Range<usize>, &mut Collector<'_>, &mut TraceStats) -> boo
 
 impl InstanceBvh {
     /// Traverses the child of every visible instance whose box the ray reaches (at its time), in the instance's
-    /// space: through the wide nodes of a static accel, the binary ones with their boxes at the ray's time otherwise.
+    /// space: through the wide nodes, with their boxes at the ray's time for a motion accel ([`super::moving_wide`]);
+    /// a motion accel's binary nodes instead with `RAYD_CPU_TRAVERSAL=binary`.
     fn traverse(
         &self,
         stack: &mut [StackEntry],
@@ -488,15 +489,22 @@ impl InstanceBvh {
         stats: &mut TraceStats,
     ) {
         let Some(at) = self.motion.locate(ray.time) else { return };
-        match &self.node_keys {
-            None => {
-                let (own, rest) = stack.split_at_mut(self.wide.stack_size());
+        match (&self.node_keys, binary_traversal()) {
+            (keys @ Some(_), false) | (keys @ None, _) => {
+                let own_size = if keys.is_some() { self.moving.stack_size() } else { self.wide.stack_size() };
+                let (own, rest) = stack.split_at_mut(own_size);
                 let leaf = |slots, collector: &mut Collector<'_>, stats: &mut TraceStats| {
                     self.enter_instances(slots, rest, ray, scope, collector, stats)
                 };
-                self.wide.tree().walk(own, ray, collector, stats, leaf, |_| {});
+                match keys {
+                    None => self.wide.tree().walk(own, ray, collector, stats, leaf, |_| {}),
+                    Some(_) => {
+                        let boxes_at = |node: usize| self.moving.boxes_at(node, at);
+                        self.moving.tree().walk_moving(own, ray, collector, stats, leaf, boxes_at)
+                    }
+                }
             }
-            Some(keys) => walk(
+            (Some(keys), true) => walk(
                 &self.nodes,
                 |node| keys.at(node, at),
                 stack,
