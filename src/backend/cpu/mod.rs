@@ -3,9 +3,9 @@
 //! nodes ([`wide`], from [`collapse`], lanes ranked by `occlusion`) with its corners in blocks of four ([`blocks`]): one
 //! ray walks them with AVX2 box tests; coherent rays walk them together as packets of 8 (AVX2) or 16 (AVX-512)
 //! (`packet`, its registers in `ray_lanes`, the triangle filter both share in `filter`), and through static instance
-//! accels too, carried into each instance's space together (`instance_packets`). A moving geometry accel's nodes are
-//! collapsed to 8-wide ones too, with their lanes' boxes at each key, interpolated at each ray's time (`moving_wide`).
-//! Answers are the same whichever way a ray is traced.
+//! accels too, carried into each instance's space together (`instance_packets`). A moving accel's nodes (geometry or
+//! instances) are collapsed to 8-wide ones too, with their lanes' boxes at each key, interpolated at each ray's time
+//! (`moving_wide`). Answers are the same whichever way a ray is traced.
 
 mod blocks;
 pub(crate) mod bvh;

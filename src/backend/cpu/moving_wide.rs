@@ -1,7 +1,7 @@
-//! The wide nodes of a motion BVH: its binary nodes collapsed as a static instance accel's are ([`WideTree`], each
-//! leaf lane holding its binary leaf's slots), with each node's lanes' boxes at every motion key, which a walk
-//! interpolates at the ray's time, eight lanes at once, as the binary walk interpolates a node's box
-//! ([`NodeKeys::at`]).
+//! The wide nodes of a motion BVH (a moving geometry accel's or a motion instance accel's): its binary nodes collapsed
+//! as a static instance accel's are ([`WideTree`], each leaf lane holding its binary leaf's slots), with each node's
+//! lanes' boxes at every motion key, which a walk interpolates at the ray's time, eight lanes at once, as the binary
+//! walk interpolates a node's box ([`NodeKeys::at`]).
 
 use super::bvh::{Footprint, Node, NodeKeys, VecLen};
 use super::collapse::Lane;
