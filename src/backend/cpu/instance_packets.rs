@@ -12,6 +12,8 @@
 
 use std::ops::Range;
 
+use glam::Affine3A;
+
 use super::CpuAccel;
 use super::instances::{InstanceBvh, cpu_child};
 use super::packet::{MAX_ORIGIN_SPREAD, PacketAccel, PacketEntry, PacketLanes, PacketTree};
@@ -157,31 +159,25 @@ impl InstanceBvh {
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
-        let walks_packets = match child {
-            CpuAccel::Triangles(bvh) => bvh.walks_packets(),
-            CpuAccel::Instances(bvh) => bvh.walks_packets(),
-            CpuAccel::Transform(_) => false,
-        };
-        if !walks_packets {
-            return false;
-        }
         let to_object = &self.instances[slot].placement.world_to_object;
         let mut local = [Ray::default(); MAX_PACKET_RAYS];
-        for (local, ray) in local.iter_mut().zip(&rays[..V::RAYS]) {
-            *local = carried(ray, to_object);
-        }
-        let local = &local[..V::RAYS];
+        let rays = &rays[..V::RAYS];
         // SAFETY (both): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         match child {
-            CpuAccel::Triangles(bvh) => unsafe {
+            CpuAccel::Triangles(bvh) if bvh.walks_packets() => unsafe {
+                let local = carried_all(rays, to_object, &mut local);
                 bvh.walk_packet::<V, NEAREST_FIRST>(stacks.0, local, active, scope, collectors, stats)
             },
-            _ => unsafe { walk_nested::<V, NEAREST_FIRST>(child, stacks, local, active, scope, collectors, stats) },
+            CpuAccel::Instances(bvh) if bvh.walks_packets() => unsafe {
+                let local = carried_all(rays, to_object, &mut local);
+                walk_nested::<V, NEAREST_FIRST>(bvh, stacks, local, active, scope, collectors, stats)
+            },
+            _ => false,
         }
     }
 }
 
-/// [`InstanceBvh::walk_packet`] of `child` (an instance accel placed in another) through an entry compiled for `V`'s
+/// [`InstanceBvh::walk_packet`] of `bvh` (an instance accel placed in another) through an entry compiled for `V`'s
 /// instruction set: the walks of a packet inline into one function for each instruction set, and an instance accel
 /// inside another calls that function again (the call cannot be inlined, and a function that is not compiled for the
 /// instruction set makes calls of its intrinsics).
@@ -190,7 +186,7 @@ impl InstanceBvh {
 /// The CPU must have `V`'s instruction set and AVX2.
 #[inline(always)]
 unsafe fn walk_nested<V: RayLanes, const NEAREST_FIRST: bool>(
-    child: &CpuAccel,
+    bvh: &InstanceBvh,
     stacks: PacketStacks<'_>,
     rays: &[Ray],
     active: u32,
@@ -198,7 +194,6 @@ unsafe fn walk_nested<V: RayLanes, const NEAREST_FIRST: bool>(
     collectors: &mut [Collector<'_>],
     stats: &mut TraceStats,
 ) -> bool {
-    let CpuAccel::Instances(bvh) = child else { return false };
     // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract): AVX-512F where `V` has 16 lanes.
     unsafe {
         match V::RAYS {
@@ -244,6 +239,15 @@ walk_nested_compiled_for!(
     std::arch::x86_64::__m512,
     "avx512f,avx2,fma,bmi1,bmi2,lzcnt,popcnt"
 );
+
+/// `rays` carried into the space `to_object` maps into ([`carried`]), written into the first of `local`.
+#[inline(always)]
+fn carried_all<'a>(rays: &[Ray], to_object: &Affine3A, local: &'a mut [Ray; MAX_PACKET_RAYS]) -> &'a [Ray] {
+    for (local, ray) in local.iter_mut().zip(rays) {
+        *local = carried(ray, to_object);
+    }
+    &local[..rays.len()]
+}
 
 /// The lanes set in `lanes` for which `keep` holds, a bit each.
 #[inline(always)]
