@@ -1,8 +1,8 @@
 //! Packets through a static instance accel: a packet of coherent rays walks the instance accel's wide nodes together
 //! ([`PacketTree::walk`], each instance's box tested ray by ray in the lanes), and the rays that reach an instance are
-//! carried into its space together and walk its child there as a packet where the child is a static geometry accel
-//! ([`super::triangles::TriangleBvh::walk_packet`]) or a static instance accel (this walk again) and the carried rays
-//! still make one. Otherwise each of them enters the instance as it would alone ([`carried_into`], then the child's own
+//! carried into its space together and walk its child there as a packet where the child is a geometry accel, static or
+//! moving ([`super::triangles::TriangleBvh::walk_packet`]), or a static instance accel (this walk again) and the
+//! carried rays still make one. Otherwise each of them enters the instance as it would alone ([`carried_into`], then the child's own
 //! walk).
 //!
 //! **Same answers as alone.** Each ray is carried as [`crate::intersect::PreparedRay::transformed`] carries it alone
@@ -16,7 +16,7 @@ use glam::Affine3A;
 
 use super::CpuAccel;
 use super::instances::{InstanceBvh, cpu_child};
-use super::packet::{MAX_ORIGIN_SPREAD, PacketAccel, PacketEntry, PacketLanes, PacketTree};
+use super::packet::{MAX_ORIGIN_SPREAD, NodeBoxes, PacketAccel, PacketEntry, PacketLanes, PacketTree};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::{StackEntry, Stacks, carried_into};
 use crate::format::Ray;
@@ -90,13 +90,13 @@ impl InstanceBvh {
                 finished
             }
         };
-        unsafe { tree.walk::<V, NEAREST_FIRST>(own, &lanes, active, collectors, stats, leaf, |_| {}) };
+        unsafe { tree.walk::<V, _, NEAREST_FIRST>(own, &lanes, &NodeBoxes, active, collectors, stats, leaf, |_| {}) };
         true
     }
 
     /// Walks the child of the instance in `slot` with those of `rays` (a packet's, [`RayLanes::RAYS`] of them) whose
     /// bits are set in `active` and whose visibility mask sees the instance, below `scope`: carried into its space as a
-    /// packet where they make one there and the child is a static accel (geometry or instances), each on its own
+    /// packet where they make one there and the child is a geometry accel or a static instance accel, each on its own
     /// otherwise (on the single-ray stack). Returns the rays it finished (their collectors done).
     ///
     /// # Safety
@@ -142,7 +142,8 @@ impl InstanceBvh {
 
     /// Walks `child`, the child of the instance in `slot`, in `scope` (the instance's) with those of `rays` whose bits
     /// are set in `active`, carried into the instance's space together as a packet, and says whether it did: only a
-    /// static accel (geometry or instances) is walked so, and only where the carried rays make a packet there.
+    /// geometry accel (static or moving) or a static instance accel is walked so, and only where the carried rays make a
+    /// packet there.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.

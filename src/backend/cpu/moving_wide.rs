@@ -47,12 +47,18 @@ impl MovingWideTree {
     /// operations of [`NodeKeys::at`] (so the same box as the binary node in the lane has at that time).
     #[inline(always)]
     pub fn boxes_at(&self, node: usize, at: KeyTime) -> WideNode {
-        let first = node * self.keys + at.segment;
-        let (a, b, f) = (&self.key_boxes[first], &self.key_boxes[first + 1], at.fraction);
+        let ((a, b), f) = (self.segment_boxes(node, at.segment), at.fraction);
         let lerp = |a: &[[f32; WIDTH]; 3], b: &[[f32; WIDTH]; 3]| {
             std::array::from_fn(|axis| std::array::from_fn(|lane| a[axis][lane] * (1.0 - f) + b[axis][lane] * f))
         };
         WideNode { lo: lerp(&a.lo, &b.lo), hi: lerp(&a.hi, &b.hi), ..WideNode::EMPTY }
+    }
+
+    /// Node `node`'s lanes' boxes at the two keys of segment `segment` (in `lo` and `hi`).
+    #[inline(always)]
+    pub fn segment_boxes(&self, node: usize, segment: usize) -> (&WideNode, &WideNode) {
+        let first = node * self.keys + segment;
+        (&self.key_boxes[first], &self.key_boxes[first + 1])
     }
 
     /// Stack entries a walk needs.

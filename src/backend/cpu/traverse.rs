@@ -59,7 +59,9 @@ impl CpuAccel {
             single: vec![StackEntry::default(); self.stack_size()],
             #[cfg(target_arch = "x86_64")]
             packet: match self {
-                CpuAccel::Triangles(bvh) => vec![PacketEntry::default(); bvh.wide.stack_size()],
+                CpuAccel::Triangles(bvh) => {
+                    vec![PacketEntry::default(); bvh.wide.stack_size().max(bvh.moving.stack_size())]
+                }
                 // The instance nodes' walk, then a child's ([`super::instance_packets`]).
                 CpuAccel::Instances(bvh) if bvh.walks_packets() => vec![PacketEntry::default(); bvh.stack_size],
                 CpuAccel::Instances(_) | CpuAccel::Transform(_) => Vec::new(),
@@ -76,8 +78,8 @@ impl CpuAccel {
 
     /// Offers each of `rays` (a group of neighbouring rays of a batch, [`crate::query::trace_batch`]'s, as
     /// [`crate::intersect::traced`] makes them, with a collector each) the triangles it reaches: together, as packets
-    /// ([`super::packet`]), where they make them through a static geometry accel or a static instance accel
-    /// ([`super::instance_packets`]); one by one otherwise.
+    /// ([`super::packet`]), where they make them through a geometry accel (a moving one at each ray's time:
+    /// [`super::moving_packets`]) or a static instance accel ([`super::instance_packets`]); one by one otherwise.
     pub(crate) fn traverse_group(
         &self,
         stacks: &mut Stacks,
