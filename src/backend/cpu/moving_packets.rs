@@ -6,10 +6,10 @@
 //! alone, and gets the answer it gets alone. A packet's rays in different segments of the keys walk as one packet a
 //! segment; a ray whose time the accel's vanish flags leave it out of meets nothing, as alone.
 
-use glam::Vec3;
+use glam::{Vec3, Vec3A};
 
 use super::filter;
-use super::moving_wide::MovingWideTree;
+use super::moving_wide::{MovingWideTree, holding};
 use super::packet::{LaneBoxes, Packet, PacketEntry, PacketTree, plane};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::LeafSlots;
@@ -81,10 +81,13 @@ impl TriangleBvh {
 }
 
 impl MovingWideTree {
-    /// Its nodes as a packet walks them, `root` the box around the accel at every key (for the packets' coherence
-    /// test only: the rays' boxes are interpolated at their times).
-    pub(super) fn packet_tree(&self, root: Bounds) -> PacketTree<'_> {
-        PacketTree { tree: self.tree(), root: (root.0.into(), root.1.into()), in_cache: false }
+    /// Its nodes as a packet walks them, `root` the box around the accel's triangles at every key: widened as the
+    /// nodes' boxes are ([`MovingWideTree::collapse`]), so that it holds them at every time.
+    pub(super) fn packet_tree(&self, (min, max): Bounds) -> PacketTree<'_> {
+        let planes = |axis: usize| [min[axis], max[axis]].into_iter();
+        let lo = Vec3A::from_array(std::array::from_fn(|axis| holding(planes(axis), f32::min, -1.0)));
+        let hi = Vec3A::from_array(std::array::from_fn(|axis| holding(planes(axis), f32::max, 1.0)));
+        PacketTree { tree: self.tree(), root: (lo, hi), in_cache: false }
     }
 }
 
@@ -102,8 +105,6 @@ struct BoxesAtTimes<'a, V> {
 }
 
 impl<V: RayLanes> LaneBoxes<V> for BoxesAtTimes<'_, V> {
-    const IN_NODES: bool = false;
-
     #[inline(always)]
     unsafe fn planes(&self, node: usize, _: &WideNode, lane: usize, rows: &[(usize, usize); 3]) -> ([V; 3], [V; 3]) {
         let (from, to) = self.tree.segment_boxes(node, self.segment);

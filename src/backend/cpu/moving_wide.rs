@@ -34,10 +34,23 @@ impl MovingWideTree {
         };
         let mut key_boxes = Vec::with_capacity(lanes.len() / WIDTH * keys);
         key_boxes.extend(lanes.chunks(WIDTH).flat_map(|lanes| (0..keys).map(move |key| at_key(lanes, key))));
+        let mut tree = tree;
+        let children = lanes.chunks(WIDTH).map(occupied);
+        for ((node, children), at_keys) in tree.nodes_mut().iter_mut().zip(children).zip(key_boxes.chunks(keys)) {
+            for lane in 0..children {
+                for axis in 0..3 {
+                    let (lo, hi) = (at_keys.iter().map(|k| k.lo[axis][lane]), at_keys.iter().map(|k| k.hi[axis][lane]));
+                    node.lo[axis][lane] = holding(lo, f32::min, -1.0);
+                    node.hi[axis][lane] = holding(hi, f32::max, 1.0);
+                }
+            }
+        }
         MovingWideTree { tree, keys, key_boxes }
     }
 
-    /// Its nodes as a walk reads them.
+    /// Its nodes as a walk reads them: each lane's box holds the lane's boxes at every time
+    /// ([`MovingWideTree::collapse`]), for tests that rule lanes out; walks that enter lanes test
+    /// [`MovingWideTree::boxes_at`].
     #[inline(always)]
     pub fn tree(&self) -> Tree<'_> {
         self.tree.tree()
@@ -75,6 +88,17 @@ impl MovingWideTree {
     pub const fn most_bytes(leaves: u64, keys: u64) -> u64 {
         WideTree::most_nodes(leaves as usize) as u64 * ((1 + keys) * size_of::<WideNode>() as u64 + 1)
     }
+}
+
+/// Where a plane of a lane's box at every time lies at most: `bound` (`f32::min` for a minimum, `f32::max` for a
+/// maximum) of its places `at_keys` at the keys, moved outward (`outward` −1 or 1) by 2⁻²⁰ of their largest magnitude.
+/// The interpolation of two keys' planes rounds at most 2⁻²² of the larger magnitude away from the exact value (three
+/// roundings of values no larger than it, and `1 − f`'s), which lies between them: the margin holds it four times.
+pub(super) fn holding(at_keys: impl Iterator<Item = f32> + Clone, bound: fn(f32, f32) -> f32, outward: f32) -> f32 {
+    const MARGIN: f32 = 1.0 / (1 << 20) as f32;
+    let magnitude = at_keys.clone().fold(0.0, |most: f32, x| most.max(x.abs()));
+    let plane = at_keys.reduce(bound).expect("a plane at every key");
+    plane + outward * magnitude * MARGIN
 }
 
 #[cfg(test)]
@@ -131,5 +155,44 @@ mod tests {
             }
         }
         assert!(compared > 100, "{compared} lanes compared");
+        // The nodes' own boxes hold each lane's box at every time (packets rule lanes out by them).
+        for time in (0..=1000).map(|i| i as f32 / 1000.0) {
+            let at = bvh.motion.locate(time).unwrap();
+            for (node, wide) in bvh.moving.tree().nodes.iter().enumerate() {
+                let boxes = bvh.moving.boxes_at(node, at);
+                for (axis, lane) in
+                    (0..3).flat_map(|axis| (0..occupied(&lanes[node * WIDTH..][..WIDTH])).map(move |l| (axis, l)))
+                {
+                    assert!(wide.lo[axis][lane] <= boxes.lo[axis][lane], "node {node} lane {lane} at {time}");
+                    assert!(wide.hi[axis][lane] >= boxes.hi[axis][lane], "node {node} lane {lane} at {time}");
+                }
+            }
+        }
+    }
+
+    /// A plane interpolated between two keys' places as a walk interpolates it ([`MovingWideTree::boxes_at`]).
+    fn interpolated(a: f32, b: f32, f: f32) -> f32 {
+        a * (1.0 - f) + b * f
+    }
+
+    fn coordinate() -> impl proptest::strategy::Strategy<Value = f32> {
+        use proptest::prelude::*;
+        prop_oneof![-1e6f32..1e6, -1.0f32..1.0, (-1e30f32..1e30), Just(0.0), Just(1.0), Just(-3.0e-7)]
+    }
+
+    proptest::proptest! {
+        #[test]
+        fn a_plane_interpolated_at_any_time_lies_within_what_holds_it(
+            a in coordinate(),
+            b in coordinate(),
+            same in proptest::bool::ANY,
+            f in 0.0f32..=1.0,
+        ) {
+            let b = if same { a } else { b };
+            let planes = [a, b].into_iter();
+            let (lowest, highest) = (holding(planes.clone(), f32::min, -1.0), holding(planes, f32::max, 1.0));
+            let at = interpolated(a, b, f);
+            proptest::prop_assert!(lowest <= at && at <= highest, "{a}, {b} at {f}: {at} outside {lowest} ..= {highest}");
+        }
     }
 }

@@ -430,25 +430,20 @@ impl PacketTree<'_> {
         for (cull, collector) in cull.iter_mut().zip(collectors.iter()) {
             *cull = collector.cull_tmax();
         }
-        // The rays that enter the root's box, where the boxes are the nodes' own (a moving tree's root box holds its
-        // lanes' boxes at the keys, not necessarily as the rays' times round them).
-        let mut alive = rays;
-        if B::IN_NODES {
-            let (lo, hi) = (self.root.0.to_array(), self.root.1.to_array());
-            let first: [f32; 3] = std::array::from_fn(|axis| if lanes.negative[axis] { hi[axis] } else { lo[axis] });
-            let last: [f32; 3] = std::array::from_fn(|axis| if lanes.negative[axis] { lo[axis] } else { hi[axis] });
-            // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).
-            (alive, _) = unsafe {
-                let (far, given) = (V::load(&cull), V::mask(rays));
-                let first = [V::splat(first[0]), V::splat(first[1]), V::splat(first[2])];
-                let last = [V::splat(last[0]), V::splat(last[1]), V::splat(last[2])];
-                lanes.enter_box::<false>(first, last, far, given, &mut [0.0; MAX_PACKET_RAYS])
-            };
-            stats.nodes_visited += u64::from(rays.count_ones());
-        }
+        let (lo, hi) = (self.root.0.to_array(), self.root.1.to_array());
+        let first: [f32; 3] = std::array::from_fn(|axis| if lanes.negative[axis] { hi[axis] } else { lo[axis] });
+        let last: [f32; 3] = std::array::from_fn(|axis| if lanes.negative[axis] { lo[axis] } else { hi[axis] });
+        // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
+        let (mut alive, _) = unsafe {
+            let (far, given) = (V::load(&cull), V::mask(rays));
+            let first = [V::splat(first[0]), V::splat(first[1]), V::splat(first[2])];
+            let last = [V::splat(last[0]), V::splat(last[1]), V::splat(last[2])];
+            lanes.enter_box::<false>(first, last, far, given, &mut [0.0; MAX_PACKET_RAYS])
+        };
+        stats.nodes_visited += u64::from(rays.count_ones());
         debug_assert_eq!(NEAREST_FIRST, collectors[0].wants_nearest_first());
         let (mut len, mut node, mut rays_in_node) = (0usize, 0usize, alive);
-        let inner_by_interval = B::IN_NODES && !NEAREST_FIRST && self.in_cache && lanes.interval.is_some();
+        let inner_by_interval = !NEAREST_FIRST && self.in_cache && lanes.interval.is_some();
         let most_at_root = unsafe { V::load(&cull).most(V::mask(alive)) };
         // A node's entered lanes: (rays entering, the nearest of their distances, lane); each one's distances. Made
         // once a walk: a node reads only what it wrote.
@@ -469,8 +464,8 @@ impl PacketTree<'_> {
                 false => most_at_root,
             };
             let mut lanes_left = match &lanes.interval {
-                Some(interval) if B::IN_NODES => unsafe { interval.may_enter(owner, lanes.rows, most) },
-                _ => u32::MAX,
+                Some(interval) => unsafe { interval.may_enter(owner, lanes.rows, most) },
+                None => u32::MAX,
             } & ((1 << children) - 1);
             // Where the walk wants no distances, an inner lane the interval lets in is taken with all the active rays
             // ([`PacketTree::walk`]); only leaves are tested ray by ray.
@@ -565,13 +560,11 @@ impl PacketTree<'_> {
     }
 }
 
-/// Where a packet walk finds the boxes of a node's lanes: in the node ([`NodeBoxes`]), or, for the nodes of a moving
-/// accel, interpolated at each ray's time (`BoxesAtTimes` in [`super::moving_packets`]).
+/// Where a packet walk finds the boxes of a node's lanes that its rays enter: in the node ([`NodeBoxes`]), or, for the
+/// nodes of a moving accel, interpolated at each ray's time (`BoxesAtTimes` in [`super::moving_packets`]). Either way
+/// the node's own lanes' boxes, and the tree's root box, hold them: the packet's interval tests a node's lanes all at
+/// once by those ([`PacketInterval::may_enter`]), and the root's box sorts out the rays that enter no lane.
 pub(super) trait LaneBoxes<V> {
-    /// Whether the boxes are the nodes' own: the packet's interval may then test a node's lanes all at once first
-    /// ([`PacketInterval::may_enter`]), and the root's box sort out the rays that enter none.
-    const IN_NODES: bool;
-
     /// Per axis, the planes of lane `lane` of node `node` (`owner`) that the rays meet first, and those they meet
     /// last, a ray a lane; `rows` says where in a node they lie ([`PacketLanes::rows`]).
     ///
@@ -586,8 +579,6 @@ pub(super) trait LaneBoxes<V> {
 pub(super) struct NodeBoxes;
 
 impl<V: RayLanes> LaneBoxes<V> for NodeBoxes {
-    const IN_NODES: bool = true;
-
     #[inline(always)]
     unsafe fn planes(&self, _: usize, owner: &WideNode, lane: usize, rows: &[(usize, usize); 3]) -> ([V; 3], [V; 3]) {
         let [(f0, l0), (f1, l1), (f2, l2)] = *rows;

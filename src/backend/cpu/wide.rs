@@ -590,6 +590,11 @@ impl WideTree {
     pub fn tree(&self) -> Tree<'_> {
         Tree { nodes: &self.nodes, children: &self.children, stack_size: self.stack_size() }
     }
+
+    /// Its nodes, to set their lanes' boxes (their indices and counts are the collapse's, which walks trust).
+    pub fn nodes_mut(&mut self) -> &mut [WideNode] {
+        &mut self.nodes
+    }
 }
 
 /// What a wide BVH is besides its nodes' boxes and its leaves' triangles.
