@@ -1,9 +1,10 @@
 //! Packets through a static instance accel: a packet of coherent rays walks the instance accel's wide nodes together
 //! ([`PacketTree::walk`], each instance's box tested ray by ray in the lanes), and the rays that reach an instance are
 //! carried into its space together and walk its child there as a packet where the child is a geometry accel, static or
-//! moving ([`super::triangles::TriangleBvh::walk_packet`]), or a static instance accel (this walk again) and the
-//! carried rays still make one. Otherwise each of them enters the instance as it would alone ([`carried_into`], then the child's own
-//! walk).
+//! moving ([`super::triangles::TriangleBvh::walk_packet`]), a transform (static or moving) over one, each ray carried
+//! on as the transform places the geometry at its time ([`placed_at_their_times`]), or a static instance accel (this
+//! walk again), and the carried rays still make one. Otherwise each of them enters the instance as it would alone
+//! ([`carried_into`], then the child's own walk).
 //!
 //! **Same answers as alone.** Each ray is carried as [`crate::intersect::PreparedRay::transformed`] carries it alone
 //! ([`carried`]), and a packet gives its rays the answers they get alone ([`super::packet`]); the instance's box and
@@ -15,11 +16,12 @@ use std::ops::Range;
 use glam::Affine3A;
 
 use super::CpuAccel;
-use super::instances::{InstanceBvh, cpu_child};
-use super::packet::{MAX_ORIGIN_SPREAD, NodeBoxes, PacketAccel, PacketEntry, PacketLanes, PacketTree};
+use super::instances::{InstanceBvh, TransformNode, cpu_child};
+use super::packet::{MAX_ORIGIN_SPREAD, NodeBoxes, PacketAccel, PacketEntry, PacketLanes, PacketTree, RayScopes};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::{StackEntry, Stacks, carried_into};
 use crate::format::Ray;
+use crate::geometry::Placement;
 use crate::intersect::{PreparedRay, carried};
 use crate::query::{Collector, InstanceScope, TraceStats};
 
@@ -96,8 +98,8 @@ impl InstanceBvh {
 
     /// Walks the child of the instance in `slot` with those of `rays` (a packet's, [`RayLanes::RAYS`] of them) whose
     /// bits are set in `active` and whose visibility mask sees the instance, below `scope`: carried into its space as a
-    /// packet where they make one there and the child is a geometry accel or a static instance accel, each on its own
-    /// otherwise (on the single-ray stack). Returns the rays it finished (their collectors done).
+    /// packet where they make one there and the child is a geometry accel, a transform over one or a static instance
+    /// accel, each on its own otherwise (on the single-ray stack). Returns the rays it finished (their collectors done).
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
@@ -142,8 +144,8 @@ impl InstanceBvh {
 
     /// Walks `child`, the child of the instance in `slot`, in `scope` (the instance's) with those of `rays` whose bits
     /// are set in `active`, carried into the instance's space together as a packet, and says whether it did: only a
-    /// geometry accel (static or moving) or a static instance accel is walked so, and only where the carried rays make a
-    /// packet there.
+    /// geometry accel (static or moving), a transform over one (each ray carried through it at its own time, in its own
+    /// scope) or a static instance accel is walked so, and only where the carried rays make a packet there.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
@@ -165,9 +167,30 @@ impl InstanceBvh {
         let rays = &rays[..V::RAYS];
         // SAFETY (both): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         match child {
-            CpuAccel::Triangles(bvh) if bvh.walks_packets() => unsafe {
+            CpuAccel::Triangles(bvh) => unsafe {
                 let local = carried_all(rays, to_object, &mut local);
-                bvh.walk_packet::<V, NEAREST_FIRST>(stacks.0, local, active, scope, collectors, stats)
+                bvh.walk_packet::<V, NEAREST_FIRST>(stacks.0, local, active, RayScopes::All(scope), collectors, stats)
+            },
+            CpuAccel::Transform(node) => match cpu_child(&node.child) {
+                Ok(CpuAccel::Triangles(bvh)) => unsafe {
+                    let local = carried_all(rays, to_object, &mut local);
+                    let mut placed = [Ray::default(); MAX_PACKET_RAYS];
+                    let mut scopes = [*scope; MAX_PACKET_RAYS];
+                    let Some(placed_rays) = placed_at_their_times(node, local, active, scope, &mut placed, &mut scopes)
+                    else {
+                        return true;
+                    };
+                    let scopes = RayScopes::Each(&scopes);
+                    bvh.walk_packet::<V, NEAREST_FIRST>(
+                        stacks.0,
+                        &placed[..V::RAYS],
+                        placed_rays,
+                        scopes,
+                        collectors,
+                        stats,
+                    )
+                },
+                _ => false,
             },
             CpuAccel::Instances(bvh) if bvh.walks_packets() => unsafe {
                 let local = carried_all(rays, to_object, &mut local);
@@ -250,6 +273,33 @@ fn carried_all<'a>(rays: &[Ray], to_object: &Affine3A, local: &'a mut [Ray; MAX_
     &local[..rays.len()]
 }
 
+/// `rays` (a packet's, in the space of the transform `node`'s parent) carried into the space of `node`'s child as
+/// `node` places it at each ray's time, into `placed`, each as a ray alone is ([`TransformNode::traverse`]), with its
+/// scope below `scope` in `scopes`; returns the rays of `active` that `node` places (those whose time its vanish
+/// flags leave out are not), `None` when there are none. The rays left out are carried as the first placed one's
+/// placement carries them, so that the lanes keep making a packet.
+fn placed_at_their_times(
+    node: &TransformNode,
+    rays: &[Ray],
+    active: u32,
+    scope: &InstanceScope,
+    placed: &mut [Ray; MAX_PACKET_RAYS],
+    scopes: &mut [InstanceScope; MAX_PACKET_RAYS],
+) -> Option<u32> {
+    let placements: [Option<Placement>; MAX_PACKET_RAYS] =
+        std::array::from_fn(|lane| rays.get(lane).and_then(|ray| node.transform.placement_at(ray.time)));
+    let placed_rays = lanes_where(active, |lane| placements[lane].is_some());
+    if placed_rays == 0 {
+        return None;
+    }
+    let stand_in = placements[placed_rays.trailing_zeros() as usize]?;
+    for (lane, ray) in rays.iter().enumerate() {
+        let placement = placements[lane].unwrap_or(stand_in);
+        (placed[lane], scopes[lane]) = (carried(ray, &placement.world_to_object), scope.through(&placement));
+    }
+    Some(placed_rays)
+}
+
 /// The lanes set in `lanes` for which `keep` holds, a bit each.
 #[inline(always)]
 fn lanes_where(lanes: u32, keep: impl Fn(usize) -> bool) -> u32 {
@@ -271,10 +321,13 @@ mod tests {
 
     use super::*;
     use crate::accel::BuildOptions;
+    use crate::backend::cpu::moving_packets::tests::at_times;
     use crate::backend::cpu::packet::tests::{camera_rays, in_packet_order, lattice, packets_agree, widths};
     use crate::cpu_features::has_avx2;
     use crate::format::{Hit, HitFormat, RayFlags, RayFormat};
-    use crate::geometry::{BuildInput, Instance, InstanceFlags, Placement, TransformInput, TriangleInput};
+    use crate::geometry::{
+        BuildInput, Instance, InstanceFlags, MotionFlags, MotionOptions, Placement, TransformInput, TriangleInput,
+    };
     use crate::intersect::traced;
     use crate::query::Query;
     use crate::{Accel, Context, Device};
@@ -285,8 +338,8 @@ mod tests {
     }
 
     /// The packet tests' lattice (with its Prime masks) placed as itself, turned and shrunk (its faces flipped),
-    /// mirrored (its faces never culled), tilted, inside an instance accel of its own, and under a static transform
-    /// (which rays enter one by one), each seen by other visibility bits; with the lattice's geometry accel.
+    /// mirrored (its faces never culled), tilted, inside an instance accel of its own, and under a static transform,
+    /// each seen by other visibility bits; with the lattice's geometry accel.
     fn scene(context: &Context) -> (Arc<Accel>, Arc<Accel>) {
         let (_, mesh) = lattice(true);
         let packed = mesh.pack();
@@ -360,7 +413,7 @@ mod tests {
     }
 
     #[test]
-    fn rays_that_make_a_packet_make_one_in_turned_and_nested_instances_but_enter_a_transform_one_by_one() {
+    fn rays_that_make_a_packet_make_one_in_turned_and_nested_instances_and_under_a_transform() {
         if !has_avx2() {
             return;
         }
@@ -371,9 +424,43 @@ mod tests {
         let rays = camera_rays();
         let neighbours = &rays[64 * 30..64 * 30 + 8];
         // SAFETY (all): the CPU has AVX2 and the rest, as checked above.
-        for id in [1, 2, 3, 4, 5] {
+        for id in [1, 2, 3, 4, 5, 6] {
             assert!(unsafe { carry_packet(bvh, slot(id), neighbours) }, "instance {id}");
         }
-        assert!(!unsafe { carry_packet(bvh, slot(6), neighbours) }, "the transform");
+    }
+
+    #[test]
+    fn packets_carried_through_motion_transforms_give_every_ray_the_answer_it_gets_alone() {
+        let context = Context::new(Device::cpu());
+        let (_, lattice) = scene(&context);
+        let motion = |keys: u32, flags: MotionFlags| MotionOptions { keys, time_begin: 0.0, time_end: 1.0, flags };
+        let shifted = |by: Vec3| Placement::rows(&Affine3A::from_translation(by));
+        let sliding = TransformInput::MatrixMotion {
+            keys: vec![shifted(Vec3::ZERO), shifted(Vec3::new(0.1, -0.05, 0.05))],
+            motion: motion(2, MotionFlags::END_VANISH),
+        };
+        // Turning about z through 3 keys (OptiX's SRT layout: the quaternion in elements 9–12).
+        let turned = |angle: f32| {
+            let mut key = [1., 0., 0., 0., 1., 0., 0., 1., 0., 0., 0., 0., 1., 0., 0., 0.];
+            key[9..13].copy_from_slice(&Quat::from_rotation_z(angle).to_array());
+            key
+        };
+        let turning = TransformInput::SrtMotion {
+            keys: vec![turned(0.0), turned(0.1), turned(0.25)],
+            motion: motion(3, MotionFlags::START_VANISH),
+        };
+        let [sliding, turning] = [sliding, turning].map(|input| context.build_transform(&input, &lattice).unwrap());
+        let tilted = Affine3A::from_rotation_translation(Quat::from_rotation_x(0.15), Vec3::new(0.3, 0.2, 0.2));
+        let instances = [
+            instance(1, Affine3A::IDENTITY, 0xFF, InstanceFlags::empty(), &sliding),
+            instance(2, tilted, 0xFF, InstanceFlags::FLIP_FACING, &turning),
+        ];
+        let scene = context.build_instance_accel(&instances, &BuildOptions::default()).unwrap();
+        let accel = cpu_child(&scene).unwrap();
+        for width in widths() {
+            let rays = in_packet_order(&at_times(camera_rays()), width);
+            // The full format: world normals, which each ray's own placement of the lattice turns.
+            packets_agree(accel, "pinhole", &rays, width, HitFormat::Full);
+        }
     }
 }

@@ -181,7 +181,7 @@ fn bits(mut bits: u32) -> impl Iterator<Item = usize> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use std::sync::Arc;
 
     use glam::{Affine3A, Quat, Vec3A};
@@ -225,7 +225,7 @@ mod tests {
 
     /// `rays`, each at a pseudo-random time of its own in [−0.1, 1.1]: neighbours at different times, some before
     /// and after the motion.
-    fn at_times(rays: Vec<Ray>) -> Vec<Ray> {
+    pub(in crate::backend::cpu) fn at_times(rays: Vec<Ray>) -> Vec<Ray> {
         let time = |i: usize| 1.2 * uniform(5, i as u64) - 0.1;
         rays.into_iter().enumerate().map(|(i, ray)| Ray { time: time(i), ..ray }).collect()
     }
