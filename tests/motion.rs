@@ -21,8 +21,8 @@
 //!    time (vertices and transforms computed here by the documented formulas, built static and traced). And every
 //!    accel's `info().bounds` holds its triangles at every time (a bar turning 170° included). A motion-blurred
 //!    camera's rays (neighbours at different times, which the CPU backend walks together as packets) hit moving
-//!    meshes, and instances of them and of a matrix motion transform over them, as the scene frozen at each ray's
-//!    time.
+//!    meshes, and instances of them and of a matrix motion transform over them (in a static and in a motion instance
+//!    accel), as the scene frozen at each ray's time.
 //! 7. A NaN ray time fails the trace (INVALID_ARGUMENT naming `rays.time`); infinite times clamp.
 //! 8. Bad motion inputs are refused precisely (field, element, rule).
 //! 9. Updates of a motion geometry accel trace as a fresh build with the new keys.
@@ -1121,13 +1121,22 @@ fn a_motion_blurred_cameras_rays_hit_moving_scenes_as_they_are_frozen_at_each_ra
         motion: motion(2, 0.0, 1.0, MotionFlags::START_VANISH),
     };
     let slid = transform_node(&context, slide, Rc::clone(&moving));
-    let members = vec![
-        Member { transform: translation(Vec3::ZERO), id: 1, child: Rc::clone(&moving) },
-        Member { transform: translation(Vec3::new(1.2, 0.0, 0.0)), id: 2, child: slid },
-    ];
-    let placed = instances_node(&context, members, MotionOptions::STATIC);
+    let members = || {
+        vec![
+            Member { transform: translation(Vec3::ZERO), id: 1, child: Rc::clone(&moving) },
+            Member { transform: translation(Vec3::new(1.2, 0.0, 0.0)), id: 2, child: Rc::clone(&slid) },
+        ]
+    };
+    // Placed by a static instance accel, and by a motion instance accel (its nodes' boxes move with time).
+    let placed = instances_node(&context, members(), MotionOptions::STATIC);
+    let placed_moving = instances_node(&context, members(), motion(3, 0.0, 1.0, MotionFlags::empty()));
     let times = [-0.3, 0.0, 0.2, 0.5, 0.5001, 0.75, 1.0, 1.1];
-    for (scene, node) in [("moving meshes", &moving), ("instances of them and of a motion transform", &placed)] {
+    let scenes = [
+        ("moving meshes", &moving),
+        ("instances of them and of a motion transform", &placed),
+        ("the same in a motion instance accel", &placed_moving),
+    ];
+    for (scene, node) in scenes {
         let (lo, hi) = node.accel.info().bounds;
         let camera = Camera::framing(lo, hi, 64, 64);
         let rays: Vec<Ray> = (0..64 * 64u32)

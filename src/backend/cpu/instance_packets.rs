@@ -1,9 +1,9 @@
-//! Packets through a static instance accel: a packet of coherent rays walks the instance accel's wide nodes together
+//! Packets through an instance accel: a packet of coherent rays walks the instance accel's wide nodes together
 //! ([`PacketTree::walk`], each instance's box tested ray by ray in the lanes), and the rays that reach an instance are
 //! carried into its space together and walk its child there as a packet where the child is a geometry accel, static or
 //! moving ([`super::triangles::TriangleBvh::walk_packet`]), a transform (static or moving) over one, each ray carried
-//! on as the transform places the geometry at its time ([`placed_at_their_times`]), or a static instance accel (this
-//! walk again), and the carried rays still make one. Otherwise each of them enters the instance as it would alone
+//! on as the transform places the geometry at its time ([`placed_at_their_times`]), or an instance accel (this walk
+//! again), and the carried rays still make one. Otherwise each of them enters the instance as it would alone
 //! ([`carried_into`], then the child's own walk).
 //!
 //! **Same answers as alone.** Each ray is carried as [`crate::intersect::PreparedRay::transformed`] carries it alone
@@ -17,6 +17,7 @@ use glam::Affine3A;
 
 use super::CpuAccel;
 use super::instances::{InstanceBvh, TransformNode, cpu_child};
+use super::moving_packets::{BoxesAtTimes, in_segments};
 use super::packet::{MAX_ORIGIN_SPREAD, NodeBoxes, PacketAccel, PacketEntry, PacketLanes, PacketTree, RayScopes};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::{StackEntry, Stacks, carried_into};
@@ -26,10 +27,6 @@ use crate::intersect::{PreparedRay, carried};
 use crate::query::{Collector, InstanceScope, TraceStats};
 
 impl PacketAccel for InstanceBvh {
-    fn walks_packets(&self) -> bool {
-        self.node_keys.is_none()
-    }
-
     #[inline(always)]
     unsafe fn trace_packet_in_order<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,
@@ -54,8 +51,8 @@ impl InstanceBvh {
     /// Walks the rays of `rays` ([`RayLanes::RAYS`] of them, as [`crate::intersect::traced`] makes them, in this
     /// accel's space) whose bits are set in `active` as a packet, in `scope`, if all of them head the same way from
     /// nearby origins ([`PacketLanes::coherent`]), and says whether it did; for the visit order `NEAREST_FIRST`, which
-    /// must be what the collectors want. The accel must be static, and the packet stack hold its
-    /// [`InstanceBvh::stack_size`] entries.
+    /// must be what the collectors want. A motion instance accel's nodes are walked with their boxes at each ray's time
+    /// ([`super::moving_packets`]). The packet stack must hold the accel's [`InstanceBvh::stack_size`] entries.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
@@ -72,14 +69,19 @@ impl InstanceBvh {
         // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
         let Some(lanes) = (unsafe { PacketLanes::<V>::new(rays) }) else { return false };
         // The instance nodes are few and small; their boxes are tested exactly, ray by ray, at every node.
-        let root = (self.bounds.0.into(), self.bounds.1.into());
-        let tree = PacketTree { tree: self.wide.tree(), root, in_cache: false };
+        let (tree, own_size) = match self.node_keys {
+            None => {
+                let root = (self.bounds.0.into(), self.bounds.1.into());
+                (PacketTree { tree: self.wide.tree(), root, in_cache: false }, self.wide.stack_size())
+            }
+            Some(_) => (self.moving.packet_tree(self.bounds), self.moving.stack_size()),
+        };
         if !unsafe { lanes.coherent(&rays[0], MAX_ORIGIN_SPREAD * tree.diagonal()) } {
             return false;
         }
-        let (own, rest) = packet_stack.split_at_mut(self.wide.stack_size());
+        let (own, rest) = packet_stack.split_at_mut(own_size);
         // Inlined at once, so that it is compiled with the instruction sets of the function it is called from.
-        let leaf = {
+        let mut leaf = {
             #[inline(always)]
             |slots: Range<usize>, active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
                 let mut finished = 0;
@@ -92,7 +94,21 @@ impl InstanceBvh {
                 finished
             }
         };
-        unsafe { tree.walk::<V, _, NEAREST_FIRST>(own, &lanes, &NodeBoxes, active, collectors, stats, leaf, |_| {}) };
+        if self.node_keys.is_none() {
+            unsafe {
+                tree.walk::<V, _, NEAREST_FIRST>(own, &lanes, &NodeBoxes, active, collectors, stats, leaf, |_| {})
+            };
+            return true;
+        }
+        // A motion instance accel: its nodes' boxes at each ray's time, a packet for each segment of the keys.
+        let walk = {
+            #[inline(always)]
+            |segment: usize, group: u32, fractions: &[f32; MAX_PACKET_RAYS]| unsafe {
+                let boxes = BoxesAtTimes::new(&self.moving, segment, fractions);
+                tree.walk::<V, _, NEAREST_FIRST>(own, &lanes, &boxes, group, collectors, stats, &mut leaf, |_| {})
+            }
+        };
+        in_segments(&self.motion, rays, active, walk);
         true
     }
 
@@ -145,7 +161,7 @@ impl InstanceBvh {
     /// Walks `child`, the child of the instance in `slot`, in `scope` (the instance's) with those of `rays` whose bits
     /// are set in `active`, carried into the instance's space together as a packet, and says whether it did: only a
     /// geometry accel (static or moving), a transform over one (each ray carried through it at its own time, in its own
-    /// scope) or a static instance accel is walked so, and only where the carried rays make a packet there.
+    /// scope) or an instance accel is walked so, and only where the carried rays make a packet there.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
@@ -192,11 +208,10 @@ impl InstanceBvh {
                 },
                 _ => false,
             },
-            CpuAccel::Instances(bvh) if bvh.walks_packets() => unsafe {
+            CpuAccel::Instances(bvh) => unsafe {
                 let local = carried_all(rays, to_object, &mut local);
                 walk_nested::<V, NEAREST_FIRST>(bvh, stacks, local, active, scope, collectors, stats)
             },
-            _ => false,
         }
     }
 }

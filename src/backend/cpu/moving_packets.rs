@@ -4,7 +4,8 @@
 //! lane, and so are each leaf triangle's corners, with the operations a ray alone uses
 //! ([`MovingWideTree::boxes_at`], [`crate::geometry::motion::lerp`]): every ray meets each triangle where it meets it
 //! alone, and gets the answer it gets alone. A packet's rays in different segments of the keys walk as one packet a
-//! segment; a ray whose time the accel's vanish flags leave it out of meets nothing, as alone.
+//! segment ([`in_segments`]); a ray whose time the accel's vanish flags leave it out of meets nothing, as alone. A
+//! motion instance accel's packets walk its nodes the same way ([`super::instance_packets`]).
 
 use glam::{Vec3, Vec3A};
 
@@ -15,7 +16,8 @@ use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::LeafSlots;
 use super::triangles::TriangleBvh;
 use super::wide::WideNode;
-use crate::geometry::motion::{Bounds, KeyTime, lerp};
+use crate::format::Ray;
+use crate::geometry::motion::{Bounds, KeyTime, MotionOptions, lerp};
 use crate::query::{Collector, TraceStats};
 
 impl TriangleBvh {
@@ -35,48 +37,67 @@ impl TriangleBvh {
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) {
-        let mut times = [KeyTime { segment: 0, fraction: 0.0 }; MAX_PACKET_RAYS];
-        let mut waiting = 0u32;
-        for ray in bits(active) {
-            if let Some(at) = self.motion.locate(packet.rays[ray].time) {
-                (times[ray], waiting) = (at, waiting | 1 << ray);
-            }
-        }
         let (corners, keys) = (&self.corners, self.motion.keys as usize);
         let leaf_slots = LeafSlots { ids: &self.refs, masks: self.masks.as_deref() };
-        while waiting != 0 {
-            let segment = times[waiting.trailing_zeros() as usize].segment;
-            let (mut rays, mut fractions) = (0u32, [0f32; MAX_PACKET_RAYS]);
-            for ray in bits(waiting).filter(|&ray| times[ray].segment == segment) {
-                (rays, fractions[ray]) = (rays | 1 << ray, times[ray].fraction);
+        let walk = {
+            #[inline(always)]
+            |segment: usize, rays: u32, fractions: &[f32; MAX_PACKET_RAYS]| {
+                // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
+                let boxes = unsafe { BoxesAtTimes::new(&self.moving, segment, fractions) };
+                let (fraction, rest) = (boxes.fraction, boxes.rest);
+                let keys_of = move |slot: usize| (&corners[slot * keys + segment], &corners[slot * keys + segment + 1]);
+                // The closures are inlined at once: one left to itself is compiled without the instruction sets of
+                // the function it is called from, and its intrinsics become calls.
+                let lane_corners = {
+                    #[inline(always)]
+                    |slot: usize| {
+                        let (from, to) = keys_of(slot);
+                        CornersAtTimes { from, to, fraction, rest, axes: packet.lanes.axes }
+                    }
+                };
+                let ray_corners = {
+                    #[inline(always)]
+                    |slot: usize, ray: usize| {
+                        let (from, to) = keys_of(slot);
+                        std::array::from_fn(|c| lerp(from[c], to[c], fractions[ray]))
+                    }
+                };
+                let leaf = self.packet_leaf(packet, leaf_slots, lane_corners, ray_corners);
+                let lanes = packet.lanes;
+                unsafe {
+                    tree.walk::<V, _, NEAREST_FIRST>(stack, lanes, &boxes, rays, collectors, stats, leaf, |_| {})
+                };
             }
-            waiting &= !rays;
-            // SAFETY (all): the CPU has `V`'s instruction set and AVX2 (this function's contract).
-            let fraction = unsafe { V::load(&fractions) };
-            let rest = unsafe { V::splat(1.0).sub(fraction) };
-            let boxes = BoxesAtTimes { tree: &self.moving, segment, fraction, rest };
-            let keys_of = move |slot: usize| (&corners[slot * keys + segment], &corners[slot * keys + segment + 1]);
-            // The closures are inlined at once: one left to itself is compiled without the instruction sets of the
-            // function it is called from, and its intrinsics become calls.
-            let lane_corners = {
-                #[inline(always)]
-                |slot: usize| {
-                    let (from, to) = keys_of(slot);
-                    CornersAtTimes { from, to, fraction, rest, axes: packet.lanes.axes }
-                }
-            };
-            let ray_corners = {
-                #[inline(always)]
-                |slot: usize, ray: usize| {
-                    let (from, to) = keys_of(slot);
-                    std::array::from_fn(|c| lerp(from[c], to[c], fractions[ray]))
-                }
-            };
-            let leaf = self.packet_leaf(packet, leaf_slots, lane_corners, ray_corners);
-            unsafe {
-                tree.walk::<V, _, NEAREST_FIRST>(stack, packet.lanes, &boxes, rays, collectors, stats, leaf, |_| {})
-            };
+        };
+        in_segments(&self.motion, packet.rays, active, walk);
+    }
+}
+
+/// Calls `walk` for each group of the `active` rays of `rays` whose times fall in one segment of `motion`'s keys,
+/// with the segment, the group (a bit a ray) and each ray's fraction of the way through the segment (by lane; 0 for
+/// the rays not in the group). A ray whose time `motion`'s vanish flags leave out is in none.
+#[inline(always)]
+pub(super) fn in_segments(
+    motion: &MotionOptions,
+    rays: &[Ray],
+    active: u32,
+    mut walk: impl FnMut(usize, u32, &[f32; MAX_PACKET_RAYS]),
+) {
+    let mut times = [KeyTime { segment: 0, fraction: 0.0 }; MAX_PACKET_RAYS];
+    let mut waiting = 0u32;
+    for ray in bits(active) {
+        if let Some(at) = motion.locate(rays[ray].time) {
+            (times[ray], waiting) = (at, waiting | 1 << ray);
         }
+    }
+    while waiting != 0 {
+        let segment = times[waiting.trailing_zeros() as usize].segment;
+        let (mut group, mut fractions) = (0u32, [0f32; MAX_PACKET_RAYS]);
+        for ray in bits(waiting).filter(|&ray| times[ray].segment == segment) {
+            (group, fractions[ray]) = (group | 1 << ray, times[ray].fraction);
+        }
+        waiting &= !group;
+        walk(segment, group, &fractions);
     }
 }
 
@@ -93,7 +114,7 @@ impl MovingWideTree {
 
 /// A moving tree's lanes' boxes at the times of a packet's rays, all in one segment of its keys: each lane's two key
 /// boxes interpolated, a ray a lane, with the operations of [`MovingWideTree::boxes_at`].
-struct BoxesAtTimes<'a, V> {
+pub(super) struct BoxesAtTimes<'a, V> {
     /// The tree.
     tree: &'a MovingWideTree,
     /// The segment of the keys the rays' times fall in.
@@ -102,6 +123,23 @@ struct BoxesAtTimes<'a, V> {
     fraction: V,
     /// `1 − fraction`.
     rest: V,
+}
+
+impl<'a, V: RayLanes> BoxesAtTimes<'a, V> {
+    /// The boxes of `tree`'s lanes in segment `segment` of its keys, at each ray's `fractions` of the way through it.
+    ///
+    /// # Safety
+    /// The CPU must have `V`'s instruction set.
+    #[inline(always)]
+    pub(super) unsafe fn new(
+        tree: &'a MovingWideTree,
+        segment: usize,
+        fractions: &[f32; MAX_PACKET_RAYS],
+    ) -> BoxesAtTimes<'a, V> {
+        // SAFETY: the CPU has the instruction set (the caller's contract).
+        let fraction = unsafe { V::load(fractions) };
+        BoxesAtTimes { tree, segment, fraction, rest: unsafe { V::splat(1.0).sub(fraction) } }
+    }
 }
 
 impl<V: RayLanes> LaneBoxes<V> for BoxesAtTimes<'_, V> {
@@ -195,8 +233,8 @@ pub(super) mod tests {
     use crate::raygen::uniform;
     use crate::{Accel, Context, Device};
 
-    /// The packet tests' lattice (its Prime masks too) moving over [0, 1] through `keys` keys (2 or 3): as it is, then
-    /// moved, then (the third) each vertex scattered.
+    /// The packet tests' lattice (its Prime masks too) moving over [0, 1] through `keys` keys (1, static; 2 or 3): as
+    /// it is, then moved, then (the third) each vertex scattered.
     fn moving_lattice(context: &Context, keys: u32, flags: MotionFlags) -> Arc<Accel> {
         let (_, mesh) = lattice(true);
         let bytes = |points: Vec<Vec3>| -> Vec<u8> {
@@ -267,6 +305,32 @@ pub(super) mod tests {
             let rays = in_packet_order(&at_times(camera_rays()), width);
             // The full format: instance ids and paths, world normals and facing.
             packets_agree(accel, "pinhole", &rays, width, HitFormat::Full);
+        }
+    }
+
+    #[test]
+    fn packets_through_motion_instance_accels_give_every_ray_the_answer_it_gets_alone() {
+        let context = Context::new(Device::cpu());
+        let (moving, still) =
+            (moving_lattice(&context, 3, MotionFlags::empty()), moving_lattice(&context, 1, MotionFlags::empty()));
+        let placed = |id: u32, placement: Affine3A, child: &Arc<Accel>| Instance {
+            transform: Placement::rows(&placement),
+            instance_id: id,
+            mask: 0xFF,
+            flags: InstanceFlags::empty(),
+            child: Arc::clone(child),
+        };
+        let tilted = Affine3A::from_rotation_translation(Quat::from_rotation_y(0.1), Vec3::new(0.5, 0.4, 0.3));
+        let instances = [placed(1, Affine3A::IDENTITY, &moving), placed(2, tilted, &still)];
+        for flags in [MotionFlags::empty(), MotionFlags::START_VANISH | MotionFlags::END_VANISH] {
+            let motion = MotionOptions { keys: 2, time_begin: 0.0, time_end: 1.0, flags };
+            let options = BuildOptions { motion, ..BuildOptions::default() };
+            let scene = context.build_instance_accel(&instances, &options).unwrap();
+            let accel = cpu_child(&scene).unwrap();
+            for width in widths() {
+                let rays = in_packet_order(&at_times(camera_rays()), width);
+                packets_agree(accel, "pinhole", &rays, width, HitFormat::Full);
+            }
         }
     }
 }

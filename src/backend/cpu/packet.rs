@@ -76,12 +76,9 @@ pub(super) fn may_pack(rays: &[Ray], collectors: &[Collector<'_>]) -> bool {
 }
 
 /// An accel whose coherent rays are walked together as packets: a geometry accel ([`TriangleBvh`], static or moving:
-/// [`super::moving_packets`]), or a static instance accel, whose packets are carried into the instances' spaces
+/// [`super::moving_packets`]), or an instance accel, whose packets are carried into the instances' spaces
 /// ([`super::instance_packets`]).
 pub(super) trait PacketAccel {
-    /// Whether packets walk it (a geometry accel, or a static instance accel).
-    fn walks_packets(&self) -> bool;
-
     /// Traces `rays` ([`RayLanes::RAYS`] of them, which [`may_pack`]) as a packet in `V` registers if they head the
     /// same way from nearby origins ([`PacketLanes::coherent`]), and says whether it did, for the visit order
     /// `NEAREST_FIRST` (which must be what the collectors want, [`Collector::wants_nearest_first`]).
@@ -107,7 +104,7 @@ pub(super) fn trace_packets(
     collectors: &mut [Collector<'_>],
     stats: &mut TraceStats,
 ) -> u32 {
-    if !accel.walks_packets() || !has_avx2() {
+    if !has_avx2() {
         return 0;
     }
     if rays.len() == MAX_PACKET_RAYS && has_avx512() && may_pack(rays, collectors) {
@@ -184,11 +181,6 @@ unsafe fn trace_packet<V: RayLanes>(
 }
 
 impl PacketAccel for TriangleBvh {
-    fn walks_packets(&self) -> bool {
-        // Static or moving ([`super::moving_packets`]).
-        true
-    }
-
     #[inline(always)]
     unsafe fn trace_packet_in_order<V: RayLanes, const NEAREST_FIRST: bool>(
         &self,

@@ -12,7 +12,7 @@ use super::blocks::{BLOCK, BlockRay, MetLanes};
 use super::bvh::Node;
 use super::instances::{InstanceBvh, TransformNode, cpu_child};
 #[cfg(target_arch = "x86_64")]
-use super::packet::{PacketAccel, PacketEntry, trace_packets};
+use super::packet::{PacketEntry, trace_packets};
 use super::triangles::TriangleBvh;
 #[cfg(target_arch = "x86_64")]
 use super::turns::TURNS;
@@ -63,8 +63,8 @@ impl CpuAccel {
                     vec![PacketEntry::default(); bvh.wide.stack_size().max(bvh.moving.stack_size())]
                 }
                 // The instance nodes' walk, then a child's ([`super::instance_packets`]).
-                CpuAccel::Instances(bvh) if bvh.walks_packets() => vec![PacketEntry::default(); bvh.stack_size],
-                CpuAccel::Instances(_) | CpuAccel::Transform(_) => Vec::new(),
+                CpuAccel::Instances(bvh) => vec![PacketEntry::default(); bvh.stack_size],
+                CpuAccel::Transform(_) => Vec::new(),
             },
             #[cfg(target_arch = "x86_64")]
             turns: match self {
@@ -79,7 +79,7 @@ impl CpuAccel {
     /// Offers each of `rays` (a group of neighbouring rays of a batch, [`crate::query::trace_batch`]'s, as
     /// [`crate::intersect::traced`] makes them, with a collector each) the triangles it reaches: together, as packets
     /// ([`super::packet`]), where they make them through a geometry accel (a moving one at each ray's time:
-    /// [`super::moving_packets`]) or a static instance accel ([`super::instance_packets`]); one by one otherwise.
+    /// [`super::moving_packets`]) or an instance accel ([`super::instance_packets`]); one by one otherwise.
     pub(crate) fn traverse_group(
         &self,
         stacks: &mut Stacks,
