@@ -1,9 +1,8 @@
 //! Packets through an instance accel: a packet of coherent rays walks the instance accel's wide nodes together
 //! ([`PacketTree::walk`], each instance's box tested ray by ray in the lanes), and the rays that reach an instance are
 //! carried into its space together and walk its child there as a packet where the child is a geometry accel, static or
-//! moving ([`super::triangles::TriangleBvh::walk_packet`]), a transform (static or moving) over one, each ray carried
-//! on as the transform places the geometry at its time ([`placed_at_their_times`]), or an instance accel (this walk
-//! again), and the carried rays still make one. Otherwise each of them enters the instance as it would alone
+//! moving ([`super::triangles::TriangleBvh::walk_packet`]), a static transform over one, or an instance accel (this
+//! walk again), and the carried rays still make one. Otherwise each of them enters the instance as it would alone
 //! ([`carried_into`], then the child's own walk).
 //!
 //! **Same answers as alone.** Each ray is carried as [`crate::intersect::PreparedRay::transformed`] carries it alone
@@ -16,13 +15,13 @@ use std::ops::Range;
 use glam::Affine3A;
 
 use super::CpuAccel;
-use super::instances::{InstanceBvh, TransformNode, cpu_child};
+use super::instances::{InstanceBvh, cpu_child};
 use super::moving_packets::{BoxesAtTimes, in_segments};
-use super::packet::{MAX_ORIGIN_SPREAD, NodeBoxes, PacketAccel, PacketEntry, PacketLanes, PacketTree, RayScopes};
+use super::packet::{MAX_ORIGIN_SPREAD, NodeBoxes, PacketAccel, PacketEntry, PacketLanes, PacketTree};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::{StackEntry, Stacks, carried_into};
 use crate::format::Ray;
-use crate::geometry::Placement;
+use crate::geometry::Transform;
 use crate::intersect::{PreparedRay, carried};
 use crate::query::{Collector, InstanceScope, TraceStats};
 
@@ -80,41 +79,55 @@ impl InstanceBvh {
             return false;
         }
         let (own, rest) = packet_stack.split_at_mut(own_size);
-        // Inlined at once, so that it is compiled with the instruction sets of the function it is called from.
-        let mut leaf = {
-            #[inline(always)]
-            |slots: Range<usize>, active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
-                let mut finished = 0;
-                for slot in slots {
-                    let (walking, stacks) = (active & !finished, (&mut rest[..], &mut single_stack[..]));
-                    finished |= unsafe {
-                        self.enter_instance::<V, NEAREST_FIRST>(slot, rays, walking, stacks, scope, collectors, stats)
-                    };
-                }
-                finished
-            }
-        };
         if self.node_keys.is_none() {
+            let leaf = self.leaf::<V, NEAREST_FIRST>(rays, (rest, single_stack), scope);
             unsafe {
                 tree.walk::<V, _, NEAREST_FIRST>(own, &lanes, &NodeBoxes, active, collectors, stats, leaf, |_| {})
             };
             return true;
         }
-        // A motion instance accel: its nodes' boxes at each ray's time, a packet for each segment of the keys.
+        // A motion instance accel: its nodes' boxes at each ray's time, a packet for each segment of the keys. (Each
+        // segment's walk makes its own leaf: a closure handed on by reference is called through a function compiled
+        // without the instruction sets.)
         let walk = {
             #[inline(always)]
             |segment: usize, group: u32, fractions: &[f32; MAX_PACKET_RAYS]| unsafe {
                 let boxes = BoxesAtTimes::new(&self.moving, segment, fractions);
-                tree.walk::<V, _, NEAREST_FIRST>(own, &lanes, &boxes, group, collectors, stats, &mut leaf, |_| {})
+                let leaf = self.leaf::<V, NEAREST_FIRST>(rays, (&mut *rest, &mut *single_stack), scope);
+                tree.walk::<V, _, NEAREST_FIRST>(own, &lanes, &boxes, group, collectors, stats, leaf, |_| {})
             }
         };
         in_segments(&self.motion, rays, active, walk);
         true
     }
 
+    /// What a packet walk of this accel does at a leaf: enters each of its instances with the rays of `rays` the walk
+    /// hands it (on `stacks`, below `scope`), and returns the rays it finished. Inlined at once, so that it is
+    /// compiled with the instruction sets of the function it is called from.
+    #[inline(always)]
+    fn leaf<'a, V: RayLanes, const NEAREST_FIRST: bool>(
+        &'a self,
+        rays: &'a [Ray],
+        (rest, single_stack): PacketStacks<'a>,
+        scope: &'a InstanceScope,
+    ) -> impl FnMut(Range<usize>, u32, &mut [Collector<'_>], &mut TraceStats) -> u32 + 'a {
+        #[inline(always)]
+        move |slots: Range<usize>, active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
+            let mut finished = 0;
+            for slot in slots {
+                let (walking, stacks) = (active & !finished, (&mut rest[..], &mut single_stack[..]));
+                // SAFETY: the CPU has `V`'s instruction set and AVX2 (the packet walk's contract).
+                finished |= unsafe {
+                    self.enter_instance::<V, NEAREST_FIRST>(slot, rays, walking, stacks, scope, collectors, stats)
+                };
+            }
+            finished
+        }
+    }
+
     /// Walks the child of the instance in `slot` with those of `rays` (a packet's, [`RayLanes::RAYS`] of them) whose
     /// bits are set in `active` and whose visibility mask sees the instance, below `scope`: carried into its space as a
-    /// packet where they make one there and the child is a geometry accel, a transform over one or a static instance
+    /// packet where they make one there and the child is a geometry accel, a static transform over one or an instance
     /// accel, each on its own otherwise (on the single-ray stack). Returns the rays it finished (their collectors done).
     ///
     /// # Safety
@@ -160,8 +173,8 @@ impl InstanceBvh {
 
     /// Walks `child`, the child of the instance in `slot`, in `scope` (the instance's) with those of `rays` whose bits
     /// are set in `active`, carried into the instance's space together as a packet, and says whether it did: only a
-    /// geometry accel (static or moving), a transform over one (each ray carried through it at its own time, in its own
-    /// scope) or an instance accel is walked so, and only where the carried rays make a packet there.
+    /// geometry accel (static or moving), a static transform over one or an instance accel is walked so, and only where
+    /// the carried rays make a packet there.
     ///
     /// # Safety
     /// The CPU must have `V`'s instruction set and AVX2.
@@ -185,26 +198,19 @@ impl InstanceBvh {
         match child {
             CpuAccel::Triangles(bvh) => unsafe {
                 let local = carried_all(rays, to_object, &mut local);
-                bvh.walk_packet::<V, NEAREST_FIRST>(stacks.0, local, active, RayScopes::All(scope), collectors, stats)
+                bvh.walk_packet::<V, NEAREST_FIRST>(stacks.0, local, active, scope, collectors, stats)
             },
-            CpuAccel::Transform(node) => match cpu_child(&node.child) {
-                Ok(CpuAccel::Triangles(bvh)) => unsafe {
-                    let local = carried_all(rays, to_object, &mut local);
+            // A static transform over a geometry accel places it for every ray alike: as one more instance. (Rays
+            // carried through a motion transform, each as placed at its own time, seldom make a packet there: their
+            // origins drift apart with the motion, and placing every ray for nothing cost more than packets saved,
+            // BENCHMARKS.md, "Rays at their own times walked as packets…".)
+            CpuAccel::Transform(node) => match (&node.transform, cpu_child(&node.child)) {
+                (Transform::Static(placement), Ok(CpuAccel::Triangles(bvh))) => unsafe {
                     let mut placed = [Ray::default(); MAX_PACKET_RAYS];
-                    let mut scopes = [*scope; MAX_PACKET_RAYS];
-                    let Some(placed_rays) = placed_at_their_times(node, local, active, scope, &mut placed, &mut scopes)
-                    else {
-                        return true;
-                    };
-                    let scopes = RayScopes::Each(&scopes);
-                    bvh.walk_packet::<V, NEAREST_FIRST>(
-                        stacks.0,
-                        &placed[..V::RAYS],
-                        placed_rays,
-                        scopes,
-                        collectors,
-                        stats,
-                    )
+                    let local =
+                        carried_all(carried_all(rays, to_object, &mut local), &placement.world_to_object, &mut placed);
+                    let scope = scope.through(placement);
+                    bvh.walk_packet::<V, NEAREST_FIRST>(stacks.0, local, active, &scope, collectors, stats)
                 },
                 _ => false,
             },
@@ -288,33 +294,6 @@ fn carried_all<'a>(rays: &[Ray], to_object: &Affine3A, local: &'a mut [Ray; MAX_
     &local[..rays.len()]
 }
 
-/// `rays` (a packet's, in the space of the transform `node`'s parent) carried into the space of `node`'s child as
-/// `node` places it at each ray's time, into `placed`, each as a ray alone is ([`TransformNode::traverse`]), with its
-/// scope below `scope` in `scopes`; returns the rays of `active` that `node` places (those whose time its vanish
-/// flags leave out are not), `None` when there are none. The rays left out are carried as the first placed one's
-/// placement carries them, so that the lanes keep making a packet.
-fn placed_at_their_times(
-    node: &TransformNode,
-    rays: &[Ray],
-    active: u32,
-    scope: &InstanceScope,
-    placed: &mut [Ray; MAX_PACKET_RAYS],
-    scopes: &mut [InstanceScope; MAX_PACKET_RAYS],
-) -> Option<u32> {
-    let placements: [Option<Placement>; MAX_PACKET_RAYS] =
-        std::array::from_fn(|lane| rays.get(lane).and_then(|ray| node.transform.placement_at(ray.time)));
-    let placed_rays = lanes_where(active, |lane| placements[lane].is_some());
-    if placed_rays == 0 {
-        return None;
-    }
-    let stand_in = placements[placed_rays.trailing_zeros() as usize]?;
-    for (lane, ray) in rays.iter().enumerate() {
-        let placement = placements[lane].unwrap_or(stand_in);
-        (placed[lane], scopes[lane]) = (carried(ray, &placement.world_to_object), scope.through(&placement));
-    }
-    Some(placed_rays)
-}
-
 /// The lanes set in `lanes` for which `keep` holds, a bit each.
 #[inline(always)]
 fn lanes_where(lanes: u32, keep: impl Fn(usize) -> bool) -> u32 {
@@ -365,7 +344,9 @@ mod tests {
         let lifted = Affine3A::from_translation(Vec3::new(0.1, 0.2, 0.4));
         let nested = [instance(9, lifted, 0xFF, InstanceFlags::empty(), &lattice)];
         let nested = context.build_instance_accel(&nested, &BuildOptions::default()).unwrap();
-        let lowered = Placement::rows(&Affine3A::from_translation(Vec3::new(0.0, -0.2, -0.3)));
+        // Turned a little too, so that the transform turns the hits' normals.
+        let lowered = Affine3A::from_rotation_translation(Quat::from_rotation_x(0.05), Vec3::new(0.0, -0.2, -0.3));
+        let lowered = Placement::rows(&lowered);
         let moved = context.build_transform(&TransformInput::Static(lowered), &lattice).unwrap();
         let turned = Affine3A::from_scale_rotation_translation(
             Vec3::splat(0.8),
@@ -445,7 +426,7 @@ mod tests {
     }
 
     #[test]
-    fn packets_carried_through_motion_transforms_give_every_ray_the_answer_it_gets_alone() {
+    fn packets_that_meet_motion_transforms_give_every_ray_the_answer_it_gets_alone() {
         let context = Context::new(Device::cpu());
         let (_, lattice) = scene(&context);
         let motion = |keys: u32, flags: MotionFlags| MotionOptions { keys, time_begin: 0.0, time_end: 1.0, flags };

@@ -5,8 +5,8 @@
 //! (`packet`, its registers in `ray_lanes`, the triangle filter both share in `filter`), and through static instance
 //! accels too, carried into each instance's space together (`instance_packets`). A moving accel's nodes (geometry or
 //! instances) are collapsed to 8-wide ones too, with their lanes' boxes at each key, interpolated at each ray's time
-//! (`moving_wide`); coherent rays walk moving accels (geometry or instances) and motion transforms together too, each
-//! at its own time (`moving_packets`). Answers are the same whichever way a ray is traced.
+//! (`moving_wide`); coherent rays walk moving accels (geometry or instances) together too, each at its own time
+//! (`moving_packets`). Answers are the same whichever way a ray is traced.
 
 mod blocks;
 pub(crate) mod bvh;

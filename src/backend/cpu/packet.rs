@@ -196,7 +196,7 @@ impl PacketAccel for TriangleBvh {
                 &mut stacks.packet,
                 rays,
                 every_ray,
-                RayScopes::All(&InstanceScope::WORLD),
+                &InstanceScope::WORLD,
                 collectors,
                 stats,
             )
@@ -206,7 +206,7 @@ impl PacketAccel for TriangleBvh {
 
 impl TriangleBvh {
     /// Walks the rays of `rays` ([`RayLanes::RAYS`] of them, as [`crate::intersect::traced`] makes them, in this
-    /// accel's space) whose bits are set in `active` as a packet, in `scopes`, if all of them head the same way from
+    /// accel's space) whose bits are set in `active` as a packet, in `scope`, if all of them head the same way from
     /// nearby origins ([`PacketLanes::coherent`]), and says whether it did; for the visit order `NEAREST_FIRST`,
     /// which must be what the collectors want. A moving accel's rays are walked at their own times
     /// ([`super::moving_packets`]).
@@ -219,7 +219,7 @@ impl TriangleBvh {
         stack: &mut [PacketEntry],
         rays: &[Ray],
         active: u32,
-        scopes: RayScopes<'_>,
+        scope: &InstanceScope,
         collectors: &mut [Collector<'_>],
         stats: &mut TraceStats,
     ) -> bool {
@@ -235,7 +235,7 @@ impl TriangleBvh {
         // An any-hit query that keeps no hit, without face culling: a hit in a ray's range is all that matters to it.
         let culling = RayFlags::CULL_BACK_FACING | RayFlags::CULL_FRONT_FACING;
         let accepts_in_lanes = collectors[0].keeps_no_hit() && !rays.iter().any(|ray| ray.flags.intersects(culling));
-        let packet = Packet { lanes: &lanes, rays, scopes, accepts_in_lanes };
+        let packet = Packet { lanes: &lanes, rays, scope, accepts_in_lanes };
         if self.node_keys.is_some() {
             unsafe { self.walk_packet_at_times::<V, NEAREST_FIRST>(&tree, stack, &packet, active, collectors, stats) };
             return true;
@@ -277,7 +277,7 @@ impl TriangleBvh {
         lane_corners: impl Fn(usize) -> C + 'a,
         ray_corners: impl Fn(usize, usize) -> [Vec3; 3] + 'a,
     ) -> impl FnMut(Range<usize>, u32, &mut [Collector<'_>], &mut TraceStats) -> u32 + 'a {
-        let &Packet { lanes, rays, scopes, accepts_in_lanes } = packet;
+        let &Packet { lanes, rays, scope, accepts_in_lanes } = packet;
         #[inline(always)]
         move |slots: Range<usize>, mut active: u32, collectors: &mut [Collector<'_>], stats: &mut TraceStats| {
             stats.triangle_tests += (slots.len() * active.count_ones() as usize) as u64;
@@ -311,9 +311,9 @@ impl TriangleBvh {
                     let corners = ray_corners(slot, lane);
                     let candidate = TriangleCandidate { corners: &corners, id, mask, geometry_flags };
                     if edges & (1 << lane) != 0 {
-                        consider_on_edge(ray, &candidate, scopes.of(lane), collector);
+                        consider_on_edge(ray, &candidate, scope, collector);
                     } else if ray.mask & mask == 0 {
-                        accept_hit(ray.tmin, ray.flags, &candidate, scopes.of(lane), collector, met.hit(lane));
+                        accept_hit(ray.tmin, ray.flags, &candidate, scope, collector, met.hit(lane));
                     }
                     // Without a branch: which rays a triangle finishes is hard to predict.
                     finished |= u32::from(collector.done()) << lane;
@@ -328,8 +328,8 @@ impl TriangleBvh {
     }
 }
 
-/// A packet as its leaves test triangles: its rays (as [`crate::intersect::traced`] makes them) and their lanes, their
-/// instance scopes, and whether a hit within a ray's range is all its collectors ask (an any-hit query that keeps no
+/// A packet as its leaves test triangles: its rays (as [`crate::intersect::traced`] makes them) and their lanes, the
+/// instance scope, and whether a hit within a ray's range is all its collectors ask (an any-hit query that keeps no
 /// hit, without face culling), which the lanes then check.
 pub(super) struct Packet<'a, V> {
     /// The rays in the lanes.
@@ -337,30 +337,9 @@ pub(super) struct Packet<'a, V> {
     /// The rays.
     pub(super) rays: &'a [Ray],
     /// Where they are traced.
-    pub(super) scopes: RayScopes<'a>,
+    pub(super) scope: &'a InstanceScope,
     /// Whether a hit in a ray's range is accepted in the lanes.
     pub(super) accepts_in_lanes: bool,
-}
-
-/// Where a packet's rays are traced: all in one instance scope, or each in its own (below a motion transform, which
-/// places its child at each ray's time).
-#[derive(Clone, Copy)]
-pub(super) enum RayScopes<'a> {
-    /// Every ray's scope.
-    All(&'a InstanceScope),
-    /// Each ray's scope, by lane.
-    Each(&'a [InstanceScope; MAX_PACKET_RAYS]),
-}
-
-impl RayScopes<'_> {
-    /// The scope of the ray in lane `lane`.
-    #[inline(always)]
-    fn of(&self, lane: usize) -> &InstanceScope {
-        match self {
-            RayScopes::All(scope) => scope,
-            RayScopes::Each(scopes) => &scopes[lane],
-        }
-    }
 }
 
 /// [`consider_triangle`] for a packet's ray on an edge or a vertex of the triangle, which takes the scalar test and its
