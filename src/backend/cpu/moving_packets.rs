@@ -102,8 +102,8 @@ pub(super) fn in_segments(
 }
 
 impl MovingWideTree {
-    /// Its nodes as a packet walks them, `root` the box around the accel's triangles at every key: widened as the
-    /// nodes' boxes are ([`MovingWideTree::collapse`]), so that it holds them at every time.
+    /// Its nodes as a packet walks them, `root` the box around what the accel holds (triangles or instances) at every
+    /// key: widened as the nodes' boxes are ([`MovingWideTree::collapse`]), so that it holds its lanes at every time.
     pub(super) fn packet_tree(&self, (min, max): Bounds) -> PacketTree<'_> {
         let planes = |axis: usize| [min[axis], max[axis]].into_iter();
         let lo = Vec3A::from_array(std::array::from_fn(|axis| holding(planes(axis), f32::min, -1.0)));
