@@ -26,6 +26,9 @@
 //! 7. A NaN ray time fails the trace (INVALID_ARGUMENT naming `rays.time`); infinite times clamp.
 //! 8. Bad motion inputs are refused precisely (field, element, rule).
 //! 9. Updates of a motion geometry accel trace as a fresh build with the new keys.
+//! 10. A moving mesh's tree is built for where its triangles are on average, not for their paths: a sphere sliding by
+//!     twenty times its triangles' size costs a ray at its own time about the triangle tests of the sphere built
+//!     static.
 //!
 //! The reference interpolates as the engine documents it: with `K` keys over `[begin, end]`,
 //! `u = (t − begin)/(end − begin)·(K − 1)`, segment `s = min(⌊u⌋, K − 2)`, `f = u − s`, values `(1 − f)·a + f·b`
@@ -1169,6 +1172,37 @@ fn a_motion_blurred_cameras_rays_hit_moving_scenes_as_they_are_frozen_at_each_ra
             assert!(seen && hits_by_time[times.len() - 1] == 0, "{scene}: hits by time {hits_by_time:?}");
         }
     }
+}
+
+#[test]
+fn a_moving_meshs_tree_is_built_for_where_its_triangles_are_on_average_not_for_their_paths() {
+    // Built over each triangle's box over all of time (a slab twenty triangles long), the tree's area cost fell
+    // little when such boxes were split, and a ray tested 30% more triangles than in the sphere built static; built
+    // over the box each triangle has on average over time, a ray at any time meets leaves like the static sphere's.
+    let context = cpu();
+    let sphere = icosphere(5, Vec3::ZERO);
+    let edge = sphere.corners(0)[0].distance(sphere.corners(0)[1]);
+    let sliding = Moving::from_mesh(&sphere, 2, |k, _, p| p + Vec3::X * 20.0 * edge * k as f32);
+    let two_keys = with_motion(motion(2, 0.0, 1.0, MotionFlags::empty()));
+    let moving = build_geometry(&context, std::slice::from_ref(&sliding), &two_keys).unwrap();
+    let halfway = build_geometry(&context, &[Moving::still(sliding.at((0, 0.5)))], &BuildOptions::default()).unwrap();
+    let (lo, hi) = moving.info().bounds;
+    let camera = Camera::framing(lo, hi, 128, 128);
+    let rays: Vec<Ray> =
+        (0..128 * 128u32).map(|i| Ray { time: uniform(3, u64::from(i)), ..camera.ray(i % 128, i / 128) }).collect();
+    let query = Query::closest(RayFormat::OriginTminDirectionTmaxTime, HitFormat::TTriid);
+    let bytes = pack_rays(&rays, query.ray_format);
+    let mut hits = vec![0u8; query.output_layout(bytes.len()).unwrap().hits];
+    let mut tests_a_ray = |accel: &Accel| {
+        let out = TraceOutput { hits: &mut hits, counts: &mut [] };
+        let stats = context.trace(accel, &query, &bytes, out).unwrap();
+        stats.triangle_tests as f64 / rays.len() as f64
+    };
+    let (moving_tests, static_tests) = (tests_a_ray(&moving), tests_a_ray(&halfway));
+    assert!(
+        moving_tests <= 1.15 * static_tests,
+        "triangle tests a ray: {moving_tests:.2} moving against {static_tests:.2} static"
+    );
 }
 
 #[test]

@@ -62,6 +62,24 @@ pub fn is_empty(b: &Bounds) -> bool {
     b.0.cmpgt(b.1).any()
 }
 
+/// The time average of the box an item has when its key boxes `keys` (evenly spaced in time, as motion keys are) are
+/// interpolated: each plane's mean by the trapezoid rule. A moving BVH's topology is built over these boxes, so that
+/// its surface-area cost weighs the box the rays meet at their times, not the path over all of time (which counts an
+/// item moving by more than its size as if it filled that path). The union of the keys when one of them is empty.
+pub fn time_average(keys: impl ExactSizeIterator<Item = Bounds>) -> Bounds {
+    let last = keys.len().saturating_sub(1);
+    let (mut sum, mut all, mut any_empty) = ((Vec3::ZERO, Vec3::ZERO), EMPTY, false);
+    for (key, b) in keys.enumerate() {
+        let weight = if key == 0 || key == last { 0.5 } else { 1.0 };
+        (sum, all, any_empty) =
+            ((sum.0 + b.0 * weight, sum.1 + b.1 * weight), union(all, b), any_empty || is_empty(&b));
+    }
+    if last == 0 || any_empty {
+        return all;
+    }
+    (sum.0 / last as f32, sum.1 / last as f32)
+}
+
 /// The eight corners of a box.
 pub(crate) fn corners((min, max): Bounds) -> [Vec3; 8] {
     std::array::from_fn(|i| {
@@ -359,6 +377,17 @@ mod tests {
         assert!(vanishing.locate(1.5).is_some() && vanishing.locate(-1.0).is_some());
         assert_eq!(MotionOptions::STATIC.locate(42.0), Some(KeyTime { segment: 0, fraction: 0.0 }));
         assert_eq!(m.key_time(1), 0.25);
+    }
+
+    #[test]
+    fn a_time_average_weighs_the_end_keys_half_and_falls_back_to_the_union_when_a_key_is_empty() {
+        let at = |x: f32| (Vec3::splat(x), Vec3::splat(x + 1.0));
+        assert_eq!(time_average([at(0.0), at(4.0)].into_iter()), at(2.0));
+        // Segments of one length: (0/2 + 4 + 2/2) / 2.
+        assert_eq!(time_average([at(0.0), at(4.0), at(2.0)].into_iter()), at(2.5));
+        assert_eq!(time_average([at(3.0)].into_iter()), at(3.0));
+        assert_eq!(time_average([at(0.0), EMPTY, at(2.0)].into_iter()), (Vec3::ZERO, Vec3::splat(3.0)));
+        assert!(is_empty(&time_average(std::iter::empty())));
     }
 
     #[test]

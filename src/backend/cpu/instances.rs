@@ -13,7 +13,7 @@ use super::wide::{WideNode, WideTree};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::context::Accel;
 use crate::error::{Error, Result};
-use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, is_empty, union};
+use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, is_empty, time_average, union};
 use crate::geometry::{MotionOptions, PlacedInstance, Transform};
 
 /// Instances a leaf of the BVH holds at most: one, so that a walk tests each instance's box in the nodes' lanes before
@@ -139,8 +139,8 @@ fn placed_child(instance: &PlacedInstance, span: TimeSpan) -> Bounds {
 }
 
 impl InstanceBvh {
-    /// Builds the BVH over the instances' placed boxes: over all of time for its topology, and at each motion key
-    /// for a motion instance accel.
+    /// Builds the BVH over the instances' placed boxes: their average over time for its topology ([`time_average`]),
+    /// and at each motion key for a motion instance accel.
     pub fn build(instances: &[PlacedInstance], options: &BuildOptions) -> Result<InstanceBvh> {
         let keys = options.motion.keys as usize;
         let key_boxes = instance_key_boxes(instances, &options.motion);
@@ -150,9 +150,11 @@ impl InstanceBvh {
         let mut bounds = EMPTY;
         for (index, instance) in instances.iter().enumerate() {
             child_stack = child_stack.max(cpu_child(&instance.child)?.stack_size());
-            let (min, max) = key_boxes[index * keys..(index + 1) * keys].iter().copied().fold(EMPTY, union);
+            let at_keys = &key_boxes[index * keys..(index + 1) * keys];
+            let (min, max) = at_keys.iter().copied().fold(EMPTY, union);
             if !is_empty(&(min, max)) {
-                boxes.push(Aabb::new(min.into(), max.into()));
+                let (mean_min, mean_max) = time_average(at_keys.iter().copied());
+                boxes.push(Aabb::new(mean_min.into(), mean_max.into()));
                 hittable.push(index as u32);
                 bounds = union(bounds, (min, max));
             }

@@ -6,7 +6,7 @@
 use super::bvh::{Footprint, Node, NodeKeys, VecLen};
 use super::collapse::Lane;
 use super::wide::{Tree, WIDTH, WideNode, WideTree, occupied};
-use crate::geometry::motion::KeyTime;
+use crate::geometry::motion::{KeyTime, time_average};
 
 /// A motion BVH collapsed to [`WIDTH`] children a node, with its lanes' boxes at each key.
 #[derive(Debug, Clone, Default)]
@@ -20,10 +20,11 @@ pub(super) struct MovingWideTree {
 }
 
 impl MovingWideTree {
-    /// Collapses the depth-first binary motion BVH `binary`, whose boxes at each key `node_keys` holds.
+    /// Collapses the depth-first binary motion BVH `binary`, whose boxes at each key `node_keys` holds: by the areas of
+    /// the nodes' boxes on average over time ([`time_average`]), as the binary tree was built.
     pub fn collapse(binary: &[Node], node_keys: &NodeKeys) -> MovingWideTree {
-        let (tree, lanes) = WideTree::collapse_with_lanes(binary);
         let keys = node_keys.keys;
+        let (tree, lanes) = WideTree::collapse_with_lanes(&on_average(binary, node_keys));
         let at_key = |lanes: &[Lane], key: usize| {
             let mut node = WideNode::EMPTY;
             for (lane, binary) in lanes[..occupied(lanes)].iter().enumerate() {
@@ -90,6 +91,19 @@ impl MovingWideTree {
     }
 }
 
+/// The nodes of `binary` with their boxes on average over time ([`time_average`] of their key boxes in `node_keys`).
+fn on_average(binary: &[Node], node_keys: &NodeKeys) -> Vec<Node> {
+    let at_keys = node_keys.boxes.chunks(node_keys.keys);
+    binary
+        .iter()
+        .zip(at_keys)
+        .map(|(node, boxes)| {
+            let (min, max) = time_average(boxes.iter().copied());
+            Node { min, max, ..*node }
+        })
+        .collect()
+}
+
 /// Where a plane of a lane's box at every time lies at most: `bound` (`f32::min` for a minimum, `f32::max` for a
 /// maximum) of its places `at_keys` at the keys, moved outward (`outward` −1 or 1) by 2⁻²⁰ of their largest magnitude.
 /// The interpolation of two keys' planes rounds at most 2⁻²² of the larger magnitude away from the exact value (three
@@ -138,7 +152,7 @@ mod tests {
             .unwrap();
         let CpuAccel::Triangles(bvh) = cpu_child(&accel).unwrap() else { panic!("a geometry accel") };
         let keys = bvh.node_keys.as_ref().expect("a motion accel");
-        let (tree, lanes) = WideTree::collapse_with_lanes(&bvh.nodes);
+        let (tree, lanes) = WideTree::collapse_with_lanes(&on_average(&bvh.nodes, keys));
         assert!(tree.tree().nodes.len() > 10, "{} wide nodes", tree.tree().nodes.len());
         let mut compared = 0;
         for time in [0.0, 0.1, 0.37, 0.5, 0.5001, 0.9, 1.0] {

@@ -10,7 +10,7 @@ use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
 use super::moving_wide::MovingWideTree;
 use super::wide::{WIDTH, WideBvh, WideNode};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
-use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, union};
+use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, time_average, union};
 use crate::geometry::{GatheredTriangles, GeometryFlags, MotionOptions, TriangleRef, is_degenerate};
 
 /// The build's working memory per triangle: measured at 243–257 bytes on the shared meshes and random soups for
@@ -97,7 +97,8 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
 
 impl TriangleBvh {
     /// Builds the BVH over gathered, validated triangles, with `options.motion.keys` keys. A motion BVH's
-    /// topology is built over each triangle's box over all of time; its nodes then get their boxes at each key.
+    /// topology is built over each triangle's box on average over time ([`time_average`]); its nodes then get their
+    /// boxes at each key.
     pub fn build(triangles: GatheredTriangles, options: &BuildOptions) -> TriangleBvh {
         let moving = !options.motion.is_static();
         let hittable: Vec<u32> = (0..triangles.len() as u32)
@@ -107,7 +108,8 @@ impl TriangleBvh {
         let boxes: Vec<Aabb> = hittable
             .par_iter()
             .map(|&i| {
-                let (min, max) = corner_bounds(triangles.corners(i as usize));
+                let keys = triangles.corners(i as usize).iter().map(|key| corner_bounds(std::slice::from_ref(key)));
+                let (min, max) = time_average(keys);
                 Aabb::new(min.into(), max.into())
             })
             .collect();
