@@ -186,7 +186,7 @@ struct CornersAtTimes<'a, V> {
 impl<V: RayLanes> filter::Corners<V> for CornersAtTimes<'_, V> {
     #[inline(always)]
     unsafe fn corner(&self, c: usize) -> [V; 3] {
-        let ([kx, ky, kz], from, to) = (self.axes, self.from[c].to_array(), self.to[c].to_array());
+        let ([kx, ky, kz], from, to) = (self.axes, self.from[c].as_ref(), self.to[c].as_ref());
         let (rest, fraction) = (self.rest, self.fraction);
         // SAFETY: the CPU has `V`'s instruction set (the caller's contract).
         unsafe {
