@@ -65,19 +65,19 @@ pub fn is_empty(b: &Bounds) -> bool {
 /// The time average of the box an item has when its key boxes `keys` (evenly spaced in time, as motion keys are) are
 /// interpolated: each plane's mean by the trapezoid rule. A moving BVH's topology is built over these boxes, so that
 /// its surface-area cost weighs the box the rays meet at their times, not the path over all of time (which counts an
-/// item moving by more than its size as if it filled that path). The union of the keys when one of them is empty.
+/// item moving by more than its size as if it filled that path). The union of the keys when there is one key, when
+/// one of them is empty, or when the mean is not finite (planes near the largest floats, or infinite ones).
 pub fn time_average(keys: impl ExactSizeIterator<Item = Bounds>) -> Bounds {
-    let last = keys.len().saturating_sub(1);
-    let (mut sum, mut all, mut any_empty) = ((Vec3::ZERO, Vec3::ZERO), EMPTY, false);
+    let segments = keys.len().saturating_sub(1);
+    let (mut mean, mut union_of_keys, mut any_empty) = ((Vec3::ZERO, Vec3::ZERO), EMPTY, false);
     for (key, b) in keys.enumerate() {
-        let weight = if key == 0 || key == last { 0.5 } else { 1.0 };
-        (sum, all, any_empty) =
-            ((sum.0 + b.0 * weight, sum.1 + b.1 * weight), union(all, b), any_empty || is_empty(&b));
+        // Each term weighed before it is added, so that the sum of finite planes stays finite.
+        let weight = if key == 0 || key == segments { 0.5 } else { 1.0 } / segments.max(1) as f32;
+        mean = (mean.0 + b.0 * weight, mean.1 + b.1 * weight);
+        (union_of_keys, any_empty) = (union(union_of_keys, b), any_empty || is_empty(&b));
     }
-    if last == 0 || any_empty {
-        return all;
-    }
-    (sum.0 / last as f32, sum.1 / last as f32)
+    let finite = mean.0.is_finite() && mean.1.is_finite();
+    if segments == 0 || any_empty || !finite { union_of_keys } else { mean }
 }
 
 /// The eight corners of a box.
@@ -388,6 +388,12 @@ mod tests {
         assert_eq!(time_average([at(3.0)].into_iter()), at(3.0));
         assert_eq!(time_average([at(0.0), EMPTY, at(2.0)].into_iter()), (Vec3::ZERO, Vec3::splat(3.0)));
         assert!(is_empty(&time_average(std::iter::empty())));
+        // Planes near the largest floats: their weighed sum stays finite; infinite planes give the union.
+        let huge = f32::MAX / 2.0;
+        let far = (Vec3::splat(huge), Vec3::splat(huge));
+        assert_eq!(time_average([far, far, far].into_iter()), far);
+        let unbounded = (Vec3::splat(f32::NEG_INFINITY), Vec3::splat(f32::INFINITY));
+        assert_eq!(time_average([at(0.0), unbounded].into_iter()), unbounded);
     }
 
     #[test]

@@ -7,7 +7,7 @@ use obvhs::bvh2::{Bvh2, leaf_collapser::collapse, reinsertion::ReinsertionOptimi
 use obvhs::ploc::{PlocBuilder, PlocSearchDistance, SortPrecision};
 
 use crate::accel::BuildFlags;
-use crate::geometry::motion::{Bounds, EMPTY, KeyTime, lerp, union};
+use crate::geometry::motion::{Bounds, EMPTY, KeyTime, lerp, time_average, union};
 
 /// One BVH node, 32 bytes: `0 min.xyz f32×3 | 12 index u32 | 16 max.xyz f32×3 | 28 count u32`.
 /// An inner node has `count` 0 and its two children at `index` and `index + 1`; a leaf holds primitives
@@ -117,6 +117,16 @@ impl Layout {
         }
         layout
     }
+
+    /// Appends the primitives of `0..total` that no leaf holds (those left out of the build) after the leaves' order,
+    /// so that `order` places every primitive.
+    pub fn append_unplaced(&mut self, total: usize) {
+        let mut in_leaves = vec![false; total];
+        for &i in &self.order {
+            in_leaves[i as usize] = true;
+        }
+        self.order.extend((0..total as u32).filter(|&i| !in_leaves[i as usize]));
+    }
 }
 
 /// The obvhs parameters for the build flags.
@@ -179,6 +189,20 @@ impl NodeKeys {
         let first = node as usize * self.keys + at.segment;
         let (a, b) = (self.boxes[first], self.boxes[first + 1]);
         (lerp(a.0, b.0, at.fraction).into(), lerp(a.1, b.1, at.fraction).into())
+    }
+
+    /// The nodes of `binary` (whose key boxes these are) with each box their average over time ([`time_average`]):
+    /// what a motion BVH's collapse ranks its choices by, as its binary tree was built over its items' averages.
+    pub fn time_averaged(&self, binary: &[Node]) -> Vec<Node> {
+        let at_keys = self.boxes.chunks(self.keys);
+        binary
+            .iter()
+            .zip(at_keys)
+            .map(|(node, boxes)| {
+                let (min, max) = time_average(boxes.iter().copied());
+                Node { min, max, ..*node }
+            })
+            .collect()
     }
 
     /// The root's box at each key (none for an empty BVH).

@@ -14,12 +14,12 @@ use std::ops::Range;
 
 use glam::Affine3A;
 
-use super::CpuAccel;
 use super::instances::{InstanceBvh, cpu_child};
 use super::moving_packets::{BoxesAtTimes, in_segments};
 use super::packet::{MAX_ORIGIN_SPREAD, NodeBoxes, PacketAccel, PacketEntry, PacketLanes, PacketTree};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::{StackEntry, Stacks, carried_into};
+use super::{CpuAccel, set_bits};
 use crate::format::Ray;
 use crate::geometry::Transform;
 use crate::intersect::{PreparedRay, carried};
@@ -157,12 +157,9 @@ impl InstanceBvh {
             self.carry_packet::<V, NEAREST_FIRST>(slot, child, rays, visible, stacks, &scope, collectors, stats)
         };
         if !packed {
-            let mut bits = visible;
-            while bits != 0 {
-                let lane = bits.trailing_zeros() as usize;
-                bits &= bits - 1;
+            let (to_object, child_box) = (&instance.placement.world_to_object, self.child_boxes[slot]);
+            for lane in set_bits(visible) {
                 let (ray, collector) = (PreparedRay::from_traced(&rays[lane]), &mut collectors[lane]);
-                let (to_object, child_box) = (&instance.placement.world_to_object, self.child_boxes[slot]);
                 if let Some(local) = carried_into(&ray, to_object, child_box, collector.cull_tmax(), stats) {
                     child.traverse(single_stack, &local, &scope, collector, stats);
                 }
@@ -297,13 +294,7 @@ fn carried_all<'a>(rays: &[Ray], to_object: &Affine3A, local: &'a mut [Ray; MAX_
 /// The lanes set in `lanes` for which `keep` holds, a bit each.
 #[inline(always)]
 fn lanes_where(lanes: u32, keep: impl Fn(usize) -> bool) -> u32 {
-    let (mut bits, mut kept) = (lanes, 0);
-    while bits != 0 {
-        let lane = bits.trailing_zeros();
-        bits &= bits - 1;
-        kept |= u32::from(keep(lane as usize)) << lane;
-    }
-    kept
+    set_bits(lanes).filter(|&lane| keep(lane)).fold(0, |kept, lane| kept | 1 << lane)
 }
 
 #[cfg(test)]

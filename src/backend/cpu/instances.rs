@@ -32,8 +32,8 @@ const BUILD_TEMP_FIXED_BYTES: u64 = 4 << 20;
 /// A BVH over instances, ready to trace. Cloning it makes an exact-size copy over the same children.
 #[derive(Debug, Clone)]
 pub struct InstanceBvh {
-    /// Depth-first nodes over the instances' world boxes over all of time; empty when no instance has anything
-    /// to hit.
+    /// Depth-first nodes over the instances' world boxes (the tree built over their averages over time, each node's
+    /// box the union of its boxes at the keys); empty when no instance has anything to hit.
     pub(crate) nodes: Vec<Node>,
     /// With motion: each node's box at each key, fitted so that their interpolation holds the placed children at
     /// every time.
@@ -159,12 +159,9 @@ impl InstanceBvh {
                 bounds = union(bounds, (min, max));
             }
         }
-        let Layout { nodes, mut order, depth } = Layout::build(&boxes, &hittable, options.flags, MAX_LEAF);
-        let mut in_leaves = vec![false; instances.len()];
-        for &i in &order {
-            in_leaves[i as usize] = true;
-        }
-        order.extend((0..instances.len() as u32).filter(|&i| !in_leaves[i as usize]));
+        let mut layout = Layout::build(&boxes, &hittable, options.flags, MAX_LEAF);
+        layout.append_unplaced(instances.len());
+        let Layout { nodes, mut order, depth } = layout;
         let instances: Vec<PlacedInstance> = order.iter().map(|&i| instances[i as usize].clone()).collect();
         let mut bvh = InstanceBvh {
             nodes,

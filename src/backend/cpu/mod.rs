@@ -263,6 +263,18 @@ pub(crate) fn cpu(accel: &dyn BackendAccel) -> Result<&CpuAccel> {
         .ok_or_else(|| Error::FailedPrecondition("the accel was built on another device".into()))
 }
 
+/// The indices of the set bits of `mask`, lowest first.
+#[cfg(target_arch = "x86_64")]
+#[inline(always)]
+fn set_bits(mask: u32) -> impl Iterator<Item = usize> {
+    let mut rest = mask;
+    std::iter::from_fn(move || {
+        let bit = (rest != 0).then(|| rest.trailing_zeros() as usize);
+        rest &= rest.wrapping_sub(1);
+        bit
+    })
+}
+
 /// Total host memory, from `/proc/meminfo` where there is one.
 pub(crate) fn host_memory_bytes() -> u64 {
     std::fs::read_to_string("/proc/meminfo")

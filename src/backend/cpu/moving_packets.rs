@@ -9,13 +9,13 @@
 
 use glam::{Vec3, Vec3A};
 
-use super::filter;
 use super::moving_wide::{MovingWideTree, holding};
 use super::packet::{LaneBoxes, Packet, PacketEntry, PacketTree, plane};
 use super::ray_lanes::{MAX_PACKET_RAYS, RayLanes};
 use super::traverse::LeafSlots;
 use super::triangles::TriangleBvh;
 use super::wide::WideNode;
+use super::{filter, set_bits};
 use crate::format::Ray;
 use crate::geometry::motion::{Bounds, KeyTime, MotionOptions, lerp};
 use crate::query::{Collector, TraceStats};
@@ -85,7 +85,7 @@ pub(super) fn in_segments(
 ) {
     let mut times = [KeyTime { segment: 0, fraction: 0.0 }; MAX_PACKET_RAYS];
     let mut waiting = 0u32;
-    for ray in bits(active) {
+    for ray in set_bits(active) {
         if let Some(at) = motion.locate(rays[ray].time) {
             (times[ray], waiting) = (at, waiting | 1 << ray);
         }
@@ -93,7 +93,7 @@ pub(super) fn in_segments(
     while waiting != 0 {
         let segment = times[waiting.trailing_zeros() as usize].segment;
         let (mut group, mut fractions) = (0u32, [0f32; MAX_PACKET_RAYS]);
-        for ray in bits(waiting).filter(|&ray| times[ray].segment == segment) {
+        for ray in set_bits(waiting).filter(|&ray| times[ray].segment == segment) {
             (group, fractions[ray]) = (group | 1 << ray, times[ray].fraction);
         }
         waiting &= !group;
@@ -207,15 +207,6 @@ impl<V: RayLanes> filter::Corners<V> for CornersAtTimes<'_, V> {
 unsafe fn interpolated<V: RayLanes>((a, b): (f32, f32), rest: V, fraction: V) -> V {
     // SAFETY: the CPU has the instruction set (the caller's contract).
     unsafe { V::splat(a).mul(rest).add(V::splat(b).mul(fraction)) }
-}
-
-/// The set bits of `bits`, lowest first.
-fn bits(mut bits: u32) -> impl Iterator<Item = usize> {
-    std::iter::from_fn(move || {
-        let bit = (bits != 0).then(|| bits.trailing_zeros() as usize)?;
-        bits &= bits - 1;
-        Some(bit)
-    })
 }
 
 #[cfg(test)]

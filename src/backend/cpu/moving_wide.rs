@@ -1,17 +1,18 @@
 //! The wide nodes of a motion BVH (a moving geometry accel's or a motion instance accel's): its binary nodes collapsed
-//! as a static instance accel's are ([`WideTree`], each leaf lane holding its binary leaf's slots), with each node's
-//! lanes' boxes at every motion key, which a walk interpolates at the ray's time, eight lanes at once, as the binary
-//! walk interpolates a node's box ([`NodeKeys::at`]).
+//! into a [`WideTree`] (each leaf lane holding its binary leaf's slots) by their boxes' areas on average over time,
+//! with each node's lanes' boxes at every motion key, which a walk interpolates at the ray's time, eight lanes at once,
+//! as the binary walk interpolates a node's box ([`NodeKeys::at`]).
 
 use super::bvh::{Footprint, Node, NodeKeys, VecLen};
 use super::collapse::Lane;
 use super::wide::{Tree, WIDTH, WideNode, WideTree, occupied};
-use crate::geometry::motion::{KeyTime, time_average};
+use crate::geometry::motion::KeyTime;
 
 /// A motion BVH collapsed to [`WIDTH`] children a node, with its lanes' boxes at each key.
 #[derive(Debug, Clone, Default)]
 pub(super) struct MovingWideTree {
-    /// The nodes, with each lane's box over all of time (read for its index and count).
+    /// The nodes, with each lane's box holding its boxes at every time (read for its index and count, and by packet
+    /// walks' tests that rule lanes out).
     tree: WideTree,
     /// Motion keys (at least 2 where there are nodes).
     keys: usize,
@@ -21,10 +22,10 @@ pub(super) struct MovingWideTree {
 
 impl MovingWideTree {
     /// Collapses the depth-first binary motion BVH `binary`, whose boxes at each key `node_keys` holds: by the areas of
-    /// the nodes' boxes on average over time ([`time_average`]), as the binary tree was built.
+    /// the nodes' boxes on average over time ([`NodeKeys::time_averaged`]), as the binary tree was built.
     pub fn collapse(binary: &[Node], node_keys: &NodeKeys) -> MovingWideTree {
         let keys = node_keys.keys;
-        let (tree, lanes) = WideTree::collapse_with_lanes(&on_average(binary, node_keys));
+        let (mut tree, lanes) = WideTree::collapse_with_lanes(&node_keys.time_averaged(binary));
         let at_key = |lanes: &[Lane], key: usize| {
             let mut node = WideNode::EMPTY;
             for (lane, binary) in lanes[..occupied(lanes)].iter().enumerate() {
@@ -35,7 +36,6 @@ impl MovingWideTree {
         };
         let mut key_boxes = Vec::with_capacity(lanes.len() / WIDTH * keys);
         key_boxes.extend(lanes.chunks(WIDTH).flat_map(|lanes| (0..keys).map(move |key| at_key(lanes, key))));
-        let mut tree = tree;
         let children = lanes.chunks(WIDTH).map(occupied);
         for ((node, children), at_keys) in tree.nodes_mut().iter_mut().zip(children).zip(key_boxes.chunks(keys)) {
             for lane in 0..children {
@@ -91,19 +91,6 @@ impl MovingWideTree {
     }
 }
 
-/// The nodes of `binary` with their boxes on average over time ([`time_average`] of their key boxes in `node_keys`).
-fn on_average(binary: &[Node], node_keys: &NodeKeys) -> Vec<Node> {
-    let at_keys = node_keys.boxes.chunks(node_keys.keys);
-    binary
-        .iter()
-        .zip(at_keys)
-        .map(|(node, boxes)| {
-            let (min, max) = time_average(boxes.iter().copied());
-            Node { min, max, ..*node }
-        })
-        .collect()
-}
-
 /// Where a plane of a lane's box at every time lies at most: `bound` (`f32::min` for a minimum, `f32::max` for a
 /// maximum) of its places `at_keys` at the keys, moved outward (`outward` −1 or 1) by 2⁻²⁰ of their largest magnitude.
 /// The interpolation of two keys' planes rounds at most 2⁻²² of the larger magnitude away from the exact value (three
@@ -152,7 +139,7 @@ mod tests {
             .unwrap();
         let CpuAccel::Triangles(bvh) = cpu_child(&accel).unwrap() else { panic!("a geometry accel") };
         let keys = bvh.node_keys.as_ref().expect("a motion accel");
-        let (tree, lanes) = WideTree::collapse_with_lanes(&on_average(&bvh.nodes, keys));
+        let (tree, lanes) = WideTree::collapse_with_lanes(&keys.time_averaged(&bvh.nodes));
         assert!(tree.tree().nodes.len() > 10, "{} wide nodes", tree.tree().nodes.len());
         let mut compared = 0;
         for time in [0.0, 0.1, 0.37, 0.5, 0.5001, 0.9, 1.0] {

@@ -151,14 +151,10 @@ impl TriangleBvh {
     }
 
     /// Puts the triangles in leaf order (then the degenerate ones) beside the laid-out nodes.
-    fn lay_out(triangles: &GatheredTriangles, layout: Layout, options: &BuildOptions) -> TriangleBvh {
-        let Layout { nodes, mut order, depth } = layout;
+    fn lay_out(triangles: &GatheredTriangles, mut layout: Layout, options: &BuildOptions) -> TriangleBvh {
         let total = triangles.len();
-        let mut in_leaves = vec![false; total];
-        for &i in &order {
-            in_leaves[i as usize] = true;
-        }
-        order.extend((0..total as u32).filter(|&i| !in_leaves[i as usize]));
+        layout.append_unplaced(total);
+        let Layout { nodes, mut order, depth } = layout;
         // Gathered by rayon's threads: a random read a triangle, which one core would wait on alone.
         let mut corners = vec![[Vec3::ZERO; 3]; total * triangles.keys];
         corners

@@ -101,11 +101,15 @@ impl Flattener {
     }
 
     /// Appends a BVH's nodes collapsed to [`NODE_WIDTH`] lanes (inner lanes' nodes made global, leaf lanes' first
-    /// slot moved by `leaf_base`) and their lanes' key boxes.
+    /// slot moved by `leaf_base`) and their lanes' key boxes. A motion BVH is collapsed by its nodes' boxes on average
+    /// over time, as the CPU's is ([`NodeKeys::time_averaged`]).
     fn bvh(&mut self, nodes: &[Node], keys: Option<&NodeKeys>, leaf_base: u32) -> PlacedBvh {
         let first = (self.flat.nodes.len() / NODE_WORDS) as u32;
         let box_base = self.flat.boxes.len() as u32;
-        let collapsed = collapse(nodes, NODE_WIDTH);
+        let collapsed = match keys {
+            None => collapse(nodes, NODE_WIDTH),
+            Some(keys) => collapse(&keys.time_averaged(nodes), NODE_WIDTH),
+        };
         for lanes in collapsed.lanes.chunks(NODE_WIDTH) {
             let mut words = [0u32; NODE_WORDS];
             for (lane, &Lane { binary, child }) in lanes.iter().enumerate() {

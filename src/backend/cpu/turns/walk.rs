@@ -4,6 +4,7 @@ use std::mem::MaybeUninit;
 use std::ops::Range;
 
 use crate::backend::cpu::blocks::BlockRay;
+use crate::backend::cpu::set_bits;
 use crate::backend::cpu::traverse::StackEntry;
 use crate::backend::cpu::triangles::TriangleBvh;
 use crate::backend::cpu::wide::{WideBvh, WideNode, avx, pop};
@@ -42,14 +43,14 @@ impl TriangleBvh {
         stats: &mut TraceStats,
     ) {
         let mut prepared = [const { MaybeUninit::<PreparedRay>::uninit() }; TURNS];
-        for i in bits(walking) {
+        for i in set_bits(walking) {
             prepared[i].write(PreparedRay::from_traced(&rays[i]));
         }
         // SAFETY (here and below): ray `i` walks, so it was prepared just above.
         let prepared = |i: usize| unsafe { prepared.get_unchecked(i).assume_init_ref() };
         let mut block_rays = [const { MaybeUninit::<BlockRay<'_>>::uninit() }; TURNS];
         let mut lanes = [const { MaybeUninit::<avx::RayLanes>::uninit() }; TURNS];
-        for i in bits(walking) {
+        for i in set_bits(walking) {
             block_rays[i].write(BlockRay::new(prepared(i)));
             // SAFETY: the CPU has AVX2 (this function's contract), so AVX too.
             lanes[i].write(unsafe { avx::RayLanes::new(prepared(i)) });
@@ -102,7 +103,7 @@ impl WideBvh {
         assert!(stacks.len() >= TURNS * size, "stacks of {} entries for {TURNS} of {size}", stacks.len());
         let nearest_first = collectors[walking.trailing_zeros() as usize].wants_nearest_first();
         let mut turns = [Turn { index: 0, count: 0, len: 0, tmax: 0.0 }; TURNS];
-        for i in bits(walking) {
+        for i in set_bits(walking) {
             turns[i].tmax = collectors[i].cull_tmax();
         }
         let mut boxes = 0u64;
@@ -169,17 +170,6 @@ impl WideBvh {
         }
         stats.nodes_visited += boxes;
     }
-}
-
-/// The indices of the set bits of `mask`, lowest first.
-#[inline(always)]
-fn bits(mask: u32) -> impl Iterator<Item = usize> {
-    let mut rest = mask;
-    std::iter::from_fn(move || {
-        let bit = (rest != 0).then(|| rest.trailing_zeros() as usize);
-        rest &= rest.wrapping_sub(1);
-        bit
-    })
 }
 
 #[cfg(test)]
