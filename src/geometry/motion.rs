@@ -380,7 +380,7 @@ mod tests {
     }
 
     #[test]
-    fn a_time_average_weighs_the_end_keys_half_and_falls_back_to_the_union_when_a_key_is_empty() {
+    fn a_time_average_weighs_the_end_keys_half_and_falls_back_to_the_union_when_a_key_is_empty_or_it_is_not_finite() {
         let at = |x: f32| (Vec3::splat(x), Vec3::splat(x + 1.0));
         assert_eq!(time_average([at(0.0), at(4.0)].into_iter()), at(2.0));
         // Segments of one length: (0/2 + 4 + 2/2) / 2.
@@ -388,8 +388,9 @@ mod tests {
         assert_eq!(time_average([at(3.0)].into_iter()), at(3.0));
         assert_eq!(time_average([at(0.0), EMPTY, at(2.0)].into_iter()), (Vec3::ZERO, Vec3::splat(3.0)));
         assert!(is_empty(&time_average(std::iter::empty())));
-        // Planes near the largest floats: their weighed sum stays finite; infinite planes give the union.
-        let huge = f32::MAX / 2.0;
+        // Planes near the largest floats (the two ends' sum, 3·2¹²⁷, is past them): the weighed sum stays finite;
+        // infinite planes give the union.
+        let huge = 1.5 * 2f32.powi(127);
         let far = (Vec3::splat(huge), Vec3::splat(huge));
         assert_eq!(time_average([far, far, far].into_iter()), far);
         let unbounded = (Vec3::splat(f32::NEG_INFINITY), Vec3::splat(f32::INFINITY));
