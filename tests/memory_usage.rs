@@ -1,5 +1,6 @@
 //! `compute_memory_usage` gives true upper bounds: a counting allocator measures what each build really holds
-//! afterwards (output) and at its peak (output + temp), for every preset, on real and random meshes.
+//! afterwards (output) and at its peak (output + temp), for every preset, on real and random meshes, static and moving
+//! (two and three motion keys).
 
 mod common;
 
@@ -8,7 +9,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use common::{random_soup, shared_mesh};
 use rayd_engine::accel::{BuildFlags, BuildOptions};
-use rayd_engine::geometry::{BuildInput, TriangleInput};
+use rayd_engine::geometry::{BuildInput, MotionFlags, MotionOptions, TriangleInput};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::{Context, Device};
 
@@ -47,10 +48,41 @@ unsafe impl GlobalAlloc for Counting {
 #[global_allocator]
 static ALLOCATOR: Counting = Counting;
 
+/// Builds `inputs` with `options` and checks that what the build holds afterwards and at its peak stays within what
+/// `compute_memory_usage` reported for them.
+fn check_build(case: &str, inputs: &[BuildInput<'_>], options: &BuildOptions, triangles: usize) {
+    let context = Context::new(Device::cpu());
+    let usage = context.compute_memory_usage(inputs, options).unwrap();
+    let before = LIVE.load(Ordering::SeqCst);
+    PEAK.store(before, Ordering::SeqCst);
+    let accel = context.build_accel(inputs, options).unwrap();
+    let held = LIVE.load(Ordering::SeqCst) - before;
+    let peak = PEAK.load(Ordering::SeqCst) - before;
+    let size = accel.info().size_bytes;
+    eprintln!(
+        "{case}: size {size} (bound {}), held {held}, peak {peak}, temp {} (bound {}), {:.0} temp bytes/triangle",
+        usage.output_bytes,
+        peak - held,
+        usage.temp_bytes,
+        (peak - held) as f64 / triangles as f64
+    );
+    assert!(size <= usage.output_bytes, "{case}: size {size} > {}", usage.output_bytes);
+    assert!(held as u64 <= usage.output_bytes, "{case}: held {held} > {}", usage.output_bytes);
+    assert!(peak as u64 <= usage.output_bytes + usage.temp_bytes, "{case}: peak {peak} beyond output + temp");
+    assert_eq!(usage.temp_update_bytes > 0, options.flags.contains(BuildFlags::ALLOW_UPDATE));
+}
+
+/// One test: the counting allocator counts every thread's allocations, so no other test may run beside it.
 #[test]
 fn builds_stay_within_the_reported_output_and_temp_sizes() {
     // Start rayon's pool before measuring: its threads' fixed allocations are not a build's.
     rayon::broadcast(|_| ());
+    static_builds();
+    motion_builds();
+}
+
+/// Every preset, with and without masks, on real and random meshes.
+fn static_builds() {
     let meshes: Vec<(&str, Mesh)> = vec![
         ("bunny", shared_mesh("stanford-bunny")),
         ("nefertiti", shared_mesh("nefertiti")),
@@ -69,31 +101,34 @@ fn builds_stay_within_the_reported_output_and_temp_sizes() {
         for flags in flag_sets {
             for with_masks in [false, true] {
                 let input = TriangleInput { masks: with_masks.then_some(masks.as_slice()), ..packed.input() };
-                let inputs = [BuildInput::Triangles(input)];
-                let options = BuildOptions::new(flags);
-                let context = Context::new(Device::cpu());
-                let usage = context.compute_memory_usage(&inputs, &options).unwrap();
-                let before = LIVE.load(Ordering::SeqCst);
-                PEAK.store(before, Ordering::SeqCst);
-                let accel = context.build_accel(&inputs, &options).unwrap();
-                let held = LIVE.load(Ordering::SeqCst) - before;
-                let peak = PEAK.load(Ordering::SeqCst) - before;
                 let case = format!("{name}, {flags:?}, masks {with_masks}");
-                let size = accel.info().size_bytes;
-                eprintln!(
-                    "{case}: size {size} (bound {}), held {held}, peak {peak}, temp {} (bound {}), {:.0} temp bytes/triangle",
-                    usage.output_bytes,
-                    peak - held,
-                    usage.temp_bytes,
-                    (peak - held) as f64 / mesh.triangles.len() as f64
-                );
-                assert!(size <= usage.output_bytes, "{case}: size {size} > {}", usage.output_bytes);
-                assert!(held as u64 <= usage.output_bytes, "{case}: held {held} > {}", usage.output_bytes);
-                assert!(
-                    peak as u64 <= usage.output_bytes + usage.temp_bytes,
-                    "{case}: peak {peak} beyond output + temp"
-                );
-                assert_eq!(usage.temp_update_bytes > 0, flags.contains(BuildFlags::ALLOW_UPDATE));
+                check_build(&case, &[BuildInput::Triangles(input)], &BuildOptions::new(flags), mesh.triangles.len());
+            }
+        }
+    }
+}
+
+/// Moving meshes with two and three keys, with and without updates.
+fn motion_builds() {
+    for (name, mesh) in [("bunny", shared_mesh("stanford-bunny")), ("soup-50k", random_soup(50_000, 7))] {
+        let packed = mesh.pack();
+        for keys in [2u32, 3] {
+            // Every key after the first moves the mesh by a tenth of its size along the diagonal.
+            let (lo, hi) = mesh.bounds();
+            let step = (hi - lo) * 0.1;
+            let moved: Vec<Vec<u8>> = (1..keys)
+                .map(|k| {
+                    let positions = mesh.positions.iter().map(|&p| p + step * k as f32);
+                    positions.flat_map(|p| p.to_array()).flat_map(f32::to_le_bytes).collect()
+                })
+                .collect();
+            let motion_vertices: Vec<&[u8]> = moved.iter().map(Vec::as_slice).collect();
+            let input = TriangleInput { motion_vertices: &motion_vertices, ..packed.input() };
+            for flags in [BuildFlags::empty(), BuildFlags::PREFER_FAST_TRACE | BuildFlags::ALLOW_UPDATE] {
+                let motion = MotionOptions { keys, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
+                let options = BuildOptions { motion, ..BuildOptions::new(flags) };
+                let case = format!("{name}, {keys} keys, {flags:?}");
+                check_build(&case, &[BuildInput::Triangles(input)], &options, mesh.triangles.len());
             }
         }
     }
