@@ -1,17 +1,19 @@
-//! `compute_memory_usage` gives true upper bounds: a counting allocator measures what each build really holds
-//! afterwards (output) and at its peak (output + temp), for every preset, on real and random meshes, static and moving
-//! (two and three motion keys).
+//! `compute_memory_usage` and `compute_instance_memory_usage` give true upper bounds: a counting allocator measures
+//! what each build really holds afterwards (output) and at its peak (output + temp), for every preset, on real and
+//! random meshes, static and moving (two and three motion keys), and for instance accels of many instances, with and
+//! without motion keys.
 
 mod common;
 
 use std::alloc::{GlobalAlloc, Layout, System};
+use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use common::{random_soup, shared_mesh};
-use rayd_engine::accel::{BuildFlags, BuildOptions};
-use rayd_engine::geometry::{BuildInput, MotionFlags, MotionOptions, TriangleInput};
+use rayd_engine::accel::{BuildFlags, BuildOptions, MemoryUsage};
+use rayd_engine::geometry::{BuildInput, Instance, InstanceFlags, MotionFlags, MotionOptions, TriangleInput};
 use rayd_engine::mesh::Mesh;
-use rayd_engine::{Context, Device};
+use rayd_engine::{Accel, Context, Device};
 
 /// Counts live heap bytes and their peak.
 struct Counting;
@@ -53,18 +55,30 @@ static ALLOCATOR: Counting = Counting;
 fn check_build(case: &str, inputs: &[BuildInput<'_>], options: &BuildOptions, triangles: usize) {
     let context = Context::new(Device::cpu());
     let usage = context.compute_memory_usage(inputs, options).unwrap();
+    check_within(case, usage, options, triangles, || context.build_accel(inputs, options).unwrap());
+}
+
+/// Runs `build` (of `items` triangles or instances with `options`) and checks that what it holds afterwards and at
+/// its peak stays within `usage`.
+fn check_within(
+    case: &str,
+    usage: MemoryUsage,
+    options: &BuildOptions,
+    items: usize,
+    build: impl FnOnce() -> Arc<Accel>,
+) {
     let before = LIVE.load(Ordering::SeqCst);
     PEAK.store(before, Ordering::SeqCst);
-    let accel = context.build_accel(inputs, options).unwrap();
+    let accel = build();
     let held = LIVE.load(Ordering::SeqCst) - before;
     let peak = PEAK.load(Ordering::SeqCst) - before;
     let size = accel.info().size_bytes;
     eprintln!(
-        "{case}: size {size} (bound {}), held {held}, peak {peak}, temp {} (bound {}), {:.0} temp bytes/triangle",
+        "{case}: size {size} (bound {}), held {held}, peak {peak}, temp {} (bound {}), {:.0} temp bytes an item",
         usage.output_bytes,
         peak - held,
         usage.temp_bytes,
-        (peak - held) as f64 / triangles as f64
+        (peak - held) as f64 / items as f64
     );
     assert!(size <= usage.output_bytes, "{case}: size {size} > {}", usage.output_bytes);
     assert!(held as u64 <= usage.output_bytes, "{case}: held {held} > {}", usage.output_bytes);
@@ -79,6 +93,7 @@ fn builds_stay_within_the_reported_output_and_temp_sizes() {
     rayon::broadcast(|_| ());
     static_builds();
     motion_builds();
+    instance_builds();
 }
 
 /// Every preset, with and without masks, on real and random meshes.
@@ -129,6 +144,47 @@ fn motion_builds() {
                 let options = BuildOptions { motion, ..BuildOptions::new(flags) };
                 let case = format!("{name}, {keys} keys, {flags:?}");
                 check_build(&case, &[BuildInput::Triangles(input)], &options, mesh.triangles.len());
+            }
+        }
+    }
+}
+
+/// Instance accels of a few and of many instances of one mesh, at random places and turns, static and with two and
+/// three keys, with and without updates.
+fn instance_builds() {
+    let context = Context::new(Device::cpu());
+    let packed = shared_mesh("teapot").pack();
+    let child = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let mut seed = 11u32;
+    let mut next = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 17;
+        seed ^= seed << 5;
+        seed as f32 / u32::MAX as f32
+    };
+    for count in [3, 40_000] {
+        let instances: Vec<Instance> = (0..count)
+            .map(|id| {
+                let (turn, at) = (next() * std::f32::consts::TAU, [next(), next(), next()].map(|x| x * 500.0));
+                let (sin, cos) = turn.sin_cos();
+                Instance {
+                    transform: [cos, -sin, 0.0, at[0], sin, cos, 0.0, at[1], 0.0, 0.0, 1.0, at[2]],
+                    instance_id: id,
+                    mask: 0xFF,
+                    flags: InstanceFlags::empty(),
+                    child: Arc::clone(&child),
+                }
+            })
+            .collect();
+        for keys in [1u32, 2, 3] {
+            for flags in [BuildFlags::empty(), BuildFlags::PREFER_FAST_TRACE | BuildFlags::ALLOW_UPDATE] {
+                let motion = MotionOptions { keys, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
+                let options = BuildOptions { motion, ..BuildOptions::new(flags) };
+                let usage = context.compute_instance_memory_usage(instances.len(), &options).unwrap();
+                let case = format!("{count} instances, {keys} keys, {flags:?}");
+                check_within(&case, usage, &options, instances.len(), || {
+                    context.build_instance_accel(&instances, &options).unwrap()
+                });
             }
         }
     }

@@ -1,7 +1,9 @@
 //! The CPU backend's payload in a blob (see [`crate::serialize`]): its accels' arrays as they are, and their
 //! careful reading back. Every length, index and range is checked so that traversal, refits and random vertex
-//! access stay in bounds and terminate; depths, stack sizes and derived boxes are recomputed, placements
-//! re-derived from their matrices.
+//! access stay in bounds and terminate; depths, stack sizes, the wide nodes (with a static accel's corner blocks), a
+//! geometry accel's bounds and an instance accel's child boxes are made again from what was read, placements
+//! re-derived from their matrices. Node boxes, key boxes and an instance accel's bounds are taken as stored: wrong
+//! ones make a blob trace wrongly, never out of bounds.
 //!
 //! Layout version [`LAYOUT_VERSION`], using the blob's arrays and optional parts. A geometry accel:
 //!

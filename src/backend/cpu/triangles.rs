@@ -8,7 +8,7 @@ use rayon::prelude::*;
 use super::blocks::{CornerBlocks, Placement};
 use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
 use super::moving_wide::MovingWideTree;
-use super::wide::{WIDTH, WideBvh, WideNode};
+use super::wide::{WideBvh, WideNode, WideTree};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, time_average, union};
 use crate::geometry::{GatheredTriangles, GeometryFlags, MotionOptions, TriangleRef, is_degenerate};
@@ -71,9 +71,8 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     let node_count = (2 * n).saturating_sub(1);
     let node_keys = if keys > 1 { keys * size_of::<Bounds>() as u64 } else { 0 };
     let nodes = node_count * (size_of::<Node>() as u64 + node_keys);
-    // Static accels also collapse their nodes to wide ones: every wide node with an inner lane has all WIDTH lanes
-    // and every other has at least 2 leaves, so there are at most 4/7 as many as leaves (plus the root).
-    let wide_nodes = if keys > 1 { 0 } else { (4 * n).div_ceil(WIDTH as u64 - 1) + 1 };
+    // Static accels also collapse their nodes to wide ones, at most one for every leaf but three in seven.
+    let wide_nodes = if keys > 1 { 0 } else { WideTree::most_nodes(triangles) as u64 };
     // … and copy their corners into blocks for the leaves' first test.
     let blocks = if keys > 1 { 0 } else { CornerBlocks::bytes_for(n) };
     // … with the ids (and masks) of the blocks' slots.

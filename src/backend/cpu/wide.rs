@@ -563,10 +563,9 @@ impl WideTree {
         (tree, collapsed.lanes)
     }
 
-    /// The most nodes a collapse of a binary BVH of `leaves` leaves makes: each is an inner binary node but for a root
-    /// that is a leaf, so there are fewer than leaves.
+    /// The most nodes a collapse of a binary BVH of `leaves` leaves makes ([`super::collapse::most_nodes`]).
     pub const fn most_nodes(leaves: usize) -> usize {
-        leaves
+        super::collapse::most_nodes(leaves, WIDTH)
     }
 
     /// Stack entries a walk needs ([`stack_size_of`]).
