@@ -607,7 +607,20 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
     let count = Query { kind: QueryKind::Count, ..closest };
     let result = client.trace_batch(into_buffers(&count, 10)).await;
     assert_refused(&mut client, result, Code::ResourceExhausted, "max_buffers").await;
-    assert_eq!(list_buffers(&mut client).await, [second], "the refused trace left no buffer");
+    assert_eq!(list_buffers(&mut client).await, std::slice::from_ref(&second), "the refused trace left no buffer");
+    // Names that cannot be buffers', refused before the trace, naming the request's field.
+    let named =
+        |query: &Query, name: &str| pb::TraceBatchRequest { hits_buffer_name: name.into(), ..into_buffers(query, 1) };
+    let result = client.trace_batch(named(&closest, "a/b")).await;
+    assert_refused(&mut client, result, Code::InvalidArgument, "hits_buffer_name: \"a/b\"").await;
+    let longest = "n".repeat(128);
+    let result = client.trace_batch(named(&count, &longest)).await;
+    assert_refused(&mut client, result, Code::InvalidArgument, &format!("hits_buffer_name: \"{longest}.counts\""))
+        .await;
+    let save = pb::SaveAccelRequest { accel: by_name("tri"), buffer_name: "a/b".into() };
+    let result = client.save_accel(save).await;
+    assert_refused(&mut client, result, Code::InvalidArgument, "buffer_name: \"a/b\"").await;
+    assert_eq!(list_buffers(&mut client).await, [second], "the refused calls left no buffer");
     upload(&mut client, "third", &[7; 10]).await.expect("room for a buffer again");
 
     // With the client's idle connection still open.

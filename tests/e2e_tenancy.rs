@@ -298,3 +298,62 @@ limits = {{ max_total_buffer_bytes = 10, max_total_accel_bytes = 6000, max_rays_
     assert!(error.to_string().contains("max_rays_per_second = 100"), "{error}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn accels_being_made_count_against_the_limits_and_loads_by_their_loaded_bytes() {
+    // A blob whose accel takes more bytes loaded than the blob does, made by the engine as the server makes it.
+    let sphere = common::icosphere(5, Vec3::ZERO);
+    let packed = sphere.pack();
+    let engine = rayd_engine::Context::new(rayd_engine::Device::cpu());
+    let inputs = [rayd_engine::geometry::BuildInput::Triangles(packed.input())];
+    let built = engine.build_accel(&inputs, &rayd_engine::accel::BuildOptions::default()).unwrap();
+    let blob = engine.serialize_accel(&built, &[]).unwrap();
+    let loaded = engine.deserialize_accel(&blob, &[]).unwrap()[0].info().size_bytes;
+    assert!(loaded > blob.len() as u64, "loaded {loaded} bytes from a blob of {}", blob.len());
+    let between = (loaded + blob.len() as u64) / 2;
+
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("rayd-coming-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("rayd.toml");
+    let (delta, zeta) = ("delta-write-key-0123456789", "zeta-write-key-0123456789");
+    let text = format!(
+        r#"[[tenants]]
+name = "delta"
+keys = [{{ key = "{delta}", role = "write" }}]
+limits = {{ max_accels = 2 }}
+
+[[tenants]]
+name = "zeta"
+keys = [{{ key = "{zeta}", role = "write" }}]
+limits = {{ max_total_accel_bytes = {between} }}
+"#
+    );
+    std::fs::write(&path, text).unwrap();
+    let daemon = Daemon::start(&[("RAYD_CONFIG", path.to_str().unwrap())]);
+
+    // Eight builds at once for room for two: two are kept, the others refused, whenever each was checked.
+    let delta = client(&daemon, Some(delta)).await;
+    let builds = (0..8).map(|i| {
+        let (delta, sphere) = (delta.clone(), sphere.clone());
+        tokio::spawn(async move { delta.build_mesh(&format!("s{i}"), &sphere, "", BuildFlags::empty()).await })
+    });
+    let mut kept = 0;
+    for build in builds {
+        match build.await.unwrap() {
+            Ok(_) => kept += 1,
+            Err(error) => {
+                assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+                assert!(error.to_string().contains("max_accels = 2"), "{error}");
+            }
+        }
+    }
+    assert_eq!((kept, delta.accels().await.unwrap().len()), (2, 2));
+
+    // The blob fits zeta's max_total_accel_bytes; the accel loaded from it does not.
+    let zeta = client(&daemon, Some(zeta)).await;
+    let error = zeta.load_accel("sphere", "", Bytes::from(blob)).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains(&format!("max_total_accel_bytes = {between}")), "{error}");
+    assert!(zeta.accels().await.unwrap().is_empty(), "nothing of the refused load remains");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -111,7 +111,8 @@ impl Default for Config {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct Limits {
-    /// Largest gRPC message, in either direction (bytes).
+    /// Largest gRPC message, in either direction (bytes). Server-wide: the gRPC layer applies it to every call
+    /// before the caller's tenant is known, so a tenant's `limits` may not set another.
     pub max_message_bytes: u64,
     /// Most rays in one `TraceBatch` call or one `TraceStream` chunk.
     pub max_rays_per_batch: u64,
@@ -253,6 +254,13 @@ impl Config {
         }
         for (i, tenant) in config.tenants.iter().enumerate() {
             tenant.limits.check(&format!("tenants[{i}].limits")).map_err(ConfigError::Invalid)?;
+            let (own, server) = (tenant.limits.max_message_bytes, config.limits.max_message_bytes);
+            if own != server {
+                return Err(ConfigError::Invalid(format!(
+                    "tenants[{i}].limits.max_message_bytes = {own}: the gRPC layer's limit is one for every tenant; \
+                     set it under [limits] (now {server})"
+                )));
+            }
         }
         tenants::check(&config.tenants).map_err(ConfigError::Invalid)?;
         Ok(config)
@@ -386,6 +394,7 @@ mod tests {
             (good.replace("\"acme\"", "\"a/b\""), "[A-Za-z0-9._-]"),
             (good.replace("role = \"read\"", "role = \"root\""), "root"),
             (good.replace("max_accels = 3", "max_graph_depth = 9"), "tenants[0].limits.max_graph_depth"),
+            (good.replace("max_accels = 3", "max_message_bytes = 1048576"), "tenants[0].limits.max_message_bytes"),
             (good.replace("name = \"acme\"", "name = \"acme\"\nshare = 0"), "tenants[0].share = 0 must be 1 to 1000"),
         ] {
             std::fs::write(&path, bad).unwrap();

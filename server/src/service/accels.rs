@@ -80,7 +80,7 @@ pub async fn save(tenant: Arc<Tenant>, request: pb::SaveAccelRequest) -> Service
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
     let buffer = blocking(move || {
         let blob = tenant.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
-        tenant.create_buffer(&request.buffer_name, Bytes::from(blob))
+        tenant.create_buffer("buffer_name", &request.buffer_name, Bytes::from(blob))
     })
     .await?;
     Ok(super::buffers::info(&buffer))

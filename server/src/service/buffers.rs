@@ -88,7 +88,7 @@ impl Upload {
         let Upload { header, data, reserved } = self;
         // The buffer's own bytes take the reservation's place.
         drop(reserved);
-        tenant.create_buffer(&header.name, data.freeze())
+        tenant.create_buffer("header.name", &header.name, data.freeze())
     }
 }
 

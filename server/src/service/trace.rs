@@ -20,6 +20,9 @@ use crate::tenant::{AccelEntry, Rays, Tenant, TraceResult};
 /// The response stream of `TraceStream`.
 pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::TraceStreamResponse, Status>> + Send>>;
 
+/// The request field that names the buffers a trace writes its hits and counts to.
+const HITS_BUFFER_NAME: &str = "hits_buffer_name";
+
 /// Room left in a reply message for everything but the hit and count bytes.
 const REPLY_OVERHEAD_BYTES: u64 = 4096;
 
@@ -93,7 +96,12 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     }
     if to_buffer {
         let layout = query.output_layout(ray_count as usize * query.ray_format.size())?;
-        tenant.check_new_buffer(&request.hits_buffer_name, layout.hits as u64)?;
+        let (hits, counts) = (&request.hits_buffer_name, format!("{}.counts", request.hits_buffer_name));
+        let mut buffers = vec![(hits.as_str(), layout.hits as u64)];
+        if layout.counts > 0 {
+            buffers.push((&counts, layout.counts as u64));
+        }
+        tenant.check_new_buffers(HITS_BUFFER_NAME, &buffers)?;
     } else {
         check_reply_size(&tenant, &query, ray_count)?;
     }
@@ -105,12 +113,12 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     // With a data directory the buffers are written to disk: off the async runtime.
     blocking(move || {
         let name = &request.hits_buffer_name;
-        let hits_buffer = tenant.create_buffer(name, result.hits)?;
+        let hits_buffer = tenant.create_buffer(HITS_BUFFER_NAME, name, result.hits)?;
         let counts_buffer = if result.counts.is_empty() {
             None
         } else {
             // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
-            match tenant.create_buffer(&format!("{name}.counts"), result.counts) {
+            match tenant.create_buffer(HITS_BUFFER_NAME, &format!("{name}.counts"), result.counts) {
                 Ok(entry) => Some(buffers::info(&entry)),
                 Err(error) => {
                     tenant.delete_buffer(&hits_buffer)?;

@@ -218,7 +218,8 @@ impl Tenant {
     }
 
     /// Builds an accel named `name` on `device` with `build`, after checking the name, the accel count and the
-    /// output bound `usage` gives against the limits. Blocks: call it off the async runtime.
+    /// output bound `usage` gives against the limits; the accel and those bytes stay reserved until it is kept, so
+    /// that builds at once cannot together outgrow them. Blocks: call it off the async runtime.
     pub fn build_accel(
         &self,
         name: &str,
@@ -229,13 +230,7 @@ impl Tenant {
         check_name("name", name)?;
         self.accels.check_free(name)?;
         let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
-        let count = self.accels.len() as u64 + 1;
-        ServiceError::check_limit(
-            || "accels of this tenant".into(),
-            count,
-            "max_accels",
-            self.limits.max_accels as u64,
-        )?;
+        let _counted = self.reserve_accels(1)?;
         let (device, context) = self.context(device)?;
         let usage = usage(context)?;
         ServiceError::check_limit(
@@ -244,7 +239,7 @@ impl Tenant {
             "max_accel_bytes",
             self.limits.max_accel_bytes,
         )?;
-        self.check_total_accel_bytes(usage.output_bytes)?;
+        let _bytes = self.reserve_accel_bytes(usage.output_bytes)?;
         let start = Instant::now();
         let accel = build(context)?;
         let entry = AccelEntry {
@@ -269,8 +264,10 @@ impl Tenant {
     }
 
     /// Recreates the accels of a saved blob on `device`: the root called `name`, the accels below it `name.1`,
-    /// `name.2`, … in the blob's order, after checking the names, the blob's size against `max_accel_bytes` and the
-    /// accel count against `max_accels`. All or nothing. Blocks: call it off the async runtime.
+    /// `name.2`, … in the blob's order, after checking the names, the blob's size against `max_accel_bytes` and
+    /// `max_total_accel_bytes` and the accel count against `max_accels` (reserved until they are kept); once loaded,
+    /// each accel's own bytes against `max_accel_bytes` and their sum against `max_total_accel_bytes` (a loaded
+    /// accel can take more bytes than its part of the blob). All or nothing. Blocks: call it off the async runtime.
     pub fn load_accels(&self, name: &str, device: &str, blob: &[u8]) -> ServiceResult<Vec<AccelEntry>> {
         check_name("name", name)?;
         ServiceError::check_limit(
@@ -281,22 +278,26 @@ impl Tenant {
         )?;
         let summary = rayd_engine::serialize::blob_summary(blob)?;
         let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
-        self.check_total_accel_bytes(blob.len() as u64)?;
+        let _counted = self.reserve_accels(u64::from(summary.accels))?;
+        let blob_bytes = self.reserve_accel_bytes(blob.len() as u64)?;
         let names: Vec<String> = (1..summary.accels).map(|i| format!("{name}.{i}")).chain([name.to_owned()]).collect();
         for name in &names {
             check_name("name", name)?;
             self.accels.check_free(name)?;
         }
-        ServiceError::check_limit(
-            || "accels of this tenant".into(),
-            (self.accels.len() + names.len()) as u64,
-            "max_accels",
-            self.limits.max_accels as u64,
-        )?;
         let (device, context) = self.context(device)?;
         let start = Instant::now();
         let accels = context.deserialize_accel(blob, &[])?;
         let build_ns = start.elapsed().as_nanos() as u64;
+        let _reserved = match self.check_loaded(&accels, blob.len() as u64) {
+            Ok(loaded_bytes) => (blob_bytes, loaded_bytes),
+            Err(refused) => {
+                for accel in accels.iter().rev() {
+                    context.destroy_accel(accel.handle())?;
+                }
+                return Err(refused);
+            }
+        };
         let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
         for (accel, name) in accels.iter().zip(names) {
             let entry = AccelEntry {
@@ -352,14 +353,41 @@ impl Tenant {
     }
 
     /// Checks that `more` bytes of accels stay within `max_total_accel_bytes` with the tenant's accels.
-    fn check_total_accel_bytes(&self, more: u64) -> ServiceResult<()> {
-        let held = self.accel_bytes();
-        ServiceError::check_limit(
-            || format!("accel bytes of this tenant ({held} held, up to {more} more)"),
-            held.saturating_add(more),
-            "max_total_accel_bytes",
-            self.limits.max_total_accel_bytes,
+    /// Reserves `count` more accels against `max_accels` until the reservation is dropped.
+    fn reserve_accels(&self, count: u64) -> ServiceResult<Reservation> {
+        self.quotas.accels_coming.reserve(
+            count,
+            || self.accels.len() as u64,
+            ("max_accels", self.limits.max_accels as u64),
+            |held, coming| format!("accels of this tenant ({held} held, {coming} being made, {count} more)"),
         )
+    }
+
+    /// Reserves `bytes` more accel bytes against `max_total_accel_bytes` until the reservation is dropped.
+    fn reserve_accel_bytes(&self, bytes: u64) -> ServiceResult<Reservation> {
+        self.quotas.accel_bytes_coming.reserve(
+            bytes,
+            || self.accel_bytes(),
+            ("max_total_accel_bytes", self.limits.max_total_accel_bytes),
+            |held, coming| format!("accel bytes of this tenant ({held} held, {coming} being made, up to {bytes} more)"),
+        )
+    }
+
+    /// Checks accels loaded from a blob of `blob_bytes` bytes against the byte limits: each one's bytes against
+    /// `max_accel_bytes`, and what their sum exceeds the blob's bytes (already reserved) by against
+    /// `max_total_accel_bytes`, which stays reserved until they are kept.
+    fn check_loaded(&self, accels: &[Arc<Accel>], blob_bytes: u64) -> ServiceResult<Option<Reservation>> {
+        for (index, accel) in accels.iter().enumerate() {
+            let size = accel.info().size_bytes;
+            ServiceError::check_limit(
+                || format!("accel {index} of the blob, loaded"),
+                size,
+                "max_accel_bytes",
+                self.limits.max_accel_bytes,
+            )?;
+        }
+        let loaded = accels.iter().map(|a| a.info().size_bytes).fold(0, u64::saturating_add);
+        (loaded > blob_bytes).then(|| self.reserve_accel_bytes(loaded - blob_bytes)).transpose()
     }
 
     /// Every accel, in creation order.
@@ -392,21 +420,26 @@ impl Tenant {
         self.unpersist_accel(&entry.handle)
     }
 
-    /// Checks that a buffer of `size` bytes named `name` may be created.
-    pub fn check_new_buffer(&self, name: &str, size: u64) -> ServiceResult<()> {
-        if !name.is_empty() {
-            check_name("header.name", name)?;
-            self.buffers.check_free(name)?;
+    /// Checks that the buffers `new` (each a name, which request field `field` gave, and a size) may be created
+    /// together: their names, each size against `max_buffer_bytes`, their bytes with those held or being uploaded
+    /// against `max_total_buffer_bytes`, their count against `max_buffers`. An empty name is checked for its size.
+    pub fn check_new_buffers(&self, field: &str, new: &[(&str, u64)]) -> ServiceResult<()> {
+        for &(name, size) in new {
+            if !name.is_empty() {
+                check_name(field, name)?;
+                self.buffers.check_free(name)?;
+            }
+            ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
         }
-        ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
-        let held = self.buffer_bytes() + self.quotas.uploading();
+        let size = new.iter().map(|&(_, size)| size).fold(0, u64::saturating_add);
+        let held = self.buffer_bytes() + self.quotas.uploading.get();
         ServiceError::check_limit(
             || format!("buffer bytes of this tenant ({held} held or being uploaded, {size} more)"),
             held.saturating_add(size),
             "max_total_buffer_bytes",
             self.limits.max_total_buffer_bytes,
         )?;
-        let count = self.buffers.len() as u64 + 1;
+        let count = self.buffers.len() as u64 + new.len() as u64;
         ServiceError::check_limit(
             || "buffers of this tenant".into(),
             count,
@@ -415,16 +448,23 @@ impl Tenant {
         )
     }
 
-    /// Checks a new buffer of `size` bytes as [`Tenant::check_new_buffer`] does, and reserves its bytes against
+    /// Checks a new buffer of `size` bytes as [`Tenant::check_new_buffers`] does, and reserves its bytes against
     /// `max_total_buffer_bytes` while it is uploaded (until the reservation is dropped).
     pub fn reserve_upload(&self, name: &str, size: u64) -> ServiceResult<Reservation> {
-        self.check_new_buffer(name, size)?;
-        self.quotas.reserve_upload(size, self.buffer_bytes(), self.limits.max_total_buffer_bytes)
+        self.check_new_buffers("header.name", &[(name, size)])?;
+        self.quotas.uploading.reserve(
+            size,
+            || self.buffer_bytes(),
+            ("max_total_buffer_bytes", self.limits.max_total_buffer_bytes),
+            |held, uploading| {
+                format!("buffer bytes of this tenant ({held} held, {uploading} being uploaded, {size} more)")
+            },
+        )
     }
 
-    /// Keeps `data` as a buffer.
-    pub fn create_buffer(&self, name: &str, data: Bytes) -> ServiceResult<BufferEntry> {
-        self.check_new_buffer(name, data.len() as u64)?;
+    /// Keeps `data` as a buffer named `name`, which request field `field` gave.
+    pub fn create_buffer(&self, field: &str, name: &str, data: Bytes) -> ServiceResult<BufferEntry> {
+        self.check_new_buffers(field, &[(name, data.len() as u64)])?;
         let id = format!("buf-{}", self.next_buffer.fetch_add(1, Ordering::Relaxed));
         let size_bytes = data.len() as u64;
         let context = self.context(DEFAULT_DEVICE)?.1;

@@ -141,7 +141,7 @@ impl Tenant {
 
     /// Restores one buffer under its id and name.
     fn restore_buffer(&self, record: &BufferRecord, data: bytes::Bytes) -> ServiceResult<()> {
-        self.check_new_buffer(&record.name, data.len() as u64)?;
+        self.check_new_buffers("name", &[(&record.name, data.len() as u64)])?;
         let size_bytes = data.len() as u64;
         let context = self.context(DEFAULT_DEVICE)?.1;
         let handle = context.create_buffer(data);

@@ -1,7 +1,9 @@
 //! A tenant's running quotas: operations at once (a counter, taken for the life of a guard), rays per second (a
 //! token bucket that may go into debt by one batch, so a batch larger than a second's allowance still runs, and
-//! the ones after it wait for the bucket to refill), and the bytes that uploads in progress will add to its
-//! buffers (reserved for the life of a guard, so that uploads at once cannot outgrow `max_total_buffer_bytes`).
+//! the ones after it wait for the bucket to refill), and what operations in progress will add to what it holds:
+//! the bytes of uploads, and the accels of builds, copies and loads with their bytes (reserved for the life of a
+//! guard, so that operations at once cannot together outgrow `max_total_buffer_bytes`, `max_accels` or
+//! `max_total_accel_bytes`).
 
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -17,21 +19,63 @@ pub struct Quotas {
     /// Rays that may still be traced, and when that was computed.
     rays: Mutex<(f64, Instant)>,
     /// Bytes declared by the uploads in progress.
-    uploading: Arc<AtomicU64>,
+    pub uploading: Pending,
+    /// Accels that builds, copies and loads in progress will add.
+    pub accels_coming: Pending,
+    /// Bytes those accels will take at most.
+    pub accel_bytes_coming: Pending,
 }
 
-/// Bytes reserved for an upload in progress; released when dropped.
+/// What operations in progress will add to something a tenant holds, reserved against its limit.
+#[derive(Debug, Default)]
+pub struct Pending(Arc<AtomicU64>);
+
+/// An amount reserved in a [`Pending`]; released when dropped. The operation adds what it made to what the tenant
+/// holds before it drops the reservation, so that what it makes is always counted in one or the other.
 #[derive(Debug)]
 pub struct Reservation {
-    /// The counter they are reserved in.
-    uploading: Arc<AtomicU64>,
-    /// How many.
-    bytes: u64,
+    /// Where it is reserved.
+    pending: Arc<AtomicU64>,
+    /// How much.
+    amount: u64,
 }
 
 impl Drop for Reservation {
     fn drop(&mut self) {
-        self.uploading.fetch_sub(self.bytes, Ordering::AcqRel);
+        self.pending.fetch_sub(self.amount, Ordering::AcqRel);
+    }
+}
+
+impl Pending {
+    /// Reserved now.
+    pub fn get(&self) -> u64 {
+        self.0.load(Ordering::Acquire)
+    }
+
+    /// Reserves `amount` when what is held (`held()`), everything reserved and `amount` stay within `allowed`, the
+    /// limit called `limit`; otherwise RESOURCE_EXHAUSTED, `what` describing what is counted from the amounts held
+    /// and reserved. What is held is read after what is reserved, in the same attempt: an operation that ends in
+    /// between (adding what it made to what is held, then releasing its reservation) is then counted at least once.
+    pub fn reserve(
+        &self,
+        amount: u64,
+        held: impl Fn() -> u64,
+        (limit, allowed): (&'static str, u64),
+        what: impl FnOnce(u64, u64) -> String,
+    ) -> ServiceResult<Reservation> {
+        let mut seen = (0, 0);
+        self.0
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |reserved| {
+                seen = (held(), reserved);
+                (seen.0.saturating_add(reserved).saturating_add(amount) <= allowed).then_some(reserved + amount)
+            })
+            .map_err(|_| ServiceError::Limit {
+                what: what(seen.0, seen.1),
+                requested: seen.0.saturating_add(seen.1).saturating_add(amount),
+                limit,
+                allowed,
+            })?;
+        Ok(Reservation { pending: Arc::clone(&self.0), amount })
     }
 }
 
@@ -54,29 +98,10 @@ impl Quotas {
         Quotas {
             running: AtomicU32::new(0),
             rays: Mutex::new((rays_per_second as f64, Instant::now())),
-            uploading: Arc::default(),
+            uploading: Pending::default(),
+            accels_coming: Pending::default(),
+            accel_bytes_coming: Pending::default(),
         }
-    }
-
-    /// Bytes reserved by the uploads in progress.
-    pub fn uploading(&self) -> u64 {
-        self.uploading.load(Ordering::Acquire)
-    }
-
-    /// Reserves `bytes` for an upload when the `held` buffer bytes, every reservation and these stay within
-    /// `allowed` (RESOURCE_EXHAUSTED naming `max_total_buffer_bytes` otherwise).
-    pub fn reserve_upload(&self, bytes: u64, held: u64, allowed: u64) -> ServiceResult<Reservation> {
-        self.uploading
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |uploading| {
-                (held.saturating_add(uploading).saturating_add(bytes) <= allowed).then_some(uploading + bytes)
-            })
-            .map_err(|uploading| ServiceError::Limit {
-                what: format!("buffer bytes of this tenant ({held} held, {uploading} being uploaded, {bytes} more)"),
-                requested: held.saturating_add(uploading).saturating_add(bytes),
-                limit: "max_total_buffer_bytes",
-                allowed,
-            })?;
-        Ok(Reservation { uploading: Arc::clone(&self.uploading), bytes })
     }
 
     /// Operations running now.
@@ -142,15 +167,42 @@ mod tests {
     }
 
     #[test]
-    fn uploads_in_progress_reserve_their_bytes_until_they_end() {
-        let quotas = Quotas::new(0);
-        let first = quotas.reserve_upload(60, 30, 100).unwrap();
-        let error = quotas.reserve_upload(20, 30, 100).unwrap_err().to_string();
-        assert!(error.contains("60 being uploaded") && error.contains("max_total_buffer_bytes = 100"), "{error}");
-        let second = quotas.reserve_upload(10, 30, 100).unwrap();
-        assert_eq!(quotas.uploading(), 70);
+    fn amounts_in_progress_stay_reserved_until_they_end() {
+        let pending = Pending::default();
+        let limit = ("max_total_buffer_bytes", 100);
+        let what = |held, reserved| format!("{held} held, {reserved} being uploaded");
+        let first = pending.reserve(60, || 30, limit, what).unwrap();
+        let error = pending.reserve(20, || 30, limit, what).unwrap_err().to_string();
+        assert!(
+            error.contains("30 held, 60 being uploaded") && error.contains("max_total_buffer_bytes = 100"),
+            "{error}"
+        );
+        let second = pending.reserve(10, || 30, limit, what).unwrap();
+        assert_eq!(pending.get(), 70);
         drop((first, second));
-        assert_eq!(quotas.uploading(), 0);
-        quotas.reserve_upload(70, 30, 100).unwrap();
+        assert_eq!(pending.get(), 0);
+        pending.reserve(70, || 30, limit, what).unwrap();
+        assert_eq!(pending.get(), 0, "a reservation not kept is released at once");
+    }
+
+    #[test]
+    fn what_is_held_is_read_after_what_is_reserved() {
+        // An operation ends while another reserves: the reading of what is held sees the state before it ends, and
+        // the ending moves its accel from reserved to held. Read in the other order, neither would count it.
+        let pending = Pending::default();
+        let limit = ("max_accels", 1);
+        let ending = std::cell::RefCell::new(Some(pending.reserve(1, || 0, limit, |_, _| String::new()).unwrap()));
+        let held = std::cell::Cell::new(0);
+        let read_then_end = || {
+            let before = held.get();
+            if let Some(reservation) = ending.borrow_mut().take() {
+                held.set(1);
+                drop(reservation);
+            }
+            before
+        };
+        let error = pending.reserve(1, read_then_end, limit, |h, r| format!("{h} held, {r} coming")).unwrap_err();
+        assert!(error.to_string().contains("0 held, 1 coming"), "{error}");
+        assert_eq!((held.get(), pending.get()), (1, 0));
     }
 }
