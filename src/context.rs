@@ -193,6 +193,12 @@ impl Accel {
         &self.children
     }
 
+    /// Whether `other` is a version of this accel (an update keeps the accel's handle and its count of referrers;
+    /// a copy, a load or an accel of another context with the same handle number is another accel).
+    pub(crate) fn is_version_of(&self, other: &Accel) -> bool {
+        Arc::ptr_eq(&self.referrers, &other.referrers)
+    }
+
     /// Fails with FAILED_PRECONDITION if an update replaced this version of the accel, or if it or one below it
     /// is stale ([`Accel::check_current`]).
     pub(crate) fn check_latest(&self) -> Result<()> {
@@ -373,7 +379,7 @@ impl Context {
         child: &Arc<Accel>,
     ) -> Result<Arc<Accel>> {
         match accel.children.as_slice() {
-            [placed] if transform_kind(transform) == accel.info.kind && placed.handle == child.handle => {}
+            [placed] if transform_kind(transform) == accel.info.kind && placed.is_version_of(child) => {}
             _ => {
                 return Err(Error::FailedPrecondition(format!(
                     "accel {} is not a {:?} placing accel {}",
@@ -460,7 +466,12 @@ impl Context {
             geometry_count: source.info.geometry_count,
             instance_count: source.info.instance_count,
         };
-        Ok(self.register(shape, &source.info.options, data, source.children.clone(), source.retained.clone()))
+        let copy = self.register(shape, &source.info.options, data, source.children.clone(), source.retained.clone());
+        if source.stale.load(Ordering::Acquire) {
+            // It places what the source places, as old: it refuses traces as the source does.
+            self.mark_stale(&copy);
+        }
+        Ok(copy)
     }
 
     /// FAILED_PRECONDITION unless `child` was built by this context's backend (an instance accel or transform
@@ -519,7 +530,8 @@ impl Context {
     }
 
     /// Puts `data` (an update of `old`, placing `children`, keeping `retained`) in `old`'s place: same handle and
-    /// options, the referrers shared; `old` is marked superseded.
+    /// options, the referrers shared; `old` is marked superseded. `old` must be the accel's current version
+    /// (FAILED_PRECONDITION otherwise: updating a replaced version would drop the update made since).
     fn replace(
         &self,
         old: &Accel,
@@ -527,9 +539,6 @@ impl Context {
         children: Vec<Arc<Accel>>,
         retained: Retained,
     ) -> Result<Arc<Accel>> {
-        if !self.accels.contains_key(&old.handle) {
-            return Err(Error::NotFound { what: "accel", id: old.handle.0 });
-        }
         let size_bytes = data.size_bytes();
         let info = AccelInfo {
             size_bytes,
@@ -549,7 +558,16 @@ impl Context {
             retained,
             _charge: Charge::new(size_bytes, &self.bytes_in_use),
         });
-        self.accels.insert(old.handle, Arc::clone(&accel));
+        let mut current =
+            self.accels.get_mut(&old.handle).ok_or(Error::NotFound { what: "accel", id: old.handle.0 })?;
+        if !std::ptr::eq(Arc::as_ptr(&current), old) {
+            return Err(Error::FailedPrecondition(format!(
+                "this version of accel {} was replaced by an update: update its current version",
+                old.handle.0
+            )));
+        }
+        *current = Arc::clone(&accel);
+        drop(current);
         old.superseded.store(true, Ordering::Release);
         Ok(accel)
     }

@@ -77,10 +77,12 @@ pub enum Error {
     #[error("external accels: {0}")]
     InvalidExternal(String),
     /// A size that overflows what the engine can address.
-    #[error("{what} needs {requested} bytes, beyond the limit of {limit}")]
+    #[error("{what} needs {requested} {unit}, beyond the limit of {limit}")]
     TooLarge {
         /// What was being sized.
         what: &'static str,
+        /// What `requested` and `limit` count: bytes, rays, records, triangles.
+        unit: &'static str,
         /// The requested size (saturated).
         requested: u64,
         /// The largest size allowed.

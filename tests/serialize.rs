@@ -567,6 +567,11 @@ fn external_children_are_referred_to_and_must_be_supplied_complete_and_of_their_
     let err = other.trace(&stale, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap_err();
     assert_eq!(err.kind(), ErrorKind::FailedPrecondition, "{err}");
     assert_eq!(other.serialize_accel(&stale, &moved).unwrap_err().kind(), ErrorKind::FailedPrecondition);
+    // Its copy places the same old versions: it refuses traces as the original does.
+    let copy = other.copy_accel(&stale, false).unwrap();
+    let err = other.trace(&copy, &query, &rays, TraceOutput { hits: &mut hits, counts: &mut [] }).unwrap_err();
+    assert_eq!(err.kind(), ErrorKind::FailedPrecondition, "{err}");
+    other.destroy_accel(copy.handle()).unwrap();
     let updated = other.update_instance_accel(&stale, &three_instances(&moved[0], &moved[1])).unwrap();
     assert_traces_same(&other, &moved_parent, &other, &updated);
 
@@ -823,6 +828,8 @@ fn hostile_blobs_with_valid_checksums_are_refused_without_panics_or_huge_allocat
         write_at("a transform of another kind", "static transform", transform, 2u32.to_le_bytes()),
         write_at("a singular transform key", "transform", transform_children + 28, [0u8; 48]),
         write_at("accels counted in the header", "accel 3", 28, 4u32.to_le_bytes()),
+        write_at("accels counted in the header, more than fit", "counts 4294967295 accels", 28, u32::MAX.to_le_bytes()),
+        write_at("external accels counted in the header, more than fit", "at least", 32, u32::MAX.to_le_bytes()),
         write_at("external accels counted in the header", "refers to 1", 32, 1u32.to_le_bytes()),
         write_at("payload length huge", "payload", f.payloads[2] - 8, (u64::MAX - 7).to_le_bytes()),
     ];

@@ -67,6 +67,11 @@ fn a_refitted_mesh_traces_as_a_fresh_build_and_structure_changes_are_refused() {
     assert!(error.to_string().contains("triangles where the build had"), "{error}");
     let error = context.update_accel(&fresh, &[BuildInput::Triangles(packed.input())]).unwrap_err();
     assert!(error.to_string().contains("ALLOW_UPDATE"), "{error}");
+    // The version an update replaced cannot be updated again: that would drop the update made since.
+    let error = context.update_accel(&accel, &[BuildInput::Triangles(packed.input())]).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::FailedPrecondition);
+    assert!(error.to_string().contains("was replaced by an update"), "{error}");
+    assert!(Arc::ptr_eq(&context.accel(accel.handle()).unwrap(), &updated), "the current version stays");
 
     // The old version's memory goes when its last holder lets go.
     let before = context.memory_in_use();
@@ -110,7 +115,13 @@ fn instance_accels_follow_moved_instances_and_refuse_traces_until_updated_after_
 
     // Another child or another count is refused; the child stays undestroyable while placed.
     let error = context.update_instance_accel(&refreshed, &[at(&fresh_child, 2.0)]).unwrap_err();
-    assert!(error.to_string().contains("where the build placed accel"), "{error}");
+    assert!(error.to_string().contains("not the accel the build placed there"), "{error}");
+    // An accel of another context with the child's handle number is another accel too.
+    let other = Context::new(Device::cpu());
+    let lookalike = other.build_accel(&[BuildInput::Triangles(packed_bent.input())], &updatable).unwrap();
+    assert_eq!(lookalike.handle(), new_child.handle(), "both contexts' first accels");
+    let error = context.update_instance_accel(&refreshed, &[at(&lookalike, 2.0)]).unwrap_err();
+    assert!(error.to_string().contains("nor a version of it"), "{error}");
     let error = context.update_instance_accel(&refreshed, &[at(&new_child, 0.0), at(&new_child, 1.0)]).unwrap_err();
     assert!(error.to_string().contains("2 instances where the build had 1"), "{error}");
     assert_eq!(context.destroy_accel(child.handle()).unwrap_err().kind(), ErrorKind::FailedPrecondition);

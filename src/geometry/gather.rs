@@ -76,6 +76,7 @@ pub fn triangle_counts(inputs: &[BuildInput<'_>], keys: usize) -> Result<Vec<usi
     if total >= u32::MAX as usize {
         return Err(Error::TooLarge {
             what: "triangles of one build",
+            unit: "triangles",
             requested: total as u64,
             limit: u32::MAX as u64 - 1,
         });
@@ -193,7 +194,8 @@ fn check_triangle_input(input: usize, t: &TriangleInput<'_>, keys: usize) -> Res
         }
     };
     if triangle_count == 0 {
-        return Err(fail("vertices", None, "the input has no triangles".into()));
+        let field = if t.indices.is_some() { "indices" } else { "vertices" };
+        return Err(fail(field, None, "the input has no triangles".into()));
     }
     if let Some(masks) = t.masks
         && masks.len() != 4 * triangle_count
@@ -317,6 +319,7 @@ mod tests {
         check(&[TriangleInput::indexed(&good_v, &out_of_range)], "indices", Some(0));
         let ragged = u32_bytes(&[0, 1, 2, 0]);
         check(&[TriangleInput::indexed(&good_v, &ragged)], "indices", None);
+        check(&[TriangleInput::indexed(&good_v, &[])], "indices", None);
         let short_masks = [0u8; 3];
         check(&[TriangleInput { masks: Some(&short_masks), ..soup(&good_v) }], "masks", None);
         let bad_stride = TriangleInput {

@@ -91,14 +91,18 @@ impl SrtKey {
         }
         let rotation = Quat::from_xyzw(qx, qy, qz, qw);
         let length = rotation.length();
-        if !(length > 0.0 && length.is_finite()) {
-            return Err(bad_key(key, "the quaternion (qx, qy, qz, qw) must not be 0"));
-        }
-        Ok(SrtKey {
-            scale: [sx, a, b, sy, c, sz, pvx, pvy, pvz],
-            rotation: rotation / length,
-            translation: Vec3::new(tx, ty, tz),
-        })
+        let rotation = if length > 0.0 && length.is_finite() {
+            rotation / length
+        } else {
+            // Its length overflows or underflows f32: normalized by way of its largest component.
+            let largest = [qx, qy, qz, qw].into_iter().fold(0.0, |most: f32, q| most.max(q.abs()));
+            if largest == 0.0 {
+                return Err(bad_key(key, "the quaternion (qx, qy, qz, qw) must not be 0"));
+            }
+            let scaled = rotation / largest;
+            scaled / scaled.length()
+        };
+        Ok(SrtKey { scale: [sx, a, b, sy, c, sz, pvx, pvy, pvz], rotation, translation: Vec3::new(tx, ty, tz) })
     }
 
     /// S as an affine map.
@@ -331,6 +335,26 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn quaternions_of_any_finite_nonzero_length_are_normalized() {
+        let turned = |q: [f32; 4]| {
+            let mut key = IDENTITY_SRT;
+            key[9..13].copy_from_slice(&q);
+            TransformInput::SrtMotion { keys: vec![IDENTITY_SRT, key], motion: two_keys() }.check()
+        };
+        // 60° about z, at lengths whose squares overflow or underflow f32, and at 1.
+        let half = std::f32::consts::FRAC_PI_6;
+        let expected = turned([0.0, 0.0, half.sin(), half.cos()]).unwrap().placement_at(1.0).unwrap();
+        for scale in [1e20, 1e-23, 1e-30] {
+            let t = turned([0.0, 0.0, half.sin() * scale, half.cos() * scale]).unwrap();
+            let p = t.placement_at(1.0).unwrap().object_to_world.transform_point3(Vec3::X);
+            let q = expected.object_to_world.transform_point3(Vec3::X);
+            assert!((p - q).length() < 1e-6, "scale {scale}: {p} against {q}");
+        }
+        let zero = turned([0.0; 4]).unwrap_err().to_string();
+        assert!(zero.contains("must not be 0"), "{zero}");
     }
 
     #[test]

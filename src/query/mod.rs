@@ -117,6 +117,7 @@ impl Query {
         let rays = ray_bytes / ray_size;
         let records = rays.checked_mul(self.records_per_ray()).ok_or(Error::TooLarge {
             what: "hit records",
+            unit: "records",
             requested: u64::MAX,
             limit: usize::MAX as u64,
         })?;
@@ -124,6 +125,7 @@ impl Query {
             None => records.div_ceil(8),
             Some(size) => records.checked_mul(size).ok_or(Error::TooLarge {
                 what: "hit buffer",
+                unit: "bytes",
                 requested: u64::MAX,
                 limit: usize::MAX as u64,
             })?,

@@ -96,6 +96,10 @@ pub(crate) fn write(out: &mut Vec<u8>, accel: &Accel, refs: &HashMap<*const Acce
     Ok(())
 }
 
+/// The fewest bytes an entry takes: kind, build flags, motion options (16 bytes) and counts (20 bytes), then the
+/// element counts of its three arrays and its payload's length (8 bytes each), everything else empty.
+pub(crate) const LEAST_ENTRY_BYTES: u64 = 4 + 4 + 16 + 20 + 3 * 8 + 8;
+
 /// One accel as a blob describes it, checked, its children not yet resolved.
 #[derive(Debug)]
 pub(crate) struct Entry<'a> {

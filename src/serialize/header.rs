@@ -2,7 +2,8 @@
 //! and read first: the magic, the checksum (damage), then compatibility (format version, byte order, backend
 //! layout), then the lengths.
 
-use super::wire::{invalid, put_u32_at, u32_at};
+use super::entry::{ExternalRecord, LEAST_ENTRY_BYTES};
+use super::wire::{Wire, invalid, put_u32_at, u32_at};
 use crate::backend::BackendKind;
 use crate::error::{Error, Result};
 
@@ -133,6 +134,17 @@ impl Header {
         if header.accels == 0 {
             return Err(invalid("the header counts no accel"));
         }
+        // Counts the payload cannot hold are refused before anything (a caller's names for the accels) is sized by
+        // them: the external records' array, then every record and entry, take bytes of it.
+        let least =
+            8 + u64::from(header.external) * ExternalRecord::SIZE as u64 + u64::from(header.accels) * LEAST_ENTRY_BYTES;
+        if least > payload {
+            return Err(invalid(format!(
+                "the header counts {} accels and {} external ones, which take at least {least} payload bytes; the \
+                 blob has {payload}",
+                header.accels, header.external
+            )));
+        }
         Ok(header)
     }
 
@@ -173,13 +185,17 @@ mod tests {
 
     #[test]
     fn a_sealed_header_reads_back_and_its_fields_sit_where_documented() {
-        let blob = sealed(b"payload");
+        // The least payload one accel and two external ones take: the records' count, two records and one entry.
+        let least = 8 + 2 * 28 + LEAST_ENTRY_BYTES as usize;
+        let blob = sealed(&vec![0; least]);
         assert_eq!(Header::read(&blob).unwrap(), Header { backend: 1, layout: 7, accels: 1, external: 2 });
         assert_eq!(&blob[..8], b"RAYDACCL");
         assert_eq!(&blob[12..16], &[4, 3, 2, 1]);
         assert_eq!(u32_at(&blob, 16), 1);
         assert_eq!(u32_at(&blob, 8), crc32fast::hash(&blob[12..]));
-        assert_eq!(blob[40], 7, "payload length");
+        assert_eq!(blob[40] as usize, least, "payload length");
+        let short = Header::read(&sealed(&vec![0; least - 1])).unwrap_err().to_string();
+        assert!(short.contains("at least 140 payload bytes"), "{short}");
         Header::read(&blob).unwrap().check_backend(BackendKind::Cpu, 7).unwrap();
         let other = Header::read(&blob).unwrap().check_backend(BackendKind::Cpu, 8).unwrap_err();
         assert_eq!(other.kind(), ErrorKind::FailedPrecondition);
@@ -187,7 +203,7 @@ mod tests {
 
     #[test]
     fn a_big_endian_blob_is_incompatible_not_damaged() {
-        let mut blob = sealed(b"x");
+        let mut blob = sealed(&[0; 256]);
         for at in [BYTE_ORDER_AT, VERSION_AT] {
             let value = u32_at(&blob, at).swap_bytes();
             put_u32_at(&mut blob, at, value);

@@ -218,9 +218,10 @@ impl InstanceBvh {
         let mut next = self.clone();
         for (slot, &i) in order.iter().enumerate() {
             let (was, now) = (&self.instances[slot].child, &instances[i as usize].child);
-            if was.handle() != now.handle() {
+            if !was.is_version_of(now) {
                 return Err(mismatch(format!(
-                    "instance {i} places accel {} where the build placed accel {}",
+                    "instance {i} places accel {}, which is not the accel the build placed there (accel {}) nor a \
+                     version of it",
                     now.handle().0,
                     was.handle().0
                 )));

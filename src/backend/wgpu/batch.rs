@@ -212,6 +212,7 @@ impl Plan {
         if most == 0 {
             return Err(Error::TooLarge {
                 what: "a wgpu chunk of whole pixels",
+                unit: "rays",
                 requested: align as u64,
                 limit: max_chunk_rays as u64,
             });
@@ -225,6 +226,7 @@ impl Plan {
             if chunk_rays == align {
                 return Err(Error::TooLarge {
                     what: "a wgpu chunk of 32 rays (max_hits_per_ray too large)",
+                    unit: "bytes",
                     requested: need.largest(),
                     limit: binding_limit,
                 });
@@ -513,6 +515,7 @@ pub(super) fn time_launches(
     if plan.chunk_rays < count {
         return Err(Error::TooLarge {
             what: "rays of one launch",
+            unit: "rays",
             requested: count as u64,
             limit: plan.chunk_rays as u64,
         });

@@ -110,6 +110,7 @@ impl GpuGraph {
             if contents.len() as u64 > limit {
                 return Err(Error::TooLarge {
                     what: "the accel's device arrays",
+                    unit: "bytes",
                     requested: contents.len() as u64,
                     limit,
                 });
