@@ -504,3 +504,63 @@ impl Tenant {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::AtomicUsize;
+
+    use rayd_engine::accel::BuildOptions;
+    use rayd_engine::geometry::{BuildInput, TriangleInput};
+
+    use super::*;
+    use crate::config::SchedulerConfig;
+
+    #[test]
+    fn builds_at_once_keep_no_more_accels_than_max_accels() {
+        let devices = [Device::cpu()];
+        let schedulers = Arc::new(Schedulers::new(&devices, &SchedulerConfig::default()));
+        let tenant = Tenant::new("t", Limits { max_accels: 2, ..Limits::default() }, 1, &devices, schedulers);
+        let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
+        let input = || [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        let options = BuildOptions::default();
+        // Four builds: each admitted one waits in its build until all four are admitted or refused, so that every
+        // admission happens while the admitted builds are still running.
+        let decided = AtomicUsize::new(0);
+        let wait_for_all = || {
+            decided.fetch_add(1, Ordering::SeqCst);
+            while decided.load(Ordering::SeqCst) < 4 {
+                std::thread::yield_now();
+            }
+        };
+        let results: Vec<ServiceResult<AccelEntry>> = std::thread::scope(|scope| {
+            let builds: Vec<_> = (0..4)
+                .map(|i| {
+                    let (tenant, input, options) = (&tenant, &input, &options);
+                    let (decided, wait_for_all) = (&decided, &wait_for_all);
+                    scope.spawn(move || {
+                        let built = tenant.build_accel(
+                            &format!("a{i}"),
+                            DEFAULT_DEVICE,
+                            |context| context.compute_memory_usage(&input(), options),
+                            |context| {
+                                wait_for_all();
+                                context.build_accel(&input(), options)
+                            },
+                        );
+                        if built.is_err() {
+                            decided.fetch_add(1, Ordering::SeqCst);
+                        }
+                        built
+                    })
+                })
+                .collect();
+            builds.into_iter().map(|b| b.join().unwrap()).collect()
+        });
+        let kept = results.iter().filter(|r| r.is_ok()).count();
+        assert_eq!((kept, tenant.accels().len()), (2, 2));
+        for refused in results.iter().filter_map(|r| r.as_ref().err()) {
+            assert!(refused.to_string().contains("max_accels = 2"), "{refused}");
+        }
+    }
+}
