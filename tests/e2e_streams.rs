@@ -383,6 +383,32 @@ async fn a_message_that_breaks_the_rules_ends_the_stream_with_its_status() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_download_of_too_many_chunks_fails_and_the_stream_goes_on() {
+    let daemon = Daemon::start(&[]);
+    let channel = Channel::from_shared(daemon.url()).unwrap().connect_lazy();
+    let mut raw = open_raw(&channel).await;
+    let by_upload = || Some(proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Operation(1)) });
+    let download = |chunk_bytes| {
+        let request = proto::DownloadBufferRequest { buffer: by_upload(), chunk_bytes, ..Default::default() };
+        proto::stream_request::Op::Download(request)
+    };
+    // 200,000 bytes in chunks of 1 byte (200,000 messages, beyond the limit), then of 4 bytes (50,000).
+    let messages = vec![(1, upload_op(200_000, Bytes::from(vec![7u8; 200_000]))), (2, download(1)), (3, download(4))];
+    send_all(raw.sender, messages);
+    let (mut results, mut chunks) = (Vec::new(), 0);
+    while results.len() < 3 {
+        match raw.answers.message().await.unwrap().expect("every operation is answered").kind {
+            Some(proto::stream_response::Kind::Result(result)) => results.push(result),
+            Some(proto::stream_response::Kind::DownloadChunk(_)) => chunks += 1,
+            _ => {}
+        }
+    }
+    assert_eq!(results.iter().map(|r| (r.operation, r.code)).collect::<Vec<_>>(), [(1, 0), (2, 3), (3, 0)]);
+    assert!(results[1].message.contains("download.chunk_bytes: 200000 chunks"), "{:?}", results[1].message);
+    assert_eq!(chunks, 50_000, "the download of 4-byte chunks, within the limit, ran");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn many_streams_trace_at_once_up_to_max_streams() {
     const STREAMS: u32 = 24;
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_STREAMS", &STREAMS.to_string())]);

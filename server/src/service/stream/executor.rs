@@ -19,6 +19,10 @@ use crate::service::{accels, buffers, trace};
 use crate::streams::{StreamSlot, Waitable};
 use crate::tenant::Tenant;
 
+/// Most messages a download in a stream is answered with: they are made together before the first is sent (each
+/// a slice of the buffer, no copy), so that tiny chunks of a large buffer cannot fill the server's memory.
+const MAX_DOWNLOAD_CHUNKS: usize = 1 << 16;
+
 /// The state of one stream's executor.
 #[derive(Debug)]
 pub struct Executor {
@@ -132,6 +136,13 @@ impl Executor {
             Op::Trace(request) => Some(Outcome::Trace(trace::batch(Arc::clone(tenant), request).await?)),
             Op::Download(request) => {
                 let (entry, parts) = buffers::download_chunks(tenant, &request)?;
+                let messages = parts.size_hint().0;
+                if messages > MAX_DOWNLOAD_CHUNKS {
+                    return Err(ServiceError::invalid(
+                        "download.chunk_bytes",
+                        format!("{messages} chunks; a stream's download sends at most {MAX_DOWNLOAD_CHUNKS}"),
+                    ));
+                }
                 chunks.extend(parts.map(|chunk| pb::StreamResponse { kind: Some(Kind::DownloadChunk(chunk)) }));
                 Some(Outcome::Buffer(buffers::info(&entry)))
             }
