@@ -10,8 +10,8 @@ pub use quota::Reservation;
 pub use trace::Rays;
 
 use std::collections::HashMap;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use bytes::Bytes;
@@ -96,6 +96,10 @@ pub struct Tenant {
     store: Option<Store>,
     /// Operations running and rays allowed.
     quotas: Quotas,
+    /// Held while an object and its file change together (made and written, removed and unwritten, replaced and
+    /// rewritten), so that an object removed while it is being made never leaves its file behind to come back at
+    /// the next start.
+    keeping: Mutex<()>,
     /// Its queue in the devices' schedulers, and its share of them.
     flow: Flow,
     /// The fair schedulers of the server's devices, shared with every tenant.
@@ -159,6 +163,7 @@ impl Tenant {
             streams: Arc::default(),
             store: None,
             quotas: Quotas::new(limits.max_rays_per_second),
+            keeping: Mutex::new(()),
             flow: Flow { name: name.into(), share },
             schedulers,
         }
@@ -250,6 +255,7 @@ impl Tenant {
             build_ns: start.elapsed().as_nanos() as u64,
             version: 0,
         };
+        let _keeping = self.keep();
         if let Err(taken) = self.accels.insert(entry.handle.clone(), name, entry.clone()) {
             context.destroy_accel(entry.accel.handle())?;
             return Err(taken);
@@ -298,6 +304,7 @@ impl Tenant {
                 return Err(refused);
             }
         };
+        let _keeping = self.keep();
         let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
         for (accel, name) in accels.iter().zip(names) {
             let entry = AccelEntry {
@@ -342,6 +349,7 @@ impl Tenant {
         let accel = update(context)?;
         let build_ns = start.elapsed().as_nanos() as u64;
         let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
+        let _keeping = self.keep();
         self.accels.replace(&entry.handle, updated.clone())?;
         self.persist_accel(&updated)?;
         Ok(updated)
@@ -403,6 +411,7 @@ impl Tenant {
     pub fn destroy_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
         let context = self.context(&entry.device)?.1;
         context.check_destroyable(entry.accel.handle())?;
+        let _keeping = self.keep();
         self.unpersist_accel(&entry.handle)?;
         if let Err(refused) = context.destroy_accel(entry.accel.handle()) {
             // An instance accel came to place it since the check: it stays, so its file is written back.
@@ -412,6 +421,11 @@ impl Tenant {
         self.accels.remove(&entry.handle, &entry.name)?;
         crate::metrics::accel_destroyed(&self.name, entry);
         Ok(())
+    }
+
+    /// Holds [`Tenant::keeping`] while the guard lives.
+    fn keep(&self) -> std::sync::MutexGuard<'_, ()> {
+        self.keeping.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     /// Drops `entry` from the registry and the store (its accel is destroyed by the caller).
@@ -470,6 +484,7 @@ impl Tenant {
         let context = self.context(DEFAULT_DEVICE)?.1;
         let handle = context.create_buffer(data);
         let entry = BufferEntry { id: id.clone(), name: name.into(), handle, size_bytes };
+        let _keeping = self.keep();
         if let Err(taken) = self.buffers.insert(id, name, entry.clone()) {
             context.destroy_buffer(handle)?;
             return Err(taken);
@@ -498,6 +513,7 @@ impl Tenant {
 
     /// Deletes a buffer. Its file goes first: when the data directory cannot be written the buffer stays.
     pub fn delete_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
+        let _keeping = self.keep();
         self.unpersist_buffer(&entry.id)?;
         self.buffers.remove(&entry.id, &entry.name)?;
         self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
@@ -515,11 +531,44 @@ mod tests {
     use super::*;
     use crate::config::SchedulerConfig;
 
-    #[test]
-    fn builds_at_once_keep_no_more_accels_than_max_accels() {
+    /// A tenant on the CPU with `limits`.
+    fn cpu_tenant(limits: Limits) -> Tenant {
         let devices = [Device::cpu()];
         let schedulers = Arc::new(Schedulers::new(&devices, &SchedulerConfig::default()));
-        let tenant = Tenant::new("t", Limits { max_accels: 2, ..Limits::default() }, 1, &devices, schedulers);
+        Tenant::new("t", limits, 1, &devices, schedulers)
+    }
+
+    #[test]
+    fn a_buffer_deleted_while_it_is_being_made_leaves_no_file() {
+        let dir = std::env::temp_dir().join(format!("rayd-keeping-{}", std::process::id()));
+        let store = || crate::persist::Store::open(&dir, "t").unwrap();
+        let tenant = cpu_tenant(Limits::default()).with_store(store());
+        let files = || std::fs::read_dir(dir.join("tenants/t/buffers")).unwrap().count();
+        // Each round a buffer is made while another thread deletes it as soon as it can be found: it is written
+        // while it is still being made, and the delete removes it at once or waits for the file to be written.
+        for round in 0..20 {
+            let name = format!("victim-{round}");
+            std::thread::scope(|scope| {
+                let deleter = scope.spawn(|| {
+                    loop {
+                        if let Ok(entry) = tenant.buffers.get(None, Some(&name)) {
+                            break tenant.delete_buffer(&entry);
+                        }
+                        std::thread::yield_now();
+                    }
+                });
+                let made = tenant.create_buffer("header.name", &name, Bytes::from(vec![round as u8; 4 << 20]));
+                assert!(made.is_ok() && deleter.join().unwrap().is_ok(), "round {round}: made {made:?}");
+            });
+            assert_eq!((tenant.buffers().len(), files()), (0, 0), "round {round}: a file left behind");
+        }
+        assert_eq!(cpu_tenant(Limits::default()).with_store(store()).restore().unwrap().buffers, 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn builds_at_once_keep_no_more_accels_than_max_accels() {
+        let tenant = cpu_tenant(Limits { max_accels: 2, ..Limits::default() });
         let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
         let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
         let input = || [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
