@@ -254,21 +254,28 @@ async fn every_call_answers_by_key_role_and_tenant() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn tenant_quotas_refuse_before_anything_is_made() {
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("rayd-quotas-{}", std::process::id()));
+/// `rayd` configured with one tenant `name`, its write key `key` and its `limits` (TOML inline-table keys), and the
+/// directory that holds the configuration (`case` names it).
+fn one_tenant(case: &str, name: &str, key: &str, limits: &str) -> (Daemon, PathBuf) {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("rayd-{case}-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let path = dir.join("rayd.toml");
-    let key = "gamma-write-key-0123456789";
     let text = format!(
         r#"[[tenants]]
-name = "gamma"
+name = "{name}"
 keys = [{{ key = "{key}", role = "write" }}]
-limits = {{ max_total_buffer_bytes = 10, max_total_accel_bytes = 6000, max_rays_per_second = 100 }}
+limits = {{ {limits} }}
 "#
     );
     std::fs::write(&path, text).unwrap();
-    let daemon = Daemon::start(&[("RAYD_CONFIG", path.to_str().unwrap())]);
+    (Daemon::start(&[("RAYD_CONFIG", path.to_str().unwrap())]), dir)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tenant_quotas_refuse_before_anything_is_made() {
+    let key = "gamma-write-key-0123456789";
+    let limits = "max_total_buffer_bytes = 10, max_total_accel_bytes = 6000, max_rays_per_second = 100";
+    let (daemon, dir) = one_tenant("quotas", "gamma", key, limits);
     let gamma = client(&daemon, Some(key)).await;
     let limits = gamma.server_info().await.unwrap().limits.unwrap();
     assert_eq!((limits.max_total_buffer_bytes, limits.max_rays_per_second), (10, 100), "the tenant's own quotas");
@@ -312,19 +319,8 @@ async fn loads_are_checked_by_their_loaded_bytes() {
     assert!(loaded > blob.len() as u64, "loaded {loaded} bytes from a blob of {}", blob.len());
     let between = (loaded + blob.len() as u64) / 2;
 
-    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("rayd-coming-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join("rayd.toml");
     let zeta = "zeta-write-key-0123456789";
-    let text = format!(
-        r#"[[tenants]]
-name = "zeta"
-keys = [{{ key = "{zeta}", role = "write" }}]
-limits = {{ max_total_accel_bytes = {between} }}
-"#
-    );
-    std::fs::write(&path, text).unwrap();
-    let daemon = Daemon::start(&[("RAYD_CONFIG", path.to_str().unwrap())]);
+    let (daemon, dir) = one_tenant("loaded", "zeta", zeta, &format!("max_total_accel_bytes = {between}"));
 
     // The blob fits zeta's max_total_accel_bytes; the accel loaded from it does not.
     let zeta = client(&daemon, Some(zeta)).await;

@@ -23,6 +23,11 @@ pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::TraceStreamRespon
 /// The request field that names the buffers a trace writes its hits and counts to.
 const HITS_BUFFER_NAME: &str = "hits_buffer_name";
 
+/// The name of the buffer a trace writes its counts to, beside its hits buffer `hits`.
+fn counts_buffer_name(hits: &str) -> String {
+    format!("{hits}.counts")
+}
+
 /// Room left in a reply message for everything but the hit and count bytes.
 const REPLY_OVERHEAD_BYTES: u64 = 4096;
 
@@ -96,7 +101,7 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     }
     if to_buffer {
         let layout = query.output_layout(ray_count as usize * query.ray_format.size())?;
-        let (hits, counts) = (&request.hits_buffer_name, format!("{}.counts", request.hits_buffer_name));
+        let (hits, counts) = (&request.hits_buffer_name, counts_buffer_name(&request.hits_buffer_name));
         let mut buffers = vec![(hits.as_str(), layout.hits as u64)];
         if layout.counts > 0 {
             buffers.push((&counts, layout.counts as u64));
@@ -118,7 +123,7 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
             None
         } else {
             // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
-            match tenant.create_buffer(HITS_BUFFER_NAME, &format!("{name}.counts"), result.counts) {
+            match tenant.create_buffer(HITS_BUFFER_NAME, &counts_buffer_name(name), result.counts) {
                 Ok(entry) => Some(buffers::info(&entry)),
                 Err(error) => {
                     tenant.delete_buffer(&hits_buffer)?;

@@ -385,6 +385,7 @@ impl Tenant {
     /// `max_accel_bytes`, and what their sum exceeds the blob's bytes (already reserved) by against
     /// `max_total_accel_bytes`, which stays reserved until they are kept.
     fn check_loaded(&self, accels: &[Arc<Accel>], blob_bytes: u64) -> ServiceResult<Option<Reservation>> {
+        let mut loaded = 0u64;
         for (index, accel) in accels.iter().enumerate() {
             let size = accel.info().size_bytes;
             ServiceError::check_limit(
@@ -393,8 +394,8 @@ impl Tenant {
                 "max_accel_bytes",
                 self.limits.max_accel_bytes,
             )?;
+            loaded = loaded.saturating_add(size);
         }
-        let loaded = accels.iter().map(|a| a.info().size_bytes).fold(0, u64::saturating_add);
         (loaded > blob_bytes).then(|| self.reserve_accel_bytes(loaded - blob_bytes)).transpose()
     }
 
