@@ -104,3 +104,30 @@ fn generated_rays_reduced_in_parts_give_the_reduction_of_every_hit() {
         assert_eq!(reduction.finish(partial, rays).unwrap(), whole, "{reduction:?}");
     }
 }
+
+/// A camera whose rows hold more rays than `usize` can count four of (2^31 pixels of 2^31 samples, and a row of
+/// 2^62 + 1 rays): a range of its rays is traced as consecutive rays. Rows that wide once made the tiles of a band
+/// overflow: a division by zero, or a tile past the end of its chunk (a panic either way).
+#[test]
+fn rays_of_rows_wider_than_a_band_can_count_are_traced_as_consecutive_rays() {
+    let (context, accel, framing) = scene();
+    let Generator::Pinhole(camera, _) = framing else { unreachable!() };
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);
+    for (width, samples) in [(1 << 31, 1 << 31), (2_147_549_185, 2_147_418_113)] {
+        let generator =
+            Generator::Pinhole(Camera { width, height: 1, ..camera }, PixelSampling { samples, jitter_seed: None });
+        generator.check().unwrap();
+        assert_eq!(generator.image_rows(0), None, "{width} × {samples}");
+        let count = 3 * PART_RAYS + 17;
+        let mut rays = vec![0; count * query.ray_format.size()];
+        generator.fill(query.ray_format, 5, &mut rays);
+        let (hits, counts) = traced_whole(&context, &accel, &query, &rays);
+        let mut part_hits = vec![0xEE; hits.len()];
+        let source = RaySource::Generated { generator: &generator, first: 5, count };
+        let out = TraceOutput { hits: &mut part_hits, counts: &mut [] };
+        assert_eq!(context.trace_source(&accel, &query, source, out).unwrap().rays, count as u64);
+        assert!(part_hits == hits && counts.is_empty(), "{width} × {samples}");
+        let (partial, _) = context.trace_reduced(&accel, &query, source, 5, &Reduction::Counts).unwrap();
+        assert_eq!(Reduction::Counts.finish(partial, count as u64).unwrap().bytes.len(), 24);
+    }
+}

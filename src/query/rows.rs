@@ -32,6 +32,11 @@ impl ImageRows {
     /// packets).
     pub const MIN_WIDTH: usize = 2 * TILE;
 
+    /// Widest rows a generator's rays are known to follow ([`crate::raygen::Generator::image_rows`]): wider ones are
+    /// traced as consecutive rays, so that a band's rays ([`ImageRows::band`]) and their multiples stay far within
+    /// `usize` (a camera's row of `width × samples` rays may reach 2^64).
+    pub const MAX_GENERATED_WIDTH: usize = u32::MAX as usize;
+
     /// The rows that `rays` (packed in `format`) follow, if they do for sixteen rows (four for the narrowest): the
     /// first two row ends are where a ray is much farther from the one before than a row's first rays are from each
     /// other ([`ROW_END`] times, origins and directions together), the width is the distance between them, and it

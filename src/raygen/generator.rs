@@ -224,7 +224,7 @@ impl Generator {
 
     /// The image rows that its rays from `first` on follow, in their indices from `first` ([`ImageRows`]): a camera's
     /// rows of pixels (with their samples), a lidar's steps (a row of its channels each); none for the others, nor
-    /// for rows narrower than [`ImageRows::MIN_WIDTH`].
+    /// for rows narrower than [`ImageRows::MIN_WIDTH`] or wider than [`ImageRows::MAX_GENERATED_WIDTH`].
     pub fn image_rows(&self, first: u64) -> Option<ImageRows> {
         let width = match self {
             Generator::Pinhole(Camera { width, .. }, s) | Generator::Orthographic(Orthographic { width, .. }, s) => {
@@ -233,7 +233,9 @@ impl Generator {
             Generator::Lidar(l) => l.elevations_degrees.len() as u64,
             Generator::Sphere(_) | Generator::Secondary(_) => return None,
         };
-        let width = usize::try_from(width).ok().filter(|&width| width >= ImageRows::MIN_WIDTH)?;
+        let width = usize::try_from(width)
+            .ok()
+            .filter(|width| (ImageRows::MIN_WIDTH..=ImageRows::MAX_GENERATED_WIDTH).contains(width))?;
         Some(ImageRows { width, first: 0 }.from_ray((first % width as u64) as usize))
     }
 
