@@ -47,6 +47,8 @@ fn cases(mesh: &rayd_engine::mesh::Mesh) -> Vec<(Generator, Reduction)> {
     let mut cases = vec![
         (camera.clone(), Reduction::Counts),
         (camera.clone(), Reduction::Histogram { bins: 64, t_min: 0.15, t_max: 0.3 }),
+        // As many bins as a histogram may have: far more than a piece has hits.
+        (camera.clone(), Reduction::Histogram { bins: 1 << 20, t_min: 0.15, t_max: 0.3 }),
         (camera.clone(), Reduction::IdCounts(IdKind::Primitive)),
         (camera.clone(), Reduction::IdCounts(IdKind::Instance)),
         (camera.clone(), Reduction::NearestPerGroup { group: 3 }),
@@ -250,6 +252,15 @@ async fn a_reduction_larger_than_a_message_is_refused_by_the_limit() {
     let (camera, image) = depth(500);
     let fits = client.trace_generated_reduced("bunny", &query, &camera, &image).await.unwrap();
     assert_eq!(fits.data.len(), 500 * 500 * 4);
+    // The points of 600 × 600 rays (16 bytes a hit, about 2 MB), whose size only the trace tells: refused once the
+    // pieces traced so far have passed the limit, before the rest are traced.
+    let (camera, _) = depth(600);
+    let points = PointCloud { encoding: PointEncoding::Float32, step: 1.0, origin: Vec3::ZERO, ray_indices: true };
+    let cloud = Reduction::PointCloud(points);
+    let error = client.trace_generated_reduced("bunny", &query, &camera, &cloud).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+    assert!(error.to_string().contains("the reduction's records so far"), "{error}");
+    assert!(error.to_string().contains("max_message_bytes"), "{error}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -127,6 +127,34 @@ impl Reduction {
         }
     }
 
+    /// Whether pieces' partials fold into the same answer in any order (counters that add up), so that a trace may
+    /// fold each piece's as it comes instead of keeping them all until the last.
+    pub fn folds_in_any_order(&self) -> bool {
+        matches!(self, Reduction::Counts | Reduction::Histogram { .. } | Reduction::IdCounts(_))
+    }
+
+    /// The answer's bytes for a batch of `rays` rays, where they are known before the trace: counts, a histogram, an
+    /// image not compressed, a nearest hit a group.
+    pub fn answer_bytes(&self, query: &Query, rays: u64) -> Option<u64> {
+        match self {
+            Reduction::Counts => Some(24),
+            Reduction::Histogram { bins, .. } => Some((u64::from(*bins) + 2) * 8),
+            Reduction::Image(image) if image.encoding != PixelEncoding::Png => {
+                Some(rays / u64::from(image.rays_per_pixel) * image.pixel_bytes() as u64)
+            }
+            Reduction::NearestPerGroup { group } => {
+                Some(rays / u64::from(*group) * query.hit_format.size().unwrap_or(0) as u64)
+            }
+            _ => None,
+        }
+    }
+
+    /// Whether the answer holds every byte of the pieces' [`Partial::Ordered`] records (all but a PNG image, which
+    /// compresses them): while the pieces come, their records' bytes tell what the answer will at least take.
+    pub fn answer_holds_the_records(&self) -> bool {
+        !matches!(self, Reduction::Image(Image { encoding: PixelEncoding::Png, .. }))
+    }
+
     /// Consecutive rays that reduce together and so must be traced in one piece.
     pub fn group_rays(&self) -> usize {
         match self {
@@ -195,19 +223,18 @@ impl Reduction {
                 Partial::Sums(vec![ray_count as u64, rays_hit, hit_total])
             }
             Reduction::Histogram { bins, t_min, t_max } => {
-                let mut sums = vec![0u64; *bins as usize + 2];
                 let width = (f64::from(*t_max) - f64::from(*t_min)) / f64::from(*bins);
-                for t in (0..ray_count * records).filter_map(|i| traced.hit_format.hit_t(hits, i)) {
-                    let slot = if t < *t_min {
-                        *bins as usize
+                let slot = |t: f32| {
+                    if t < *t_min {
+                        *bins
                     } else if t >= *t_max {
-                        *bins as usize + 1
+                        *bins + 1
                     } else {
-                        (((f64::from(t) - f64::from(*t_min)) / width) as usize).min(*bins as usize - 1)
-                    };
-                    sums[slot] += 1;
-                }
-                Partial::Sums(sums)
+                        (((f64::from(t) - f64::from(*t_min)) / width) as u32).min(*bins - 1)
+                    }
+                };
+                let slots = (0..ray_count * records).filter_map(|i| traced.hit_format.hit_t(hits, i)).map(slot);
+                Partial::counted(*bins as usize + 2, slots.collect())
             }
             Reduction::IdCounts(kind) => {
                 let mut counts = std::collections::BTreeMap::new();
@@ -278,6 +305,13 @@ impl Reduction {
     pub fn finish(&self, folded: Partial, rays: u64) -> Result<Reduced> {
         let (bytes, dropped) = match folded {
             Partial::Sums(sums) => (sums.iter().flat_map(|s| s.to_le_bytes()).collect(), 0),
+            Partial::SparseSums { len, counts } => {
+                let mut bytes = vec![0u8; len * 8];
+                for (index, count) in counts {
+                    bytes[index as usize * 8..][..8].copy_from_slice(&count.to_le_bytes());
+                }
+                (bytes, 0)
+            }
             Partial::Keyed(counts) => {
                 let pairs =
                     counts.iter().flat_map(|(id, count)| id.to_le_bytes().into_iter().chain(count.to_le_bytes()));
@@ -295,7 +329,7 @@ impl Reduction {
     pub fn empty(&self) -> Partial {
         match self {
             Reduction::Counts => Partial::Sums(vec![0; 3]),
-            Reduction::Histogram { bins, .. } => Partial::Sums(vec![0; *bins as usize + 2]),
+            Reduction::Histogram { bins, .. } => Partial::SparseSums { len: *bins as usize + 2, counts: Vec::new() },
             Reduction::IdCounts(_) => Partial::Keyed(Default::default()),
             _ => Partial::Ordered { bytes: Vec::new(), dropped: 0 },
         }

@@ -4,8 +4,11 @@
 //! either well under a millisecond), so a tenant that floods the device with million-ray batches holds a worker for
 //! one piece at a time, and another tenant's ray waits for at most one piece per worker.
 //!
-//! A task that fits in one piece runs on the caller's thread when a worker slot is free and nothing is queued: an
-//! idle server answers a small trace without a hop to another thread, and a busy one queues it like any other.
+//! On the CPU, a task that fits in one piece runs on the caller's thread when a worker slot is free and nothing is
+//! queued: an idle server answers a small trace without a hop to another thread, and a busy one queues it like any
+//! other. A GPU's tasks always run on its workers: a GPU piece may hold the device for seconds (a costly scene, or
+//! another tenant's piece ahead of it in the device's queue), and the caller's thread is one of the few that answer
+//! every call of the server.
 
 mod fair;
 
@@ -46,6 +49,8 @@ pub struct Scheduler {
     generated_piece_rays: usize,
     /// Rays per piece on this device, for rays made by a generator whose hits are reduced.
     reduced_piece_rays: usize,
+    /// Whether a caller may run a task of one piece itself ([`Scheduler::try_slot`]).
+    callers_run_small_tasks: bool,
 }
 
 /// The queue and the slots, behind one lock.
@@ -140,7 +145,19 @@ impl Scheduler {
                 .expect("a worker thread can be started");
         }
         let piece_rays = piece_rays.max(1);
-        Scheduler { shared, piece_rays, generated_piece_rays: piece_rays, reduced_piece_rays: piece_rays }
+        Scheduler {
+            shared,
+            piece_rays,
+            generated_piece_rays: piece_rays,
+            reduced_piece_rays: piece_rays,
+            callers_run_small_tasks: true,
+        }
+    }
+
+    /// The same, but every task runs on the workers: [`Scheduler::try_slot`] gives no slot.
+    pub fn with_every_task_on_the_workers(mut self) -> Scheduler {
+        self.callers_run_small_tasks = false;
+        self
     }
 
     /// The same, but cutting traces of rays made by a generator into pieces of `rays` rays.
@@ -170,7 +187,8 @@ impl Scheduler {
                 Scheduler::new(&info.id, workers, CHUNK_RAYS, nice).with_reduced_pieces(PART_RAYS)
             }
             BackendKind::Wgpu => Scheduler::new(&info.id, config.gpu_workers as usize, GPU_PIECE_RAYS, nice)
-                .with_generated_pieces(GPU_GENERATED_PIECE_RAYS),
+                .with_generated_pieces(GPU_GENERATED_PIECE_RAYS)
+                .with_every_task_on_the_workers(),
         }
     }
 
@@ -184,9 +202,12 @@ impl Scheduler {
         }
     }
 
-    /// A slot for the caller to run one small task itself, if one is free and no task is waiting (so it never
-    /// overtakes queued work).
+    /// A slot for the caller to run one small task itself, if callers may ([`Scheduler::with_every_task_on_the_workers`]
+    /// says they may not), one is free and no task is waiting (so it never overtakes queued work).
     pub fn try_slot(&self) -> Option<Slot<'_>> {
+        if !self.callers_run_small_tasks {
+            return None;
+        }
         let mut state = self.shared.lock();
         if state.busy < self.shared.slots && state.queue.is_empty() {
             state.busy += 1;
@@ -300,6 +321,9 @@ mod tests {
         drop(first);
         assert!(scheduler.try_slot().is_some());
         drop(second);
+        // A GPU's: none, idle or not.
+        let gpu = Scheduler::new("test", 2, 8, 0).with_every_task_on_the_workers();
+        assert!(gpu.try_slot().is_none(), "a caller ran a task of a scheduler whose tasks run on its workers");
     }
 
     #[test]

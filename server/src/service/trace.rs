@@ -54,6 +54,18 @@ fn check_reply_size(tenant: &Tenant, query: &Query, rays: u64) -> ServiceResult<
     )
 }
 
+/// Fails with RESOURCE_EXHAUSTED naming `max_message_bytes` if a reduction's answer of `bytes` bytes cannot be sent:
+/// before the trace where its size is known then ([`Reduction::answer_bytes`]), after it otherwise (and while it
+/// runs, by the records its pieces leave: [`crate::tenant`]'s trace).
+fn check_reduced_size(tenant: &Tenant, bytes: u64) -> ServiceResult<()> {
+    ServiceError::check_limit(
+        || format!("the reduction's {bytes} bytes; reduce ranges of the batch in several calls"),
+        bytes + REPLY_OVERHEAD_BYTES,
+        "max_message_bytes",
+        tenant.limits().max_message_bytes,
+    )
+}
+
 /// Traces `rays` (through the fair scheduler of the accel's device), reduced by `reduction` if given, and counts
 /// them in the metrics.
 async fn trace(
@@ -97,6 +109,9 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
         };
         let reduction = convert::reduction(reduction, generator)?;
         reduction.check(&query, ray_count)?;
+        if let Some(bytes) = reduction.answer_bytes(&query, ray_count) {
+            check_reduced_size(&tenant, bytes)?;
+        }
         return reduced(&tenant, accel, query, rays, reduction).await;
     }
     if to_buffer {
@@ -151,12 +166,7 @@ async fn reduced(
 ) -> ServiceResult<pb::TraceBatchResponse> {
     let result = trace(tenant, accel, query, rays, Some(Arc::new(reduction))).await?;
     let reduced = result.reduced.expect("a reduced trace has a reduction");
-    ServiceError::check_limit(
-        || format!("the reduction's {} bytes; reduce ranges of the batch in several calls", reduced.bytes.len()),
-        reduced.bytes.len() as u64 + REPLY_OVERHEAD_BYTES,
-        "max_message_bytes",
-        tenant.limits().max_message_bytes,
-    )?;
+    check_reduced_size(tenant, reduced.bytes.len() as u64)?;
     Ok(pb::TraceBatchResponse {
         reduced: Some(pb::ReducedHits { data: reduced.bytes, dropped: reduced.dropped }),
         stats: Some(convert::trace_stats(&result.stats, result.trace_ns)),

@@ -11,7 +11,7 @@ pub use trace::Rays;
 
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, Weak};
 use std::time::Instant;
 
 use bytes::Bytes;
@@ -100,6 +100,10 @@ pub struct Tenant {
     /// rewritten), so that an object removed while it is being made never leaves its file behind to come back at
     /// the next start.
     keeping: Mutex<()>,
+    /// Versions of its accels that an update replaced or a destroy removed, while something may still hold them
+    /// (an instance accel placing one, a trace or a stream): their bytes count against `max_total_accel_bytes`
+    /// until they are gone ([`Tenant::accel_bytes`]).
+    departed: Mutex<Vec<Weak<Accel>>>,
     /// Its queue in the devices' schedulers, and its share of them.
     flow: Flow,
     /// The fair schedulers of the server's devices, shared with every tenant.
@@ -164,6 +168,7 @@ impl Tenant {
             store: None,
             quotas: Quotas::new(limits.max_rays_per_second),
             keeping: Mutex::new(()),
+            departed: Mutex::default(),
             flow: Flow { name: name.into(), share },
             schedulers,
         }
@@ -186,7 +191,16 @@ impl Tenant {
 
     /// Bytes of the tenant's accels.
     fn accel_bytes(&self) -> u64 {
-        self.accels.values().iter().map(|e| e.accel.info().size_bytes).sum()
+        let held: u64 = self.accels.values().iter().map(|e| e.accel.info().size_bytes).sum();
+        let mut departed = self.departed.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        departed.retain(|version| version.strong_count() > 0);
+        held + departed.iter().filter_map(Weak::upgrade).map(|accel| accel.info().size_bytes).sum::<u64>()
+    }
+
+    /// Counts `version` (an accel that an update replaced or a destroy removed) among the tenant's accel bytes for
+    /// as long as something still holds it.
+    fn depart(&self, version: &Arc<Accel>) {
+        self.departed.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(Arc::downgrade(version));
     }
 
     /// Bytes of the tenant's buffers.
@@ -244,9 +258,17 @@ impl Tenant {
             "max_accel_bytes",
             self.limits.max_accel_bytes,
         )?;
-        let _bytes = self.reserve_accel_bytes(usage.output_bytes)?;
+        let bound = self.reserve_accel_bytes(usage.output_bytes)?;
         let start = Instant::now();
         let accel = build(context)?;
+        let describe = |_| format!("accel {name:?}, built");
+        let _reserved = match self.check_made(std::slice::from_ref(&accel), usage.output_bytes, describe) {
+            Ok(beyond_the_bound) => (bound, beyond_the_bound),
+            Err(refused) => {
+                context.destroy_accel(accel.handle())?;
+                return Err(refused);
+            }
+        };
         let entry = AccelEntry {
             handle: format!("acc-{}", accel.handle().0),
             accel,
@@ -295,7 +317,8 @@ impl Tenant {
         let start = Instant::now();
         let accels = context.deserialize_accel(blob, &[])?;
         let build_ns = start.elapsed().as_nanos() as u64;
-        let _reserved = match self.check_loaded(&accels, blob.len() as u64) {
+        let describe = |index| format!("accel {index} of the blob, loaded");
+        let _reserved = match self.check_made(&accels, blob.len() as u64, describe) {
             Ok(loaded_bytes) => (blob_bytes, loaded_bytes),
             Err(refused) => {
                 for accel in accels.iter().rev() {
@@ -351,6 +374,7 @@ impl Tenant {
         let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
         let _keeping = self.keep();
         self.accels.replace(&entry.handle, updated.clone())?;
+        self.depart(&entry.accel);
         self.persist_accel(&updated)?;
         Ok(updated)
     }
@@ -381,22 +405,24 @@ impl Tenant {
         )
     }
 
-    /// Checks accels loaded from a blob of `blob_bytes` bytes against the byte limits: each one's bytes against
-    /// `max_accel_bytes`, and what their sum exceeds the blob's bytes (already reserved) by against
-    /// `max_total_accel_bytes`, which stays reserved until they are kept.
-    fn check_loaded(&self, accels: &[Arc<Accel>], blob_bytes: u64) -> ServiceResult<Option<Reservation>> {
-        let mut loaded = 0u64;
+    /// Checks accels just made (built, or loaded from a blob), for which `reserved` bytes were reserved beforehand,
+    /// against the byte limits: each one's bytes against `max_accel_bytes` (`describe` names the one by its
+    /// index), and what their sum exceeds `reserved` by against `max_total_accel_bytes`, which stays reserved until
+    /// they are kept. (A blob's accels take more than its bytes; a GPU instance accel more than its bound, which
+    /// leaves out its device's copy of its children.)
+    fn check_made(
+        &self,
+        accels: &[Arc<Accel>],
+        reserved: u64,
+        describe: impl Fn(usize) -> String,
+    ) -> ServiceResult<Option<Reservation>> {
+        let mut made = 0u64;
         for (index, accel) in accels.iter().enumerate() {
             let size = accel.info().size_bytes;
-            ServiceError::check_limit(
-                || format!("accel {index} of the blob, loaded"),
-                size,
-                "max_accel_bytes",
-                self.limits.max_accel_bytes,
-            )?;
-            loaded = loaded.saturating_add(size);
+            ServiceError::check_limit(|| describe(index), size, "max_accel_bytes", self.limits.max_accel_bytes)?;
+            made = made.saturating_add(size);
         }
-        (loaded > blob_bytes).then(|| self.reserve_accel_bytes(loaded - blob_bytes)).transpose()
+        (made > reserved).then(|| self.reserve_accel_bytes(made - reserved)).transpose()
     }
 
     /// Every accel, in creation order.
@@ -420,6 +446,7 @@ impl Tenant {
             return Err(refused.into());
         }
         self.accels.remove(&entry.handle, &entry.name)?;
+        self.depart(&entry.accel);
         crate::metrics::accel_destroyed(&self.name, entry);
         Ok(())
     }
@@ -526,7 +553,7 @@ impl Tenant {
 mod tests {
     use std::sync::atomic::AtomicUsize;
 
-    use rayd_engine::accel::BuildOptions;
+    use rayd_engine::accel::{BuildFlags, BuildOptions};
     use rayd_engine::geometry::{BuildInput, TriangleInput};
 
     use super::*;
@@ -612,5 +639,44 @@ mod tests {
         for refused in results.iter().filter_map(|r| r.as_ref().err()) {
             assert!(refused.to_string().contains("max_accels = 2"), "{refused}");
         }
+    }
+
+    #[test]
+    fn accels_count_their_bytes_built_and_for_as_long_as_their_replaced_versions_live() {
+        // 300 triangles in a row.
+        let corners = (0..300).flat_map(|i| [i as f32, 0., 0., i as f32, 1., 0., i as f32, 0., 1.]);
+        let vertices: Vec<u8> = corners.flat_map(f32::to_le_bytes).collect();
+        let indices: Vec<u8> = (0..900u32).flat_map(u32::to_le_bytes).collect();
+        let input = || [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        let options = BuildOptions { flags: BuildFlags::ALLOW_UPDATE, ..BuildOptions::default() };
+        let size = Context::new(Device::cpu()).build_accel(&input(), &options).unwrap().info().size_bytes;
+        let tenant = cpu_tenant(Limits { max_total_accel_bytes: 2 * size + size / 2, ..Limits::default() });
+        // Every build's bound falls short of what it makes (as a GPU instance accel's leaves out the device's copy of
+        // its children): a byte.
+        let build = |name: &str| {
+            let usage = |context: &Context| {
+                Ok(MemoryUsage { output_bytes: 1, ..context.compute_memory_usage(&input(), &options)? })
+            };
+            tenant.build_accel(name, DEFAULT_DEVICE, usage, |context| context.build_accel(&input(), &options))
+        };
+        // Checked by their bytes once built: two fit, a third does not.
+        let first = build("first").unwrap();
+        let second = build("second").unwrap();
+        let refused = build("third").unwrap_err();
+        assert!(refused.to_string().contains("max_total_accel_bytes"), "{refused}");
+        assert_eq!((tenant.accels().len(), tenant.usage().accel_bytes), (2, 2 * size));
+        tenant.destroy_accel(&second).unwrap();
+        drop(second);
+        // An update's replaced version still held (as an instance accel placing it, or a stream, holds it) counts
+        // until it is let go: a build meanwhile finds no room.
+        let held = Arc::clone(&first.accel);
+        tenant.update_accel(&first, |context| context.update_accel(&first.accel, &input())).unwrap();
+        drop(first);
+        assert_eq!(tenant.usage().accel_bytes, 2 * size, "the replaced version is not counted");
+        let refused = build("third").unwrap_err();
+        assert!(refused.to_string().contains("max_total_accel_bytes"), "{refused}");
+        drop(held);
+        assert_eq!(tenant.usage().accel_bytes, size);
+        build("third").unwrap();
     }
 }

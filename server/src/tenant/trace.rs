@@ -72,7 +72,8 @@ impl Tenant {
 
     /// Traces `rays` against `accel` into fresh reply buffers — or, with a `reduction` (checked by the caller),
     /// into its result — once the limits allow it, through the fair scheduler of the accel's device. A trace of at
-    /// most one piece runs right here when the device has a free slot and nothing queued.
+    /// most one piece runs right here when the device lends its callers a free slot (the CPU's, with nothing
+    /// queued: [`crate::schedule::Scheduler::try_slot`]).
     pub async fn trace(
         self: &Arc<Self>,
         accel: &AccelEntry,
@@ -115,7 +116,7 @@ impl Tenant {
         {
             let output = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
             let start = Instant::now();
-            let (output, stats) = job.trace_piece(0..job.rays.byte_len(ray_size), output)?;
+            let (output, stats) = job.trace_piece_caught(0..job.rays.byte_len(ray_size), output)?;
             let mut progress =
                 Progress { outputs: vec![Some(output)], stats, started: Some(start), ..Default::default() };
             return Ok(progress.finish(&job)?.trace);
@@ -155,6 +156,12 @@ struct TraceJob {
 struct Progress {
     /// Each piece's output, once traced.
     outputs: Vec<Option<PieceOutput>>,
+    /// The partials of a reduction that folds in any order ([`Reduction::folds_in_any_order`]), folded as their
+    /// pieces finish: a trace of thousands of pieces keeps one, not thousands.
+    folded: Option<Partial>,
+    /// The bytes of the pieces' ordered records so far, which the answer will hold
+    /// ([`Reduction::answer_holds_the_records`]).
+    ordered_bytes: u64,
     /// Pieces not finished (or skipped) yet.
     remaining: usize,
     /// The sum of the finished pieces' statistics.
@@ -173,6 +180,8 @@ enum PieceOutput {
     Hits(BytesMut, BytesMut),
     /// The piece's hits, reduced.
     Reduced(Partial),
+    /// The piece's hits, reduced and folded into [`Progress::folded`].
+    Folded,
 }
 
 /// A finished trace and when its first piece started.
@@ -252,6 +261,18 @@ impl TraceJob {
         Ok((PieceOutput::Reduced(reduced), stats))
     }
 
+    /// [`TraceJob::trace_piece`], where a bug in the engine fails this trace, not the thread (a worker, or the
+    /// caller's: one of those that answer every call) nor the other pieces waiting on it.
+    fn trace_piece_caught(
+        &self,
+        rays: std::ops::Range<usize>,
+        output: (BytesMut, BytesMut),
+    ) -> ServiceResult<(PieceOutput, TraceStats)> {
+        let first_ray = rays.start / self.query.ray_format.size();
+        std::panic::catch_unwind(AssertUnwindSafe(|| self.trace_piece(rays, output)))
+            .unwrap_or_else(|_| Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked"))))
+    }
+
     /// Traces piece `index` (the rays in bytes `rays`) into `output`, unless the job was abandoned, and answers
     /// when it was the last.
     fn run(&self, index: usize, rays: std::ops::Range<usize>, output: (BytesMut, BytesMut)) {
@@ -260,11 +281,7 @@ impl TraceJob {
         } else {
             let start = Instant::now();
             self.progress.lock().expect("not poisoned").started.get_or_insert(start);
-            let first_ray = rays.start / self.query.ray_format.size();
-            // A bug in the engine fails this trace, not the worker or the other pieces waiting on it.
-            Some(std::panic::catch_unwind(AssertUnwindSafe(|| self.trace_piece(rays, output))).unwrap_or_else(|_| {
-                Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked")))
-            }))
+            Some(self.trace_piece_caught(rays, output))
         };
         let outcome = match &traced {
             Some(Ok(_)) => "traced",
@@ -273,7 +290,7 @@ impl TraceJob {
         };
         crate::metrics::piece(&self.tenant.name, outcome);
         let mut progress = self.progress.lock().expect("not poisoned");
-        match traced {
+        match traced.map(|traced| traced.and_then(|(output, stats)| Ok((progress.take(self, output)?, stats)))) {
             Some(Ok((output, stats))) => {
                 progress.stats.add(&stats);
                 progress.outputs[index] = Some(output);
@@ -296,6 +313,35 @@ impl TraceJob {
 }
 
 impl Progress {
+    /// What is kept of a piece's `output`: a reduction that folds in any order folded into [`Progress::folded`]; the
+    /// rest as it is, once ordered records that pass `max_message_bytes` have failed the trace (its answer could not
+    /// be sent: the pieces left are skipped).
+    fn take(&mut self, job: &TraceJob, output: PieceOutput) -> ServiceResult<PieceOutput> {
+        let (Some(reduction), PieceOutput::Reduced(partial)) = (&job.reduction, &output) else { return Ok(output) };
+        if reduction.folds_in_any_order() {
+            let PieceOutput::Reduced(partial) = output else { unreachable!("matched above") };
+            self.folded.get_or_insert_with(|| reduction.empty()).merge(partial);
+            return Ok(PieceOutput::Folded);
+        }
+        if let Partial::Ordered { bytes, .. } = partial
+            && reduction.answer_holds_the_records()
+        {
+            self.ordered_bytes += bytes.len() as u64;
+            ServiceError::check_limit(
+                || {
+                    format!(
+                        "the reduction's records so far ({} bytes); reduce ranges of the batch in several calls",
+                        self.ordered_bytes
+                    )
+                },
+                self.ordered_bytes,
+                "max_message_bytes",
+                job.tenant.limits().max_message_bytes,
+            )?;
+        }
+        Ok(output)
+    }
+
     /// The answer once every piece of `job` is done: the first failure, or the outputs joined back into whole
     /// buffers, or the pieces' reductions folded in ray order.
     fn finish(&mut self, job: &TraceJob) -> ServiceResult<Finished> {
@@ -321,10 +367,13 @@ impl Progress {
             Some(reduction) => {
                 let mut partials = Vec::with_capacity(outputs.len());
                 for output in outputs {
-                    let Some(PieceOutput::Reduced(partial)) = output else { return Err(abandoned()) };
-                    partials.push(partial);
+                    match output {
+                        Some(PieceOutput::Reduced(partial)) => partials.push(partial),
+                        Some(PieceOutput::Folded) => {}
+                        _ => return Err(abandoned()),
+                    }
                 }
-                let mut folded = reduction.empty();
+                let mut folded = self.folded.take().unwrap_or_else(|| reduction.empty());
                 folded.merge_all(partials);
                 let rays = job.rays.count(job.query.ray_format.size());
                 trace.reduced = Some(reduction.finish(folded, rays)?);
