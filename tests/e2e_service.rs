@@ -16,7 +16,7 @@ use reference::{BUNNY_TRIANGLES, Expected, assert_same_bytes, bunny};
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::Channel;
-use tonic::{Code, Response, Status};
+use tonic::{Code, Response, Status, Streaming};
 use tonic_health::pb::HealthCheckRequest;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
@@ -713,4 +713,43 @@ async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
     let labels = ["method=\"GetAccel\"", "tenant=\"default\"", "code=\"NotFound\""];
     assert_eq!(sample(&metrics, "rayd_errors_total", &labels), Some(1.0), "{metrics}");
     assert_eq!(daemon.admin_get("/healthz"), "ok\n");
+}
+
+/// Each chunk of a trace stream traces the accel its query names as it is when the chunk comes, as a call of its own
+/// would: after an update, the new version (a stream once kept tracing the version it began with, even after the
+/// accel was destroyed); after a destroy, NOT_FOUND naming `query.accel`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trace_streams_chunks_trace_the_accel_as_it_is_when_they_come() {
+    let daemon = Daemon::start(&[]);
+    let mut client = connect(&daemon).await;
+    let updatable = Some(pb::BuildOptions { allow_update: true, ..Default::default() });
+    let request = pb::BuildAccelRequest {
+        name: "tri".into(),
+        inputs: vec![triangle([0, 1, 2])],
+        options: updatable,
+        ..Default::default()
+    };
+    client.build_accel(request).await.expect("a valid build");
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+    let (sender, receiver) = mpsc::channel(2);
+    sender.send(stream_query(trace_query("tri", &query))).await.expect("the stream is open");
+    let mut responses =
+        client.trace_stream(ReceiverStream::new(receiver)).await.expect("the stream starts").into_inner();
+    let mut next_t = async |responses: &mut Streaming<pb::TraceStreamResponse>| {
+        sender.send(stream_rays(&down_rays(1))).await.expect("the stream is open");
+        let hits = responses.message().await.map(|response| response.expect("a response").hits);
+        hits.map(|hits| f32::from_le_bytes(hits[..4].try_into().expect("a t")))
+    };
+    assert_eq!(next_t(&mut responses).await.expect("traced"), 1.0, "the triangle at z = 0, 1 below the rays");
+    // The triangle moved 1 down: the next chunk meets it 2 below.
+    let lowered: Vec<u8> = [0f32, 0., -1., 1., 0., -1., 0., 1., -1.].iter().flat_map(|v| v.to_le_bytes()).collect();
+    let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
+    let update =
+        pb::UpdateAccelRequest { accel: by_name("tri"), inputs: vec![triangles(inline(&lowered), inline(&indices))] };
+    client.update_accel(update).await.expect("an update");
+    assert_eq!(next_t(&mut responses).await.expect("traced"), 2.0, "the chunk after the update traced the old version");
+    client.destroy_accel(pb::DestroyAccelRequest { accel: by_name("tri") }).await.expect("a destroy");
+    let gone = next_t(&mut responses).await.expect_err("a chunk traced an accel destroyed before it came");
+    assert_eq!(gone.code(), Code::NotFound, "{gone}");
+    assert!(gone.message().contains("query.accel"), "{gone}");
 }

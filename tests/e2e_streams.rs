@@ -15,7 +15,8 @@ use daemon::Daemon;
 use rayd_client::proto::rayd_client::RaydClient;
 use rayd_client::{Client, ClientOptions, Error, EventId, Operation, TraceResult, proto};
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::format::{HitFormat, Ray, RayFormat};
+use rayd_engine::glam::Vec3A;
 use rayd_engine::query::{Query, QueryKind};
 use reference::{BUNNY_TRIANGLES, bunny};
 use tokio::sync::mpsc;
@@ -447,4 +448,60 @@ async fn many_streams_trace_at_once_up_to_max_streams() {
     assert_eq!(answered, 3 * STREAMS);
     usage_when(&client, "after every stream finished", |u| u.streams == 0).await;
     client.create_stream().await.expect("places are freed when streams end");
+}
+
+/// A moving build on a stream whose every motion key is a buffer uploaded earlier on the stream, named by its
+/// operation: the keys are found (they once were refused as "a stream operation … only an operation of the same
+/// stream may name", though `vertices` and `indices` were found), and a ray at each key's time hits the triangle
+/// where that key puts it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_moving_build_names_every_key_by_an_upload_of_its_stream() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let stream = client.create_stream().await.unwrap();
+    // One triangle at z = 1 at time 0, z = 2 at time 0.5 and z = 3 at time 1.
+    let triangle_at = |z: f32| Bytes::from([0.0, 0.0, z, 1.0, 0.0, z, 0.0, 1.0, z].map(f32::to_le_bytes).concat());
+    let mut keys = Vec::new();
+    for z in [1.0, 2.0, 3.0] {
+        keys.push(stream.upload("", triangle_at(z)).await.unwrap());
+    }
+    let indices = stream.upload("", Bytes::from([0u32, 1, 2].map(u32::to_le_bytes).concat())).await.unwrap();
+    let by_operation = |upload: &Operation<proto::BufferInfo>| proto::DataSource {
+        source: Some(proto::data_source::Source::Buffer(proto::BufferRef {
+            r#ref: Some(proto::buffer_ref::Ref::Operation(upload.id())),
+        })),
+    };
+    let triangles = proto::TriangleInput {
+        vertices: Some(by_operation(&keys[0])),
+        motion_vertices: keys[1..].iter().map(by_operation).collect(),
+        vertex_format: proto::VertexFormat::Float3.into(),
+        indices: Some(by_operation(&indices)),
+        index_format: proto::IndexFormat::Uint32x3.into(),
+        ..Default::default()
+    };
+    let motion = proto::MotionOptions { keys: 3, time_begin: 0.0, time_end: 1.0, ..Default::default() };
+    let request = proto::BuildAccelRequest {
+        name: "moving".into(),
+        inputs: vec![proto::BuildInput { input: Some(proto::build_input::Input::Triangles(triangles)) }],
+        options: Some(proto::BuildOptions { motion: Some(motion), ..Default::default() }),
+        ..Default::default()
+    };
+    let build = stream.build(request).await.unwrap();
+    stream.synchronize().await.unwrap();
+    assert_eq!(build.result().unwrap().unwrap().triangle_count, 1);
+    // Rays up the z axis through the triangle at times 0, 0.5 and 1: they meet it at z = 1, 2 and 3.
+    let query = Query::closest(RayFormat::Full, HitFormat::T);
+    let rays: Vec<u8> = [0.0f32, 0.5, 1.0]
+        .iter()
+        .flat_map(|&time| {
+            let (origin, direction) = (Vec3A::new(0.25, 0.25, 0.0), Vec3A::Z);
+            let ray = Ray { origin, direction, time, ..Ray::default() };
+            let mut bytes = vec![0u8; RayFormat::Full.size()];
+            RayFormat::Full.encode(&ray, &mut bytes);
+            bytes
+        })
+        .collect();
+    let hits = client.trace("moving", &query, Bytes::from(rays)).await.unwrap();
+    let t: Vec<f32> = hits.hits().chunks_exact(4).map(|t| f32::from_le_bytes(t.try_into().unwrap())).collect();
+    assert_eq!(t, [1.0, 2.0, 3.0]);
 }

@@ -1,4 +1,4 @@
-//! `compute_memory_usage` and `compute_instance_memory_usage` give true upper bounds: a counting allocator measures
+//! `compute_memory_usage`, `compute_instance_memory_usage` and `compute_transform_memory_usage` give true upper bounds: a counting allocator measures
 //! what each build really holds afterwards (output) and at its peak (output + temp), for every preset, on real and
 //! random meshes, static and moving (two and three motion keys), and for instance accels of many instances, with and
 //! without motion keys.
@@ -11,7 +11,9 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use common::{random_soup, shared_mesh};
 use rayd_engine::accel::{BuildFlags, BuildOptions, MemoryUsage};
-use rayd_engine::geometry::{BuildInput, Instance, InstanceFlags, MotionFlags, MotionOptions, TriangleInput};
+use rayd_engine::geometry::{
+    BuildInput, Instance, InstanceFlags, MotionFlags, MotionOptions, TransformInput, TriangleInput,
+};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::{Accel, Context, Device};
 
@@ -94,6 +96,7 @@ fn builds_stay_within_the_reported_output_and_temp_sizes() {
     static_builds();
     motion_builds();
     instance_builds();
+    transform_builds();
 }
 
 /// Every preset, with and without masks, on real and random meshes.
@@ -186,6 +189,29 @@ fn instance_builds() {
                     context.build_instance_accel(&instances, &options).unwrap()
                 });
             }
+        }
+    }
+}
+
+/// Static, matrix and SRT motion transforms of up to 64 keys (whose keys a bound of one instance once left out).
+fn transform_builds() {
+    let context = Context::new(Device::cpu());
+    let packed = shared_mesh("teapot").pack();
+    let child = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let moved = |k: usize| [1.0, 0.0, 0.0, k as f32, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+    let srt_moved = |k: usize| [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, k as f32, 0.0, 0.0];
+    let options = BuildOptions::default();
+    for keys in [2, 64] {
+        let motion = MotionOptions { keys: keys as u32, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
+        let transforms = [
+            ("static", TransformInput::Static(moved(1))),
+            ("matrix", TransformInput::MatrixMotion { keys: (0..keys).map(moved).collect(), motion }),
+            ("SRT", TransformInput::SrtMotion { keys: (0..keys).map(srt_moved).collect(), motion }),
+        ];
+        for (kind, transform) in transforms {
+            let usage = context.compute_transform_memory_usage(&transform, &options).unwrap();
+            let case = format!("{kind} transform, {keys} keys");
+            check_within(&case, usage, &options, 1, || context.build_transform(&transform, &child).unwrap());
         }
     }
 }

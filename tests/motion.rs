@@ -1365,13 +1365,16 @@ fn bad_motion_inputs_are_refused_naming_field_element_and_rule() {
         "key 2, vertex 1",
     );
 
-    // Motion options: keys 0, an empty or reversed range with 2 keys, an infinite range; 1 key ignores the range.
+    // Motion options: keys 0, an empty or reversed range with 2 keys, an infinite range or one of infinite length; 1
+    // key ignores the range.
     let identity = translation(Vec3::ZERO);
     for (options, rule) in [
         (motion(0, 0.0, 1.0, MotionFlags::empty()), "0 motion keys"),
         (motion(2, 1.0, 1.0, MotionFlags::empty()), "time_end 1 must be greater than time_begin 1"),
         (motion(2, 1.0, 0.5, MotionFlags::empty()), "time_end 0.5 must be greater than time_begin 1"),
         (motion(2, 0.0, f32::INFINITY, MotionFlags::empty()), "must be finite"),
+        // Finite ends, but a length beyond f32: key times and a time's place among the keys would be NaN or ∞.
+        (motion(2, -3e38, 3e38, MotionFlags::empty()), "and so must its length"),
         (motion(1025, 0.0, 1.0, MotionFlags::empty()), "1025 motion keys"),
     ] {
         let keys = (options.keys as usize).min(3);

@@ -18,12 +18,15 @@ pub enum ServiceError {
         rule: String,
     },
     /// An object that does not exist for this tenant.
-    #[error("{what} {name:?} not found")]
+    #[error("{}{what} {name:?} not found", field_prefix(field))]
     NotFound {
         /// `accel`, `buffer` or `device`.
         what: &'static str,
         /// The name, handle or id asked for.
         name: String,
+        /// The request's field that named it (`inputs[0].instances.children[2]`), or empty where the object was
+        /// not looked up for a field ([`ServiceError::in_field`] adds it).
+        field: String,
     },
     /// A name that is taken.
     #[error("{what} {name:?} already exists")]
@@ -65,6 +68,14 @@ pub enum ServiceError {
 }
 
 impl ServiceError {
+    /// The same error, a NOT_FOUND naming the request's field `field` that named the missing object.
+    pub fn in_field(self, field: &str) -> Self {
+        match self {
+            ServiceError::NotFound { what, name, .. } => ServiceError::NotFound { what, name, field: field.into() },
+            other => other,
+        }
+    }
+
     /// A failure of the data directory.
     pub fn storage(what: String, source: std::io::Error) -> Self {
         ServiceError::Storage { what, source }
@@ -113,6 +124,11 @@ impl From<ServiceError> for Status {
 
 /// The status of a failed read or write of the data directory: full (RESOURCE_EXHAUSTED) and read-only or
 /// forbidden (FAILED_PRECONDITION) are the operator's to fix; anything else is INTERNAL.
+/// `field: `, or nothing for no field.
+fn field_prefix(field: &str) -> String {
+    if field.is_empty() { String::new() } else { format!("{field}: ") }
+}
+
 fn storage_code(kind: std::io::ErrorKind) -> Code {
     use std::io::ErrorKind::*;
     match kind {

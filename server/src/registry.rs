@@ -86,7 +86,7 @@ impl<T: Clone> Registry<T> {
 
     /// The NOT_FOUND error for `key`.
     fn not_found(&self, key: &str) -> ServiceError {
-        ServiceError::NotFound { what: self.what, name: key.into() }
+        ServiceError::NotFound { what: self.what, name: key.into(), field: String::new() }
     }
 }
 

@@ -103,7 +103,7 @@ impl Streams {
     /// Fails with NOT_FOUND unless stream `id` was given out.
     fn check_issued(&self, id: u64) -> ServiceResult<()> {
         if id == 0 || id > self.next_id.load(Ordering::Relaxed) {
-            return Err(ServiceError::NotFound { what: "stream", name: id.to_string() });
+            return Err(ServiceError::NotFound { what: "stream", name: id.to_string(), field: String::new() });
         }
         Ok(())
     }

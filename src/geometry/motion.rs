@@ -177,8 +177,12 @@ impl MotionOptions {
         if self.keys == 0 || self.keys > MAX_MOTION_KEYS {
             return Err(format!("{} motion keys; 1 to {MAX_MOTION_KEYS} are allowed", self.keys));
         }
-        if !self.is_static() && (!self.time_begin.is_finite() || !self.time_end.is_finite()) {
-            return Err(format!("time range [{}, {}] must be finite", self.time_begin, self.time_end));
+        if !self.is_static() && !(self.time_end - self.time_begin).is_finite() {
+            // Its length too: key times and a time's place among the keys are worked out from it.
+            return Err(format!(
+                "time range [{}, {}] must be finite, and so must its length",
+                self.time_begin, self.time_end
+            ));
         }
         if !self.is_static() && self.time_begin >= self.time_end {
             return Err(format!(

@@ -141,6 +141,15 @@ impl SrtKey {
 }
 
 impl TransformInput {
+    /// Bytes its motion keys take once built (none for a static transform): [`Transform::key_bytes`].
+    pub fn key_bytes(&self) -> u64 {
+        match self {
+            TransformInput::Static(_) => 0,
+            TransformInput::MatrixMotion { keys, .. } => key_bytes::<Affine3A>(keys.len()),
+            TransformInput::SrtMotion { keys, .. } => key_bytes::<SrtKey>(keys.len()),
+        }
+    }
+
     /// Checks the transform: matrices finite and invertible, SRT keys as [`SrtKey`] says, as many keys as the
     /// motion options (at least 2 for motion transforms), quaternions of neighbouring SRT keys less than 180°
     /// apart (a positive dot product, as the seeds require for nlerp's shortest path).
@@ -185,7 +194,21 @@ fn check_motion(motion: &MotionOptions, keys: usize) -> Result<()> {
     motion.check_key_count(keys, "transform.keys")
 }
 
+/// Bytes that `keys` motion keys of type `K` take.
+fn key_bytes<K>(keys: usize) -> u64 {
+    (keys * size_of::<K>()) as u64
+}
+
 impl Transform {
+    /// Bytes its motion keys take (none for a static transform).
+    pub fn key_bytes(&self) -> u64 {
+        match self {
+            Transform::Static(_) => 0,
+            Transform::Matrix { keys, .. } => key_bytes::<Affine3A>(keys.len()),
+            Transform::Srt { keys, .. } => key_bytes::<SrtKey>(keys.len()),
+        }
+    }
+
     /// Its motion options (static for a static transform).
     pub fn motion(&self) -> MotionOptions {
         match self {

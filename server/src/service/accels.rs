@@ -15,8 +15,8 @@ use crate::tenant::{AccelEntry, Tenant};
 /// The accel a reference names.
 pub fn resolve(tenant: &Tenant, reference: Option<&pb::AccelRef>, field: &str) -> ServiceResult<AccelEntry> {
     match reference.and_then(|r| r.r#ref.as_ref()) {
-        Some(pb::accel_ref::Ref::Name(name)) => tenant.accel(Some(name), None),
-        Some(pb::accel_ref::Ref::Handle(handle)) => tenant.accel(None, Some(handle)),
+        Some(pb::accel_ref::Ref::Name(name)) => tenant.accel(Some(name), None).map_err(|e| e.in_field(field)),
+        Some(pb::accel_ref::Ref::Handle(handle)) => tenant.accel(None, Some(handle)).map_err(|e| e.in_field(field)),
         Some(pb::accel_ref::Ref::Operation(_)) => Err(super::operation_outside_stream(field)),
         None => Err(ServiceError::invalid(field, "an accel name or handle is required")),
     }

@@ -28,8 +28,8 @@ pub fn info(entry: &BufferEntry) -> pb::BufferInfo {
 /// The buffer a reference names.
 pub fn resolve(tenant: &Tenant, reference: Option<&pb::BufferRef>, field: &str) -> ServiceResult<(BufferEntry, Bytes)> {
     match reference.and_then(|r| r.r#ref.as_ref()) {
-        Some(pb::buffer_ref::Ref::Id(id)) => tenant.buffer(Some(id), None),
-        Some(pb::buffer_ref::Ref::Name(name)) => tenant.buffer(None, Some(name)),
+        Some(pb::buffer_ref::Ref::Id(id)) => tenant.buffer(Some(id), None).map_err(|e| e.in_field(field)),
+        Some(pb::buffer_ref::Ref::Name(name)) => tenant.buffer(None, Some(name)).map_err(|e| e.in_field(field)),
         Some(pb::buffer_ref::Ref::Operation(_)) => Err(super::operation_outside_stream(field)),
         None => Err(ServiceError::invalid(field, "a buffer id or name is required")),
     }

@@ -39,8 +39,7 @@ impl Resolved {
         match self {
             Resolved::Triangles(owned) => with_inputs(owned, |inputs| context.compute_memory_usage(inputs, options)),
             Resolved::Instances(instances) => context.compute_instance_memory_usage(instances.len(), options),
-            // A transform is bounded by an instance accel of one instance.
-            Resolved::Transform { .. } => context.compute_instance_memory_usage(1, options),
+            Resolved::Transform { transform, .. } => context.compute_transform_memory_usage(transform, options),
         }
     }
 

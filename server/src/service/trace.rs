@@ -183,11 +183,14 @@ pub async fn stream(
     mut requests: Streaming<pb::TraceStreamRequest>,
 ) -> ServiceResult<ResponseStream> {
     let first = requests.message().await.map_err(ServiceError::Transport)?;
-    let query = match first.and_then(|m| m.part) {
-        Some(pb::trace_stream_request::Part::Query(query)) => query,
+    let header = match first.and_then(|m| m.part) {
+        Some(pb::trace_stream_request::Part::Query(header)) => header,
         _ => return Err(ServiceError::invalid("query", "the first message of a trace stream must be its query")),
     };
-    let (accel, query) = resolve_query(&tenant, Some(&query))?;
+    // Checked now, so that a stream of a missing accel fails at once; each chunk finds the accel again, so that it
+    // traces the accel as it is when the chunk comes (updated, or gone: NOT_FOUND), as a call of its own would.
+    let (_, query) = resolve_query(&tenant, Some(&header))?;
+    let accel = header.accel;
     let window = tenant.limits().stream_window.max(1) as usize;
     let (chunk_sender, mut chunks) = mpsc::channel(window);
     tokio::spawn(async move {
@@ -213,7 +216,7 @@ pub async fn stream(
         let mut first_ray = 0u64;
         while let Some(chunk) = chunks.recv().await {
             let reply = match chunk {
-                Ok(rays) => answer_chunk(&tenant, &accel, query, rays, first_ray).await.map_err(Status::from),
+                Ok(rays) => answer_chunk(&tenant, accel.as_ref(), query, rays, first_ray).await.map_err(Status::from),
                 Err(status) => Err(status),
             };
             let failed = reply.is_err();
@@ -228,17 +231,18 @@ pub async fn stream(
     Ok(Box::pin(stream))
 }
 
-/// Traces one chunk of a stream.
+/// Traces one chunk of a stream on the accel that `accel` names now.
 async fn answer_chunk(
     tenant: &Arc<Tenant>,
-    accel: &AccelEntry,
+    accel: Option<&pb::AccelRef>,
     query: Query,
     rays: Bytes,
     first_ray: u64,
 ) -> ServiceResult<pb::TraceStreamResponse> {
     let rays = Rays::Packed(rays);
     check_reply_size(tenant, &query, rays.count(query.ray_format.size()))?;
-    let result = trace(tenant, accel.clone(), query, rays, None).await?;
+    let accel = accels::resolve(tenant, accel, "query.accel")?;
+    let result = trace(tenant, accel, query, rays, None).await?;
     Ok(pb::TraceStreamResponse {
         first_ray,
         hits: result.hits,

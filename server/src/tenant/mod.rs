@@ -230,10 +230,11 @@ impl Tenant {
     /// The context on device `id` (empty: the default device), and the device's id.
     pub fn context(&self, id: &str) -> ServiceResult<(&str, &Context)> {
         let id = if id.is_empty() { DEFAULT_DEVICE } else { id };
-        self.contexts
-            .get_key_value(id)
-            .map(|(k, c)| (k.as_str(), c))
-            .ok_or_else(|| ServiceError::NotFound { what: "device", name: id.into() })
+        self.contexts.get_key_value(id).map(|(k, c)| (k.as_str(), c)).ok_or_else(|| ServiceError::NotFound {
+            what: "device",
+            name: id.into(),
+            field: String::new(),
+        })
     }
 
     /// Builds an accel named `name` on `device` with `build`, after checking the name, the accel count and the

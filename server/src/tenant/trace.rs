@@ -93,10 +93,11 @@ impl Tenant {
             // Checked on the whole batch, so that the error names the ray by its index in the batch.
             query.check_times(bytes)?;
         }
-        let scheduler = self
-            .schedulers
-            .get(&accel.device)
-            .ok_or_else(|| ServiceError::NotFound { what: "device", name: accel.device.clone() })?;
+        let scheduler = self.schedulers.get(&accel.device).ok_or_else(|| ServiceError::NotFound {
+            what: "device",
+            name: accel.device.clone(),
+            field: String::new(),
+        })?;
         // Rays that reduce together stay in one piece.
         let group = reduction.as_ref().map_or(1, |r| r.group_rays());
         let generated = matches!(rays, Rays::Generated(..));

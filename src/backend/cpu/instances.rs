@@ -280,12 +280,7 @@ impl TransformNode {
 
     /// Bytes it occupies.
     pub fn size_bytes(&self) -> u64 {
-        let keys = match &self.transform {
-            Transform::Static(_) => 0,
-            Transform::Matrix { keys, .. } => keys.len() * size_of::<glam::Affine3A>(),
-            Transform::Srt { keys, .. } => keys.len() * size_of::<crate::geometry::SrtKey>(),
-        };
-        FIXED_BYTES + (size_of::<TransformNode>() + keys) as u64
+        FIXED_BYTES + size_of::<TransformNode>() as u64 + self.transform.key_bytes()
     }
 
     /// The placed child's box over all of time.

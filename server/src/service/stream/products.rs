@@ -115,6 +115,11 @@ impl Products {
                 sources.push((format!("{field}.triangles.vertices"), &mut t.vertices));
                 sources.push((format!("{field}.triangles.indices"), &mut t.indices));
                 sources.push((format!("{field}.triangles.masks"), &mut t.masks));
+                for (key, vertices) in t.motion_vertices.iter_mut().enumerate() {
+                    if let Some(pb::data_source::Source::Buffer(buffer)) = &mut vertices.source {
+                        self.buffer(id, buffer, &format!("{field}.triangles.motion_vertices[{key}].buffer"))?;
+                    }
+                }
             }
             Some(Input::Instances(instances)) => {
                 for (c, child) in instances.children.iter_mut().enumerate() {
