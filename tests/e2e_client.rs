@@ -2,23 +2,34 @@
 //! GetServerInfo reports them; the shared bunny, loaded by the client's mesh loader, built inline and through
 //! uploaded buffers (deleted again afterwards, even when the build fails); traces by TraceBatch and by TraceStream,
 //! chosen by the client from its options, byte for byte as the engine traces in this process; `HitView` against
-//! decoding by hand; the server's errors surfacing with their gRPC codes; and calls in flight together spread over
-//! the connections a client asks for.
+//! decoding by hand; the server's errors surfacing with their gRPC codes; calls in flight together spread over
+//! the connections a client asks for; and the routing header on every call of a trace of rays the server makes,
+//! as a proxy in front of rayd sees it.
 
 mod common;
 mod daemon;
 mod reference;
 
+use std::convert::Infallible;
 use std::path::Path;
+use std::pin::Pin;
+use std::sync::{Arc, Mutex};
+use std::task::{Context, Poll};
 
 use common::{f32_at, u32_at};
 use daemon::Daemon;
-use rayd_client::{Client, ClientOptions, TraceResult, load_mesh};
+use rayd_client::{Client, ClientOptions, ROUTE_HEADER, TraceResult, load_mesh};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, MISS_ID, MISS_T, RayFormat};
 use rayd_engine::query::{Query, QueryKind};
+use rayd_engine::raygen::{Camera, Generator, PixelSampling};
 use reference::{BUNNY_TRIANGLES, Expected, bunny};
 use tonic::Code;
+use tonic::body::Body;
+use tonic::codegen::http;
+use tonic::transport::server::TcpIncoming;
+use tonic::transport::{Channel, Server};
+use tower::ServiceExt;
 
 /// The daemon's `max_rays_per_batch`: set, so that GetServerInfo has something to report, and above every trace
 /// here.
@@ -270,4 +281,76 @@ async fn calls_in_flight_together_are_spread_over_the_connections_asked_for() {
     // The client's first connection (which asked for the server's limits) may linger as it closes.
     let opened = established_to(port) - before;
     assert!((3..=4).contains(&opened), "{opened} connections for a client of three");
+}
+
+/// The calls a [`Recorder`] passed on, in order: each one's path (`/rayd.v1.Rayd/TraceBatch`) and routing header.
+type Recorded = Arc<Mutex<Vec<(String, Option<String>)>>>;
+
+/// A gRPC proxy in front of rayd, as a router would be: it notes each call's path and routing header, then passes
+/// the call on unchanged.
+#[derive(Clone)]
+struct Recorder {
+    /// The connection to rayd.
+    upstream: Channel,
+    /// What it has seen so far.
+    calls: Recorded,
+}
+
+impl tower::Service<http::Request<Body>> for Recorder {
+    type Response = http::Response<Body>;
+    type Error = Infallible;
+    type Future = Pin<Box<dyn Future<Output = Result<Self::Response, Infallible>> + Send>>;
+
+    fn poll_ready(&mut self, _: &mut Context<'_>) -> Poll<Result<(), Infallible>> {
+        Poll::Ready(Ok(()))
+    }
+
+    fn call(&mut self, request: http::Request<Body>) -> Self::Future {
+        let route = request.headers().get(ROUTE_HEADER).and_then(|value| value.to_str().ok()).map(str::to_owned);
+        self.calls.lock().unwrap().push((request.uri().path().to_owned(), route));
+        let upstream = self.upstream.clone();
+        Box::pin(async move {
+            let answer = upstream.oneshot(request).await;
+            Ok(answer.unwrap_or_else(|e| tonic::Status::unavailable(format!("the proxy: {e}")).into_http()))
+        })
+    }
+}
+
+/// Starts a [`Recorder`] in front of `daemon` on a port of its own; its URL, and the calls it records.
+async fn recording_proxy(daemon: &Daemon) -> (String, Recorded) {
+    let upstream = Channel::from_shared(daemon.url()).unwrap().connect().await.expect("the proxy reaches rayd");
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("a port for the proxy");
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let calls = Recorded::default();
+    let recorder = Recorder { upstream, calls: Arc::clone(&calls) };
+    tokio::spawn(Server::builder().serve_with_incoming(recorder, TcpIncoming::from(listener)));
+    (url, calls)
+}
+
+/// Takes the calls recorded so far, leaving none.
+fn take_calls(calls: &Recorded) -> Vec<(String, Option<String>)> {
+    std::mem::take(&mut *calls.lock().unwrap())
+}
+
+#[tokio::test(flavor = "multi_thread")]
+async fn every_call_of_a_trace_of_rays_the_server_makes_carries_its_accels_scene() {
+    let daemon = Daemon::start(&[]);
+    let (proxy, calls) = recording_proxy(&daemon).await;
+    let client = Client::connect(&proxy, small_messages()).await.expect("the client connects through the proxy");
+    let bunny = bunny();
+    client.build_mesh("farm.bunny", &bunny.mesh, "", BuildFlags::empty()).await.expect("a build");
+    let (lo, hi) = bunny.info().bounds;
+    let (width, height) = CAMERA;
+    let camera =
+        Generator::Pinhole(Camera::framing(lo, hi, width, height), PixelSampling { samples: 1, jitter_seed: None });
+    // 80-byte hits of 6912 rays: several ranges of the small options' 64 KiB batches.
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
+    take_calls(&calls);
+    let traced = client.trace_generated("farm.bunny", &query, &camera).await.expect("a trace of camera rays");
+    assert_eq!(traced.rays(), (width * height) as usize);
+    let seen = take_calls(&calls);
+    assert!(seen.len() > 1, "the camera is traced in ranges: {seen:?}");
+    for (path, route) in &seen {
+        assert_eq!((path.as_str(), route.as_deref()), ("/rayd.v1.Rayd/TraceBatch", Some("farm")), "{seen:?}");
+    }
 }

@@ -118,6 +118,7 @@ impl Client {
             chunk_rays(&Query { ray_format: RayFormat::OriginDirection, ..*query }, limit, max_rays)
         };
         let generator = generator_to_proto(generator);
+        let rpc = self.rpc_for(accel);
         let calls = (0..total).step_by(per_call.max(1)).map(|first| {
             let count = per_call.min(total - first);
             let range = proto::RayGenerator { first_ray: first as u64, ray_count: count as u64, ..generator.clone() };
@@ -126,7 +127,7 @@ impl Client {
                 rays: Some(trace_batch_request::Rays::RaysGenerator(range)),
                 ..Default::default()
             };
-            let mut rpc = self.rpc.clone();
+            let mut rpc = rpc.clone();
             async move {
                 let response = rpc.trace_batch(request).await?.into_inner();
                 TraceResult::from_batch(query, count * ray_size, response)
