@@ -3,8 +3,9 @@
 //! uploaded buffers (deleted again afterwards, even when the build fails); traces by TraceBatch and by TraceStream,
 //! chosen by the client from its options, byte for byte as the engine traces in this process; `HitView` against
 //! decoding by hand; the server's errors surfacing with their gRPC codes; calls in flight together spread over
-//! the connections a client asks for; and the routing header on every call of a trace of rays the server makes,
-//! as a proxy in front of rayd sees it.
+//! the connections a client asks for; and the routing header on every call of a trace of rays the server makes
+//! (secondary rays from hits larger than a message among them, through a temporary buffer), as a proxy in front of
+//! rayd sees it.
 
 mod common;
 mod daemon;
@@ -22,7 +23,7 @@ use rayd_client::{Client, ClientOptions, ROUTE_HEADER, TraceResult, load_mesh};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, MISS_ID, MISS_T, RayFormat};
 use rayd_engine::query::{Query, QueryKind};
-use rayd_engine::raygen::{Camera, Generator, PixelSampling};
+use rayd_engine::raygen::{Bounce, Camera, Generator, PixelSampling, Primary, Secondary};
 use reference::{BUNNY_TRIANGLES, Expected, bunny};
 use tonic::Code;
 use tonic::body::Body;
@@ -353,4 +354,25 @@ async fn every_call_of_a_trace_of_rays_the_server_makes_carries_its_accels_scene
     for (path, route) in &seen {
         assert_eq!((path.as_str(), route.as_deref()), ("/rayd.v1.Rayd/TraceBatch", Some("farm")), "{seen:?}");
     }
+
+    // Their reflections, from hits far larger than a message: the hits go to a temporary buffer of the scene, the
+    // reflections are traced in ranges naming it, and the buffer is deleted again.
+    let reflections = Generator::Secondary(Secondary {
+        primary: Primary::Generated(Box::new(camera)),
+        hits: traced.hits().clone(),
+        bounce: Bounce::Reflect,
+        offset: 1e-4,
+    });
+    let reflected = client.trace_generated("farm.bunny", &query, &reflections).await.expect("reflections");
+    let seen = take_calls(&calls);
+    let paths: Vec<&str> = seen.iter().map(|(path, _)| path.trim_start_matches("/rayd.v1.Rayd/")).collect();
+    let traces = paths.len() - 2;
+    assert!(traces > 1, "the reflections are traced in ranges: {paths:?}");
+    let expected_paths = [&["UploadBuffer"][..], &vec!["TraceBatch"; traces], &["DeleteBuffer"]].concat();
+    assert_eq!(paths, expected_paths);
+    assert!(seen.iter().all(|(_, route)| route.as_deref() == Some("farm")), "{seen:?}");
+    assert!(client.buffers().await.expect("ListBuffers").is_empty(), "the hits' buffer is deleted");
+    let sent = client.trace("farm.bunny", &query, reflections.rays(query.ray_format).into()).await.expect("sent rays");
+    assert_eq!(reflected.rays(), sent.rays());
+    assert!(reflected.hits() == sent.hits(), "the server's reflections are the engine's");
 }

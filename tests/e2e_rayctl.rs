@@ -554,3 +554,72 @@ fn rayctl_traces_rays_made_by_the_server_as_the_engine_makes_them_sent_in_a_file
         ["--rays", &rays_file, "--towards-light", &light, "--primary-hits-buffer", "camera-hits", "--offset", "0.0002"];
     check("shadows", "bunny", &args, &Generator::Secondary(shadows), &["--query", "any"], "t");
 }
+
+#[test]
+fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_buffers_in_ranges() {
+    // README's example at a smaller scale: 64 KiB messages, and a camera whose 80-byte hits take 288 KB.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-large-secondary");
+    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    let (lo, hi) = bunny().info().bounds;
+    let ray_format = RayFormat::OriginDirection;
+    let trace = |rays: &[&str], hit_format: &str, out: &str| {
+        let formats = ["--ray-format", ray_format.name(), "--hit-format", hit_format, "--out", out];
+        json(&server, &[&["trace", "--accel", "bunny"][..], rays, &formats].concat())
+    };
+    // Traces `args` and the rays `expected` makes, sent in a file: the same hits and report counts.
+    let check = |what: &str, args: &[&str], expected: &Generator| {
+        let (made, sent, rays_file) =
+            (scratch.path(&format!("{what}.hits")), scratch.path("sent"), scratch.path("rays"));
+        let report = trace(args, "full", &made);
+        std::fs::write(&rays_file, expected.rays(ray_format)).unwrap();
+        let expected_report = trace(&["--rays", &rays_file], "full", &sent);
+        assert_same_bytes(&read(&made), &read(&sent), &format!("{what}: hits"));
+        assert_eq!((report["rays"].as_u64(), report["hits"].as_u64()), (Some(3600), expected_report["hits"].as_u64()));
+    };
+
+    let camera = ["--pixels", "40x30", "--samples", "3", "--jitter", "11"];
+    let pinhole =
+        Generator::Pinhole(Camera::framing(lo, hi, 40, 30), PixelSampling { samples: 3, jitter_seed: Some(11) });
+    let primary_file = scratch.path("primary.hits");
+    trace(&camera, "full", &primary_file);
+    let hits = Bytes::from(read(&primary_file));
+    let reflect = Secondary {
+        primary: Primary::Generated(Box::new(pinhole.clone())),
+        hits: hits.clone(),
+        bounce: Bounce::Reflect,
+        offset: 1e-4,
+    };
+    let args = [&camera[..], &["--reflect", "--primary-hits", &primary_file, "--offset", "0.0001"]].concat();
+    check("reflections", &args, &Generator::Secondary(reflect.clone()));
+
+    // A file's rays as the primaries, both the rays (86 KB) and their hits uploaded.
+    let camera_rays = scratch.path("camera.rays");
+    std::fs::write(&camera_rays, pinhole.rays(ray_format)).unwrap();
+    let camera_hits = scratch.path("camera.hits");
+    trace(&["--rays", &camera_rays], "full", &camera_hits);
+    let light = hi + (hi - lo);
+    let shadows = Secondary {
+        primary: Primary::Packed(ray_format, Bytes::from(read(&camera_rays))),
+        hits: Bytes::from(read(&camera_hits)),
+        bounce: Bounce::TowardsLight(light),
+        offset: 2e-4,
+    };
+    let light = vec3_arg(light);
+    let args =
+        ["--rays", &camera_rays, "--towards-light", &light, "--primary-hits", &camera_hits, "--offset", "0.0002"];
+    check("shadows", &args, &Generator::Secondary(shadows));
+
+    // Hits already on the server: only the reflections' hits, more than a message, need ranges.
+    let runtime = tokio::runtime::Runtime::new().expect("a tokio runtime");
+    runtime.block_on(async {
+        let client = Client::connect(&server, ClientOptions::default()).await.expect("the client connects");
+        client.upload_buffer("camera-hits", hits).await.expect("the hits upload");
+    });
+    let args = [&camera[..], &["--reflect", "--primary-hits-buffer", "camera-hits", "--offset", "0.0001"]].concat();
+    check("reflections-from-buffer", &args, &Generator::Secondary(reflect));
+    let buffers = json(&server, &["buffers"]);
+    let names: Vec<&str> = buffers["buffers"].as_array().unwrap().iter().filter_map(|b| b["name"].as_str()).collect();
+    assert_eq!(names, ["camera-hits"], "the temporary buffers are deleted: {buffers}");
+}

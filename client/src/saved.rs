@@ -47,10 +47,10 @@ impl Client {
         if blob.len() < self.options.inline_mesh_bytes {
             return Ok(node.rpc.clone().load_accel(load(Source::Inline(blob))).await?.into_inner().accels);
         }
-        let buffer = node.upload_buffer("", blob).await?;
-        let loaded = node.rpc.clone().load_accel(load(Source::Buffer(buffer_ref(&buffer.id)))).await;
-        // Best effort, as above.
-        let _ = node.delete_buffer(&buffer.id).await;
-        Ok(loaded?.into_inner().accels)
+        node.with_temporary_buffer(blob, |buffer| {
+            let (request, mut rpc) = (load(Source::Buffer(buffer)), node.rpc.clone());
+            async move { Ok(rpc.load_accel(request).await?.into_inner().accels) }
+        })
+        .await
     }
 }

@@ -1,17 +1,17 @@
 //! Secondary rays made by the server from an earlier trace's hits that stayed on the server (a hits buffer): the
 //! primary rays are a generator's or a rays buffer's, so neither they, their hits nor the new rays cross the network
-//! (or the caller's own, sent with the request).
+//! (or the caller's own, sent with the request). Hits and primary rays too large to go with a request go through
+//! temporary buffers, and the rays are traced in ranges whose hits fit in a message.
 
 use bytes::Bytes;
 use rayd_engine::format::RayFormat;
 use rayd_engine::query::Query;
-use rayd_engine::raygen::{Bounce, Generator};
+use rayd_engine::raygen::{Bounce, Generator, Primary, Secondary};
 use rayd_proto as proto;
-use rayd_proto::trace_batch_request::Rays;
 
 use crate::client::Client;
-use crate::convert::{bounce_to_proto, generator_to_proto, ray_format_to_proto, trace_query};
-use crate::error::Result;
+use crate::convert::{bounce_to_proto, generator_to_proto, ray_format_to_proto};
+use crate::error::{Error, Result};
 use crate::trace::TraceResult;
 
 /// Where the primary rays of [`SecondaryRays`] are.
@@ -67,16 +67,76 @@ impl SecondaryRays {
 }
 
 impl Client {
-    /// Traces `secondary` rays (made by the server) against the accel called `accel`, in one `TraceBatch` call; the
-    /// hits come back as for any trace, one record a primary ray.
+    /// Traces `secondary` rays (made by the server) against the accel called `accel`; the hits come back as for any
+    /// trace, one record a primary ray. One `TraceBatch` call when the hits fit in
+    /// [`ClientOptions::batch_limit_bytes`](crate::ClientOptions::batch_limit_bytes), else one per range of rays
+    /// whose hits do, as in [`Client::trace_generated`]. Inline primary rays larger than `batch_limit_bytes` are
+    /// uploaded first as a temporary buffer of the accel's scene (deleted again whatever the outcome), so that the
+    /// calls do not carry them; primary rays in a buffer are counted by its size (one `ListBuffers` call).
     pub async fn trace_secondary(&self, accel: &str, query: &Query, secondary: &SecondaryRays) -> Result<TraceResult> {
-        let request = proto::TraceBatchRequest {
-            query: Some(trace_query(accel, query)),
-            rays: Some(Rays::RaysGenerator(secondary.to_proto())),
-            ..Default::default()
-        };
-        let response = self.rpc_for(accel).trace_batch(request).await?.into_inner();
-        let rays = response.stats.as_ref().map_or(0, |s| s.rays) as usize;
-        TraceResult::from_batch(query, rays * query.ray_format.size(), response)
+        let node = self.for_scene(accel);
+        let total = node.primary_ray_count(&secondary.primary).await?;
+        match &secondary.primary {
+            PrimaryRays::Inline(rays, format) if rays.len() > self.options.batch_limit_bytes => {
+                node.with_temporary_buffer(rays.clone(), |buffer| {
+                    let uploaded = SecondaryRays { primary: PrimaryRays::Buffer(buffer, *format), ..secondary.clone() };
+                    node.trace_in_ranges(accel, query, uploaded.to_proto(), total)
+                })
+                .await
+            }
+            _ => node.trace_in_ranges(accel, query, secondary.to_proto(), total).await,
+        }
     }
+
+    /// Traces the engine's `secondary` rays, whose hits (and packed primary rays) are too large to go with every
+    /// call: the hits as a temporary buffer of the accel's scene, deleted again whatever the outcome, the primary
+    /// rays as [`Client::trace_secondary`] sends them.
+    pub(crate) async fn trace_uploaded_secondary(
+        &self,
+        accel: &str,
+        query: &Query,
+        secondary: &Secondary,
+    ) -> Result<TraceResult> {
+        let node = self.for_scene(accel);
+        let primary = match &secondary.primary {
+            Primary::Packed(format, rays) => PrimaryRays::Inline(rays.clone(), *format),
+            Primary::Generated(generator) => PrimaryRays::Generated((**generator).clone()),
+        };
+        node.with_temporary_buffer(secondary.hits.clone(), |hits_buffer| async {
+            let uploaded = SecondaryRays { primary, hits_buffer, bounce: secondary.bounce, offset: secondary.offset };
+            node.trace_secondary(accel, query, &uploaded).await
+        })
+        .await
+    }
+
+    /// The number of `primary` rays; those in a buffer by its size, as `ListBuffers` reports it.
+    async fn primary_ray_count(&self, primary: &PrimaryRays) -> Result<usize> {
+        Ok(match primary {
+            PrimaryRays::Generated(generator) => usize::try_from(generator.count()).unwrap_or(usize::MAX),
+            PrimaryRays::Inline(rays, format) => rays.len() / format.size(),
+            PrimaryRays::Buffer(buffer, format) => self.buffer_bytes(buffer).await? / format.size(),
+        })
+    }
+
+    /// The size of the buffer `buffer` names by id or by name, from `ListBuffers`.
+    async fn buffer_bytes(&self, buffer: &proto::BufferRef) -> Result<usize> {
+        use proto::buffer_ref::Ref;
+        let buffers = self.buffers().await?;
+        let (found, wanted) = match &buffer.r#ref {
+            Some(Ref::Id(id)) => (buffers.iter().find(|info| info.id == *id), format!("with id {id:?}")),
+            Some(Ref::Name(name)) => (buffers.iter().find(|info| info.name == *name), format!("called {name:?}")),
+            _ => return Err(Error::InvalidArgument("primary_rays_buffer: name the buffer by id or by name".into())),
+        };
+        let missing = || Error::Status(tonic::Status::not_found(format!("primary_rays_buffer: no buffer {wanted}")));
+        Ok(usize::try_from(found.ok_or_else(missing)?.size_bytes).unwrap_or(usize::MAX))
+    }
+}
+
+/// Bytes that `secondary` carries in a request: its hits, and its primary rays when they are packed.
+pub(crate) fn inline_bytes(secondary: &Secondary) -> usize {
+    let primary = match &secondary.primary {
+        Primary::Packed(_, rays) => rays.len(),
+        Primary::Generated(_) => 0,
+    };
+    secondary.hits.len() + primary
 }

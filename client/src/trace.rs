@@ -15,6 +15,7 @@ use tokio::sync::Semaphore;
 use crate::client::Client;
 use crate::convert::{generator_to_proto, trace_query};
 use crate::error::{Error, Result};
+use crate::secondary::inline_bytes;
 use crate::view::HitView;
 
 /// What a trace returned. Its buffers' lengths were checked against the query, so its views cannot fail.
@@ -104,9 +105,28 @@ impl Client {
     /// accel called `accel`; the hits come back in the generator's ray order. The rays are made in
     /// `query.ray_format` (a format with time keeps a lidar's times). One `TraceBatch` call when the hits fit in
     /// [`ClientOptions::batch_limit_bytes`](crate::ClientOptions::batch_limit_bytes), else one per range of rays
-    /// whose hits do, `stream_window` of them at once.
+    /// whose hits do, `stream_window` of them at once. Secondary rays whose hits and packed primary rays together
+    /// pass `batch_limit_bytes` go through temporary buffers of the accel's scene instead of with every call (see
+    /// [`Client::trace_secondary`]).
     pub async fn trace_generated(&self, accel: &str, query: &Query, generator: &Generator) -> Result<TraceResult> {
+        if let Generator::Secondary(secondary) = generator
+            && inline_bytes(secondary) > self.options.batch_limit_bytes
+        {
+            return self.trace_uploaded_secondary(accel, query, secondary).await;
+        }
         let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        self.trace_in_ranges(accel, query, generator_to_proto(generator), total).await
+    }
+
+    /// Traces the `total` rays of `generator` in ranges (`first_ray`, `ray_count`) whose hits each fit in a batch,
+    /// as [`Client::trace_generated`] describes.
+    pub(crate) async fn trace_in_ranges(
+        &self,
+        accel: &str,
+        query: &Query,
+        generator: proto::RayGenerator,
+        total: usize,
+    ) -> Result<TraceResult> {
         let ray_size = query.ray_format.size();
         let layout =
             query.output_layout(total.saturating_mul(ray_size)).map_err(|e| Error::InvalidArgument(e.to_string()))?;
@@ -117,7 +137,6 @@ impl Client {
             // Generated rays cost nothing on the wire: only the hits and counts must fit.
             chunk_rays(&Query { ray_format: RayFormat::OriginDirection, ..*query }, limit, max_rays)
         };
-        let generator = generator_to_proto(generator);
         let rpc = self.rpc_for(accel);
         let calls = (0..total).step_by(per_call.max(1)).map(|first| {
             let count = per_call.min(total - first);

@@ -5,6 +5,7 @@ use rayd_proto as proto;
 use rayd_proto::upload_buffer_request::Part;
 
 use crate::client::Client;
+use crate::convert::buffer_ref;
 use crate::error::Result;
 
 impl Client {
@@ -13,6 +14,20 @@ impl Client {
     pub async fn upload_buffer(&self, name: &str, data: Bytes) -> Result<proto::BufferInfo> {
         let requests = upload_requests(name, data, self.options.upload_chunk_bytes);
         Ok(self.rpc.clone().upload_buffer(tokio_stream::iter(requests)).await?.into_inner())
+    }
+
+    /// Uploads `data` as a temporary buffer, calls `call` with a reference to it, and deletes the buffer again
+    /// whatever the call's outcome.
+    pub(crate) async fn with_temporary_buffer<T, Call: Future<Output = Result<T>>>(
+        &self,
+        data: Bytes,
+        call: impl FnOnce(proto::BufferRef) -> Call,
+    ) -> Result<T> {
+        let buffer = self.upload_buffer("", data).await?;
+        let result = call(buffer_ref(&buffer.id)).await;
+        // Best effort: a buffer left behind only counts against the tenant's limits.
+        let _ = self.delete_buffer(&buffer.id).await;
+        result
     }
 }
 

@@ -187,7 +187,7 @@ enum RaySource {
 enum TracedRays {
     /// Packed rays, sent.
     Sent(Bytes),
-    /// A generator the server expands (secondary rays from hits sent inline among them).
+    /// A generator the server expands (secondary rays from hits sent with it, or as a temporary buffer when large).
     Generated(Generator),
     /// Secondary rays from hits that stay on the server.
     FromHitsBuffer(SecondaryRays),
