@@ -5,7 +5,7 @@
 //! decoding by hand; the server's errors surfacing with their gRPC codes; calls in flight together spread over
 //! the connections a client asks for; and the routing header on every call of a trace of rays the server makes
 //! (secondary rays from hits larger than a message among them, through a temporary buffer), as a proxy in front of
-//! rayd sees it.
+//! rayd sees it; and a stream operation larger than a message refused before it is sent, the stream going on.
 
 mod common;
 mod daemon;
@@ -282,6 +282,27 @@ async fn calls_in_flight_together_are_spread_over_the_connections_asked_for() {
     // The client's first connection (which asked for the server's limits) may linger as it closes.
     let opened = established_to(port) - before;
     assert!((3..=4).contains(&opened), "{opened} connections for a client of three");
+}
+
+#[tokio::test]
+async fn a_stream_refuses_an_operation_larger_than_a_message_and_goes_on() {
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    let bunny = bunny();
+    client.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.expect("a build from buffers");
+    let stream = client.create_stream().await.expect("OpenStream");
+    let query = queries()[0];
+    let (width, height) = CAMERA;
+    let rays = bunny.camera_rays(query.ray_format, width, height);
+    let error = stream.trace("bunny", &query, rays.clone().into()).await.expect_err("221 KB of rays in one message");
+    assert_eq!(error.code(), Code::InvalidArgument, "{error}");
+    assert!(error.to_string().contains("max_message_bytes (65536)"), "{error}");
+    let few = rays[..100 * query.ray_format.size()].to_vec();
+    let traced = stream.trace("bunny", &query, few.clone().into()).await.expect("a trace that fits");
+    stream.synchronize().await.expect("the stream goes on");
+    let traced = traced.result().expect("answered after synchronize").expect("traced");
+    assert_traced_as_expected(&traced, &bunny.trace(&query, &few), "a trace after the refused one");
+    stream.finish().await.expect("the stream ends cleanly");
 }
 
 /// The calls a [`Recorder`] passed on, in order: each one's path (`/rayd.v1.Rayd/TraceBatch`) and routing header.

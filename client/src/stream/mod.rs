@@ -16,6 +16,8 @@
 //!
 //! Enqueueing returns as soon as the operation is handed to the transport; it only waits when the operations
 //! in flight already hold [`ClientOptions::stream_bytes_in_flight`](crate::ClientOptions::stream_bytes_in_flight).
+//! An operation whose message would pass the server's `max_message_bytes` is refused when enqueued
+//! (INVALID_ARGUMENT naming it), and the stream goes on: sent, it would end the whole call.
 //! Dropping a [`Stream`] cancels it: the server drops its queued operations, and unanswered handles fail.
 
 mod handle;
@@ -50,6 +52,9 @@ use crate::trace::{TraceResult, inline_trace};
 
 /// Messages queued for the transport before enqueueing waits.
 const REQUEST_QUEUE: usize = 16;
+
+/// Bytes of a `StreamRequest`'s `operation` field at most: a one-byte key and a varint of up to ten bytes.
+const OPERATION_FIELD_BYTES: usize = 11;
 
 /// Names an accel in a stream operation.
 #[derive(Debug, Clone, Copy)]
@@ -118,6 +123,8 @@ pub struct Stream {
     in_flight_bytes: u32,
     /// Bytes per upload message.
     upload_chunk_bytes: usize,
+    /// The largest message the server accepts: a larger operation is refused before it is sent.
+    max_message_bytes: usize,
     /// Meshes smaller than this go inline in the build.
     inline_mesh_bytes: usize,
     /// The task that reads answers.
@@ -145,6 +152,7 @@ impl Client {
             in_flight: Arc::new(Semaphore::new(in_flight_bytes as usize)),
             in_flight_bytes,
             upload_chunk_bytes: self.options.upload_chunk_bytes.max(1),
+            max_message_bytes: self.options.max_message_bytes,
             inline_mesh_bytes: self.options.inline_mesh_bytes,
             rpc: Some(self.rpc.clone()),
         })
@@ -371,8 +379,8 @@ impl Stream {
         self.enqueue(op, Vec::new(), Expect::Nothing, |o| matches!(o, Outcome::Nothing).then_some(())).await
     }
 
-    /// Numbers `op`, books its slot and sends it (followed by `upload_data` messages), once the bytes in flight
-    /// leave room for it.
+    /// Numbers `op`, books its slot and sends it (followed by `upload_data` messages, each smaller than a
+    /// message), once the bytes in flight leave room for it. An `op` larger than a message is refused, unsent.
     async fn enqueue<T>(
         &self,
         op: Op,
@@ -380,6 +388,7 @@ impl Stream {
         expect: Expect,
         extract: fn(&Outcome) -> Option<T>,
     ) -> Result<Operation<T>> {
+        self.check_message_size(&op)?;
         let bytes = op.encoded_len() + upload_data.iter().map(Bytes::len).sum::<usize>();
         let permits = u32::try_from(bytes).unwrap_or(u32::MAX).clamp(1, self.in_flight_bytes);
         let permit = Arc::clone(&self.in_flight)
@@ -407,6 +416,20 @@ impl Stream {
             }
         }
         Ok(Operation::new(id, slot, Arc::clone(&self.shared), extract))
+    }
+
+    /// Refuses `op` when its message would pass the server's `max_message_bytes`: the server would end the whole
+    /// stream over it, where a refusal here fails this operation alone.
+    fn check_message_size(&self, op: &Op) -> Result<()> {
+        let bytes = op.encoded_len() + OPERATION_FIELD_BYTES;
+        if bytes > self.max_message_bytes {
+            return Err(Error::InvalidArgument(format!(
+                "a stream operation of {bytes} bytes passes the server's max_message_bytes ({}): upload large data \
+                 as a buffer first, or send it in smaller operations",
+                self.max_message_bytes
+            )));
+        }
+        Ok(())
     }
 
     /// The contract's reference for `accel`.
