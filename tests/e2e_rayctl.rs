@@ -12,7 +12,7 @@ mod reference;
 
 use std::collections::HashSet;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::{Command, Output, Stdio};
 
 use bytes::Bytes;
 use daemon::Daemon;
@@ -286,6 +286,19 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     let stderr = fails(&server, &["info", "bunny"], 1);
     assert!(stderr.starts_with("error: NotFound: ") && stderr.contains("bunny"), "{stderr}");
     assert_eq!(json(&server, &["accels"])["accels"], Value::Array(vec![]), "no accel left");
+}
+
+#[test]
+fn a_reader_of_the_output_that_has_gone_ends_rayctl_quietly() {
+    let daemon = Daemon::start(&[]);
+    let mut command = Command::new(daemon::binary("rayctl"));
+    daemon::without_rayd_env(&mut command).args(["--server", &daemon.url(), "devices"]);
+    let mut child = command.stdout(Stdio::piped()).stderr(Stdio::piped()).spawn().expect("rayctl runs");
+    // The reader goes before rayctl has connected, let alone printed (`rayctl devices | true`).
+    drop(child.stdout.take());
+    let output = child.wait_with_output().expect("rayctl ends");
+    assert!(output.status.success(), "rayctl devices with its reader gone: {}", printed(&output));
+    assert!(output.stderr.is_empty(), "no panic, no error: {}", printed(&output));
 }
 
 #[test]

@@ -1,10 +1,12 @@
 //! `rayctl`: the command-line client of rayd. Parsing lives in [`args`], the work in `rayd-client`, the printing
-//! in [`show`]. Errors print `error: <gRPC code>: <message>` and exit with 1; usage errors exit with 2 (clap).
+//! in [`show`]. Errors print `error: <gRPC code>: <message>` and exit with 1; usage errors exit with 2 (clap). A
+//! reader of the output that has gone (`rayctl … | head`) ends rayctl quietly, with 0.
 
 mod args;
 mod commands;
 mod show;
 
+use std::io::{self, Write};
 use std::process::ExitCode;
 
 use clap::Parser;
@@ -13,16 +15,24 @@ use clap::Parser;
 async fn main() -> ExitCode {
     let cli = args::Cli::parse();
     match commands::run(&cli).await {
-        Ok(output) => {
-            if cli.json {
-                println!("{}", output.json);
-            } else {
-                println!("{}", output.text);
-            }
-            ExitCode::SUCCESS
-        }
+        Ok(output) => print(&if cli.json { output.json.to_string() } else { output.text }),
         Err(error) => {
-            eprintln!("error: {:?}: {error}", error.code());
+            // Nothing is left to do if standard error has gone too.
+            let _ = writeln!(io::stderr(), "error: {:?}: {error}", error.code());
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Prints `text` and a newline on standard output: success, also when the reader has gone (a closed pipe), as
+/// other command-line tools end; any other failure to write is an error.
+fn print(text: &str) -> ExitCode {
+    let mut stdout = io::stdout().lock();
+    match writeln!(stdout, "{text}").and_then(|()| stdout.flush()) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) if e.kind() == io::ErrorKind::BrokenPipe => ExitCode::SUCCESS,
+        Err(e) => {
+            let _ = writeln!(io::stderr(), "error: standard output: {e}");
             ExitCode::FAILURE
         }
     }
