@@ -302,7 +302,7 @@ fn a_reader_of_the_output_that_has_gone_ends_rayctl_quietly() {
 }
 
 #[test]
-fn usage_errors_exit_2_before_connecting_and_an_unreachable_server_exits_1_unavailable() {
+fn usage_errors_exit_2_before_connecting_and_an_unreachable_server_or_tls_over_http_exit_1() {
     let args = ["trace", "--accel", "bunny", "--rays", "r.bin", "--ray-format", "prime", "--hit-format", "t"];
     let stderr = fails(NOWHERE, &args, 2);
     assert!(
@@ -313,6 +313,13 @@ fn usage_errors_exit_2_before_connecting_and_an_unreachable_server_exits_1_unava
     assert!(stderr.contains("--connections") && stderr.contains("0"), "names the flag: {stderr}");
     let stderr = fails(NOWHERE, &["devices"], 1);
     assert!(stderr.starts_with("error: Unavailable: ") && stderr.contains(NOWHERE), "{stderr}");
+    for tls in [&["--ca-cert", "Cargo.toml"][..], &["--client-cert", "Cargo.toml", "--client-key", "Cargo.toml"]] {
+        for command in ["devices", "health"] {
+            let stderr = fails(NOWHERE, &[tls, &[command]].concat(), 1);
+            let refused = stderr.starts_with("error: InvalidArgument: ") && stderr.contains("https://");
+            assert!(refused, "TLS options for an http:// URL are refused, not ignored: {stderr}");
+        }
+    }
 }
 
 #[test]

@@ -43,7 +43,7 @@ pub struct ClientOptions {
     /// beyond it (an operation larger than this waits until it is alone in flight).
     pub stream_bytes_in_flight: usize,
     /// TLS for `https://` servers: the CA to trust (else the platform's are not used: give one) and, for mutual
-    /// TLS, the client's certificate and key.
+    /// TLS, the client's certificate and key. Refused (INVALID_ARGUMENT) for a server URL of another scheme.
     pub tls: Option<ClientTls>,
     /// Compress the messages sent, and ask the server to compress its replies, with this encoding (rayd accepts
     /// and sends zstd and gzip). Worth it on slow links; on loopback it costs more CPU than it saves.
@@ -233,7 +233,7 @@ const REPLY_WINDOW_BYTES: u32 = 8 << 20;
 /// Largest HTTP/2 frame the client accepts: fewer, larger frames for large replies.
 const REPLY_FRAME_BYTES: u32 = 1 << 20;
 
-/// The endpoint of `url`, with `tls` when given.
+/// The endpoint of `url`, with `tls` when given (only for an `https://` URL: over plain HTTP it would be ignored).
 pub(crate) fn endpoint(url: &str, tls: Option<&ClientTls>) -> Result<Endpoint> {
     let endpoint = Endpoint::from_shared(url.to_owned())
         .map_err(|e| Error::InvalidArgument(format!("server URL {url:?}: {}", chain(&e))))?
@@ -241,6 +241,9 @@ pub(crate) fn endpoint(url: &str, tls: Option<&ClientTls>) -> Result<Endpoint> {
         .initial_connection_window_size(2 * REPLY_WINDOW_BYTES)
         .max_frame_size(REPLY_FRAME_BYTES);
     match tls {
+        Some(_) if endpoint.uri().scheme_str() != Some("https") => Err(Error::InvalidArgument(format!(
+            "server URL {url:?}: TLS options (a CA certificate, a client certificate and key) need an https:// URL"
+        ))),
         Some(tls) => {
             endpoint.tls_config(tls.config()).map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
         }
@@ -285,4 +288,19 @@ pub(crate) fn copy_request(
     compact: bool,
 ) -> proto::CopyAccelRequest {
     proto::CopyAccelRequest { accel: Some(source), name: name.to_owned(), device: device.to_owned(), compact }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tls_options_are_refused_for_a_server_url_that_is_not_https() {
+        let tls = ClientTls { ca_cert: Some(b"PEM".to_vec()), identity: None };
+        let error = endpoint("http://127.0.0.1:50051", Some(&tls)).expect_err("TLS over plain HTTP");
+        assert_eq!(error.code(), tonic::Code::InvalidArgument);
+        assert!(error.to_string().contains("https://"), "{error}");
+        assert!(endpoint("http://127.0.0.1:50051", None).is_ok(), "plain HTTP without TLS options");
+        assert!(endpoint("https://127.0.0.1:50051", Some(&ClientTls::default())).is_ok(), "TLS over https://");
+    }
 }

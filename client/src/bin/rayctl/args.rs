@@ -23,7 +23,8 @@ pub struct Cli {
     /// Sent as `authorization: Bearer <T>` with every call.
     #[arg(long, value_name = "T", global = true, env = "RAYD_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
-    /// For an https:// server: the CA certificate (PEM) that signed its certificate.
+    /// For an https:// server: the CA certificate (PEM) that signed its certificate. The TLS options are refused
+    /// for a server URL that is not https://.
     #[arg(long, value_name = "FILE", global = true, env = "RAYD_CA_CERT")]
     pub ca_cert: Option<PathBuf>,
     /// For a server that requires client certificates (mutual TLS): this client's certificate (PEM).
