@@ -1,10 +1,12 @@
 //! End to end against the real `rayd` binary through the real `rayctl`, as a person or a script runs it from the
 //! repository root: the shared bunny built from its file, listed and shown; camera rays written to a file, traced
 //! with hits (and counts) written to files byte for byte as the engine traces that file in this process; a PNG
-//! picture equal to the engine's hits shaded in this process; a short bench's report; and the exit codes and
-//! `error: <Code>: …` lines of a missing accel, a bad option and an unreachable server. Rays made by the server from
-//! `rayctl trace`'s generator options (cameras, lidar, samples around points, secondary rays) trace as the engine's
-//! expansion of the generator those options describe, sent as a ray file.
+//! picture equal to the engine's hits shaded in this process; a short bench's report, its calls in flight lowered to
+//! the server's max_concurrent_operations; and the exit codes and `error: <Code>: …` lines of a missing accel, a bad
+//! option, an unreachable server and TLS options for an http:// URL, and a quiet end when the output's reader has
+//! gone. Rays made by the server from `rayctl trace`'s generator options (cameras, lidar, samples around points,
+//! secondary rays, also from hits larger than a message) trace as the engine's expansion of the generator those
+//! options describe, sent as a ray file.
 
 mod common;
 mod daemon;
@@ -286,6 +288,20 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     let stderr = fails(&server, &["info", "bunny"], 1);
     assert!(stderr.starts_with("error: NotFound: ") && stderr.contains("bunny"), "{stderr}");
     assert_eq!(json(&server, &["accels"])["accels"], Value::Array(vec![]), "no accel left");
+}
+
+#[test]
+fn bench_keeps_at_most_the_servers_max_concurrent_operations_in_flight_and_says_so() {
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_CONCURRENT_OPERATIONS", "2")]);
+    let server = daemon.url();
+    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    // Sixteen calls at once against a limit of two: without the cap, the first refused call ends the run.
+    let args = ["bench", "--accel", "bunny", "--batch", "4096", "--concurrency", "16", "--duration", "0.5"];
+    let report = json(&server, &args);
+    assert_eq!(report["concurrency"], 2, "{report}");
+    assert!(report["batches"].as_u64().is_some_and(|batches| batches > 0), "{report}");
+    let text = succeeds(&server, &args);
+    assert!(text.contains("2 in flight (lowered from 16: the server's max_concurrent_operations)"), "{text}");
 }
 
 #[test]

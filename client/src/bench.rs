@@ -18,7 +18,8 @@ use crate::error::{Error, Result};
 pub struct BenchOptions {
     /// Rays a call.
     pub batch: usize,
-    /// Calls in flight at once (one task each).
+    /// Calls in flight at once (one task each), at most the server's `max_concurrent_operations` for this tenant:
+    /// a larger number is lowered to it ([`BenchReport::concurrency`]), as more calls would be refused.
     pub concurrency: usize,
     /// How long tasks keep starting new calls.
     pub duration: Duration,
@@ -39,6 +40,8 @@ pub struct BenchReport {
     pub server_time: Duration,
     /// Every call's end-to-end latency, sorted.
     pub latencies: Vec<Duration>,
+    /// Calls kept in flight: [`BenchOptions::concurrency`], lowered to the server's `max_concurrent_operations`.
+    pub concurrency: usize,
 }
 
 impl BenchReport {
@@ -76,7 +79,7 @@ struct TaskTally {
 }
 
 impl Client {
-    /// Runs `options.concurrency` tasks that each trace batches of random rays (origins in the accel's box,
+    /// Runs `options.concurrency` tasks (at most the server's `max_concurrent_operations`) that each trace batches of random rays (origins in the accel's box,
     /// uniform directions, a different seed a task) against `accel` until `options.duration` is over, calling
     /// `on_batch` with the ray count after every call. The first failed call ends the run with its error.
     pub async fn bench(
@@ -87,10 +90,12 @@ impl Client {
     ) -> Result<BenchReport> {
         let info = self.accel(accel).await?;
         let (lo, hi) = bounds(&info).ok_or_else(|| Error::InvalidArgument(format!("accel {accel}: no triangles")))?;
+        let limits = self.server_info().await?.limits.unwrap_or_default();
+        let concurrency = capped(options.concurrency, limits.max_concurrent_operations as usize);
         let start = Instant::now();
         let deadline = start + options.duration;
         let mut tasks = JoinSet::new();
-        for seed in 0..options.concurrency.max(1) as u64 {
+        for seed in 0..concurrency as u64 {
             let rays = Bytes::from(random_rays(lo, hi, options.batch, seed, options.query.ray_format));
             let (client, accel, query, on_batch) = (self.clone(), accel.to_owned(), options.query, on_batch.clone());
             tasks.spawn(async move {
@@ -122,8 +127,15 @@ impl Client {
             elapsed: start.elapsed(),
             server_time: Duration::from_nanos(total.server_ns),
             latencies: total.latencies,
+            concurrency,
         })
     }
+}
+
+/// `asked` calls in flight (at least 1), at most `limit` (0: none known).
+fn capped(asked: usize, limit: usize) -> usize {
+    let asked = asked.max(1);
+    if limit == 0 { asked } else { asked.min(limit) }
 }
 
 #[cfg(test)]
@@ -138,6 +150,7 @@ mod tests {
             elapsed: Duration::from_secs(2),
             server_time: Duration::ZERO,
             latencies: (1..=100).map(Duration::from_millis).collect(),
+            concurrency: 1,
         };
         assert_eq!(report.latency(0.5), Duration::from_millis(50));
         assert_eq!(report.latency(0.9), Duration::from_millis(90));
@@ -146,5 +159,13 @@ mod tests {
         assert_eq!(report.latency(0.0), Duration::from_millis(1));
         assert_eq!(report.rays_per_second(), 500.0);
         assert_eq!(BenchReport { latencies: vec![], ..report }.latency(0.5), Duration::ZERO);
+    }
+
+    #[test]
+    fn concurrency_is_lowered_to_the_servers_limit() {
+        assert_eq!(capped(200, 64), 64);
+        assert_eq!(capped(4, 64), 4);
+        assert_eq!(capped(0, 64), 1, "at least one call");
+        assert_eq!(capped(200, 0), 200, "no limit known");
     }
 }

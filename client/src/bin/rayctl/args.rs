@@ -583,7 +583,8 @@ pub struct BenchArgs {
     /// Rays a call.
     #[arg(long, value_name = "N", default_value_t = 65536, value_parser = clap::value_parser!(u64).range(1..))]
     pub batch: u64,
-    /// Calls in flight at once.
+    /// Calls in flight at once. More than the server's max_concurrent_operations (for this tenant) would be
+    /// refused: they are lowered to it, and the report says so.
     #[arg(long, value_name = "C", default_value_t = 4, value_parser = clap::value_parser!(u64).range(1..=4096))]
     pub concurrency: u64,
     /// Seconds to run.

@@ -371,18 +371,23 @@ async fn bench(client: &Client, args: &BenchArgs, json: bool) -> Result<Output> 
     let report = report?;
     let latency_ms = |q| report.latency(q).as_secs_f64() * 1e3;
     let (p50, p90, p99) = (latency_ms(0.5), latency_ms(0.9), latency_ms(0.99));
+    let lowered = if report.concurrency < options.concurrency {
+        format!(" (lowered from {}: the server's max_concurrent_operations)", options.concurrency)
+    } else {
+        String::new()
+    };
     let json = json!({
-        "rays": report.rays, "hits": report.rays_hit, "batches": report.batches(),
+        "rays": report.rays, "hits": report.rays_hit, "batches": report.batches(), "concurrency": report.concurrency,
         "seconds": report.elapsed.as_secs_f64(), "rays_per_s": report.rays_per_second(),
         "server_ms": report.server_time.as_secs_f64() * 1e3, "p50_ms": p50, "p90_ms": p90, "p99_ms": p99,
     });
     let text = format!(
-        "{} batches of {} rays, {} in flight, {:.2} s: {:.3} M rays/s ({:.1}% hit; server trace time {:.2} s summed \
-         over calls)\n\
+        "{} batches of {} rays, {} in flight{lowered}, {:.2} s: {:.3} M rays/s ({:.1}% hit; server trace time {:.2} s \
+         summed over calls)\n\
          latency p50 {p50:.2} ms  p90 {p90:.2} ms  p99 {p99:.2} ms",
         report.batches(),
         options.batch,
-        options.concurrency,
+        report.concurrency,
         report.elapsed.as_secs_f64(),
         report.rays_per_second() / 1e6,
         100.0 * report.rays_hit as f64 / report.rays.max(1) as f64,
