@@ -735,7 +735,7 @@ async fn a_trace_streams_chunks_trace_the_accel_as_it_is_when_they_come() {
     sender.send(stream_query(trace_query("tri", &query))).await.expect("the stream is open");
     let mut responses =
         client.trace_stream(ReceiverStream::new(receiver)).await.expect("the stream starts").into_inner();
-    let mut next_t = async |responses: &mut Streaming<pb::TraceStreamResponse>| {
+    let next_t = async |responses: &mut Streaming<pb::TraceStreamResponse>| {
         sender.send(stream_rays(&down_rays(1))).await.expect("the stream is open");
         let hits = responses.message().await.map(|response| response.expect("a response").hits);
         hits.map(|hits| f32::from_le_bytes(hits[..4].try_into().expect("a t")))

@@ -123,7 +123,8 @@ fn merged_counts(len: usize, a: Vec<(u32, u64)>, b: Vec<(u32, u64)>) -> Partial 
     loop {
         let next = match (a.peek(), b.peek()) {
             (Some(&(i, x)), Some(&(j, y))) if i == j => {
-                (a.next(), b.next());
+                a.next();
+                b.next();
                 (i, x + y)
             }
             (Some(&(i, _)), Some(&(j, _))) if j < i => b.next().expect("peeked"),
