@@ -60,8 +60,13 @@ pub fn trace_source<B: Backend + ?Sized>(
     backend.trace(accel, query, packed(rays, query.ray_format, &mut scratch), out)
 }
 
+/// Most bytes of hit records and counts that [`trace_reduced`] holds at once.
+pub const MOST_REDUCED_HIT_BYTES: usize = 256 << 20;
+
 /// [`Backend::trace_reduced`] with the rays made and the hits reduced on the host: traced with the reduction's
-/// [`Reduction::traced_query`] into scratch buffers, then reduced.
+/// [`Reduction::traced_query`] into scratch buffers, then reduced, in slices of whole groups of the reduction
+/// whose hits and counts take at most [`MOST_REDUCED_HIT_BYTES`] (a GPU piece of 2^22 generated rays of an `all`
+/// query would need 80 GiB at once), the slices' partials folded in ray order.
 pub fn trace_reduced<B: Backend + ?Sized>(
     backend: &B,
     accel: &dyn BackendAccel,
@@ -70,12 +75,43 @@ pub fn trace_reduced<B: Backend + ?Sized>(
     first_ray: u64,
     reduction: &Reduction,
 ) -> Result<(Partial, TraceStats)> {
-    let mut scratch = PartScratch::default();
+    trace_reduced_within(backend, accel, query, rays, first_ray, reduction, MOST_REDUCED_HIT_BYTES)
+}
+
+/// [`trace_reduced`] in slices whose hits and counts take at most `most_hit_bytes` (at least a group's).
+fn trace_reduced_within<B: Backend + ?Sized>(
+    backend: &B,
+    accel: &dyn BackendAccel,
+    query: &Query,
+    rays: RaySource<'_>,
+    first_ray: u64,
+    reduction: &Reduction,
+    most_hit_bytes: usize,
+) -> Result<(Partial, TraceStats)> {
     let traced = reduction.traced_query(query);
+    let ray_size = traced.ray_format.size();
+    let count = traced.output_layout(rays.packed_len(ray_size))?.rays;
+    let ray_bytes = traced.records_per_ray() * traced.hit_format.size().unwrap_or(1) + 4;
+    let group = reduction.group_rays();
+    let slice = (most_hit_bytes / ray_bytes / group).max(1) * group;
     let trace = |rays: &[u8], out: TraceOutput<'_>| backend.trace(accel, &traced, rays, out);
-    trace_then_reduce(&traced, rays, &mut scratch, Generator::fill_parallel, trace, |rays, hits, counts| {
-        reduction.reduce_piece_parallel(&traced, first_ray, rays, hits, counts)
-    })
+    let mut scratch = PartScratch::default();
+    let (mut folded, mut stats) = (reduction.empty(), TraceStats::default());
+    for start in (0..count).step_by(slice) {
+        let range = start..(start + slice).min(count);
+        let first = first_ray + start as u64;
+        let (partial, traced_stats) = trace_then_reduce(
+            &traced,
+            rays.part(range, ray_size),
+            &mut scratch,
+            Generator::fill_parallel,
+            trace,
+            |rays, hits, counts| reduction.reduce_piece_parallel(&traced, first, rays, hits, counts),
+        )?;
+        folded.merge(partial);
+        stats.add(&traced_stats);
+    }
+    Ok((folded, stats))
 }
 
 /// Packs `rays` (made by `fill` into `scratch` when generated), traces them with `trace` (with the query `traced`)
@@ -250,7 +286,73 @@ fn sum(parts: &[TraceStats]) -> TraceStats {
 
 #[cfg(test)]
 mod tests {
+    use glam::Vec3;
+
     use super::*;
+    use crate::accel::BuildOptions;
+    use crate::backend::cpu::CpuBackend;
+    use crate::format::HitFormat;
+    use crate::geometry::{BuildInput, TriangleInput};
+    use crate::query::QueryKind;
+    use crate::raygen::{Camera, PixelSampling};
+    use crate::reduce::{Image, ImageChannel, PixelEncoding, PointCloud, PointEncoding};
+
+    #[test]
+    fn a_reduction_on_the_host_in_slices_is_the_reduction_traced_whole() {
+        // A wavy sheet of 2 × 16 × 16 triangles, two layers of it (so that an `all` query meets several).
+        let height = |x: usize, y: usize| ((x * 7 + y * 3) % 5) as f32 * 0.05;
+        let mut corners = Vec::new();
+        for layer in [0.0f32, 0.5] {
+            for (x, y) in (0..=16).flat_map(|y| (0..=16).map(move |x| (x, y))) {
+                corners.extend([x as f32, y as f32, height(x, y) + layer]);
+            }
+        }
+        let vertices: Vec<u8> = corners.iter().flat_map(|c| c.to_le_bytes()).collect();
+        let at = |layer: usize, x: usize, y: usize| (layer * 17 * 17 + y * 17 + x) as u32;
+        let indices: Vec<u8> = (0..2)
+            .flat_map(|layer| (0..16).flat_map(move |y| (0..16).map(move |x| (layer, x, y))))
+            .flat_map(|(l, x, y)| {
+                [at(l, x, y), at(l, x + 1, y), at(l, x, y + 1), at(l, x + 1, y), at(l, x + 1, y + 1), at(l, x, y + 1)]
+            })
+            .flat_map(u32::to_le_bytes)
+            .collect();
+        let accel = CpuBackend
+            .build(&[BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))], &BuildOptions::default())
+            .unwrap();
+        let camera = Camera::framing(Vec3::new(0.0, 0.0, 0.0), Vec3::new(16.0, 16.0, 1.0), 40, 30);
+        let generator = Generator::Pinhole(camera, PixelSampling { samples: 3, jitter_seed: Some(4) });
+        let rays = RaySource::Generated { generator: &generator, first: 0, count: 3_600 };
+        let closest = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+        let all = Query { kind: QueryKind::All, max_hits_per_ray: 4, ..closest };
+        let cloud = PointCloud { encoding: PointEncoding::Float32, step: 1.0, origin: Vec3::ZERO, ray_indices: true };
+        let depths = Image {
+            width: 40,
+            rays_per_pixel: 3,
+            channel: ImageChannel::Depth,
+            encoding: PixelEncoding::Float32,
+            near: 0.0,
+            far: 1.0,
+        };
+        let cases = [
+            (closest, Reduction::Counts),
+            (all, Reduction::Histogram { bins: 32, t_min: 0.0, t_max: 40.0 }),
+            (all, Reduction::PointCloud(cloud)),
+            (closest, Reduction::NearestPerGroup { group: 3 }),
+            (closest, Reduction::Image(depths)),
+        ];
+        for (query, reduction) in cases {
+            let reduced = |most_hit_bytes| {
+                let (partial, stats) =
+                    trace_reduced_within(&CpuBackend, accel.as_ref(), &query, rays, 7, &reduction, most_hit_bytes)
+                        .unwrap();
+                (reduction.finish(partial, 3_600).unwrap(), stats.rays)
+            };
+            let whole = reduced(usize::MAX);
+            assert!(!whole.0.bytes.is_empty() && whole.1 == 3_600, "{reduction:?}");
+            // Slices of a few groups' hits, the last shorter.
+            assert_eq!(reduced(2_000), whole, "{reduction:?} in slices");
+        }
+    }
 
     #[test]
     fn parts_are_whole_bands_of_tiles_where_they_keep_to_the_alignment() {
