@@ -60,26 +60,14 @@ pub fn trace_source<B: Backend + ?Sized>(
     backend.trace(accel, query, packed(rays, query.ray_format, &mut scratch), out)
 }
 
-/// Most bytes of hit records and counts that [`trace_reduced`] holds at once.
+/// Most bytes of hit records and counts that a backend reducing on the host ([`trace_reduced`]) holds at once.
 pub const MOST_REDUCED_HIT_BYTES: usize = 256 << 20;
 
 /// [`Backend::trace_reduced`] with the rays made and the hits reduced on the host: traced with the reduction's
 /// [`Reduction::traced_query`] into scratch buffers, then reduced, in slices of whole groups of the reduction
-/// whose hits and counts take at most [`MOST_REDUCED_HIT_BYTES`] (a GPU piece of 2^22 generated rays of an `all`
-/// query would need 80 GiB at once), the slices' partials folded in ray order.
+/// whose hits and counts take at most `most_hit_bytes` ([`MOST_REDUCED_HIT_BYTES`] for a GPU: its piece of 2^22
+/// generated rays of an `all` query would need 80 GiB at once), the slices' partials folded in ray order.
 pub fn trace_reduced<B: Backend + ?Sized>(
-    backend: &B,
-    accel: &dyn BackendAccel,
-    query: &Query,
-    rays: RaySource<'_>,
-    first_ray: u64,
-    reduction: &Reduction,
-) -> Result<(Partial, TraceStats)> {
-    trace_reduced_within(backend, accel, query, rays, first_ray, reduction, MOST_REDUCED_HIT_BYTES)
-}
-
-/// [`trace_reduced`] in slices whose hits and counts take at most `most_hit_bytes` (at least a group's).
-fn trace_reduced_within<B: Backend + ?Sized>(
     backend: &B,
     accel: &dyn BackendAccel,
     query: &Query,
@@ -343,8 +331,7 @@ mod tests {
         for (query, reduction) in cases {
             let reduced = |most_hit_bytes| {
                 let (partial, stats) =
-                    trace_reduced_within(&CpuBackend, accel.as_ref(), &query, rays, 7, &reduction, most_hit_bytes)
-                        .unwrap();
+                    trace_reduced(&CpuBackend, accel.as_ref(), &query, rays, 7, &reduction, most_hit_bytes).unwrap();
                 (reduction.finish(partial, 3_600).unwrap(), stats.rays)
             };
             let whole = reduced(usize::MAX);

@@ -157,7 +157,7 @@ pub trait Backend: Send + Sync {
         first_ray: u64,
         reduction: &Reduction,
     ) -> Result<(Partial, TraceStats)> {
-        host::trace_reduced(self, accel, query, rays, first_ray, reduction)
+        host::trace_reduced(self, accel, query, rays, first_ray, reduction, host::MOST_REDUCED_HIT_BYTES)
     }
 }
 

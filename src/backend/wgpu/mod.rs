@@ -266,7 +266,7 @@ impl Backend for WgpuBackend {
         reduction: &Reduction,
     ) -> Result<(Partial, TraceStats)> {
         let Some(on_device) = OnDevice::of(reduction, query) else {
-            return host::trace_reduced(self, accel, query, rays, first_ray, reduction);
+            return host::trace_reduced(self, accel, query, rays, first_ray, reduction, host::MOST_REDUCED_HIT_BYTES);
         };
         let traced = reduction.traced_query(query);
         // Checks the query and that packed rays are whole records, as a trace does.
@@ -288,7 +288,7 @@ impl Backend for WgpuBackend {
         };
         // A pixel too large for one chunk is reduced on the host.
         let Ok(plan) = self.plan(&traced, count, &input, &output) else {
-            return host::trace_reduced(self, accel, query, rays, first_ray, reduction);
+            return host::trace_reduced(self, accel, query, rays, first_ray, reduction, host::MOST_REDUCED_HIT_BYTES);
         };
         let stats = self.run(wgpu_accel(accel)?, &traced, &plan, input, output)?;
         Ok((on_device.partial(pixels, &stats), stats))
