@@ -129,6 +129,18 @@ async fn generated_rays_trace_as_the_same_rays_sent() {
     huge.fill(query.ray_format, 100, &mut rays);
     let expected = client.trace("bunny", &query, Bytes::from(rays)).await.unwrap();
     assert!(hits == expected.hits(), "a range traces as the same rays sent");
+    // An image whose pixels the camera gives: from the start of a row, its rows; from within one, refused (its
+    // pixels would straddle the camera's rows).
+    let image = proto::Reduction { kind: Some(proto::reduction::Kind::Image(proto::ImageReduction::default())) };
+    let imaged = |first_ray| proto::TraceBatchRequest {
+        reduction: Some(image.clone()),
+        ..request(proto::RayGenerator { first_ray, ray_count: 2 * 8192, ..generator_to_proto(&huge) })
+    };
+    let rows = raw.trace_batch(imaged(3 * 8192)).await.unwrap().into_inner();
+    assert_eq!(rows.reduced.unwrap().data.len(), 2 * 8192 * 4, "two rows of float32 depths");
+    let Err(status) = raw.trace_batch(imaged(3 * 8192 + 5)).await else { panic!("an image from within a row") };
+    assert_eq!(status.code(), Code::InvalidArgument, "{status}");
+    assert!(status.message().contains("generator.first_ray"), "{status}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -13,8 +13,8 @@ fn known<T: TryFrom<i32>>(value: i32, field: &str) -> ServiceResult<T> {
 }
 
 /// The engine's reduction for `r` (checked against the query and rays later, by the engine). An image's width and
-/// rays per pixel left 0 come from `generator` when it is a camera.
-pub fn reduction(r: &pb::Reduction, generator: Option<&Generator>) -> ServiceResult<Reduction> {
+/// rays per pixel left 0 come from `generator` when it is a camera (given with the first ray it makes).
+pub fn reduction(r: &pb::Reduction, generator: Option<(&Generator, u64)>) -> ServiceResult<Reduction> {
     use pb::reduction::Kind;
     Ok(match r.kind.as_ref().ok_or_else(|| ServiceError::invalid("reduction", "a kind is required"))? {
         Kind::Counts(_) => Reduction::Counts,
@@ -41,11 +41,11 @@ pub fn reduction(r: &pb::Reduction, generator: Option<&Generator>) -> ServiceRes
 }
 
 /// The engine's image, with the camera generator's width and samples where the request leaves them 0.
-fn image(image: &pb::ImageReduction, generator: Option<&Generator>) -> ServiceResult<Image> {
-    let camera = match generator {
-        Some(Generator::Pinhole(camera, sampling)) => Some((camera.width, sampling.samples)),
-        Some(Generator::Orthographic(camera, sampling)) => Some((camera.width, sampling.samples)),
-        _ => None,
+fn image(image: &pb::ImageReduction, generator: Option<(&Generator, u64)>) -> ServiceResult<Image> {
+    let (camera, first_ray) = match generator {
+        Some((Generator::Pinhole(camera, sampling), first)) => (Some((camera.width, sampling.samples)), first),
+        Some((Generator::Orthographic(camera, sampling), first)) => (Some((camera.width, sampling.samples)), first),
+        _ => (None, 0),
     };
     let width = match (image.width, camera) {
         (0, Some((width, _))) => width,
@@ -59,6 +59,13 @@ fn image(image: &pb::ImageReduction, generator: Option<&Generator>) -> ServiceRe
         (0, None) => 1,
         (rays, _) => rays,
     };
+    // Pixels and rows taken from the camera are the camera's only from the start of one of its rows.
+    let row = u64::from(width) * u64::from(rays_per_pixel);
+    let from_camera = camera.is_some() && (image.width == 0 || image.rays_per_pixel == 0);
+    if from_camera && !first_ray.is_multiple_of(row) {
+        let rule = format!("{first_ray} is not the start of a row ({row} rays) of the image the camera's pixels make");
+        return Err(ServiceError::invalid("generator.first_ray", rule));
+    }
     Ok(Image {
         width,
         rays_per_pixel,

@@ -104,7 +104,7 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
             return Err(ServiceError::invalid("hits_buffer_name", "cannot be combined with a reduction"));
         }
         let generator = match &rays {
-            Rays::Generated(generator, _) => Some(generator.as_ref()),
+            Rays::Generated(generator, range) => Some((generator.as_ref(), range.start)),
             Rays::Packed(_) => None,
         };
         let reduction = convert::reduction(reduction, generator)?;
