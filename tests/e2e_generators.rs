@@ -133,7 +133,7 @@ async fn generated_rays_trace_as_the_same_rays_sent() {
     // pixels would straddle the camera's rows).
     let image = proto::Reduction { kind: Some(proto::reduction::Kind::Image(proto::ImageReduction::default())) };
     let imaged = |first_ray| proto::TraceBatchRequest {
-        reduction: Some(image.clone()),
+        reduction: Some(image),
         ..request(proto::RayGenerator { first_ray, ray_count: 2 * 8192, ..generator_to_proto(&huge) })
     };
     let rows = raw.trace_batch(imaged(3 * 8192)).await.unwrap().into_inner();
