@@ -234,7 +234,7 @@ impl Reduction {
                     }
                 };
                 let slots = (0..ray_count * records).filter_map(|i| traced.hit_format.hit_t(hits, i)).map(slot);
-                Partial::counted(*bins as usize + 2, slots.collect())
+                Partial::counted(*bins as usize + 2, slots, ray_count * records)
             }
             Reduction::IdCounts(kind) => {
                 let mut counts = std::collections::BTreeMap::new();

@@ -34,13 +34,16 @@ const fn most_sparse(len: usize) -> usize {
 }
 
 impl Partial {
-    /// `len` counters, the counter of each of `slots` (indices below `len`) counted once: listed, where the
-    /// slots are few for the counters ([`Partial::SparseSums`]), or all of them.
-    pub fn counted(len: usize, mut slots: Vec<u32>) -> Partial {
+    /// `len` counters, the counter of each of `slots` (indices below `len`, at most `most_slots` of them) counted
+    /// once: all the counters where they take no more room than the slots could (counted in place), or where the
+    /// slots are many for the counters; listed otherwise ([`Partial::SparseSums`]).
+    pub fn counted(len: usize, slots: impl Iterator<Item = u32>, most_slots: usize) -> Partial {
+        if len <= most_slots {
+            return all_counted(len, slots);
+        }
+        let mut slots: Vec<u32> = slots.collect();
         if slots.len() > most_sparse(len) {
-            let mut sums = vec![0u64; len];
-            slots.iter().for_each(|&slot| sums[slot as usize] += 1);
-            return Partial::Sums(sums);
+            return all_counted(len, slots.into_iter());
         }
         slots.sort_unstable();
         let mut counts: Vec<(u32, u64)> = Vec::new();
@@ -113,6 +116,13 @@ impl Partial {
             self.merge(part);
         }
     }
+}
+
+/// `len` counters, the counter of each of `slots` counted once, all of them ([`Partial::Sums`]).
+fn all_counted(len: usize, slots: impl Iterator<Item = u32>) -> Partial {
+    let mut sums = vec![0u64; len];
+    slots.for_each(|slot| sums[slot as usize] += 1);
+    Partial::Sums(sums)
 }
 
 /// The counters of two [`Partial::SparseSums`] of `len` added up: listed while they stay few, all of them once
@@ -199,7 +209,8 @@ mod tests {
                 (0..slots).map(|i| (i * 7919 + piece * 104_729) % len as u32 / (1 + piece % 3)).collect()
             })
             .collect();
-        let partials: Vec<Partial> = pieces.iter().map(|slots| Partial::counted(len, slots.clone())).collect();
+        let partials: Vec<Partial> =
+            pieces.iter().map(|slots| Partial::counted(len, slots.iter().copied(), slots.len())).collect();
         for (slots, partial) in pieces.iter().zip(&partials) {
             match partial {
                 Partial::SparseSums { counts, .. } => {
@@ -231,8 +242,8 @@ mod tests {
             assert_eq!(as_sums(folded), expected, "folded in the order {order:?}");
         }
         // Listed counts that grow many become all the counters.
-        let mut few = Partial::counted(len, (0..16_000).collect());
-        few.merge(Partial::counted(len, (16_000..32_000).collect()));
+        let mut few = Partial::counted(len, 0..16_000, 16_000);
+        few.merge(Partial::counted(len, 16_000..32_000, 16_000));
         assert!(matches!(few, Partial::Sums(_)));
         assert_eq!(few, Partial::Sums(dense(len, &(0..32_000).collect::<Vec<_>>())));
     }
