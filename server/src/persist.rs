@@ -1,7 +1,10 @@
 //! Persistence under `--data-dir`: every buffer and accel of a tenant lives in a file of its own, written
 //! atomically (a temporary file in the same directory, fsync, rename over the old one, fsync of the directory), so
-//! a crash or `kill -9` at any moment leaves either the old or the new file, never a torn one. At start the files
-//! are read back; one that is unreadable, corrupt or of another format is reported and skipped, never fatal.
+//! a crash or `kill -9` at any moment leaves either the old or the new file, never a torn one. The write is two
+//! steps: [`Store::prepare_buffer`] or [`Store::prepare_accel`] writes and syncs the temporary file, which takes as
+//! long as the object is large; [`Prepared::put`] renames it into place, which is quick, so that callers can order
+//! the renames of concurrent changes under a lock without holding it through the writes. At start the files are
+//! read back; one that is unreadable, corrupt or of another format is reported and skipped, never fatal.
 //!
 //! Layout: `<data-dir>/tenants/<tenant>/buffers/<id>.buf` and `<data-dir>/tenants/<tenant>/accels/<handle>.acc`.
 //! Each file: `0 magic "RAYDOBJ1" | 8 record length u32 (LE) | 12 record (JSON) | payload | CRC-32 u32 (LE) of
@@ -97,14 +100,14 @@ impl Store {
         Ok(store)
     }
 
-    /// Stores a buffer (replacing any file of the same id).
-    pub fn put_buffer(&self, record: &BufferRecord, data: &[u8]) -> io::Result<()> {
-        self.write(&self.buffers.join(format!("{}.buf", record.id)), record, data)
+    /// Writes a buffer's file, to replace any file of the same id once [put](Prepared::put).
+    pub fn prepare_buffer(&self, record: &BufferRecord, data: &[u8]) -> io::Result<Prepared> {
+        self.prepare(self.buffers.join(format!("{}.buf", record.id)), record, data)
     }
 
-    /// Stores an accel (replacing any file of the same handle).
-    pub fn put_accel(&self, record: &AccelRecord, blob: &[u8]) -> io::Result<()> {
-        self.write(&self.accels.join(format!("{}.acc", record.handle)), record, blob)
+    /// Writes an accel's file, to replace any file of the same handle once [put](Prepared::put).
+    pub fn prepare_accel(&self, record: &AccelRecord, blob: &[u8]) -> io::Result<Prepared> {
+        self.prepare(self.accels.join(format!("{}.acc", record.handle)), record, blob)
     }
 
     /// Forgets a buffer.
@@ -135,28 +138,49 @@ impl Store {
         Ok(stored)
     }
 
-    /// Writes `path` atomically: record and payload to a temporary file, fsync, rename, fsync of the directory.
-    fn write(&self, path: &Path, record: &impl Serialize, payload: &[u8]) -> io::Result<()> {
+    /// Writes record and payload to a temporary file beside `path` and syncs it: the first step of writing `path`
+    /// atomically.
+    fn prepare(&self, path: PathBuf, record: &impl Serialize, payload: &[u8]) -> io::Result<Prepared> {
         let record = serde_json::to_vec(record).map_err(io::Error::other)?;
         let record_len = u32::try_from(record.len()).map_err(io::Error::other)?;
-        let mut crc = crc32fast::Hasher::new();
         let number = self.next_temporary.fetch_add(1, Ordering::Relaxed);
-        let temporary = path.with_extension(format!("{number}.{TEMPORARY}"));
-        let written = (|| {
-            let mut file = io::BufWriter::with_capacity(1 << 20, File::create(&temporary)?);
-            for part in [&MAGIC[..], &record_len.to_le_bytes(), &record, payload] {
-                crc.update(part);
-                file.write_all(part)?;
-            }
-            file.write_all(&crc.finalize().to_le_bytes())?;
-            file.into_inner().map_err(io::IntoInnerError::into_error)?.sync_all()?;
-            fs::rename(&temporary, path)?;
-            File::open(path.parent().expect("a file in a directory"))?.sync_all()
-        })();
-        if written.is_err() {
-            let _ = fs::remove_file(&temporary);
+        // Removes the temporary file if writing it fails.
+        let prepared = Prepared { temporary: path.with_extension(format!("{number}.{TEMPORARY}")), path };
+        let mut file = io::BufWriter::with_capacity(1 << 20, File::create(&prepared.temporary)?);
+        let mut crc = crc32fast::Hasher::new();
+        for part in [&MAGIC[..], &record_len.to_le_bytes(), &record, payload] {
+            crc.update(part);
+            file.write_all(part)?;
         }
-        written
+        file.write_all(&crc.finalize().to_le_bytes())?;
+        file.into_inner().map_err(io::IntoInnerError::into_error)?.sync_all()?;
+        Ok(prepared)
+    }
+}
+
+/// An object's file written and synced under a temporary name, not yet in place: [`Prepared::put`] puts it there;
+/// dropped without that, the temporary file is removed.
+#[derive(Debug)]
+#[must_use = "a prepared file is removed unless it is put in place"]
+pub struct Prepared {
+    /// The file's name once in place.
+    path: PathBuf,
+    /// Its name until then.
+    temporary: PathBuf,
+}
+
+impl Prepared {
+    /// Renames the file into place, replacing the object's old file, and syncs the directory.
+    pub fn put(self) -> io::Result<()> {
+        fs::rename(&self.temporary, &self.path)?;
+        File::open(self.path.parent().expect("a file in a directory"))?.sync_all()
+    }
+}
+
+impl Drop for Prepared {
+    fn drop(&mut self) {
+        // After a rename the temporary name is gone, and this fails harmlessly.
+        let _ = fs::remove_file(&self.temporary);
     }
 }
 
@@ -214,7 +238,7 @@ mod tests {
         let dir = scratch("round-trip");
         let store = Store::open(&dir, "default").unwrap();
         let buffer = BufferRecord { id: "buf-3".into(), name: "rays".into() };
-        store.put_buffer(&buffer, b"some bytes").unwrap();
+        store.prepare_buffer(&buffer, b"some bytes").unwrap().put().unwrap();
         let accel = AccelRecord {
             name: "scene".into(),
             handle: "acc-9".into(),
@@ -223,8 +247,13 @@ mod tests {
             version: 2,
             children: vec![ChildRecord { handle: "acc-4".into(), version: 1 }],
         };
-        store.put_accel(&accel, b"blob").unwrap();
-        store.put_accel(&AccelRecord { handle: "acc-10".into(), ..accel.clone() }, b"other").unwrap();
+        store.prepare_accel(&accel, b"blob").unwrap().put().unwrap();
+        let other = store.prepare_accel(&AccelRecord { handle: "acc-10".into(), ..accel.clone() }, b"other").unwrap();
+        let dropped = store.prepare_accel(&AccelRecord { handle: "acc-11".into(), ..accel.clone() }, b"no").unwrap();
+        drop(dropped);
+        let accel_files = fs::read_dir(dir.join("tenants/default/accels")).unwrap().count();
+        assert_eq!(accel_files, 2, "acc-9's file and acc-10's temporary one; none left of acc-11's");
+        other.put().unwrap();
         let damaged = dir.join("tenants/default/accels/acc-10.acc");
         let mut bytes = fs::read(&damaged).unwrap();
         bytes[20] ^= 1;

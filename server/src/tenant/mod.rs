@@ -96,9 +96,10 @@ pub struct Tenant {
     store: Option<Store>,
     /// Operations running and rays allowed.
     quotas: Quotas,
-    /// Held while an object and its file change together (made and written, removed and unwritten, replaced and
-    /// rewritten), so that an object removed while it is being made never leaves its file behind to come back at
-    /// the next start.
+    /// Held while an object and its file change together (made and put in place, removed and unwritten, replaced
+    /// and rewritten), so that an object removed while it is being made never leaves its file behind to come back
+    /// at the next start. Files are written before it is taken, and only renamed into place under it
+    /// ([`persistence::Pending`]): a large object's write never holds up the tenant's other changes.
     keeping: Mutex<()>,
     /// Versions of its accels that an update replaced or a destroy removed, while something may still hold them
     /// (an instance accel placing one, a trace or a stream): their bytes count against `max_total_accel_bytes`
@@ -278,12 +279,19 @@ impl Tenant {
             build_ns: start.elapsed().as_nanos() as u64,
             version: 0,
         };
+        let file = match self.prepare_accel_file(&entry) {
+            Ok(file) => file,
+            Err(unsaved) => {
+                context.destroy_accel(entry.accel.handle())?;
+                return Err(unsaved);
+            }
+        };
         let _keeping = self.keep();
         if let Err(taken) = self.accels.insert(entry.handle.clone(), name, entry.clone()) {
             context.destroy_accel(entry.accel.handle())?;
             return Err(taken);
         }
-        if let Err(unsaved) = self.persist_accel(&entry) {
+        if let Err(unsaved) = file.put() {
             self.accels.remove(&entry.handle, &entry.name)?;
             context.destroy_accel(entry.accel.handle())?;
             return Err(unsaved);
@@ -328,29 +336,36 @@ impl Tenant {
                 return Err(refused);
             }
         };
+        let loaded = accels.iter().zip(names).map(|(accel, name)| AccelEntry {
+            handle: format!("acc-{}", accel.handle().0),
+            accel: Arc::clone(accel),
+            name,
+            device: device.into(),
+            build_ns,
+            version: 0,
+        });
+        let destroy_loaded = || accels.iter().rev().try_for_each(|accel| context.destroy_accel(accel.handle()));
+        let files: ServiceResult<Vec<_>> = loaded.map(|entry| Ok((self.prepare_accel_file(&entry)?, entry))).collect();
+        let files = match files {
+            Ok(files) => files,
+            Err(unsaved) => {
+                destroy_loaded()?;
+                return Err(unsaved);
+            }
+        };
         let _keeping = self.keep();
         let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
-        for (accel, name) in accels.iter().zip(names) {
-            let entry = AccelEntry {
-                handle: format!("acc-{}", accel.handle().0),
-                accel: Arc::clone(accel),
-                name,
-                device: device.into(),
-                build_ns,
-                version: 0,
-            };
+        for (file, entry) in files {
             let inserted = self.accels.insert(entry.handle.clone(), &entry.name, entry.clone());
             let saved = inserted.and_then(|()| {
-                entries.push(entry.clone());
-                self.persist_accel(&entry)
+                entries.push(entry);
+                file.put()
             });
             if let Err(failed) = saved {
                 for done in entries.iter().rev() {
                     self.forget_accel(done)?;
                 }
-                for accel in accels.iter().rev() {
-                    context.destroy_accel(accel.handle())?;
-                }
+                destroy_loaded()?;
                 return Err(failed);
             }
         }
@@ -373,10 +388,11 @@ impl Tenant {
         let accel = update(context)?;
         let build_ns = start.elapsed().as_nanos() as u64;
         let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
+        let file = self.prepare_accel_file(&updated);
         let _keeping = self.keep();
         self.accels.replace(&entry.handle, updated.clone())?;
         self.depart(&entry.accel);
-        self.persist_accel(&updated)?;
+        file?.put()?;
         Ok(updated)
     }
 
@@ -443,7 +459,7 @@ impl Tenant {
         self.unpersist_accel(&entry.handle)?;
         if let Err(refused) = context.destroy_accel(entry.accel.handle()) {
             // An instance accel came to place it since the check: it stays, so its file is written back.
-            self.persist_accel(entry)?;
+            self.prepare_accel_file(entry)?.put()?;
             return Err(refused.into());
         }
         self.accels.remove(&entry.handle, &entry.name)?;
@@ -513,12 +529,19 @@ impl Tenant {
         let context = self.context(DEFAULT_DEVICE)?.1;
         let handle = context.create_buffer(data);
         let entry = BufferEntry { id: id.clone(), name: name.into(), handle, size_bytes };
+        let file = match self.prepare_buffer_file(&entry) {
+            Ok(file) => file,
+            Err(unsaved) => {
+                context.destroy_buffer(handle)?;
+                return Err(unsaved);
+            }
+        };
         let _keeping = self.keep();
         if let Err(taken) = self.buffers.insert(id, name, entry.clone()) {
             context.destroy_buffer(handle)?;
             return Err(taken);
         }
-        if let Err(unsaved) = self.persist_buffer(&entry) {
+        if let Err(unsaved) = file.put() {
             self.buffers.remove(&entry.id, &entry.name)?;
             context.destroy_buffer(handle)?;
             return Err(unsaved);
@@ -592,6 +615,36 @@ mod tests {
             assert_eq!((tenant.buffers().len(), files()), (0, 0), "round {round}: a file left behind");
         }
         assert_eq!(cpu_tenant(Limits::default()).with_store(store()).restore().unwrap().buffers, 0);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn files_are_written_before_the_lock_that_orders_changes_is_taken() {
+        let dir = std::env::temp_dir().join(format!("rayd-written-first-{}", std::process::id()));
+        let tenant = cpu_tenant(Limits::default()).with_store(crate::persist::Store::open(&dir, "t").unwrap());
+        let buffers = dir.join("tenants/t/buffers");
+        let size = 8 << 20;
+        // While another change holds the lock, a create writes its whole file under a temporary name, and puts it
+        // in place once the lock is free.
+        std::thread::scope(|scope| {
+            let held = tenant.keep();
+            let create = scope.spawn(|| tenant.create_buffer("header.name", "big", Bytes::from(vec![1; size])));
+            let written_under = |extension: &str| {
+                std::fs::read_dir(&buffers).unwrap().map(|entry| entry.unwrap().path()).any(|path| {
+                    path.extension().is_some_and(|e| e == extension)
+                        && std::fs::metadata(&path).is_ok_and(|m| m.len() > size as u64)
+                })
+            };
+            let waiting_since = Instant::now();
+            while !written_under("tmp") {
+                assert!(waiting_since.elapsed().as_secs() < 60, "no whole temporary file while the lock is held");
+                std::thread::yield_now();
+            }
+            assert!(!written_under("buf"), "the file is in place before the change holds the lock");
+            drop(held);
+            create.join().unwrap().unwrap();
+            assert!(written_under("buf") && !written_under("tmp"));
+        });
         let _ = std::fs::remove_dir_all(&dir);
     }
 

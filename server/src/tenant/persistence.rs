@@ -1,5 +1,6 @@
-//! A tenant's objects in its [`Store`]: written after every change (a change whose write fails is undone where it
-//! can be, and reported), and restored at start: buffers first, then accels, each after the accels it places. An
+//! A tenant's objects in its [`Store`]: written with every change (a change whose write fails is undone where it
+//! can be, and reported; the file is written before the change and put in place with it, see [`Pending`]), and
+//! restored at start: buffers first, then accels, each after the accels it places. An
 //! accel saved against an older version of a child (the child was updated since, and the accel not) comes back
 //! stale, refusing traces until it is updated, as it did before the restart.
 
@@ -10,7 +11,7 @@ use rayd_engine::Accel;
 
 use super::{AccelEntry, BufferEntry, DEFAULT_DEVICE, Tenant};
 use crate::error::{ServiceError, ServiceResult};
-use crate::persist::{AccelRecord, BufferRecord, ChildRecord, Store};
+use crate::persist::{AccelRecord, BufferRecord, ChildRecord, Prepared, Store};
 
 /// What a restore did.
 #[derive(Debug, Default, PartialEq, Eq)]
@@ -25,6 +26,28 @@ pub struct Restored {
     pub skipped: Vec<(String, String)>,
 }
 
+/// An object's file written beside its place, to be put there with the change it records: writing takes as long
+/// as the object is large, and is done before [`Tenant::keeping`] is taken; the quick put, under it. Dropped
+/// without [`Pending::put`], the written file is removed.
+#[must_use = "the file is removed unless it is put in place"]
+pub(super) struct Pending(Option<(Prepared, String)>);
+
+impl Pending {
+    /// The file that `written` wrote (storing `what`), or why it could not be written.
+    fn of(what: String, written: std::io::Result<Prepared>) -> ServiceResult<Pending> {
+        match written {
+            Ok(prepared) => Ok(Pending(Some((prepared, what)))),
+            Err(e) => Err(ServiceError::storage(what, e)),
+        }
+    }
+
+    /// Puts the file in place (nothing without a store).
+    pub(super) fn put(self) -> ServiceResult<()> {
+        let Some((prepared, what)) = self.0 else { return Ok(()) };
+        prepared.put().map_err(|e| ServiceError::storage(what, e))
+    }
+}
+
 /// The number in a `prefix-N` id or handle.
 fn number(id: &str) -> Option<u64> {
     id.split_once('-')?.1.parse().ok()
@@ -36,9 +59,10 @@ impl Tenant {
         Tenant { store: Some(store), ..self }
     }
 
-    /// Writes `entry`'s accel (its children referred to) to the store, if there is one.
-    pub(super) fn persist_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
-        let Some(store) = &self.store else { return Ok(()) };
+    /// Writes `entry`'s accel (its children referred to) to a file of the store, if there is one, to be put in
+    /// place.
+    pub(super) fn prepare_accel_file(&self, entry: &AccelEntry) -> ServiceResult<Pending> {
+        let Some(store) = &self.store else { return Ok(Pending(None)) };
         let children = entry.accel.children();
         let registered = self.accels.values();
         let child_records = children
@@ -59,7 +83,7 @@ impl Tenant {
             version: entry.version,
             children: child_records,
         };
-        store.put_accel(&record, &blob).map_err(|e| ServiceError::storage(format!("storing accel {:?}", entry.name), e))
+        Pending::of(format!("storing accel {:?}", entry.name), store.prepare_accel(&record, &blob))
     }
 
     /// Removes an accel from the store, if there is one.
@@ -68,12 +92,12 @@ impl Tenant {
         store.remove_accel(handle).map_err(|e| ServiceError::storage(format!("removing the file of accel {handle}"), e))
     }
 
-    /// Writes a buffer to the store, if there is one.
-    pub(super) fn persist_buffer(&self, entry: &BufferEntry) -> ServiceResult<()> {
-        let Some(store) = &self.store else { return Ok(()) };
+    /// Writes a buffer to a file of the store, if there is one, to be put in place.
+    pub(super) fn prepare_buffer_file(&self, entry: &BufferEntry) -> ServiceResult<Pending> {
+        let Some(store) = &self.store else { return Ok(Pending(None)) };
         let data = self.context(DEFAULT_DEVICE)?.1.buffer(entry.handle)?;
         let record = BufferRecord { id: entry.id.clone(), name: entry.name.clone() };
-        store.put_buffer(&record, &data).map_err(|e| ServiceError::storage(format!("storing buffer {}", entry.id), e))
+        Pending::of(format!("storing buffer {}", entry.id), store.prepare_buffer(&record, &data))
     }
 
     /// Removes a buffer from the store, if there is one.
