@@ -10,7 +10,7 @@ use bytes::Bytes;
 use dashmap::DashMap;
 use glam::Vec3;
 
-use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage};
+use crate::accel::{AccelInfo, AccelKind, BuildFlags, BuildOptions, MemoryUsage, TRANSFORM_FLAGS};
 use crate::backend::cpu::CpuBackend;
 #[cfg(feature = "wgpu")]
 use crate::backend::wgpu::WgpuOptions;
@@ -354,14 +354,20 @@ impl Context {
     }
 
     /// Updates (refits) a geometry accel built with `ALLOW_UPDATE` with new vertex positions of the same structure
-    /// (per input: triangle count, indices, masks, flags, offset; FAILED_PRECONDITION naming the difference
-    /// otherwise) and as many motion keys (INVALID_ARGUMENT otherwise). The accel keeps its handle; traces already running finish on the old version, and accels that
-    /// place it refuse traces until they are updated too. Triangles degenerate at the build stay unhittable.
+    /// (per input: triangle count, indices, masks, flags, offset, as many motion keys; FAILED_PRECONDITION naming
+    /// the difference otherwise). The accel keeps its handle; traces already running finish on the old version,
+    /// and accels that place it refuse traces until they are updated too. Triangles degenerate at the build stay
+    /// unhittable.
     pub fn update_accel(&self, accel: &Accel, inputs: &[BuildInput<'_>]) -> Result<Arc<Accel>> {
         let built = accel.retained.structure.as_ref().ok_or_else(|| {
             Error::FailedPrecondition("the accel is not a geometry accel built with ALLOW_UPDATE".into())
         })?;
-        if let Some(difference) = built.difference(&Structure::of(inputs, accel.info.options.motion.keys as usize)?) {
+        let keys = accel.info.options.motion.keys as usize;
+        let difference = match Structure::key_difference(inputs, keys) {
+            Some(keys_differ) => Some(keys_differ),
+            None => built.difference(&Structure::of(inputs, keys)?),
+        };
+        if let Some(difference) = difference {
             return Err(Error::FailedPrecondition(format!(
                 "the update's structure differs from the build's: {difference}"
             )));
@@ -436,15 +442,16 @@ impl Context {
     }
 
     /// Places `child` under a transform (static, matrix motion or SRT motion), as a traversable that instances can
-    /// point at; its info's motion options are the transform's. The child cannot be destroyed while the transform
-    /// lives.
+    /// point at; its info's motion options are the transform's. A transform can always be updated and compacted (a
+    /// compacted copy is a copy): its flags are [`TRANSFORM_FLAGS`]. The child cannot be destroyed while the
+    /// transform lives.
     pub fn build_transform(&self, transform: &TransformInput, child: &Arc<Accel>) -> Result<Arc<Accel>> {
         let checked: Transform = transform.check()?;
         check_depth(child.info.depth, "child", None)?;
         self.check_device(child)?;
         let data = self.device.backend.build_transform(&checked, child)?;
         let shape = Shape { kind: transform_kind(transform), triangle_count: 0, geometry_count: 0, instance_count: 0 };
-        let options = BuildOptions { motion: checked.motion(), ..BuildOptions::default() };
+        let options = BuildOptions { flags: TRANSFORM_FLAGS, motion: checked.motion() };
         let retained = Retained { structure: None, transform: Some(transform.clone()) };
         Ok(self.register(shape, &options, data, vec![Arc::clone(child)], retained))
     }

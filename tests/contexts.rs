@@ -11,7 +11,7 @@ use common::{icosphere, pack_rays, random_rays, shared_mesh};
 use glam::Vec3;
 use rayd_engine::accel::{BuildFlags, BuildOptions};
 use rayd_engine::format::{HitFormat, RayFormat};
-use rayd_engine::geometry::{BuildInput, TriangleInput};
+use rayd_engine::geometry::{BuildInput, TransformInput, TriangleInput};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, QueryKind, TraceOutput};
 use rayd_engine::raygen::Camera;
@@ -282,4 +282,23 @@ fn copies_and_compacted_copies_trace_as_the_source_within_the_reported_size() {
     let error = context.copy_accel(&plain, true).unwrap_err();
     assert_eq!(error.kind(), ErrorKind::FailedPrecondition);
     assert_eq!(camera_hits(&context, &context.copy_accel(&plain, false).unwrap(), &mesh), expected);
+}
+
+#[test]
+fn transforms_can_always_be_updated_and_compacted_and_say_so() {
+    let context = Context::new(Device::cpu());
+    let mesh = shared_mesh("stanford-bunny");
+    let packed = mesh.pack();
+    let child = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let identity = [1., 0., 0., 0., 0., 1., 0., 0., 0., 0., 1., 0.];
+    let placed = context.build_transform(&TransformInput::Static(identity), &child).unwrap();
+    let flags = placed.info().options.flags;
+    assert!(flags.contains(BuildFlags::ALLOW_UPDATE | BuildFlags::ALLOW_COMPACTION), "{flags:?}");
+    let compacted = context.copy_accel(&placed, true).unwrap();
+    assert!(compacted.info().size_bytes <= placed.info().compacted_size_bytes.expect("reported"));
+    let expected = camera_hits(&context, &child, &mesh);
+    assert_eq!(camera_hits(&context, &compacted, &mesh), expected, "the compacted copy places the child as it was");
+    let moved = [1., 0., 0., 5., 0., 1., 0., 0., 0., 0., 1., 0.];
+    let updated = context.update_transform(&placed, &TransformInput::Static(moved), &child).unwrap();
+    assert_ne!(camera_hits(&context, &updated, &mesh), expected, "the update moved the child out of view");
 }

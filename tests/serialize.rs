@@ -699,18 +699,19 @@ fn every_flipped_header_byte_sampled_payload_byte_truncation_and_appended_garbag
 fn incompatible_versions_layouts_backends_and_byte_orders_are_failed_preconditions_naming_the_field() {
     let context = cpu();
     let blob = context.serialize_accel(&small_graph(&context), &[]).unwrap();
-    for (at, field) in
-        [(12, "byte-order marker"), (16, "format version"), (20, "backend"), (24, "backend layout version")]
+    // Backend 2 (wgpu) loads on the CPU (both store the host structure); 3 is none this build knows.
+    for (at, field, step) in
+        [(12, "byte-order marker", 1), (16, "format version", 1), (20, "backend", 2), (24, "backend layout version", 1)]
     {
         let mut changed = blob.clone();
         let value = u32::from_le_bytes(changed[at..at + 4].try_into().unwrap());
-        changed[at..at + 4].copy_from_slice(&(value + 1).to_le_bytes());
+        changed[at..at + 4].copy_from_slice(&(value + step).to_le_bytes());
         reseal(&mut changed);
         let err = load_error(&changed);
         assert_eq!(err.kind(), ErrorKind::FailedPrecondition, "{field}: {err}");
         assert!(matches!(&err, Error::IncompatibleBlob { field: f, .. } if *f == field), "{field}: {err}");
         let message = err.to_string();
-        assert!(message.contains(&(value + 1).to_string()) || message.contains("0x01020305"), "{message}");
+        assert!(message.contains(&(value + step).to_string()) || message.contains("0x01020305"), "{message}");
     }
     // Written on a big-endian machine: the marker and the checksum read byte-swapped.
     let mut big = blob.clone();

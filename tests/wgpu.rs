@@ -800,6 +800,58 @@ fn geometry_accels_copy_between_devices_and_graphs_stay_on_theirs() {
 }
 
 #[test]
+fn a_scene_saved_on_one_backend_loads_on_the_other_and_traces_as_it_did() {
+    let Some(device) = gpu() else { return };
+    let (cpu, gpu) = (Context::new(Device::cpu()), Context::new(device));
+    let mesh = bunny().pack();
+    let built = cpu.build_accel(&[BuildInput::Triangles(mesh.input())], &BuildOptions::default()).unwrap();
+    let moved = Affine3A::from_translation(Vec3::new(0.05, 0.02, 0.0));
+    let placed = [
+        instance(&built, Affine3A::IDENTITY, 1, 0xFF, InstanceFlags::empty()),
+        instance(&built, moved, 2, 0xFF, InstanceFlags::empty()),
+    ];
+    let on_cpu = cpu.build_instance_accel(&placed, &BuildOptions::default()).unwrap();
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::Full);
+    let packed = pack_rays(&camera_rays(2000), RayFormat::OriginTminDirectionTmax);
+    let (want, _) = trace(&cpu, &on_cpu, &query, &packed);
+
+    let to_gpu =
+        gpu.deserialize_accel(&cpu.serialize_accel(&on_cpu, &[]).unwrap(), &[]).expect("a CPU blob on the GPU");
+    let on_gpu = to_gpu.last().unwrap();
+    assert_eq!(on_gpu.info().kind, AccelKind::Instances);
+    let (got, _) = trace(&gpu, on_gpu, &query, &packed);
+    let hits = (0..2000).filter(|&i| HitFormat::Full.read(&want, i).is_hit()).count();
+    let differing = (0..2000)
+        .filter(|&i| {
+            let (c, g) = (HitFormat::Full.read(&want, i), HitFormat::Full.read(&got, i));
+            c.prim_id != g.prim_id || c.inst_path.ids() != g.inst_path.ids() || !close(c.t, g.t, 1e-4)
+        })
+        .count();
+    assert!(hits > 500 && differing <= 1, "{hits} hits; {differing} of 2000 rays differ on the GPU");
+
+    let back = cpu.deserialize_accel(&gpu.serialize_accel(on_gpu, &[]).unwrap(), &[]).expect("a GPU blob on the CPU");
+    let (again, _) = trace(&cpu, back.last().unwrap(), &query, &packed);
+    assert_eq!(again, want, "the GPU's blob is the host structure the CPU built");
+}
+
+#[test]
+fn triangles_whose_corners_no_binding_can_hold_are_refused_before_their_build() {
+    let Some(device) = gpu() else { return };
+    // 2^20 copies of one triangle at 64 motion keys: 3 GiB of corners on the device, more than a binding of any
+    // adapter can hold (wgpu's bindings are at most 4 GiB − 1 bytes; 2 GiB and less are usual).
+    let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let indices: Vec<u8> = [0u32, 1, 2].iter().cycle().take(3 << 20).flat_map(|i| i.to_le_bytes()).collect();
+    let moving = vec![&vertices[..]; 63];
+    let input = TriangleInput { motion_vertices: &moving, ..TriangleInput::indexed(&vertices, &indices) };
+    let motion = MotionOptions { keys: 64, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
+    let options = BuildOptions { motion, ..BuildOptions::default() };
+    let error = Context::new(device).compute_memory_usage(&[BuildInput::Triangles(input)], &options).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::ResourceExhausted, "{error}");
+    let message = error.to_string();
+    assert!(message.contains("triangle corners on the device") && message.contains("3221225472 bytes"), "{message}");
+}
+
+#[test]
 fn an_accel_deeper_than_the_kernels_stack_is_refused_by_name_and_kept_on_the_cpu() {
     let Some(device) = gpu() else { return };
     // Triangles nested in ever smaller copies of each other: the BVH over them is a chain, one level a triangle.

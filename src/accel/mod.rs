@@ -62,6 +62,10 @@ pub struct MemoryUsage {
     pub temp_update_bytes: u64,
 }
 
+/// The flags of every transform, whatever its build was given: it can always be updated, and compacted (a
+/// compacted copy is a copy). A blob stores none for a transform.
+pub const TRANSFORM_FLAGS: BuildFlags = BuildFlags::ALLOW_UPDATE.union(BuildFlags::ALLOW_COMPACTION);
+
 /// What an accel is built over.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum AccelKind {
@@ -75,6 +79,13 @@ pub enum AccelKind {
     MatrixMotionTransform,
     /// One other accel under an SRT motion transform.
     SrtMotionTransform,
+}
+
+impl AccelKind {
+    /// Whether it is a transform (static or moving).
+    pub fn is_transform(self) -> bool {
+        matches!(self, AccelKind::Transform | AccelKind::MatrixMotionTransform | AccelKind::SrtMotionTransform)
+    }
 }
 
 /// What is known about a built accel.

@@ -32,6 +32,11 @@ pub enum BackendKind {
     Wgpu,
 }
 
+impl BackendKind {
+    /// Every kind, in builds with or without the `wgpu` feature.
+    pub const ALL: [BackendKind; 2] = [BackendKind::Cpu, BackendKind::Wgpu];
+}
+
 /// What a device is and can do.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct DeviceInfo {

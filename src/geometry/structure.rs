@@ -54,6 +54,16 @@ impl Structure {
         Ok(Structure { inputs })
     }
 
+    /// How the motion keys of `inputs` (`vertices` and each of `motion_vertices`) differ from the build's `keys`,
+    /// in words; `None` when every input gives as many. (An update that gives another number of keys changes the
+    /// structure, which [`Structure::of`] refuses as a malformed build.)
+    pub fn key_difference(inputs: &[BuildInput<'_>], keys: usize) -> Option<String> {
+        inputs.iter().enumerate().find_map(|(i, BuildInput::Triangles(input))| {
+            let given = input.motion_vertices.len() + 1;
+            (given != keys).then(|| format!("input {i}: {given} motion keys where the build had {keys}"))
+        })
+    }
+
     /// How `other` differs from this structure, in words; `None` when they are the same.
     pub fn difference(&self, other: &Structure) -> Option<String> {
         if self.inputs.len() != other.inputs.len() {
@@ -99,5 +109,8 @@ mod tests {
         assert_eq!(built.difference(&with_masks).unwrap(), "input 0: different masks");
         let two = Structure::of(&[BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices)); 2], 1).unwrap();
         assert_eq!(built.difference(&two).unwrap(), "2 build inputs where the build had 1");
+        let one_key = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        assert_eq!(Structure::key_difference(&one_key, 1), None);
+        assert_eq!(Structure::key_difference(&one_key, 3).unwrap(), "input 0: 1 motion keys where the build had 3");
     }
 }

@@ -6,7 +6,7 @@ use std::collections::{HashMap, HashSet};
 use std::sync::Arc;
 
 use super::wire::{Reader, Wire, invalid, put, put_array, u32_at};
-use crate::accel::{AccelKind, BuildFlags, BuildOptions};
+use crate::accel::{AccelKind, BuildFlags, BuildOptions, TRANSFORM_FLAGS};
 use crate::backend::Shape;
 use crate::context::{Accel, Retained};
 use crate::error::Result;
@@ -70,7 +70,8 @@ pub(crate) fn write(out: &mut Vec<u8>, accel: &Accel, refs: &HashMap<*const Acce
     let info = accel.info();
     let motion = &info.options.motion;
     put(out, &kind_code(info.kind));
-    put(out, &info.options.flags.bits());
+    let flags = if info.kind.is_transform() { BuildFlags::empty() } else { info.options.flags };
+    put(out, &flags.bits());
     put(out, &motion.keys);
     put(out, &[motion.time_begin, motion.time_end]);
     put(out, &motion.flags.bits());
@@ -130,6 +131,7 @@ impl<'a> Entry<'a> {
             instance_count: reader.value("instance count")?,
         };
         check_shape(&shape, &options)?;
+        let options = if kind.is_transform() { BuildOptions { flags: TRANSFORM_FLAGS, ..options } } else { options };
         let children: Vec<u32> = reader.array("children")?;
         check_children(&children, kind, index, external)?;
         let inputs: Vec<InputStructure> = reader.array("structure")?;

@@ -149,11 +149,12 @@ impl Header {
     }
 
     /// Checks that a device of `kind`, whose payload layout is `layout`, can read the blob (FAILED_PRECONDITION
-    /// naming the field otherwise).
+    /// naming the field otherwise). Every backend stores the host structure (a wgpu accel uploads it), so a blob
+    /// saved on any backend this build knows loads on any device, in the same layout.
     pub(crate) fn check_backend(&self, kind: BackendKind, layout: u32) -> Result<()> {
-        let code = backend_code(kind);
-        if self.backend != code {
-            return Err(incompatible("backend", self.backend.to_string(), format!("{code} ({kind:?})")));
+        if !BackendKind::ALL.map(backend_code).contains(&self.backend) {
+            let known = BackendKind::ALL.map(|kind| format!("{} ({kind:?})", backend_code(kind)));
+            return Err(incompatible("backend", self.backend.to_string(), known.join(" or ")));
         }
         if self.layout != layout {
             return Err(incompatible(
@@ -197,6 +198,7 @@ mod tests {
         let short = Header::read(&sealed(&vec![0; least - 1])).unwrap_err().to_string();
         assert!(short.contains("at least 140 payload bytes"), "{short}");
         Header::read(&blob).unwrap().check_backend(BackendKind::Cpu, 7).unwrap();
+        Header::read(&blob).unwrap().check_backend(BackendKind::Wgpu, 7).expect("a CPU blob loads on a GPU");
         let other = Header::read(&blob).unwrap().check_backend(BackendKind::Cpu, 8).unwrap_err();
         assert_eq!(other.kind(), ErrorKind::FailedPrecondition);
     }

@@ -25,7 +25,7 @@
 //! | 8  | 4 | CRC-32 (IEEE, as `crc32fast` computes it) of every byte from offset 12 to the end of the blob |
 //! | 12 | 4 | byte-order marker `0x01020304` (bytes `04 03 02 01`) |
 //! | 16 | 4 | format version: 1 |
-//! | 20 | 4 | backend kind: 1 = CPU, 2 = wgpu (whose payload is the CPU layout: the host structure it uploads) |
+//! | 20 | 4 | backend saved on: 1 = CPU, 2 = wgpu (its payload is the CPU layout); either loads on any device |
 //! | 24 | 4 | the backend's payload layout version ([`Backend::layout_version`](crate::backend::Backend)); CPU: 1 |
 //! | 28 | 4 | accels embedded, at least 1 (the root is the last) |
 //! | 32 | 4 | external accels |
@@ -33,8 +33,8 @@
 //! | 40 | 8 | payload bytes: the blob's length − 48 |
 //!
 //! Reading checks the magic, then the checksum (a mismatch means damage: INVALID_ARGUMENT), then compatibility:
-//! byte order, format version, backend kind and layout version (FAILED_PRECONDITION naming the field, the blob's
-//! value and the supported one), then the lengths.
+//! byte order, format version, backend kind (one this build knows) and layout version (FAILED_PRECONDITION naming
+//! the field, the blob's value and the supported one), then the lengths.
 //!
 //! The payload:
 //!
@@ -43,7 +43,8 @@
 //! 2. one entry per embedded accel:
 //!    - `u32` kind: 0 triangles, 1 instances, 2 static transform, 3 matrix motion transform, 4 SRT motion
 //!      transform;
-//!    - `u32` build flags; motion options: `u32` keys, `f32` time_begin, `f32` time_end, `u32` motion flags;
+//!    - `u32` build flags (0 for a transform, which has [`TRANSFORM_FLAGS`](crate::accel::TRANSFORM_FLAGS));
+//!      motion options: `u32` keys, `f32` time_begin, `f32` time_end, `u32` motion flags;
 //!    - `u64` triangle count, `u32` geometry count, `u64` instance count (as the accel's info reports them);
 //!    - an array of `u32` child references, the accel's distinct children in the order they were first placed:
 //!      bit 31 clear names an earlier accel of the blob by its position, bit 31 set names external accel

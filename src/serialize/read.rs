@@ -120,9 +120,7 @@ impl Graph<'_> {
             self.context.mark_stale(&accel);
         }
         // A transform is rebuilt over its child: its bounds follow the child's.
-        let transform =
-            matches!(kind, AccelKind::Transform | AccelKind::MatrixMotionTransform | AccelKind::SrtMotionTransform);
-        Ok((accel, over_moved && transform))
+        Ok((accel, over_moved && kind.is_transform()))
     }
 
     /// Keeps the accels made.

@@ -77,6 +77,55 @@ pub(super) enum ObjectKind {
     SrtTransform = 4,
 }
 
+/// One of an accel's five arrays on the device, each in one storage binding.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct DeviceArray {
+    /// Its buffer's label.
+    label: &'static str,
+    /// What it holds, and that it must fit a binding, as errors name it.
+    what: &'static str,
+}
+
+impl DeviceArray {
+    const NODES: DeviceArray = DeviceArray {
+        label: "rayd nodes",
+        what: "the accel's BVH nodes on the device (in one storage binding of the adapter)",
+    };
+    const NODE_BOXES: DeviceArray = DeviceArray {
+        label: "rayd node boxes",
+        what: "the accel's motion node boxes on the device (in one storage binding of the adapter)",
+    };
+    /// Triangle corners: 48 bytes a triangle a motion key.
+    pub(super) const CORNERS: DeviceArray = DeviceArray {
+        label: "rayd corners",
+        what: "the accel's triangle corners on the device (48 bytes a triangle a motion key, in one storage binding \
+               of the adapter)",
+    };
+    const PRIMS: DeviceArray = DeviceArray {
+        label: "rayd prims",
+        what: "the accel's triangle ids on the device (in one storage binding of the adapter)",
+    };
+    const GRAPH: DeviceArray = DeviceArray {
+        label: "rayd graph",
+        what: "the accel's objects, instances and transform keys on the device (in one storage binding of the \
+               adapter)",
+    };
+
+    /// Bytes of the corners of `triangles` triangles at `keys` motion keys.
+    pub(super) fn corner_bytes(triangles: u64, keys: u64) -> u64 {
+        triangles.saturating_mul(keys.max(1)).saturating_mul(3 * size_of::<[f32; 4]>() as u64)
+    }
+
+    /// RESOURCE_EXHAUSTED naming the array and the adapter's binding limit if `bytes` of it cannot be bound.
+    pub(super) fn check_fits(self, opened: &Opened, bytes: u64) -> Result<()> {
+        let limit = opened.binding_limit(None);
+        if bytes > limit {
+            return Err(Error::TooLarge { what: self.what, unit: "bytes", requested: bytes, limit });
+        }
+        Ok(())
+    }
+}
+
 /// An accel's buffers on the device.
 #[derive(Debug)]
 pub(super) struct GpuGraph {
@@ -102,32 +151,24 @@ impl GpuGraph {
                 flat.stack
             )));
         }
-        let limit = opened.binding_limit(None);
         let mut bytes = 0;
-        let mut buffer = |name: &str, contents: &[u8]| -> Result<wgpu::Buffer> {
+        let mut buffer = |array: DeviceArray, contents: &[u8]| -> Result<wgpu::Buffer> {
             // Bindings must not be empty: an empty array gets zero words.
             let contents = if contents.is_empty() { &[0u8; 32][..] } else { contents };
-            if contents.len() as u64 > limit {
-                return Err(Error::TooLarge {
-                    what: "the accel's device arrays",
-                    unit: "bytes",
-                    requested: contents.len() as u64,
-                    limit,
-                });
-            }
+            array.check_fits(opened, contents.len() as u64)?;
             bytes += contents.len() as u64;
             Ok(opened.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(name),
+                label: Some(array.label),
                 contents,
                 usage: wgpu::BufferUsages::STORAGE,
             }))
         };
         let buffers = [
-            buffer("rayd nodes", bytemuck::cast_slice(&flat.nodes))?,
-            buffer("rayd node boxes", bytemuck::cast_slice(&flat.boxes))?,
-            buffer("rayd corners", bytemuck::cast_slice(&flat.corners))?,
-            buffer("rayd prims", bytemuck::cast_slice(&flat.prims))?,
-            buffer("rayd graph", bytemuck::cast_slice(&flat.graph))?,
+            buffer(DeviceArray::NODES, bytemuck::cast_slice(&flat.nodes))?,
+            buffer(DeviceArray::NODE_BOXES, bytemuck::cast_slice(&flat.boxes))?,
+            buffer(DeviceArray::CORNERS, bytemuck::cast_slice(&flat.corners))?,
+            buffer(DeviceArray::PRIMS, bytemuck::cast_slice(&flat.prims))?,
+            buffer(DeviceArray::GRAPH, bytemuck::cast_slice(&flat.graph))?,
         ];
         let entries: Vec<wgpu::BindGroupEntry<'_>> = buffers
             .iter()

@@ -40,13 +40,13 @@ use crate::backend::{Backend, BackendAccel, DeviceInfo, RaySource, Shape, host};
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
-use crate::geometry::{BuildInput, PlacedInstance, Transform};
+use crate::geometry::{BuildInput, PlacedInstance, Transform, triangle_counts};
 use crate::query::{Query, TraceOutput, TraceStats};
 use crate::reduce::{Partial, Reduction};
 
 use batch::{Input, Output, Slot};
 use device::{Gpu, Opened};
-use layout::GpuGraph;
+use layout::{DeviceArray, GpuGraph};
 use offload::{DeviceGenerator, OnDevice};
 
 /// Settings of a wgpu device.
@@ -160,8 +160,13 @@ impl Backend for WgpuBackend {
         self.gpu.info()
     }
 
+    /// The host's bound and [`DEVICE_COPY_BOUND`] − 1 times it for the device copy. Triangles whose corners
+    /// cannot be bound on the adapter are refused here, before a build would make their host structure.
     fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage> {
         let host = self.host.compute_memory_usage(inputs, options)?;
+        let triangles = triangle_counts(inputs, options.motion.keys as usize)?.into_iter().sum::<usize>();
+        let corners = DeviceArray::corner_bytes(triangles as u64, u64::from(options.motion.keys));
+        DeviceArray::CORNERS.check_fits(self.opened()?, corners)?;
         Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })
     }
 
