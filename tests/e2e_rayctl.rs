@@ -6,7 +6,7 @@
 //! option, an unreachable server and TLS options for an http:// URL, and a quiet end when the output's reader has
 //! gone. Rays made by the server from `rayctl trace`'s generator options (cameras, lidar, samples around points,
 //! secondary rays, also from hits larger than a message) trace as the engine's expansion of the generator those
-//! options describe, sent as a ray file.
+//! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too.
 
 mod common;
 mod daemon;
@@ -224,29 +224,11 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     assert_eq!((png_width, png_height, colour), (width, height, png::ColorType::Rgb));
     let colours: HashSet<&[u8]> = pixels.chunks_exact(3).collect();
     assert!(colours.len() > 1, "not one flat colour: {colours:?}");
-    // The default shading colours the normal of the closest hit of one ray a pixel, rays as in `Bunny::camera_rays`,
-    // reduced to an image of normals as the engine reduces a whole batch at once.
-    let image = Image {
-        width,
-        rays_per_pixel: 1,
-        channel: Shading::Normal.channel(),
-        encoding: PixelEncoding::Float32,
-        near: 0.0,
-        far: 0.0,
-    };
-    let reduction = Reduction::Image(image);
-    let query = reduction.traced_query(&Query::closest(RayFormat::OriginDirection, HitFormat::T));
-    let rays = bunny.camera_rays(query.ray_format, width, height);
-    let expected = bunny.trace(&query, &rays);
-    let normals = reduction.reduce_all(&query, &rays, &expected.hits, &expected.counts).expect("an image");
-    assert_same_bytes(&pixels, &shade(&normals.bytes, width, height, Shading::Normal).rgb, "the picture's pixels");
+    assert_same_bytes(&pixels, &bunny_picture(width, height), "the picture's pixels");
 
     // A lidar scan: the returns of the same rays traced in-process, as PLY vertices.
     let ply_file = scratch.path("scan.ply");
     let (lo, hi) = bunny.mesh.bounds();
-    let origin = [(lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z].map(|c| c.to_string()).join(",");
-    let args = ["lidar", "--accel", "bunny", "--channels", "16", "--steps", "90", "--origin", &origin, "-o", &ply_file];
-    let scanned = json(&server, &args);
     let lidar = Lidar {
         origin: Vec3::new((lo.x + hi.x) * 0.5, (lo.y + hi.y) * 0.5, hi.z + (hi - lo).z),
         forward: Vec3::NEG_Z,
@@ -257,23 +239,12 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
         max_range: f32::INFINITY,
         time: (0.0, 0.0),
     };
-    let query = Query::closest(RayFormat::OriginTminDirectionTmaxTime, HitFormat::T);
-    let rays = Generator::Lidar(lidar).rays(query.ray_format);
-    let returns = bunny.trace(&query, &rays);
-    let points = Reduction::PointCloud(PointCloud {
-        encoding: PointEncoding::Float32,
-        step: 0.0,
-        origin: Vec3::ZERO,
-        ray_indices: false,
-    });
-    let expected = points.reduce_all(&query, &rays, &returns.hits, &[]).expect("a point cloud");
-    assert_eq!(scanned["points"].as_u64(), Some(expected.bytes.len() as u64 / 12), "{scanned}");
-    assert!(expected.bytes.len() > 12 * 100, "the scan sees the bunny");
-    let ply = read(&ply_file);
-    let header_end = ply.windows(11).position(|w| w == b"end_header\n").expect("a PLY header") + 11;
-    let header = String::from_utf8_lossy(&ply[..header_end]);
-    assert!(header.contains(&format!("element vertex {}\n", expected.bytes.len() / 12)), "{header}");
-    assert_same_bytes(&ply[header_end..], &expected.bytes, "the scan's points");
+    let origin = vec3_arg(lidar.origin);
+    let args = ["lidar", "--accel", "bunny", "--channels", "16", "--steps", "90", "--origin", &origin, "-o", &ply_file];
+    let scanned = json(&server, &args);
+    let expected = bunny_scan(lidar);
+    assert!(expected.len() > 12 * 100, "the scan sees the bunny");
+    assert_scan(&scanned, &read(&ply_file), &expected);
 
     let args =
         ["bench", "--accel", "bunny", "--batch", "1000", "--concurrency", "2", "--duration", "1", "--connections", "2"];
@@ -402,6 +373,50 @@ fn rayctl_builds_a_scene_file_as_an_instance_accel_over_its_meshes_and_renders_i
     std::fs::write(&broken, r#"{ "meshes": {}, "instances": [{ "mesh": "nothing" }] }"#).unwrap();
     let refused = fails(&server, &["scene", "--file", &broken], 1);
     assert!(refused.contains("instances[0].mesh"), "{refused}");
+}
+
+/// The RGB pixels of `rayctl render`'s default picture of the bunny: the normal of the closest hit of one ray a
+/// pixel, rays as in `Bunny::camera_rays`, reduced to an image of normals as the engine reduces a whole batch at once,
+/// shaded.
+fn bunny_picture(width: u32, height: u32) -> Vec<u8> {
+    let image = Image {
+        width,
+        rays_per_pixel: 1,
+        channel: Shading::Normal.channel(),
+        encoding: PixelEncoding::Float32,
+        near: 0.0,
+        far: 0.0,
+    };
+    let reduction = Reduction::Image(image);
+    let query = reduction.traced_query(&Query::closest(RayFormat::OriginDirection, HitFormat::T));
+    let rays = bunny().camera_rays(query.ray_format, width, height);
+    let expected = bunny().trace(&query, &rays);
+    let normals = reduction.reduce_all(&query, &rays, &expected.hits, &expected.counts).expect("an image");
+    shade(&normals.bytes, width, height, Shading::Normal).rgb
+}
+
+/// The points of `rayctl lidar`'s scan of the bunny with `lidar`: the returns of its rays traced in-process, as
+/// float32 x, y, z.
+fn bunny_scan(lidar: Lidar) -> Vec<u8> {
+    let query = Query::closest(RayFormat::OriginTminDirectionTmaxTime, HitFormat::T);
+    let rays = Generator::Lidar(lidar).rays(query.ray_format);
+    let returns = bunny().trace(&query, &rays);
+    let points = Reduction::PointCloud(PointCloud {
+        encoding: PointEncoding::Float32,
+        step: 0.0,
+        origin: Vec3::ZERO,
+        ray_indices: false,
+    });
+    points.reduce_all(&query, &rays, &returns.hits, &[]).expect("a point cloud").bytes.to_vec()
+}
+
+/// Asserts that `rayctl --json lidar`'s report and PLY file hold the `expected` points.
+fn assert_scan(report: &Value, ply: &[u8], expected: &[u8]) {
+    assert_eq!(report["points"].as_u64(), Some(expected.len() as u64 / 12), "{report}");
+    let header_end = ply.windows(11).position(|w| w == b"end_header\n").expect("a PLY header") + 11;
+    let header = String::from_utf8_lossy(&ply[..header_end]);
+    assert!(header.contains(&format!("element vertex {}\n", expected.len() / 12)), "{header}");
+    assert_same_bytes(&ply[header_end..], expected, "the scan's points");
 }
 
 /// `x,y,z` as rayctl takes a vector (each `f32` printed so that it parses back to itself).
@@ -658,4 +673,44 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
     let buffers = json(&server, &["buffers"]);
     let names: Vec<&str> = buffers["buffers"].as_array().unwrap().iter().filter_map(|b| b["name"].as_str()).collect();
     assert_eq!(names, ["camera-hits"], "the temporary buffers are deleted: {buffers}");
+}
+
+#[test]
+fn pictures_and_scans_larger_than_a_message_are_traced_in_ranges_into_the_same_files() {
+    // 64 KiB messages: the picture's 83 KB of normals and the scan's points each pass a message, so that one call
+    // cannot carry them.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-large-reductions");
+    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+
+    let (width, height) = (96, 72);
+    assert!(width * height * 12 > 65536, "the normals pass a message");
+    let png_file = scratch.path("bunny.png");
+    let size = [width.to_string(), height.to_string()];
+    json(&server, &["render", "--accel", "bunny", "--width", &size[0], "--height", &size[1], "-o", &png_file]);
+    let (png_width, png_height, _, pixels) = decode_png(&png_file);
+    assert_eq!((png_width, png_height), (width, height));
+    assert_same_bytes(&pixels, &bunny_picture(width, height), "the picture's pixels");
+
+    // From the middle of the bunny's box, most rays of a narrow fan of channels hit it.
+    let (lo, hi) = bunny().mesh.bounds();
+    let lidar = Lidar {
+        origin: (lo + hi) * 0.5,
+        forward: Vec3::NEG_Z,
+        up: Vec3::Y,
+        elevations_degrees: (0..32).map(|c| -10.0 + 20.0 * c as f32 / 31.0).collect(),
+        steps: 512,
+        min_range: 0.0,
+        max_range: f32::INFINITY,
+        time: (0.0, 0.0),
+    };
+    let expected = bunny_scan(lidar.clone());
+    assert!(expected.len() > 65536, "the points pass a message: {} bytes", expected.len());
+    let ply_file = scratch.path("scan.ply");
+    let origin = vec3_arg(lidar.origin);
+    let args = ["--channels", "32", "--elevations", "-10,10", "--steps", "512", "--origin", &origin, "-o", &ply_file];
+    let scanned = json(&server, &[&["lidar", "--accel", "bunny"][..], &args].concat());
+    assert_eq!(scanned["rays"].as_u64(), Some(32 * 512), "{scanned}");
+    assert_scan(&scanned, &read(&ply_file), &expected);
 }

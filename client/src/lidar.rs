@@ -55,14 +55,15 @@ impl LidarScan {
 
 impl Client {
     /// Scans the accel called `accel` with `lidar` (closest hits, at the lidar's times): the server makes the rays
-    /// and returns only the hit points.
+    /// and returns only the hit points (in ranges of rays where they could pass half a message:
+    /// [`Client::trace_generated_reduced_in_ranges`]).
     pub async fn lidar(&self, accel: &str, lidar: &Lidar) -> Result<LidarScan> {
         let query = Query::closest(RayFormat::OriginTminDirectionTmaxTime, HitFormat::T);
         let points = PointCloud { encoding: PointEncoding::Float32, step: 0.0, origin: Vec3::ZERO, ray_indices: false };
         let generator = Generator::Lidar(lidar.clone());
         let reduction = Reduction::PointCloud(points);
         let ReducedTrace { data, stats, .. } =
-            self.trace_generated_reduced(accel, &query, &generator, &reduction).await?;
+            self.trace_generated_reduced_in_ranges(accel, &query, &generator, &reduction).await?;
         Ok(LidarScan { points: data, rays: stats.rays })
     }
 }

@@ -2,15 +2,17 @@
 //! point cloud, counts …), so neither rays nor hits cross the network.
 
 use bytes::Bytes;
+use futures_util::StreamExt;
 use rayd_engine::query::Query;
 use rayd_engine::raygen::Generator;
-use rayd_engine::reduce::Reduction;
+use rayd_engine::reduce::{PixelEncoding, Reduction};
 use rayd_proto as proto;
 use rayd_proto::trace_batch_request::Rays;
 
 use crate::client::Client;
 use crate::convert::{generator_to_proto, reduction_to_proto, trace_query};
 use crate::error::{Error, Result};
+use crate::trace::add_stats;
 
 /// What a reduced trace returned.
 #[derive(Debug, Clone)]
@@ -36,6 +38,29 @@ impl Client {
         self.trace_reduced_call(accel, query, Rays::RaysGenerator(generator_to_proto(generator)), reduction).await
     }
 
+    /// [`Client::trace_generated_reduced`] for answers of any size: an image (not PNG, its width and rays a pixel
+    /// given) or a point cloud (without ray indices) whose answer could pass
+    /// [`ClientOptions::batch_limit_bytes`](crate::ClientOptions::batch_limit_bytes) is traced in one call per range
+    /// of rays whose answer cannot (whole rows of the image), `stream_window` of them at once as in
+    /// [`Client::trace_generated`], and the ranges' answers one after another are the whole's. Any other reduction
+    /// goes in one call.
+    pub async fn trace_generated_reduced_in_ranges(
+        &self,
+        accel: &str,
+        query: &Query,
+        generator: &Generator,
+        reduction: &Reduction,
+    ) -> Result<ReducedTrace> {
+        let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        match self.rays_per_reduced_call(query, reduction) {
+            Some(per_call) if per_call < total => {
+                let generator = generator_to_proto(generator);
+                self.trace_reduced_in_ranges(accel, query, generator, reduction, total, per_call).await
+            }
+            _ => self.trace_generated_reduced(accel, query, generator, reduction).await,
+        }
+    }
+
     /// Traces packed `rays` against the accel called `accel` and returns only `reduction` of their hits, in one
     /// `TraceBatch` call.
     pub async fn trace_reduced(
@@ -46,6 +71,51 @@ impl Client {
         reduction: &Reduction,
     ) -> Result<ReducedTrace> {
         self.trace_reduced_call(accel, query, Rays::RaysInline(rays), reduction).await
+    }
+
+    /// The most rays a call of a trace reduced by `reduction` may take for its answer to fit in a batch: whole rows
+    /// of an image not compressed whose width and rays a pixel are given (at least one row), any number of rays of a
+    /// point cloud without ray indices; `None` for a reduction whose ranges' answers, one after another, are not
+    /// the whole's (or an image whose rows the server takes from the camera).
+    fn rays_per_reduced_call(&self, query: &Query, reduction: &Reduction) -> Option<usize> {
+        let (unit_rays, unit_bytes) = match reduction {
+            Reduction::Image(image)
+                if image.encoding != PixelEncoding::Png && image.width > 0 && image.rays_per_pixel > 0 =>
+            {
+                (image.width as usize * image.rays_per_pixel as usize, image.width as usize * image.pixel_bytes())
+            }
+            Reduction::PointCloud(cloud) if !cloud.ray_indices => (1, query.records_per_ray() * cloud.record_bytes()),
+            _ => return None,
+        };
+        let units = (self.options.batch_limit_bytes / unit_bytes.max(1))
+            .min(self.options.max_rays_per_call / unit_rays.max(1))
+            .max(1);
+        Some(units * unit_rays)
+    }
+
+    /// Traces the `total` rays of `generator` reduced by `reduction` in ranges of `per_call` rays, and joins their
+    /// answers in ray order.
+    async fn trace_reduced_in_ranges(
+        &self,
+        accel: &str,
+        query: &Query,
+        generator: proto::RayGenerator,
+        reduction: &Reduction,
+        total: usize,
+        per_call: usize,
+    ) -> Result<ReducedTrace> {
+        let known_bytes = reduction.answer_bytes(query, total as u64).unwrap_or(0);
+        let mut data = Vec::with_capacity(usize::try_from(known_bytes).unwrap_or(usize::MAX));
+        let (mut dropped, mut stats) = (0, proto::TraceStats::default());
+        let mut answers =
+            self.range_answers(accel, query, generator, Some(reduction_to_proto(reduction)), total, per_call);
+        while let Some((_, response)) = answers.next().await.transpose()? {
+            let part = ReducedTrace::from_response(response).map_err(Error::Protocol)?;
+            data.extend_from_slice(&part.data);
+            dropped += part.dropped;
+            add_stats(&mut stats, &part.stats);
+        }
+        Ok(ReducedTrace { data: data.into(), dropped, stats })
     }
 
     /// One reduced `TraceBatch` call.

@@ -59,7 +59,8 @@ impl Image {
 
 impl Client {
     /// Renders the accel called `accel` as `camera` sees it: one closest-hit ray through each pixel's centre, made
-    /// by the server from the camera and reduced by it to a float32 image of depths or normals.
+    /// by the server from the camera and reduced by it to a float32 image of depths or normals (in ranges of rows
+    /// where the image could pass half a message: [`Client::trace_generated_reduced_in_ranges`]).
     pub async fn render(&self, accel: &str, camera: &Camera, shading: Shading) -> Result<Image> {
         let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
         let centres = PixelSampling { samples: 1, jitter_seed: None };
@@ -72,7 +73,8 @@ impl Client {
             far: 0.0,
         };
         let generator = Generator::Pinhole(*camera, centres);
-        let traced = self.trace_generated_reduced(accel, &query, &generator, &Reduction::Image(image)).await?;
+        let traced =
+            self.trace_generated_reduced_in_ranges(accel, &query, &generator, &Reduction::Image(image)).await?;
         let expected = camera.width as usize * camera.height as usize * if shading == Shading::Normal { 12 } else { 4 };
         if traced.data.len() != expected {
             let got = traced.data.len();

@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use bytes::{Bytes, BytesMut};
-use futures_util::StreamExt;
+use futures_util::{Stream, StreamExt};
 use rayd_engine::format::RayFormat;
 use rayd_engine::query::{OutputLayout, Query};
 use rayd_engine::raygen::Generator;
@@ -137,38 +137,50 @@ impl Client {
             // Generated rays cost nothing on the wire: only the hits and counts must fit.
             chunk_rays(&Query { ray_format: RayFormat::OriginDirection, ..*query }, limit, max_rays)
         };
-        let rpc = self.rpc_for(accel);
-        let calls = (0..total).step_by(per_call.max(1)).map(|first| {
-            let count = per_call.min(total - first);
-            let range = proto::RayGenerator { first_ray: first as u64, ray_count: count as u64, ..generator.clone() };
-            let request = proto::TraceBatchRequest {
-                query: Some(trace_query(accel, query)),
-                rays: Some(trace_batch_request::Rays::RaysGenerator(range)),
-                ..Default::default()
-            };
-            let mut rpc = rpc.clone();
-            async move {
-                let response = rpc.trace_batch(request).await?.into_inner();
-                TraceResult::from_batch(query, count * ray_size, response)
-            }
+        let mut parts = self.range_answers(accel, query, generator, None, total, per_call).map(|answer| {
+            answer.and_then(|(rays, response)| TraceResult::from_batch(query, rays * ray_size, response))
         });
-        let mut parts = futures_util::stream::iter(calls).buffered(self.options.stream_window.max(1));
-        let Some(first) = parts.next().await.transpose()? else {
-            return TraceResult::from_batch(query, 0, proto::TraceBatchResponse::default());
-        };
         if per_call >= total {
-            return Ok(first);
+            // One call (none for no rays): its answer's buffers as they are.
+            return parts.next().await.unwrap_or_else(|| TraceResult::from_batch(query, 0, Default::default()));
         }
         let (mut hits, mut counts) = (BytesMut::with_capacity(layout.hits), BytesMut::with_capacity(layout.counts));
         let mut stats = proto::TraceStats::default();
-        let mut part = Some(first);
-        while let Some(result) = part {
-            hits.extend_from_slice(&result.hits);
-            counts.extend_from_slice(&result.counts);
-            add_stats(&mut stats, &result.stats);
-            part = parts.next().await.transpose()?;
+        while let Some(part) = parts.next().await.transpose()? {
+            hits.extend_from_slice(&part.hits);
+            counts.extend_from_slice(&part.counts);
+            add_stats(&mut stats, &part.stats);
         }
         Ok(TraceResult { query: *query, rays: total, hits: hits.freeze(), counts: counts.freeze(), stats })
+    }
+
+    /// The answers of `TraceBatch` calls over the ranges (`first_ray`, `ray_count`) of at most `per_call` of
+    /// `generator`'s `total` rays, in ray order, `stream_window` calls in flight: each range's ray count and the
+    /// server's answer, its hits reduced by `reduction` where one is given.
+    pub(crate) fn range_answers(
+        &self,
+        accel: &str,
+        query: &Query,
+        generator: proto::RayGenerator,
+        reduction: Option<proto::Reduction>,
+        total: usize,
+        per_call: usize,
+    ) -> impl Stream<Item = Result<(usize, proto::TraceBatchResponse)>> + use<> {
+        let rpc = self.rpc_for(accel);
+        let request =
+            proto::TraceBatchRequest { query: Some(trace_query(accel, query)), reduction, ..Default::default() };
+        let per_call = per_call.max(1);
+        let calls = (0..total).step_by(per_call).map(move |first| {
+            let count = per_call.min(total - first);
+            let range = proto::RayGenerator { first_ray: first as u64, ray_count: count as u64, ..generator.clone() };
+            let request = proto::TraceBatchRequest {
+                rays: Some(trace_batch_request::Rays::RaysGenerator(range)),
+                ..request.clone()
+            };
+            let mut rpc = rpc.clone();
+            async move { Ok::<_, Error>((count, rpc.trace_batch(request).await?.into_inner())) }
+        });
+        futures_util::stream::iter(calls).buffered(self.options.stream_window.max(1))
     }
 
     /// One `TraceBatch` call; the result's buffers are the response's own, not copies.
@@ -263,7 +275,7 @@ fn check_lengths(what: &str, got: (usize, usize), expected: (usize, usize)) -> R
 }
 
 /// Adds a chunk's statistics to the running total.
-fn add_stats(total: &mut proto::TraceStats, chunk: &proto::TraceStats) {
+pub(crate) fn add_stats(total: &mut proto::TraceStats, chunk: &proto::TraceStats) {
     total.rays += chunk.rays;
     total.rays_hit += chunk.rays_hit;
     total.nodes_visited += chunk.nodes_visited;

@@ -51,6 +51,15 @@ impl PointCloud {
         Ok(())
     }
 
+    /// Bytes a point takes in the answer: the point in its encoding, then its ray's index where asked for.
+    pub fn record_bytes(&self) -> usize {
+        let point = match self.encoding {
+            PointEncoding::Float32 | PointEncoding::Int32 => 12,
+            PointEncoding::Int16 => 6,
+        };
+        point + if self.ray_indices { 4 } else { 0 }
+    }
+
     /// The points of one piece, whose first ray is `first_ray` of the batch (hits in [`crate::format::HitFormat::TTriid`]).
     pub(super) fn reduce(&self, traced: &Query, first_ray: u64, rays: &[u8], hits: &[u8]) -> Partial {
         let (ray_size, records) = (traced.ray_format.size(), traced.records_per_ray());

@@ -139,10 +139,11 @@ fn point_clouds_place_hits_on_their_rays_and_drop_what_an_encoding_cannot_hold()
     let rays = [along_x([1.0, 2.0, 3.0]), along_x([0.0; 3]), along_x([0.0; 3])];
     let hits = [hit(0.5, 0, 0, 0), Hit::MISS, hit(400.0, 0, 0, 0)];
     let (query, ray_bytes, hit_bytes) = batch(HitFormat::T, &rays, &hits);
-    let cloud = |encoding, ray_indices| {
-        Reduction::PointCloud(PointCloud { encoding, step: 0.01, origin: Vec3::new(1.0, 0.0, 0.0), ray_indices })
-    };
-    let floats = cloud(PointEncoding::Float32, true).reduce_piece(&query, 10, &ray_bytes, &hit_bytes, &[]);
+    let cloud =
+        |encoding, ray_indices| PointCloud { encoding, step: 0.01, origin: Vec3::new(1.0, 0.0, 0.0), ray_indices };
+    let reduce =
+        |cloud, first_ray| Reduction::PointCloud(cloud).reduce_piece(&query, first_ray, &ray_bytes, &hit_bytes, &[]);
+    let floats = reduce(cloud(PointEncoding::Float32, true), 10);
     let Partial::Ordered { bytes, dropped: 0 } = floats else { panic!("{floats:?}") };
     let expected: Vec<u8> = [1.5f32, 2.0, 3.0]
         .iter()
@@ -152,14 +153,16 @@ fn point_clouds_place_hits_on_their_rays_and_drop_what_an_encoding_cannot_hold()
         .chain(12u32.to_le_bytes())
         .collect();
     assert_eq!(bytes, expected);
+    assert_eq!(2 * cloud(PointEncoding::Float32, true).record_bytes(), expected.len(), "two points and their rays");
 
     // In i16 steps of 0.01 from (1, 0, 0): (0.5, 2, 3) → (50, 200, 300); 399 / 0.01 is out of range.
-    let int16 = cloud(PointEncoding::Int16, false).reduce_piece(&query, 0, &ray_bytes, &hit_bytes, &[]);
+    let int16 = reduce(cloud(PointEncoding::Int16, false), 0);
     let expected: Vec<u8> = [50i16, 200, 300].iter().flat_map(|c| c.to_le_bytes()).collect();
+    assert_eq!(cloud(PointEncoding::Int16, false).record_bytes(), expected.len(), "one point");
     assert_eq!(int16, Partial::Ordered { bytes: expected, dropped: 1 });
-    let int32 = cloud(PointEncoding::Int32, false).reduce_piece(&query, 0, &ray_bytes, &hit_bytes, &[]);
+    let int32 = reduce(cloud(PointEncoding::Int32, false), 0);
     let Partial::Ordered { bytes, dropped: 0 } = int32 else { panic!("{int32:?}") };
-    assert_eq!(bytes.len(), 24);
+    assert_eq!((bytes.len(), 2 * cloud(PointEncoding::Int32, false).record_bytes()), (24, 24));
 }
 
 #[test]
