@@ -6,7 +6,8 @@
 //! option, an unreachable server and TLS options for an http:// URL, and a quiet end when the output's reader has
 //! gone. Rays made by the server from `rayctl trace`'s generator options (cameras, lidar, samples around points,
 //! secondary rays, also from hits larger than a message) trace as the engine's expansion of the generator those
-//! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too.
+//! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too; a missing
+//! local file is NOT_FOUND naming it, whatever it holds.
 
 mod common;
 mod daemon;
@@ -713,4 +714,45 @@ fn pictures_and_scans_larger_than_a_message_are_traced_in_ranges_into_the_same_f
     let scanned = json(&server, &[&["lidar", "--accel", "bunny"][..], &args].concat());
     assert_eq!(scanned["rays"].as_u64(), Some(32 * 512), "{scanned}");
     assert_scan(&scanned, &read(&ply_file), &expected);
+}
+
+/// The names of the server's accels, in creation order.
+fn accel_names(server: &str) -> Vec<String> {
+    let accels = json(server, &["accels"]);
+    accels["accels"].as_array().expect("a list of accels").iter().map(|a| a["name"].as_str().unwrap().into()).collect()
+}
+
+#[test]
+fn a_missing_local_file_is_not_found_naming_it_whatever_the_file_holds() {
+    let daemon = Daemon::start(&[]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-missing-files");
+    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/cow.obj", "--name", "cow", "--allow-update"]);
+    let (mesh, ply, rays, scene, points) = (
+        scratch.path("missing.obj"),
+        scratch.path("missing.ply"),
+        scratch.path("missing.rays"),
+        scratch.path("missing.json"),
+        scratch.path("missing.points"),
+    );
+    let missing: [(&[&str], &str); 5] = [
+        (&["build", "--mesh", &mesh], &mesh),
+        (&["update", "cow", "--mesh", &ply], &ply),
+        (&["trace", "--accel", "cow", "--rays", &rays, "--ray-format", "origin_direction", "--hit-format", "t"], &rays),
+        (&["scene", "--file", &scene], &scene),
+        (
+            &["trace", "--accel", "cow", "--points", &points, "--ray-format", "origin_direction", "--hit-format", "t"],
+            &points,
+        ),
+    ];
+    for (args, file) in missing {
+        let stderr = fails(&server, args, 1);
+        assert!(stderr.starts_with(&format!("error: NotFound: {file}: ")), "{args:?}: {stderr}");
+    }
+    // A file that is there but no mesh of its format is the request's fault.
+    let broken = scratch.path("broken.obj");
+    std::fs::write(&broken, "f 1 2 3\n").unwrap();
+    let stderr = fails(&server, &["build", "--mesh", &broken], 1);
+    assert!(stderr.starts_with(&format!("error: InvalidArgument: {broken}: ")), "{stderr}");
+    assert_eq!(accel_names(&server), ["cow"]);
 }

@@ -51,10 +51,15 @@ impl Mesh {
         let path = path.as_ref();
         let error = |reason: String| LoadError { path: path.display().to_string(), reason };
         let bytes = std::fs::read(path).map_err(|e| error(e.to_string()))?;
-        let text = std::str::from_utf8(&bytes).map_err(|e| error(format!("not UTF-8 text: {e}")))?;
-        let mesh = obj::parse(text).map_err(error)?;
+        Mesh::parse_obj(&bytes).map_err(error)
+    }
+
+    /// Parses the bytes of an OBJ file as [`Mesh::load_obj`] loads it, for a caller that read the file itself.
+    pub fn parse_obj(bytes: &[u8]) -> Result<Mesh, String> {
+        let text = std::str::from_utf8(bytes).map_err(|e| format!("not UTF-8 text: {e}"))?;
+        let mesh = obj::parse(text)?;
         if mesh.triangles.is_empty() {
-            return Err(error("no triangles".into()));
+            return Err("no triangles".into());
         }
         Ok(mesh)
     }

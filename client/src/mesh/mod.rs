@@ -9,18 +9,53 @@ use std::path::Path;
 
 use rayd_engine::mesh::{LoadError, Mesh};
 
+use crate::error::{Error, Result};
+
 /// Loads every triangle of a `.obj`, `.ply`, `.gltf` or `.glb` file (extension case ignored) into one mesh.
-/// Polygons are triangulated (OBJ and PLY as fans); glTF scenes are flattened with their node transforms.
-pub fn load_mesh(path: impl AsRef<Path>) -> Result<Mesh, LoadError> {
+/// Polygons are triangulated (OBJ and PLY as fans); glTF scenes are flattened with their node transforms. A file
+/// that cannot be read is an [`Error::Io`] (NOT_FOUND when it is missing), as for any other local file; one that
+/// is not a mesh of its format is an [`Error::Mesh`] (INVALID_ARGUMENT).
+pub fn load_mesh(path: impl AsRef<Path>) -> Result<Mesh> {
     let path = path.as_ref();
-    let extension = path.extension().and_then(|e| e.to_str()).unwrap_or_default().to_ascii_lowercase();
-    let mesh = match extension.as_str() {
-        "obj" => return Mesh::load_obj(path),
-        "ply" => ply::load(path),
-        "gltf" | "glb" => gltf::load(path),
-        _ => Err(format!("unknown mesh extension {extension:?} (expected obj, ply, gltf or glb)")),
-    };
-    mesh.and_then(checked).map_err(|reason| load_error(path, reason))
+    let format = MeshFormat::of(path)?;
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    Ok(format.parse(path, &bytes)?)
+}
+
+/// The formats [`load_mesh`] reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum MeshFormat {
+    /// Wavefront OBJ.
+    Obj,
+    /// Stanford PLY, ASCII or binary.
+    Ply,
+    /// glTF 2.0, as JSON (`.gltf`) or binary (`.glb`).
+    Gltf,
+}
+
+impl MeshFormat {
+    /// The format of the file at `path`, by its extension.
+    pub(crate) fn of(path: &Path) -> Result<MeshFormat, LoadError> {
+        let extension = path.extension().and_then(|e| e.to_str()).unwrap_or_default().to_ascii_lowercase();
+        match extension.as_str() {
+            "obj" => Ok(MeshFormat::Obj),
+            "ply" => Ok(MeshFormat::Ply),
+            "gltf" | "glb" => Ok(MeshFormat::Gltf),
+            _ => {
+                Err(load_error(path, format!("unknown mesh extension {extension:?} (expected obj, ply, gltf or glb)")))
+            }
+        }
+    }
+
+    /// The mesh of `bytes`, the contents of the file at `path` (a glTF file's external buffers are read beside it).
+    pub(crate) fn parse(self, path: &Path, bytes: &[u8]) -> Result<Mesh, LoadError> {
+        let mesh = match self {
+            MeshFormat::Obj => Mesh::parse_obj(bytes),
+            MeshFormat::Ply => ply::parse(bytes),
+            MeshFormat::Gltf => gltf::parse(bytes, path.parent().unwrap_or(Path::new("."))),
+        };
+        mesh.and_then(checked).map_err(|reason| load_error(path, reason))
+    }
 }
 
 /// A [`LoadError`] for `path`.
@@ -48,7 +83,7 @@ mod tests {
 
     #[test]
     fn unknown_extensions_and_bad_indices_are_refused_with_the_path() {
-        let error = load_mesh("scene.stl").unwrap_err();
+        let Err(Error::Mesh(error)) = load_mesh("scene.stl") else { panic!("an unknown extension is a mesh error") };
         assert_eq!(error.path, "scene.stl");
         assert!(error.reason.contains("stl"), "{}", error.reason);
         let mesh = Mesh { positions: vec![glam::Vec3::ZERO; 3], triangles: vec![[0, 1, 3]] };
@@ -63,5 +98,17 @@ mod tests {
         std::fs::write(&path, "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1 2 3 4\n").unwrap();
         let mesh = load_mesh(&path).unwrap();
         assert_eq!((mesh.positions.len(), mesh.triangles.len()), (4, 2));
+    }
+
+    #[test]
+    fn a_missing_file_is_not_found_with_its_path_and_a_file_that_is_no_mesh_an_invalid_argument() {
+        let dir = tempfile::tempdir().unwrap();
+        let missing = dir.path().join("missing.ply");
+        let error = load_mesh(&missing).unwrap_err();
+        assert_eq!(error.code(), tonic::Code::NotFound, "{error}");
+        assert!(error.to_string().starts_with(&missing.display().to_string()), "{error}");
+        let broken = dir.path().join("broken.obj");
+        std::fs::write(&broken, "f 1 2 3\n").unwrap();
+        assert_eq!(load_mesh(&broken).unwrap_err().code(), tonic::Code::InvalidArgument);
     }
 }

@@ -1,10 +1,6 @@
 //! PLY (ASCII or binary) through `ply-rs-bw`: vertex `x y z` of any scalar type, faces as `vertex_indices` or
 //! `vertex_index` lists of any integer type, triangulated as fans. Other elements and properties are ignored.
 
-use std::fs::File;
-use std::io::BufReader;
-use std::path::Path;
-
 use glam::Vec3;
 use ply_rs_bw::parser::Parser;
 use ply_rs_bw::ply::{Property, PropertyAccess, PropertyAccessResult};
@@ -36,10 +32,9 @@ impl PropertyAccess for Element {
     }
 }
 
-/// Reads the PLY file at `path`.
-pub(super) fn load(path: &Path) -> Result<Mesh, String> {
-    let file = File::open(path).map_err(|e| e.to_string())?;
-    let ply = Parser::<Element>::new().read_ply(&mut BufReader::new(file)).map_err(|e| e.to_string())?;
+/// Parses the bytes of a PLY file.
+pub(super) fn parse(mut bytes: &[u8]) -> Result<Mesh, String> {
+    let ply = Parser::<Element>::new().read_ply(&mut bytes).map_err(|e| e.to_string())?;
     let vertex = ply.header.elements.get("vertex").ok_or("no vertex element")?;
     if let Some(axis) = ["x", "y", "z"].into_iter().find(|axis| !vertex.properties.contains_key(*axis)) {
         return Err(format!("vertices have no {axis} property"));
@@ -60,12 +55,10 @@ pub(super) fn load(path: &Path) -> Result<Mesh, String> {
 mod tests {
     use super::*;
 
-    /// Writes `text` as `name` in a fresh temporary folder and loads it through the public entry point.
+    /// Parses `text` as the file `name` is parsed, with the checks of every format.
     fn load_text(name: &str, text: &str) -> Result<Mesh, rayd_engine::mesh::LoadError> {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join(name);
-        std::fs::write(&path, text).unwrap();
-        crate::mesh::load_mesh(&path)
+        let path = std::path::Path::new(name);
+        crate::mesh::MeshFormat::of(path)?.parse(path, text.as_bytes())
     }
 
     #[test]

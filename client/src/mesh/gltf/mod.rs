@@ -53,14 +53,12 @@ fn check_position_accessors(root: &::gltf::json::Root) -> Result<(), String> {
     Ok(())
 }
 
-/// Reads the glTF or GLB file at `path`.
-pub(super) fn load(path: &Path) -> Result<Mesh, String> {
-    let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
-    check_glb_length(&bytes)?;
-    let Gltf { document, mut blob } = Gltf::from_slice_without_validation(&bytes).map_err(|e| e.to_string())?;
+/// Parses the bytes of a glTF or GLB file whose external buffers are files in `folder`.
+pub(super) fn parse(bytes: &[u8], folder: &Path) -> Result<Mesh, String> {
+    check_glb_length(bytes)?;
+    let Gltf { document, mut blob } = Gltf::from_slice_without_validation(bytes).map_err(|e| e.to_string())?;
     check_position_accessors(document.as_json())?;
     let document = Document::from_json(document.into_json()).map_err(|e| e.to_string())?;
-    let folder = path.parent().unwrap_or(Path::new("."));
     let buffers = document
         .buffers()
         .map(|buffer| {
@@ -168,13 +166,15 @@ mod tests {
         document(&format!("data:application/octet-stream;base64,{encoded}"), buffer.len(), points)
     }
 
-    /// Writes `files` into a fresh temporary folder and loads the first through the public entry point.
+    /// Writes `files` into a fresh temporary folder and parses the first as its file is parsed, with the checks
+    /// of every format.
     fn load_files(files: &[(&str, &[u8])]) -> Result<Mesh, rayd_engine::mesh::LoadError> {
         let dir = tempfile::tempdir().unwrap();
         for (name, bytes) in files {
             std::fs::write(dir.path().join(name), bytes).unwrap();
         }
-        crate::mesh::load_mesh(dir.path().join(files[0].0))
+        let (path, bytes) = (dir.path().join(files[0].0), files[0].1);
+        crate::mesh::MeshFormat::of(&path)?.parse(&path, bytes)
     }
 
     #[test]
