@@ -6,8 +6,8 @@
 //! option, an unreachable server and TLS options for an http:// URL, and a quiet end when the output's reader has
 //! gone. Rays made by the server from `rayctl trace`'s generator options (cameras, lidar, samples around points,
 //! secondary rays, also from hits larger than a message) trace as the engine's expansion of the generator those
-//! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too; a missing
-//! local file is NOT_FOUND naming it, whatever it holds.
+//! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too; a scene that
+//! fails leaves no accel behind; a missing local file is NOT_FOUND naming it, whatever it holds.
 
 mod common;
 mod daemon;
@@ -720,6 +720,47 @@ fn pictures_and_scans_larger_than_a_message_are_traced_in_ranges_into_the_same_f
 fn accel_names(server: &str) -> Vec<String> {
     let accels = json(server, &["accels"]);
     accels["accels"].as_array().expect("a list of accels").iter().map(|a| a["name"].as_str().unwrap().into()).collect()
+}
+
+#[test]
+fn a_scene_that_fails_leaves_no_accel_behind_and_builds_once_its_cause_is_fixed() {
+    let daemon = Daemon::start(&[]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-scene-failures");
+    let meshes = std::fs::canonicalize("../shared/data/meshes").expect("the shared meshes");
+    let (cow, teapot) = (meshes.join("cow.obj"), meshes.join("teapot.obj"));
+
+    // A mesh file that is missing: refused before anything is built, naming the file.
+    let missing = scratch.path("missing.obj");
+    let scene = serde_json::json!({
+        "meshes": { "a": cow, "b": missing },
+        "instances": [{ "mesh": "a" }, { "mesh": "b", "translate": [3, 0, 0] }]
+    });
+    let half = scratch.path("half.json");
+    std::fs::write(&half, scene.to_string()).unwrap();
+    let refused = fails(&server, &["scene", "--file", &half], 1);
+    assert!(refused.starts_with("error: NotFound: ") && refused.contains(&missing), "{refused}");
+    assert_eq!(accel_names(&server), Vec::<String>::new(), "nothing built");
+    std::fs::copy(&teapot, &missing).unwrap();
+    succeeds(&server, &["scene", "--file", &half]);
+    assert_eq!(accel_names(&server), ["half.a", "half.b", "half"]);
+
+    // A build the server refuses after the scene's first accels: the instance accel's name is taken. The mesh and
+    // the motion transform placing it are destroyed again, the transform first (the mesh cannot go while placed).
+    succeeds(&server, &["build", "--mesh", teapot.to_str().unwrap(), "--name", "barn"]);
+    let scene = serde_json::json!({
+        "meshes": { "cow": cow },
+        "instances": [{ "mesh": "cow", "motion": { "time": [0, 1], "keys": [{}, { "translate": [1, 0, 0] }] } }]
+    });
+    let moving = scratch.path("moving.json");
+    std::fs::write(&moving, scene.to_string()).unwrap();
+    let refused = fails(&server, &["scene", "--file", &moving, "--name", "barn"], 1);
+    assert!(refused.starts_with("error: AlreadyExists: ") && refused.contains("barn"), "{refused}");
+    assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn"], "only what was there before");
+    succeeds(&server, &["rm", "barn"]);
+    let built = json(&server, &["scene", "--file", &moving, "--name", "barn"]);
+    assert_eq!((built["name"].as_str(), built["instance_count"].as_u64()), (Some("barn"), Some(1)), "{built}");
+    assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn.cow", "barn.0.motion", "barn"]);
 }
 
 #[test]

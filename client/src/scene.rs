@@ -266,7 +266,9 @@ impl SceneInstance {
 impl Client {
     /// Builds `scene` on `device`: each mesh as accel `<name>.<mesh>`, each moving instance's SRT motion transform
     /// as `<name>.<instance index>.motion`, then the instance accel `name` over them (with `flags` and the scene's
-    /// motion options). Returns the instance accel's description.
+    /// motion options). Returns the instance accel's description. Every mesh file is loaded, and the instances
+    /// checked, before anything is built; when a build fails, the accels this call built are destroyed again, the
+    /// last first (a call that fails leaves the server as it was, so that the same call can be made again).
     pub async fn build_scene(
         &self,
         name: &str,
@@ -275,19 +277,37 @@ impl Client {
         flags: BuildFlags,
     ) -> Result<proto::AccelInfo> {
         let records = scene.records()?;
-        let mut children = Vec::with_capacity(scene.meshes.len());
-        for (mesh, file) in &scene.meshes {
-            let child = format!("{name}.{mesh}");
-            self.build_mesh(&child, &load_mesh(file)?, device, BuildFlags::empty()).await?;
-            children.push(child);
+        let meshes =
+            scene.meshes.iter().map(|(mesh, file)| Ok((mesh, load_mesh(file)?))).collect::<Result<Vec<_>>>()?;
+        let mut built = Vec::new();
+        let result = async {
+            for (mesh, loaded) in &meshes {
+                let child = format!("{name}.{mesh}");
+                self.build_mesh(&child, loaded, device, BuildFlags::empty()).await?;
+                built.push(child);
+            }
+            for (index, mesh, transform) in scene.motion_transforms() {
+                let child = format!("{name}.{index}.motion");
+                self.build_transform_input(&child, device, &format!("{name}.{mesh}"), &transform).await?;
+                built.push(child);
+            }
+            let children: Vec<&str> = built.iter().map(String::as_str).collect();
+            self.build_moving_instances(name, device, &children, &records, flags, &scene.motion_options()).await
         }
-        for (index, mesh, transform) in scene.motion_transforms() {
-            let child = format!("{name}.{index}.motion");
-            self.build_transform_input(&child, device, &format!("{name}.{mesh}"), &transform).await?;
-            children.push(child);
+        .await;
+        if result.is_err() {
+            self.destroy_in_reverse(&built).await;
         }
-        let children: Vec<&str> = children.iter().map(String::as_str).collect();
-        self.build_moving_instances(name, device, &children, &records, flags, &scene.motion_options()).await
+        result
+    }
+
+    /// Destroys the accels called `names`, the last first (so that an accel goes before those it places); best
+    /// effort, as the clean-up of a call that has already failed.
+    async fn destroy_in_reverse(&self, names: &[String]) {
+        for name in names.iter().rev() {
+            // An accel left behind is the caller's to remove (`rayctl rm`); the call's own error is what it reports.
+            let _ = self.destroy_accel(name).await;
+        }
     }
 }
 
