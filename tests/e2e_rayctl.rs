@@ -7,7 +7,8 @@
 //! gone. Rays made by the server from `rayctl trace`'s generator options (cameras, lidar, samples around points,
 //! secondary rays, also from hits larger than a message) trace as the engine's expansion of the generator those
 //! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too; a scene that
-//! fails leaves no accel behind; a missing local file is NOT_FOUND naming it, whatever it holds.
+//! fails leaves no accel behind; rays and hits more than rayctl can allocate are refused naming the options; a
+//! missing local file is NOT_FOUND naming it, whatever it holds.
 
 mod common;
 mod daemon;
@@ -761,6 +762,46 @@ fn a_scene_that_fails_leaves_no_accel_behind_and_builds_once_its_cause_is_fixed(
     let built = json(&server, &["scene", "--file", &moving, "--name", "barn"]);
     assert_eq!((built["name"].as_str(), built["instance_count"].as_u64()), (Some("barn"), Some(1)), "{built}");
     assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn.cow", "barn.0.motion", "barn"]);
+}
+
+#[test]
+fn rays_and_hits_more_than_rayctl_can_allocate_are_refused_naming_the_options() {
+    let daemon = Daemon::start(&[]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-memory");
+    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    // 2^45 rays of 32 bytes (and 2^50 rays' 4-byte hits) pass any address space: no machine can hold them.
+    let rays_file = scratch.path("random.rays");
+    let refusals: [(&[&str], &str); 3] = [
+        (&["rays", "--accel", "bunny", "--random", "35184372088832", "-o", &rays_file], "--random 35184372088832: "),
+        (&["bench", "--accel", "bunny", "--batch", "35184372088832", "--duration", "1"], "--batch 35184372088832 "),
+        (
+            &[
+                "trace",
+                "--accel",
+                "bunny",
+                "--pixels",
+                "16384x16384",
+                "--samples",
+                "4194304",
+                "--ray-format",
+                "origin_direction",
+                "--hit-format",
+                "t",
+            ],
+            "--pixels 16384x16384 --samples 4194304: the hits of 1125899906842624 rays",
+        ),
+    ];
+    for (args, names) in refusals {
+        let stderr = fails(&server, args, 1);
+        assert!(stderr.starts_with("error: ResourceExhausted: ") && stderr.contains(names), "{args:?}: {stderr}");
+        assert!(stderr.contains("more than this process can allocate"), "{args:?}: {stderr}");
+    }
+    assert!(!Path::new(&rays_file).exists(), "no file written");
+    let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
+    let report =
+        json(&server, &[&["trace", "--accel", "bunny", "--pixels", "64x48", "--samples", "2"][..], &formats].concat());
+    assert_eq!(report["rays"], 64 * 48 * 2, "rayctl still traces what it can hold: {report}");
 }
 
 #[test]

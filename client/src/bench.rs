@@ -5,13 +5,14 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+use glam::Vec3;
 use rayd_engine::query::Query;
-use rayd_engine::raygen::random_rays;
 use tokio::task::JoinSet;
 
 use crate::client::Client;
 use crate::convert::bounds;
 use crate::error::{Error, Result};
+use crate::memory::random_rays;
 
 /// What to run.
 #[derive(Debug, Clone, Copy)]
@@ -92,11 +93,11 @@ impl Client {
         let (lo, hi) = bounds(&info).ok_or_else(|| Error::InvalidArgument(format!("accel {accel}: no triangles")))?;
         let limits = self.server_info().await?.limits.unwrap_or_default();
         let concurrency = capped(options.concurrency, limits.max_concurrent_operations as usize);
+        let batches = random_batches(lo, hi, options, concurrency)?;
         let start = Instant::now();
         let deadline = start + options.duration;
         let mut tasks = JoinSet::new();
-        for seed in 0..concurrency as u64 {
-            let rays = Bytes::from(random_rays(lo, hi, options.batch, seed, options.query.ray_format));
+        for rays in batches {
             let (client, accel, query, on_batch) = (self.clone(), accel.to_owned(), options.query, on_batch.clone());
             tasks.spawn(async move {
                 let mut tally = TaskTally::default();
@@ -130,6 +131,13 @@ impl Client {
             concurrency,
         })
     }
+}
+
+/// One batch of `options.batch` random rays in the box `[lo, hi]` for each of `tasks` tasks, seeded by the task's
+/// index ([`random_rays`]: sizes this process cannot hold are an error, not an abort).
+fn random_batches(lo: Vec3, hi: Vec3, options: &BenchOptions, tasks: usize) -> Result<Vec<Bytes>> {
+    let made = |seed| random_rays(lo, hi, options.batch, seed, options.query.ray_format).map(Bytes::from);
+    (0..tasks as u64).map(made).collect()
 }
 
 /// `asked` calls in flight (at least 1), at most `limit` (0: none known).

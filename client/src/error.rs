@@ -30,6 +30,15 @@ pub enum Error {
     /// The request is wrong before anything is sent (the message names the field and the rule).
     #[error("{0}")]
     InvalidArgument(String),
+    /// A buffer the call needs here (rays made on this side, hits or a reduction received) is more than this
+    /// process can allocate: refused, where allocating it would abort the process.
+    #[error("{what} take {bytes} bytes, more than this process can allocate")]
+    Memory {
+        /// What the buffer would hold ("the hits of 1000 rays").
+        what: String,
+        /// Its size (saturated at `u64::MAX`).
+        bytes: u64,
+    },
     /// The server's answer breaks the contract (a wrong length, chunks out of order).
     #[error("the server broke the contract: {0}")]
     Protocol(String),
@@ -61,6 +70,7 @@ impl Error {
                 std::io::ErrorKind::PermissionDenied => Code::PermissionDenied,
                 _ => Code::Unknown,
             },
+            Error::Memory { .. } => Code::ResourceExhausted,
             Error::Protocol(_) => Code::Internal,
             Error::Operation { status, .. } => status.code(),
             Error::Operations(failed) => failed.first().map_or(Code::Unknown, |(_, status)| status.code()),
@@ -126,5 +136,6 @@ mod tests {
         let missing = std::io::Error::from(std::io::ErrorKind::NotFound);
         assert_eq!(Error::io(std::path::Path::new("f"), missing).code(), Code::NotFound);
         assert_eq!(Error::Protocol(String::new()).code(), Code::Internal);
+        assert_eq!(Error::Memory { what: String::new(), bytes: 0 }.code(), Code::ResourceExhausted);
     }
 }

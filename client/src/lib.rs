@@ -30,6 +30,7 @@ mod error;
 mod health;
 mod instances;
 mod lidar;
+pub mod memory;
 mod mesh;
 mod reduce;
 mod render;

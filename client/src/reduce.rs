@@ -12,6 +12,7 @@ use rayd_proto::trace_batch_request::Rays;
 use crate::client::Client;
 use crate::convert::{generator_to_proto, reduction_to_proto, trace_query};
 use crate::error::{Error, Result};
+use crate::memory::{append, reserved};
 use crate::trace::add_stats;
 
 /// What a reduced trace returned.
@@ -104,14 +105,15 @@ impl Client {
         total: usize,
         per_call: usize,
     ) -> Result<ReducedTrace> {
+        let what = || format!("the reduction of {total} rays");
         let known_bytes = reduction.answer_bytes(query, total as u64).unwrap_or(0);
-        let mut data = Vec::with_capacity(usize::try_from(known_bytes).unwrap_or(usize::MAX));
+        let mut data = reserved(usize::try_from(known_bytes).unwrap_or(usize::MAX), what)?;
         let (mut dropped, mut stats) = (0, proto::TraceStats::default());
         let mut answers =
             self.range_answers(accel, query, generator, Some(reduction_to_proto(reduction)), total, per_call);
         while let Some((_, response)) = answers.next().await.transpose()? {
             let part = ReducedTrace::from_response(response).map_err(Error::Protocol)?;
-            data.extend_from_slice(&part.data);
+            append(&mut data, &part.data, what)?;
             dropped += part.dropped;
             add_stats(&mut stats, &part.stats);
         }

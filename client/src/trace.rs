@@ -3,7 +3,7 @@
 
 use std::sync::Arc;
 
-use bytes::{Bytes, BytesMut};
+use bytes::Bytes;
 use futures_util::{Stream, StreamExt};
 use rayd_engine::format::RayFormat;
 use rayd_engine::query::{OutputLayout, Query};
@@ -15,6 +15,7 @@ use tokio::sync::Semaphore;
 use crate::client::Client;
 use crate::convert::{generator_to_proto, trace_query};
 use crate::error::{Error, Result};
+use crate::memory::reserved;
 use crate::secondary::inline_bytes;
 use crate::view::HitView;
 
@@ -144,14 +145,14 @@ impl Client {
             // One call (none for no rays): its answer's buffers as they are.
             return parts.next().await.unwrap_or_else(|| TraceResult::from_batch(query, 0, Default::default()));
         }
-        let (mut hits, mut counts) = (BytesMut::with_capacity(layout.hits), BytesMut::with_capacity(layout.counts));
+        let (mut hits, mut counts) = reserved_answer(&layout)?;
         let mut stats = proto::TraceStats::default();
         while let Some(part) = parts.next().await.transpose()? {
             hits.extend_from_slice(&part.hits);
             counts.extend_from_slice(&part.counts);
             add_stats(&mut stats, &part.stats);
         }
-        Ok(TraceResult { query: *query, rays: total, hits: hits.freeze(), counts: counts.freeze(), stats })
+        Ok(TraceResult { query: *query, rays: total, hits: hits.into(), counts: counts.into(), stats })
     }
 
     /// The answers of `TraceBatch` calls over the ranges (`first_ray`, `ray_count`) of at most `per_call` of
@@ -200,6 +201,7 @@ impl Client {
         rays: Bytes,
         layout: &OutputLayout,
     ) -> Result<TraceResult> {
+        let (mut hits, mut counts) = reserved_answer(layout)?;
         let chunk_bytes = self.options.stream_chunk_bytes.min(self.options.batch_limit_bytes);
         let chunk_rays = chunk_rays(query, chunk_bytes, self.options.max_rays_per_call);
         let chunk_bytes = chunk_rays * query.ray_format.size();
@@ -219,7 +221,6 @@ impl Client {
         let mut responses = self.rpc_for(accel).trace_stream(requests).await?.into_inner();
 
         let mut stats = proto::TraceStats::default();
-        let (mut hits, mut counts) = (BytesMut::with_capacity(layout.hits), BytesMut::with_capacity(layout.counts));
         let mut next_ray = 0;
         while let Some(chunk) = responses.message().await? {
             if chunk.first_ray != next_ray as u64 || next_ray >= layout.rays {
@@ -240,7 +241,7 @@ impl Client {
         if next_ray != layout.rays {
             return Err(Error::Protocol(format!("the stream ended after {next_ray} of {} rays", layout.rays)));
         }
-        Ok(TraceResult { query: *query, rays: layout.rays, hits: hits.freeze(), counts: counts.freeze(), stats })
+        Ok(TraceResult { query: *query, rays: layout.rays, hits: hits.into(), counts: counts.into(), stats })
     }
 }
 
@@ -261,6 +262,13 @@ pub(crate) fn chunk_rays(query: &Query, chunk_bytes: usize, max_rays: usize) -> 
     let count_bytes = if query.kind.has_counts() { 4 } else { 0 };
     let per_ray = query.ray_format.size().max(hit_bytes + count_bytes);
     ((chunk_bytes / per_ray).min(max_rays) / 8 * 8).max(8).min(max_rays.max(1))
+}
+
+/// Empty buffers with room for the hits and the counts of `layout`; [`Error::Memory`] where they cannot be allocated.
+fn reserved_answer(layout: &OutputLayout) -> Result<(Vec<u8>, Vec<u8>)> {
+    let rays = layout.rays;
+    let hits = reserved(layout.hits, || format!("the hits of {rays} rays"))?;
+    Ok((hits, reserved(layout.counts, || format!("the counts of {rays} rays"))?))
 }
 
 /// Fails with [`Error::Protocol`] unless the (hits, counts) byte lengths are the expected ones.

@@ -103,9 +103,15 @@ pub fn uniform(seed: u64, index: u64) -> f32 {
 /// `count` rays with origins uniform in the box `[lo, hi]` and directions uniform on the unit sphere, packed in
 /// `format`; `tmin` 0, `tmax` +∞.
 pub fn random_rays(lo: Vec3, hi: Vec3, count: usize, seed: u64, format: RayFormat) -> Vec<u8> {
-    let size = format.size();
-    let mut bytes = vec![0u8; count * size];
-    for (i, slot) in bytes.chunks_exact_mut(size).enumerate() {
+    let mut bytes = vec![0u8; count * format.size()];
+    fill_random_rays(lo, hi, seed, format, &mut bytes);
+    bytes
+}
+
+/// Fills `out` (a whole number of rays) with the rays [`random_rays`] makes, for a caller that holds the buffer
+/// (allocated as it sees fit).
+pub fn fill_random_rays(lo: Vec3, hi: Vec3, seed: u64, format: RayFormat, out: &mut [u8]) {
+    for (i, slot) in out.chunks_exact_mut(format.size()).enumerate() {
         let u = |k: u64| uniform(seed, i as u64 * 8 + k);
         let origin = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
         let z = 1.0 - 2.0 * u(3);
@@ -115,5 +121,4 @@ pub fn random_rays(lo: Vec3, hi: Vec3, count: usize, seed: u64, format: RayForma
         let direction = Vec3A::new(r * cos, r * sin, z);
         format.encode(&Ray { origin: origin.into(), direction, ..Ray::default() }, slot);
     }
-    bytes
 }

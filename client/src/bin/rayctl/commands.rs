@@ -9,14 +9,14 @@ use bytes::Bytes;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
+use rayd_client::memory::random_rays;
 use rayd_client::{
     BenchOptions, Client, ClientOptions, ClientTls, Error, PrimaryRays, Result, Scene, SecondaryRays, ServingStatus,
     check_health, load_mesh, proto,
 };
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::raygen::{
-    Camera, Generator, Lidar, Orthographic, Primary, Secondary, SphereSampling, random_rays, uniform,
-};
+use rayd_engine::query::QueryKind;
+use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, Primary, Secondary, SphereSampling, uniform};
 use serde_json::json;
 
 use crate::args::{
@@ -126,10 +126,11 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
     let rays = traced_rays(client, args).await?;
     let start = Instant::now();
     let traced = match rays {
-        TracedRays::Sent(rays) => client.trace(&args.accel, &query, rays).await?,
-        TracedRays::Generated(generator) => client.trace_generated(&args.accel, &query, &generator).await?,
-        TracedRays::FromHitsBuffer(secondary) => client.trace_secondary(&args.accel, &query, &secondary).await?,
+        TracedRays::Sent(rays) => client.trace(&args.accel, &query, rays).await,
+        TracedRays::Generated(generator) => client.trace_generated(&args.accel, &query, &generator).await,
+        TracedRays::FromHitsBuffer(secondary) => client.trace_secondary(&args.accel, &query, &secondary).await,
     };
+    let traced = traced.map_err(asked_by(ray_count_options(args)))?;
     let wall = start.elapsed();
     if let Some(out) = &args.out {
         std::fs::write(out, traced.hits()).map_err(|e| Error::io(out, e))?;
@@ -154,6 +155,35 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
         traced.rays() as f64 / wall.as_secs_f64().max(f64::MIN_POSITIVE) / 1e6,
     );
     Ok(Output { json, text })
+}
+
+/// The options of `rayctl trace` that set how many rays it traces and how many hit records a ray has, as given.
+fn ray_count_options(args: &TraceArgs) -> String {
+    let samples = args.samples;
+    let source = if let Some(file) = &args.rays {
+        format!("--rays {}", file.display())
+    } else if let Some((width, height)) = args.pixels {
+        format!("--pixels {width}x{height} --samples {samples}")
+    } else if args.lidar {
+        format!("--channels {} --steps {}", args.lidar_scan.channels, args.lidar_scan.steps)
+    } else if let Some(file) = &args.around.points {
+        format!("--points {} --samples {samples}", file.display())
+    } else {
+        format!("--point ×{} --samples {samples}", args.around.point.len())
+    };
+    match args.query.query {
+        QueryKind::All => format!("{source} --max-hits {}", args.query.max_hits),
+        _ => source,
+    }
+}
+
+/// `error`, a refusal for memory told as the doing of `options` (the command-line options that asked for that
+/// much).
+fn asked_by(options: String) -> impl FnOnce(Error) -> Error {
+    move |error| match error {
+        Error::Memory { what, bytes } => Error::Memory { what: format!("{options}: {what}"), bytes },
+        error => error,
+    }
 }
 
 /// The accel's box, which must hold triangles.
@@ -301,7 +331,7 @@ async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
     let mut bytes = match args.random {
         Some(count) => {
             let (lo, hi) = accel_bounds(client, &args.accel).await?;
-            random_rays(lo, hi, count, args.seed, args.ray_format)
+            random_rays(lo, hi, count, args.seed, args.ray_format).map_err(asked_by(format!("--random {count}")))?
         }
         None => camera(client, &args.accel, args.camera, args.width, args.height).await?.rays(args.ray_format),
     };
@@ -368,7 +398,7 @@ async fn bench(client: &Client, args: &BenchArgs, json: bool) -> Result<Output> 
     });
     let report = client.bench(&args.accel, &options, on_batch).await;
     bar.finish_and_clear();
-    let report = report?;
+    let report = report.map_err(asked_by(format!("--batch {} --concurrency {}", args.batch, args.concurrency)))?;
     let latency_ms = |q| report.latency(q).as_secs_f64() * 1e3;
     let (p50, p90, p99) = (latency_ms(0.5), latency_ms(0.9), latency_ms(0.99));
     let lowered = if report.concurrency < options.concurrency {
