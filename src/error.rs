@@ -34,7 +34,7 @@ pub enum Error {
     #[error("build options: {0}")]
     InvalidBuildOptions(String),
     /// A query parameter is invalid.
-    #[error("query {field}: {rule}")]
+    #[error("{field}: {rule}")]
     InvalidQuery {
         /// The parameter, e.g. `max_hits_per_ray`.
         field: &'static str,

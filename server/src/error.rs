@@ -18,7 +18,7 @@ pub enum ServiceError {
         rule: String,
     },
     /// An object that does not exist for this tenant.
-    #[error("{}{what} {name:?} not found", field_prefix(field))]
+    #[error("{}{what} {name:?} not found", field_prefix(field, what))]
     NotFound {
         /// `accel`, `buffer` or `device`.
         what: &'static str,
@@ -122,13 +122,14 @@ impl From<ServiceError> for Status {
     }
 }
 
-/// The status of a failed read or write of the data directory: full (RESOURCE_EXHAUSTED) and read-only or
-/// forbidden (FAILED_PRECONDITION) are the operator's to fix; anything else is INTERNAL.
-/// `field: `, or nothing for no field.
-fn field_prefix(field: &str) -> String {
-    if field.is_empty() { String::new() } else { format!("{field}: ") }
+/// `field: ` naming where a missing object of kind `what` was asked for, or nothing for no field or one that the
+/// message names anyway (`accel: accel "x" not found` says it twice).
+fn field_prefix(field: &str, what: &str) -> String {
+    if field.is_empty() || field == what { String::new() } else { format!("{field}: ") }
 }
 
+/// The status of a failed read or write of the data directory: full (RESOURCE_EXHAUSTED) and read-only or
+/// forbidden (FAILED_PRECONDITION) are the operator's to fix; anything else is INTERNAL.
 fn storage_code(kind: std::io::ErrorKind) -> Code {
     use std::io::ErrorKind::*;
     match kind {

@@ -120,14 +120,33 @@ fn finite(field: &'static str, values: &[Vec3]) -> Result<()> {
     require(bad.is_none(), field, || format!("must be finite (entry {})", bad.unwrap_or(0)))
 }
 
-/// An orthonormal frame looking along `target − eye` with `up` as close to up as can be.
-fn frame(field: &'static str, eye: Vec3, target: Vec3, up: Vec3) -> Result<(Vec3, Vec3, Vec3)> {
-    let forward = (target - eye).normalize_or_zero();
-    let right = forward.cross(up).normalize_or_zero();
-    require(forward != Vec3::ZERO && right != Vec3::ZERO, field, || {
-        "eye and target must differ, and up must not be parallel to the view direction".into()
-    })?;
-    Ok((forward, right, right.cross(forward)))
+/// Checks that each of the named vectors is finite, naming the first that is not.
+fn finite_fields(fields: &[(&'static str, Vec3)]) -> Result<()> {
+    fields.iter().try_for_each(|&(field, value)| require(value.is_finite(), field, || "must be finite".into()))
+}
+
+/// Checks that a view direction and an up vector make a [`frame`]: INVALID_ARGUMENT naming `view_field` when the
+/// direction is zero (`view_rule` says what it must be), `up_field` when up is zero or parallel to it.
+fn check_frame(
+    view_field: &'static str,
+    view_rule: &str,
+    direction: Vec3,
+    up_field: &'static str,
+    up: Vec3,
+) -> Result<()> {
+    let forward = direction.normalize_or_zero();
+    require(forward != Vec3::ZERO, view_field, || view_rule.into())?;
+    require(forward.cross(up).normalize_or_zero() != Vec3::ZERO, up_field, || {
+        "must not be zero or parallel to the view direction".into()
+    })
+}
+
+/// An orthonormal frame looking along `direction` with `up` as close to up as can be (both checked by
+/// [`check_frame`]).
+fn frame(direction: Vec3, up: Vec3) -> (Vec3, Vec3, Vec3) {
+    let forward = direction.normalize();
+    let right = forward.cross(up).normalize();
+    (forward, right, right.cross(forward))
 }
 
 impl PixelSampling {
@@ -152,27 +171,35 @@ fn check_image(width: u32, height: u32, sampling: &PixelSampling) -> Result<()> 
     require(sampling.samples > 0, "generator.samples_per_pixel", || "must be at least 1".into())
 }
 
+/// Checks a camera's eye, target and up: finite, and a frame.
+fn check_camera_frame(eye: Vec3, target: Vec3, up: Vec3) -> Result<()> {
+    finite_fields(&[("generator.eye", eye), ("generator.target", target), ("generator.up", up)])?;
+    check_frame("generator.target", "must differ from the eye", target - eye, "generator.up", up)
+}
+
 impl Generator {
     /// Checks the numbers: finite, in range, a frame that exists; INVALID_ARGUMENT naming the field.
     pub fn check(&self) -> Result<()> {
         match self {
             Generator::Pinhole(camera, sampling) => {
-                finite("generator.eye", &[camera.eye, camera.target, camera.up])?;
-                frame("generator.target", camera.eye, camera.target, camera.up)?;
+                check_camera_frame(camera.eye, camera.target, camera.up)?;
                 let fov = camera.fov_y_degrees;
                 require(fov > 0.0 && fov < 180.0, "generator.fov_y_degrees", || format!("{fov} must be in (0, 180)"))?;
                 check_image(camera.width, camera.height, sampling)
             }
             Generator::Orthographic(camera, sampling) => {
-                finite("generator.eye", &[camera.eye, camera.target, camera.up])?;
-                frame("generator.target", camera.eye, camera.target, camera.up)?;
+                check_camera_frame(camera.eye, camera.target, camera.up)?;
                 let h = camera.view_height;
                 require(h.is_finite() && h > 0.0, "generator.view_height", || format!("{h} must be positive"))?;
                 check_image(camera.width, camera.height, sampling)
             }
             Generator::Lidar(lidar) => {
-                finite("generator.origin", &[lidar.origin, lidar.forward, lidar.up])?;
-                frame("generator.forward", Vec3::ZERO, lidar.forward, lidar.up)?;
+                finite_fields(&[
+                    ("generator.origin", lidar.origin),
+                    ("generator.forward", lidar.forward),
+                    ("generator.up", lidar.up),
+                ])?;
+                check_frame("generator.forward", "must not be zero", lidar.forward, "generator.up", lidar.up)?;
                 let channels = lidar.elevations_degrees.len();
                 require((1..=MAX_GENERATOR_POINTS).contains(&channels), "generator.elevations_degrees", || {
                     format!("{channels} channels; 1 to {MAX_GENERATOR_POINTS}")
@@ -509,7 +536,7 @@ impl Generator {
             Generator::Orthographic(c, s) => (false, c.eye, c.target, c.up, c.view_height * 0.5, c.width, c.height, s),
             _ => return None,
         };
-        let (forward, right, up) = frame("", eye, target, up).expect("a checked generator");
+        let (forward, right, up) = frame(target - eye, up);
         Some(CameraFrame {
             pinhole,
             eye,
@@ -561,7 +588,7 @@ pub struct LidarChannel {
 impl LidarFrame<'_> {
     /// The frame of a checked lidar.
     pub fn new(lidar: &Lidar) -> LidarFrame<'_> {
-        let (forward, right, up) = frame("", Vec3::ZERO, lidar.forward, lidar.up).expect("a checked generator");
+        let (forward, right, up) = frame(lidar.forward, lidar.up);
         LidarFrame { lidar, forward, left: -right, up }
     }
 
@@ -920,7 +947,14 @@ mod tests {
         let mut flat = camera();
         flat.up = Vec3::new(0.0, 0.0, -1.0);
         let error = Generator::Pinhole(flat, CENTRES).check().unwrap_err().to_string();
-        assert!(error.contains("generator.target"), "{error}");
+        assert!(error.contains("generator.up") && error.contains("parallel"), "{error}");
+        let blind = Camera { target: camera().eye, ..camera() };
+        let error = Generator::Pinhole(blind, CENTRES).check().unwrap_err().to_string();
+        assert!(error.contains("generator.target") && error.contains("differ from the eye"), "{error}");
+        let Camera { eye, target, width, height, .. } = camera();
+        let lost = Orthographic { eye, target, up: Vec3::NAN, view_height: 3.0, width, height };
+        let error = Generator::Orthographic(lost, CENTRES).check().unwrap_err().to_string();
+        assert!(error.contains("generator.up") && error.contains("finite"), "{error}");
         let wide = Camera { fov_y_degrees: 180.0, ..camera() };
         assert!(Generator::Pinhole(wide, CENTRES).check().unwrap_err().to_string().contains("fov_y_degrees"));
         let none = PixelSampling { samples: 0, jitter_seed: None };
