@@ -43,6 +43,11 @@ use crate::reduce::Image;
 
 /// Slots a trace keeps in flight.
 pub(super) const SLOTS: usize = 2;
+/// Bytes of idle slots a device keeps for later traces: a little more than a trace of ordinary chunks takes (a slot
+/// of 2^18 full rays and closest hits takes about 67 MB). Larger slots, made for a large trace (an `all` query of
+/// many hits a ray, chunks as large as a binding) or for traces at once, are let go once they end, so that they do
+/// not stay for the process's life.
+const MAX_IDLE_SLOT_BYTES: u64 = 256 << 20;
 /// Words of statistics at the head of `tallies` (`TALLY_WORDS` in `layout.wgsl`).
 const TALLY_WORDS: usize = 8;
 /// Bytes of those words.
@@ -154,6 +159,12 @@ impl Capacity {
             reduced: reduced.max(4),
             given_back: output.chunk_bytes(query, rays),
         }
+    }
+
+    /// Bytes of a slot of this capacity: its buffers, staging included.
+    fn bytes(&self) -> u64 {
+        let readback = self.given_back + self.tallies + TIMESTAMP_BYTES;
+        2 * self.rays + self.hits + self.tallies + self.scratch + self.reduced + readback
     }
 
     /// The largest buffer.
@@ -312,6 +323,22 @@ impl Slot {
         });
         Slot { capacity, params, upload, rays, hits, tallies, reduced, readback, timestamps, bind_group }
     }
+}
+
+/// Keeps the smallest of the idle slots `pool`, as many as take at most [`MAX_IDLE_SLOT_BYTES`], and lets go of the
+/// others, ordered so that the largest kept are taken first.
+pub(super) fn trim_idle(pool: &mut Vec<Slot>) {
+    keep_within(pool, |slot| slot.capacity.bytes(), MAX_IDLE_SLOT_BYTES);
+}
+
+/// Sorts `items` by `bytes` and keeps the smallest, as many as take at most `budget` bytes together.
+fn keep_within<T>(items: &mut Vec<T>, bytes: impl Fn(&T) -> u64, budget: u64) {
+    items.sort_by_key(&bytes);
+    let mut kept = 0u64;
+    items.retain(|item| {
+        kept = kept.saturating_add(bytes(item));
+        kept <= budget
+    });
 }
 
 /// The rays of one chunk.
@@ -744,4 +771,26 @@ fn finish(
     }
     slot.readback.unmap();
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn idle_slots_are_kept_smallest_first_within_the_budget() {
+        let mut sizes = vec![300, 10, 500, 40, 10];
+        keep_within(&mut sizes, |&bytes| bytes, 400);
+        assert_eq!(sizes, [10, 10, 40, 300], "the 500 goes; the largest kept is taken first (last)");
+        let mut huge = vec![u64::MAX, 1];
+        keep_within(&mut huge, |&bytes| bytes, 400);
+        assert_eq!(huge, [1]);
+        let ordinary = Capacity::for_chunk(
+            &Query::closest(crate::format::RayFormat::Full, HitFormat::Full),
+            MAX_CHUNK_RAYS,
+            &Input::Packed(&[]),
+            &Output::Hits(TraceOutput { hits: &mut [], counts: &mut [] }),
+        );
+        assert!(SLOTS as u64 * ordinary.bytes() <= MAX_IDLE_SLOT_BYTES, "a trace's ordinary slots stay");
+    }
 }

@@ -70,7 +70,8 @@ pub struct WgpuBackend {
     options: WgpuOptions,
     /// Builds, updates and serialization run on the host, as on the CPU backend.
     host: CpuBackend,
-    /// Idle per-chunk buffer sets (staging included), reused by later traces; a trace takes two and gives them back.
+    /// Idle per-chunk buffer sets (staging included), reused by later traces; a trace takes two and gives them back,
+    /// and the pool keeps the smallest within a budget ([`batch::trim_idle`]).
     slots: Mutex<Vec<Slot>>,
 }
 
@@ -323,7 +324,9 @@ impl WgpuBackend {
     ) -> Result<TraceStats> {
         let mut slots = self.take_slots();
         let traced = batch::trace(self.opened()?, &accel.device, query, plan, input, output, &mut slots);
-        self.slots.lock().unwrap_or_else(|e| e.into_inner()).extend(slots);
+        let mut pool = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        pool.extend(slots);
+        batch::trim_idle(&mut pool);
         traced
     }
 }
