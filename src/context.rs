@@ -326,15 +326,17 @@ impl Context {
         self.device.backend.compute_instance_memory_usage(instances, options)
     }
 
-    /// Upper bounds of the memory that building `transform` would use: an instance accel's of one instance, and
-    /// its motion keys twice, as built and as given (kept for updates and saves; no larger a key).
+    /// Upper bounds of the memory that building `transform` would use: an instance accel's of one instance, its
+    /// motion keys twice, as built and as given (kept for updates and saves; no larger a key), and its boxes at the
+    /// keys.
     pub fn compute_transform_memory_usage(
         &self,
         transform: &TransformInput,
         options: &BuildOptions,
     ) -> Result<MemoryUsage> {
         let one = self.compute_instance_memory_usage(1, options)?;
-        Ok(MemoryUsage { output_bytes: one.output_bytes + 2 * transform.key_bytes(), ..one })
+        let keys = 2 * transform.key_bytes() + transform.key_bounds_bytes();
+        Ok(MemoryUsage { output_bytes: one.output_bytes + keys, ..one })
     }
 
     /// Validates the inputs and builds an accel over them. No lock is held while building, so traces on other

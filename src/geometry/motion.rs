@@ -275,11 +275,15 @@ impl MotionOptions {
     }
 
     /// The box over `span` of an object whose boxes at the keys are `keys` (one per key) and whose box between
-    /// keys is their interpolation.
+    /// keys is their interpolation (the union of both keys' boxes where one is empty, such as an object with nothing
+    /// to hit: interpolating an empty box's infinite planes gives NaN).
     pub fn bounds_of_keys(&self, keys: &[Bounds], span: TimeSpan) -> Bounds {
         self.pieces(span, 1).iter().fold(EMPTY, |acc, piece| {
             let b = match *piece {
                 Piece::Held { key, .. } => keys[key],
+                Piece::Moving { segment, .. } if is_empty(&keys[segment]) || is_empty(&keys[segment + 1]) => {
+                    union(keys[segment], keys[segment + 1])
+                }
                 Piece::Moving { segment, from, to, .. } => {
                     let (a, b) = (keys[segment], keys[segment + 1]);
                     union((lerp(a.0, b.0, from), lerp(a.1, b.1, from)), (lerp(a.0, b.0, to), lerp(a.1, b.1, to)))

@@ -67,6 +67,9 @@ pub struct TransformNode {
     pub(crate) child: Arc<Accel>,
     /// The child's stack size.
     pub(super) stack_size: usize,
+    /// The placed child's boxes over time as [`Transform::key_bounds`] keeps them (none for a static transform), from
+    /// which its box over any span is found without asking the child.
+    key_bounds: Vec<Bounds>,
     /// The child's box, placed, over all of time.
     bounds: Bounds,
     /// The child's box in its own space over all of time, which a ray tests before it is prepared there.
@@ -266,6 +269,7 @@ impl TransformNode {
             transform: transform.clone(),
             child: Arc::clone(child),
             stack_size,
+            key_bounds: transform.key_bounds(&|span| child.backend_accel().bounds_during(span)),
             bounds: EMPTY,
             child_box,
         };
@@ -275,12 +279,15 @@ impl TransformNode {
     /// A box around the placed child at every time of `span`.
     pub fn bounds_during(&self, span: TimeSpan) -> Bounds {
         let child = self.child.backend_accel();
-        self.transform.bounds_during(span, &|inner| child.bounds_during(inner))
+        self.transform.bounds_with_keys(&self.key_bounds, span, &|inner| child.bounds_during(inner))
     }
 
     /// Bytes it occupies.
     pub fn size_bytes(&self) -> u64 {
-        FIXED_BYTES + size_of::<TransformNode>() as u64 + self.transform.key_bytes()
+        FIXED_BYTES
+            + size_of::<TransformNode>() as u64
+            + self.transform.key_bytes()
+            + (self.key_bounds.len() * size_of::<Bounds>()) as u64
     }
 
     /// The placed child's box over all of time.
