@@ -252,9 +252,14 @@ impl MotionOptions {
         }
         let segments = self.keys as usize - 1;
         let parts = segments * cuts;
-        for part in 0..parts {
+        let time = |x: f32| if x >= 1.0 { end } else { begin + (end - begin) * x };
+        let start_of = |part: usize| time(part as f32 / parts as f32);
+        // Each part starts no earlier than the one before (but for rounding at the range's end, which one more part
+        // each side covers): those that may overlap the span are found by bisection rather than by trying each.
+        let first = first_of(parts, |part| start_of(part + 1) >= span.start).saturating_sub(1);
+        let after_last = (first_of(parts, |part| start_of(part) > span.end) + 1).min(parts);
+        for part in first..after_last {
             let (lo, hi) = (part as f32 / parts as f32, (part + 1) as f32 / parts as f32);
-            let time = |x: f32| if x >= 1.0 { end } else { begin + (end - begin) * x };
             let Some(clipped) = span.clip(time(lo), time(hi)) else { continue };
             let segment = part / cuts;
             // As `locate` computes it, within this segment.
@@ -351,6 +356,17 @@ impl MotionOptions {
     }
 }
 
+/// The first of `0..count` for which `holds` holds (`count` if none), given that it holds for every one after one for
+/// which it does.
+fn first_of(count: usize, holds: impl Fn(usize) -> bool) -> usize {
+    let (mut low, mut high) = (0, count);
+    while low < high {
+        let middle = low + (high - low) / 2;
+        if holds(middle) { high = middle } else { low = middle + 1 }
+    }
+    low
+}
+
 /// Widens a box computed through transforms or fitting by a few ulps of its coordinates, so that rounding never
 /// leaves part of the object outside it.
 pub fn pad(b: Bounds) -> Bounds {
@@ -435,5 +451,38 @@ mod tests {
             assert!(p.cmpge(lo - 1e-3).all() && p.cmple(hi + 1e-3).all(), "t {t}: {p} outside {lo}..{hi}");
         }
         assert_eq!(m.bounds_of_keys(&keys, TimeSpan::ALL), union(keys[0], keys[1]));
+    }
+
+    #[test]
+    fn pieces_follow_each_other_part_by_part_over_the_span_within_the_range() {
+        let m = options(5, -1.0, 3.0, MotionFlags::empty());
+        let span = |start, end| TimeSpan { start, end };
+        let spans = [
+            (TimeSpan::ALL, 32),
+            (TimeSpan::at(0.0), 2), // key 1, where parts 7 and 8 meet
+            (TimeSpan::at(0.1), 1),
+            (TimeSpan::at(-1.0), 1),
+            (TimeSpan::at(3.0), 1),
+            (span(0.3, 0.31), 1),
+            (span(-0.1, 1.2), 11),
+            (span(2.9, 10.0), 1),
+            (span(-5.0, -2.0), 0),
+            (TimeSpan::at(7.0), 0),
+        ];
+        for (span, parts) in spans {
+            let moving: Vec<TimeSpan> = m
+                .pieces(span, 8)
+                .into_iter()
+                .filter_map(|piece| match piece {
+                    Piece::Moving { span, .. } => Some(span),
+                    Piece::Held { .. } => None,
+                })
+                .collect();
+            assert_eq!(moving.len(), parts, "{span:?}: {moving:?}");
+            if let Some(inside) = span.clip(-1.0, 3.0) {
+                assert_eq!((moving[0].start, moving[parts - 1].end), (inside.start, inside.end), "{span:?}");
+            }
+            assert!(moving.windows(2).all(|pair| pair[0].end == pair[1].start), "{span:?}: {moving:?}");
+        }
     }
 }
