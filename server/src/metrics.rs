@@ -7,11 +7,10 @@ use std::time::{Duration, Instant};
 
 use metrics::{counter, gauge, histogram};
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
-use rayd_engine::query::TraceStats;
 use tonic::{Response, Status};
 
 use crate::error::ServiceError;
-use crate::tenant::AccelEntry;
+use crate::tenant::{AccelEntry, TraceResult};
 
 /// Latency buckets, in seconds: 50 µs to 60 s.
 const LATENCY_BUCKETS: [f64; 14] =
@@ -69,16 +68,19 @@ pub async fn observe<T>(
     result.map(Response::new)
 }
 
-/// Counts a finished trace of `tenant` (labels are bounded: tenants come from the configuration).
-pub fn traced(tenant: &str, stats: &TraceStats) {
+/// Counts a finished trace of `tenant` (labels are bounded: tenants come from the configuration), and logs it at
+/// debug level with the pieces it was cut into.
+pub fn traced(tenant: &str, result: &TraceResult) {
+    let stats = &result.stats;
+    tracing::debug!(tenant, rays = stats.rays, pieces = result.pieces, ms = result.trace_ns as f64 * 1e-6, "traced");
     let tenant = tenant.to_owned();
     counter!("rayd_rays_traced_total", "tenant" => tenant.clone()).increment(stats.rays);
     counter!("rayd_rays_hit_total", "tenant" => tenant.clone()).increment(stats.rays_hit);
     counter!("rayd_trace_batches_total", "tenant" => tenant).increment(1);
 }
 
-/// Counts a piece of a queued trace of `tenant` by its `outcome`: `traced`, `failed`, or `skipped` because its trace
-/// was abandoned (the caller went away, its deadline passed, or another piece failed).
+/// Counts a piece of a queued trace of `tenant` by its `outcome`: `traced`, `failed`, or `skipped`: it found its
+/// trace abandoned (the caller went away, its deadline passed, or another piece failed) and took no rays.
 pub fn piece(tenant: &str, outcome: &'static str) {
     counter!("rayd_trace_pieces_total", "tenant" => tenant.to_owned(), "outcome" => outcome).increment(1);
 }

@@ -21,6 +21,9 @@ pub const MAX_WORKERS: u32 = 1024;
 /// The most traces a GPU device's scheduler may run at once.
 pub const MAX_GPU_WORKERS: u32 = 16;
 
+/// The longest piece time a scheduler may be given, in milliseconds.
+pub const MAX_PIECE_MS: u32 = 60_000;
+
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -68,11 +71,16 @@ pub struct SchedulerConfig {
     /// The tracing threads' nice value, 0 to 19 (Linux): above the threads that receive calls and send answers, so
     /// those get a core at once and small traces are not held up behind large ones on a busy machine.
     pub worker_nice: u32,
+    /// About how long one piece of a trace may hold a CPU worker, in milliseconds, 1 to 60,000: rays that cost more
+    /// than usual are traced in pieces of fewer rays, so that another tenant's trace waits about this long at most.
+    pub piece_ms: u32,
+    /// The same for a GPU device, 1 to 60,000 (a piece holds one of its workers and its queue).
+    pub gpu_piece_ms: u32,
 }
 
 impl Default for SchedulerConfig {
     fn default() -> Self {
-        SchedulerConfig { workers: 0, gpu_workers: 2, worker_nice: 10 }
+        SchedulerConfig { workers: 0, gpu_workers: 2, worker_nice: 10, piece_ms: 10, gpu_piece_ms: 100 }
     }
 }
 
@@ -246,6 +254,11 @@ impl Config {
                 config.scheduler.gpu_workers
             )));
         }
+        for (name, ms) in [("piece_ms", config.scheduler.piece_ms), ("gpu_piece_ms", config.scheduler.gpu_piece_ms)] {
+            if !(1..=MAX_PIECE_MS).contains(&ms) {
+                return Err(ConfigError::Invalid(format!("scheduler.{name} = {ms} must be 1 to {MAX_PIECE_MS}")));
+            }
+        }
         if config.scheduler.workers > MAX_WORKERS {
             return Err(ConfigError::Invalid(format!(
                 "scheduler.workers = {} must be 0 (one per core) to {MAX_WORKERS}",
@@ -418,6 +431,17 @@ mod tests {
             match error {
                 Some(error) => assert_eq!(loaded.unwrap_err().to_string(), format!("config: {error}")),
                 None => assert_eq!(loaded.unwrap().scheduler.gpu_workers, 16),
+            }
+        }
+        for (key, value, error) in [
+            ("RAYD_SCHEDULER_PIECE_MS", "0", Some("scheduler.piece_ms = 0 must be 1 to 60000")),
+            ("RAYD_SCHEDULER_GPU_PIECE_MS", "60001", Some("scheduler.gpu_piece_ms = 60001 must be 1 to 60000")),
+            ("RAYD_SCHEDULER_GPU_PIECE_MS", "60000", None),
+        ] {
+            let loaded = Config::load(None, env(&[(key, value)]));
+            match error {
+                Some(error) => assert_eq!(loaded.unwrap_err().to_string(), format!("config: {error}")),
+                None => assert_eq!(loaded.unwrap().scheduler.gpu_piece_ms, 60_000),
             }
         }
     }

@@ -11,11 +11,14 @@
 //! every call of the server.
 
 mod fair;
+mod pieces;
 
 use std::collections::HashMap;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
+use std::time::Duration;
 
 pub use fair::{FairQueue, Flow};
+pub use pieces::{Pace, PieceLimits, PieceSizer};
 use rayd_engine::Device;
 use rayd_engine::backend::BackendKind;
 use rayd_engine::backend::host::PART_RAYS;
@@ -49,6 +52,8 @@ pub struct Scheduler {
     generated_piece_rays: usize,
     /// Rays per piece on this device, for rays made by a generator whose hits are reduced.
     reduced_piece_rays: usize,
+    /// About how long a piece may hold a worker ([`PieceSizer`]).
+    piece_time: Duration,
     /// Whether a caller may run a task of one piece itself ([`Scheduler::try_slot`]).
     callers_run_small_tasks: bool,
 }
@@ -128,10 +133,10 @@ impl Shared {
 
 impl Scheduler {
     /// A scheduler with `workers` threads (at least one) named after `device`, cutting traces into pieces of
-    /// `piece_rays` rays. The workers run at nice value `nice` (0 to 19, above the runtime's threads' 0), so that
+    /// `piece_rays` rays at most, and of about `piece_time` each ([`PieceSizer`]). The workers run at nice value `nice` (0 to 19, above the runtime's threads' 0), so that
     /// the threads that receive calls and send answers get a core as soon as they have work: a small trace is
     /// then queued, and answered, without waiting for the scheduler of the operating system.
-    pub fn new(device: &str, workers: usize, piece_rays: usize, nice: u32) -> Scheduler {
+    pub fn new(device: &str, workers: usize, piece_rays: usize, piece_time: Duration, nice: u32) -> Scheduler {
         let slots = workers.max(1);
         let shared = Arc::new(Shared { state: Mutex::default(), changed: Condvar::new(), slots });
         for worker in 0..slots {
@@ -150,6 +155,7 @@ impl Scheduler {
             piece_rays,
             generated_piece_rays: piece_rays,
             reduced_piece_rays: piece_rays,
+            piece_time,
             callers_run_small_tasks: true,
         }
     }
@@ -175,31 +181,36 @@ impl Scheduler {
     /// The scheduler of `device` as `config` sets it: on the CPU one worker per core (`workers` 0) or `workers`, and
     /// pieces of one engine chunk, or of one engine part ([`PART_RAYS`], which a worker traces alone) for rays made by
     /// a generator and reduced (BENCHMARKS.md, "Reduced pieces of a part on the CPU": +2–6% for counts and images;
-    /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk); on a GPU `gpu_workers`
-    /// workers and pieces of [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made by a generator. The
-    /// workers run at `worker_nice`.
+    /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk), at most `piece_ms` each;
+    /// on a GPU `gpu_workers` workers and pieces of [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made
+    /// by a generator, at most `gpu_piece_ms` each. The workers run at `worker_nice`.
     pub fn for_device(device: &Device, config: &SchedulerConfig) -> Scheduler {
         let (info, nice) = (device.info(), config.worker_nice);
         match info.kind {
             BackendKind::Cpu => {
                 let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
                 let workers = if config.workers == 0 { cores } else { config.workers as usize };
-                Scheduler::new(&info.id, workers, CHUNK_RAYS, nice).with_reduced_pieces(PART_RAYS)
+                let time = Duration::from_millis(config.piece_ms.into());
+                Scheduler::new(&info.id, workers, CHUNK_RAYS, time, nice).with_reduced_pieces(PART_RAYS)
             }
-            BackendKind::Wgpu => Scheduler::new(&info.id, config.gpu_workers as usize, GPU_PIECE_RAYS, nice)
-                .with_generated_pieces(GPU_GENERATED_PIECE_RAYS)
-                .with_every_task_on_the_workers(),
+            BackendKind::Wgpu => {
+                let time = Duration::from_millis(config.gpu_piece_ms.into());
+                Scheduler::new(&info.id, config.gpu_workers as usize, GPU_PIECE_RAYS, time, nice)
+                    .with_generated_pieces(GPU_GENERATED_PIECE_RAYS)
+                    .with_every_task_on_the_workers()
+            }
         }
     }
 
-    /// Rays per piece: a trace of more rays is cut into pieces of this many — of rays made by a generator when
-    /// `generated` (whose hits are reduced when `reduced`), of rays sent otherwise.
-    pub fn piece_rays(&self, generated: bool, reduced: bool) -> usize {
-        match (generated, reduced) {
+    /// What a piece may hold: of rays made by a generator when `generated` (whose hits are reduced when `reduced`),
+    /// of rays sent otherwise.
+    pub fn piece_limits(&self, generated: bool, reduced: bool) -> PieceLimits {
+        let largest = match (generated, reduced) {
             (false, _) => self.piece_rays,
             (true, false) => self.generated_piece_rays,
             (true, true) => self.reduced_piece_rays,
-        }
+        };
+        PieceLimits { largest, time: self.piece_time }
     }
 
     /// A slot for the caller to run one small task itself, if callers may ([`Scheduler::with_every_task_on_the_workers`]
@@ -272,10 +283,12 @@ mod tests {
     use super::*;
     use std::sync::mpsc;
 
+    const SECOND: Duration = Duration::from_secs(1);
+
     #[test]
     fn queued_tasks_of_a_newcomer_overtake_a_flood() {
         // One worker, held by a task until released, so the order of the rest is the queue's alone.
-        let scheduler = Scheduler::new("test", 1, 8, 0);
+        let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
         let (release, gate) = mpsc::channel::<()>();
         let (done, finished) = mpsc::channel::<&'static str>();
         let flood = Flow { name: "a".into(), share: 1 };
@@ -299,22 +312,23 @@ mod tests {
     fn rays_made_by_a_generator_are_cut_into_their_own_pieces() {
         let pieces = |scheduler: &Scheduler| {
             [(false, false), (true, false), (true, true)]
-                .map(|(generated, reduced)| scheduler.piece_rays(generated, reduced))
+                .map(|(generated, reduced)| scheduler.piece_limits(generated, reduced).largest)
         };
-        let scheduler = Scheduler::new("test", 1, 8, 0);
+        let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
         assert_eq!(pieces(&scheduler), [8, 8, 8]);
         let scheduler = scheduler.with_generated_pieces(32);
         assert_eq!(pieces(&scheduler), [8, 32, 32]);
         assert_eq!(pieces(&scheduler.with_reduced_pieces(64)), [8, 32, 64]);
-        // The CPU's pieces are one engine chunk, or one engine part for generated rays reduced.
-        let config = SchedulerConfig { workers: 1, worker_nice: 0, ..SchedulerConfig::default() };
+        // The CPU's pieces are one engine chunk, or one engine part for generated rays reduced, of `piece_ms` each.
+        let config = SchedulerConfig { workers: 1, worker_nice: 0, piece_ms: 7, ..SchedulerConfig::default() };
         let cpu = Scheduler::for_device(&rayd_engine::Device::cpu(), &config);
         assert_eq!(pieces(&cpu), [CHUNK_RAYS, CHUNK_RAYS, PART_RAYS]);
+        assert_eq!(cpu.piece_limits(true, true).time, Duration::from_millis(7));
     }
 
     #[test]
     fn an_idle_scheduler_lends_its_slots_to_callers() {
-        let scheduler = Scheduler::new("test", 2, 8, 0);
+        let scheduler = Scheduler::new("test", 2, 8, SECOND, 0);
         let first = scheduler.try_slot().expect("idle");
         let second = scheduler.try_slot().expect("two slots");
         assert!(scheduler.try_slot().is_none(), "both slots taken");
@@ -322,13 +336,13 @@ mod tests {
         assert!(scheduler.try_slot().is_some());
         drop(second);
         // A GPU's: none, idle or not.
-        let gpu = Scheduler::new("test", 2, 8, 0).with_every_task_on_the_workers();
+        let gpu = Scheduler::new("test", 2, 8, SECOND, 0).with_every_task_on_the_workers();
         assert!(gpu.try_slot().is_none(), "a caller ran a task of a scheduler whose tasks run on its workers");
     }
 
     #[test]
     fn workers_wait_for_slots_that_callers_hold() {
-        let scheduler = Scheduler::new("test", 1, 8, 0);
+        let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
         let slot = scheduler.try_slot().expect("idle");
         let (done, finished) = mpsc::channel();
         scheduler.submit(&Flow { name: "a".into(), share: 1 }, [(1, Box::new(move || done.send(()).unwrap()) as Task)]);

@@ -76,7 +76,7 @@ async fn trace(
     reduction: Option<Arc<Reduction>>,
 ) -> ServiceResult<TraceResult> {
     let result = tenant.trace(&accel, &query, rays, reduction).await?;
-    crate::metrics::traced(tenant.name(), &result.stats);
+    crate::metrics::traced(tenant.name(), &result);
     Ok(result)
 }
 

@@ -23,7 +23,7 @@ use crate::config::Limits;
 use crate::error::{ServiceError, ServiceResult};
 use crate::persist::Store;
 use crate::registry::Registry;
-use crate::schedule::{Flow, Schedulers};
+use crate::schedule::{Flow, Pace, Schedulers};
 use crate::streams::Streams;
 use quota::Quotas;
 
@@ -45,6 +45,8 @@ pub struct AccelEntry {
     pub build_ns: u64,
     /// Updates so far.
     pub version: u64,
+    /// How fast its rays were traced lately, which sizes the first piece of its next trace (shared by its versions).
+    pub pace: Arc<Pace>,
 }
 
 /// A buffer under its id.
@@ -73,6 +75,8 @@ pub struct TraceResult {
     pub stats: TraceStats,
     /// Time spent in the engine.
     pub trace_ns: u64,
+    /// Pieces the trace was cut into ([`crate::schedule::PieceSizer`]).
+    pub pieces: usize,
 }
 
 /// Everything one tenant has built, and the limits it is held to.
@@ -278,6 +282,7 @@ impl Tenant {
             device: device.into(),
             build_ns: start.elapsed().as_nanos() as u64,
             version: 0,
+            pace: Arc::default(),
         };
         let file = match self.prepare_accel_file(&entry) {
             Ok(file) => file,
@@ -343,6 +348,7 @@ impl Tenant {
             device: device.into(),
             build_ns,
             version: 0,
+            pace: Arc::default(),
         });
         let destroy_loaded = || accels.iter().rev().try_for_each(|accel| context.destroy_accel(accel.handle()));
         let files: ServiceResult<Vec<_>> = loaded.map(|entry| Ok((self.prepare_accel_file(&entry)?, entry))).collect();

@@ -200,6 +200,7 @@ impl Tenant {
             device: device.into(),
             build_ns: record.build_ns,
             version: record.version,
+            pace: Arc::default(),
         };
         self.accels.insert(record.handle.clone(), &record.name, entry.clone()).inspect_err(|_| {
             let _ = context.destroy_accel(entry.accel.handle());

@@ -5,7 +5,7 @@
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use bytes::{Bytes, BytesMut};
 use rayd_engine::Accel;
@@ -17,7 +17,7 @@ use tokio::sync::oneshot;
 
 use super::{AccelEntry, Tenant, TraceResult};
 use crate::error::{ServiceError, ServiceResult};
-use crate::schedule::{Scheduler, Task};
+use crate::schedule::{Pace, PieceSizer, Scheduler, Task};
 
 /// The rays of a trace.
 #[derive(Debug, Clone)]
@@ -98,46 +98,58 @@ impl Tenant {
             name: accel.device.clone(),
             field: String::new(),
         })?;
-        // Rays that reduce together stay in one piece.
-        let group = reduction.as_ref().map_or(1, |r| r.group_rays());
+        // Rays that reduce together stay in one piece; pieces of hits are whole bytes of a bitmask.
+        let granule = reduction.as_ref().map_or(HIT_GRANULE, |r| r.group_rays());
         let generated = matches!(rays, Rays::Generated(..));
-        let piece_rays = (scheduler.piece_rays(generated, reduction.is_some()) / group).max(1) * group;
+        let limits = scheduler.piece_limits(generated, reduction.is_some());
+        let sizer = PieceSizer::new(limits, granule, accel.pace.get(query.kind));
+        let first_piece = sizer.next();
+        let untaken = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
         let job = Arc::new(TraceJob {
             tenant: Arc::clone(self),
             accel: Arc::clone(&accel.accel),
+            pace: Arc::clone(&accel.pace),
             device: accel.device.clone(),
             query: *query,
             reduction,
             rays,
             abandoned: AtomicBool::new(false),
-            progress: Mutex::new(Progress::default()),
+            progress: Mutex::new(Progress::new(sizer, untaken)),
         });
-        if layout.rays <= piece_rays
-            && let Some(_slot) = scheduler.try_slot()
-        {
-            let output = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
-            let start = Instant::now();
-            let (output, stats) = job.trace_piece_caught(0..job.rays.byte_len(ray_size), output)?;
-            let mut progress =
-                Progress { outputs: vec![Some(output)], stats, started: Some(start), ..Default::default() };
+        // A trace of one piece runs here if the device lends a slot; an empty one always does (it has no work).
+        let slot = (layout.rays <= first_piece).then(|| scheduler.try_slot()).flatten();
+        if slot.is_some() || layout.rays == 0 {
+            let piece = job.progress.lock().expect("not poisoned").take_piece(&job).expect("every ray is left").0;
+            let Piece { index, rays, output } = piece;
+            let (traced, took) = job.trace_piece_timed(rays.clone(), output);
+            let mut progress = job.progress.lock().expect("not poisoned");
+            progress.record(&job, index, rays, took, traced);
             return Ok(progress.finish(&job)?.trace);
         }
         let (reply, result) = oneshot::channel();
+        job.progress.lock().expect("not poisoned").reply = Some(reply);
         let _abandon_if_dropped = Abandon(Arc::clone(&job));
         let queued = Instant::now();
-        job.submit(scheduler, piece_rays, layout, reply);
+        job.queue_next(scheduler, first_piece.min(layout.rays));
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
         crate::metrics::queued(&self.name, result.trace_start.duration_since(queued));
         Ok(result.trace)
     }
 }
 
-/// A trace cut into pieces; the worker that finishes its last piece answers the caller.
+/// Pieces of hit records are multiples of this many rays, so that the pieces of a bitmask (one bit a ray) are
+/// whole bytes, and whole words for the devices that write it by words.
+const HIT_GRANULE: usize = 32;
+
+/// A trace cut into pieces as it goes: each piece, as it starts, queues the next (sized by how long the pieces so
+/// far took: [`PieceSizer`]); the piece that finishes last answers the caller.
 struct TraceJob {
     /// Whose trace it is.
     tenant: Arc<Tenant>,
     /// What is traced (kept alive while pieces wait).
     accel: Arc<Accel>,
+    /// How fast the accel's rays were traced lately; learns from this trace's pieces.
+    pace: Arc<Pace>,
     /// The device the accel lives on.
     device: String,
     /// What is asked of every ray.
@@ -146,33 +158,48 @@ struct TraceJob {
     reduction: Option<Arc<Reduction>>,
     /// Every ray of the trace.
     rays: Rays,
-    /// Set when the caller went away or a piece failed: the pieces not started yet are skipped.
+    /// Set when the caller went away or a piece failed: no further piece is taken.
     abandoned: AtomicBool,
-    /// What the pieces finished so far.
+    /// The pieces taken and what they finished so far.
     progress: Mutex<Progress>,
 }
 
 /// The pieces' results, gathered.
-#[derive(Default)]
 struct Progress {
-    /// Each piece's output, once traced.
+    /// Each piece's output in ray order, once traced.
     outputs: Vec<Option<PieceOutput>>,
+    /// Bytes of the batch's rays taken by pieces so far.
+    taken: usize,
+    /// What pieces have not taken of the hit and counts buffers yet (empty for a reduction).
+    untaken: (BytesMut, BytesMut),
+    /// Sizes the pieces.
+    sizer: PieceSizer,
+    /// Pieces taken and not finished.
+    running: usize,
     /// The partials of a reduction that folds in any order ([`Reduction::folds_in_any_order`]), folded as their
     /// pieces finish: a trace of thousands of pieces keeps one, not thousands.
     folded: Option<Partial>,
     /// The bytes of the pieces' ordered records so far, which the answer will hold
     /// ([`Reduction::answer_holds_the_records`]).
     ordered_bytes: u64,
-    /// Pieces not finished (or skipped) yet.
-    remaining: usize,
     /// The sum of the finished pieces' statistics.
     stats: TraceStats,
     /// The first failure of a piece: the answer.
     failure: Option<ServiceError>,
     /// When the first piece started.
     started: Option<Instant>,
-    /// Where the answer goes.
+    /// Where the answer goes (none while a caller traces the whole batch itself).
     reply: Option<oneshot::Sender<ServiceResult<Finished>>>,
+}
+
+/// A piece taken: the rays it traces and where its output goes.
+struct Piece {
+    /// Its place among the trace's pieces.
+    index: usize,
+    /// Its rays: bytes of the packed batch.
+    rays: std::ops::Range<usize>,
+    /// Its share of the hit and counts buffers (empty for a reduction).
+    output: (BytesMut, BytesMut),
 }
 
 /// What a piece leaves: its share of the hit and counts buffers, or its reduction.
@@ -203,44 +230,35 @@ impl Drop for Abandon {
 }
 
 impl TraceJob {
-    /// Cuts the output buffers (sized by `layout`; empty for a reduction) into the shares of pieces of
-    /// `piece_rays` rays and queues every piece.
-    fn submit(
-        self: &Arc<Self>,
-        scheduler: &Scheduler,
-        piece_rays: usize,
-        layout: OutputLayout,
-        reply: oneshot::Sender<ServiceResult<Finished>>,
-    ) {
-        let ray_size = self.query.ray_format.size();
-        let piece_bytes = piece_rays * ray_size;
-        let total = self.rays.byte_len(ray_size);
-        let pieces = total.div_ceil(piece_bytes);
+    /// Queues the job's next piece, of about `rays` rays (its cost in the fair queue; the piece takes its rays when
+    /// it starts).
+    fn queue_next(self: &Arc<Self>, scheduler: &Scheduler, rays: usize) {
+        let job = Arc::clone(self);
+        scheduler.submit(&self.tenant.flow, [(rays as u64, Box::new(move || job.run_next()) as Task)]);
+    }
+
+    /// Takes the next piece, queues the one after it, traces it, and answers when it was the last; takes none when
+    /// no rays are left or the job was abandoned (and answers when nothing else runs).
+    fn run_next(self: &Arc<Self>) {
+        let mut progress = self.progress.lock().expect("not poisoned");
+        let Some((piece, after)) = progress.take_piece(self) else {
+            if progress.taken < self.rays.byte_len(self.query.ray_format.size()) {
+                crate::metrics::piece(&self.tenant.name, "skipped");
+            }
+            return self.answer_if_done(&mut progress);
+        };
+        drop(progress);
+        if let Some(rays) = after
+            && let Some(scheduler) = self.tenant.schedulers.get(&self.device)
         {
-            let mut progress = self.progress.lock().expect("not poisoned");
-            progress.outputs = (0..pieces).map(|_| None).collect();
-            progress.remaining = pieces;
-            progress.reply = Some(reply);
+            self.queue_next(scheduler, rays);
         }
-        let (mut hits, mut counts) = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
-        let tasks: Vec<(u64, Task)> = (0..pieces)
-            .map(|index| {
-                let start = index * piece_bytes;
-                let len = piece_bytes.min(total - start);
-                let output = match self.reduction {
-                    Some(_) => (BytesMut::new(), BytesMut::new()),
-                    None => {
-                        let piece = self.query.output_layout(len).expect("a whole number of rays");
-                        (hits.split_to(piece.hits), counts.split_to(piece.counts))
-                    }
-                };
-                let job = Arc::clone(self);
-                let task: Task = Box::new(move || job.run(index, start..start + len, output));
-                ((len / ray_size) as u64, task)
-            })
-            .collect();
-        let flow = &self.tenant.flow;
-        scheduler.submit(flow, tasks);
+        let Piece { index, rays, output } = piece;
+        let (traced, took) = self.trace_piece_timed(rays.clone(), output);
+        crate::metrics::piece(&self.tenant.name, if traced.is_ok() { "traced" } else { "failed" });
+        let mut progress = self.progress.lock().expect("not poisoned");
+        progress.record(self, index, rays, took, traced);
+        self.answer_if_done(&mut progress);
     }
 
     /// Traces the rays in bytes `rays` of the batch into `output` (its share of the reply buffers), or into a
@@ -263,61 +281,109 @@ impl TraceJob {
     }
 
     /// [`TraceJob::trace_piece`], where a bug in the engine fails this trace, not the thread (a worker, or the
-    /// caller's: one of those that answer every call) nor the other pieces waiting on it.
-    fn trace_piece_caught(
+    /// caller's: one of those that answer every call) nor the other pieces waiting on it; and how long it took.
+    fn trace_piece_timed(
         &self,
         rays: std::ops::Range<usize>,
         output: (BytesMut, BytesMut),
-    ) -> ServiceResult<(PieceOutput, TraceStats)> {
+    ) -> (ServiceResult<(PieceOutput, TraceStats)>, Duration) {
         let first_ray = rays.start / self.query.ray_format.size();
-        std::panic::catch_unwind(AssertUnwindSafe(|| self.trace_piece(rays, output)))
-            .unwrap_or_else(|_| Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked"))))
+        let start = Instant::now();
+        let traced =
+            std::panic::catch_unwind(AssertUnwindSafe(|| self.trace_piece(rays, output))).unwrap_or_else(|_| {
+                Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked")))
+            });
+        (traced, start.elapsed())
     }
 
-    /// Traces piece `index` (the rays in bytes `rays`) into `output`, unless the job was abandoned, and answers
-    /// when it was the last.
-    fn run(&self, index: usize, rays: std::ops::Range<usize>, output: (BytesMut, BytesMut)) {
-        let traced = if self.abandoned.load(Ordering::Acquire) {
-            None
-        } else {
-            let start = Instant::now();
-            self.progress.lock().expect("not poisoned").started.get_or_insert(start);
-            Some(self.trace_piece_caught(rays, output))
-        };
-        let outcome = match &traced {
-            Some(Ok(_)) => "traced",
-            Some(Err(_)) => "failed",
-            None => "skipped",
-        };
-        crate::metrics::piece(&self.tenant.name, outcome);
-        let mut progress = self.progress.lock().expect("not poisoned");
-        match traced.map(|traced| traced.and_then(|(output, stats)| Ok((progress.take(self, output)?, stats)))) {
-            Some(Ok((output, stats))) => {
-                progress.stats.add(&stats);
-                progress.outputs[index] = Some(output);
-            }
-            Some(Err(error)) => {
-                self.abandoned.store(true, Ordering::Release);
-                progress.failure.get_or_insert(error);
-            }
-            None => {}
-        }
-        progress.remaining -= 1;
-        if progress.remaining == 0 {
-            let answer = progress.finish(self);
-            if let Some(reply) = progress.reply.take() {
-                // The caller may have gone: then nobody wants the answer.
-                let _ = reply.send(answer);
-            }
+    /// Sends the answer if no piece runs and none is left to take (every ray taken, or the job abandoned), once.
+    fn answer_if_done(&self, progress: &mut Progress) {
+        let all_taken = progress.taken == self.rays.byte_len(self.query.ray_format.size());
+        if progress.running == 0
+            && (all_taken || self.abandoned.load(Ordering::Acquire))
+            && let Some(reply) = progress.reply.take()
+        {
+            // The caller may have gone: then nobody wants the answer.
+            let _ = reply.send(progress.finish(self));
         }
     }
 }
 
 impl Progress {
+    /// Nothing taken yet: pieces sized by `sizer` take their shares of `untaken` (the reply's hit and counts buffers).
+    fn new(sizer: PieceSizer, untaken: (BytesMut, BytesMut)) -> Progress {
+        Progress {
+            outputs: Vec::new(),
+            taken: 0,
+            untaken,
+            sizer,
+            running: 0,
+            folded: None,
+            ordered_bytes: 0,
+            stats: TraceStats::default(),
+            failure: None,
+            started: None,
+            reply: None,
+        }
+    }
+
+    /// The next piece of `job` (as many rays as the sizer says, or those left), and about how many rays the piece
+    /// after it will take, if rays are left; none when no rays are left or the job was abandoned.
+    fn take_piece(&mut self, job: &TraceJob) -> Option<(Piece, Option<usize>)> {
+        let ray_size = job.query.ray_format.size();
+        let total = job.rays.byte_len(ray_size);
+        // An empty batch is one empty piece.
+        let none_left = self.taken == total && (total > 0 || !self.outputs.is_empty());
+        if none_left || job.abandoned.load(Ordering::Acquire) {
+            return None;
+        }
+        let rays = self.taken..total.min(self.taken + self.sizer.next() * ray_size);
+        self.taken = rays.end;
+        let output = match job.reduction {
+            Some(_) => (BytesMut::new(), BytesMut::new()),
+            None => {
+                let layout = job.query.output_layout(rays.len()).expect("a whole number of rays");
+                (self.untaken.0.split_to(layout.hits), self.untaken.1.split_to(layout.counts))
+            }
+        };
+        self.started.get_or_insert_with(Instant::now);
+        self.outputs.push(None);
+        self.running += 1;
+        let left = (total - self.taken) / ray_size;
+        let piece = Piece { index: self.outputs.len() - 1, rays, output };
+        Some((piece, (left > 0).then(|| self.sizer.next().min(left))))
+    }
+
+    /// Records how piece `index` of `job` went (`traced`, the rays in bytes `rays` of the batch, taking `took`):
+    /// its output kept ([`Progress::keep`]) and its statistics added, its rate taught to the sizer and to the
+    /// accel's pace; or the job's first failure, which abandons it.
+    fn record(
+        &mut self,
+        job: &TraceJob,
+        index: usize,
+        rays: std::ops::Range<usize>,
+        took: Duration,
+        traced: ServiceResult<(PieceOutput, TraceStats)>,
+    ) {
+        match traced.and_then(|(output, stats)| Ok((self.keep(job, output)?, stats))) {
+            Ok((output, stats)) => {
+                let rays = rays.len() / job.query.ray_format.size();
+                job.pace.set(job.query.kind, self.sizer.learn(rays, took));
+                self.stats.add(&stats);
+                self.outputs[index] = Some(output);
+            }
+            Err(error) => {
+                job.abandoned.store(true, Ordering::Release);
+                self.failure.get_or_insert(error);
+            }
+        }
+        self.running -= 1;
+    }
+
     /// What is kept of a piece's `output`: a reduction that folds in any order folded into [`Progress::folded`]; the
     /// rest as it is, once ordered records that pass `max_message_bytes` have failed the trace (its answer could not
     /// be sent: the pieces left are skipped).
-    fn take(&mut self, job: &TraceJob, output: PieceOutput) -> ServiceResult<PieceOutput> {
+    fn keep(&mut self, job: &TraceJob, output: PieceOutput) -> ServiceResult<PieceOutput> {
         let (Some(reduction), PieceOutput::Reduced(partial)) = (&job.reduction, &output) else { return Ok(output) };
         if reduction.folds_in_any_order() {
             let PieceOutput::Reduced(partial) = output else { unreachable!("matched above") };
@@ -351,7 +417,7 @@ impl Progress {
         }
         let trace_start = self.started.unwrap_or_else(Instant::now);
         let mut outputs = std::mem::take(&mut self.outputs).into_iter();
-        let mut trace = TraceResult { stats: self.stats, ..Default::default() };
+        let mut trace = TraceResult { stats: self.stats, pieces: outputs.len(), ..Default::default() };
         match &job.reduction {
             None => {
                 let Some(Some(PieceOutput::Hits(mut hits, mut counts))) = outputs.next() else {
@@ -388,4 +454,127 @@ impl Progress {
 /// The answer of a trace whose caller went away (nobody reads it).
 fn abandoned() -> ServiceError {
     ServiceError::Transport(tonic::Status::cancelled("the caller went away before the trace finished"))
+}
+
+#[cfg(test)]
+mod tests {
+    use rayd_engine::Device;
+    use rayd_engine::accel::BuildOptions;
+    use rayd_engine::format::{HitFormat, Ray, RayFormat};
+    use rayd_engine::geometry::{BuildInput, TriangleInput};
+    use rayd_engine::glam::Vec3A;
+    use rayd_engine::query::QueryKind;
+    use rayd_engine::reduce::Reduction;
+
+    use super::*;
+    use crate::config::{Limits, SchedulerConfig};
+    use crate::schedule::Schedulers;
+    use crate::tenant::DEFAULT_DEVICE;
+
+    /// Copies of one triangle in the pile: every ray through it tests each (20 million tests a 1,024-ray piece,
+    /// far more than a millisecond on any core).
+    const PILE: usize = 20_000;
+
+    /// A tenant on a CPU with two workers, whose pieces may take `piece_ms`, with the pile built as `pile`.
+    fn tenant_with_a_pile(piece_ms: u32) -> (Arc<Tenant>, AccelEntry) {
+        let devices = [Device::cpu()];
+        let config = SchedulerConfig { workers: 2, piece_ms, ..SchedulerConfig::default() };
+        let tenant =
+            Arc::new(Tenant::new("t", Limits::default(), 1, &devices, Arc::new(Schedulers::new(&devices, &config))));
+        let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let indices: Vec<u8> = [0u32, 1, 2].repeat(PILE).iter().flat_map(|i| i.to_le_bytes()).collect();
+        let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        let options = BuildOptions::default();
+        let entry = tenant
+            .build_accel(
+                "pile",
+                DEFAULT_DEVICE,
+                |context| context.compute_memory_usage(&input, &options),
+                |context| context.build_accel(&input, &options),
+            )
+            .unwrap();
+        (tenant, entry)
+    }
+
+    /// `count` rays: every third misses the pile, the rest cross it.
+    fn rays(count: usize) -> Bytes {
+        let format = RayFormat::OriginTminDirectionTmax;
+        let mut bytes = vec![0; count * format.size()];
+        for (i, record) in bytes.chunks_exact_mut(format.size()).enumerate() {
+            let x = if i % 3 == 0 { 5.0 } else { 0.25 };
+            let ray = Ray {
+                origin: Vec3A::new(x, 0.25, 1.0),
+                direction: Vec3A::new(0.0, 0.0, -1.0),
+                tmax: f32::INFINITY,
+                ..Ray::default()
+            };
+            format.encode(&ray, record);
+        }
+        Bytes::from(bytes)
+    }
+
+    /// Traces `rays` for `tenant` on a runtime of its own, reduced by `reduction` if given.
+    fn trace(
+        tenant: &Arc<Tenant>,
+        entry: &AccelEntry,
+        query: &Query,
+        rays: Rays,
+        reduction: Option<Reduction>,
+    ) -> TraceResult {
+        let runtime = tokio::runtime::Builder::new_current_thread().build().unwrap();
+        runtime.block_on(tenant.trace(entry, query, rays, reduction.map(Arc::new))).unwrap()
+    }
+
+    #[test]
+    fn costly_rays_are_cut_into_pieces_of_the_piece_time_and_answer_the_same_bytes() {
+        let (tenant, entry) = tenant_with_a_pile(1);
+        let rays = rays(4096);
+        let closest = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+        let any = Query { kind: QueryKind::Any, hit_format: HitFormat::Bitmask, ..closest };
+        let all = Query { kind: QueryKind::All, hit_format: HitFormat::TTriid, max_hits_per_ray: 3, ..closest };
+        // An any-hit ray stops at the pile's first triangle: cheap rays, in pieces as large as usual.
+        for (query, costly) in [(closest, true), (any, false), (all, true)] {
+            let kind = query.kind;
+            assert_eq!(entry.pace.get(kind), None, "nothing traced yet");
+            let traced = trace(&tenant, &entry, &query, Rays::Packed(rays.clone()), None);
+            let pace = entry.pace.get(kind).expect("the trace taught the accel's pace");
+            if costly {
+                // Pieces of 1,024 rays (the CPU's largest) would be four; a millisecond holds a few dozen rays.
+                assert!(traced.pieces > 16, "{kind:?}: {} pieces", traced.pieces);
+                assert!(pace > 1e3, "{kind:?}: {pace} ns a ray through {PILE} triangles");
+            }
+            // The same bytes as one trace of the whole batch by the engine.
+            let layout = query.output_layout(rays.len()).unwrap();
+            let (mut hits, mut counts) = (vec![0; layout.hits], vec![0; layout.counts]);
+            let whole = tenant.context(DEFAULT_DEVICE).unwrap().1;
+            whole
+                .trace_source(
+                    &entry.accel,
+                    &query,
+                    RaySource::Packed(&rays),
+                    TraceOutput { hits: &mut hits, counts: &mut counts },
+                )
+                .unwrap();
+            assert_eq!((&traced.hits[..], &traced.counts[..]), (&hits[..], &counts[..]), "{kind:?}");
+        }
+        // Rays reduced in groups of three stay whole groups in every piece: the nearest hit of each group is the
+        // engine's over the whole batch.
+        let reduction = Reduction::NearestPerGroup { group: 3 };
+        let rays = rays.slice(..rays.len() / 96 * 96);
+        let query = Query { hit_format: HitFormat::T, ..closest };
+        let traced = trace(&tenant, &entry, &query, Rays::Packed(rays.clone()), Some(reduction.clone()));
+        assert!(traced.pieces > 16, "{} pieces", traced.pieces);
+        let whole = tenant.context(DEFAULT_DEVICE).unwrap().1;
+        let (partial, _) = whole.trace_reduced(&entry.accel, &query, RaySource::Packed(&rays), 0, &reduction).unwrap();
+        let count = (rays.len() / query.ray_format.size()) as u64;
+        assert_eq!(traced.reduced, Some(reduction.finish(partial, count).unwrap()));
+    }
+
+    #[test]
+    fn an_empty_batch_is_answered_at_once() {
+        let (tenant, entry) = tenant_with_a_pile(10);
+        let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+        let traced = trace(&tenant, &entry, &query, Rays::Packed(Bytes::new()), None);
+        assert_eq!((traced.hits.len(), traced.stats.rays, traced.pieces), (0, 0, 1));
+    }
 }
