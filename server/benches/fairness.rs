@@ -1,8 +1,11 @@
-//! Fair scheduling under a flood: tenant `flood` keeps the CPU device saturated with 1M-ray batches from two
-//! callers at once while a probe traces one ray at a time, (1) on an idle server, (2) as tenant `probe` during the
-//! flood, and (3) as the flood's own tenant during the flood (one queue: first come, first served), to show what the
-//! per-tenant queues buy. Prints one table; run with `cargo bench -p rayd-server --bench fairness`. The server runs
-//! in this process (its own runtime threads), the clients talk to it over TCP.
+//! Fair scheduling under a flood: tenant `flood` keeps a device saturated with 1M-ray batches from two callers at
+//! once while a probe traces one ray at a time, (1) on an idle server, (2) as tenant `probe` during the flood, and
+//! (3) as the flood's own tenant during the flood (one queue: first come, first served), to show what the per-tenant
+//! queues buy; then (4) as tenant `probe` while the flood traces costly rays (every ray crosses a pile of copies of
+//! one triangle), to show what pieces sized by time buy. Prints one table; run with
+//! `cargo bench -p rayd-server --bench fairness`; `FAIRNESS_DEVICE` names the device (`cpu:0` unless set, e.g.
+//! `wgpu:0`) and `FAIRNESS_PILE_RAYS` the costly flood's rays a batch (65,536 unless set). The server runs in this
+//! process (its own runtime threads), the clients talk to it over TCP.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -12,6 +15,7 @@ use bytes::Bytes;
 use rayd_client::{Client, ClientOptions};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, RayFormat};
+use rayd_engine::glam::{Vec3, Vec3A};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::Query;
 use rayd_engine::raygen::Camera;
@@ -23,10 +27,13 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 const FLOOD_KEY: &str = "flood-write-key-0123456789";
 const PROBE_KEY: &str = "probe-write-key-0123456789";
-/// One-ray traces timed in each phase (after 100 untimed ones).
+/// One-ray traces timed on the idle server (after 100 untimed ones) and, unless that takes too long, under a flood.
 const PROBES: usize = 2000;
 /// Shortest time over which the flood's rate is measured.
 const FLOOD_WINDOW: Duration = Duration::from_secs(10);
+/// Longest time the probe traces under a flood: a flood that holds the device for seconds at a time (pieces that
+/// are not sized by time) leaves it a few traces.
+const PROBE_TIME_LIMIT: Duration = Duration::from_secs(60);
 /// Callers of the flood, each with one 1M-ray batch in flight at all times.
 const FLOOD_CALLERS: usize = 2;
 
@@ -57,35 +64,50 @@ async fn probe(client: &Client, query: &Query, ray: &Bytes) -> Vec<Duration> {
     latencies
 }
 
+/// What a flood traces: an accel and a batch of rays through it, sent again and again.
+struct Flood<'a> {
+    /// The flood tenant's accel.
+    accel: &'a str,
+    /// One batch.
+    rays: &'a Bytes,
+}
+
 /// Probes while the flood runs; the probe latencies and the flood's rays per second, measured over at least
-/// [`FLOOD_WINDOW`] (the probes keep going until it has passed, so the rate counts many whole batches).
+/// [`FLOOD_WINDOW`] and [`PROBES`] probes (so the rate counts many whole batches) and at most [`PROBE_TIME_LIMIT`],
+/// once each flood caller has had two batches traced.
 async fn under_flood(
-    flood: &Client,
+    flood_client: &Client,
+    flood: &Flood<'_>,
     prober: &Client,
     query: &Query,
-    rays: &Bytes,
     ray: &Bytes,
 ) -> (Vec<Duration>, f64) {
     let (stop, traced) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
     let callers: Vec<_> = (0..FLOOD_CALLERS)
         .map(|_| {
-            let (flood, rays, query, stop, traced) =
-                (flood.clone(), rays.clone(), *query, Arc::clone(&stop), Arc::clone(&traced));
+            let (client, rays, query, stop, traced) =
+                (flood_client.clone(), flood.rays.clone(), *query, Arc::clone(&stop), Arc::clone(&traced));
+            let accel = flood.accel.to_owned();
             tokio::spawn(async move {
                 while !stop.load(Ordering::Acquire) {
-                    let result = flood.trace("bunny", &query, rays.clone()).await.unwrap();
+                    let result = client.trace(&accel, &query, rays.clone()).await.unwrap();
                     traced.fetch_add(result.rays() as u64, Ordering::AcqRel);
                 }
             })
         })
         .collect();
-    while traced.load(Ordering::Acquire) < 2 << 20 {
+    eprintln!("flooding {} …", flood.accel);
+    let batch_rays = (flood.rays.len() / query.ray_format.size()) as u64;
+    while traced.load(Ordering::Acquire) < 2 * FLOOD_CALLERS as u64 * batch_rays {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
+    eprintln!("probing …");
     let (before, start) = (traced.load(Ordering::Acquire), Instant::now());
-    let mut latencies = probe(prober, query, ray).await;
-    while start.elapsed() < FLOOD_WINDOW {
-        latencies.extend(probe(prober, query, ray).await);
+    let mut latencies = Vec::new();
+    while (latencies.len() < PROBES || start.elapsed() < FLOOD_WINDOW) && start.elapsed() < PROBE_TIME_LIMIT {
+        let sent = Instant::now();
+        prober.trace("bunny", query, ray.clone()).await.unwrap();
+        latencies.push(sent.elapsed());
     }
     latencies.sort();
     let flood_rate = (traced.load(Ordering::Acquire) - before) as f64 / start.elapsed().as_secs_f64();
@@ -96,6 +118,24 @@ async fn under_flood(
     (latencies, flood_rate)
 }
 
+/// Copies of one triangle in the costly flood's pile: every ray through it tests each.
+const PILE: usize = 20_000;
+
+/// The pile, and `count` rays that cross it.
+fn pile(count: usize) -> (Mesh, Bytes) {
+    let mesh = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]; PILE] };
+    let ray = rayd_engine::format::Ray {
+        origin: Vec3A::new(0.25, 0.25, 1.0),
+        direction: Vec3A::NEG_Z,
+        tmax: f32::INFINITY,
+        ..Default::default()
+    };
+    let format = RayFormat::OriginTminDirectionTmax;
+    let mut rays = vec![0; count * format.size()];
+    rays.chunks_exact_mut(format.size()).for_each(|record| format.encode(&ray, record));
+    (mesh, Bytes::from(rays))
+}
+
 fn main() {
     let meshes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/meshes");
     let bunny = Mesh::load_obj(meshes.join("stanford-bunny.obj")).expect("the shared bunny");
@@ -103,6 +143,9 @@ fn main() {
     let rays = Bytes::from(Camera::framing(lo, hi, 1024, 1024).rays(RayFormat::OriginTminDirectionTmax));
     let one_ray = rays.slice(512 * 1024 * 32..512 * 1024 * 32 + 32);
     let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+    let device = std::env::var("FAIRNESS_DEVICE").unwrap_or_else(|_| "cpu:0".into());
+    let pile_rays = std::env::var("FAIRNESS_PILE_RAYS").map_or(1 << 16, |n| n.parse().expect("a number of rays"));
+    let (pile, through_pile) = pile(pile_rays);
 
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
     runtime.block_on(async {
@@ -120,35 +163,51 @@ fn main() {
         let (flood, prober, same_tenant) =
             (connect(FLOOD_KEY).await.unwrap(), connect(PROBE_KEY).await.unwrap(), connect(FLOOD_KEY).await.unwrap());
         for client in [&flood, &prober] {
-            client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+            client.build_mesh("bunny", &bunny, &device, BuildFlags::empty()).await.unwrap();
         }
+        flood.build_mesh("pile", &pile, &device, BuildFlags::empty()).await.unwrap();
 
         let idle = probe(&prober, &query, &one_ray).await;
-        let (fair, fair_rate) = under_flood(&flood, &prober, &query, &rays, &one_ray).await;
-        let (shared, shared_rate) = under_flood(&flood, &same_tenant, &query, &rays, &one_ray).await;
+        let bunny_flood = Flood { accel: "bunny", rays: &rays };
+        let (fair, fair_rate) = under_flood(&flood, &bunny_flood, &prober, &query, &one_ray).await;
+        let (shared, shared_rate) = under_flood(&flood, &bunny_flood, &same_tenant, &query, &one_ray).await;
+        let pile_flood = Flood { accel: "pile", rays: &through_pile };
+        let (costly, costly_rate) = under_flood(&flood, &pile_flood, &prober, &query, &one_ray).await;
 
         let (idle_p50, idle_p99) = (percentile(&idle, 0.5), percentile(&idle, 0.99));
         println!(
-            "bunny, 1M camera rays a batch, closest, t; {FLOOD_CALLERS} flood callers; at least {PROBES} one-ray \
-             probes per row (and {} s under the flood)",
-            FLOOD_WINDOW.as_secs()
+            "{device}; flood: bunny, 1M camera rays a batch, closest, t; costly flood: {pile_rays} rays a batch \
+             through a pile of {PILE} copies of one triangle; {FLOOD_CALLERS} flood callers; one-ray probes of \
+             the bunny, under a flood for {} s and {PROBES} probes at least, {} s at most",
+            FLOOD_WINDOW.as_secs(),
+            PROBE_TIME_LIMIT.as_secs()
         );
-        println!("probe                                   p50 µs   p90 µs   p99 µs  p99/idle p50  p99/idle p99  flood Mrays/s");
+        println!(
+            "probe                                   p50 µs   p90 µs   p99 µs   max µs  p99/idle p50  p99/idle p99  \
+             flood Mrays/s"
+        );
         let row = |name: &str, l: &[Duration], rate: Option<f64>| {
             let p99 = percentile(l, 0.99);
             println!(
-                "{name:<38} {:7.0}  {:7.0}  {:7.0}  {:11.1}×  {:11.1}×  {}",
+                "{name:<38} {:7.0}  {:7.0}  {:7.0}  {:7.0}  {:11.1}×  {:11.1}×  {}",
                 percentile(l, 0.5),
                 percentile(l, 0.9),
                 p99,
+                percentile(l, 1.0),
                 p99 / idle_p50,
                 p99 / idle_p99,
-                rate.map_or("-".into(), |r| format!("{:.2}", r / 1e6))
+                rate.map_or("-".into(), |r| format!("{:.3}", r / 1e6))
             );
         };
         row("idle server", &idle, None);
         row("tenant probe during the flood", &fair, Some(fair_rate));
         row("flood's own tenant during the flood", &shared, Some(shared_rate));
-        println!("({} probes under the flood, {} as its own tenant)", fair.len(), shared.len());
+        row("tenant probe during the costly flood", &costly, Some(costly_rate));
+        println!(
+            "({} probes under the flood, {} as its own tenant, {} under the costly flood)",
+            fair.len(),
+            shared.len(),
+            costly.len()
+        );
     });
 }

@@ -6,7 +6,7 @@
 //! Costs are rays, so two flows with equal shares get equal rays, whatever their batch sizes: a flow that sends one
 //! ray at a time is served ahead of a flow with a million queued.
 
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 /// Who queued a task, and its weight.
@@ -23,8 +23,8 @@ pub struct Flow {
 struct FlowQueue<T> {
     /// Virtual time at which its next task starts.
     pass: f64,
-    /// Its waiting tasks with their costs, in arrival order.
-    tasks: VecDeque<(u64, T)>,
+    /// Its waiting tasks with their costs, by their order and then by arrival.
+    tasks: BTreeMap<(u64, u64), (u64, T)>,
 }
 
 /// Tasks of many flows, taken out fairly.
@@ -36,11 +36,13 @@ pub struct FairQueue<T> {
     now: f64,
     /// Tasks waiting in all flows.
     len: usize,
+    /// Tasks pushed so far: the arrival number of the next.
+    pushed: u64,
 }
 
 impl<T> Default for FairQueue<T> {
     fn default() -> Self {
-        FairQueue { flows: BTreeMap::new(), now: 0.0, len: 0 }
+        FairQueue { flows: BTreeMap::new(), now: 0.0, len: 0, pushed: 0 }
     }
 }
 
@@ -55,22 +57,25 @@ impl<T> FairQueue<T> {
         self.len
     }
 
-    /// Queues `task` of `cost` (rays) behind the other tasks of `flow`.
-    pub fn push(&mut self, flow: &Flow, cost: u64, task: T) {
+    /// Queues `task` of `cost` (rays) among the tasks of `flow`: behind those of the same or a smaller `order`, ahead
+    /// of those of a larger one (a trace's pieces, queued one at a time, all have its order: the trace's arrival, so
+    /// that a flow's traces are served in arrival order).
+    pub fn push(&mut self, flow: &Flow, order: u64, cost: u64, task: T) {
         let now = self.now;
         let queue =
-            self.flows.entry(Arc::clone(&flow.name)).or_insert_with(|| FlowQueue { pass: now, tasks: VecDeque::new() });
+            self.flows.entry(Arc::clone(&flow.name)).or_insert_with(|| FlowQueue { pass: now, tasks: BTreeMap::new() });
         if queue.tasks.is_empty() {
             queue.pass = queue.pass.max(now);
         }
-        queue.tasks.push_back((cost.max(1) * SHARE_SCALE / u64::from(flow.share.max(1)), task));
+        queue.tasks.insert((order, self.pushed), (cost.max(1) * SHARE_SCALE / u64::from(flow.share.max(1)), task));
+        self.pushed += 1;
         self.len += 1;
     }
 
     /// Takes the next task: the first waiting one of the flow whose pass is smallest.
     pub fn pop(&mut self) -> Option<T> {
         let queue = self.flows.values_mut().filter(|q| !q.tasks.is_empty()).min_by(|a, b| a.pass.total_cmp(&b.pass))?;
-        let (weighted_cost, task) = queue.tasks.pop_front()?;
+        let (_, (weighted_cost, task)) = queue.tasks.pop_first()?;
         self.now = queue.pass;
         queue.pass += weighted_cost as f64;
         self.len -= 1;
@@ -99,12 +104,12 @@ mod tests {
         let mut queue = FairQueue::default();
         let flood = flow("a", 1);
         for _ in 0..1000 {
-            queue.push(&flood, 1024, "a");
+            queue.push(&flood, 0, 1024, "a");
         }
         for _ in 0..10 {
             assert_eq!(queue.pop(), Some("a"));
         }
-        queue.push(&flow("b", 1), 1, "b");
+        queue.push(&flow("b", 1), 0, 1, "b");
         assert_eq!(queue.pop(), Some("b"), "one ray of b goes before the rest of a's million");
         assert_eq!(queue.len(), 990);
     }
@@ -114,8 +119,8 @@ mod tests {
         let mut queue = FairQueue::default();
         let (a, b) = (flow("a", 1), flow("b", 3));
         for _ in 0..400 {
-            queue.push(&a, 100, "a");
-            queue.push(&b, 100, "b");
+            queue.push(&a, 0, 100, "a");
+            queue.push(&b, 0, 100, "b");
         }
         let first: Vec<_> = drain(&mut queue).into_iter().take(400).collect();
         let served_b = first.iter().filter(|&&n| n == "b").count();
@@ -127,10 +132,10 @@ mod tests {
         let mut queue = FairQueue::default();
         let (big, small) = (flow("big", 1), flow("small", 1));
         for _ in 0..100 {
-            queue.push(&big, 1000, "big");
+            queue.push(&big, 0, 1000, "big");
         }
         for _ in 0..1000 {
-            queue.push(&small, 100, "small");
+            queue.push(&small, 0, 100, "small");
         }
         // While both have work, each gets about half the rays: one big task for every ten small ones.
         let order = drain(&mut queue);
@@ -144,17 +149,17 @@ mod tests {
     fn idle_time_earns_no_credit() {
         let mut queue = FairQueue::default();
         let (a, b) = (flow("a", 1), flow("b", 1));
-        queue.push(&b, 10, "b");
+        queue.push(&b, 0, 10, "b");
         assert_eq!(queue.pop(), Some("b"));
         for _ in 0..100 {
-            queue.push(&a, 10, "a");
+            queue.push(&a, 0, 10, "a");
         }
         for _ in 0..50 {
             queue.pop();
         }
         // b was idle while a was served 50 times: it now alternates with a instead of running 50 in a row.
         for _ in 0..10 {
-            queue.push(&b, 10, "b");
+            queue.push(&b, 0, 10, "b");
         }
         let next: Vec<_> = drain(&mut queue).into_iter().take(20).collect();
         let run_of_b = next.iter().take_while(|&&n| n == "b").count();
@@ -167,9 +172,22 @@ mod tests {
         let mut queue = FairQueue::default();
         let a = flow("a", 5);
         for name in ["1", "2", "3"] {
-            queue.push(&a, 7, name);
+            queue.push(&a, 0, 7, name);
         }
         assert_eq!(drain(&mut queue), ["1", "2", "3"]);
         assert!(queue.is_empty());
+    }
+
+    #[test]
+    fn a_later_task_of_an_earlier_order_goes_first_within_its_flow() {
+        // Trace 1's second piece is queued after trace 2's first: it is still served first.
+        let mut queue = FairQueue::default();
+        let a = flow("a", 1);
+        queue.push(&a, 1, 7, "1a");
+        assert_eq!(queue.pop(), Some("1a"));
+        queue.push(&a, 2, 7, "2a");
+        queue.push(&a, 1, 7, "1b");
+        queue.push(&a, 2, 7, "2b");
+        assert_eq!(drain(&mut queue), ["1b", "2a", "2b"]);
     }
 }

@@ -14,6 +14,7 @@ mod fair;
 mod pieces;
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Duration;
 
@@ -54,6 +55,8 @@ pub struct Scheduler {
     reduced_piece_rays: usize,
     /// About how long a piece may hold a worker ([`PieceSizer`]).
     piece_time: Duration,
+    /// Traces that arrived so far ([`Scheduler::arrival`]).
+    arrivals: AtomicU64,
     /// Whether a caller may run a task of one piece itself ([`Scheduler::try_slot`]).
     callers_run_small_tasks: bool,
 }
@@ -156,6 +159,7 @@ impl Scheduler {
             generated_piece_rays: piece_rays,
             reduced_piece_rays: piece_rays,
             piece_time,
+            arrivals: AtomicU64::new(0),
             callers_run_small_tasks: true,
         }
     }
@@ -227,11 +231,17 @@ impl Scheduler {
         None
     }
 
-    /// Queues `tasks` of `flow`, each with its cost in rays, in order.
-    pub fn submit(&self, flow: &Flow, tasks: impl IntoIterator<Item = (u64, Task)>) {
+    /// A number for a trace that arrives now: larger than every earlier one's ([`Scheduler::submit`]'s `order`).
+    pub fn arrival(&self) -> u64 {
+        self.arrivals.fetch_add(1, Ordering::Relaxed)
+    }
+
+    /// Queues `tasks` of `flow`, each with its cost in rays, in order, behind the flow's tasks of the same or an
+    /// earlier `order` ([`Scheduler::arrival`]) and ahead of those of a later one.
+    pub fn submit(&self, flow: &Flow, order: u64, tasks: impl IntoIterator<Item = (u64, Task)>) {
         let mut state = self.shared.lock();
         for (cost, task) in tasks {
-            state.queue.push(flow, cost, task);
+            state.queue.push(flow, order, cost, task);
         }
         drop(state);
         self.shared.changed.notify_all();
@@ -292,15 +302,18 @@ mod tests {
         let (release, gate) = mpsc::channel::<()>();
         let (done, finished) = mpsc::channel::<&'static str>();
         let flood = Flow { name: "a".into(), share: 1 };
-        scheduler.submit(&flood, [(8, Box::new(move || gate.recv().unwrap()) as Task)]);
+        scheduler.submit(&flood, 0, [(8, Box::new(move || gate.recv().unwrap()) as Task)]);
         let tasks = (0..100).map(|_| {
             let done = done.clone();
             (8, Box::new(move || done.send("a").unwrap()) as Task)
         });
-        scheduler.submit(&flood, tasks.collect::<Vec<_>>());
+        scheduler.submit(&flood, 0, tasks.collect::<Vec<_>>());
         let late = done.clone();
-        scheduler
-            .submit(&Flow { name: "b".into(), share: 1 }, [(1, Box::new(move || late.send("b").unwrap()) as Task)]);
+        scheduler.submit(
+            &Flow { name: "b".into(), share: 1 },
+            1,
+            [(1, Box::new(move || late.send("b").unwrap()) as Task)],
+        );
         assert!(scheduler.try_slot().is_none(), "work is queued: a caller may not run its own ahead of it");
         release.send(()).unwrap();
         let order: Vec<_> = (0..101).map(|_| finished.recv().unwrap()).collect();
@@ -345,7 +358,11 @@ mod tests {
         let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
         let slot = scheduler.try_slot().expect("idle");
         let (done, finished) = mpsc::channel();
-        scheduler.submit(&Flow { name: "a".into(), share: 1 }, [(1, Box::new(move || done.send(()).unwrap()) as Task)]);
+        scheduler.submit(
+            &Flow { name: "a".into(), share: 1 },
+            0,
+            [(1, Box::new(move || done.send(()).unwrap()) as Task)],
+        );
         assert!(finished.recv_timeout(std::time::Duration::from_millis(50)).is_err(), "ran beside a held slot");
         drop(slot);
         finished.recv_timeout(std::time::Duration::from_secs(10)).expect("runs once the slot is back");

@@ -110,6 +110,7 @@ impl Tenant {
             accel: Arc::clone(&accel.accel),
             pace: Arc::clone(&accel.pace),
             device: accel.device.clone(),
+            order: scheduler.arrival(),
             query: *query,
             reduction,
             rays,
@@ -152,6 +153,8 @@ struct TraceJob {
     pace: Arc<Pace>,
     /// The device the accel lives on.
     device: String,
+    /// When it arrived at the device's scheduler: its pieces go ahead of later traces' of the same tenant.
+    order: u64,
     /// What is asked of every ray.
     query: Query,
     /// What the hits are reduced to, if not returned.
@@ -234,7 +237,7 @@ impl TraceJob {
     /// it starts).
     fn queue_next(self: &Arc<Self>, scheduler: &Scheduler, rays: usize) {
         let job = Arc::clone(self);
-        scheduler.submit(&self.tenant.flow, [(rays as u64, Box::new(move || job.run_next()) as Task)]);
+        scheduler.submit(&self.tenant.flow, self.order, [(rays as u64, Box::new(move || job.run_next()) as Task)]);
     }
 
     /// Takes the next piece, queues the one after it, traces it, and answers when it was the last; takes none when
@@ -568,6 +571,24 @@ mod tests {
         let (partial, _) = whole.trace_reduced(&entry.accel, &query, RaySource::Packed(&rays), 0, &reduction).unwrap();
         let count = (rays.len() / query.ray_format.size()) as u64;
         assert_eq!(traced.reduced, Some(reduction.finish(partial, count).unwrap()));
+    }
+
+    #[test]
+    fn zz_timing() {
+        for ms in [10, 60000] {
+            let (tenant, entry) = tenant_with_a_pile(ms);
+            let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+            for round in 0..3 {
+                let start = Instant::now();
+                let traced = trace(&tenant, &entry, &query, Rays::Packed(rays(65536)), None);
+                eprintln!(
+                    "ms {ms} round {round}: {:?} pieces {} pace {:?}",
+                    start.elapsed(),
+                    traced.pieces,
+                    entry.pace.get(QueryKind::Closest)
+                );
+            }
+        }
     }
 
     #[test]
