@@ -63,6 +63,10 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
         "rays differing on cpu:0 and wgpu:0"
     );
     assert!(on_gpu.stats().rays_hit > 0);
+    // An empty batch is answered (it waited forever on a GPU, whose traces all go through its workers).
+    let empty = tokio::time::timeout(std::time::Duration::from_secs(60), client.trace("gpu", &query, Bytes::new()));
+    let empty = empty.await.expect("an empty batch is answered").unwrap();
+    assert_eq!((empty.rays(), empty.hits().len()), (0, 0));
     // The kernels' time is within the trace's, and there is none on the CPU.
     let (gpu_stats, cpu_stats) = (on_gpu.stats(), on_cpu.stats());
     eprintln!("wgpu:0 kernels {} ns of a {} ns trace", gpu_stats.device_ns, gpu_stats.trace_ns);

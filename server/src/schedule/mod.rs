@@ -2,7 +2,10 @@
 //! tasks from a [`FairQueue`] in which every tenant has its own queue, weighted by its share. A trace is cut into
 //! pieces of at most [`CHUNK_RAYS`] rays on the CPU ([`PART_RAYS`] for rays a generator makes whose hits are reduced;
 //! either well under a millisecond), so a tenant that floods the device with million-ray batches holds a worker for
-//! one piece at a time, and another tenant's ray waits for at most one piece per worker.
+//! one piece at a time, and another tenant's ray waits for at most one piece per worker. Pieces of costly rays have
+//! fewer rays, so that each holds a worker for about the scheduler's piece time ([`PieceSizer`]); a trace queues its
+//! pieces one at a time, each as the one before starts, under the trace's arrival number, so that a tenant's traces
+//! are still served in arrival order.
 //!
 //! On the CPU, a task that fits in one piece runs on the caller's thread when a worker slot is free and nothing is
 //! queued: an idle server answers a small trace without a hop to another thread, and a busy one queues it like any

@@ -574,24 +574,6 @@ mod tests {
     }
 
     #[test]
-    fn zz_timing() {
-        for ms in [10, 60000] {
-            let (tenant, entry) = tenant_with_a_pile(ms);
-            let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
-            for round in 0..3 {
-                let start = Instant::now();
-                let traced = trace(&tenant, &entry, &query, Rays::Packed(rays(65536)), None);
-                eprintln!(
-                    "ms {ms} round {round}: {:?} pieces {} pace {:?}",
-                    start.elapsed(),
-                    traced.pieces,
-                    entry.pace.get(QueryKind::Closest)
-                );
-            }
-        }
-    }
-
-    #[test]
     fn an_empty_batch_is_answered_at_once() {
         let (tenant, entry) = tenant_with_a_pile(10);
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
