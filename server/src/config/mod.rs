@@ -72,7 +72,9 @@ pub struct SchedulerConfig {
     /// those get a core at once and small traces are not held up behind large ones on a busy machine.
     pub worker_nice: u32,
     /// About how long one piece of a trace may hold a CPU worker, in milliseconds, 1 to 60,000: rays that cost more
-    /// than usual are traced in pieces of fewer rays, so that another tenant's trace waits about this long at most.
+    /// than usual are traced in pieces of fewer rays, so that another tenant's trace waits about this long for a
+    /// running piece (longer where one granule of rays costs more, or where a trace's first piece is sized by an
+    /// earlier trace of cheaper rays of the same accel and query kind).
     pub piece_ms: u32,
     /// The same for a GPU device, 1 to 60,000 (a piece holds one of its workers and its queue).
     pub gpu_piece_ms: u32,

@@ -188,9 +188,9 @@ impl Scheduler {
     /// The scheduler of `device` as `config` sets it: on the CPU one worker per core (`workers` 0) or `workers`, and
     /// pieces of one engine chunk, or of one engine part ([`PART_RAYS`], which a worker traces alone) for rays made by
     /// a generator and reduced (BENCHMARKS.md, "Reduced pieces of a part on the CPU": +2–6% for counts and images;
-    /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk), at most `piece_ms` each;
+    /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk), of about `piece_ms` each;
     /// on a GPU `gpu_workers` workers and pieces of [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made
-    /// by a generator, at most `gpu_piece_ms` each. The workers run at `worker_nice`.
+    /// by a generator, of about `gpu_piece_ms` each. The workers run at `worker_nice`.
     pub fn for_device(device: &Device, config: &SchedulerConfig) -> Scheduler {
         let (info, nice) = (device.info(), config.worker_nice);
         match info.kind {

@@ -60,6 +60,8 @@ pub struct PieceSizer {
     time_ns: f64,
     /// Rays of the next piece.
     next: usize,
+    /// Rays of a trace's first piece when nothing is known of what its rays cost.
+    probe: usize,
 }
 
 impl PieceSizer {
@@ -69,12 +71,21 @@ impl PieceSizer {
     pub fn new(limits: PieceLimits, granule: usize, known: Option<f64>) -> PieceSizer {
         let granule = granule.max(1);
         let largest = (limits.largest / granule).max(1) * granule;
-        let mut sizer = PieceSizer { granule, largest, time_ns: limits.time.as_nanos() as f64, next: largest };
+        let time_ns = limits.time.as_nanos() as f64;
+        let mut sizer = PieceSizer { granule, largest, time_ns, next: largest, probe: largest };
+        sizer.probe = sizer.fit((largest / PROBE_FRACTION) as f64);
         sizer.next = match known {
-            Some(ns_per_ray) => sizer.fit(sizer.time_ns / ns_per_ray),
-            None => sizer.fit((largest / PROBE_FRACTION) as f64),
+            Some(ns_per_ray) => sizer.fit(time_ns / ns_per_ray),
+            None => sizer.probe,
         };
         sizer
+    }
+
+    /// Whether a piece of `rays` rays says what the accel's rays cost, for the pace that sizes later traces: at
+    /// least a probe's rays. A trace of a few rays, whose fixed cost (on a GPU, a millisecond a piece) counted as the
+    /// cost of its rays, would otherwise size the next large trace's pieces a thousand times too small.
+    pub fn teaches_pace(&self, rays: usize) -> bool {
+        rays >= self.probe
     }
 
     /// Rays of the next piece: a multiple of the granule, at least one granule and at most the largest piece.
@@ -145,6 +156,15 @@ mod tests {
         let mut sizer = PieceSizer::new(LIMITS, 1, None);
         sizer.learn(100, Duration::ZERO);
         assert_eq!(sizer.next(), 400);
+    }
+
+    #[test]
+    fn only_pieces_of_a_probe_or_more_teach_the_pace() {
+        let sizer = PieceSizer::new(LIMITS, 32, Some(10.0));
+        assert!(sizer.teaches_pace((1 << 20) / PROBE_FRACTION));
+        assert!(!sizer.teaches_pace((1 << 20) / PROBE_FRACTION - 32), "a small trace's fixed cost is no ray's");
+        // With a largest piece of one granule, every piece teaches it.
+        assert!(PieceSizer::new(PieceLimits { largest: 16, ..LIMITS }, 32, None).teaches_pace(32));
     }
 
     #[test]

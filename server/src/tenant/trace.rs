@@ -306,8 +306,13 @@ impl TraceJob {
             && (all_taken || self.abandoned.load(Ordering::Acquire))
             && let Some(reply) = progress.reply.take()
         {
-            // The caller may have gone: then nobody wants the answer.
-            let _ = reply.send(progress.finish(self));
+            // Rays left untaken: the caller went away (nobody wants the answer, so none is made) or a piece failed.
+            let answer = match progress.failure.take() {
+                Some(failure) => Err(failure),
+                None if !all_taken => Err(abandoned()),
+                None => progress.finish(self),
+            };
+            let _ = reply.send(answer);
         }
     }
 }
@@ -358,8 +363,9 @@ impl Progress {
     }
 
     /// Records how piece `index` of `job` went (`traced`, the rays in bytes `rays` of the batch, taking `took`):
-    /// its output kept ([`Progress::keep`]) and its statistics added, its rate taught to the sizer and to the
-    /// accel's pace; or the job's first failure, which abandons it.
+    /// its output kept ([`Progress::keep`]) and its statistics added, its rate taught to the sizer and, for a piece
+    /// of enough rays ([`PieceSizer::teaches_pace`]), to the accel's pace; or the job's first failure, which abandons
+    /// it.
     fn record(
         &mut self,
         job: &TraceJob,
@@ -371,7 +377,12 @@ impl Progress {
         match traced.and_then(|(output, stats)| Ok((self.keep(job, output)?, stats))) {
             Ok((output, stats)) => {
                 let rays = rays.len() / job.query.ray_format.size();
-                job.pace.set(job.query.kind, self.sizer.learn(rays, took));
+                if rays > 0 {
+                    let ns_per_ray = self.sizer.learn(rays, took);
+                    if self.sizer.teaches_pace(rays) {
+                        job.pace.set(job.query.kind, ns_per_ray);
+                    }
+                }
                 self.stats.add(&stats);
                 self.outputs[index] = Some(output);
             }
@@ -560,6 +571,11 @@ mod tests {
                 .unwrap();
             assert_eq!((&traced.hits[..], &traced.counts[..]), (&hits[..], &counts[..]), "{kind:?}");
         }
+        // A one-ray trace, whose time is mostly its fixed cost, does not teach the accel's pace.
+        let pace = entry.pace.get(QueryKind::Closest);
+        let one = rays.slice(..RayFormat::OriginTminDirectionTmax.size());
+        assert_eq!(trace(&tenant, &entry, &closest, Rays::Packed(one), None).stats.rays, 1);
+        assert_eq!(entry.pace.get(QueryKind::Closest), pace);
         // Rays reduced in groups of three stay whole groups in every piece: the nearest hit of each group is the
         // engine's over the whole batch.
         let reduction = Reduction::NearestPerGroup { group: 3 };
