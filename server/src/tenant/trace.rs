@@ -377,11 +377,10 @@ impl Progress {
         match traced.and_then(|(output, stats)| Ok((self.keep(job, output)?, stats))) {
             Ok((output, stats)) => {
                 let rays = rays.len() / job.query.ray_format.size();
-                if rays > 0 {
-                    let ns_per_ray = self.sizer.learn(rays, took);
-                    if self.sizer.teaches_pace(rays) {
-                        job.pace.set(job.query.kind, ns_per_ray);
-                    }
+                let ns_per_ray = self.sizer.learn(rays, took);
+                // An empty batch's piece teaches nothing: it has fewer rays than any probe.
+                if self.sizer.teaches_pace(rays) {
+                    job.pace.set(job.query.kind, ns_per_ray);
                 }
                 self.stats.add(&stats);
                 self.outputs[index] = Some(output);
