@@ -2,8 +2,10 @@
 //! once while a probe traces one ray at a time, (1) on an idle server, (2) as tenant `probe` during the flood, and
 //! (3) as the flood's own tenant during the flood (one queue: first come, first served), to show what the per-tenant
 //! queues buy; then (4) as tenant `probe` while the flood traces costly rays (every ray crosses a pile of copies of
-//! one triangle), to show what pieces sized by time buy. Prints one table; run with
-//! `cargo bench -p rayd-server --bench fairness`; `FAIRNESS_DEVICE` names the device (`cpu:0` unless set, e.g.
+//! one triangle), to show what pieces sized by time buy; and last (5) tenant `probe` traces batches of
+//! [`PROBE_BATCH_RAYS`] camera rays one after another, on the idle server and beside the costly flood, to show what
+//! charging tenants by time buys (charged by rays, the probe got the costly flood's ray rate). Prints one table; run
+//! with `cargo bench -p rayd-server --bench fairness`; `FAIRNESS_DEVICE` names the device (`cpu:0` unless set, e.g.
 //! `wgpu:0`) and `FAIRNESS_PILE_RAYS` the costly flood's rays a batch (65,536 unless set). The server runs in this
 //! process (its own runtime threads), the clients talk to it over TCP.
 
@@ -34,6 +36,8 @@ const FLOOD_WINDOW: Duration = Duration::from_secs(10);
 /// Longest time the probe traces under a flood: a flood that holds the device for seconds at a time (pieces that
 /// are not sized by time) leaves it a few traces.
 const PROBE_TIME_LIMIT: Duration = Duration::from_secs(60);
+/// Rays of the probe's batches, traced one after another to measure its throughput beside the costly flood.
+const PROBE_BATCH_RAYS: usize = 16_384;
 /// Callers of the flood, each with one 1M-ray batch in flight at all times.
 const FLOOD_CALLERS: usize = 2;
 
@@ -50,18 +54,33 @@ fn percentile(sorted: &[Duration], p: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize].as_secs_f64() * 1e6
 }
 
-/// One-ray traces one after another; their latencies, sorted.
-async fn probe(client: &Client, query: &Query, ray: &Bytes) -> Vec<Duration> {
-    let mut latencies = Vec::with_capacity(PROBES);
-    for call in 0..PROBES + 100 {
-        let start = Instant::now();
-        client.trace("bunny", query, ray.clone()).await.unwrap();
-        if call >= 100 {
-            latencies.push(start.elapsed());
-        }
+/// How long a probe goes on: at least `calls` traces and `window`, at most [`PROBE_TIME_LIMIT`].
+#[derive(Clone, Copy)]
+struct Until {
+    /// Traces at least.
+    calls: usize,
+    /// Time at least.
+    window: Duration,
+}
+
+/// What a probe measured: its traces' latencies, sorted, and the rays it had traced a second.
+struct Probed {
+    latencies: Vec<Duration>,
+    rays_per_second: f64,
+}
+
+/// Traces of `rays` one after another, until `until`.
+async fn probe(client: &Client, query: &Query, rays: &Bytes, until: Until) -> Probed {
+    let (start, batch_rays) = (Instant::now(), rays.len() / query.ray_format.size());
+    let mut latencies = Vec::new();
+    while (latencies.len() < until.calls || start.elapsed() < until.window) && start.elapsed() < PROBE_TIME_LIMIT {
+        let sent = Instant::now();
+        client.trace("bunny", query, rays.clone()).await.unwrap();
+        latencies.push(sent.elapsed());
     }
+    let rays_per_second = (latencies.len() * batch_rays) as f64 / start.elapsed().as_secs_f64();
     latencies.sort();
-    latencies
+    Probed { latencies, rays_per_second }
 }
 
 /// What a flood traces: an accel and a batch of rays through it, sent again and again.
@@ -72,16 +91,16 @@ struct Flood<'a> {
     rays: &'a Bytes,
 }
 
-/// Probes while the flood runs; the probe latencies and the flood's rays per second, measured over at least
-/// [`FLOOD_WINDOW`] and [`PROBES`] probes (so the rate counts many whole batches) and at most [`PROBE_TIME_LIMIT`],
-/// once each flood caller has had two batches traced.
+/// Probes with `probe_rays` while the flood runs, once each flood caller has had two batches traced, for at least
+/// [`PROBES`] probes and [`FLOOD_WINDOW`] (so that the flood's rate counts many whole batches); what the probe
+/// measured, and the flood's rays per second meanwhile.
 async fn under_flood(
     flood_client: &Client,
     flood: &Flood<'_>,
     prober: &Client,
     query: &Query,
-    ray: &Bytes,
-) -> (Vec<Duration>, f64) {
+    probe_rays: &Bytes,
+) -> (Probed, f64) {
     let (stop, traced) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
     let callers: Vec<_> = (0..FLOOD_CALLERS)
         .map(|_| {
@@ -103,19 +122,13 @@ async fn under_flood(
     }
     eprintln!("probing …");
     let (before, start) = (traced.load(Ordering::Acquire), Instant::now());
-    let mut latencies = Vec::new();
-    while (latencies.len() < PROBES || start.elapsed() < FLOOD_WINDOW) && start.elapsed() < PROBE_TIME_LIMIT {
-        let sent = Instant::now();
-        prober.trace("bunny", query, ray.clone()).await.unwrap();
-        latencies.push(sent.elapsed());
-    }
-    latencies.sort();
+    let probed = probe(prober, query, probe_rays, Until { calls: PROBES, window: FLOOD_WINDOW }).await;
     let flood_rate = (traced.load(Ordering::Acquire) - before) as f64 / start.elapsed().as_secs_f64();
     stop.store(true, Ordering::Release);
     for caller in callers {
         caller.await.unwrap();
     }
-    (latencies, flood_rate)
+    (probed, flood_rate)
 }
 
 /// Copies of one triangle in the costly flood's pile: every ray through it tests each.
@@ -167,47 +180,59 @@ fn main() {
         }
         flood.build_mesh("pile", &pile, &device, BuildFlags::empty()).await.unwrap();
 
-        let idle = probe(&prober, &query, &one_ray).await;
+        probe(&prober, &query, &one_ray, Until { calls: 100, window: Duration::ZERO }).await;
+        let idle = probe(&prober, &query, &one_ray, Until { calls: PROBES, window: Duration::ZERO }).await;
         let bunny_flood = Flood { accel: "bunny", rays: &rays };
-        let (fair, fair_rate) = under_flood(&flood, &bunny_flood, &prober, &query, &one_ray).await;
-        let (shared, shared_rate) = under_flood(&flood, &bunny_flood, &same_tenant, &query, &one_ray).await;
+        let fair = under_flood(&flood, &bunny_flood, &prober, &query, &one_ray).await;
+        let shared = under_flood(&flood, &bunny_flood, &same_tenant, &query, &one_ray).await;
         let pile_flood = Flood { accel: "pile", rays: &through_pile };
-        let (costly, costly_rate) = under_flood(&flood, &pile_flood, &prober, &query, &one_ray).await;
+        let costly = under_flood(&flood, &pile_flood, &prober, &query, &one_ray).await;
+        let batch = rays.slice(..PROBE_BATCH_RAYS * query.ray_format.size());
+        let idle_batches = probe(&prober, &query, &batch, Until { calls: 0, window: FLOOD_WINDOW }).await;
+        let costly_batches = under_flood(&flood, &pile_flood, &prober, &query, &batch).await;
 
-        let (idle_p50, idle_p99) = (percentile(&idle, 0.5), percentile(&idle, 0.99));
+        let (idle_p50, idle_p99) = (percentile(&idle.latencies, 0.5), percentile(&idle.latencies, 0.99));
         println!(
             "{device}; flood: bunny, 1M camera rays a batch, closest, t; costly flood: {pile_rays} rays a batch \
-             through a pile of {PILE} copies of one triangle; {FLOOD_CALLERS} flood callers; one-ray probes of \
-             the bunny, under a flood for {} s and {PROBES} probes at least, {} s at most",
+             through a pile of {PILE} copies of one triangle; {FLOOD_CALLERS} flood callers; probes of the bunny \
+             (one ray, or {PROBE_BATCH_RAYS} camera rays a batch), under a flood for {} s and {PROBES} probes at \
+             least, {} s at most",
             FLOOD_WINDOW.as_secs(),
             PROBE_TIME_LIMIT.as_secs()
         );
         println!(
-            "probe                                   p50 µs   p90 µs   p99 µs   max µs  p99/idle p50  p99/idle p99  \
-             flood Mrays/s"
+            "probe                                          p50 µs     p90 µs     p99 µs     max µs  p99/idle p50  \
+             p99/idle p99  probe Mrays/s  flood Mrays/s"
         );
-        let row = |name: &str, l: &[Duration], rate: Option<f64>| {
-            let p99 = percentile(l, 0.99);
+        let row = |name: &str, probed: &Probed, idle: (f64, f64), flood_rate: Option<f64>| {
+            let (l, p99) = (&probed.latencies, percentile(&probed.latencies, 0.99));
             println!(
-                "{name:<38} {:7.0}  {:7.0}  {:7.0}  {:7.0}  {:11.1}×  {:11.1}×  {}",
+                "{name:<45} {:9.0}  {:9.0}  {:9.0}  {:9.0}  {:11.1}×  {:11.1}×  {:13.3}  {}",
                 percentile(l, 0.5),
                 percentile(l, 0.9),
                 p99,
                 percentile(l, 1.0),
-                p99 / idle_p50,
-                p99 / idle_p99,
-                rate.map_or("-".into(), |r| format!("{:.3}", r / 1e6))
+                p99 / idle.0,
+                p99 / idle.1,
+                probed.rays_per_second / 1e6,
+                flood_rate.map_or("-".into(), |r| format!("{:.3}", r / 1e6))
             );
         };
-        row("idle server", &idle, None);
-        row("tenant probe during the flood", &fair, Some(fair_rate));
-        row("flood's own tenant during the flood", &shared, Some(shared_rate));
-        row("tenant probe during the costly flood", &costly, Some(costly_rate));
+        let idle_batch = (percentile(&idle_batches.latencies, 0.5), percentile(&idle_batches.latencies, 0.99));
+        row("idle server", &idle, (idle_p50, idle_p99), None);
+        row("tenant probe during the flood", &fair.0, (idle_p50, idle_p99), Some(fair.1));
+        row("flood's own tenant during the flood", &shared.0, (idle_p50, idle_p99), Some(shared.1));
+        row("tenant probe during the costly flood", &costly.0, (idle_p50, idle_p99), Some(costly.1));
+        row("idle server, batches", &idle_batches, idle_batch, None);
+        row("tenant probe's batches during the costly flood", &costly_batches.0, idle_batch, Some(costly_batches.1));
         println!(
-            "({} probes under the flood, {} as its own tenant, {} under the costly flood)",
-            fair.len(),
-            shared.len(),
-            costly.len()
+            "({} probes under the flood, {} as its own tenant, {} under the costly flood; batches: {} idle, {} \
+             under the costly flood)",
+            fair.0.latencies.len(),
+            shared.0.latencies.len(),
+            costly.0.latencies.len(),
+            idle_batches.latencies.len(),
+            costly_batches.0.latencies.len()
         );
     });
 }

@@ -61,7 +61,7 @@ pub struct TenantConfig {
     /// Its keys, at least one; several may be active at once (to rotate them without downtime).
     pub keys: Vec<KeyConfig>,
     /// Its weight in the devices' fair schedulers, 1 to 1000: while several tenants have traces queued on a device,
-    /// each is served rays in proportion to its share.
+    /// each is served the device's time (the time its pieces hold a worker) in proportion to its share.
     #[serde(default = "default_share")]
     pub share: u32,
     /// Its limits: the server's `[limits]` with the keys set here replaced (filled in when the configuration is

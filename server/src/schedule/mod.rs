@@ -5,7 +5,8 @@
 //! one piece at a time, and another tenant's ray waits for at most one piece per worker. Pieces of costly rays have
 //! fewer rays, so that each holds a worker for about the scheduler's piece time ([`PieceSizer`]); a trace queues its
 //! pieces one at a time, each as the one before starts, under the trace's arrival number, so that a tenant's traces
-//! are still served in arrival order.
+//! are still served in arrival order. Tenants are charged the time their pieces hold a worker, so a tenant of costly
+//! rays gets as much of the device as one of cheap rays, not as many rays.
 //!
 //! On the CPU, a task that fits in one piece runs on the caller's thread when a worker slot is free and nothing is
 //! queued: an idle server answers a small trace without a hop to another thread, and a busy one queues it like any
@@ -19,7 +20,7 @@ mod pieces;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 pub use fair::{FairQueue, Flow};
 pub use pieces::{Pace, PieceLimits, PieceSizer};
@@ -115,14 +116,14 @@ impl Shared {
     /// One worker: takes the next task whenever a slot is free, until the scheduler closes and the queue is empty.
     fn work(&self) {
         loop {
-            let task = {
+            let (task, charge) = {
                 let mut state = self.lock();
                 loop {
                     if state.busy < self.slots
-                        && let Some(task) = state.queue.pop()
+                        && let Some(served) = state.queue.pop()
                     {
                         state.busy += 1;
-                        break task;
+                        break served;
                     }
                     if state.closed && state.queue.is_empty() {
                         return;
@@ -130,8 +131,13 @@ impl Shared {
                     state = self.changed.wait(state).unwrap_or_else(|poisoned| poisoned.into_inner());
                 }
             };
+            let start = Instant::now();
             task();
-            self.lock().busy -= 1;
+            let took = start.elapsed();
+            let mut state = self.lock();
+            state.queue.settle(charge, took);
+            state.busy -= 1;
+            drop(state);
             self.changed.notify_one();
         }
     }
@@ -239,15 +245,12 @@ impl Scheduler {
         self.arrivals.fetch_add(1, Ordering::Relaxed)
     }
 
-    /// Queues `tasks` of `flow`, each with its cost in rays, in order, behind the flow's tasks of the same or an
-    /// earlier `order` ([`Scheduler::arrival`]) and ahead of those of a later one.
-    pub fn submit(&self, flow: &Flow, order: u64, tasks: impl IntoIterator<Item = (u64, Task)>) {
-        let mut state = self.shared.lock();
-        for (cost, task) in tasks {
-            state.queue.push(flow, order, cost, task);
-        }
-        drop(state);
-        self.shared.changed.notify_all();
+    /// Queues `task` of `flow`, estimated to hold a worker for `estimate` (the flow is charged the time it takes),
+    /// behind the flow's tasks of the same or an earlier `order` ([`Scheduler::arrival`]) and ahead of those of a
+    /// later one.
+    pub fn submit(&self, flow: &Flow, order: u64, estimate: Duration, task: Task) {
+        self.shared.lock().queue.push(flow, order, estimate, task);
+        self.shared.changed.notify_one();
     }
 }
 
@@ -297,6 +300,17 @@ mod tests {
     use std::sync::mpsc;
 
     const SECOND: Duration = Duration::from_secs(1);
+    const MILLISECOND: Duration = Duration::from_millis(1);
+
+    /// A task that says `name` on `done` when it runs.
+    fn say(done: &mpsc::Sender<&'static str>, name: &'static str) -> Task {
+        let done = done.clone();
+        Box::new(move || done.send(name).unwrap())
+    }
+
+    fn flow(name: &str) -> Flow {
+        Flow { name: name.into(), share: 1 }
+    }
 
     #[test]
     fn queued_tasks_of_a_newcomer_overtake_a_flood() {
@@ -304,24 +318,43 @@ mod tests {
         let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
         let (release, gate) = mpsc::channel::<()>();
         let (done, finished) = mpsc::channel::<&'static str>();
-        let flood = Flow { name: "a".into(), share: 1 };
-        scheduler.submit(&flood, 0, [(8, Box::new(move || gate.recv().unwrap()) as Task)]);
-        let tasks = (0..100).map(|_| {
-            let done = done.clone();
-            (8, Box::new(move || done.send("a").unwrap()) as Task)
-        });
-        scheduler.submit(&flood, 0, tasks.collect::<Vec<_>>());
-        let late = done.clone();
-        scheduler.submit(
-            &Flow { name: "b".into(), share: 1 },
-            1,
-            [(1, Box::new(move || late.send("b").unwrap()) as Task)],
-        );
+        let flood = flow("a");
+        scheduler.submit(&flood, 0, MILLISECOND, Box::new(move || gate.recv().unwrap()));
+        for _ in 0..100 {
+            scheduler.submit(&flood, 0, MILLISECOND, say(&done, "a"));
+        }
+        scheduler.submit(&flow("b"), 1, MILLISECOND, say(&done, "b"));
         assert!(scheduler.try_slot().is_none(), "work is queued: a caller may not run its own ahead of it");
         release.send(()).unwrap();
         let order: Vec<_> = (0..101).map(|_| finished.recv().unwrap()).collect();
         let b_at = order.iter().position(|&n| n == "b").unwrap();
         assert!(b_at <= 1, "b was served {b_at}th: {order:?}");
+    }
+
+    #[test]
+    fn a_flow_is_charged_the_time_its_tasks_hold_a_worker() {
+        // Both flows' tasks are estimated at 1 ms; a's hold the one worker for 50 ms, b's for microseconds. Charged
+        // by estimate they would alternate (a's second task served third); charged by time, b's tasks go before a's
+        // second until they too have held the worker for 50 ms (all 20 of them, unless the machine stalls them).
+        let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
+        let (release, gate) = mpsc::channel::<()>();
+        let (done, finished) = mpsc::channel::<&'static str>();
+        scheduler.submit(&flow("gate"), 0, MILLISECOND, Box::new(move || gate.recv().unwrap()));
+        for _ in 0..3 {
+            let done = done.clone();
+            let slow = move || {
+                std::thread::sleep(Duration::from_millis(50));
+                done.send("a").unwrap()
+            };
+            scheduler.submit(&flow("a"), 0, MILLISECOND, Box::new(slow));
+        }
+        for _ in 0..20 {
+            scheduler.submit(&flow("b"), 0, MILLISECOND, say(&done, "b"));
+        }
+        release.send(()).unwrap();
+        let order: Vec<_> = (0..23).map(|_| finished.recv().unwrap()).collect();
+        let second_a = order.iter().enumerate().filter(|(_, n)| **n == "a").nth(1).unwrap().0;
+        assert!(second_a > 10, "{order:?}");
     }
 
     #[test]
@@ -361,11 +394,7 @@ mod tests {
         let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
         let slot = scheduler.try_slot().expect("idle");
         let (done, finished) = mpsc::channel();
-        scheduler.submit(
-            &Flow { name: "a".into(), share: 1 },
-            0,
-            [(1, Box::new(move || done.send(()).unwrap()) as Task)],
-        );
+        scheduler.submit(&flow("a"), 0, MILLISECOND, say(&done, "a"));
         assert!(finished.recv_timeout(std::time::Duration::from_millis(50)).is_err(), "ran beside a held slot");
         drop(slot);
         finished.recv_timeout(std::time::Duration::from_secs(10)).expect("runs once the slot is back");

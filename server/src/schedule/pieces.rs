@@ -62,6 +62,8 @@ pub struct PieceSizer {
     next: usize,
     /// Rays of a trace's first piece when nothing is known of what its rays cost.
     probe: usize,
+    /// Nanoseconds a ray at the rate last learned or known, if any.
+    ns_per_ray: Option<f64>,
 }
 
 impl PieceSizer {
@@ -72,7 +74,7 @@ impl PieceSizer {
         let granule = granule.max(1);
         let largest = (limits.largest / granule).max(1) * granule;
         let time_ns = limits.time.as_nanos() as f64;
-        let mut sizer = PieceSizer { granule, largest, time_ns, next: largest, probe: largest };
+        let mut sizer = PieceSizer { granule, largest, time_ns, next: largest, probe: largest, ns_per_ray: known };
         sizer.probe = sizer.fit((largest / PROBE_FRACTION) as f64);
         sizer.next = match known {
             Some(ns_per_ray) => sizer.fit(time_ns / ns_per_ray),
@@ -98,7 +100,14 @@ impl PieceSizer {
     pub fn learn(&mut self, rays: usize, took: Duration) -> f64 {
         let ns_per_ray = (took.as_nanos() as f64).max(1.0) / rays.max(1) as f64;
         self.next = self.fit((self.time_ns / ns_per_ray).min((rays * GROWTH) as f64));
+        self.ns_per_ray = Some(ns_per_ray);
         ns_per_ray
+    }
+
+    /// About how long a piece of `rays` rays will hold a worker: at the rate last learned or known, or the piece
+    /// time when no rate is known (a probe takes at most about that, unless its rays are costlier than any seen).
+    pub fn estimate(&self, rays: usize) -> Duration {
+        Duration::from_nanos(self.ns_per_ray.map_or(self.time_ns, |ns| ns * rays as f64) as u64)
     }
 
     /// `rays` rounded down to the granule, within one granule and the largest piece.
@@ -156,6 +165,15 @@ mod tests {
         let mut sizer = PieceSizer::new(LIMITS, 1, None);
         sizer.learn(100, Duration::ZERO);
         assert_eq!(sizer.next(), 400);
+    }
+
+    #[test]
+    fn a_piece_is_estimated_at_the_rate_last_learned_or_at_the_piece_time() {
+        let mut sizer = PieceSizer::new(LIMITS, 32, None);
+        assert_eq!(sizer.estimate(sizer.next()), LIMITS.time, "nothing known: the piece time");
+        sizer.learn(1000, Duration::from_millis(2));
+        assert_eq!(sizer.estimate(3000), Duration::from_millis(6));
+        assert_eq!(PieceSizer::new(LIMITS, 32, Some(250.0)).estimate(4), Duration::from_nanos(1000));
     }
 
     #[test]

@@ -17,7 +17,7 @@ use tokio::sync::oneshot;
 
 use super::{AccelEntry, Tenant, TraceResult};
 use crate::error::{ServiceError, ServiceResult};
-use crate::schedule::{Pace, PieceSizer, Scheduler, Task};
+use crate::schedule::{Pace, PieceSizer, Scheduler};
 
 /// The rays of a trace.
 #[derive(Debug, Clone)]
@@ -104,6 +104,7 @@ impl Tenant {
         let limits = scheduler.piece_limits(generated, reduction.is_some());
         let sizer = PieceSizer::new(limits, granule, accel.pace.get(query.kind));
         let first_piece = sizer.next();
+        let first_estimate = sizer.estimate(first_piece.min(layout.rays));
         let untaken = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
         let job = Arc::new(TraceJob {
             tenant: Arc::clone(self),
@@ -131,7 +132,7 @@ impl Tenant {
         job.progress.lock().expect("not poisoned").reply = Some(reply);
         let _abandon_if_dropped = Abandon(Arc::clone(&job));
         let queued = Instant::now();
-        job.queue_next(scheduler, first_piece.min(layout.rays));
+        job.queue_next(scheduler, first_estimate);
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
         crate::metrics::queued(&self.name, result.trace_start.duration_since(queued));
         Ok(result.trace)
@@ -233,11 +234,11 @@ impl Drop for Abandon {
 }
 
 impl TraceJob {
-    /// Queues the job's next piece, of about `rays` rays (its cost in the fair queue; the piece takes its rays when
-    /// it starts).
-    fn queue_next(self: &Arc<Self>, scheduler: &Scheduler, rays: usize) {
+    /// Queues the job's next piece, estimated to take `estimate` (the fair queue charges the tenant the time it
+    /// takes; the piece takes its rays when it starts).
+    fn queue_next(self: &Arc<Self>, scheduler: &Scheduler, estimate: Duration) {
         let job = Arc::clone(self);
-        scheduler.submit(&self.tenant.flow, self.order, [(rays as u64, Box::new(move || job.run_next()) as Task)]);
+        scheduler.submit(&self.tenant.flow, self.order, estimate, Box::new(move || job.run_next()));
     }
 
     /// Takes the next piece, queues the one after it, traces it, and answers when it was the last; takes none when
@@ -251,10 +252,10 @@ impl TraceJob {
             return self.answer_if_done(&mut progress);
         };
         drop(progress);
-        if let Some(rays) = after
+        if let Some(estimate) = after
             && let Some(scheduler) = self.tenant.schedulers.get(&self.device)
         {
-            self.queue_next(scheduler, rays);
+            self.queue_next(scheduler, estimate);
         }
         let Piece { index, rays, output } = piece;
         let (traced, took) = self.trace_piece_timed(rays.clone(), output);
@@ -335,9 +336,9 @@ impl Progress {
         }
     }
 
-    /// The next piece of `job` (as many rays as the sizer says, or those left), and about how many rays the piece
-    /// after it will take, if rays are left; none when no rays are left or the job was abandoned.
-    fn take_piece(&mut self, job: &TraceJob) -> Option<(Piece, Option<usize>)> {
+    /// The next piece of `job` (as many rays as the sizer says, or those left), and about how long the piece after
+    /// it will take, if rays are left; none when no rays are left or the job was abandoned.
+    fn take_piece(&mut self, job: &TraceJob) -> Option<(Piece, Option<Duration>)> {
         let ray_size = job.query.ray_format.size();
         let total = job.rays.byte_len(ray_size);
         // An empty batch is one empty piece.
@@ -359,7 +360,7 @@ impl Progress {
         self.running += 1;
         let left = (total - self.taken) / ray_size;
         let piece = Piece { index: self.outputs.len() - 1, rays, output };
-        Some((piece, (left > 0).then(|| self.sizer.next().min(left))))
+        Some((piece, (left > 0).then(|| self.sizer.estimate(self.sizer.next().min(left)))))
     }
 
     /// Records how piece `index` of `job` went (`traced`, the rays in bytes `rays` of the batch, taking `took`):
@@ -492,8 +493,12 @@ mod tests {
     fn tenant_with_a_pile(piece_ms: u32) -> (Arc<Tenant>, AccelEntry) {
         let devices = [Device::cpu()];
         let config = SchedulerConfig { workers: 2, piece_ms, ..SchedulerConfig::default() };
-        let tenant =
-            Arc::new(Tenant::new("t", Limits::default(), 1, &devices, Arc::new(Schedulers::new(&devices, &config))));
+        tenant_with_a_pile_on("t", Arc::new(Schedulers::new(&devices, &config)))
+    }
+
+    /// Tenant `name` on a CPU served by `schedulers`, with the pile built as `pile`.
+    fn tenant_with_a_pile_on(name: &str, schedulers: Arc<Schedulers>) -> (Arc<Tenant>, AccelEntry) {
+        let tenant = Arc::new(Tenant::new(name, Limits::default(), 1, &[Device::cpu()], schedulers));
         let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
         let indices: Vec<u8> = [0u32, 1, 2].repeat(PILE).iter().flat_map(|i| i.to_le_bytes()).collect();
         let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
@@ -511,12 +516,16 @@ mod tests {
 
     /// `count` rays: every third misses the pile, the rest cross it.
     fn rays(count: usize) -> Bytes {
+        rays_at(count, |i| if i % 3 == 0 { 5.0 } else { 0.25 })
+    }
+
+    /// `count` rays down the z axis, ray `i` at x = `x(i)` (and y = 0.25): through the pile for x within 0 to 0.75.
+    fn rays_at(count: usize, x: impl Fn(usize) -> f32) -> Bytes {
         let format = RayFormat::OriginTminDirectionTmax;
         let mut bytes = vec![0; count * format.size()];
         for (i, record) in bytes.chunks_exact_mut(format.size()).enumerate() {
-            let x = if i % 3 == 0 { 5.0 } else { 0.25 };
             let ray = Ray {
-                origin: Vec3A::new(x, 0.25, 1.0),
+                origin: Vec3A::new(x(i), 0.25, 1.0),
                 direction: Vec3A::new(0.0, 0.0, -1.0),
                 tmax: f32::INFINITY,
                 ..Ray::default()
@@ -594,5 +603,46 @@ mod tests {
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
         let traced = trace(&tenant, &entry, &query, Rays::Packed(Bytes::new()), None);
         assert_eq!((traced.hits.len(), traced.stats.rays, traced.pieces), (0, 0, 1));
+    }
+
+    #[test]
+    fn a_tenant_of_cheap_rays_beside_costly_ones_is_served_as_much_time_not_as_many_rays() {
+        // Tenant `costly` traces rays through the pile (each holds a worker for a quarter of a millisecond or more)
+        // from two threads; tenant `cheap` traces batches of rays that miss the pile from two threads meanwhile.
+        let devices = [Device::cpu()];
+        let config = SchedulerConfig { workers: 2, piece_ms: 1, ..SchedulerConfig::default() };
+        let schedulers = Arc::new(Schedulers::new(&devices, &config));
+        let (costly, costly_pile) = tenant_with_a_pile_on("costly", Arc::clone(&schedulers));
+        let (cheap, cheap_pile) = tenant_with_a_pile_on("cheap", schedulers);
+        let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+        let (costly_rays, missing) = (rays_at(2048, |_| 0.25), rays_at(1024, |_| 5.0));
+        let (costly_done, cheap_traced) = (AtomicBool::new(false), std::sync::atomic::AtomicU64::new(0));
+        // The cheap rays traced by the time the first costly trace was answered.
+        let cheap_rays = std::thread::scope(|scope| {
+            let costly_traces: Vec<_> = (0..2)
+                .map(|_| {
+                    scope.spawn(|| {
+                        let traced = trace(&costly, &costly_pile, &query, Rays::Packed(costly_rays.clone()), None);
+                        assert_eq!(traced.stats.rays, 2048);
+                        cheap_traced.load(Ordering::Acquire)
+                    })
+                })
+                .collect();
+            for _ in 0..2 {
+                scope.spawn(|| {
+                    while !costly_done.load(Ordering::Acquire) {
+                        let traced = trace(&cheap, &cheap_pile, &query, Rays::Packed(missing.clone()), None);
+                        cheap_traced.fetch_add(traced.stats.rays, Ordering::AcqRel);
+                    }
+                });
+            }
+            let cheap_rays = costly_traces.into_iter().map(|t| t.join().unwrap()).min();
+            costly_done.store(true, Ordering::Release);
+            cheap_rays.expect("two costly traces")
+        });
+        // While both costly traces ran, `cheap` was served about as many rays as `costly` when charged by rays (3,000
+        // to 7,000 here: after each of its batches it waits for 32 costly pieces); charged by time, it is served
+        // whenever a worker is free: millions.
+        assert!(cheap_rays > 4 * 4096, "{cheap_rays} cheap rays beside 4,096 costly ones");
     }
 }
