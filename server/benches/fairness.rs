@@ -6,7 +6,8 @@
 //! [`PROBE_BATCH_RAYS`] camera rays one after another, on the idle server and beside the costly flood, to show what
 //! charging tenants by time buys (charged by rays, the probe got the costly flood's ray rate). Prints one table; run
 //! with `cargo bench -p rayd-server --bench fairness`; `FAIRNESS_DEVICE` names the device (`cpu:0` unless set, e.g.
-//! `wgpu:0`) and `FAIRNESS_PILE_RAYS` the costly flood's rays a batch (65,536 unless set). The server runs in this
+//! `wgpu:0`), `FAIRNESS_PILE_RAYS` the costly flood's rays a batch (65,536 unless set) and `FAIRNESS_PILE` the
+//! copies of the triangle in its pile (20,000 unless set). The server runs in this
 //! process (its own runtime threads), the clients talk to it over TCP.
 
 use std::sync::Arc;
@@ -131,12 +132,9 @@ async fn under_flood(
     (probed, flood_rate)
 }
 
-/// Copies of one triangle in the costly flood's pile: every ray through it tests each.
-const PILE: usize = 20_000;
-
-/// The pile, and `count` rays that cross it.
-fn pile(count: usize) -> (Mesh, Bytes) {
-    let mesh = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]; PILE] };
+/// The pile of `copies` of one triangle (every ray through it tests each), and `count` rays that cross it.
+fn pile(copies: usize, count: usize) -> (Mesh, Bytes) {
+    let mesh = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]; copies] };
     let ray = rayd_engine::format::Ray {
         origin: Vec3A::new(0.25, 0.25, 1.0),
         direction: Vec3A::NEG_Z,
@@ -158,7 +156,8 @@ fn main() {
     let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
     let device = std::env::var("FAIRNESS_DEVICE").unwrap_or_else(|_| "cpu:0".into());
     let pile_rays = std::env::var("FAIRNESS_PILE_RAYS").map_or(1 << 16, |n| n.parse().expect("a number of rays"));
-    let (pile, through_pile) = pile(pile_rays);
+    let pile_copies = std::env::var("FAIRNESS_PILE").map_or(20_000, |n| n.parse().expect("a number of triangles"));
+    let (pile, through_pile) = pile(pile_copies, pile_rays);
 
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
     runtime.block_on(async {
@@ -194,7 +193,7 @@ fn main() {
         let (idle_p50, idle_p99) = (percentile(&idle.latencies, 0.5), percentile(&idle.latencies, 0.99));
         println!(
             "{device}; flood: bunny, 1M camera rays a batch, closest, t; costly flood: {pile_rays} rays a batch \
-             through a pile of {PILE} copies of one triangle; {FLOOD_CALLERS} flood callers; probes of the bunny \
+             through a pile of {pile_copies} copies of one triangle; {FLOOD_CALLERS} flood callers; probes of the bunny \
              (one ray, or {PROBE_BATCH_RAYS} camera rays a batch), under a flood for {} s and {PROBES} probes at \
              least, {} s at most",
             FLOOD_WINDOW.as_secs(),

@@ -25,6 +25,10 @@ const PROBE_FRACTION: usize = 64;
 /// A piece has at most this many times the rays of the piece measured last, so that a cheap first piece (rays that
 /// miss everything, say) does not size the next one for seconds of costly rays.
 const GROWTH: usize = 4;
+/// A piece that took at most this many times the time allowed took about that time (timing is not exact).
+const SLACK: f64 = 1.25;
+/// A piece smaller than the one before it that cost this many times as much a ray shows a latency-bound device.
+const LATENCY_SIGN: f64 = 2.0;
 
 /// How fast an accel's rays were traced, per query kind: nanoseconds a ray of its latest piece. Shared by the
 /// accel's versions (an update seldom changes what a ray costs much).
@@ -64,6 +68,15 @@ pub struct PieceSizer {
     probe: usize,
     /// Nanoseconds a ray at the rate last learned or known, if any.
     ns_per_ray: Option<f64>,
+    /// Rays of the piece learned last (0 before the first).
+    last_rays: usize,
+    /// The least time a piece of this trace took, in nanoseconds (infinite before the first).
+    quickest_ns: f64,
+    /// Whether a piece of this trace, smaller than the one before it, took too long and cost far more a ray: the
+    /// device takes about as long for fewer rays ([`PieceSizer::learn`]).
+    latency_seen: bool,
+    /// The fewest rays of a piece that took too long while the device was latency-bound.
+    too_long: usize,
 }
 
 impl PieceSizer {
@@ -74,7 +87,18 @@ impl PieceSizer {
         let granule = granule.max(1);
         let largest = (limits.largest / granule).max(1) * granule;
         let time_ns = limits.time.as_nanos() as f64;
-        let mut sizer = PieceSizer { granule, largest, time_ns, next: largest, probe: largest, ns_per_ray: known };
+        let mut sizer = PieceSizer {
+            granule,
+            largest,
+            time_ns,
+            next: largest,
+            probe: largest,
+            ns_per_ray: known,
+            last_rays: 0,
+            quickest_ns: f64::INFINITY,
+            latency_seen: false,
+            too_long: usize::MAX,
+        };
         sizer.probe = sizer.fit((largest / PROBE_FRACTION) as f64);
         sizer.next = match known {
             Some(ns_per_ray) => sizer.fit(time_ns / ns_per_ray),
@@ -95,12 +119,37 @@ impl PieceSizer {
         self.next
     }
 
-    /// Learns from a piece of `rays` rays that took `took`: the next piece is what the piece time holds at that
-    /// rate, but at most [`GROWTH`] times `rays`. Returns the rate, in nanoseconds a ray.
+    /// Learns from a piece of `rays` rays that took `took`: the next piece is what the time allowed holds at that
+    /// rate, but at most [`GROWTH`] times `rays`. The time allowed is the piece time, unless the device is
+    /// latency-bound: a piece cut smaller than the one before it still took too long, at [`LATENCY_SIGN`] times the
+    /// cost a ray or more, and no piece took less than the piece time. A GPU is so when a ray's tests, run one
+    /// after another on one thread, take longer than the piece time: a piece of fewer rays than it has threads
+    /// takes a thread's time. Cutting pieces smaller then makes them slower a ray, not quicker; the time allowed is
+    /// the quickest piece's, and a piece that took about that long is followed by a larger one (at most the
+    /// geometric mean of its rays and the fewest rays of a piece that took too long), until pieces fill the device.
+    /// Returns the rate, in nanoseconds a ray.
     pub fn learn(&mut self, rays: usize, took: Duration) -> f64 {
-        let ns_per_ray = (took.as_nanos() as f64).max(1.0) / rays.max(1) as f64;
-        self.next = self.fit((self.time_ns / ns_per_ray).min((rays * GROWTH) as f64));
-        self.ns_per_ray = Some(ns_per_ray);
+        let took_ns = (took.as_nanos() as f64).max(1.0);
+        let ns_per_ray = took_ns / rays.max(1) as f64;
+        let too_long = took_ns > self.time_ns * SLACK;
+        if too_long && rays < self.last_rays && self.ns_per_ray.is_some_and(|before| ns_per_ray > before * LATENCY_SIGN)
+        {
+            self.latency_seen = true;
+        }
+        self.quickest_ns = self.quickest_ns.min(took_ns);
+        let latency_bound = self.latency_seen && self.quickest_ns > self.time_ns;
+        let allowed_ns = if latency_bound { self.quickest_ns } else { self.time_ns };
+        let grown = rays.saturating_mul(GROWTH) as f64;
+        self.next = if latency_bound && took_ns <= allowed_ns * SLACK {
+            let below_too_long = (rays as f64 * self.too_long as f64).sqrt();
+            self.fit(below_too_long.min(grown).max(rays as f64))
+        } else {
+            if latency_bound {
+                self.too_long = self.too_long.min(rays);
+            }
+            self.fit((allowed_ns / ns_per_ray).min(grown))
+        };
+        (self.ns_per_ray, self.last_rays) = (Some(ns_per_ray), rays);
         ns_per_ray
     }
 
@@ -165,6 +214,43 @@ mod tests {
         let mut sizer = PieceSizer::new(LIMITS, 1, None);
         sizer.learn(100, Duration::ZERO);
         assert_eq!(sizer.next(), 400);
+    }
+
+    /// The sizes of `count` pieces in a row, each taking what `device` says pieces of its size take.
+    fn sizes(mut sizer: PieceSizer, count: usize, device: impl Fn(usize) -> Duration) -> Vec<usize> {
+        (0..count)
+            .map(|_| {
+                let rays = sizer.next();
+                sizer.learn(rays, device(rays));
+                rays
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_device_that_takes_as_long_for_fewer_rays_gets_pieces_that_fill_it() {
+        // A GPU of 2^18 threads whose rays each take 280 ms on their thread: a piece of up to 2^18 rays takes 280 ms,
+        // more than the piece time, and larger ones take longer in proportion. Cutting pieces smaller cannot make
+        // them quicker: after one cut that shows it, pieces grow to about 2^18 rays instead, and stay near it.
+        let gpu =
+            |rays: usize| Duration::from_millis(280).max(Duration::from_nanos(280_000_000 / (1 << 18)) * rays as u32);
+        let pieces = sizes(PieceSizer::new(LIMITS, 32, None), 30, gpu);
+        assert!(pieces[1] < pieces[0] && pieces[2] > pieces[0], "{pieces:?}");
+        let fills: std::ops::RangeInclusive<usize> = (1 << 18) * 3 / 4..=(1 << 18) * 3 / 2;
+        for rays in &pieces[10..] {
+            assert!(fills.contains(rays), "{rays} rays: {pieces:?}");
+        }
+        // The same from a pace that an earlier trace learned at the device's full rate.
+        let known = 280e6 / f64::from(1 << 18);
+        for rays in &sizes(PieceSizer::new(LIMITS, 32, Some(known)), 30, gpu)[10..] {
+            assert!(fills.contains(rays), "{rays} rays from a known pace");
+        }
+        // A CPU whose single granule takes longer than the piece time (rays of 10 ms each): one granule, after at
+        // most a few larger tries.
+        let cpu = |rays: usize| Duration::from_millis(10) * rays as u32;
+        let pieces = sizes(PieceSizer::new(LIMITS, 32, None), 12, cpu);
+        assert!(pieces[..4].iter().filter(|&&rays| rays > 32).count() <= 2, "{pieces:?}");
+        assert!(pieces[4..].iter().all(|&rays| rays == 32), "{pieces:?}");
     }
 
     #[test]
