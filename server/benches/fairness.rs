@@ -193,9 +193,9 @@ fn main() {
         let (idle_p50, idle_p99) = (percentile(&idle.latencies, 0.5), percentile(&idle.latencies, 0.99));
         println!(
             "{device}; flood: bunny, 1M camera rays a batch, closest, t; costly flood: {pile_rays} rays a batch \
-             through a pile of {pile_copies} copies of one triangle; {FLOOD_CALLERS} flood callers; probes of the bunny \
-             (one ray, or {PROBE_BATCH_RAYS} camera rays a batch), under a flood for {} s and {PROBES} probes at \
-             least, {} s at most",
+             through a pile of {pile_copies} copies of one triangle; {FLOOD_CALLERS} flood callers; probes of the \
+             bunny (one ray, or {PROBE_BATCH_RAYS} camera rays a batch), under a flood for {} s and {PROBES} probes \
+             at least, {} s at most",
             FLOOD_WINDOW.as_secs(),
             PROBE_TIME_LIMIT.as_secs()
         );

@@ -145,9 +145,10 @@ impl Shared {
 
 impl Scheduler {
     /// A scheduler with `workers` threads (at least one) named after `device`, cutting traces into pieces of
-    /// `piece_rays` rays at most, and of about `piece_time` each ([`PieceSizer`]). The workers run at nice value `nice` (0 to 19, above the runtime's threads' 0), so that
-    /// the threads that receive calls and send answers get a core as soon as they have work: a small trace is
-    /// then queued, and answered, without waiting for the scheduler of the operating system.
+    /// `piece_rays` rays at most, and of about `piece_time` each ([`PieceSizer`]). The workers run at nice value
+    /// `nice` (0 to 19, above the runtime's threads' 0), so that the threads that receive calls and send answers get
+    /// a core as soon as they have work: a small trace is then queued, and answered, without waiting for the
+    /// scheduler of the operating system.
     pub fn new(device: &str, workers: usize, piece_rays: usize, piece_time: Duration, nice: u32) -> Scheduler {
         let slots = workers.max(1);
         let shared = Arc::new(Shared { state: Mutex::default(), changed: Condvar::new(), slots });
@@ -226,8 +227,9 @@ impl Scheduler {
         PieceLimits { largest, time: self.piece_time }
     }
 
-    /// A slot for the caller to run one small task itself, if callers may ([`Scheduler::with_every_task_on_the_workers`]
-    /// says they may not), one is free and no task is waiting (so it never overtakes queued work).
+    /// A slot for the caller to run one small task itself, if callers may
+    /// ([`Scheduler::with_every_task_on_the_workers`] says they may not), one is free and no task is waiting (so it
+    /// never overtakes queued work).
     pub fn try_slot(&self) -> Option<Slot<'_>> {
         if !self.callers_run_small_tasks {
             return None;
