@@ -43,6 +43,13 @@ pub const GPU_PIECE_RAYS: usize = 1 << 20;
 /// "Larger GPU pieces for rays made on the server").
 pub const GPU_GENERATED_PIECE_RAYS: usize = 1 << 22;
 
+/// Rays of a GPU piece at least, however costly its rays: a GPU runs each ray's tests one after another on one
+/// thread, so a piece of fewer rays than it runs at once takes about as long as a full one, and cutting pieces
+/// smaller makes them slower a ray, not quicker. On an H100, rays through a pile of 100,000 triangles ran at 0.93 M
+/// rays/s in pieces of 2^20 rays, and pieces cut to 100 ms at that rate stalled the flood (BENCHMARKS.md, "Pieces
+/// sized by time on an NVIDIA H100"). This is the wgpu backend's largest chunk, which fills an H100.
+pub const GPU_SMALLEST_PIECE_RAYS: usize = 1 << 18;
+
 /// Work the scheduler runs; it reports its own results.
 pub type Task = Box<dyn FnOnce() + Send>;
 
@@ -57,6 +64,8 @@ pub struct Scheduler {
     generated_piece_rays: usize,
     /// Rays per piece on this device, for rays made by a generator whose hits are reduced.
     reduced_piece_rays: usize,
+    /// Rays of a piece at least, however long they take ([`PieceLimits::smallest`]).
+    smallest_piece_rays: usize,
     /// About how long a piece may hold a worker ([`PieceSizer`]).
     piece_time: Duration,
     /// Traces that arrived so far ([`Scheduler::arrival`]).
@@ -168,6 +177,7 @@ impl Scheduler {
             piece_rays,
             generated_piece_rays: piece_rays,
             reduced_piece_rays: piece_rays,
+            smallest_piece_rays: 1,
             piece_time,
             arrivals: AtomicU64::new(0),
             callers_run_small_tasks: true,
@@ -192,12 +202,19 @@ impl Scheduler {
         self
     }
 
+    /// The same, but never cutting a piece below `rays` rays, however long they take.
+    pub fn with_smallest_pieces(mut self, rays: usize) -> Scheduler {
+        self.smallest_piece_rays = rays.max(1);
+        self
+    }
+
     /// The scheduler of `device` as `config` sets it: on the CPU one worker per core (`workers` 0) or `workers`, and
     /// pieces of one engine chunk, or of one engine part ([`PART_RAYS`], which a worker traces alone) for rays made by
     /// a generator and reduced (BENCHMARKS.md, "Reduced pieces of a part on the CPU": +2–6% for counts and images;
     /// the same pieces for every hit of generated rays lost 25%, so those stay one chunk), of about `piece_ms` each;
     /// on a GPU `gpu_workers` workers and pieces of [`GPU_PIECE_RAYS`], or [`GPU_GENERATED_PIECE_RAYS`] for rays made
-    /// by a generator, of about `gpu_piece_ms` each. The workers run at `worker_nice`.
+    /// by a generator, of about `gpu_piece_ms` each but at least [`GPU_SMALLEST_PIECE_RAYS`]. The workers run at
+    /// `worker_nice`.
     pub fn for_device(device: &Device, config: &SchedulerConfig) -> Scheduler {
         let (info, nice) = (device.info(), config.worker_nice);
         match info.kind {
@@ -211,6 +228,7 @@ impl Scheduler {
                 let time = Duration::from_millis(config.gpu_piece_ms.into());
                 Scheduler::new(&info.id, config.gpu_workers as usize, GPU_PIECE_RAYS, time, nice)
                     .with_generated_pieces(GPU_GENERATED_PIECE_RAYS)
+                    .with_smallest_pieces(GPU_SMALLEST_PIECE_RAYS)
                     .with_every_task_on_the_workers()
             }
         }
@@ -224,7 +242,7 @@ impl Scheduler {
             (true, false) => self.generated_piece_rays,
             (true, true) => self.reduced_piece_rays,
         };
-        PieceLimits { largest, time: self.piece_time }
+        PieceLimits { largest, smallest: self.smallest_piece_rays, time: self.piece_time }
     }
 
     /// A slot for the caller to run one small task itself, if callers may
@@ -375,6 +393,10 @@ mod tests {
         let cpu = Scheduler::for_device(&rayd_engine::Device::cpu(), &config);
         assert_eq!(pieces(&cpu), [CHUNK_RAYS, CHUNK_RAYS, PART_RAYS]);
         assert_eq!(cpu.piece_limits(true, true).time, Duration::from_millis(7));
+        // Costly rays on the CPU may come one granule at a time; a GPU keeps its smallest pieces for every kind.
+        assert_eq!(cpu.piece_limits(false, false).smallest, 1);
+        let gpu = Scheduler::new("test", 1, 1 << 20, SECOND, 0).with_smallest_pieces(GPU_SMALLEST_PIECE_RAYS);
+        assert_eq!([false, true].map(|reduced| gpu.piece_limits(true, reduced).smallest), [1 << 18; 2]);
     }
 
     #[test]

@@ -15,6 +15,9 @@ use rayd_engine::query::QueryKind;
 pub struct PieceLimits {
     /// Rays at most.
     pub largest: usize,
+    /// Rays at least, however long they take (but for the batch's last rays): a GPU takes about as long for a piece
+    /// of fewer rays than it runs at once as for a full one, so cutting pieces below that makes them no quicker.
+    pub smallest: usize,
     /// About how long it may hold a worker.
     pub time: Duration,
 }
@@ -25,10 +28,6 @@ const PROBE_FRACTION: usize = 64;
 /// A piece has at most this many times the rays of the piece measured last, so that a cheap first piece (rays that
 /// miss everything, say) does not size the next one for seconds of costly rays.
 const GROWTH: usize = 4;
-/// A piece that took at most this many times the time allowed took about that time (timing is not exact).
-const SLACK: f64 = 1.25;
-/// A piece smaller than the one before it that cost this many times as much a ray shows a latency-bound device.
-const LATENCY_SIGN: f64 = 2.0;
 
 /// How fast an accel's rays were traced, per query kind: nanoseconds a ray of its latest piece. Shared by the
 /// accel's versions (an update seldom changes what a ray costs much).
@@ -60,6 +59,8 @@ pub struct PieceSizer {
     granule: usize,
     /// Rays of a piece at most: the device's largest, as a multiple of the granule.
     largest: usize,
+    /// Rays of a piece at least: the device's smallest, as a multiple of the granule, at most the largest.
+    smallest: usize,
     /// The device's piece time, in nanoseconds.
     time_ns: f64,
     /// Rays of the next piece.
@@ -68,37 +69,20 @@ pub struct PieceSizer {
     probe: usize,
     /// Nanoseconds a ray at the rate last learned or known, if any.
     ns_per_ray: Option<f64>,
-    /// Rays of the piece learned last (0 before the first).
-    last_rays: usize,
-    /// The least time a piece of this trace took, in nanoseconds (infinite before the first).
-    quickest_ns: f64,
-    /// Whether a piece of this trace, smaller than the one before it, took too long and cost far more a ray: the
-    /// device takes about as long for fewer rays ([`PieceSizer::learn`]).
-    latency_seen: bool,
-    /// The fewest rays of a piece that took too long while the device was latency-bound.
-    too_long: usize,
 }
 
 impl PieceSizer {
     /// Sizes pieces within `limits`, each a multiple of `granule` rays (at least one granule, even when the largest
-    /// piece is smaller), starting at the rate `known` (nanoseconds a ray, of an earlier trace) or, when nothing is
+    /// piece is smaller; at least the smallest piece, rounded up to a granule, unless that is above the largest),
+    /// starting at the rate `known` (nanoseconds a ray, of an earlier trace) or, when nothing is
     /// known, with a probe of 1/[`PROBE_FRACTION`] of the largest piece.
     pub fn new(limits: PieceLimits, granule: usize, known: Option<f64>) -> PieceSizer {
         let granule = granule.max(1);
         let largest = (limits.largest / granule).max(1) * granule;
+        let smallest = limits.smallest.max(1).next_multiple_of(granule).min(largest);
         let time_ns = limits.time.as_nanos() as f64;
-        let mut sizer = PieceSizer {
-            granule,
-            largest,
-            time_ns,
-            next: largest,
-            probe: largest,
-            ns_per_ray: known,
-            last_rays: 0,
-            quickest_ns: f64::INFINITY,
-            latency_seen: false,
-            too_long: usize::MAX,
-        };
+        let mut sizer =
+            PieceSizer { granule, largest, smallest, time_ns, next: largest, probe: largest, ns_per_ray: known };
         sizer.probe = sizer.fit((largest / PROBE_FRACTION) as f64);
         sizer.next = match known {
             Some(ns_per_ray) => sizer.fit(time_ns / ns_per_ray),
@@ -119,37 +103,12 @@ impl PieceSizer {
         self.next
     }
 
-    /// Learns from a piece of `rays` rays that took `took`: the next piece is what the time allowed holds at that
-    /// rate, but at most [`GROWTH`] times `rays`. The time allowed is the piece time, unless the device is
-    /// latency-bound: a piece cut smaller than the one before it still took too long, at [`LATENCY_SIGN`] times the
-    /// cost a ray or more, and no piece took less than the piece time. A GPU is so when a ray's tests, run one
-    /// after another on one thread, take longer than the piece time: a piece of fewer rays than it has threads
-    /// takes a thread's time. Cutting pieces smaller then makes them slower a ray, not quicker; the time allowed is
-    /// the quickest piece's, and a piece that took about that long is followed by a larger one (at most the
-    /// geometric mean of its rays and the fewest rays of a piece that took too long), until pieces fill the device.
-    /// Returns the rate, in nanoseconds a ray.
+    /// Learns from a piece of `rays` rays that took `took`: the next piece is what the piece time holds at that
+    /// rate, but at most [`GROWTH`] times `rays`. Returns the rate, in nanoseconds a ray.
     pub fn learn(&mut self, rays: usize, took: Duration) -> f64 {
-        let took_ns = (took.as_nanos() as f64).max(1.0);
-        let ns_per_ray = took_ns / rays.max(1) as f64;
-        let too_long = took_ns > self.time_ns * SLACK;
-        if too_long && rays < self.last_rays && self.ns_per_ray.is_some_and(|before| ns_per_ray > before * LATENCY_SIGN)
-        {
-            self.latency_seen = true;
-        }
-        self.quickest_ns = self.quickest_ns.min(took_ns);
-        let latency_bound = self.latency_seen && self.quickest_ns > self.time_ns;
-        let allowed_ns = if latency_bound { self.quickest_ns } else { self.time_ns };
-        let grown = rays.saturating_mul(GROWTH) as f64;
-        self.next = if latency_bound && took_ns <= allowed_ns * SLACK {
-            let below_too_long = (rays as f64 * self.too_long as f64).sqrt();
-            self.fit(below_too_long.min(grown).max(rays as f64))
-        } else {
-            if latency_bound {
-                self.too_long = self.too_long.min(rays);
-            }
-            self.fit((allowed_ns / ns_per_ray).min(grown))
-        };
-        (self.ns_per_ray, self.last_rays) = (Some(ns_per_ray), rays);
+        let ns_per_ray = (took.as_nanos() as f64).max(1.0) / rays.max(1) as f64;
+        self.next = self.fit((self.time_ns / ns_per_ray).min((rays * GROWTH) as f64));
+        self.ns_per_ray = Some(ns_per_ray);
         ns_per_ray
     }
 
@@ -159,11 +118,11 @@ impl PieceSizer {
         Duration::from_nanos(self.ns_per_ray.map_or(self.time_ns, |ns| ns * rays as f64) as u64)
     }
 
-    /// `rays` rounded down to the granule, within one granule and the largest piece.
+    /// `rays` rounded down to the granule, within the smallest and the largest piece.
     fn fit(&self, rays: f64) -> usize {
         let granules = (rays / self.granule as f64).floor();
         // A float beyond usize's range saturates, and is then capped.
-        ((granules as usize).saturating_mul(self.granule)).clamp(self.granule, self.largest)
+        ((granules as usize).saturating_mul(self.granule)).clamp(self.smallest, self.largest)
     }
 }
 
@@ -171,7 +130,7 @@ impl PieceSizer {
 mod tests {
     use super::*;
 
-    const LIMITS: PieceLimits = PieceLimits { largest: 1 << 20, time: Duration::from_millis(100) };
+    const LIMITS: PieceLimits = PieceLimits { largest: 1 << 20, smallest: 1, time: Duration::from_millis(100) };
 
     #[test]
     fn a_trace_of_unknown_cost_starts_with_a_probe_and_grows_by_steps_while_its_pieces_are_quick() {
@@ -216,43 +175,6 @@ mod tests {
         assert_eq!(sizer.next(), 400);
     }
 
-    /// The sizes of `count` pieces in a row, each taking what `device` says pieces of its size take.
-    fn sizes(mut sizer: PieceSizer, count: usize, device: impl Fn(usize) -> Duration) -> Vec<usize> {
-        (0..count)
-            .map(|_| {
-                let rays = sizer.next();
-                sizer.learn(rays, device(rays));
-                rays
-            })
-            .collect()
-    }
-
-    #[test]
-    fn a_device_that_takes_as_long_for_fewer_rays_gets_pieces_that_fill_it() {
-        // A GPU of 2^18 threads whose rays each take 280 ms on their thread: a piece of up to 2^18 rays takes 280 ms,
-        // more than the piece time, and larger ones take longer in proportion. Cutting pieces smaller cannot make
-        // them quicker: after one cut that shows it, pieces grow to about 2^18 rays instead, and stay near it.
-        let gpu =
-            |rays: usize| Duration::from_millis(280).max(Duration::from_nanos(280_000_000 / (1 << 18)) * rays as u32);
-        let pieces = sizes(PieceSizer::new(LIMITS, 32, None), 30, gpu);
-        assert!(pieces[1] < pieces[0] && pieces[2] > pieces[0], "{pieces:?}");
-        let fills: std::ops::RangeInclusive<usize> = (1 << 18) * 3 / 4..=(1 << 18) * 3 / 2;
-        for rays in &pieces[10..] {
-            assert!(fills.contains(rays), "{rays} rays: {pieces:?}");
-        }
-        // The same from a pace that an earlier trace learned at the device's full rate.
-        let known = 280e6 / f64::from(1 << 18);
-        for rays in &sizes(PieceSizer::new(LIMITS, 32, Some(known)), 30, gpu)[10..] {
-            assert!(fills.contains(rays), "{rays} rays from a known pace");
-        }
-        // A CPU whose single granule takes longer than the piece time (rays of 10 ms each): one granule, after at
-        // most a few larger tries.
-        let cpu = |rays: usize| Duration::from_millis(10) * rays as u32;
-        let pieces = sizes(PieceSizer::new(LIMITS, 32, None), 12, cpu);
-        assert!(pieces[..4].iter().filter(|&&rays| rays > 32).count() <= 2, "{pieces:?}");
-        assert!(pieces[4..].iter().all(|&rays| rays == 32), "{pieces:?}");
-    }
-
     #[test]
     fn a_piece_is_estimated_at_the_rate_last_learned_or_at_the_piece_time() {
         let mut sizer = PieceSizer::new(LIMITS, 32, None);
@@ -260,6 +182,19 @@ mod tests {
         sizer.learn(1000, Duration::from_millis(2));
         assert_eq!(sizer.estimate(3000), Duration::from_millis(6));
         assert_eq!(PieceSizer::new(LIMITS, 32, Some(250.0)).estimate(4), Duration::from_nanos(1000));
+    }
+
+    #[test]
+    fn pieces_stay_at_least_the_smallest_however_costly_their_rays() {
+        // A GPU's smallest piece: rays of 34 µs fill 100 ms with 2,912, but pieces keep 2^18, the probe too.
+        let gpu = PieceLimits { smallest: 1 << 18, ..LIMITS };
+        let mut sizer = PieceSizer::new(gpu, 32, None);
+        assert_eq!(sizer.next(), 1 << 18, "the probe is no smaller");
+        sizer.learn(1 << 20, Duration::from_secs(36));
+        assert_eq!(sizer.next(), 1 << 18);
+        // Rounded up to the granule, and never above the largest.
+        assert_eq!(PieceSizer::new(PieceLimits { smallest: 100, ..LIMITS }, 32, Some(1e9)).next(), 128);
+        assert_eq!(PieceSizer::new(PieceLimits { largest: 64, smallest: 1000, ..LIMITS }, 32, Some(1e9)).next(), 64);
     }
 
     #[test]
