@@ -30,6 +30,8 @@ struct FlowQueue<T> {
     pass: f64,
     /// The flow's share, as last pushed.
     share: f64,
+    /// Its tasks served and not yet settled: a flow with one running is not idle.
+    running: usize,
     /// Its waiting tasks with their estimated times (nanoseconds), by their order and then by arrival.
     tasks: BTreeMap<(u64, u64), (f64, T)>,
 }
@@ -84,9 +86,10 @@ impl<T> FairQueue<T> {
         let queue = self.flows.entry(Arc::clone(&flow.name)).or_insert_with(|| FlowQueue {
             pass: now,
             share: 1.0,
+            running: 0,
             tasks: BTreeMap::new(),
         });
-        if queue.tasks.is_empty() {
+        if queue.tasks.is_empty() && queue.running == 0 {
             queue.pass = queue.pass.max(now);
         }
         queue.share = f64::from(flow.share.max(1));
@@ -103,6 +106,7 @@ impl<T> FairQueue<T> {
         let (_, (estimate, task)) = queue.tasks.pop_first()?;
         self.now = queue.pass;
         queue.pass += estimate / queue.share;
+        queue.running += 1;
         self.len -= 1;
         Some((task, Charge { flow: Arc::clone(name), share: queue.share, estimate }))
     }
@@ -111,6 +115,7 @@ impl<T> FairQueue<T> {
     pub fn settle(&mut self, charge: Charge, took: Duration) {
         if let Some(queue) = self.flows.get_mut(&charge.flow) {
             queue.pass += (took.as_nanos() as f64 - charge.estimate) / charge.share;
+            queue.running -= 1;
         }
     }
 }
@@ -250,5 +255,22 @@ mod tests {
         queue.push(&a, 1, micros(7), "1b");
         queue.push(&a, 2, micros(7), "2b");
         assert_eq!(drain(&mut queue), ["1b", "2a", "2b"]);
+    }
+
+    #[test]
+    fn a_flow_with_a_task_running_is_not_idle() {
+        // a's task, estimated at 1 ms, runs 10 ms; meanwhile b is served and a queues another task. a was busy all
+        // along, so it is charged the 10 ms once, from where its pass stood, not from the virtual time b reached.
+        let mut queue = FairQueue::default();
+        let (a, b) = (flow("a", 1), flow("b", 1));
+        queue.push(&a, 0, micros(1000), "a");
+        let (_, running) = queue.pop().unwrap();
+        for _ in 0..5 {
+            queue.push(&b, 0, micros(1000), "b");
+            serve(&mut queue);
+        }
+        queue.push(&a, 0, micros(1000), "a");
+        queue.settle(running, micros(10_000));
+        assert_eq!(queue.flows["a"].pass, 10e6, "charged 10 ms from 0");
     }
 }

@@ -3,7 +3,8 @@
 //! pieces of at most [`CHUNK_RAYS`] rays on the CPU ([`PART_RAYS`] for rays a generator makes whose hits are reduced;
 //! either well under a millisecond), so a tenant that floods the device with million-ray batches holds a worker for
 //! one piece at a time, and another tenant's ray waits for at most one piece per worker. Pieces of costly rays have
-//! fewer rays, so that each holds a worker for about the scheduler's piece time ([`PieceSizer`]); a trace queues its
+//! fewer rays, so that each holds a worker for about the scheduler's piece time ([`PieceSizer`]), down to one granule
+//! of rays on the CPU and [`GPU_SMALLEST_PIECE_RAYS`] on a GPU, below which a piece is no quicker; a trace queues its
 //! pieces one at a time, each as the one before starts, under the trace's arrival number, so that a tenant's traces
 //! are still served in arrival order. Tenants are charged the time their pieces hold a worker, so a tenant of costly
 //! rays gets as much of the device as one of cheap rays, not as many rays.
@@ -18,6 +19,7 @@ mod fair;
 mod pieces;
 
 use std::collections::HashMap;
+use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -141,7 +143,8 @@ impl Shared {
                 }
             };
             let start = Instant::now();
-            task();
+            // A task reports its own failures; one that panics anyway must not take its slot and charge with it.
+            let _ = std::panic::catch_unwind(AssertUnwindSafe(task));
             let took = start.elapsed();
             let mut state = self.lock();
             state.queue.settle(charge, took);
@@ -375,6 +378,16 @@ mod tests {
         let order: Vec<_> = (0..23).map(|_| finished.recv().unwrap()).collect();
         let second_a = order.iter().enumerate().filter(|(_, n)| **n == "a").nth(1).unwrap().0;
         assert!(second_a > 10, "{order:?}");
+    }
+
+    #[test]
+    fn a_task_that_panics_leaves_its_worker_and_slot_to_the_next() {
+        let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
+        let (done, finished) = mpsc::channel();
+        scheduler.submit(&flow("a"), 0, MILLISECOND, Box::new(|| panic!("a task's bug")));
+        scheduler.submit(&flow("a"), 0, MILLISECOND, say(&done, "next"));
+        assert_eq!(finished.recv_timeout(10 * SECOND), Ok("next"));
+        assert!(scheduler.try_slot().is_some(), "the panicked task's slot was given back");
     }
 
     #[test]

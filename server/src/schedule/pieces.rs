@@ -112,10 +112,12 @@ impl PieceSizer {
         ns_per_ray
     }
 
-    /// About how long a piece of `rays` rays will hold a worker: at the rate last learned or known, or the piece
-    /// time when no rate is known (a probe takes at most about that, unless its rays are costlier than any seen).
+    /// About how long a piece of `rays` rays will hold a worker: at the rate last learned or known, or, when no rate
+    /// is known, the piece time for a probe's rays and a share of it for fewer (a probe takes at most about the piece
+    /// time, unless its rays are costlier than any seen).
     pub fn estimate(&self, rays: usize) -> Duration {
-        Duration::from_nanos(self.ns_per_ray.map_or(self.time_ns, |ns| ns * rays as f64) as u64)
+        let unknown = || self.time_ns * (rays as f64 / self.probe as f64).min(1.0);
+        Duration::from_nanos(self.ns_per_ray.map_or_else(unknown, |ns| ns * rays as f64) as u64)
     }
 
     /// `rays` rounded down to the granule, within the smallest and the largest piece.
@@ -178,7 +180,8 @@ mod tests {
     #[test]
     fn a_piece_is_estimated_at_the_rate_last_learned_or_at_the_piece_time() {
         let mut sizer = PieceSizer::new(LIMITS, 32, None);
-        assert_eq!(sizer.estimate(sizer.next()), LIMITS.time, "nothing known: the piece time");
+        assert_eq!(sizer.estimate(sizer.next()), LIMITS.time, "nothing known: the piece time for a probe");
+        assert_eq!(sizer.estimate(sizer.next() / 4), LIMITS.time / 4, "and a share of it for fewer rays");
         sizer.learn(1000, Duration::from_millis(2));
         assert_eq!(sizer.estimate(3000), Duration::from_millis(6));
         assert_eq!(PieceSizer::new(LIMITS, 32, Some(250.0)).estimate(4), Duration::from_nanos(1000));
