@@ -45,11 +45,11 @@ pub const GPU_PIECE_RAYS: usize = 1 << 20;
 /// "Larger GPU pieces for rays made on the server").
 pub const GPU_GENERATED_PIECE_RAYS: usize = 1 << 22;
 
-/// Rays of a GPU piece at least, however costly its rays: a GPU runs each ray's tests one after another on one
-/// thread, so a piece of fewer rays than it runs at once takes about as long as a full one, and cutting pieces
-/// smaller makes them slower a ray, not quicker. On an H100, rays through a pile of 100,000 triangles ran at 0.93 M
-/// rays/s in pieces of 2^20 rays, and pieces cut to 100 ms at that rate stalled the flood (BENCHMARKS.md, "Pieces
-/// sized by time on an NVIDIA H100"). This is the wgpu backend's largest chunk, which fills an H100.
+/// Rays of a GPU piece at least, however costly its rays. On an H100, rays through a pile of 100,000 triangles ran at
+/// 0.93 M rays/s in pieces of 2^20 rays, and pieces sized to 100 ms stalled them (BENCHMARKS.md, "Pieces sized by
+/// time on an NVIDIA H100"), likely because a GPU runs each ray's tests one after another on one thread: a piece of
+/// fewer rays than it runs at once takes about as long as a full one, and cutting pieces smaller makes them slower a
+/// ray, not quicker. This is the wgpu backend's largest chunk, which fills an H100.
 pub const GPU_SMALLEST_PIECE_RAYS: usize = 1 << 18;
 
 /// Work the scheduler runs; it reports its own results.

@@ -15,8 +15,8 @@ use rayd_engine::query::QueryKind;
 pub struct PieceLimits {
     /// Rays at most.
     pub largest: usize,
-    /// Rays at least, however long they take (but for the batch's last rays): a GPU takes about as long for a piece
-    /// of fewer rays than it runs at once as for a full one, so cutting pieces below that makes them no quicker.
+    /// Rays at least, however long they take (but for the batch's last rays): on a GPU, pieces cut below the rays it
+    /// runs at once stalled costly rays ([`crate::schedule::GPU_SMALLEST_PIECE_RAYS`]).
     pub smallest: usize,
     /// About how long it may hold a worker.
     pub time: Duration,
