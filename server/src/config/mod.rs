@@ -77,7 +77,7 @@ pub struct SchedulerConfig {
     /// earlier trace of cheaper rays of the same accel and query kind).
     pub piece_ms: u32,
     /// The same for a GPU device, 1 to 60,000 (a piece holds one of its workers and its queue); a GPU piece keeps at
-    /// least [`crate::schedule::GPU_SMALLEST_PIECE_RAYS`] rays however long they take.
+    /// least 2^18 rays (the wgpu backend's chunk) however long they take.
     pub gpu_piece_ms: u32,
 }
 
