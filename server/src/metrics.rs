@@ -85,6 +85,12 @@ pub fn piece(tenant: &str, outcome: &'static str) {
     counter!("rayd_trace_pieces_total", "tenant" => tenant.to_owned(), "outcome" => outcome).increment(1);
 }
 
+/// A queued piece of `tenant`'s trace held a worker of `device` for `took`: the time the fair queue charged it.
+pub fn piece_time(tenant: &str, device: &str, took: Duration) {
+    let labels = [("tenant", tenant.to_owned()), ("device", device.to_owned())];
+    histogram!("rayd_trace_piece_seconds", &labels).record(took.as_secs_f64());
+}
+
 /// Records how long a trace of `tenant` waited in its device's queue before its first piece started.
 pub fn queued(tenant: &str, waited: Duration) {
     histogram!("rayd_trace_queue_seconds", "tenant" => tenant.to_owned()).record(waited.as_secs_f64());

@@ -260,6 +260,7 @@ impl TraceJob {
         let Piece { index, rays, output } = piece;
         let (traced, took) = self.trace_piece_timed(rays.clone(), output);
         crate::metrics::piece(&self.tenant.name, if traced.is_ok() { "traced" } else { "failed" });
+        crate::metrics::piece_time(&self.tenant.name, &self.device, took);
         let mut progress = self.progress.lock().expect("not poisoned");
         progress.record(self, index, rays, took, traced);
         self.answer_if_done(&mut progress);
