@@ -132,7 +132,7 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
         "the trace stopped at the deadline: {traced} pieces, where the whole takes {total} or more"
     );
     println!("deadline: {traced} pieces traced, then one skipped");
-    // Each piece that ran was timed for the tenant's device time.
+    // Each piece that ran was timed for the tenant's device time (no trace ran on the caller's thread so far).
     let timed = |series: &str| daemon.metric(series, &["tenant=\"default\"", "device=\"cpu:0\""]);
     assert_eq!(timed("rayd_trace_piece_seconds_count"), Some(traced as f64), "one time a piece traced");
     assert!(timed("rayd_trace_piece_seconds_sum").is_some_and(|seconds| seconds > 0.0));
@@ -152,6 +152,11 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
     let usage = client.server_info().await.unwrap().usage.unwrap();
     assert_eq!(usage.operations, 0, "nothing is left running");
     still_right(&client).await;
+    // A one-ray trace on the idle server runs on the calling thread: its time is the tenant's device time too.
+    let before = timed("rayd_trace_piece_seconds_count").unwrap();
+    let one_ray = Bytes::from(bunny().camera_rays(RayFormat::OriginTminDirectionTmax, 1, 1));
+    client.trace("bunny", &closest(), one_ray).await.unwrap();
+    assert_eq!(timed("rayd_trace_piece_seconds_count"), Some(before + 1.0));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -85,7 +85,8 @@ pub fn piece(tenant: &str, outcome: &'static str) {
     counter!("rayd_trace_pieces_total", "tenant" => tenant.to_owned(), "outcome" => outcome).increment(1);
 }
 
-/// A queued piece of `tenant`'s trace held a worker of `device` for `took`: the time the fair queue charged it.
+/// A piece of `tenant`'s trace held `device` for `took`: a worker's time, which the fair queue charged the tenant, or
+/// the caller's own thread's, for a trace of one piece run there while nothing was queued.
 pub fn piece_time(tenant: &str, device: &str, took: Duration) {
     let labels = [("tenant", tenant.to_owned()), ("device", device.to_owned())];
     histogram!("rayd_trace_piece_seconds", &labels).record(took.as_secs_f64());

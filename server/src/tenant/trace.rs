@@ -260,7 +260,6 @@ impl TraceJob {
         let Piece { index, rays, output } = piece;
         let (traced, took) = self.trace_piece_timed(rays.clone(), output);
         crate::metrics::piece(&self.tenant.name, if traced.is_ok() { "traced" } else { "failed" });
-        crate::metrics::piece_time(&self.tenant.name, &self.device, took);
         let mut progress = self.progress.lock().expect("not poisoned");
         progress.record(self, index, rays, took, traced);
         self.answer_if_done(&mut progress);
@@ -286,7 +285,8 @@ impl TraceJob {
     }
 
     /// [`TraceJob::trace_piece`], where a bug in the engine fails this trace, not the thread (a worker, or the
-    /// caller's: one of those that answer every call) nor the other pieces waiting on it; and how long it took.
+    /// caller's: one of those that answer every call) nor the other pieces waiting on it; and how long it took,
+    /// also recorded as the tenant's device time.
     fn trace_piece_timed(
         &self,
         rays: std::ops::Range<usize>,
@@ -298,7 +298,9 @@ impl TraceJob {
             std::panic::catch_unwind(AssertUnwindSafe(|| self.trace_piece(rays, output))).unwrap_or_else(|_| {
                 Err(ServiceError::Internal(format!("tracing the piece from ray {first_ray} panicked")))
             });
-        (traced, start.elapsed())
+        let took = start.elapsed();
+        crate::metrics::piece_time(&self.tenant.name, &self.device, took);
+        (traced, took)
     }
 
     /// Sends the answer if no piece runs and none is left to take (every ray taken, or the job abandoned), once.
