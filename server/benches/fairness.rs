@@ -2,13 +2,15 @@
 //! once while a probe traces one ray at a time, (1) on an idle server, (2) as tenant `probe` during the flood, and
 //! (3) as the flood's own tenant during the flood (one queue: first come, first served), to show what the per-tenant
 //! queues buy; then (4) as tenant `probe` while the flood traces costly rays (every ray crosses a pile of copies of
-//! one triangle), to show what pieces sized by time buy; and last (5) tenant `probe` traces batches of
+//! one triangle), to show what pieces sized by time buy; then (5) tenant `probe` traces batches of
 //! [`PROBE_BATCH_RAYS`] camera rays one after another, on the idle server and beside the costly flood, to show what
-//! charging tenants by time buys (charged by rays, the probe got the costly flood's ray rate). Prints one table; run
-//! with `cargo bench -p rayd-server --bench fairness`; `FAIRNESS_DEVICE` names the device (`cpu:0` unless set, e.g.
-//! `wgpu:0`), `FAIRNESS_PILE_RAYS` the costly flood's rays a batch (65,536 unless set) and `FAIRNESS_PILE` the
-//! copies of the triangle in its pile (20,000 unless set). The server runs in this
-//! process (its own runtime threads), the clients talk to it over TCP.
+//! charging tenants by time buys (charged by rays, the probe got the costly flood's ray rate); and last (6) both
+//! probes while the flood builds the bunny again and again, to show how builds share the device with traces. Prints
+//! one table; run with `cargo bench -p rayd-server --bench fairness`; `FAIRNESS_DEVICE` names the device (`cpu:0`
+//! unless set, e.g. `wgpu:0`), `FAIRNESS_PILE_RAYS` the costly flood's rays a batch (65,536 unless set) and
+//! `FAIRNESS_PILE` the copies of the triangle in its pile (20,000 unless set). The server runs in this process (its
+//! own runtime threads) with the embedded defaults and any `RAYD_…` variable set (e.g.
+//! `RAYD_SCHEDULER_GPU_WORKERS=1`); the clients talk to it over TCP.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -84,47 +86,80 @@ async fn probe(client: &Client, query: &Query, rays: &Bytes, until: Until) -> Pr
     Probed { latencies, rays_per_second }
 }
 
-/// What a flood traces: an accel and a batch of rays through it, sent again and again.
-struct Flood<'a> {
-    /// The flood tenant's accel.
-    accel: &'a str,
-    /// One batch.
-    rays: &'a Bytes,
+/// What a flood does again and again: trace a batch of rays through one of its accels, or build a mesh (and
+/// destroy it).
+#[derive(Clone)]
+enum Flood {
+    /// Traces `rays` through `accel`, counting rays.
+    Trace { accel: &'static str, rays: Bytes },
+    /// Builds `mesh` on `device`, counting triangles.
+    Build { mesh: Arc<Mesh>, device: String },
 }
 
-/// Probes with `probe_rays` while the flood runs, once each flood caller has had two batches traced, for at least
-/// [`PROBES`] probes and [`FLOOD_WINDOW`] (so that the flood's rate counts many whole batches); what the probe
-/// measured, and the flood's rays per second meanwhile.
+impl Flood {
+    /// What the flood counts, a round.
+    fn units(&self, query: &Query) -> u64 {
+        match self {
+            Flood::Trace { rays, .. } => (rays.len() / query.ray_format.size()) as u64,
+            Flood::Build { mesh, .. } => mesh.triangles.len() as u64,
+        }
+    }
+
+    /// Its name in the log.
+    fn name(&self) -> &str {
+        match self {
+            Flood::Trace { accel, .. } => accel,
+            Flood::Build { .. } => "builds",
+        }
+    }
+
+    /// One round, as `caller` of the flood.
+    async fn round(&self, client: &Client, query: &Query, caller: usize) {
+        match self {
+            Flood::Trace { accel, rays } => {
+                client.trace(accel, query, rays.clone()).await.unwrap();
+            }
+            Flood::Build { mesh, device } => {
+                let name = format!("built-{caller}");
+                client.build_mesh(&name, mesh, device, BuildFlags::empty()).await.unwrap();
+                client.destroy_accel(&name).await.unwrap();
+            }
+        }
+    }
+}
+
+/// Probes with `probe_rays` while the flood runs, once each flood caller has had two rounds done, for at least
+/// [`PROBES`] probes and [`FLOOD_WINDOW`] (so that the flood's rate counts many whole rounds); what the probe
+/// measured, and the flood's rays (or triangles built) per second meanwhile.
 async fn under_flood(
     flood_client: &Client,
-    flood: &Flood<'_>,
+    flood: &Flood,
     prober: &Client,
     query: &Query,
     probe_rays: &Bytes,
 ) -> (Probed, f64) {
-    let (stop, traced) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
+    let (stop, done) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
+    let units = flood.units(query);
     let callers: Vec<_> = (0..FLOOD_CALLERS)
-        .map(|_| {
-            let (client, rays, query, stop, traced) =
-                (flood_client.clone(), flood.rays.clone(), *query, Arc::clone(&stop), Arc::clone(&traced));
-            let accel = flood.accel.to_owned();
+        .map(|caller| {
+            let (client, flood, query, stop, done) =
+                (flood_client.clone(), flood.clone(), *query, Arc::clone(&stop), Arc::clone(&done));
             tokio::spawn(async move {
                 while !stop.load(Ordering::Acquire) {
-                    let result = client.trace(&accel, &query, rays.clone()).await.unwrap();
-                    traced.fetch_add(result.rays() as u64, Ordering::AcqRel);
+                    flood.round(&client, &query, caller).await;
+                    done.fetch_add(units, Ordering::AcqRel);
                 }
             })
         })
         .collect();
-    eprintln!("flooding {} …", flood.accel);
-    let batch_rays = (flood.rays.len() / query.ray_format.size()) as u64;
-    while traced.load(Ordering::Acquire) < 2 * FLOOD_CALLERS as u64 * batch_rays {
+    eprintln!("flooding {} …", flood.name());
+    while done.load(Ordering::Acquire) < 2 * FLOOD_CALLERS as u64 * units {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
     eprintln!("probing …");
-    let (before, start) = (traced.load(Ordering::Acquire), Instant::now());
+    let (before, start) = (done.load(Ordering::Acquire), Instant::now());
     let probed = probe(prober, query, probe_rays, Until { calls: PROBES, window: FLOOD_WINDOW }).await;
-    let flood_rate = (traced.load(Ordering::Acquire) - before) as f64 / start.elapsed().as_secs_f64();
+    let flood_rate = (done.load(Ordering::Acquire) - before) as f64 / start.elapsed().as_secs_f64();
     stop.store(true, Ordering::Release);
     for caller in callers {
         caller.await.unwrap();
@@ -165,7 +200,7 @@ fn main() {
         let url = format!("http://{}", listener.local_addr().unwrap());
         let config = rayd_server::Config {
             tenants: vec![tenant("flood", FLOOD_KEY), tenant("probe", PROBE_KEY)],
-            ..rayd_server::Config::default()
+            ..rayd_server::Config::load(None, std::env::vars()).expect("the RAYD_… variables make a configuration")
         };
         tokio::spawn(rayd_server::run(config, listener, None, std::future::pending()));
         let connect = |key: &str| {
@@ -181,14 +216,17 @@ fn main() {
 
         probe(&prober, &query, &one_ray, Until { calls: 100, window: Duration::ZERO }).await;
         let idle = probe(&prober, &query, &one_ray, Until { calls: PROBES, window: Duration::ZERO }).await;
-        let bunny_flood = Flood { accel: "bunny", rays: &rays };
+        let bunny_flood = Flood::Trace { accel: "bunny", rays: rays.clone() };
         let fair = under_flood(&flood, &bunny_flood, &prober, &query, &one_ray).await;
         let shared = under_flood(&flood, &bunny_flood, &same_tenant, &query, &one_ray).await;
-        let pile_flood = Flood { accel: "pile", rays: &through_pile };
+        let pile_flood = Flood::Trace { accel: "pile", rays: through_pile };
         let costly = under_flood(&flood, &pile_flood, &prober, &query, &one_ray).await;
         let batch = rays.slice(..PROBE_BATCH_RAYS * query.ray_format.size());
         let idle_batches = probe(&prober, &query, &batch, Until { calls: 0, window: FLOOD_WINDOW }).await;
         let costly_batches = under_flood(&flood, &pile_flood, &prober, &query, &batch).await;
+        let build_flood = Flood::Build { mesh: Arc::new(bunny), device: device.clone() };
+        let builds = under_flood(&flood, &build_flood, &prober, &query, &one_ray).await;
+        let builds_batches = under_flood(&flood, &build_flood, &prober, &query, &batch).await;
 
         let (idle_p50, idle_p99) = (percentile(&idle.latencies, 0.5), percentile(&idle.latencies, 0.99));
         println!(
@@ -224,14 +262,19 @@ fn main() {
         row("tenant probe during the costly flood", &costly.0, (idle_p50, idle_p99), Some(costly.1));
         row("idle server, batches", &idle_batches, idle_batch, None);
         row("tenant probe's batches during the costly flood", &costly_batches.0, idle_batch, Some(costly_batches.1));
+        row("tenant probe during the build flood", &builds.0, (idle_p50, idle_p99), Some(builds.1));
+        row("tenant probe's batches during the build flood", &builds_batches.0, idle_batch, Some(builds_batches.1));
         println!(
-            "({} probes under the flood, {} as its own tenant, {} under the costly flood; batches: {} idle, {} \
-             under the costly flood)",
+            "({} probes under the flood, {} as its own tenant, {} under the costly flood, {} under the build flood; \
+             batches: {} idle, {} under the costly flood, {} under the build flood; the build flood's rate is M \
+             triangles built a second)",
             fair.0.latencies.len(),
             shared.0.latencies.len(),
             costly.0.latencies.len(),
+            builds.0.latencies.len(),
             idle_batches.latencies.len(),
-            costly_batches.0.latencies.len()
+            costly_batches.0.latencies.len(),
+            builds_batches.0.latencies.len()
         );
     });
 }
