@@ -7,8 +7,10 @@
 //! gone. Rays made by the server from `rayctl trace`'s generator options (cameras, lidar, samples around points,
 //! secondary rays, also from hits larger than a message) trace as the engine's expansion of the generator those
 //! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too; a scene that
-//! fails leaves no accel behind; rays and hits more than rayctl can allocate are refused naming the options; a
-//! missing local file is NOT_FOUND naming it, whatever it holds.
+//! fails leaves no accel behind; a ray file larger than a message (or a pipe) is traced a part at a time as the
+//! engine traces it, and a trace that fails midway leaves the files it was writing as they were; rays more than rayctl can allocate, and hits more than
+//! `--out` has room for, are refused naming the options; a missing local file is NOT_FOUND naming it, whatever it
+//! holds.
 
 mod common;
 mod daemon;
@@ -42,9 +44,15 @@ const NOWHERE: &str = "http://127.0.0.1:1";
 
 /// Runs `rayctl --server SERVER ARGS` in the repository root, with none of the test's `RAYD_…` variables.
 fn rayctl(server: &str, args: &[&str]) -> Output {
+    rayctl_command(server, args).output().expect("rayctl runs")
+}
+
+/// The command [`rayctl`] runs.
+fn rayctl_command(server: &str, args: &[&str]) -> Command {
     let mut command = Command::new(daemon::binary("rayctl"));
     daemon::without_rayd_env(&mut command).current_dir(env!("CARGO_MANIFEST_DIR")).args(["--server", server]);
-    command.args(args).env("NO_COLOR", "1").output().expect("rayctl runs")
+    command.args(args).env("NO_COLOR", "1");
+    command
 }
 
 /// What a run printed, for failure messages.
@@ -717,6 +725,79 @@ fn pictures_and_scans_larger_than_a_message_are_traced_in_ranges_into_the_same_f
     assert_scan(&scanned, &read(&ply_file), &expected);
 }
 
+#[test]
+fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trace_leaves_the_files_as_they_were() {
+    // 64 KiB messages: the file's 1.7 MB of rays, and their hits, go in many parts each way.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-parts");
+    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    let format = RayFormat::OriginTminDirectionTmaxTime;
+    let mut rays = bunny().camera_rays(format, 256, 192);
+    let rays_file = scratch.path("camera.rays");
+    std::fs::write(&rays_file, &rays).unwrap();
+    let query = Query { kind: QueryKind::All, max_hits_per_ray: 3, ..Query::closest(format, HitFormat::TTriid) };
+    let expected = bunny().trace(&query, &rays);
+    assert!(0 < expected.stats.rays_hit && expected.stats.rays_hit < expected.stats.rays, "rays hit and miss");
+    let (hits_file, counts_file) = (scratch.path("camera.all"), scratch.path("camera.all.counts"));
+    let args = [
+        "trace",
+        "--accel",
+        "bunny",
+        "--rays",
+        &rays_file,
+        "--ray-format",
+        format.name(),
+        "--hit-format",
+        "t_triid",
+        "--query",
+        "all",
+        "--max-hits",
+        "3",
+        "--out",
+        &hits_file,
+    ];
+    let report = json(&server, &args);
+    let count = |key: &str| report[key].as_u64().unwrap_or_else(|| panic!("a count {key:?} in {report}"));
+    let stats = (count("rays"), count("hits"));
+    expected.assert_answer(&read(&hits_file), &read(&counts_file), stats, "the files and the report");
+
+    let (hits, counts) = (read(&hits_file), read(&counts_file));
+
+    // The same rays through a pipe (rayctl cannot know their number before they end): the same files.
+    let piped = [&args[..4], &["/dev/stdin"], &args[5..]].concat();
+    let output = rayctl_command(&server, &piped).stdin(std::fs::File::open(&rays_file).unwrap()).output().unwrap();
+    assert!(output.status.success(), "{}", printed(&output));
+    assert!(read(&hits_file) == hits && read(&counts_file) == counts, "the piped rays' hits and counts");
+
+    // An --out that is the ray file itself is refused: it would be overwritten while it is read.
+    let stderr = fails(&server, &[&args[..args.len() - 1], &[&rays_file]].concat(), 1);
+    assert!(stderr.starts_with(&format!("error: InvalidArgument: --out {rays_file}: is the ray file")), "{stderr}");
+
+    // A NaN time in the last ray: the server refuses its part after the parts before it were written.
+    let last = rays.len() - 4;
+    rays[last..].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&rays_file, &rays).unwrap();
+    let stderr = fails(&server, &args, 1);
+    // The message names the last part by its first ray, and the ray within it: together, the file's last ray.
+    let numbers: Vec<u64> = stderr.split(|c: char| !c.is_ascii_digit()).filter_map(|n| n.parse().ok()).collect();
+    assert!(
+        stderr.starts_with("error: InvalidArgument: chunk from ray ") && stderr.contains("has time NaN"),
+        "{stderr}"
+    );
+    assert!(matches!(numbers[..], [first, within] if first > 0 && first + within == 256 * 192 - 1), "{stderr}");
+    assert!(read(&hits_file) == hits && read(&counts_file) == counts, "the earlier files stay as they were");
+    let names: Vec<_> = std::fs::read_dir(scratch.path("")).unwrap().map(|e| e.unwrap().file_name()).collect();
+    assert_eq!(names.len(), 3, "no half-written file stays beside them: {names:?}");
+
+    // Not whole rays: refused before anything is sent, naming the file.
+    std::fs::write(&rays_file, &rays[..format.size() * 3 + 1]).unwrap();
+    let stderr = fails(&server, &args, 1);
+    let names =
+        format!("error: InvalidArgument: --rays {rays_file}: 109 bytes is not a multiple of 36 ({})", format.name());
+    assert!(stderr.starts_with(&names), "{stderr}");
+}
+
 /// The names of the server's accels, in creation order.
 fn accel_names(server: &str) -> Vec<String> {
     let accels = json(server, &["accels"]);
@@ -772,25 +853,9 @@ fn rays_and_hits_more_than_rayctl_can_allocate_are_refused_naming_the_options() 
     succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
     // 2^45 rays of 32 bytes (and 2^50 rays' 4-byte hits) pass any address space: no machine can hold them.
     let rays_file = scratch.path("random.rays");
-    let refusals: [(&[&str], &str); 3] = [
+    let refusals: [(&[&str], &str); 2] = [
         (&["rays", "--accel", "bunny", "--random", "35184372088832", "-o", &rays_file], "--random 35184372088832: "),
         (&["bench", "--accel", "bunny", "--batch", "35184372088832", "--duration", "1"], "--batch 35184372088832 "),
-        (
-            &[
-                "trace",
-                "--accel",
-                "bunny",
-                "--pixels",
-                "16384x16384",
-                "--samples",
-                "4194304",
-                "--ray-format",
-                "origin_direction",
-                "--hit-format",
-                "t",
-            ],
-            "--pixels 16384x16384 --samples 4194304: the hits of 1125899906842624 rays",
-        ),
     ];
     for (args, names) in refusals {
         let stderr = fails(&server, args, 1);
@@ -798,6 +863,17 @@ fn rays_and_hits_more_than_rayctl_can_allocate_are_refused_naming_the_options() 
         assert!(stderr.contains("more than this process can allocate"), "{args:?}: {stderr}");
     }
     assert!(!Path::new(&rays_file).exists(), "no file written");
+    // rayctl trace holds a few parts, not the whole hits: what it refuses is an --out with no room for them.
+    let hits_file = scratch.path("huge.hits");
+    let pixels = ["--pixels", "16384x16384", "--samples", "4194304"];
+    let args = [&["trace", "--accel", "bunny", "--ray-format", "origin_direction", "--hit-format", "t"][..], &pixels];
+    let stderr = fails(&server, &[&args.concat()[..], &["--out", &hits_file]].concat(), 1);
+    let names = format!(
+        "{hits_file}: --pixels 16384x16384 --samples 4194304: the hits and counts of 1125899906842624 rays take 4503599627370496 bytes, more than the "
+    );
+    assert!(stderr.starts_with("error: ResourceExhausted: ") && stderr.contains(&names), "{stderr}");
+    assert!(stderr.trim_end().ends_with(" bytes free there"), "{stderr}");
+    assert!(!Path::new(&hits_file).exists(), "no file written");
     let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
     let report =
         json(&server, &[&["trace", "--accel", "bunny", "--pixels", "64x48", "--samples", "2"][..], &formats].concat());

@@ -550,15 +550,22 @@ async fn accel_and_trace_limits_are_resource_exhausted_and_the_server_keeps_serv
     let result = trace_batch(&mut client, trace_query("tri", &closest), &down_rays(3000)).await;
     assert_refused(&mut client, result, Code::OutOfRange, "65536").await;
 
+    // After a chunk of 5 rays, answered: rayd's own refusal names the chunk by its first ray.
     for (rays, code, mention) in
-        [(1001, Code::ResourceExhausted, "max_rays_per_batch"), (3000, Code::OutOfRange, "65536")]
+        [(1001, Code::ResourceExhausted, "chunk from ray 5: "), (3000, Code::OutOfRange, "65536")]
     {
-        let messages = [stream_query(trace_query("tri", &closest)), stream_rays(&down_rays(rays))];
+        let messages =
+            [stream_query(trace_query("tri", &closest)), stream_rays(&down_rays(5)), stream_rays(&down_rays(rays))];
         let mut responses =
             client.trace_stream(tokio_stream::iter(messages)).await.expect("the stream starts").into_inner();
+        let answered = responses.message().await.expect("the first chunk is answered").expect("an answer");
+        assert_eq!(answered.stats.expect("stats").rays, 5);
         let status = responses.message().await.expect_err("the chunk is refused");
         assert_eq!(status.code(), code, "a chunk of {rays} rays: {status:?}");
         assert!(status.message().contains(mention), "{status:?} does not mention {mention:?}");
+        if code == Code::ResourceExhausted {
+            assert!(status.message().starts_with(mention) && status.message().contains("max_rays_per_batch"));
+        }
         still_serving(&mut client).await;
     }
 }

@@ -1,9 +1,11 @@
 //! Tracing: one `TraceBatch` call when the rays and hits fit in a message, otherwise a `TraceStream` of ray
-//! chunks with a bounded window, reassembled in order. Callers get the same [`TraceResult`] either way.
+//! chunks with a bounded window, reassembled in order. Callers get the same [`TraceResult`] either way, or, to hold
+//! neither the rays nor the hits whole, the result of each part as it comes back ([`TraceParts`]).
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
-use bytes::Bytes;
+use bytes::{Bytes, BytesMut};
+use futures_util::stream::BoxStream;
 use futures_util::{Stream, StreamExt};
 use rayd_engine::format::RayFormat;
 use rayd_engine::query::{OutputLayout, Query};
@@ -11,6 +13,7 @@ use rayd_engine::raygen::Generator;
 use rayd_proto as proto;
 use rayd_proto::{trace_batch_request, trace_stream_request};
 use tokio::sync::Semaphore;
+use tokio::sync::mpsc::error::TryRecvError;
 
 use crate::client::Client;
 use crate::convert::{generator_to_proto, trace_query};
@@ -69,15 +72,28 @@ impl TraceResult {
     /// The result of tracing `rays` bytes of `query.ray_format` records, from a `TraceBatch` answer (or a stream's
     /// trace operation); fails with [`Error::Protocol`] when its lengths do not fit the query.
     pub(crate) fn from_batch(query: &Query, rays: usize, response: proto::TraceBatchResponse) -> Result<TraceResult> {
+        let stats = response.stats.unwrap_or_default();
+        TraceResult::checked(query, rays, "the batch", response.hits, response.counts, stats)
+    }
+
+    /// The result of tracing `rays` bytes of `query.ray_format` records, answered (by `what`) with `hits`, `counts`
+    /// and `stats`; fails with [`Error::Protocol`] when their lengths do not fit the query.
+    fn checked(
+        query: &Query,
+        rays: usize,
+        what: &str,
+        hits: Bytes,
+        counts: Bytes,
+        stats: proto::TraceStats,
+    ) -> Result<TraceResult> {
         let layout = query.output_layout(rays).map_err(|e| Error::InvalidArgument(e.to_string()))?;
-        check_lengths("the batch", (response.hits.len(), response.counts.len()), (layout.hits, layout.counts))?;
-        Ok(TraceResult {
-            query: *query,
-            rays: layout.rays,
-            hits: response.hits,
-            counts: response.counts,
-            stats: response.stats.unwrap_or_default(),
-        })
+        check_lengths(what, (hits.len(), counts.len()), (layout.hits, layout.counts))?;
+        Ok(TraceResult { query: *query, rays: layout.rays, hits, counts, stats })
+    }
+
+    /// This whole result as the stream of one part.
+    pub fn into_parts(self) -> TraceParts {
+        futures_util::stream::once(std::future::ready(Ok(self))).boxed()
     }
 
     /// Ray `ray`'s count (hits found for `all`, crossings for `count`), or `None` when the query has no counts.
@@ -86,6 +102,10 @@ impl TraceResult {
         Some(u32::from_le_bytes(bytes.try_into().expect("4 bytes")))
     }
 }
+
+/// The results of a trace part by part, in ray order, as the server answers them: each a [`TraceResult`] of the
+/// part's rays (its ray numbers continue the part before). The first error ends the stream.
+pub type TraceParts = BoxStream<'static, Result<TraceResult>>;
 
 impl Client {
     /// Traces packed `rays` (whole records of `query.ray_format`) against the accel called `accel`. Goes through
@@ -119,6 +139,21 @@ impl Client {
         self.trace_in_ranges(accel, query, generator_to_proto(generator), total).await
     }
 
+    /// Traces the rays of `generator` as [`Client::trace_generated`] does, but yields each call's result as it comes
+    /// back instead of holding the hits whole (secondary rays whose hits go through a temporary buffer come back in
+    /// one part).
+    pub async fn trace_generated_parts(&self, accel: &str, query: &Query, generator: &Generator) -> Result<TraceParts> {
+        if let Generator::Secondary(secondary) = generator
+            && inline_bytes(secondary) > self.options.batch_limit_bytes
+        {
+            return Ok(self.trace_uploaded_secondary(accel, query, secondary).await?.into_parts());
+        }
+        let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        let layout = generated_layout(query, total)?;
+        let per_call = self.generated_rays_per_call(query, &layout);
+        Ok(self.range_parts(accel, query, generator_to_proto(generator), total, per_call))
+    }
+
     /// Traces the `total` rays of `generator` in ranges (`first_ray`, `ray_count`) whose hits each fit in a batch,
     /// as [`Client::trace_generated`] describes.
     pub(crate) async fn trace_in_ranges(
@@ -128,31 +163,44 @@ impl Client {
         generator: proto::RayGenerator,
         total: usize,
     ) -> Result<TraceResult> {
-        let ray_size = query.ray_format.size();
-        let layout =
-            query.output_layout(total.saturating_mul(ray_size)).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let layout = generated_layout(query, total)?;
+        let per_call = self.generated_rays_per_call(query, &layout);
+        if per_call >= total {
+            // One call (none for no rays): its answer's buffers as they are.
+            let mut parts = self.range_parts(accel, query, generator, total, per_call);
+            return parts.next().await.unwrap_or_else(|| TraceResult::from_batch(query, 0, Default::default()));
+        }
+        let answer = reserved_answer(&layout)?;
+        concatenate(answer, query, total, self.range_parts(accel, query, generator, total, per_call)).await
+    }
+
+    /// Rays of one `TraceBatch` call of generated rays whose hits and counts are `layout`: all of them when their
+    /// hits and counts fit in a batch, else as many as keep each call's hits and counts within one.
+    fn generated_rays_per_call(&self, query: &Query, layout: &OutputLayout) -> usize {
         let (limit, max_rays) = (self.options.batch_limit_bytes, self.options.max_rays_per_call);
-        let per_call = if layout.hits + layout.counts <= limit && total <= max_rays {
-            total
+        if layout.hits + layout.counts <= limit && layout.rays <= max_rays {
+            layout.rays
         } else {
             // Generated rays cost nothing on the wire: only the hits and counts must fit.
             chunk_rays(&Query { ray_format: RayFormat::OriginDirection, ..*query }, limit, max_rays)
-        };
-        let mut parts = self.range_answers(accel, query, generator, None, total, per_call).map(|answer| {
-            answer.and_then(|(rays, response)| TraceResult::from_batch(query, rays * ray_size, response))
-        });
-        if per_call >= total {
-            // One call (none for no rays): its answer's buffers as they are.
-            return parts.next().await.unwrap_or_else(|| TraceResult::from_batch(query, 0, Default::default()));
         }
-        let (mut hits, mut counts) = reserved_answer(&layout)?;
-        let mut stats = proto::TraceStats::default();
-        while let Some(part) = parts.next().await.transpose()? {
-            hits.extend_from_slice(&part.hits);
-            counts.extend_from_slice(&part.counts);
-            add_stats(&mut stats, &part.stats);
-        }
-        Ok(TraceResult { query: *query, rays: total, hits: hits.into(), counts: counts.into(), stats })
+    }
+
+    /// The results of [`Client::range_answers`] (no reduction), one part a call.
+    fn range_parts(
+        &self,
+        accel: &str,
+        query: &Query,
+        generator: proto::RayGenerator,
+        total: usize,
+        per_call: usize,
+    ) -> TraceParts {
+        let (query, ray_size) = (*query, query.ray_format.size());
+        self.range_answers(accel, &query, generator, None, total, per_call)
+            .map(move |answer| {
+                answer.and_then(|(rays, response)| TraceResult::from_batch(&query, rays * ray_size, response))
+            })
+            .boxed()
     }
 
     /// The answers of `TraceBatch` calls over the ranges (`first_ray`, `ray_count`) of at most `per_call` of
@@ -192,8 +240,7 @@ impl Client {
         TraceResult::from_batch(query, ray_bytes, response)
     }
 
-    /// A `TraceStream` of chunks of [`chunk_rays`] rays (never more bytes than a batch), at most `stream_window` of
-    /// them unanswered.
+    /// A `TraceStream` of `rays`, reassembled ([`Client::trace_parts`]).
     async fn trace_stream(
         &self,
         accel: &str,
@@ -201,48 +248,261 @@ impl Client {
         rays: Bytes,
         layout: &OutputLayout,
     ) -> Result<TraceResult> {
-        let (mut hits, mut counts) = reserved_answer(layout)?;
+        let answer = reserved_answer(layout)?;
+        let parts = self.trace_parts(accel, query, futures_util::stream::once(std::future::ready(Ok(rays)))).await?;
+        concatenate(answer, query, layout.rays, parts).await
+    }
+
+    /// Rays of one part of [`Client::trace_parts`] for `query`: chunks of a multiple of this many rays are sent
+    /// without being cut into smaller parts.
+    pub fn part_rays(&self, query: &Query) -> usize {
         let chunk_bytes = self.options.stream_chunk_bytes.min(self.options.batch_limit_bytes);
-        let chunk_rays = chunk_rays(query, chunk_bytes, self.options.max_rays_per_call);
-        let chunk_bytes = chunk_rays * query.ray_format.size();
-        let chunks: Vec<Bytes> =
-            (0..rays.len()).step_by(chunk_bytes).map(|s| rays.slice(s..(s + chunk_bytes).min(rays.len()))).collect();
+        chunk_rays(query, chunk_bytes, self.options.max_rays_per_call)
+    }
+
+    /// Traces the packed rays that `chunks` yields (records of `query.ray_format`, cut anywhere) against the accel
+    /// called `accel` through one `TraceStream`, and yields the result of each part of [`Client::part_rays`] rays as
+    /// it comes back, in ray order, with at most `stream_window` parts unanswered: neither the rays nor the hits are
+    /// held whole. A part is a slice of a chunk where the chunk holds it whole (chunks of a multiple of
+    /// [`Client::part_rays`] rays are never copied). An error of `chunks`, or rays that end within a record, ends
+    /// the trace with that error once the parts sent before it are answered. Read the parts as they come: the
+    /// server fails a stream whose answers wait unread for `stream_stall_seconds` (60 s by default).
+    pub async fn trace_parts(
+        &self,
+        accel: &str,
+        query: &Query,
+        chunks: impl Stream<Item = Result<Bytes>> + Send + 'static,
+    ) -> Result<TraceParts> {
+        let (query, ray_size) = (*query, query.ray_format.size());
+        let parts = Recut {
+            chunks: chunks.boxed(),
+            pending: Bytes::new(),
+            carried: BytesMut::new(),
+            part_bytes: self.part_rays(&query) * ray_size,
+            ray_format: query.ray_format,
+            ended: false,
+        };
         let window = CloseOnDrop(Arc::new(Semaphore::new(self.options.stream_window.max(1))));
-        let first = trace_stream_request::Part::Query(trace_query(accel, query));
-        let paced =
-            futures_util::stream::unfold((chunks.into_iter(), window.0.clone()), |(mut chunks, window)| async {
-                let chunk = chunks.next()?;
-                window.acquire().await.ok()?.forget();
-                Some((trace_stream_request::Part::Rays(chunk), (chunks, window)))
-            });
+        let (sent, sent_parts) = tokio::sync::mpsc::unbounded_channel::<usize>();
+        let failed = Arc::new(Mutex::new(None));
+        let sending = Sending { parts, window: window.0.clone(), sent, failed: Arc::clone(&failed) };
+        let paced = futures_util::stream::unfold(sending, move |mut sending| async move {
+            let part = match sending.parts.next().await? {
+                Ok(part) => part,
+                Err(e) => {
+                    *sending.failed.lock().expect("no panic holds it") = Some(e);
+                    return None;
+                }
+            };
+            sending.window.acquire().await.ok()?.forget();
+            sending.sent.send(part.len() / ray_size).ok()?;
+            Some((trace_stream_request::Part::Rays(part), sending))
+        });
+        let first = trace_stream_request::Part::Query(trace_query(accel, &query));
         let requests = futures_util::stream::once(async { first })
             .chain(paced)
             .map(|part| proto::TraceStreamRequest { part: Some(part) });
-        let mut responses = self.rpc_for(accel).trace_stream(requests).await?.into_inner();
-
-        let mut stats = proto::TraceStats::default();
-        let mut next_ray = 0;
-        while let Some(chunk) = responses.message().await? {
-            if chunk.first_ray != next_ray as u64 || next_ray >= layout.rays {
-                return Err(Error::Protocol(format!(
-                    "a stream chunk starts at ray {} where ray {next_ray} of {} was due",
-                    chunk.first_ray, layout.rays
-                )));
-            }
-            let n = chunk_rays.min(layout.rays - next_ray);
-            let expected = query.output_layout(n * query.ray_format.size()).expect("checked for the whole batch");
-            check_lengths("a stream chunk", (chunk.hits.len(), chunk.counts.len()), (expected.hits, expected.counts))?;
-            hits.extend_from_slice(&chunk.hits);
-            counts.extend_from_slice(&chunk.counts);
-            add_stats(&mut stats, &chunk.stats.unwrap_or_default());
-            next_ray += n;
-            window.0.add_permits(1);
-        }
-        if next_ray != layout.rays {
-            return Err(Error::Protocol(format!("the stream ended after {next_ray} of {} rays", layout.rays)));
-        }
-        Ok(TraceResult { query: *query, rays: layout.rays, hits: hits.into(), counts: counts.into(), stats })
+        let responses = self.rpc_for(accel).trace_stream(requests).await?.into_inner();
+        let receiving = Receiving { responses, sent_parts, next_ray: 0, window, failed, ended: false };
+        Ok(futures_util::stream::unfold(receiving, move |mut receiving| async move {
+            let part = receiving.next_part(&query).await?;
+            Some((part, receiving))
+        })
+        .boxed())
     }
+}
+
+/// Rays in chunks cut anywhere, re-cut into parts of `part_bytes` (the last may be shorter): a part that a chunk
+/// holds whole is a slice of it; one that spans chunks is copied together.
+struct Recut {
+    /// The rays as they come.
+    chunks: BoxStream<'static, Result<Bytes>>,
+    /// What is left of the chunk being cut.
+    pending: Bytes,
+    /// A part being put together from pieces of chunks.
+    carried: BytesMut,
+    /// Bytes of a part: a multiple of the ray format's record.
+    part_bytes: usize,
+    /// The rays' format.
+    ray_format: RayFormat,
+    /// Set once `chunks` ended, or failed.
+    ended: bool,
+}
+
+impl Recut {
+    /// The next part; `None` after the last.
+    async fn next(&mut self) -> Option<Result<Bytes>> {
+        loop {
+            if self.carried.is_empty() && self.pending.len() >= self.part_bytes {
+                return Some(Ok(self.pending.split_to(self.part_bytes)));
+            }
+            if !self.carried.is_empty() && !self.pending.is_empty() {
+                let take = (self.part_bytes - self.carried.len()).min(self.pending.len());
+                self.carried.extend_from_slice(&self.pending.split_to(take));
+                if self.carried.len() == self.part_bytes {
+                    return Some(Ok(self.carried.split().freeze()));
+                }
+                continue;
+            }
+            // Less than a part is left of the chunk, with nothing carried, or nothing is left of it.
+            if self.ended {
+                return self.last_part();
+            }
+            match self.chunks.next().await {
+                Some(Ok(chunk)) => {
+                    self.carried.extend_from_slice(&std::mem::take(&mut self.pending));
+                    self.pending = chunk;
+                }
+                Some(Err(e)) => {
+                    self.ended = true;
+                    (self.carried, self.pending) = (BytesMut::new(), Bytes::new());
+                    return Some(Err(e));
+                }
+                None => self.ended = true,
+            }
+        }
+    }
+
+    /// What is left once the chunks ended, short of a part: the last part (a slice of the last chunk where that
+    /// holds it), `None` when nothing is left, or the refusal of rays that end within a record.
+    fn last_part(&mut self) -> Option<Result<Bytes>> {
+        let last =
+            if self.carried.is_empty() { std::mem::take(&mut self.pending) } else { self.carried.split().freeze() };
+        let size = self.ray_format.size();
+        match last.len() {
+            0 => None,
+            bytes if bytes.is_multiple_of(size) => Some(Ok(last)),
+            bytes => Some(Err(Error::InvalidArgument(format!(
+                "the rays end within a record: {} bytes after the last whole {size}-byte {} record",
+                bytes % size,
+                self.ray_format.name()
+            )))),
+        }
+    }
+}
+
+/// The sending side of [`Client::trace_parts`].
+struct Sending {
+    /// The rays, cut into parts.
+    parts: Recut,
+    /// Parts that may be sent before more are answered.
+    window: Arc<Semaphore>,
+    /// The rays of each part sent, in order, for the receiving side.
+    sent: tokio::sync::mpsc::UnboundedSender<usize>,
+    /// The error that ended the rays, if one did.
+    failed: Arc<Mutex<Option<Error>>>,
+}
+
+/// The receiving side of [`Client::trace_parts`].
+struct Receiving {
+    /// The server's answers, one a part.
+    responses: tonic::Streaming<proto::TraceStreamResponse>,
+    /// The rays of each part sent and not yet answered, in order.
+    sent_parts: tokio::sync::mpsc::UnboundedReceiver<usize>,
+    /// The first ray of the next part due.
+    next_ray: usize,
+    /// The sending side's window, closed when the trace ends.
+    window: CloseOnDrop,
+    /// The error that ended the rays, if one did.
+    failed: Arc<Mutex<Option<Error>>>,
+    /// Set once the trace ended, well or not.
+    ended: bool,
+}
+
+impl Receiving {
+    /// The next part's result, checked against the part sent; `None` once the trace ended well.
+    async fn next_part(&mut self, query: &Query) -> Option<Result<TraceResult>> {
+        if self.ended {
+            return None;
+        }
+        let part = match self.responses.message().await {
+            Ok(Some(chunk)) => Some(self.check(query, chunk)),
+            Ok(None) => self.why_ended().map(Err),
+            Err(status) => Some(Err(status.into())),
+        };
+        self.ended = !matches!(part, Some(Ok(_)));
+        if self.ended {
+            // Nothing more is sent once the trace ended, well or not.
+            self.window.0.close();
+        }
+        part
+    }
+
+    /// The result of the part `chunk` answers, once checked: it starts at the next ray due and holds the hits and
+    /// counts of the part's rays.
+    fn check(&mut self, query: &Query, chunk: proto::TraceStreamResponse) -> Result<TraceResult> {
+        let Ok(rays) = self.sent_parts.try_recv() else {
+            return Err(Error::Protocol(format!(
+                "a stream chunk answered ray {} where no part was due",
+                chunk.first_ray
+            )));
+        };
+        if chunk.first_ray != self.next_ray as u64 {
+            return Err(Error::Protocol(format!(
+                "a stream chunk starts at ray {} where ray {} was due",
+                chunk.first_ray, self.next_ray
+            )));
+        }
+        let stats = chunk.stats.unwrap_or_default();
+        let part = TraceResult::checked(
+            query,
+            rays * query.ray_format.size(),
+            "a stream chunk",
+            chunk.hits,
+            chunk.counts,
+            stats,
+        )?;
+        self.next_ray += rays;
+        self.window.0.add_permits(1);
+        Ok(part)
+    }
+
+    /// Why the trace ended before every part was answered, if it did: the rays' own error, or parts sent and never
+    /// answered.
+    fn why_ended(&mut self) -> Option<Error> {
+        if let Some(failed) = self.failed.lock().expect("no panic holds it").take() {
+            return Some(failed);
+        }
+        let next_ray = self.next_ray;
+        match self.sent_parts.try_recv() {
+            Ok(unanswered) => Some(Error::Protocol(format!(
+                "the stream ended at ray {next_ray}, before the part of {unanswered} rays from there was answered"
+            ))),
+            // The sending side is dropped once every part is sent: alive, it still had rays to send.
+            Err(TryRecvError::Empty) => {
+                Some(Error::Protocol(format!("the stream ended at ray {next_ray}, before every ray was sent")))
+            }
+            Err(TryRecvError::Disconnected) => None,
+        }
+    }
+}
+
+/// The whole result of a trace of `rays` rays from its `parts`, appended in ray order to `answer` (buffers with room
+/// for all the hits and counts).
+async fn concatenate(
+    answer: (Vec<u8>, Vec<u8>),
+    query: &Query,
+    rays: usize,
+    mut parts: TraceParts,
+) -> Result<TraceResult> {
+    let ((mut hits, mut counts), mut stats, mut traced) = (answer, proto::TraceStats::default(), 0);
+    while let Some(part) = parts.next().await.transpose()? {
+        hits.extend_from_slice(&part.hits);
+        counts.extend_from_slice(&part.counts);
+        add_stats(&mut stats, &part.stats);
+        traced += part.rays;
+    }
+    if traced != rays {
+        return Err(Error::Protocol(format!("the trace ended after {traced} of {rays} rays")));
+    }
+    Ok(TraceResult { query: *query, rays, hits: hits.into(), counts: counts.into(), stats })
+}
+
+/// The hits and counts of `total` generated rays of `query`.
+fn generated_layout(query: &Query, total: usize) -> Result<OutputLayout> {
+    query
+        .output_layout(total.saturating_mul(query.ray_format.size()))
+        .map_err(|e| Error::InvalidArgument(e.to_string()))
 }
 
 /// A `TraceBatch` request for inline `rays`, with the hits returned inline.
@@ -282,8 +542,8 @@ fn check_lengths(what: &str, got: (usize, usize), expected: (usize, usize)) -> R
     Ok(())
 }
 
-/// Adds a chunk's statistics to the running total.
-pub(crate) fn add_stats(total: &mut proto::TraceStats, chunk: &proto::TraceStats) {
+/// Adds a part's statistics (a chunk's, a call's) to a running total.
+pub fn add_stats(total: &mut proto::TraceStats, chunk: &proto::TraceStats) {
     total.rays += chunk.rays;
     total.rays_hit += chunk.rays_hit;
     total.nodes_visited += chunk.nodes_visited;
@@ -308,6 +568,40 @@ mod tests {
     use rayd_engine::query::QueryKind;
 
     use super::*;
+
+    /// Every part that `chunks` of `format` rays re-cut into parts of `part_rays` make, in order.
+    async fn recut(chunks: Vec<Result<Bytes>>, part_rays: usize, format: RayFormat) -> Vec<Result<Bytes>> {
+        let part_bytes = part_rays * format.size();
+        let (pending, carried, chunks) = (Bytes::new(), BytesMut::new(), futures_util::stream::iter(chunks).boxed());
+        let mut recut = Recut { chunks, pending, carried, part_bytes, ray_format: format, ended: false };
+        let mut parts = Vec::new();
+        while let Some(part) = recut.next().await {
+            parts.push(part);
+        }
+        parts
+    }
+
+    #[tokio::test]
+    async fn rays_cut_anywhere_come_out_in_whole_parts_and_a_part_a_chunk_holds_is_not_copied() {
+        let format = RayFormat::OriginDirection;
+        let size = format.size();
+        let rays = Bytes::from((0..100 * size).map(|i| i as u8).collect::<Vec<u8>>());
+        let cuts = [0, 1, size - 1, 30 * size, 30 * size + 5, 71 * size, 100 * size];
+        let chunks = cuts.windows(2).map(|cut| Ok(rays.slice(cut[0]..cut[1]))).collect();
+        let parts: Vec<Bytes> = recut(chunks, 16, format).await.into_iter().map(Result::unwrap).collect();
+        let sizes: Vec<usize> = parts.iter().map(|part| part.len() / size).collect();
+        assert_eq!(sizes, [16, 16, 16, 16, 16, 16, 4], "whole parts but the last");
+        assert_eq!(parts.concat(), rays, "the rays in order");
+
+        let parts = recut(vec![Ok(rays.clone())], 16, format).await;
+        let starts: Vec<*const u8> = parts.iter().map(|part| part.as_ref().unwrap().as_ptr()).collect();
+        assert_eq!(starts[0], rays.as_ptr(), "slices of the chunk");
+        assert_eq!(starts[6], rays[96 * size..].as_ptr());
+
+        let parts = recut(vec![Ok(rays.slice(..3 * size)), Ok(rays.slice(3 * size..3 * size + 5))], 16, format).await;
+        let error = parts.into_iter().next().expect("a part").unwrap_err().to_string();
+        assert_eq!(error, "the rays end within a record: 5 bytes after the last whole 24-byte origin_direction record");
+    }
 
     #[test]
     fn chunks_are_whole_multiples_of_8_rays_sized_by_the_larger_side() {

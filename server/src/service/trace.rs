@@ -219,6 +219,7 @@ pub async fn stream(
                 Ok(rays) => answer_chunk(&tenant, accel.as_ref(), query, rays, first_ray).await.map_err(Status::from),
                 Err(status) => Err(status),
             };
+            let reply = reply.map_err(|refused| in_chunk(refused, first_ray));
             let failed = reply.is_err();
             if let Ok(response) = &reply {
                 first_ray += response.stats.as_ref().map_or(0, |s| s.rays);
@@ -229,6 +230,12 @@ pub async fn stream(
         }
     });
     Ok(Box::pin(stream))
+}
+
+/// The status of a stream's chunk that failed, its message naming the chunk by its first ray (ray numbers in the
+/// rest of the message count from there).
+fn in_chunk(status: Status, first_ray: u64) -> Status {
+    Status::new(status.code(), format!("chunk from ray {first_ray}: {}", status.message()))
 }
 
 /// Traces one chunk of a stream on the accel that `accel` names now.

@@ -12,10 +12,10 @@ use rayd_client::convert::bounds;
 use rayd_client::memory::random_rays;
 use rayd_client::{
     BenchOptions, Client, ClientOptions, ClientTls, Error, PrimaryRays, Result, Scene, SecondaryRays, ServingStatus,
-    check_health, load_mesh, proto,
+    TraceResult, check_health, load_mesh, proto,
 };
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::query::QueryKind;
+use rayd_engine::query::{OutputLayout, Query, QueryKind};
 use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, Primary, Secondary, SphereSampling, uniform};
 use serde_json::json;
 
@@ -23,6 +23,7 @@ use crate::args::{
     AroundPointsArgs, BenchArgs, BuildArgs, Cli, Command, LidarArgs, LidarScanArgs, RaysArgs, RenderArgs, SceneArgs,
     TraceArgs, View,
 };
+use crate::parts::{self, Outputs, RayFile, Written};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -119,40 +120,49 @@ async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
     Ok(show::accel(&client.build_scene(&name, &args.device, &scene, BuildFlags::empty()).await?))
 }
 
-/// `rayctl trace`: `wall_ms` times the trace call alone, from sending the rays (or what the server makes them from)
-/// to holding every hit.
+/// `rayctl trace`: the rays are read from their file and the hits written to `--out` a part at a time
+/// ([`parts`]), so that rayctl holds neither whole; the wall time counts the reading and the writing.
 async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
     let query = args.query.query(args.ray_format, args.hit_format);
     let rays = traced_rays(client, args).await?;
+    let options = ray_count_options(args);
+    let layout = rays.layout(&query)?;
+    let outputs = match &args.out {
+        Some(out) => {
+            let outputs = Outputs::create(out, query.kind.has_counts(), rays.file())?;
+            if let Some(layout) = &layout {
+                outputs.check_room(layout, &options)?;
+            }
+            Some(outputs)
+        }
+        None => None,
+    };
     let start = Instant::now();
     let traced = match rays {
-        TracedRays::Sent(rays) => client.trace(&args.accel, &query, rays).await,
-        TracedRays::Generated(generator) => client.trace_generated(&args.accel, &query, &generator).await,
-        TracedRays::FromHitsBuffer(secondary) => client.trace_secondary(&args.accel, &query, &secondary).await,
-    };
-    let traced = traced.map_err(asked_by(ray_count_options(args)))?;
-    let wall = start.elapsed();
-    if let Some(out) = &args.out {
-        std::fs::write(out, traced.hits()).map_err(|e| Error::io(out, e))?;
-        if query.kind.has_counts() {
-            let mut counts = out.as_os_str().to_owned();
-            counts.push(".counts");
-            std::fs::write(&counts, traced.counts()).map_err(|e| Error::io(Path::new(&counts), e))?;
+        TracedRays::File(file) => {
+            let chunks = file.chunks(client.part_rays(&query) * query.ray_format.size(), query.ray_format);
+            client.trace_parts(&args.accel, &query, chunks).await
         }
-    }
-    let stats = traced.stats();
+        TracedRays::Generated(generator) => client.trace_generated_parts(&args.accel, &query, &generator).await,
+        TracedRays::FromHitsBuffer(secondary) => {
+            client.trace_secondary(&args.accel, &query, &secondary).await.map(TraceResult::into_parts)
+        }
+    };
+    let parts = traced.map_err(asked_by(options.clone()))?;
+    let written = parts::write(parts, outputs, layout.map(|l| l.rays)).await;
+    let Written { rays, stats } = written.map_err(asked_by(options))?;
+    let wall = start.elapsed();
     let wall_ms = wall.as_secs_f64() * 1e3;
     let json = json!({
-        "rays": traced.rays(), "hits": stats.rays_hit, "server_ms": ms(stats.trace_ns), "wall_ms": wall_ms,
+        "rays": rays, "hits": stats.rays_hit, "server_ms": ms(stats.trace_ns), "wall_ms": wall_ms,
         "nodes_visited": stats.nodes_visited, "triangle_tests": stats.triangle_tests,
     });
     let text = format!(
-        "{} rays, {} hit ({:.1}%), server {:.2} ms, wall {wall_ms:.2} ms ({:.2} M rays/s end to end)",
-        traced.rays(),
+        "{rays} rays, {} hit ({:.1}%), server {:.2} ms, wall {wall_ms:.2} ms ({:.2} M rays/s end to end)",
         stats.rays_hit,
-        100.0 * stats.rays_hit as f64 / traced.rays().max(1) as f64,
+        100.0 * stats.rays_hit as f64 / rays.max(1) as f64,
         ms(stats.trace_ns),
-        traced.rays() as f64 / wall.as_secs_f64().max(f64::MIN_POSITIVE) / 1e6,
+        rays as f64 / wall.as_secs_f64().max(f64::MIN_POSITIVE) / 1e6,
     );
     Ok(Output { json, text })
 }
@@ -207,20 +217,46 @@ async fn camera(client: &Client, accel: &str, view: Option<View>, width: u32, he
 
 /// The rays `rayctl trace` starts from: a file's, or a generator's that the server expands.
 enum RaySource {
-    /// Packed in `--ray-format`, read from `--rays`.
-    File(Bytes),
+    /// Packed in `--ray-format`, in `--rays`.
+    File(RayFile),
     /// Made by the server.
     Generator(Generator),
 }
 
-/// What `rayctl trace` sends: the rays themselves, a generator, or secondary rays from a server-side hits buffer.
+/// What `rayctl trace` sends: the rays of a file, a generator, or secondary rays from a server-side hits buffer.
 enum TracedRays {
-    /// Packed rays, sent.
-    Sent(Bytes),
+    /// Packed rays, sent from their file a part at a time.
+    File(RayFile),
     /// A generator the server expands (secondary rays from hits sent with it, or as a temporary buffer when large).
     Generated(Generator),
     /// Secondary rays from hits that stay on the server.
     FromHitsBuffer(SecondaryRays),
+}
+
+impl TracedRays {
+    /// The ray file, if the rays are one.
+    fn file(&self) -> Option<&RayFile> {
+        match self {
+            TracedRays::File(file) => Some(file),
+            _ => None,
+        }
+    }
+
+    /// The hits and counts that tracing them with `query` makes, where known before tracing (not for rays from a
+    /// pipe, or from a hits buffer, whose size the server knows).
+    fn layout(&self, query: &Query) -> Result<Option<OutputLayout>> {
+        let ray_bytes = match self {
+            TracedRays::File(file) => match file.bytes() {
+                Some(bytes) => usize::try_from(bytes).unwrap_or(usize::MAX),
+                None => return Ok(None),
+            },
+            TracedRays::Generated(generator) => {
+                usize::try_from(generator.count()).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size())
+            }
+            TracedRays::FromHitsBuffer(_) => return Ok(None),
+        };
+        query.output_layout(ray_bytes).map(Some).map_err(|e| Error::InvalidArgument(e.to_string()))
+    }
 }
 
 /// What `rayctl trace` traces: its rays ([`ray_source`]), or, with `--reflect` or `--towards-light`, the secondary
@@ -230,7 +266,7 @@ async fn traced_rays(client: &Client, args: &TraceArgs) -> Result<TracedRays> {
     let secondary = &args.secondary;
     let Some(bounce) = secondary.bounce() else {
         return Ok(match source {
-            RaySource::File(rays) => TracedRays::Sent(rays),
+            RaySource::File(file) => TracedRays::File(file),
             RaySource::Generator(generator) => TracedRays::Generated(generator),
         });
     };
@@ -239,14 +275,14 @@ async fn traced_rays(client: &Client, args: &TraceArgs) -> Result<TracedRays> {
         (Some(file), _) => {
             let hits = read_file(file)?;
             let primary = match source {
-                RaySource::File(rays) => Primary::Packed(args.ray_format, rays),
+                RaySource::File(file) => Primary::Packed(args.ray_format, file.read()?),
                 RaySource::Generator(generator) => Primary::Generated(Box::new(generator)),
             };
             Ok(TracedRays::Generated(Generator::Secondary(Secondary { primary, hits, bounce, offset })))
         }
         (None, Some(name)) => {
             let primary = match source {
-                RaySource::File(rays) => PrimaryRays::Inline(rays, args.ray_format),
+                RaySource::File(file) => PrimaryRays::Inline(file.read()?, args.ray_format),
                 RaySource::Generator(generator) => PrimaryRays::Generated(generator),
             };
             let hits_buffer = proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Name(name.clone())) };
@@ -259,7 +295,7 @@ async fn traced_rays(client: &Client, args: &TraceArgs) -> Result<TracedRays> {
 /// The rays of `rayctl trace`'s one ray source: `--rays`, `--pixels`, `--lidar`, or `--point`/`--points`.
 async fn ray_source(client: &Client, args: &TraceArgs) -> Result<RaySource> {
     if let Some(file) = &args.rays {
-        return Ok(RaySource::File(read_file(file)?));
+        return Ok(RaySource::File(RayFile::open(file, args.ray_format)?));
     }
     let generator = if let Some((width, height)) = args.pixels {
         let sampling = args.pixel_sampling();

@@ -4,6 +4,7 @@
 
 mod args;
 mod commands;
+mod parts;
 mod show;
 
 use std::io::{self, Write};

@@ -1,0 +1,269 @@
+//! `rayctl trace` a part at a time: rays read from `--rays` a part at a time, hits written to `--out` (and counts to
+//! `--out`.counts) as each part comes back, so that rayctl holds a few parts, never the whole rays or hits.
+
+use std::io::ErrorKind;
+use std::os::unix::fs::{MetadataExt, PermissionsExt};
+use std::path::{Path, PathBuf};
+
+use bytes::{Bytes, BytesMut};
+use futures_util::{Stream, StreamExt};
+use rayd_client::{Error, Result, TraceParts, proto};
+use rayd_engine::format::RayFormat;
+use rayd_engine::query::OutputLayout;
+use tokio::io::{AsyncReadExt, AsyncWriteExt, BufWriter};
+
+/// A file of packed rays (`--rays`), opened: a plain file checked to hold whole records, or a pipe or device read to
+/// its end.
+pub struct RayFile {
+    /// Where it is.
+    path: PathBuf,
+    /// It, open at its start.
+    file: std::fs::File,
+    /// What the file system says of it.
+    metadata: std::fs::Metadata,
+}
+
+impl RayFile {
+    /// Opens the file at `path`; a plain file must hold whole `format` records.
+    pub fn open(path: &Path, format: RayFormat) -> Result<RayFile> {
+        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+        let metadata = file.metadata().map_err(|e| Error::io(path, e))?;
+        let ray_file = RayFile { path: path.into(), file, metadata };
+        if let Some(bytes) = ray_file.bytes()
+            && !bytes.is_multiple_of(format.size() as u64)
+        {
+            return Err(not_whole(path, bytes, format));
+        }
+        Ok(ray_file)
+    }
+
+    /// Its size in bytes, known for a plain file (not for a pipe).
+    pub fn bytes(&self) -> Option<u64> {
+        self.metadata.is_file().then_some(self.metadata.len())
+    }
+
+    /// The whole file.
+    pub fn read(mut self) -> Result<Bytes> {
+        let mut bytes = Vec::new();
+        std::io::Read::read_to_end(&mut self.file, &mut bytes).map_err(|e| Error::io(&self.path, e))?;
+        Ok(bytes.into())
+    }
+
+    /// Whether `other` is this very file (the same inode of the same device), however either is named.
+    fn is(&self, other: &std::fs::Metadata) -> bool {
+        (self.metadata.dev(), self.metadata.ino()) == (other.dev(), other.ino())
+    }
+
+    /// The file's bytes in chunks of `chunk_bytes` (the last may be shorter), read as they are asked for; a file
+    /// that ends within a `format` record ends the chunks with an error.
+    pub fn chunks(self, chunk_bytes: usize, format: RayFormat) -> impl Stream<Item = Result<Bytes>> + Send + 'static {
+        let RayFile { path, file, .. } = self;
+        let state = Some((path, tokio::fs::File::from_std(file), 0u64));
+        futures_util::stream::unfold(state, move |state| async move {
+            let (path, mut file, read) = state?;
+            let mut chunk = BytesMut::zeroed(chunk_bytes);
+            match fill(&mut file, &mut chunk).await {
+                Ok(0) => None,
+                Ok(filled) if !(filled as u64 + read).is_multiple_of(format.size() as u64) => {
+                    Some((Err(not_whole(&path, filled as u64 + read, format)), None))
+                }
+                Ok(filled) => {
+                    chunk.truncate(filled);
+                    Some((Ok(chunk.freeze()), Some((path, file, read + filled as u64))))
+                }
+                Err(e) => Some((Err(Error::io(&path, e)), None)),
+            }
+        })
+    }
+}
+
+/// Reads from `file` until `chunk` is full or the file ends; the bytes read.
+async fn fill(file: &mut tokio::fs::File, chunk: &mut [u8]) -> std::io::Result<usize> {
+    let mut filled = 0;
+    while filled < chunk.len() {
+        match file.read(&mut chunk[filled..]).await? {
+            0 => break,
+            n => filled += n,
+        }
+    }
+    Ok(filled)
+}
+
+/// The refusal of a ray file of `bytes` bytes, not whole `format` records.
+fn not_whole(path: &Path, bytes: u64, format: RayFormat) -> Error {
+    Error::InvalidArgument(format!(
+        "--rays {}: {bytes} bytes is not a multiple of {} ({})",
+        path.display(),
+        format.size(),
+        format.name()
+    ))
+}
+
+/// What a trace written part by part traced.
+pub struct Written {
+    /// Rays traced.
+    pub rays: usize,
+    /// The server's statistics, summed over the parts.
+    pub stats: proto::TraceStats,
+}
+
+/// Where `rayctl trace` writes: `--out` and, for queries with counts, `--out`.counts. A plain file (or a new one) is
+/// written beside itself and renamed into place once the trace ends well, so that a trace that fails leaves the
+/// files as they were; a link or a device (`/dev/stdout`) is written through as it is, and left as it is on failure.
+pub struct Outputs {
+    /// `--out`.
+    hits: OutFile,
+    /// `--out`.counts.
+    counts: Option<OutFile>,
+}
+
+impl Outputs {
+    /// The outputs of `out` (counts too when `counts`), refused when one of them is the ray file `rays` (writing
+    /// would overwrite the rays while they are read).
+    pub fn create(out: &Path, counts: bool, rays: Option<&RayFile>) -> Result<Outputs> {
+        let counts = counts.then(|| counts_path(out));
+        let hits = OutFile::create(out, rays)?;
+        let counts = counts.map(|path| OutFile::create(&path, rays)).transpose()?;
+        Ok(Outputs { hits, counts })
+    }
+
+    /// Fails with a `ResourceExhausted` error naming `options` unless the file systems written have room for the
+    /// hits and counts of `layout` (a device or a pipe is not checked).
+    pub fn check_room(&self, layout: &OutputLayout, options: &str) -> Result<()> {
+        // Both files go to one file system unless a link sends one elsewhere: each must hold both.
+        let needed = (layout.hits as u64).saturating_add(layout.counts as u64);
+        for file in std::iter::once(&self.hits).chain(&self.counts) {
+            let Some(free) = file.free_bytes()? else { continue };
+            if needed > free {
+                let why = format!(
+                    "{options}: the hits and counts of {} rays take {needed} bytes, more than the {free} bytes free \
+                     there",
+                    layout.rays
+                );
+                return Err(Error::io(&file.path, std::io::Error::new(ErrorKind::StorageFull, why)));
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes out what is buffered and puts the files in their places.
+    async fn finish(self) -> Result<()> {
+        self.hits.finish().await?;
+        match self.counts {
+            Some(counts) => counts.finish().await,
+            None => Ok(()),
+        }
+    }
+}
+
+/// Consumes `parts`, writing each part's hits and counts to `outputs` where given, which take their places once every
+/// part is written and the rays traced are `expected_rays` (where known).
+pub async fn write(parts: TraceParts, mut outputs: Option<Outputs>, expected_rays: Option<usize>) -> Result<Written> {
+    let written = write_all(parts, outputs.as_mut()).await?;
+    if let Some(expected) = expected_rays
+        && written.rays != expected
+    {
+        return Err(Error::Protocol(format!("the trace ended after {} of {expected} rays", written.rays)));
+    }
+    if let Some(outputs) = outputs {
+        outputs.finish().await?;
+    }
+    Ok(written)
+}
+
+/// Where the counts of hits written to `out` go: `out`.counts.
+fn counts_path(out: &Path) -> PathBuf {
+    let mut counts = out.as_os_str().to_owned();
+    counts.push(".counts");
+    counts.into()
+}
+
+/// A file being written.
+struct OutFile {
+    /// Where it goes.
+    path: PathBuf,
+    /// The file written beside it, renamed into place at the end; `None` when `path` is written through.
+    beside: Option<tempfile::TempPath>,
+    /// Its writer.
+    writer: BufWriter<tokio::fs::File>,
+}
+
+impl OutFile {
+    /// The file at `path`: a new or plain file is written beside itself (with the old file's permissions), anything
+    /// else (a link, a device, a pipe) through itself. Refused when it is the ray file `rays`.
+    fn create(path: &Path, rays: Option<&RayFile>) -> Result<OutFile> {
+        let io = |e| Error::io(path, e);
+        if let (Some(rays), Ok(target)) = (rays, std::fs::metadata(path))
+            && rays.is(&target)
+        {
+            return Err(Error::InvalidArgument(format!(
+                "--out {}: is the ray file {} itself, which it would overwrite while reading it",
+                path.display(),
+                rays.path.display()
+            )));
+        }
+        let (file, beside) = match std::fs::symlink_metadata(path) {
+            Ok(existing) if !existing.is_file() => (std::fs::File::create(path).map_err(io)?, None),
+            existing => {
+                let directory = match path.parent() {
+                    Some(parent) if !parent.as_os_str().is_empty() => parent,
+                    _ => Path::new("."),
+                };
+                let mut builder = tempfile::Builder::new();
+                let permissions = existing.map_or_else(|_| std::fs::Permissions::from_mode(0o666), |m| m.permissions());
+                builder.prefix(".rayctl-").suffix(".partial").permissions(permissions);
+                let (file, beside) = builder.tempfile_in(directory).map_err(io)?.into_parts();
+                (file, Some(beside))
+            }
+        };
+        let writer = BufWriter::with_capacity(1 << 20, tokio::fs::File::from_std(file));
+        Ok(OutFile { path: path.into(), beside, writer })
+    }
+
+    /// Bytes free for it on its file system; `None` for a device or a pipe.
+    fn free_bytes(&self) -> Result<Option<u64>> {
+        let Some(beside) = &self.beside else {
+            return match std::fs::metadata(&self.path) {
+                Ok(target) if target.is_file() => statvfs_free(&self.path).map(Some),
+                _ => Ok(None),
+            };
+        };
+        statvfs_free(beside).map(Some)
+    }
+
+    /// Appends `bytes`.
+    async fn write(&mut self, bytes: &[u8]) -> Result<()> {
+        self.writer.write_all(bytes).await.map_err(|e| Error::io(&self.path, e))
+    }
+
+    /// Writes out what is buffered and puts the file in its place.
+    async fn finish(mut self) -> Result<()> {
+        self.writer.flush().await.map_err(|e| Error::io(&self.path, e))?;
+        if let Some(beside) = self.beside {
+            beside.persist(&self.path).map_err(|e| Error::io(&self.path, e.error))?;
+        }
+        Ok(())
+    }
+}
+
+/// Bytes free to this user on the file system of `path`.
+fn statvfs_free(path: &Path) -> Result<u64> {
+    let stats = rustix::fs::statvfs(path).map_err(|e| Error::io(path, e.into()))?;
+    Ok(stats.f_bavail.saturating_mul(stats.f_frsize))
+}
+
+/// Consumes `parts`, writing them to `outputs` where given.
+async fn write_all(mut parts: TraceParts, mut outputs: Option<&mut Outputs>) -> Result<Written> {
+    let mut written = Written { rays: 0, stats: proto::TraceStats::default() };
+    while let Some(part) = parts.next().await.transpose()? {
+        if let Some(outputs) = &mut outputs {
+            outputs.hits.write(part.hits()).await?;
+            if let Some(counts) = &mut outputs.counts {
+                counts.write(part.counts()).await?;
+            }
+        }
+        written.rays += part.rays();
+        rayd_client::add_stats(&mut written.stats, part.stats());
+    }
+    Ok(written)
+}
