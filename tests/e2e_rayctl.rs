@@ -8,9 +8,9 @@
 //! secondary rays, also from hits larger than a message) trace as the engine's expansion of the generator those
 //! options describe, sent as a ray file. Pictures and scans larger than a message are the engine's too; a scene that
 //! fails leaves no accel behind; a ray file larger than a message (or a pipe) is traced a part at a time as the
-//! engine traces it, and a trace that fails midway leaves the files it was writing as they were; rays more than rayctl can allocate, and hits more than
-//! `--out` has room for, are refused naming the options; a missing local file is NOT_FOUND naming it, whatever it
-//! holds.
+//! engine traces it, and a trace that fails midway leaves the files it was writing as they were; a bench's rays more
+//! than rayctl can allocate, and rays or hits more than their file's file system has room for, are refused naming
+//! the options; a missing local file is NOT_FOUND naming it, whatever it holds.
 
 mod common;
 mod daemon;
@@ -27,7 +27,7 @@ use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::glam::Vec3;
 use rayd_engine::query::{Query, QueryKind};
 use rayd_engine::raygen::{
-    Bounce, Camera, Generator, Lidar, Orthographic, PixelSampling, Primary, Secondary, SphereSampling,
+    Bounce, Camera, Generator, Lidar, Orthographic, PixelSampling, Primary, Secondary, SphereSampling, random_rays,
 };
 use rayd_engine::reduce::{Image, PixelEncoding, PointCloud, PointEncoding, Reduction};
 use reference::{BUNNY_TRIANGLES, assert_same_bytes, bunny};
@@ -727,14 +727,21 @@ fn pictures_and_scans_larger_than_a_message_are_traced_in_ranges_into_the_same_f
 
 #[test]
 fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trace_leaves_the_files_as_they_were() {
-    // 64 KiB messages: the file's 1.7 MB of rays, and their hits, go in many parts each way.
+    // 64 KiB messages: the file's 2.9 MB of rays, and their hits, go in many parts each way.
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
     let server = daemon.url();
     let scratch = Scratch::new("e2e-rayctl-parts");
     succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
     let format = RayFormat::OriginTminDirectionTmaxTime;
-    let mut rays = bunny().camera_rays(format, 256, 192);
+    // rayctl rays makes more rays than one of its parts (65,536), camera and random, as the engine makes them.
     let rays_file = scratch.path("camera.rays");
+    let made = ["rays", "--accel", "bunny", "--ray-format", format.name(), "-o", &rays_file];
+    json(&server, &[&made[..], &["--width", "320", "--height", "256"]].concat());
+    let mut rays = read(&rays_file);
+    assert_same_bytes(&rays, &bunny().camera_rays(format, 320, 256), "the camera's rays");
+    json(&server, &[&made[..], &["--random", "70000", "--seed", "5"]].concat());
+    let (lo, hi) = bunny().info().bounds;
+    assert_same_bytes(&read(&rays_file), &random_rays(lo, hi, 70_000, 5, format), "the random rays");
     std::fs::write(&rays_file, &rays).unwrap();
     let query = Query { kind: QueryKind::All, max_hits_per_ray: 3, ..Query::closest(format, HitFormat::TTriid) };
     let expected = bunny().trace(&query, &rays);
@@ -785,7 +792,7 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
         stderr.starts_with("error: InvalidArgument: chunk from ray ") && stderr.contains("has time NaN"),
         "{stderr}"
     );
-    assert!(matches!(numbers[..], [first, within] if first > 0 && first + within == 256 * 192 - 1), "{stderr}");
+    assert!(matches!(numbers[..], [first, within] if first > 0 && first + within == 320 * 256 - 1), "{stderr}");
     assert!(read(&hits_file) == hits && read(&counts_file) == counts, "the earlier files stay as they were");
     let names: Vec<_> = std::fs::read_dir(scratch.path("")).unwrap().map(|e| e.unwrap().file_name()).collect();
     assert_eq!(names.len(), 3, "no half-written file stays beside them: {names:?}");
@@ -846,24 +853,25 @@ fn a_scene_that_fails_leaves_no_accel_behind_and_builds_once_its_cause_is_fixed(
 }
 
 #[test]
-fn rays_and_hits_more_than_rayctl_can_allocate_are_refused_naming_the_options() {
+fn rays_more_than_rayctl_can_allocate_or_files_without_room_are_refused_naming_the_options() {
     let daemon = Daemon::start(&[]);
     let server = daemon.url();
     let scratch = Scratch::new("e2e-rayctl-memory");
     succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
     // 2^45 rays of 32 bytes (and 2^50 rays' 4-byte hits) pass any address space: no machine can hold them.
     let rays_file = scratch.path("random.rays");
-    let refusals: [(&[&str], &str); 2] = [
-        (&["rays", "--accel", "bunny", "--random", "35184372088832", "-o", &rays_file], "--random 35184372088832: "),
-        (&["bench", "--accel", "bunny", "--batch", "35184372088832", "--duration", "1"], "--batch 35184372088832 "),
-    ];
-    for (args, names) in refusals {
-        let stderr = fails(&server, args, 1);
-        assert!(stderr.starts_with("error: ResourceExhausted: ") && stderr.contains(names), "{args:?}: {stderr}");
-        assert!(stderr.contains("more than this process can allocate"), "{args:?}: {stderr}");
-    }
+    let args = ["bench", "--accel", "bunny", "--batch", "35184372088832", "--duration", "1"];
+    let stderr = fails(&server, &args, 1);
+    assert!(stderr.starts_with("error: ResourceExhausted: ") && stderr.contains("--batch 35184372088832 "), "{stderr}");
+    assert!(stderr.contains("more than this process can allocate"), "{stderr}");
+    // rayctl rays and trace hold a few parts, not the whole rays or hits: what they refuse is a file with no room.
+    let stderr = fails(&server, &["rays", "--accel", "bunny", "--random", "35184372088832", "-o", &rays_file], 1);
+    let names = format!(
+        "{rays_file}: --random 35184372088832: 35184372088832 origin_tmin_direction_tmax rays take 1125899906842624 \
+         bytes, more than the "
+    );
+    assert!(stderr.starts_with("error: ResourceExhausted: ") && stderr.contains(&names), "{stderr}");
     assert!(!Path::new(&rays_file).exists(), "no file written");
-    // rayctl trace holds a few parts, not the whole hits: what it refuses is an --out with no room for them.
     let hits_file = scratch.path("huge.hits");
     let pixels = ["--pixels", "16384x16384", "--samples", "4194304"];
     let args = [&["trace", "--accel", "bunny", "--ray-format", "origin_direction", "--hit-format", "t"][..], &pixels];

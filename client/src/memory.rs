@@ -12,7 +12,7 @@ use crate::error::{Error, Result};
 pub fn random_rays(lo: Vec3, hi: Vec3, count: usize, seed: u64, format: RayFormat) -> Result<Vec<u8>> {
     let what = || format!("{count} {} rays", format.name());
     let mut rays = zeroed(count.saturating_mul(format.size()), what)?;
-    fill_random_rays(lo, hi, seed, format, &mut rays);
+    fill_random_rays(lo, hi, seed, format, 0, &mut rays);
     Ok(rays)
 }
 

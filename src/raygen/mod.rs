@@ -63,13 +63,18 @@ impl Camera {
 
     /// All pixels' rays, row by row, packed in `format`.
     pub fn rays(&self, format: RayFormat) -> Vec<u8> {
-        let size = format.size();
-        let mut bytes = vec![0u8; self.width as usize * self.height as usize * size];
-        for (i, slot) in bytes.chunks_exact_mut(size).enumerate() {
-            let (x, y) = (i as u32 % self.width, i as u32 / self.width);
+        let mut bytes = vec![0u8; self.width as usize * self.height as usize * format.size()];
+        self.fill_rays(format, 0, &mut bytes);
+        bytes
+    }
+
+    /// Fills `out` (a whole number of rays) with the rays of [`Camera::rays`] from ray `first` on, for a caller that
+    /// makes them a part at a time.
+    pub fn fill_rays(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        for (i, slot) in (first..).zip(out.chunks_exact_mut(format.size())) {
+            let (x, y) = ((i % u64::from(self.width)) as u32, (i / u64::from(self.width)) as u32);
             format.encode(&self.ray(x, y), slot);
         }
-        bytes
     }
 }
 
@@ -104,15 +109,15 @@ pub fn uniform(seed: u64, index: u64) -> f32 {
 /// `format`; `tmin` 0, `tmax` +∞.
 pub fn random_rays(lo: Vec3, hi: Vec3, count: usize, seed: u64, format: RayFormat) -> Vec<u8> {
     let mut bytes = vec![0u8; count * format.size()];
-    fill_random_rays(lo, hi, seed, format, &mut bytes);
+    fill_random_rays(lo, hi, seed, format, 0, &mut bytes);
     bytes
 }
 
-/// Fills `out` (a whole number of rays) with the rays [`random_rays`] makes, for a caller that holds the buffer
-/// (allocated as it sees fit).
-pub fn fill_random_rays(lo: Vec3, hi: Vec3, seed: u64, format: RayFormat, out: &mut [u8]) {
-    for (i, slot) in out.chunks_exact_mut(format.size()).enumerate() {
-        let u = |k: u64| uniform(seed, i as u64 * 8 + k);
+/// Fills `out` (a whole number of rays) with the rays [`random_rays`] makes from ray `first` on, for a caller that
+/// holds the buffer (allocated as it sees fit) or makes the rays a part at a time.
+pub fn fill_random_rays(lo: Vec3, hi: Vec3, seed: u64, format: RayFormat, first: u64, out: &mut [u8]) {
+    for (i, slot) in (first..).zip(out.chunks_exact_mut(format.size())) {
+        let u = |k: u64| uniform(seed, i * 8 + k);
         let origin = lo + (hi - lo) * Vec3::new(u(0), u(1), u(2));
         let z = 1.0 - 2.0 * u(3);
         let phi = std::f32::consts::TAU * u(4);
@@ -120,5 +125,31 @@ pub fn fill_random_rays(lo: Vec3, hi: Vec3, seed: u64, format: RayFormat, out: &
         let (sin, cos) = sin_cos(phi);
         let direction = Vec3A::new(r * cos, r * sin, z);
         format.encode(&Ray { origin: origin.into(), direction, ..Ray::default() }, slot);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rays_made_a_part_at_a_time_are_the_rays_made_at_once() {
+        let format = RayFormat::OriginTminDirectionTmax;
+        let camera = Camera::framing(Vec3::ZERO, Vec3::ONE, 7, 5);
+        let (lo, hi) = (Vec3::splat(-1.0), Vec3::ONE);
+        let whole = [camera.rays(format), random_rays(lo, hi, 35, 3, format)];
+        let fill = |which: usize, first: u64, out: &mut [u8]| match which {
+            0 => camera.fill_rays(format, first, out),
+            _ => fill_random_rays(lo, hi, 3, format, first, out),
+        };
+        for (which, whole) in whole.iter().enumerate() {
+            let mut parts = vec![0u8; whole.len()];
+            // Parts of 1, 6, 11 and 17 rays.
+            for (first, end) in [(0, 1), (1, 7), (7, 18), (18, 35)] {
+                fill(which, first, &mut parts[first as usize * format.size()..end * format.size()]);
+            }
+            assert_eq!(&parts, whole, "maker {which}");
+            assert!(whole.chunks_exact(format.size()).any(|ray| ray != &whole[..format.size()]), "rays differ");
+        }
     }
 }

@@ -9,21 +9,23 @@ use bytes::Bytes;
 use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
-use rayd_client::memory::random_rays;
 use rayd_client::{
     BenchOptions, Client, ClientOptions, ClientTls, Error, PrimaryRays, Result, Scene, SecondaryRays, ServingStatus,
     TraceResult, check_health, load_mesh, proto,
 };
 use rayd_engine::accel::BuildFlags;
+use rayd_engine::format::RayFormat;
 use rayd_engine::query::{OutputLayout, Query, QueryKind};
-use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, Primary, Secondary, SphereSampling, uniform};
+use rayd_engine::raygen::{
+    Camera, Generator, Lidar, Orthographic, Primary, Secondary, SphereSampling, fill_random_rays, uniform,
+};
 use serde_json::json;
 
 use crate::args::{
     AroundPointsArgs, BenchArgs, BuildArgs, Cli, Command, LidarArgs, LidarScanArgs, RaysArgs, RenderArgs, SceneArgs,
     TraceArgs, View,
 };
-use crate::parts::{self, Outputs, RayFile, Written};
+use crate::parts::{self, OutFile, Outputs, RayFile, Written};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -362,30 +364,73 @@ fn read_file(file: &Path) -> Result<Bytes> {
     std::fs::read(file).map(Bytes::from).map_err(|e| Error::io(file, e))
 }
 
-/// `rayctl rays`: camera or random rays for an accel, packed into a file for `trace`.
+/// Rays `rayctl rays` makes and writes at a time.
+const RAYS_A_PART: usize = 1 << 16;
+
+/// `rayctl rays`: camera or random rays for an accel, packed into a file for `trace`, made and written a part at a
+/// time (the file is written beside itself and renamed into place, as `trace --out` is).
 async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
-    let mut bytes = match args.random {
+    let format = args.ray_format;
+    let time = match args.time {
+        Some(span) => {
+            let offset = format.time_offset().ok_or_else(|| {
+                Error::InvalidArgument(format!("--time: ray format {} carries no time", format.name()))
+            })?;
+            Some((span, offset))
+        }
+        None => None,
+    };
+    let (count, options, maker) = match args.random {
         Some(count) => {
             let (lo, hi) = accel_bounds(client, &args.accel).await?;
-            random_rays(lo, hi, count, args.seed, args.ray_format).map_err(asked_by(format!("--random {count}")))?
+            (count, format!("--random {count}"), RayMaker::Random { lo, hi, seed: args.seed })
         }
-        None => camera(client, &args.accel, args.camera, args.width, args.height).await?.rays(args.ray_format),
+        None => {
+            let camera = camera(client, &args.accel, args.camera, args.width, args.height).await?;
+            let count = args.width as usize * args.height as usize;
+            (count, format!("--width {} --height {}", args.width, args.height), RayMaker::Camera(camera))
+        }
     };
-    if let Some((start, end)) = args.time {
-        let offset = args.ray_format.time_offset().ok_or_else(|| {
-            Error::InvalidArgument(format!("--time: ray format {} carries no time", args.ray_format.name()))
-        })?;
-        for (i, ray) in bytes.chunks_exact_mut(args.ray_format.size()).enumerate() {
-            let time = start + (end - start) * uniform(args.seed ^ 0x7153, i as u64);
-            ray[offset..offset + 4].copy_from_slice(&time.to_le_bytes());
+    let mut out = OutFile::create(&args.output, None)?;
+    let size = format.size();
+    let what = || format!("{count} {} rays", format.name());
+    out.check_room((count as u64).saturating_mul(size as u64), &options, what)?;
+    let mut part = vec![0u8; RAYS_A_PART.min(count) * size];
+    for first in (0..count).step_by(RAYS_A_PART) {
+        let rays = &mut part[..RAYS_A_PART.min(count - first) * size];
+        maker.fill(format, first as u64, rays);
+        if let Some(((start, end), offset)) = time {
+            for (i, ray) in (first as u64..).zip(rays.chunks_exact_mut(size)) {
+                let time = start + (end - start) * uniform(args.seed ^ 0x7153, i);
+                ray[offset..offset + 4].copy_from_slice(&time.to_le_bytes());
+            }
+        }
+        out.write(rays).await?;
+    }
+    out.finish().await?;
+    let file = args.output.display().to_string();
+    Ok(Output {
+        json: json!({ "file": file, "rays": count, "ray_format": format.name() }),
+        text: format!("wrote {count} {} rays to {file}", format.name()),
+    })
+}
+
+/// What `rayctl rays` makes its rays with.
+enum RayMaker {
+    /// Random rays in the accel's box.
+    Random { lo: Vec3, hi: Vec3, seed: u64 },
+    /// A camera's, row by row.
+    Camera(Camera),
+}
+
+impl RayMaker {
+    /// Fills `out` with its rays from ray `first` on.
+    fn fill(&self, format: RayFormat, first: u64, out: &mut [u8]) {
+        match self {
+            RayMaker::Random { lo, hi, seed } => fill_random_rays(*lo, *hi, *seed, format, first, out),
+            RayMaker::Camera(camera) => camera.fill_rays(format, first, out),
         }
     }
-    std::fs::write(&args.output, &bytes).map_err(|e| Error::io(&args.output, e))?;
-    let (file, count) = (args.output.display().to_string(), bytes.len() / args.ray_format.size());
-    Ok(Output {
-        json: json!({ "file": file, "rays": count, "ray_format": args.ray_format.name() }),
-        text: format!("wrote {count} {} rays to {file}", args.ray_format.name()),
-    })
 }
 
 /// `rayctl render`: without `--camera`, a camera framing the accel's box.

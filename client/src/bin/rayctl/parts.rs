@@ -1,5 +1,6 @@
-//! `rayctl trace` a part at a time: rays read from `--rays` a part at a time, hits written to `--out` (and counts to
-//! `--out`.counts) as each part comes back, so that rayctl holds a few parts, never the whole rays or hits.
+//! Files a part at a time: `rayctl trace` reads rays from `--rays` a part at a time and writes hits to `--out` (and
+//! counts to `--out`.counts) as each part comes back, and `rayctl rays` writes its rays as it makes them, so that
+//! rayctl holds a few parts, never the whole rays or hits.
 
 use std::io::ErrorKind;
 use std::os::unix::fs::{MetadataExt, PermissionsExt};
@@ -132,16 +133,9 @@ impl Outputs {
     pub fn check_room(&self, layout: &OutputLayout, options: &str) -> Result<()> {
         // Both files go to one file system unless a link sends one elsewhere: each must hold both.
         let needed = (layout.hits as u64).saturating_add(layout.counts as u64);
+        let what = || format!("the hits and counts of {} rays", layout.rays);
         for file in std::iter::once(&self.hits).chain(&self.counts) {
-            let Some(free) = file.free_bytes()? else { continue };
-            if needed > free {
-                let why = format!(
-                    "{options}: the hits and counts of {} rays take {needed} bytes, more than the {free} bytes free \
-                     there",
-                    layout.rays
-                );
-                return Err(Error::io(&file.path, std::io::Error::new(ErrorKind::StorageFull, why)));
-            }
+            file.check_room(needed, options, what)?;
         }
         Ok(())
     }
@@ -178,8 +172,9 @@ fn counts_path(out: &Path) -> PathBuf {
     counts.into()
 }
 
-/// A file being written.
-struct OutFile {
+/// A file being written: a new or plain file beside itself, renamed into place at the end; anything else through
+/// itself.
+pub struct OutFile {
     /// Where it goes.
     path: PathBuf,
     /// The file written beside it, renamed into place at the end; `None` when `path` is written through.
@@ -191,7 +186,7 @@ struct OutFile {
 impl OutFile {
     /// The file at `path`: a new or plain file is written beside itself (with the old file's permissions), anything
     /// else (a link, a device, a pipe) through itself. Refused when it is the ray file `rays`.
-    fn create(path: &Path, rays: Option<&RayFile>) -> Result<OutFile> {
+    pub fn create(path: &Path, rays: Option<&RayFile>) -> Result<OutFile> {
         let io = |e| Error::io(path, e);
         if let (Some(rays), Ok(target)) = (rays, std::fs::metadata(path))
             && rays.is(&target)
@@ -220,6 +215,18 @@ impl OutFile {
         Ok(OutFile { path: path.into(), beside, writer })
     }
 
+    /// Fails with a `ResourceExhausted` error naming `options` unless its file system has room for `needed` bytes
+    /// of `what` (a device or a pipe is not checked).
+    pub fn check_room(&self, needed: u64, options: &str, what: impl FnOnce() -> String) -> Result<()> {
+        match self.free_bytes()? {
+            Some(free) if needed > free => {
+                let why = format!("{options}: {} take {needed} bytes, more than the {free} bytes free there", what());
+                Err(Error::io(&self.path, std::io::Error::new(ErrorKind::StorageFull, why)))
+            }
+            _ => Ok(()),
+        }
+    }
+
     /// Bytes free for it on its file system; `None` for a device or a pipe.
     fn free_bytes(&self) -> Result<Option<u64>> {
         let Some(beside) = &self.beside else {
@@ -232,12 +239,12 @@ impl OutFile {
     }
 
     /// Appends `bytes`.
-    async fn write(&mut self, bytes: &[u8]) -> Result<()> {
+    pub async fn write(&mut self, bytes: &[u8]) -> Result<()> {
         self.writer.write_all(bytes).await.map_err(|e| Error::io(&self.path, e))
     }
 
     /// Writes out what is buffered and puts the file in its place.
-    async fn finish(mut self) -> Result<()> {
+    pub async fn finish(mut self) -> Result<()> {
         self.writer.flush().await.map_err(|e| Error::io(&self.path, e))?;
         if let Some(beside) = self.beside {
             beside.persist(&self.path).map_err(|e| Error::io(&self.path, e.error))?;
