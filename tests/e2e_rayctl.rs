@@ -28,6 +28,7 @@ use rayd_engine::glam::Vec3;
 use rayd_engine::query::{Query, QueryKind};
 use rayd_engine::raygen::{
     Bounce, Camera, Generator, Lidar, Orthographic, PixelSampling, Primary, Secondary, SphereSampling, random_rays,
+    uniform,
 };
 use rayd_engine::reduce::{Image, PixelEncoding, PointCloud, PointEncoding, Reduction};
 use reference::{BUNNY_TRIANGLES, assert_same_bytes, bunny};
@@ -736,9 +737,14 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
     // rayctl rays makes more rays than one of its parts (65,536), camera and random, as the engine makes them.
     let rays_file = scratch.path("camera.rays");
     let made = ["rays", "--accel", "bunny", "--ray-format", format.name(), "-o", &rays_file];
-    json(&server, &[&made[..], &["--width", "320", "--height", "256"]].concat());
+    json(&server, &[&made[..], &["--width", "320", "--height", "256", "--time", "0.25,0.75", "--seed", "9"]].concat());
     let mut rays = read(&rays_file);
-    assert_same_bytes(&rays, &bunny().camera_rays(format, 320, 256), "the camera's rays");
+    let mut camera = bunny().camera_rays(format, 320, 256);
+    for (i, ray) in camera.chunks_exact_mut(format.size()).enumerate() {
+        let time = 0.25 + 0.5 * uniform(9 ^ 0x7153, i as u64);
+        ray[32..36].copy_from_slice(&time.to_le_bytes());
+    }
+    assert_same_bytes(&rays, &camera, "the camera's rays, each at its own time");
     json(&server, &[&made[..], &["--random", "70000", "--seed", "5"]].concat());
     let (lo, hi) = bunny().info().bounds;
     assert_same_bytes(&read(&rays_file), &random_rays(lo, hi, 70_000, 5, format), "the random rays");
@@ -871,17 +877,26 @@ fn rays_more_than_rayctl_can_allocate_or_files_without_room_are_refused_naming_t
          bytes, more than the "
     );
     assert!(stderr.starts_with("error: ResourceExhausted: ") && stderr.contains(&names), "{stderr}");
-    assert!(!Path::new(&rays_file).exists(), "no file written");
+    // Through a link to a plain file: refused before the file is emptied.
+    let (kept, link) = (scratch.path("kept.rays"), scratch.path("link.rays"));
+    std::fs::write(&kept, b"keep").unwrap();
+    std::os::unix::fs::symlink(&kept, &link).unwrap();
+    let stderr = fails(&server, &["rays", "--accel", "bunny", "--random", "35184372088832", "-o", &link], 1);
+    assert!(stderr.starts_with(&format!("error: ResourceExhausted: {link}: --random 35184372088832: ")), "{stderr}");
+    assert_eq!(read(&kept), b"keep", "the linked file is left as it was");
     let hits_file = scratch.path("huge.hits");
     let pixels = ["--pixels", "16384x16384", "--samples", "4194304"];
     let args = [&["trace", "--accel", "bunny", "--ray-format", "origin_direction", "--hit-format", "t"][..], &pixels];
     let stderr = fails(&server, &[&args.concat()[..], &["--out", &hits_file]].concat(), 1);
     let names = format!(
-        "{hits_file}: --pixels 16384x16384 --samples 4194304: the hits and counts of 1125899906842624 rays take 4503599627370496 bytes, more than the "
+        "{hits_file}: --pixels 16384x16384 --samples 4194304: the hits and counts of 1125899906842624 rays take \
+         4503599627370496 bytes, more than the "
     );
     assert!(stderr.starts_with("error: ResourceExhausted: ") && stderr.contains(&names), "{stderr}");
     assert!(stderr.trim_end().ends_with(" bytes free there"), "{stderr}");
-    assert!(!Path::new(&hits_file).exists(), "no file written");
+    let mut names: Vec<_> = std::fs::read_dir(scratch.path("")).unwrap().map(|e| e.unwrap().file_name()).collect();
+    names.sort();
+    assert_eq!(names, ["kept.rays", "link.rays"], "no file written, none half-written beside them");
     let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
     let report =
         json(&server, &[&["trace", "--accel", "bunny", "--pixels", "64x48", "--samples", "2"][..], &formats].concat());

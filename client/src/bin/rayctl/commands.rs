@@ -368,7 +368,7 @@ fn read_file(file: &Path) -> Result<Bytes> {
 const RAYS_A_PART: usize = 1 << 16;
 
 /// `rayctl rays`: camera or random rays for an accel, packed into a file for `trace`, made and written a part at a
-/// time (the file is written beside itself and renamed into place, as `trace --out` is).
+/// time (a plain or new file is written beside itself and renamed into place, as `trace --out` is).
 async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
     let format = args.ray_format;
     let time = match args.time {

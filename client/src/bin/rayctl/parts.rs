@@ -179,6 +179,8 @@ pub struct OutFile {
     path: PathBuf,
     /// The file written beside it, renamed into place at the end; `None` when `path` is written through.
     beside: Option<tempfile::TempPath>,
+    /// Set for a plain file written through a link until it is emptied, just before the first write.
+    empty_first: bool,
     /// Its writer.
     writer: BufWriter<tokio::fs::File>,
 }
@@ -198,7 +200,10 @@ impl OutFile {
             )));
         }
         let (file, beside) = match std::fs::symlink_metadata(path) {
-            Ok(existing) if !existing.is_file() => (std::fs::File::create(path).map_err(io)?, None),
+            Ok(existing) if !existing.is_file() => {
+                // Not emptied yet: a plain file behind a link is emptied once checked for room, at the first write.
+                (std::fs::OpenOptions::new().write(true).create(true).truncate(false).open(path).map_err(io)?, None)
+            }
             existing => {
                 let directory = match path.parent() {
                     Some(parent) if !parent.as_os_str().is_empty() => parent,
@@ -211,8 +216,17 @@ impl OutFile {
                 (file, Some(beside))
             }
         };
+        let empty_first = beside.is_none() && file.metadata().map_err(io)?.is_file();
         let writer = BufWriter::with_capacity(1 << 20, tokio::fs::File::from_std(file));
-        Ok(OutFile { path: path.into(), beside, writer })
+        Ok(OutFile { path: path.into(), beside, writer, empty_first })
+    }
+
+    /// Empties a plain file written through a link before anything is written to it.
+    async fn empty_once(&mut self) -> Result<()> {
+        if std::mem::take(&mut self.empty_first) {
+            self.writer.get_mut().set_len(0).await.map_err(|e| Error::io(&self.path, e))?;
+        }
+        Ok(())
     }
 
     /// Fails with a `ResourceExhausted` error naming `options` unless its file system has room for `needed` bytes
@@ -230,8 +244,9 @@ impl OutFile {
     /// Bytes free for it on its file system; `None` for a device or a pipe.
     fn free_bytes(&self) -> Result<Option<u64>> {
         let Some(beside) = &self.beside else {
+            // A plain file behind a link gives its room back when it is emptied.
             return match std::fs::metadata(&self.path) {
-                Ok(target) if target.is_file() => statvfs_free(&self.path).map(Some),
+                Ok(target) if target.is_file() => Ok(Some(statvfs_free(&self.path)?.saturating_add(target.len()))),
                 _ => Ok(None),
             };
         };
@@ -240,11 +255,13 @@ impl OutFile {
 
     /// Appends `bytes`.
     pub async fn write(&mut self, bytes: &[u8]) -> Result<()> {
+        self.empty_once().await?;
         self.writer.write_all(bytes).await.map_err(|e| Error::io(&self.path, e))
     }
 
     /// Writes out what is buffered and puts the file in its place.
     pub async fn finish(mut self) -> Result<()> {
+        self.empty_once().await?;
         self.writer.flush().await.map_err(|e| Error::io(&self.path, e))?;
         if let Some(beside) = self.beside {
             beside.persist(&self.path).map_err(|e| Error::io(&self.path, e.error))?;
