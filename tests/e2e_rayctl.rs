@@ -62,6 +62,11 @@ fn printed(output: &Output) -> String {
     format!("{}\n--- stdout\n{stdout}--- stderr\n{stderr}", output.status)
 }
 
+/// Builds the shared bunny as accel `bunny` with `rayctl build`; what it printed.
+fn build_bunny(server: &str) -> String {
+    succeeds(server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"])
+}
+
 /// Runs rayctl and returns its standard output, panicking unless it exits 0.
 fn succeeds(server: &str, args: &[&str]) -> String {
     let output = rayctl(server, args);
@@ -141,7 +146,7 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     let scratch = Scratch::new("e2e-rayctl");
     let bunny = bunny();
 
-    let built = succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    let built = build_bunny(&server);
     let triangles = BUNNY_TRIANGLES.to_string();
     let shows = |line: &str| line.split_whitespace().eq(["triangles:", triangles.as_str()]);
     assert!(built.lines().any(shows), "build shows the accel:\n{built}");
@@ -276,7 +281,7 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
 fn bench_keeps_at_most_the_servers_max_concurrent_operations_in_flight_and_says_so() {
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_CONCURRENT_OPERATIONS", "2")]);
     let server = daemon.url();
-    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    build_bunny(&server);
     // Sixteen calls at once against a limit of two: without the cap, the first refused call ends the run.
     let args = ["bench", "--accel", "bunny", "--batch", "4096", "--concurrency", "16", "--duration", "0.5"];
     let report = json(&server, &args);
@@ -623,7 +628,7 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
     let server = daemon.url();
     let scratch = Scratch::new("e2e-rayctl-large-secondary");
-    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    build_bunny(&server);
     let (lo, hi) = bunny().info().bounds;
     let ray_format = RayFormat::OriginDirection;
     let trace = |rays: &[&str], hit_format: &str, out: &str| {
@@ -693,7 +698,7 @@ fn pictures_and_scans_larger_than_a_message_are_traced_in_ranges_into_the_same_f
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
     let server = daemon.url();
     let scratch = Scratch::new("e2e-rayctl-large-reductions");
-    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    build_bunny(&server);
 
     let (width, height) = (96, 72);
     assert!(width * height * 12 > 65536, "the normals pass a message");
@@ -732,7 +737,7 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
     let server = daemon.url();
     let scratch = Scratch::new("e2e-rayctl-parts");
-    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    build_bunny(&server);
     let format = RayFormat::OriginTminDirectionTmaxTime;
     // rayctl rays makes more rays than one of its parts (65,536), camera and random, as the engine makes them.
     let rays_file = scratch.path("camera.rays");
@@ -863,7 +868,7 @@ fn rays_more_than_rayctl_can_allocate_or_files_without_room_are_refused_naming_t
     let daemon = Daemon::start(&[]);
     let server = daemon.url();
     let scratch = Scratch::new("e2e-rayctl-memory");
-    succeeds(&server, &["build", "--mesh", "../shared/data/meshes/stanford-bunny.obj", "--name", "bunny"]);
+    build_bunny(&server);
     // 2^45 rays of 32 bytes (and 2^50 rays' 4-byte hits) pass any address space: no machine can hold them.
     let rays_file = scratch.path("random.rays");
     let args = ["bench", "--accel", "bunny", "--batch", "35184372088832", "--duration", "1"];
