@@ -4,7 +4,8 @@
 //! and a client that vanishes mid-upload leaves nothing behind and frees the reservation; a client that never reads
 //! a `TraceStream`'s answers holds a bounded number of chunks and nothing more is traced for it, and past
 //! `stream_stall_seconds` its stream is failed (RESOURCE_EXHAUSTED) and the answers held dropped, as is an
-//! `OpenStream` stream's; through all of it the server answers everyone else correctly.
+//! `OpenStream` stream's; a build whose caller goes (a deadline, a dropped stream) keeps nothing; through all of it
+//! the server answers everyone else correctly.
 
 mod common;
 mod daemon;
@@ -267,4 +268,76 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     let after = client.server_info().await.unwrap().usage.unwrap();
     assert_eq!((after.buffers, after.object_bytes, after.operations), (before.buffers, before.object_bytes, 0));
     still_right(&client).await;
+}
+
+/// Polls (for up to 60 s) until the default tenant's running operations satisfy `settled`.
+async fn operations_when(client: &Client, what: &str, settled: impl Fn(u32) -> bool) {
+    for _ in 0..12_000 {
+        if settled(client.server_info().await.unwrap().usage.unwrap().operations) {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    panic!("{what}: the running operations never settled");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_build_whose_caller_goes_is_not_kept() {
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    // 1.3 M triangles: a build that takes far longer than the deadline below.
+    let packed = common::icosphere(8, rayd_engine::glam::Vec3::ZERO).pack();
+    let vertices = client.upload_buffer("", Bytes::from(packed.vertices)).await.unwrap().id;
+    let indices = client.upload_buffer("", Bytes::from(packed.indices)).await.unwrap().id;
+    let buffer = |id: &str| proto::DataSource {
+        source: Some(proto::data_source::Source::Buffer(rayd_client::convert::buffer_ref(id))),
+    };
+    let request = proto::BuildAccelRequest {
+        name: "big".into(),
+        inputs: vec![proto::BuildInput {
+            input: Some(proto::build_input::Input::Triangles(proto::TriangleInput {
+                vertices: Some(buffer(&vertices)),
+                vertex_format: rayd_client::convert::vertex_format_to_proto(
+                    rayd_engine::geometry::VertexFormat::Float3,
+                )
+                .into(),
+                indices: Some(buffer(&indices)),
+                index_format: rayd_client::convert::index_format_to_proto(rayd_engine::geometry::IndexFormat::U32x3)
+                    .into(),
+                ..Default::default()
+            })),
+        }],
+        ..Default::default()
+    };
+    let nothing_kept = |when: &'static str| {
+        let client = client.clone();
+        async move {
+            operations_when(&client, when, |running| running == 0).await;
+            let accels = client.accels().await.unwrap();
+            assert!(accels.is_empty(), "{when}: {accels:?}");
+            let usage = client.server_info().await.unwrap().usage.unwrap();
+            assert_eq!((usage.accels, usage.accel_bytes), (0, 0), "{when}");
+        }
+    };
+
+    // A deadline that passes while the accel is being built.
+    let channel = Channel::from_shared(daemon.url()).unwrap().connect().await.unwrap();
+    let mut call = tonic::Request::new(request.clone());
+    call.set_timeout(Duration::from_millis(50));
+    let status = RaydClient::new(channel).build_accel(call).await.unwrap_err();
+    assert!(matches!(status.code(), Code::DeadlineExceeded | Code::Cancelled), "{status:?}");
+    nothing_kept("after the deadline").await;
+
+    // A stream cancelled while its build runs (dropping a stream cancels it).
+    let stream = client.create_stream().await.unwrap();
+    let build = stream.build(request.clone()).await.unwrap();
+    operations_when(&client, "the stream's build starting", |running| running >= 1).await;
+    drop(stream);
+    assert_eq!(build.wait().await.unwrap_err().code(), Code::Cancelled);
+    nothing_kept("after the stream was cancelled").await;
+
+    // What they held was let go: the same build for a caller that waits is kept.
+    let info = client.build(request).await.unwrap();
+    assert_eq!(info.triangle_count, 1_310_720);
+    assert_eq!(client.accels().await.unwrap().len(), 1);
 }

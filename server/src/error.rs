@@ -50,6 +50,10 @@ pub enum ServiceError {
         /// The I/O error.
         source: std::io::Error,
     },
+    /// The caller went away (its deadline passed, it cancelled, its connection was cut, or the stream whose operation
+    /// it was was cancelled) before what the call made was kept: nothing of it was kept.
+    #[error("the caller went away before {0} was kept: nothing was kept")]
+    CallerGone(String),
     /// A bug: something that must not fail did (a panic caught at the edge of a worker's task).
     #[error("internal error: {0}")]
     Internal(String),
@@ -116,6 +120,7 @@ impl From<ServiceError> for Status {
             ServiceError::Precondition(_) => Code::FailedPrecondition,
             ServiceError::Transport(status) => status.code(),
             ServiceError::Storage { source, .. } => storage_code(source.kind()),
+            ServiceError::CallerGone(_) => Code::Cancelled,
             ServiceError::Internal(_) => Code::Internal,
         };
         Status::new(code, error.to_string())

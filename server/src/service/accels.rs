@@ -7,7 +7,7 @@ use bytes::Bytes;
 use rayd_engine::accel::MemoryUsage;
 use rayd_proto as pb;
 
-use super::{blocking, inputs};
+use super::{blocking_for_caller, inputs};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::tenant::{AccelEntry, Tenant};
@@ -27,14 +27,15 @@ pub fn info(entry: &AccelEntry) -> pb::AccelInfo {
     convert::accel_info(entry.accel.info(), &entry.handle, &entry.name, &entry.device, entry.build_ns)
 }
 
-/// Builds an accel (off the async runtime).
+/// Builds an accel (off the async runtime; not kept if the caller goes first).
 pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
     let options = inputs::options(&tenant, request.options.as_ref())?;
-    let entry = blocking(move || {
+    let entry = blocking_for_caller(move |caller| {
         tenant.build_accel(
             &request.name,
             &request.device,
+            caller,
             |context| resolved.memory_usage(context, &options),
             |context| resolved.build(context, &options),
         )
@@ -50,14 +51,15 @@ pub fn destroy(tenant: &Tenant, request: &pb::DestroyAccelRequest) -> ServiceRes
     Ok(())
 }
 
-/// Copies an accel, or makes a compacted copy (off the async runtime).
+/// Copies an accel, or makes a compacted copy (off the async runtime; not kept if the caller goes first).
 pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let source = resolve(&tenant, request.accel.as_ref(), "accel")?;
     let device = if request.device.is_empty() { source.device.clone() } else { request.device.clone() };
-    let entry = blocking(move || {
+    let entry = blocking_for_caller(move |caller| {
         tenant.build_accel(
             &request.name,
             &device,
+            caller,
             |_| Ok(MemoryUsage { output_bytes: source.accel.info().size_bytes, ..MemoryUsage::default() }),
             |context| context.copy_accel(&source.accel, request.compact),
         )
@@ -66,30 +68,35 @@ pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> Service
     Ok(info(&entry))
 }
 
-/// Updates (refits) an accel in place (off the async runtime).
+/// Updates (refits) an accel in place (off the async runtime; not started if the caller goes first).
 pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
     let resolved = inputs::resolve(&tenant, &entry.device, &request.inputs)?;
-    let updated =
-        blocking(move || tenant.update_accel(&entry, |context| resolved.update(context, &entry.accel))).await?;
+    let updated = blocking_for_caller(move |caller| {
+        tenant.update_accel(&entry, caller, |context| resolved.update(context, &entry.accel))
+    })
+    .await?;
     Ok(info(&updated))
 }
 
-/// Serializes an accel and everything below it into a new buffer (off the async runtime).
+/// Serializes an accel and everything below it into a new buffer (off the async runtime; not kept if the caller
+/// goes first).
 pub async fn save(tenant: Arc<Tenant>, request: pb::SaveAccelRequest) -> ServiceResult<pb::BufferInfo> {
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
-    let buffer = blocking(move || {
+    let buffer = blocking_for_caller(move |caller| {
         let blob = tenant.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
+        caller.check(|| format!("buffer {:?}", request.buffer_name))?;
         tenant.create_buffer("buffer_name", &request.buffer_name, Bytes::from(blob))
     })
     .await?;
     Ok(super::buffers::info(&buffer))
 }
 
-/// Recreates the accels of a saved blob (off the async runtime).
+/// Recreates the accels of a saved blob (off the async runtime; not kept if the caller goes first).
 pub async fn load(tenant: Arc<Tenant>, request: pb::LoadAccelRequest) -> ServiceResult<pb::LoadAccelResponse> {
     let blob = inputs::data(&tenant, request.blob.as_ref(), "blob")?
         .ok_or_else(|| ServiceError::invalid("blob", "a blob is required"))?;
-    let entries = blocking(move || tenant.load_accels(&request.name, &request.device, &blob)).await?;
+    let entries =
+        blocking_for_caller(move |caller| tenant.load_accels(&request.name, &request.device, caller, &blob)).await?;
     Ok(pb::LoadAccelResponse { accels: entries.iter().map(info).collect() })
 }

@@ -22,7 +22,7 @@ use crate::error::{ServiceError, ServiceResult};
 use crate::metrics::observe;
 use crate::persist::Store;
 use crate::schedule::Schedulers;
-use crate::tenant::Tenant;
+use crate::tenant::{Caller, Tenant};
 
 /// Shared state of every call.
 #[derive(Debug)]
@@ -90,6 +90,15 @@ fn restore_logged(name: &str, tenant: &Tenant) -> Result<(), ServiceError> {
 /// Runs blocking work (builds, loads, writes to the data directory) on tokio's blocking pool so the async runtime keeps serving.
 async fn blocking<T: Send + 'static>(work: impl FnOnce() -> ServiceResult<T> + Send + 'static) -> ServiceResult<T> {
     tokio::task::spawn_blocking(work).await.expect("blocking work does not panic")
+}
+
+/// Runs `work` off the async runtime for a caller that goes when this future is dropped ([`Caller`]): what `work`
+/// makes is then not kept.
+async fn blocking_for_caller<T: Send + 'static>(
+    work: impl FnOnce(&Caller) -> ServiceResult<T> + Send + 'static,
+) -> ServiceResult<T> {
+    let (caller, _present) = Caller::watched();
+    blocking(move || work(&caller)).await
 }
 
 /// The error for a reference to a stream operation made outside any stream.

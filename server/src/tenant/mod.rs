@@ -2,10 +2,12 @@
 //! traces. Every operation checks the configured limits before it allocates. With a data directory every change
 //! is also persisted, and restored at start ([`persistence`]).
 
+mod caller;
 mod persistence;
 mod quota;
 mod trace;
 
+pub use caller::Caller;
 pub use quota::Reservation;
 pub use trace::Rays;
 
@@ -242,13 +244,15 @@ impl Tenant {
         })
     }
 
-    /// Builds an accel named `name` on `device` with `build`, after checking the name, the accel count and the
-    /// output bound `usage` gives against the limits; the accel and those bytes stay reserved until it is kept, so
-    /// that builds at once cannot together outgrow them. Blocks: call it off the async runtime.
+    /// Builds an accel named `name` on `device` with `build` for `caller`, after checking the name, the accel count
+    /// and the output bound `usage` gives against the limits; the accel and those bytes stay reserved until it is
+    /// kept, so that builds at once cannot together outgrow them. Neither started nor kept once `caller` has gone.
+    /// Blocks: call it off the async runtime.
     pub fn build_accel(
         &self,
         name: &str,
         device: &str,
+        caller: &Caller,
         usage: impl FnOnce(&Context) -> rayd_engine::Result<MemoryUsage>,
         build: impl FnOnce(&Context) -> rayd_engine::Result<Arc<Accel>>,
     ) -> ServiceResult<AccelEntry> {
@@ -265,6 +269,8 @@ impl Tenant {
             self.limits.max_accel_bytes,
         )?;
         let bound = self.reserve_accel_bytes(usage.output_bytes)?;
+        let what = || format!("accel {name:?}");
+        caller.check(what)?;
         let start = Instant::now();
         let accel = build(context)?;
         let describe = |_| format!("accel {name:?}, built");
@@ -292,9 +298,11 @@ impl Tenant {
             }
         };
         let _keeping = self.keep();
-        if let Err(taken) = self.accels.insert(entry.handle.clone(), name, entry.clone()) {
+        if let Err(refused) =
+            caller.check(what).and_then(|()| self.accels.insert(entry.handle.clone(), name, entry.clone()))
+        {
             context.destroy_accel(entry.accel.handle())?;
-            return Err(taken);
+            return Err(refused);
         }
         if let Err(unsaved) = file.put() {
             self.accels.remove(&entry.handle, &entry.name)?;
@@ -309,8 +317,15 @@ impl Tenant {
     /// `name.2`, … in the blob's order, after checking the names, the blob's size against `max_accel_bytes` and
     /// `max_total_accel_bytes` and the accel count against `max_accels` (reserved until they are kept); once loaded,
     /// each accel's own bytes against `max_accel_bytes` and their sum against `max_total_accel_bytes` (a loaded
-    /// accel can take more bytes than its part of the blob). All or nothing. Blocks: call it off the async runtime.
-    pub fn load_accels(&self, name: &str, device: &str, blob: &[u8]) -> ServiceResult<Vec<AccelEntry>> {
+    /// accel can take more bytes than its part of the blob). All or nothing: nothing once `caller` has gone. Blocks:
+    /// call it off the async runtime.
+    pub fn load_accels(
+        &self,
+        name: &str,
+        device: &str,
+        caller: &Caller,
+        blob: &[u8],
+    ) -> ServiceResult<Vec<AccelEntry>> {
         check_name("name", name)?;
         ServiceError::check_limit(
             || "the blob's bytes".into(),
@@ -328,6 +343,8 @@ impl Tenant {
             self.accels.check_free(name)?;
         }
         let (device, context) = self.context(device)?;
+        let what = || format!("accel {name:?}, loaded");
+        caller.check(what)?;
         let start = Instant::now();
         let accels = context.deserialize_accel(blob, &[])?;
         let build_ns = start.elapsed().as_nanos() as u64;
@@ -360,6 +377,10 @@ impl Tenant {
             }
         };
         let _keeping = self.keep();
+        if let Err(gone) = caller.check(what) {
+            destroy_loaded()?;
+            return Err(gone);
+        }
         let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
         for (file, entry) in files {
             let inserted = self.accels.insert(entry.handle.clone(), &entry.name, entry.clone());
@@ -382,14 +403,17 @@ impl Tenant {
     }
 
     /// Updates `entry`'s accel with `update` (which gets its context) and keeps the new version under the same handle
-    /// and name. Blocks: call it off the async runtime.
+    /// and name; not started once `caller` has gone (an update that has started replaces the version as it ends).
+    /// Blocks: call it off the async runtime.
     pub fn update_accel(
         &self,
         entry: &AccelEntry,
+        caller: &Caller,
         update: impl FnOnce(&Context) -> rayd_engine::Result<Arc<Accel>>,
     ) -> ServiceResult<AccelEntry> {
         let (_, context) = self.context(&entry.device)?;
         let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
+        caller.check(|| format!("the update of accel {:?}", entry.name))?;
         let start = Instant::now();
         let accel = update(context)?;
         let build_ns = start.elapsed().as_nanos() as u64;
@@ -655,6 +679,64 @@ mod tests {
     }
 
     #[test]
+    fn what_is_made_for_a_caller_that_has_gone_is_not_kept_and_work_for_one_not_started() {
+        let dir = std::env::temp_dir().join(format!("rayd-caller-gone-{}", std::process::id()));
+        let store = crate::persist::Store::open(&dir, "t").unwrap();
+        let tenant = cpu_tenant(Limits { max_accels: 1, ..Limits::default() }).with_store(store);
+        let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
+        let input = || [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        let options = BuildOptions { flags: BuildFlags::ALLOW_UPDATE, ..BuildOptions::default() };
+        let usage = |context: &Context| context.compute_memory_usage(&input(), &options);
+        let context = tenant.context(DEFAULT_DEVICE).unwrap().1;
+        let nothing_left = |when: &str| {
+            let files = std::fs::read_dir(dir.join("tenants/t/accels")).map_or(0, |d| d.count());
+            let engine_accels = context.accel_handles().len();
+            let usage = tenant.usage();
+            assert_eq!(
+                (usage.accels, usage.accel_bytes, usage.operations, engine_accels, files),
+                (0, 0, 0, 0, 0),
+                "{when}"
+            );
+        };
+        let gone = |error: ServiceError, what: &str| {
+            assert!(matches!(&error, ServiceError::CallerGone(named) if named == what), "{error}");
+        };
+
+        // The caller goes while its accel is being built: the accel is built, then not kept.
+        let (caller, present) = Caller::watched();
+        let built = tenant.build_accel("a", DEFAULT_DEVICE, &caller, usage, |context| {
+            drop(present);
+            context.build_accel(&input(), &options)
+        });
+        gone(built.unwrap_err(), "accel \"a\"");
+        nothing_left("after a build whose caller went");
+        // It had gone before: the build does not start.
+        let unstarted =
+            |_: &Context| -> rayd_engine::Result<Arc<Accel>> { panic!("started for a caller that had gone") };
+        gone(tenant.build_accel("a", DEFAULT_DEVICE, &caller, usage, unstarted).unwrap_err(), "accel \"a\"");
+        nothing_left("after a build for a caller that had gone");
+        // Nor does a load.
+        let blob = context.serialize_accel(&context.build_accel(&input(), &options).unwrap(), &[]).unwrap();
+        context.accel_handles().into_iter().try_for_each(|handle| context.destroy_accel(handle)).unwrap();
+        gone(tenant.load_accels("b", DEFAULT_DEVICE, &caller, &blob).unwrap_err(), "accel \"b\", loaded");
+        nothing_left("after a load for a caller that had gone");
+
+        // The reservations were let go: a caller that stays gets the one accel max_accels allows, and its blob.
+        let kept = tenant.build_accel("a", DEFAULT_DEVICE, &Caller::default(), usage, |context| {
+            context.build_accel(&input(), &options)
+        });
+        let kept = kept.unwrap();
+        // An update for a caller that has gone does not start: the version stays.
+        gone(tenant.update_accel(&kept, &caller, unstarted).unwrap_err(), "the update of accel \"a\"");
+        assert_eq!(tenant.accel(Some("a"), None).unwrap().version, 0);
+        let updated =
+            tenant.update_accel(&kept, &Caller::default(), |context| context.update_accel(&kept.accel, &input()));
+        assert_eq!(updated.unwrap().version, 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
     fn builds_at_once_keep_no_more_accels_than_max_accels() {
         let tenant = cpu_tenant(Limits { max_accels: 2, ..Limits::default() });
         let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
@@ -679,6 +761,7 @@ mod tests {
                         let built = tenant.build_accel(
                             &format!("a{i}"),
                             DEFAULT_DEVICE,
+                            &Caller::default(),
                             |context| context.compute_memory_usage(&input(), options),
                             |context| {
                                 wait_for_all();
@@ -717,7 +800,8 @@ mod tests {
             let usage = |context: &Context| {
                 Ok(MemoryUsage { output_bytes: 1, ..context.compute_memory_usage(&input(), &options)? })
             };
-            tenant.build_accel(name, DEFAULT_DEVICE, usage, |context| context.build_accel(&input(), &options))
+            let built = |context: &Context| context.build_accel(&input(), &options);
+            tenant.build_accel(name, DEFAULT_DEVICE, &Caller::default(), usage, built)
         };
         // Checked by their bytes once built: two fit, a third does not.
         let first = build("first").unwrap();
@@ -730,7 +814,9 @@ mod tests {
         // An update's replaced version still held (as an instance accel placing it, or a stream, holds it) counts
         // until it is let go: a build meanwhile finds no room.
         let held = Arc::clone(&first.accel);
-        tenant.update_accel(&first, |context| context.update_accel(&first.accel, &input())).unwrap();
+        tenant
+            .update_accel(&first, &Caller::default(), |context| context.update_accel(&first.accel, &input()))
+            .unwrap();
         drop(first);
         assert_eq!(tenant.usage().accel_bytes, 2 * size, "the replaced version is not counted");
         let refused = build("third").unwrap_err();

@@ -486,6 +486,7 @@ mod tests {
     use super::*;
     use crate::config::{Limits, SchedulerConfig};
     use crate::schedule::Schedulers;
+    use crate::tenant::Caller;
     use crate::tenant::DEFAULT_DEVICE;
 
     /// Copies of one triangle in the pile: every ray through it tests each (20 million tests a 1,024-ray piece,
@@ -510,6 +511,7 @@ mod tests {
             .build_accel(
                 "pile",
                 DEFAULT_DEVICE,
+                &Caller::default(),
                 |context| context.compute_memory_usage(&input, &options),
                 |context| context.build_accel(&input, &options),
             )
