@@ -1,4 +1,4 @@
-//! Fair scheduling under a flood: tenant `flood` keeps a device saturated with 1M-ray batches from two callers at
+//! Fair scheduling under a flood: tenant `flood` keeps a device saturated with 1M-ray batches from its callers at
 //! once while a probe traces one ray at a time, (1) on an idle server, (2) as tenant `probe` during the flood, and
 //! (3) as the flood's own tenant during the flood (one queue: first come, first served), to show what the per-tenant
 //! queues buy; then (4) as tenant `probe` while the flood traces costly rays (every ray crosses a pile of copies of
@@ -8,7 +8,8 @@
 //! probes while the flood builds the bunny again and again, to show how builds share the device with traces. Prints
 //! one table; run with `cargo bench -p rayd-server --bench fairness`; `FAIRNESS_DEVICE` names the device (`cpu:0`
 //! unless set, e.g. `wgpu:0`), `FAIRNESS_PILE_RAYS` the costly flood's rays a batch (65,536 unless set) and
-//! `FAIRNESS_PILE` the copies of the triangle in its pile (20,000 unless set). The server runs in this process (its
+//! `FAIRNESS_PILE` the copies of the triangle in its pile (20,000 unless set), `FAIRNESS_FLOOD_CALLERS` the flood's
+//! callers (2 unless set). The server runs in this process (its
 //! own runtime threads) with the embedded defaults and any `RAYD_…` variable set (e.g.
 //! `RAYD_SCHEDULER_GPU_WORKERS=1`); the clients talk to it over TCP.
 
@@ -41,8 +42,11 @@ const FLOOD_WINDOW: Duration = Duration::from_secs(10);
 const PROBE_TIME_LIMIT: Duration = Duration::from_secs(60);
 /// Rays of the probe's batches, traced one after another to measure its throughput beside the costly flood.
 const PROBE_BATCH_RAYS: usize = 16_384;
-/// Callers of the flood, each with one 1M-ray batch in flight at all times.
-const FLOOD_CALLERS: usize = 2;
+/// Callers of the flood (`FAIRNESS_FLOOD_CALLERS`, 2 unless set), each with one round (a 1M-ray batch, or a build)
+/// in flight at all times.
+fn flood_callers() -> usize {
+    std::env::var("FAIRNESS_FLOOD_CALLERS").map_or(2, |n| n.parse().expect("a number of callers"))
+}
 
 fn tenant(name: &str, key: &str) -> TenantConfig {
     TenantConfig {
@@ -140,7 +144,7 @@ async fn under_flood(
 ) -> (Probed, f64) {
     let (stop, done) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
     let units = flood.units(query);
-    let callers: Vec<_> = (0..FLOOD_CALLERS)
+    let callers: Vec<_> = (0..flood_callers())
         .map(|caller| {
             let (client, flood, query, stop, done) =
                 (flood_client.clone(), flood.clone(), *query, Arc::clone(&stop), Arc::clone(&done));
@@ -153,7 +157,7 @@ async fn under_flood(
         })
         .collect();
     eprintln!("flooding {} …", flood.name());
-    while done.load(Ordering::Acquire) < 2 * FLOOD_CALLERS as u64 * units {
+    while done.load(Ordering::Acquire) < 2 * flood_callers() as u64 * units {
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
     eprintln!("probing …");
@@ -231,9 +235,10 @@ fn main() {
         let (idle_p50, idle_p99) = (percentile(&idle.latencies, 0.5), percentile(&idle.latencies, 0.99));
         println!(
             "{device}; flood: bunny, 1M camera rays a batch, closest, t; costly flood: {pile_rays} rays a batch \
-             through a pile of {pile_copies} copies of one triangle; {FLOOD_CALLERS} flood callers; probes of the \
+             through a pile of {pile_copies} copies of one triangle; {} flood callers; probes of the \
              bunny (one ray, or {PROBE_BATCH_RAYS} camera rays a batch), under a flood for {} s and {PROBES} probes \
              at least, {} s at most",
+            flood_callers(),
             FLOOD_WINDOW.as_secs(),
             PROBE_TIME_LIMIT.as_secs()
         );

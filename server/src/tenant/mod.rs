@@ -274,7 +274,11 @@ impl Tenant {
         let start = Instant::now();
         let accel = build(context)?;
         let describe = |_| format!("accel {name:?}, built");
-        let _reserved = match self.check_made(std::slice::from_ref(&accel), usage.output_bytes, describe) {
+        // A caller gone by now is not worth the accel's file.
+        let checked = caller
+            .check(what)
+            .and_then(|()| self.check_made(std::slice::from_ref(&accel), usage.output_bytes, describe));
+        let _reserved = match checked {
             Ok(beyond_the_bound) => (bound, beyond_the_bound),
             Err(refused) => {
                 context.destroy_accel(accel.handle())?;
@@ -349,7 +353,7 @@ impl Tenant {
         let accels = context.deserialize_accel(blob, &[])?;
         let build_ns = start.elapsed().as_nanos() as u64;
         let describe = |index| format!("accel {index} of the blob, loaded");
-        let _reserved = match self.check_made(&accels, blob.len() as u64, describe) {
+        let _reserved = match caller.check(what).and_then(|()| self.check_made(&accels, blob.len() as u64, describe)) {
             Ok(loaded_bytes) => (blob_bytes, loaded_bytes),
             Err(refused) => {
                 for accel in accels.iter().rev() {
