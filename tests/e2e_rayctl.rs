@@ -685,7 +685,32 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
         client.upload_buffer("camera-hits", hits).await.expect("the hits upload");
     });
     let args = [&camera[..], &["--reflect", "--primary-hits-buffer", "camera-hits", "--offset", "0.0001"]].concat();
-    check("reflections-from-buffer", &args, &Generator::Secondary(reflect));
+    check("reflections-from-buffer", &args, &Generator::Secondary(reflect.clone()));
+
+    // Hits through a pipe, whose size rayctl learns by reading it.
+    let (piped_out, expected_out) = (scratch.path("piped.hits"), scratch.path("reflections.hits"));
+    let args = [&camera[..], &["--reflect", "--primary-hits", "/dev/stdin", "--offset", "0.0001"]].concat();
+    let formats = ["--ray-format", ray_format.name(), "--hit-format", "full", "--out", &piped_out];
+    let piped = rayctl_command(&server, &[&["trace", "--accel", "bunny"][..], &args, &formats].concat())
+        .stdin(std::fs::File::open(&primary_file).unwrap())
+        .output()
+        .unwrap();
+    assert!(piped.status.success(), "{}", printed(&piped));
+    assert_same_bytes(&read(&piped_out), &read(&expected_out), "reflections of piped hits");
+
+    // Hits of other rays are refused before anything is sent, naming the file and both counts.
+    let few_hits = scratch.path("few.hits");
+    std::fs::write(&few_hits, &read(&primary_file)[..800]).unwrap();
+    let args = [&camera[..], &["--reflect", "--primary-hits", &few_hits]].concat();
+    let formats = ["--ray-format", ray_format.name(), "--hit-format", "t"];
+    let refused = fails(&server, &[&["trace", "--accel", "bunny"][..], &args, &formats].concat(), 1);
+    let named = format!("--primary-hits {few_hits}: 10 hit records (800 bytes), but there are 3600 primary rays");
+    assert!(refused.starts_with(&format!("error: InvalidArgument: {named}")), "{refused}");
+    // A trace that fails after its files went up (no such accel) leaves no temporary buffer behind.
+    let args = ["--rays", &camera_rays, "--reflect", "--primary-hits", &camera_hits];
+    let refused = fails(&server, &[&["trace", "--accel", "nowhere"][..], &args, &formats].concat(), 1);
+    assert!(refused.starts_with("error: NotFound: "), "{refused}");
+
     let buffers = json(&server, &["buffers"]);
     let names: Vec<&str> = buffers["buffers"].as_array().unwrap().iter().filter_map(|b| b["name"].as_str()).collect();
     assert_eq!(names, ["camera-hits"], "the temporary buffers are deleted: {buffers}");
@@ -790,7 +815,10 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
 
     // An --out that is the ray file itself is refused: it would be overwritten while it is read.
     let stderr = fails(&server, &[&args[..args.len() - 1], &[&rays_file]].concat(), 1);
-    assert!(stderr.starts_with(&format!("error: InvalidArgument: --out {rays_file}: is the ray file")), "{stderr}");
+    assert!(
+        stderr.starts_with(&format!("error: InvalidArgument: --out {rays_file}: is the file of --rays {rays_file}")),
+        "{stderr}"
+    );
 
     // A NaN time in the last ray: the server refuses its part after the parts before it were written.
     let last = rays.len() - 4;

@@ -12,7 +12,7 @@ use rayd_proto as proto;
 use crate::client::Client;
 use crate::convert::{bounce_to_proto, generator_to_proto, ray_format_to_proto};
 use crate::error::{Error, Result};
-use crate::trace::TraceResult;
+use crate::trace::{TraceParts, TraceResult};
 
 /// Where the primary rays of [`SecondaryRays`] are.
 #[derive(Debug, Clone, PartialEq)]
@@ -86,6 +86,20 @@ impl Client {
             }
             _ => node.trace_in_ranges(accel, query, secondary.to_proto(), total).await,
         }
+    }
+
+    /// Traces `secondary` rays as [`Client::trace_secondary`] does, but yields each call's result as it comes back
+    /// instead of holding the hits whole. Nothing is uploaded: inline primary rays go with every call, so send large
+    /// ones as a buffer ([`Client::upload_buffer_parts`] uploads a file a part at a time).
+    pub async fn trace_secondary_parts(
+        &self,
+        accel: &str,
+        query: &Query,
+        secondary: &SecondaryRays,
+    ) -> Result<TraceParts> {
+        let node = self.for_scene(accel);
+        let total = node.primary_ray_count(&secondary.primary).await?;
+        node.generated_parts(accel, query, secondary.to_proto(), total)
     }
 
     /// Traces the engine's `secondary` rays, whose hits (and packed primary rays) are too large to go with every

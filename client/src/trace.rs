@@ -149,9 +149,21 @@ impl Client {
             return Ok(self.trace_uploaded_secondary(accel, query, secondary).await?.into_parts());
         }
         let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        self.generated_parts(accel, query, generator_to_proto(generator), total)
+    }
+
+    /// The results of the `total` rays of `generator`, traced in ranges whose hits each fit in a batch, one part a
+    /// range.
+    pub(crate) fn generated_parts(
+        &self,
+        accel: &str,
+        query: &Query,
+        generator: proto::RayGenerator,
+        total: usize,
+    ) -> Result<TraceParts> {
         let layout = generated_layout(query, total)?;
         let per_call = self.generated_rays_per_call(query, &layout);
-        Ok(self.range_parts(accel, query, generator_to_proto(generator), total, per_call))
+        Ok(self.range_parts(accel, query, generator, total, per_call))
     }
 
     /// Traces the `total` rays of `generator` in ranges (`first_ray`, `ray_count`) whose hits each fit in a batch,

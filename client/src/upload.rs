@@ -1,12 +1,16 @@
-//! `UploadBuffer`: a header, then the data in slices of one shared `Bytes` (no copies on the client).
+//! `UploadBuffer`: a header, then the data in slices of one shared `Bytes` (no copies on the client), or as a stream
+//! of parts yields it (a file read a part at a time).
+
+use std::sync::{Arc, Mutex};
 
 use bytes::Bytes;
+use futures_util::{Stream, StreamExt};
 use rayd_proto as proto;
 use rayd_proto::upload_buffer_request::Part;
 
 use crate::client::Client;
 use crate::convert::buffer_ref;
-use crate::error::Result;
+use crate::error::{Error, Result};
 
 impl Client {
     /// Uploads `data` as a new server buffer, named `name` unless it is empty, in messages of
@@ -14,6 +18,35 @@ impl Client {
     pub async fn upload_buffer(&self, name: &str, data: Bytes) -> Result<proto::BufferInfo> {
         let requests = upload_requests(name, data, self.options.upload_chunk_bytes);
         Ok(self.rpc.clone().upload_buffer(tokio_stream::iter(requests)).await?.into_inner())
+    }
+
+    /// Uploads the `size_bytes` bytes that `parts` yields (cut anywhere: each part is one data message, so keep them
+    /// within [`ClientOptions::upload_chunk_bytes`](crate::ClientOptions::upload_chunk_bytes)) as a new server
+    /// buffer, named `name` unless it is empty, holding one part at a time. The first error of `parts` ends the
+    /// upload, which the server then refuses and keeps nothing of, and is what this returns.
+    pub async fn upload_buffer_parts(
+        &self,
+        name: &str,
+        size_bytes: u64,
+        parts: impl Stream<Item = Result<Bytes>> + Send + 'static,
+    ) -> Result<proto::BufferInfo> {
+        let failed: Arc<Mutex<Option<Error>>> = Arc::default();
+        let failure = Arc::clone(&failed);
+        let data = parts.scan((), move |(), part| {
+            std::future::ready(match part {
+                Ok(data) => Some(request(Part::Data(data))),
+                Err(error) => {
+                    *failure.lock().unwrap_or_else(std::sync::PoisonError::into_inner) = Some(error);
+                    None
+                }
+            })
+        });
+        let requests = futures_util::stream::once(std::future::ready(header(name, size_bytes))).chain(data);
+        let answer = self.rpc.clone().upload_buffer(requests).await;
+        if let Some(error) = failed.lock().unwrap_or_else(std::sync::PoisonError::into_inner).take() {
+            return Err(error);
+        }
+        Ok(answer?.into_inner())
     }
 
     /// Uploads `data` as a temporary buffer, calls `call` with a reference to it, and deletes the buffer again
@@ -33,14 +66,20 @@ impl Client {
 
 /// The messages of one upload: the header, then `data` in slices of at most `chunk_bytes`.
 fn upload_requests(name: &str, data: Bytes, chunk_bytes: usize) -> Vec<proto::UploadBufferRequest> {
-    let header = proto::UploadBufferHeader { name: name.to_owned(), size_bytes: data.len() as u64 };
     let chunk_bytes = chunk_bytes.max(1);
     let chunks =
         (0..data.len()).step_by(chunk_bytes).map(|start| data.slice(start..(start + chunk_bytes).min(data.len())));
-    std::iter::once(Part::Header(header))
-        .chain(chunks.map(Part::Data))
-        .map(|part| proto::UploadBufferRequest { part: Some(part) })
-        .collect()
+    std::iter::once(header(name, data.len() as u64)).chain(chunks.map(|chunk| request(Part::Data(chunk)))).collect()
+}
+
+/// The first message of an upload of `size_bytes` bytes named `name`.
+fn header(name: &str, size_bytes: u64) -> proto::UploadBufferRequest {
+    request(Part::Header(proto::UploadBufferHeader { name: name.to_owned(), size_bytes }))
+}
+
+/// The message of one part of an upload.
+fn request(part: Part) -> proto::UploadBufferRequest {
+    proto::UploadBufferRequest { part: Some(part) }
 }
 
 #[cfg(test)]

@@ -10,22 +10,20 @@ use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
 use rayd_client::{
-    BenchOptions, Client, ClientOptions, ClientTls, Error, PrimaryRays, Result, Scene, SecondaryRays, ServingStatus,
-    TraceResult, check_health, load_mesh, proto,
+    BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, check_health, load_mesh,
 };
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::RayFormat;
 use rayd_engine::query::{OutputLayout, Query, QueryKind};
-use rayd_engine::raygen::{
-    Camera, Generator, Lidar, Orthographic, Primary, Secondary, SphereSampling, fill_random_rays, uniform,
-};
+use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, SphereSampling, fill_random_rays, uniform};
 use serde_json::json;
 
 use crate::args::{
     AroundPointsArgs, BenchArgs, BuildArgs, Cli, Command, LidarArgs, LidarScanArgs, RaysArgs, RenderArgs, SceneArgs,
     TraceArgs, View,
 };
-use crate::parts::{self, OutFile, Outputs, RayFile, Written};
+use crate::bounced::{Bounced, PrimaryHits, Temporary};
+use crate::parts::{self, OutFile, Outputs, PackedFile, Written};
 use crate::show::{self, Output, ms};
 
 /// Connects to the server and runs the command.
@@ -140,18 +138,27 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
         None => None,
     };
     let start = Instant::now();
+    let node = client.for_scene(&args.accel);
+    let mut temporary = Temporary::default();
     let traced = match rays {
         TracedRays::File(file) => {
-            let chunks = file.chunks(client.part_rays(&query) * query.ray_format.size(), query.ray_format);
+            let chunks = file.chunks(client.part_rays(&query) * query.ray_format.size());
             client.trace_parts(&args.accel, &query, chunks).await
         }
         TracedRays::Generated(generator) => client.trace_generated_parts(&args.accel, &query, &generator).await,
-        TracedRays::FromHitsBuffer(secondary) => {
-            client.trace_secondary(&args.accel, &query, &secondary).await.map(TraceResult::into_parts)
-        }
+        TracedRays::Bounced(bounced) => match bounced.on_server(&node).await {
+            Ok((secondary, uploaded)) => {
+                temporary = uploaded;
+                client.trace_secondary_parts(&args.accel, &query, &secondary).await
+            }
+            Err(error) => Err(error),
+        },
     };
-    let parts = traced.map_err(asked_by(options.clone()))?;
-    let written = parts::write(parts, outputs, layout.map(|l| l.rays)).await;
+    let written = match traced {
+        Ok(parts) => parts::write(parts, outputs, layout.map(|l| l.rays)).await,
+        Err(error) => Err(error),
+    };
+    temporary.delete(&node).await;
     let Written { rays, stats } = written.map_err(asked_by(options))?;
     let wall = start.elapsed();
     let wall_ms = wall.as_secs_f64() * 1e3;
@@ -218,26 +225,26 @@ async fn camera(client: &Client, accel: &str, view: Option<View>, width: u32, he
 }
 
 /// The rays `rayctl trace` starts from: a file's, or a generator's that the server expands.
-enum RaySource {
+pub enum RaySource {
     /// Packed in `--ray-format`, in `--rays`.
-    File(RayFile),
+    File(PackedFile),
     /// Made by the server.
     Generator(Generator),
 }
 
-/// What `rayctl trace` sends: the rays of a file, a generator, or secondary rays from a server-side hits buffer.
+/// What `rayctl trace` sends: the rays of a file, a generator, or secondary rays made on the server.
 enum TracedRays {
     /// Packed rays, sent from their file a part at a time.
-    File(RayFile),
-    /// A generator the server expands (secondary rays from hits sent with it, or as a temporary buffer when large).
+    File(PackedFile),
+    /// A generator the server expands.
     Generated(Generator),
-    /// Secondary rays from hits that stay on the server.
-    FromHitsBuffer(SecondaryRays),
+    /// Secondary rays, made on the server from primary rays and their hits.
+    Bounced(Box<Bounced>),
 }
 
 impl TracedRays {
-    /// The ray file, if the rays are one.
-    fn file(&self) -> Option<&RayFile> {
+    /// The file read as the trace goes, if the rays are one.
+    fn file(&self) -> Option<&PackedFile> {
         match self {
             TracedRays::File(file) => Some(file),
             _ => None,
@@ -245,18 +252,15 @@ impl TracedRays {
     }
 
     /// The hits and counts that tracing them with `query` makes, where known before tracing (not for rays from a
-    /// pipe, or from a hits buffer, whose size the server knows).
+    /// pipe).
     fn layout(&self, query: &Query) -> Result<Option<OutputLayout>> {
-        let ray_bytes = match self {
-            TracedRays::File(file) => match file.bytes() {
-                Some(bytes) => usize::try_from(bytes).unwrap_or(usize::MAX),
-                None => return Ok(None),
-            },
-            TracedRays::Generated(generator) => {
-                usize::try_from(generator.count()).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size())
-            }
-            TracedRays::FromHitsBuffer(_) => return Ok(None),
+        let rays = match self {
+            TracedRays::File(file) => file.bytes().map(|bytes| bytes / query.ray_format.size() as u64),
+            TracedRays::Generated(generator) => Some(generator.count()),
+            TracedRays::Bounced(bounced) => bounced.rays(),
         };
+        let Some(rays) = rays else { return Ok(None) };
+        let ray_bytes = usize::try_from(rays).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size());
         query.output_layout(ray_bytes).map(Some).map_err(|e| Error::InvalidArgument(e.to_string()))
     }
 }
@@ -272,32 +276,20 @@ async fn traced_rays(client: &Client, args: &TraceArgs) -> Result<TracedRays> {
             RaySource::Generator(generator) => TracedRays::Generated(generator),
         });
     };
-    let offset = secondary.offset;
-    match (&secondary.primary_hits, &secondary.primary_hits_buffer) {
-        (Some(file), _) => {
-            let hits = read_file(file)?;
-            let primary = match source {
-                RaySource::File(file) => Primary::Packed(args.ray_format, file.read()?),
-                RaySource::Generator(generator) => Primary::Generated(Box::new(generator)),
-            };
-            Ok(TracedRays::Generated(Generator::Secondary(Secondary { primary, hits, bounce, offset })))
-        }
-        (None, Some(name)) => {
-            let primary = match source {
-                RaySource::File(file) => PrimaryRays::Inline(file.read()?, args.ray_format),
-                RaySource::Generator(generator) => PrimaryRays::Generated(generator),
-            };
-            let hits_buffer = proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Name(name.clone())) };
-            Ok(TracedRays::FromHitsBuffer(SecondaryRays { primary, hits_buffer, bounce, offset }))
-        }
+    let hits = match (&secondary.primary_hits, &secondary.primary_hits_buffer) {
+        (Some(file), _) => PrimaryHits::File(PackedFile::primary_hits(file)?),
+        (None, Some(name)) => PrimaryHits::Buffer(name.clone()),
         (None, None) => unreachable!("clap requires --primary-hits or --primary-hits-buffer with a bounce"),
-    }
+    };
+    let bounced = Bounced { primary: source, ray_format: args.ray_format, hits, bounce, offset: secondary.offset };
+    bounced.check()?;
+    Ok(TracedRays::Bounced(Box::new(bounced)))
 }
 
 /// The rays of `rayctl trace`'s one ray source: `--rays`, `--pixels`, `--lidar`, or `--point`/`--points`.
 async fn ray_source(client: &Client, args: &TraceArgs) -> Result<RaySource> {
     if let Some(file) = &args.rays {
-        return Ok(RaySource::File(RayFile::open(file, args.ray_format)?));
+        return Ok(RaySource::File(PackedFile::rays(file, args.ray_format)?));
     }
     let generator = if let Some((width, height)) = args.pixels {
         let sampling = args.pixel_sampling();

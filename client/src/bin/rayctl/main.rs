@@ -3,6 +3,7 @@
 //! reader of the output that has gone (`rayctl … | head`) ends rayctl quietly, with 0.
 
 mod args;
+mod bounced;
 mod commands;
 mod parts;
 mod show;

@@ -9,70 +9,133 @@ use std::path::{Path, PathBuf};
 use bytes::{Bytes, BytesMut};
 use futures_util::{Stream, StreamExt};
 use rayd_client::{Error, Result, TraceParts, proto};
-use rayd_engine::format::RayFormat;
+use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::query::OutputLayout;
 use tokio::io::{AsyncReadExt, AsyncWriteExt, BufWriter};
 
-/// A file of packed rays (`--rays`), opened: a plain file checked to hold whole records, or a pipe or device read to
-/// its end.
-pub struct RayFile {
-    /// Where it is.
-    path: PathBuf,
+/// A file of packed records that `rayctl trace` reads (`--rays`, `--primary-hits`), opened: a plain file checked to
+/// hold whole records, or a pipe or device read to its end.
+pub struct PackedFile {
     /// It, open at its start.
     file: std::fs::File,
-    /// What the file system says of it.
-    metadata: std::fs::Metadata,
+    /// Its size in bytes, where it is a plain file.
+    size: Option<u64>,
+    /// Its device and inode.
+    identity: (u64, u64),
+    /// What it holds.
+    records: Records,
 }
 
-impl RayFile {
-    /// Opens the file at `path`; a plain file must hold whole `format` records.
-    pub fn open(path: &Path, format: RayFormat) -> Result<RayFile> {
-        let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
-        let metadata = file.metadata().map_err(|e| Error::io(path, e))?;
-        let ray_file = RayFile { path: path.into(), file, metadata };
-        if let Some(bytes) = ray_file.bytes()
-            && !bytes.is_multiple_of(format.size() as u64)
-        {
-            return Err(not_whole(path, bytes, format));
+/// What a [`PackedFile`] holds, and where.
+struct Records {
+    /// Where the file is.
+    path: PathBuf,
+    /// The option that named it (`--rays`).
+    option: &'static str,
+    /// Bytes of one record.
+    record_bytes: usize,
+    /// The records' format.
+    format: &'static str,
+}
+
+impl Records {
+    /// The option and the path, as messages name the file (`--rays rays.bin`).
+    fn named(&self) -> String {
+        format!("{} {}", self.option, self.path.display())
+    }
+
+    /// The refusal of `bytes` bytes that are not whole records.
+    fn check_whole(&self, bytes: u64) -> Result<()> {
+        if bytes.is_multiple_of(self.record_bytes as u64) {
+            return Ok(());
         }
-        Ok(ray_file)
+        let (named, size, format) = (self.named(), self.record_bytes, self.format);
+        Err(Error::InvalidArgument(format!("{named}: {bytes} bytes is not a multiple of {size} ({format})")))
+    }
+}
+
+impl PackedFile {
+    /// The ray file `--rays` at `path`, of rays packed in `format`.
+    pub fn rays(path: &Path, format: RayFormat) -> Result<PackedFile> {
+        PackedFile::open(Records {
+            path: path.into(),
+            option: "--rays",
+            record_bytes: format.size(),
+            format: format.name(),
+        })
+    }
+
+    /// The hits file `--primary-hits` at `path`, of `full` hit records.
+    pub fn primary_hits(path: &Path) -> Result<PackedFile> {
+        let full = HitFormat::Full;
+        let record_bytes = full.size().expect("full records have a size");
+        PackedFile::open(Records { path: path.into(), option: "--primary-hits", record_bytes, format: full.name() })
+    }
+
+    /// The file `records` says.
+    fn open(records: Records) -> Result<PackedFile> {
+        let file = std::fs::File::open(&records.path).map_err(|e| Error::io(&records.path, e))?;
+        let metadata = file.metadata().map_err(|e| Error::io(&records.path, e))?;
+        let size = metadata.is_file().then_some(metadata.len());
+        let packed = PackedFile { file, size, identity: (metadata.dev(), metadata.ino()), records };
+        if let Some(bytes) = packed.bytes() {
+            packed.records.check_whole(bytes)?;
+        }
+        Ok(packed)
     }
 
     /// Its size in bytes, known for a plain file (not for a pipe).
     pub fn bytes(&self) -> Option<u64> {
-        self.metadata.is_file().then_some(self.metadata.len())
+        self.size
+    }
+
+    /// Bytes of one of its records.
+    pub fn record_bytes(&self) -> usize {
+        self.records.record_bytes
+    }
+
+    /// The option that named it and its path, as messages name it (`--rays rays.bin`).
+    pub fn named(&self) -> String {
+        self.records.named()
     }
 
     /// The whole file.
     pub fn read(mut self) -> Result<Bytes> {
         let mut bytes = Vec::new();
-        std::io::Read::read_to_end(&mut self.file, &mut bytes).map_err(|e| Error::io(&self.path, e))?;
+        std::io::Read::read_to_end(&mut self.file, &mut bytes).map_err(|e| Error::io(&self.records.path, e))?;
+        self.records.check_whole(bytes.len() as u64)?;
         Ok(bytes.into())
     }
 
     /// Whether `other` is this very file (the same inode of the same device), however either is named.
     fn is(&self, other: &std::fs::Metadata) -> bool {
-        (self.metadata.dev(), self.metadata.ino()) == (other.dev(), other.ino())
+        self.identity == (other.dev(), other.ino())
     }
 
-    /// The file's bytes in chunks of `chunk_bytes` (the last may be shorter), read as they are asked for; a file
-    /// that ends within a `format` record ends the chunks with an error.
-    pub fn chunks(self, chunk_bytes: usize, format: RayFormat) -> impl Stream<Item = Result<Bytes>> + Send + 'static {
-        let RayFile { path, file, .. } = self;
-        let state = Some((path, tokio::fs::File::from_std(file), 0u64));
-        futures_util::stream::unfold(state, move |state| async move {
-            let (path, mut file, read) = state?;
+    /// The file's bytes in chunks of whole records, `chunk_bytes` rounded down to them (the last chunk may be
+    /// shorter), read as they are asked for; a file that ends within a record ends the chunks with an error.
+    pub fn chunks(self, chunk_bytes: usize) -> impl Stream<Item = Result<Bytes>> + Send + 'static {
+        let PackedFile { file, records, .. } = self;
+        let chunk_bytes = (chunk_bytes / records.record_bytes).max(1) * records.record_bytes;
+        let state = Some((tokio::fs::File::from_std(file), 0u64));
+        futures_util::stream::unfold((records, state), move |(records, state)| async move {
+            let (mut file, read) = state?;
             let mut chunk = BytesMut::zeroed(chunk_bytes);
-            match fill(&mut file, &mut chunk).await {
-                Ok(0) => None,
-                Ok(filled) if !(filled as u64 + read).is_multiple_of(format.size() as u64) => {
-                    Some((Err(not_whole(&path, filled as u64 + read, format)), None))
+            let filled = match fill(&mut file, &mut chunk).await {
+                Ok(0) => return None,
+                Ok(filled) => filled,
+                Err(e) => {
+                    let error = Error::io(&records.path, e);
+                    return Some((Err(error), (records, None)));
                 }
-                Ok(filled) => {
+            };
+            let read = read + filled as u64;
+            match records.check_whole(read) {
+                Err(refused) => Some((Err(refused), (records, None))),
+                Ok(()) => {
                     chunk.truncate(filled);
-                    Some((Ok(chunk.freeze()), Some((path, file, read + filled as u64))))
+                    Some((Ok(chunk.freeze()), (records, Some((file, read)))))
                 }
-                Err(e) => Some((Err(Error::io(&path, e)), None)),
             }
         })
     }
@@ -88,16 +151,6 @@ async fn fill(file: &mut tokio::fs::File, chunk: &mut [u8]) -> std::io::Result<u
         }
     }
     Ok(filled)
-}
-
-/// The refusal of a ray file of `bytes` bytes, not whole `format` records.
-fn not_whole(path: &Path, bytes: u64, format: RayFormat) -> Error {
-    Error::InvalidArgument(format!(
-        "--rays {}: {bytes} bytes is not a multiple of {} ({})",
-        path.display(),
-        format.size(),
-        format.name()
-    ))
 }
 
 /// What a trace written part by part traced.
@@ -119,12 +172,12 @@ pub struct Outputs {
 }
 
 impl Outputs {
-    /// The outputs of `out` (counts too when `counts`), refused when one of them is the ray file `rays` (writing
-    /// would overwrite the rays while they are read).
-    pub fn create(out: &Path, counts: bool, rays: Option<&RayFile>) -> Result<Outputs> {
+    /// The outputs of `out` (counts too when `counts`), refused when one of them is the file `read` that the trace
+    /// reads as it goes (writing would overwrite it while it is read).
+    pub fn create(out: &Path, counts: bool, read: Option<&PackedFile>) -> Result<Outputs> {
         let counts = counts.then(|| counts_path(out));
-        let hits = OutFile::create(out, rays)?;
-        let counts = counts.map(|path| OutFile::create(&path, rays)).transpose()?;
+        let hits = OutFile::create(out, read)?;
+        let counts = counts.map(|path| OutFile::create(&path, read)).transpose()?;
         Ok(Outputs { hits, counts })
     }
 
@@ -187,16 +240,17 @@ pub struct OutFile {
 
 impl OutFile {
     /// The file at `path`: a new or plain file is written beside itself (with the old file's permissions), anything
-    /// else (a link, a device, a pipe) through itself. Refused when it is the ray file `rays`.
-    pub fn create(path: &Path, rays: Option<&RayFile>) -> Result<OutFile> {
+    /// else (a link, a device, a pipe) through itself. Refused when it is the file `read`, which the trace reads as
+    /// it goes.
+    pub fn create(path: &Path, read: Option<&PackedFile>) -> Result<OutFile> {
         let io = |e| Error::io(path, e);
-        if let (Some(rays), Ok(target)) = (rays, std::fs::metadata(path))
-            && rays.is(&target)
+        if let (Some(read), Ok(target)) = (read, std::fs::metadata(path))
+            && read.is(&target)
         {
             return Err(Error::InvalidArgument(format!(
-                "--out {}: is the ray file {} itself, which it would overwrite while reading it",
+                "--out {}: is the file of {} itself, which it would overwrite while reading it",
                 path.display(),
-                rays.path.display()
+                read.named()
             )));
         }
         let (file, beside) = match std::fs::symlink_metadata(path) {
