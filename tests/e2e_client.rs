@@ -397,3 +397,26 @@ async fn every_call_of_a_trace_of_rays_the_server_makes_carries_its_accels_scene
     assert_eq!(reflected.rays(), sent.rays());
     assert!(reflected.hits() == sent.hits(), "the server's reflections are the engine's");
 }
+
+#[tokio::test]
+async fn an_upload_from_parts_that_fail_keeps_nothing_and_returns_their_error() {
+    let daemon = Daemon::start(&[]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    let part = || Ok(bytes::Bytes::from(vec![7u8; 1000]));
+    let failing = || Err(rayd_client::Error::InvalidArgument("the file changed while it was read".into()));
+    // Parts that fail midway, and parts that fail after every declared byte went up (the server had all it asked
+    // for): the error is the parts', and no buffer is left.
+    for (parts, what) in [(vec![part(), failing(), part()], "midway"), (vec![part(), part(), failing()], "at the end")]
+    {
+        let uploaded = client.upload_buffer_parts("", 2000, tokio_stream::iter(parts)).await;
+        let error = uploaded.expect_err(what);
+        assert_eq!(error.to_string(), "the file changed while it was read", "{what}");
+        assert!(client.buffers().await.unwrap().is_empty(), "{what}: a buffer was left");
+    }
+    // Parts that hold what they declared, cut anywhere, make the buffer.
+    let parts = [vec![1u8; 3], vec![2u8; 1500], vec![3u8; 497]].map(|p| Ok(bytes::Bytes::from(p)));
+    let info = client.upload_buffer_parts("whole", 2000, tokio_stream::iter(parts)).await.unwrap();
+    assert_eq!(info.size_bytes, 2000);
+    let data = client.download_buffer(&info.id).await.unwrap();
+    assert_eq!(data, [vec![1u8; 3], vec![2u8; 1500], vec![3u8; 497]].concat());
+}

@@ -691,10 +691,17 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
     let (piped_out, expected_out) = (scratch.path("piped.hits"), scratch.path("reflections.hits"));
     let args = [&camera[..], &["--reflect", "--primary-hits", "/dev/stdin", "--offset", "0.0001"]].concat();
     let formats = ["--ray-format", ray_format.name(), "--hit-format", "full", "--out", &piped_out];
-    let piped = rayctl_command(&server, &[&["trace", "--accel", "bunny"][..], &args, &formats].concat())
-        .stdin(std::fs::File::open(&primary_file).unwrap())
-        .output()
+    let mut rayctl_piped = rayctl_command(&server, &[&["trace", "--accel", "bunny"][..], &args, &formats].concat())
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
         .unwrap();
+    let mut pipe = rayctl_piped.stdin.take().unwrap();
+    let hits_in = read(&primary_file);
+    let writer = std::thread::spawn(move || std::io::Write::write_all(&mut pipe, &hits_in));
+    let piped = rayctl_piped.wait_with_output().unwrap();
+    writer.join().unwrap().expect("the hits go through the pipe");
     assert!(piped.status.success(), "{}", printed(&piped));
     assert_same_bytes(&read(&piped_out), &read(&expected_out), "reflections of piped hits");
 
@@ -714,6 +721,50 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
     let buffers = json(&server, &["buffers"]);
     let names: Vec<&str> = buffers["buffers"].as_array().unwrap().iter().filter_map(|b| b["name"].as_str()).collect();
     assert_eq!(names, ["camera-hits"], "the temporary buffers are deleted: {buffers}");
+}
+
+#[test]
+fn ctrl_c_during_a_secondary_trace_leaves_no_temporary_buffer_and_no_partial_output() {
+    // 64 KiB messages, so that the 80 MB of hits take many messages to go up.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-ctrl-c");
+    build_bunny(&server);
+    let (rays, hits, out) = (scratch.path("camera.rays"), scratch.path("camera.hits"), scratch.path("out.hits"));
+    let formats = ["--ray-format", "origin_direction"];
+    succeeds(
+        &server,
+        &[&["rays", "--accel", "bunny", "--width", "1024", "--height", "1024", "-o", &rays][..], &formats].concat(),
+    );
+    let trace = ["trace", "--accel", "bunny", "--rays", &rays];
+    succeeds(&server, &[&trace[..], &formats, &["--hit-format", "full", "--out", &hits]].concat());
+    let rays_bytes = std::fs::metadata(&rays).unwrap().len();
+
+    let args =
+        [&trace[..], &formats, &["--reflect", "--primary-hits", &hits, "--hit-format", "t", "--out", &out]].concat();
+    let rayctl = rayctl_command(&server, &args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Once the rays have gone up (the hits are going up after them), Ctrl-C.
+    let runtime = tokio::runtime::Runtime::new().expect("a tokio runtime");
+    let client = runtime.block_on(Client::connect(&server, ClientOptions::default())).expect("the client connects");
+    let buffers = || runtime.block_on(client.buffers()).expect("the buffers");
+    let waiting_since = std::time::Instant::now();
+    while !buffers().iter().any(|buffer| buffer.size_bytes == rays_bytes) {
+        assert!(waiting_since.elapsed().as_secs() < 60, "the rays never went up");
+        std::thread::sleep(std::time::Duration::from_millis(2));
+    }
+    let interrupted = Command::new("kill").args(["-INT", &rayctl.id().to_string()]).status().unwrap();
+    assert!(interrupted.success());
+    let output = rayctl.wait_with_output().unwrap();
+    assert_eq!(output.status.code(), Some(1), "{}", printed(&output));
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.starts_with("error: Cancelled: interrupted by Ctrl-C"), "{stderr}");
+    assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
+    let left: Vec<_> = std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect();
+    assert_eq!(left.len(), 2, "only the rays and their hits: {left:?}");
 }
 
 #[test]

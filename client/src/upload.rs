@@ -23,7 +23,8 @@ impl Client {
     /// Uploads the `size_bytes` bytes that `parts` yields (cut anywhere: each part is one data message, so keep them
     /// within [`ClientOptions::upload_chunk_bytes`](crate::ClientOptions::upload_chunk_bytes)) as a new server
     /// buffer, named `name` unless it is empty, holding one part at a time. The first error of `parts` ends the
-    /// upload, which the server then refuses and keeps nothing of, and is what this returns.
+    /// upload and is what this returns; the server keeps nothing of it (an upload that had sent every byte before
+    /// the error is deleted again).
     pub async fn upload_buffer_parts(
         &self,
         name: &str,
@@ -43,10 +44,16 @@ impl Client {
         });
         let requests = futures_util::stream::once(std::future::ready(header(name, size_bytes))).chain(data);
         let answer = self.rpc.clone().upload_buffer(requests).await;
-        if let Some(error) = failed.lock().unwrap_or_else(std::sync::PoisonError::into_inner).take() {
-            return Err(error);
+        let failure = failed.lock().unwrap_or_else(std::sync::PoisonError::into_inner).take();
+        match (answer, failure) {
+            (answer, None) => Ok(answer?.into_inner()),
+            (Ok(kept), Some(error)) => {
+                // Best effort, as for a temporary buffer.
+                let _ = self.delete_buffer(&kept.into_inner().id).await;
+                Err(error)
+            }
+            (Err(_), Some(error)) => Err(error),
         }
-        Ok(answer?.into_inner())
     }
 
     /// Uploads `data` as a temporary buffer, calls `call` with a reference to it, and deletes the buffer again

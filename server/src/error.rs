@@ -51,8 +51,9 @@ pub enum ServiceError {
         source: std::io::Error,
     },
     /// The caller went away (its deadline passed, it cancelled, its connection was cut, or the stream whose operation
-    /// it was was cancelled) before what the call made was kept: nothing of it was kept.
-    #[error("the caller went away before {0} was kept: nothing was kept")]
+    /// it was ended) before what the call made was kept, or before the call changed anything: what it says was not
+    /// kept or not done.
+    #[error("the caller went away: {0}")]
     CallerGone(String),
     /// A bug: something that must not fail did (a panic caught at the edge of a worker's task).
     #[error("internal error: {0}")]

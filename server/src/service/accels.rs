@@ -84,8 +84,10 @@ pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> Ser
 pub async fn save(tenant: Arc<Tenant>, request: pb::SaveAccelRequest) -> ServiceResult<pb::BufferInfo> {
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
     let buffer = blocking_for_caller(move |caller| {
+        let not_kept = || format!("the blob of accel {:?} was not kept", entry.name);
+        caller.check(not_kept)?;
         let blob = tenant.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
-        caller.check(|| format!("buffer {:?}", request.buffer_name))?;
+        caller.check(not_kept)?;
         tenant.create_buffer("buffer_name", &request.buffer_name, Bytes::from(blob))
     })
     .await?;

@@ -19,12 +19,13 @@ impl Caller {
         (Caller(token.clone()), token.drop_guard())
     }
 
-    /// [`ServiceError::CallerGone`] naming `what` (`accel "bunny"`) once the caller has gone.
-    pub fn check(&self, what: impl FnOnce() -> String) -> ServiceResult<()> {
+    /// [`ServiceError::CallerGone`] saying what was not kept or not done (`accel "bunny" was not kept`) once the
+    /// caller has gone.
+    pub fn check(&self, not_done: impl FnOnce() -> String) -> ServiceResult<()> {
         if self.0.is_cancelled() {
-            let what = what();
-            tracing::info!(what, "the caller went away: not kept");
-            return Err(ServiceError::CallerGone(what));
+            let not_done = not_done();
+            tracing::info!(not_done, "the caller went away");
+            return Err(ServiceError::CallerGone(not_done));
         }
         Ok(())
     }
@@ -37,12 +38,12 @@ mod tests {
     #[test]
     fn a_caller_goes_when_its_guard_is_dropped() {
         let (caller, present) = Caller::watched();
-        assert!(caller.check(|| "accel \"a\"".into()).is_ok());
+        assert!(caller.check(|| "accel \"a\" was not kept".into()).is_ok());
         drop(present);
-        let gone = caller.check(|| "accel \"a\"".into()).unwrap_err();
+        let gone = caller.check(|| "accel \"a\" was not kept".into()).unwrap_err();
         let status = tonic::Status::from(gone);
         assert_eq!(status.code(), tonic::Code::Cancelled);
-        assert_eq!(status.message(), "the caller went away before accel \"a\" was kept: nothing was kept");
+        assert_eq!(status.message(), "the caller went away: accel \"a\" was not kept");
         assert!(Caller::default().check(String::new).is_ok(), "the default caller never goes");
     }
 }

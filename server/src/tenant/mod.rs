@@ -269,7 +269,7 @@ impl Tenant {
             self.limits.max_accel_bytes,
         )?;
         let bound = self.reserve_accel_bytes(usage.output_bytes)?;
-        let what = || format!("accel {name:?}");
+        let what = || format!("accel {name:?} was not kept");
         caller.check(what)?;
         let start = Instant::now();
         let accel = build(context)?;
@@ -347,7 +347,7 @@ impl Tenant {
             self.accels.check_free(name)?;
         }
         let (device, context) = self.context(device)?;
-        let what = || format!("accel {name:?}, loaded");
+        let what = || format!("the accels of the blob loaded as {name:?} were not kept");
         caller.check(what)?;
         let start = Instant::now();
         let accels = context.deserialize_accel(blob, &[])?;
@@ -417,7 +417,7 @@ impl Tenant {
     ) -> ServiceResult<AccelEntry> {
         let (_, context) = self.context(&entry.device)?;
         let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
-        caller.check(|| format!("the update of accel {:?}", entry.name))?;
+        caller.check(|| format!("the update of accel {:?} was not started", entry.name))?;
         let start = Instant::now();
         let accel = update(context)?;
         let build_ns = start.elapsed().as_nanos() as u64;
@@ -713,17 +713,21 @@ mod tests {
             drop(present);
             context.build_accel(&input(), &options)
         });
-        gone(built.unwrap_err(), "accel \"a\"");
+        gone(built.unwrap_err(), "accel \"a\" was not kept");
         nothing_left("after a build whose caller went");
         // It had gone before: the build does not start.
         let unstarted =
             |_: &Context| -> rayd_engine::Result<Arc<Accel>> { panic!("started for a caller that had gone") };
-        gone(tenant.build_accel("a", DEFAULT_DEVICE, &caller, usage, unstarted).unwrap_err(), "accel \"a\"");
+        let refused = tenant.build_accel("a", DEFAULT_DEVICE, &caller, usage, unstarted);
+        gone(refused.unwrap_err(), "accel \"a\" was not kept");
         nothing_left("after a build for a caller that had gone");
         // Nor does a load.
         let blob = context.serialize_accel(&context.build_accel(&input(), &options).unwrap(), &[]).unwrap();
         context.accel_handles().into_iter().try_for_each(|handle| context.destroy_accel(handle)).unwrap();
-        gone(tenant.load_accels("b", DEFAULT_DEVICE, &caller, &blob).unwrap_err(), "accel \"b\", loaded");
+        gone(
+            tenant.load_accels("b", DEFAULT_DEVICE, &caller, &blob).unwrap_err(),
+            "the accels of the blob loaded as \"b\" were not kept",
+        );
         nothing_left("after a load for a caller that had gone");
 
         // The reservations were let go: a caller that stays gets the one accel max_accels allows, and its blob.
@@ -732,7 +736,7 @@ mod tests {
         });
         let kept = kept.unwrap();
         // An update for a caller that has gone does not start: the version stays.
-        gone(tenant.update_accel(&kept, &caller, unstarted).unwrap_err(), "the update of accel \"a\"");
+        gone(tenant.update_accel(&kept, &caller, unstarted).unwrap_err(), "the update of accel \"a\" was not started");
         assert_eq!(tenant.accel(Some("a"), None).unwrap().version, 0);
         let updated =
             tenant.update_accel(&kept, &Caller::default(), |context| context.update_accel(&kept.accel, &input()));

@@ -339,8 +339,8 @@ pub struct SecondaryArgs {
           requires = "primary_hits_from")]
     pub towards_light: Option<Vec3>,
     /// The rays' hits: a file of `full` hit records, one a ray, as `rayctl trace --query closest` (or `any`)
-    /// `--hit-format full --out FILE` writes them for the same rays. The file (and that of `--rays`) goes up a part
-    /// at a time as a temporary server buffer, deleted again afterwards.
+    /// `--hit-format full --out FILE` writes them for the same rays. The file (and that of `--rays`) goes up as a
+    /// temporary server buffer, deleted again afterwards: a part at a time, or read whole first from a pipe.
     #[arg(long, value_name = "FILE", requires = "bounce")]
     pub primary_hits: Option<PathBuf>,
     /// Instead of `--primary-hits`: the server-side buffer called NAME that holds them (a trace's hits buffer), so

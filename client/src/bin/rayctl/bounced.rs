@@ -73,21 +73,9 @@ impl Bounced {
     }
 
     /// The secondary rays as the server takes them, their files uploaded through `node` (the accel's scene's) as
-    /// temporary buffers, which the caller deletes once the trace has ended; on failure nothing is left uploaded.
-    pub async fn on_server(self, node: &Client) -> Result<(SecondaryRays, Temporary)> {
-        let mut temporary = Temporary::default();
-        let uploaded = self.upload(node, &mut temporary).await;
-        match uploaded {
-            Ok(secondary) => Ok((secondary, temporary)),
-            Err(error) => {
-                temporary.delete(node).await;
-                Err(error)
-            }
-        }
-    }
-
-    /// Uploads the files, noting each buffer in `temporary` as soon as it is made.
-    async fn upload(self, node: &Client, temporary: &mut Temporary) -> Result<SecondaryRays> {
+    /// temporary buffers, each noted in `temporary` as soon as it is made (the caller deletes them once the trace
+    /// has ended, or failed).
+    pub async fn on_server(self, node: &Client, temporary: &mut Temporary) -> Result<SecondaryRays> {
         let primary = match self.primary {
             RaySource::File(file) => PrimaryRays::Buffer(upload(node, file, temporary).await?, self.ray_format),
             RaySource::Generator(generator) => PrimaryRays::Generated(generator),

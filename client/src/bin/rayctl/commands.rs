@@ -140,23 +140,25 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
     let start = Instant::now();
     let node = client.for_scene(&args.accel);
     let mut temporary = Temporary::default();
-    let traced = match rays {
-        TracedRays::File(file) => {
-            let chunks = file.chunks(client.part_rays(&query) * query.ray_format.size());
-            client.trace_parts(&args.accel, &query, chunks).await
-        }
-        TracedRays::Generated(generator) => client.trace_generated_parts(&args.accel, &query, &generator).await,
-        TracedRays::Bounced(bounced) => match bounced.on_server(&node).await {
-            Ok((secondary, uploaded)) => {
-                temporary = uploaded;
-                client.trace_secondary_parts(&args.accel, &query, &secondary).await
+    let traced = async {
+        let parts = match rays {
+            TracedRays::File(file) => {
+                let chunks = file.chunks(client.part_rays(&query) * query.ray_format.size());
+                client.trace_parts(&args.accel, &query, chunks).await?
             }
-            Err(error) => Err(error),
-        },
+            TracedRays::Generated(generator) => client.trace_generated_parts(&args.accel, &query, &generator).await?,
+            TracedRays::Bounced(bounced) => {
+                let secondary = bounced.on_server(&node, &mut temporary).await?;
+                client.trace_secondary_parts(&args.accel, &query, &secondary).await?
+            }
+        };
+        parts::write(parts, outputs, layout.map(|l| l.rays)).await
     };
-    let written = match traced {
-        Ok(parts) => parts::write(parts, outputs, layout.map(|l| l.rays)).await,
-        Err(error) => Err(error),
+    // Ctrl-C ends the trace as a failure would: the outputs' files written beside them are removed, and so are the
+    // temporary buffers.
+    let written = tokio::select! {
+        written = traced => written,
+        _ = tokio::signal::ctrl_c() => Err(Error::Status(tonic::Status::cancelled("interrupted by Ctrl-C"))),
     };
     temporary.delete(&node).await;
     let Written { rays, stats } = written.map_err(asked_by(options))?;
