@@ -12,7 +12,8 @@
  * also 4×4 tiles of pixels, Embree's best case. THREADS threads trace each batch together, taking chunks of
  * 1,024 rays (of the way's order) from a shared counter, as rayd's chunks are shared out; with 1 the calling
  * thread traces alone. Prints one line of JSON: M rays/s of the median of REPEAT traces each way, and the hit/miss
- * agreement of each way with rayd. */
+ * agreement of each way with rayd. With EMBREE_ROBUST=1 in the environment the scene is built with Embree's robust
+ * (watertight) flag, as rayd's triangle test is; compare_embree.py does not set it. */
 
 #include <math.h>
 #include <pthread.h>
@@ -72,6 +73,7 @@ void rtcCommitGeometry(RTCGeometry geometry);
 unsigned int rtcAttachGeometry(RTCScene scene, RTCGeometry geometry);
 void rtcReleaseGeometry(RTCGeometry geometry);
 void rtcCommitScene(RTCScene scene);
+void rtcSetSceneFlags(RTCScene scene, int flags); /* enum RTCSceneFlags */
 void rtcIntersect1(RTCScene scene, struct RTCRayHit *rayhit, void *args);
 void rtcOccluded1(RTCScene scene, struct RTCRay *ray, void *args);
 void rtcIntersect16(const int *valid, RTCScene scene, struct RTCRayHit16 *rayhit, void *args);
@@ -235,6 +237,9 @@ int main(int argc, char **argv) {
     rtcCommitGeometry(mesh);
     rtcAttachGeometry(scene, mesh);
     rtcReleaseGeometry(mesh);
+    /* EMBREE_ROBUST=1: RTC_SCENE_FLAG_ROBUST (1 << 2), Embree's watertight mode, as rayd's triangle test is. */
+    const char *robust = getenv("EMBREE_ROBUST");
+    if (robust && !strcmp(robust, "1")) rtcSetSceneFlags(scene, 1 << 2);
     rtcCommitScene(scene);
     if (rtcGetDeviceError(device)) { fprintf(stderr, "Embree error %d\n", rtcGetDeviceError(device)); return 1; }
 
