@@ -724,7 +724,7 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
 }
 
 #[test]
-fn ctrl_c_during_a_secondary_trace_leaves_no_temporary_buffer_and_no_partial_output() {
+fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_partial_output() {
     // 64 KiB messages, so that the 80 MB of hits take many messages to go up.
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
     let server = daemon.url();
@@ -763,8 +763,27 @@ fn ctrl_c_during_a_secondary_trace_leaves_no_temporary_buffer_and_no_partial_out
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.starts_with("error: Cancelled: interrupted by Ctrl-C"), "{stderr}");
     assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
-    let left: Vec<_> = std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect();
-    assert_eq!(left.len(), 2, "only the rays and their hits: {left:?}");
+    let left = || std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect::<Vec<_>>();
+    assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
+
+    // `rayctl rays` too: interrupted while it writes beside `-o` (1.2 GiB of rays), it leaves nothing.
+    let many = scratch.path("many.rays");
+    let rayctl = rayctl_command(&server, &["rays", "--accel", "bunny", "--random", "40000000", "-o", &many])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let waiting_since = std::time::Instant::now();
+    while left().len() == 2 {
+        assert!(waiting_since.elapsed().as_secs() < 60, "nothing was ever written beside -o");
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    let interrupted = Command::new("kill").args(["-INT", &rayctl.id().to_string()]).status().unwrap();
+    assert!(interrupted.success());
+    let output = rayctl.wait_with_output().unwrap();
+    assert_eq!(output.status.code(), Some(1), "{}", printed(&output));
+    assert!(String::from_utf8_lossy(&output.stderr).starts_with("error: Cancelled: interrupted by Ctrl-C"));
+    assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 }
 
 #[test]

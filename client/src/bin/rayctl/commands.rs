@@ -17,6 +17,7 @@ use rayd_engine::format::RayFormat;
 use rayd_engine::query::{OutputLayout, Query, QueryKind};
 use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, SphereSampling, fill_random_rays, uniform};
 use serde_json::json;
+use tokio::signal::unix::{Signal, SignalKind, signal};
 
 use crate::args::{
     AroundPointsArgs, BenchArgs, BuildArgs, Cli, Command, LidarArgs, LidarScanArgs, RaysArgs, RenderArgs, SceneArgs,
@@ -123,6 +124,7 @@ async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
 /// `rayctl trace`: the rays are read from their file and the hits written to `--out` a part at a time
 /// ([`parts`]), so that rayctl holds neither whole; the wall time counts the reading and the writing.
 async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
+    let interrupt = ctrl_c()?;
     let query = args.query.query(args.ray_format, args.hit_format);
     let rays = traced_rays(client, args).await?;
     let options = ray_count_options(args);
@@ -154,12 +156,7 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
         };
         parts::write(parts, outputs, layout.map(|l| l.rays)).await
     };
-    // Ctrl-C ends the trace as a failure would: the outputs' files written beside them are removed, and so are the
-    // temporary buffers.
-    let written = tokio::select! {
-        written = traced => written,
-        _ = tokio::signal::ctrl_c() => Err(Error::Status(tonic::Status::cancelled("interrupted by Ctrl-C"))),
-    };
+    let written = until_interrupted(interrupt, traced).await;
     temporary.delete(&node).await;
     let Written { rays, stats } = written.map_err(asked_by(options))?;
     let wall = start.elapsed();
@@ -176,6 +173,23 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
         rays as f64 / wall.as_secs_f64().max(f64::MIN_POSITIVE) / 1e6,
     );
     Ok(Output { json, text })
+}
+
+/// Ctrl-C, listened for from now on (instead of ending the process): a command that makes what an interruption must
+/// clean up listens before it makes any of it, then runs its work [`until_interrupted`].
+fn ctrl_c() -> Result<Signal> {
+    signal(SignalKind::interrupt())
+        .map_err(|e| Error::Status(tonic::Status::internal(format!("cannot listen for Ctrl-C: {e}"))))
+}
+
+/// Runs `work` until it ends or `ctrl_c` comes, which ends it as a failure would (CANCELLED): what it held is
+/// dropped with it, so files written beside their places are removed (and the caller deletes what it noted, such as
+/// temporary buffers).
+async fn until_interrupted<T>(mut ctrl_c: Signal, work: impl Future<Output = Result<T>>) -> Result<T> {
+    tokio::select! {
+        done = work => done,
+        _ = ctrl_c.recv() => Err(Error::Status(tonic::Status::cancelled("interrupted by Ctrl-C"))),
+    }
 }
 
 /// The options of `rayctl trace` that set how many rays it traces and how many hit records a ray has, as given.
@@ -385,23 +399,27 @@ async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
             (count, format!("--width {} --height {}", args.width, args.height), RayMaker::Camera(camera))
         }
     };
+    let interrupt = ctrl_c()?;
     let mut out = OutFile::create(&args.output, None)?;
     let size = format.size();
     let what = || format!("{count} {} rays", format.name());
     out.check_room((count as u64).saturating_mul(size as u64), &options, what)?;
-    let mut part = vec![0u8; RAYS_A_PART.min(count) * size];
-    for first in (0..count).step_by(RAYS_A_PART) {
-        let rays = &mut part[..RAYS_A_PART.min(count - first) * size];
-        maker.fill(format, first as u64, rays);
-        if let Some(((start, end), offset)) = time {
-            for (i, ray) in (first as u64..).zip(rays.chunks_exact_mut(size)) {
-                let time = start + (end - start) * uniform(args.seed ^ 0x7153, i);
-                ray[offset..offset + 4].copy_from_slice(&time.to_le_bytes());
+    let written = async {
+        let mut part = vec![0u8; RAYS_A_PART.min(count) * size];
+        for first in (0..count).step_by(RAYS_A_PART) {
+            let rays = &mut part[..RAYS_A_PART.min(count - first) * size];
+            maker.fill(format, first as u64, rays);
+            if let Some(((start, end), offset)) = time {
+                for (i, ray) in (first as u64..).zip(rays.chunks_exact_mut(size)) {
+                    let time = start + (end - start) * uniform(args.seed ^ 0x7153, i);
+                    ray[offset..offset + 4].copy_from_slice(&time.to_le_bytes());
+                }
             }
+            out.write(rays).await?;
         }
-        out.write(rays).await?;
-    }
-    out.finish().await?;
+        out.finish().await
+    };
+    until_interrupted(interrupt, written).await?;
     let file = args.output.display().to_string();
     Ok(Output {
         json: json!({ "file": file, "rays": count, "ray_format": format.name() }),
