@@ -740,21 +740,37 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     succeeds(&server, &[&trace[..], &formats, &["--hit-format", "full", "--out", &hits]].concat());
     let rays_bytes = std::fs::metadata(&rays).unwrap().len();
 
-    let args =
-        [&trace[..], &formats, &["--reflect", "--primary-hits", &hits, "--hit-format", "t", "--out", &out]].concat();
-    let rayctl = rayctl_command(&server, &args)
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
     // Once the rays have gone up (the hits are going up after them), Ctrl-C.
     let runtime = tokio::runtime::Runtime::new().expect("a tokio runtime");
     let client = runtime.block_on(Client::connect(&server, ClientOptions::default())).expect("the client connects");
     let buffers = || runtime.block_on(client.buffers()).expect("the buffers");
+    let args =
+        [&trace[..], &formats, &["--reflect", "--primary-hits", &hits, "--hit-format", "t", "--out", &out]].concat();
+    let rays_up = || buffers().iter().any(|buffer| buffer.size_bytes == rays_bytes);
+    interrupt_when(&server, &args, rays_up, "the rays went up");
+    assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
+    let left = || std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect::<Vec<_>>();
+    assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
+
+    // `rayctl rays` too: interrupted while it writes beside `-o` (1.2 GiB of rays), it leaves nothing.
+    let many = scratch.path("many.rays");
+    let args = ["rays", "--accel", "bunny", "--random", "40000000", "-o", &many];
+    interrupt_when(&server, &args, || left().len() > 2, "something was written beside -o");
+    assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
+}
+
+/// Runs rayctl with `args`, sends it SIGINT (Ctrl-C) once `ready` holds (`what`, waited for up to 60 s), and checks
+/// that it ended as a failure saying so.
+fn interrupt_when(server: &str, args: &[&str], ready: impl Fn() -> bool, what: &str) {
+    let rayctl = rayctl_command(server, args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
     let waiting_since = std::time::Instant::now();
-    while !buffers().iter().any(|buffer| buffer.size_bytes == rays_bytes) {
-        assert!(waiting_since.elapsed().as_secs() < 60, "the rays never went up");
-        std::thread::sleep(std::time::Duration::from_millis(2));
+    while !ready() {
+        assert!(waiting_since.elapsed().as_secs() < 60, "never: {what}");
+        std::thread::sleep(std::time::Duration::from_millis(1));
     }
     let interrupted = Command::new("kill").args(["-INT", &rayctl.id().to_string()]).status().unwrap();
     assert!(interrupted.success());
@@ -762,28 +778,6 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     assert_eq!(output.status.code(), Some(1), "{}", printed(&output));
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.starts_with("error: Cancelled: interrupted by Ctrl-C"), "{stderr}");
-    assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
-    let left = || std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect::<Vec<_>>();
-    assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
-
-    // `rayctl rays` too: interrupted while it writes beside `-o` (1.2 GiB of rays), it leaves nothing.
-    let many = scratch.path("many.rays");
-    let rayctl = rayctl_command(&server, &["rays", "--accel", "bunny", "--random", "40000000", "-o", &many])
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .unwrap();
-    let waiting_since = std::time::Instant::now();
-    while left().len() == 2 {
-        assert!(waiting_since.elapsed().as_secs() < 60, "nothing was ever written beside -o");
-        std::thread::sleep(std::time::Duration::from_millis(1));
-    }
-    let interrupted = Command::new("kill").args(["-INT", &rayctl.id().to_string()]).status().unwrap();
-    assert!(interrupted.success());
-    let output = rayctl.wait_with_output().unwrap();
-    assert_eq!(output.status.code(), Some(1), "{}", printed(&output));
-    assert!(String::from_utf8_lossy(&output.stderr).starts_with("error: Cancelled: interrupted by Ctrl-C"));
-    assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 }
 
 #[test]
