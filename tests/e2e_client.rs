@@ -245,15 +245,30 @@ async fn the_client_keeps_every_call_within_the_servers_max_rays_per_batch() {
     assert_eq!(requests(&daemon, &["TraceBatch", "TraceStream"]), [0, 4], "6912 rays > 1000: every trace streams");
 }
 
-/// Established TCP connections of this machine whose far end is `port` (IPv4 and IPv6, from `/proc/net`).
+/// Established TCP connections of this process whose far end is `port` (IPv4 and IPv6, from `/proc/net`, its
+/// sockets known by their inodes in `/proc/self/fd`: other processes' sockets, such as a server's own end of a
+/// connection whose client port happens to be `port`, are not counted).
 fn established_to(port: u16) -> usize {
+    let ours: std::collections::HashSet<String> = std::fs::read_dir("/proc/self/fd")
+        .into_iter()
+        .flatten()
+        .filter_map(|entry| std::fs::read_link(entry.ok()?.path()).ok())
+        .filter_map(|target| {
+            let target = target.to_string_lossy().into_owned();
+            Some(target.strip_prefix("socket:[")?.strip_suffix(']')?.to_owned())
+        })
+        .collect();
     let table = |path: &str| std::fs::read_to_string(path).unwrap_or_default();
     let rows = table("/proc/net/tcp") + &table("/proc/net/tcp6");
-    // Columns: slot, local address:port, remote address:port, state (01: established), …; ports in hex.
-    let remote_port = |row: &str| row.split_whitespace().nth(2)?.rsplit(':').next().map(str::to_owned);
-    let state = |row: &str| row.split_whitespace().nth(3).map(str::to_owned);
+    // Columns: slot, local address:port, remote address:port, state (01: established), …, inode (the tenth); ports
+    // in hex.
+    let column = |row: &str, n: usize| row.split_whitespace().nth(n).map(str::to_owned);
+    let remote_port = |row: &str| column(row, 2)?.rsplit(':').next().map(str::to_owned);
     let wanted = format!("{port:04X}");
-    rows.lines().filter(|row| remote_port(row) == Some(wanted.clone()) && state(row).as_deref() == Some("01")).count()
+    rows.lines()
+        .filter(|row| remote_port(row) == Some(wanted.clone()) && column(row, 3).as_deref() == Some("01"))
+        .filter(|row| column(row, 9).is_some_and(|inode| ours.contains(&inode)))
+        .count()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
