@@ -752,9 +752,9 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     let left = || std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect::<Vec<_>>();
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 
-    // `rayctl rays` too: interrupted while it writes beside `-o` (1.2 GiB of rays), it leaves nothing.
+    // `rayctl rays` too: interrupted while it writes beside `-o` (244 MiB of rays), it leaves nothing.
     let many = scratch.path("many.rays");
-    let args = ["rays", "--accel", "bunny", "--random", "40000000", "-o", &many];
+    let args = ["rays", "--accel", "bunny", "--random", "8000000", "-o", &many];
     interrupt_when(&server, &args, || left().len() > 2, "something was written beside -o");
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 }

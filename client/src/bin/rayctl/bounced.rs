@@ -2,6 +2,8 @@
 //! the primaries' hits (a file or a server-side buffer). Files go up as temporary buffers of the accel's scene, read
 //! and sent a part at a time, so that rayctl holds neither whole; the server makes the secondary rays from them.
 
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
 use rayd_client::{Client, Error, PrimaryRays, Result, SecondaryRays, proto};
 use rayd_engine::format::RayFormat;
 use rayd_engine::raygen::Bounce;
@@ -31,20 +33,40 @@ pub struct Bounced {
     pub offset: f32,
 }
 
-/// Buffers uploaded for one trace, deleted again when it ends.
+/// Buffers uploaded for one trace, deleted again when it ends. Each is named (`rayctl-PID-NANOS-N`) and noted before
+/// its upload starts, so that one whose upload was interrupted just as the server kept it is deleted too.
 #[derive(Default)]
 pub struct Temporary {
-    /// Their ids.
-    ids: Vec<String>,
+    /// Their names.
+    names: Vec<String>,
 }
 
+/// How long deleting the temporary buffers may take: a server that does not answer (often why a trace was
+/// interrupted) does not hold rayctl.
+const DELETE_TIME: Duration = Duration::from_secs(10);
+
 impl Temporary {
-    /// Deletes the buffers through `node` (best effort: a buffer left behind only counts against the tenant's
-    /// limits).
+    /// A name for one more buffer, noted.
+    fn name_next(&mut self) -> String {
+        let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default().as_nanos();
+        let name = format!("rayctl-{}-{since_epoch}-{}", std::process::id(), self.names.len());
+        self.names.push(name.clone());
+        name
+    }
+
+    /// Deletes the buffers through `node`, for at most [`DELETE_TIME`] (best effort: a buffer left behind only counts
+    /// against the tenant's limits, and `rayctl buffers` lists it by its name).
     pub async fn delete(self, node: &Client) {
-        for id in self.ids {
-            let _ = node.delete_buffer(&id).await;
+        if self.names.is_empty() {
+            return;
         }
+        let deleting = async {
+            let Ok(buffers) = node.buffers().await else { return };
+            for buffer in buffers.iter().filter(|buffer| self.names.contains(&buffer.name)) {
+                let _ = node.delete_buffer(&buffer.id).await;
+            }
+        };
+        let _ = tokio::time::timeout(DELETE_TIME, deleting).await;
     }
 }
 
@@ -88,16 +110,16 @@ impl Bounced {
     }
 }
 
-/// Uploads `file` through `node` as a new buffer, a part at a time (a pipe, whose size is not known before, is read
-/// whole first), notes it in `temporary` and returns a reference to it.
+/// Uploads `file` through `node` as a new buffer named and noted in `temporary`, a part at a time (a pipe, whose
+/// size is not known before, is read whole first), and returns a reference to it.
 async fn upload(node: &Client, file: PackedFile, temporary: &mut Temporary) -> Result<proto::BufferRef> {
+    let name = temporary.name_next();
     let buffer = match file.bytes() {
         Some(bytes) => {
             let parts = file.chunks(node.options().upload_chunk_bytes);
-            node.upload_buffer_parts("", bytes, parts).await?
+            node.upload_buffer_parts(&name, bytes, parts).await?
         }
-        None => node.upload_buffer("", file.read()?).await?,
+        None => node.upload_buffer(&name, file.read()?).await?,
     };
-    temporary.ids.push(buffer.id.clone());
     Ok(rayd_client::convert::buffer_ref(&buffer.id))
 }

@@ -187,9 +187,15 @@ fn ctrl_c() -> Result<Signal> {
 /// temporary buffers).
 async fn until_interrupted<T>(mut ctrl_c: Signal, work: impl Future<Output = Result<T>>) -> Result<T> {
     tokio::select! {
-        done = work => done,
-        _ = ctrl_c.recv() => Err(Error::Status(tonic::Status::cancelled("interrupted by Ctrl-C"))),
+        done = work => return done,
+        _ = ctrl_c.recv() => {}
     }
+    // A second Ctrl-C ends rayctl at once, cleaning nothing more up (status 130, as a shell reports SIGINT).
+    tokio::spawn(async move {
+        ctrl_c.recv().await;
+        std::process::exit(130)
+    });
+    Err(Error::Status(tonic::Status::cancelled("interrupted by Ctrl-C")))
 }
 
 /// The options of `rayctl trace` that set how many rays it traces and how many hit records a ray has, as given.

@@ -193,13 +193,15 @@ impl Outputs {
         Ok(())
     }
 
-    /// Writes out what is buffered and puts the files in their places.
-    async fn finish(self) -> Result<()> {
-        self.hits.finish().await?;
-        match self.counts {
-            Some(counts) => counts.finish().await,
-            None => Ok(()),
+    /// Writes out what is buffered, then puts the files in their places one right after the other (nothing is
+    /// awaited between the two, so an interruption cannot leave new hits beside old counts).
+    async fn finish(mut self) -> Result<()> {
+        self.hits.flush().await?;
+        if let Some(counts) = &mut self.counts {
+            counts.flush().await?;
         }
+        self.hits.put()?;
+        self.counts.map_or(Ok(()), OutFile::put)
     }
 }
 
@@ -315,8 +317,18 @@ impl OutFile {
 
     /// Writes out what is buffered and puts the file in its place.
     pub async fn finish(mut self) -> Result<()> {
+        self.flush().await?;
+        self.put()
+    }
+
+    /// Writes out what is buffered.
+    async fn flush(&mut self) -> Result<()> {
         self.empty_once().await?;
-        self.writer.flush().await.map_err(|e| Error::io(&self.path, e))?;
+        self.writer.flush().await.map_err(|e| Error::io(&self.path, e))
+    }
+
+    /// Puts a file written beside its place there (a file written through is there already).
+    fn put(self) -> Result<()> {
         if let Some(beside) = self.beside {
             beside.persist(&self.path).map_err(|e| Error::io(&self.path, e.error))?;
         }
