@@ -342,7 +342,19 @@ impl Context {
     /// Validates the inputs and builds an accel over them. No lock is held while building, so traces on other
     /// accels go on.
     pub fn build_accel(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Arc<Accel>> {
-        let data = self.device.backend.build(inputs, options)?;
+        self.build_accel_while(inputs, options, &|| true)
+    }
+
+    /// As [`Context::build_accel`], asking `go_on` between the build's phases whether to go on: told no, the build
+    /// stops there with [`Error::Stopped`] (a server stops a build whose caller has gone). The phases of a large
+    /// build after the first (about half its time on the CPU) are then not run.
+    pub fn build_accel_while(
+        &self,
+        inputs: &[BuildInput<'_>],
+        options: &BuildOptions,
+        go_on: &dyn Fn() -> bool,
+    ) -> Result<Arc<Accel>> {
+        let data = self.device.backend.build(inputs, options, go_on)?;
         let keys = options.motion.keys as usize;
         let shape = Shape {
             kind: AccelKind::Triangles,

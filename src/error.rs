@@ -60,6 +60,9 @@ pub enum Error {
     /// An operation that the object does not allow in its present state or with its build flags.
     #[error("{0}")]
     FailedPrecondition(String),
+    /// A build stopped between its phases because it was told not to go on ([`crate::Context::build_accel_while`]).
+    #[error("the build was stopped before it ended")]
+    Stopped,
     /// A serialized blob is damaged, truncated or inconsistent (what is wrong, and where).
     #[error("blob: {0}")]
     InvalidBlob(String),
@@ -101,7 +104,9 @@ impl Error {
             | Error::InvalidBlob(_)
             | Error::InvalidExternal(_) => ErrorKind::InvalidArgument,
             Error::NotFound { .. } => ErrorKind::NotFound,
-            Error::FailedPrecondition(_) | Error::IncompatibleBlob { .. } => ErrorKind::FailedPrecondition,
+            Error::FailedPrecondition(_) | Error::IncompatibleBlob { .. } | Error::Stopped => {
+                ErrorKind::FailedPrecondition
+            }
             Error::TooLarge { .. } => ErrorKind::ResourceExhausted,
         }
     }

@@ -302,3 +302,40 @@ fn transforms_can_always_be_updated_and_compacted_and_say_so() {
     let updated = context.update_transform(&placed, &TransformInput::Static(moved), &child).unwrap();
     assert_ne!(camera_hits(&context, &updated, &mesh), expected, "the update moved the child out of view");
 }
+
+#[test]
+fn a_build_told_not_to_go_on_stops_between_its_phases_and_keeps_nothing() {
+    let packed = icosphere(3, Vec3::ZERO).pack();
+    let inputs = [BuildInput::Triangles(packed.input())];
+    let options = BuildOptions::default();
+    let rays = pack_rays(&random_rays(256, 5), RayFormat::OriginTminDirectionTmax);
+    let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+    let hits = |context: &Context, accel| {
+        let mut out = vec![0u8; query.output_layout(rays.len()).unwrap().hits];
+        context.trace(accel, &query, &rays, TraceOutput { hits: &mut out, counts: &mut [] }).unwrap();
+        out
+    };
+    // Told to go on, it asks three times and builds what build_accel builds.
+    let context = Context::new(Device::cpu());
+    let asked = AtomicUsize::new(0);
+    let go_on = || {
+        asked.fetch_add(1, Ordering::SeqCst);
+        true
+    };
+    let built = context.build_accel_while(&inputs, &options, &go_on).unwrap();
+    let plain = context.build_accel(&inputs, &options).unwrap();
+    assert_eq!(asked.load(Ordering::SeqCst), 3, "one question before each phase after the boxes");
+    assert_eq!(built.info().size_bytes, plain.info().size_bytes);
+    assert_eq!(hits(&context, &built), hits(&context, &plain));
+    // Told no at any of its questions, it stops there: no accel is kept and no memory is left in use.
+    for stop_at in 1..=3 {
+        let context = Context::new(Device::cpu());
+        let asked = AtomicUsize::new(0);
+        let go_on = || asked.fetch_add(1, Ordering::SeqCst) + 1 < stop_at;
+        let stopped = context.build_accel_while(&inputs, &options, &go_on).unwrap_err();
+        assert_eq!(stopped, Error::Stopped, "stopped at question {stop_at}");
+        assert_eq!(stopped.kind(), ErrorKind::FailedPrecondition);
+        assert_eq!(asked.load(Ordering::SeqCst), stop_at, "no question after the answer no");
+        assert!(context.accel_handles().is_empty() && context.memory_in_use() == 0, "stopped at {stop_at}");
+    }
+}

@@ -304,9 +304,8 @@ mod tests {
             })
             .flat_map(u32::to_le_bytes)
             .collect();
-        let accel = CpuBackend
-            .build(&[BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))], &BuildOptions::default())
-            .unwrap();
+        let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        let accel = CpuBackend.build(&input, &BuildOptions::default(), &|| true).unwrap();
         let camera = Camera::framing(Vec3::new(0.0, 0.0, 0.0), Vec3::new(16.0, 16.0, 1.0), 40, 30);
         let generator = Generator::Pinhole(camera, PixelSampling { samples: 3, jitter_seed: Some(4) });
         let rays = RaySource::Generated { generator: &generator, first: 0, count: 3_600 };

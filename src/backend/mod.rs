@@ -96,8 +96,14 @@ pub trait Backend: Send + Sync {
     fn info(&self) -> DeviceInfo;
     /// Upper bounds of the memory that [`Backend::build`] will use for these inputs and options.
     fn compute_memory_usage(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<MemoryUsage>;
-    /// Validates the inputs and builds an accel over them.
-    fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>>;
+    /// Validates the inputs and builds an accel over them, asking `go_on` between the build's phases whether to go on
+    /// (told no, it stops there with [`crate::Error::Stopped`]).
+    fn build(
+        &self,
+        inputs: &[BuildInput<'_>],
+        options: &BuildOptions,
+        go_on: &dyn Fn() -> bool,
+    ) -> Result<Box<dyn BackendAccel>>;
     /// Upper bounds of the memory that [`Backend::build_instances`] will use for `instances` instances.
     fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage>;
     /// Builds an instance accel over checked instances, whose children must be accels of this backend.

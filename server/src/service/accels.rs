@@ -37,7 +37,7 @@ pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> Servi
             &request.device,
             caller,
             |context| resolved.memory_usage(context, &options),
-            |context| resolved.build(context, &options),
+            |context| resolved.build(context, &options, &|| caller.is_there()),
         )
     })
     .await?;

@@ -44,9 +44,16 @@ impl Resolved {
     }
 
     /// Builds it on `context`.
-    pub fn build(&self, context: &Context, options: &BuildOptions) -> rayd_engine::Result<Arc<Accel>> {
+    pub fn build(
+        &self,
+        context: &Context,
+        options: &BuildOptions,
+        go_on: &dyn Fn() -> bool,
+    ) -> rayd_engine::Result<Arc<Accel>> {
         match self {
-            Resolved::Triangles(owned) => with_inputs(owned, |inputs| context.build_accel(inputs, options)),
+            Resolved::Triangles(owned) => {
+                with_inputs(owned, |inputs| context.build_accel_while(inputs, options, go_on))
+            }
             Resolved::Instances(instances) => context.build_instance_accel(instances, options),
             Resolved::Transform { transform, child } => context.build_transform(transform, child),
         }

@@ -19,10 +19,15 @@ impl Caller {
         (Caller(token.clone()), token.drop_guard())
     }
 
+    /// Whether the caller is still there (a long build asks between its phases).
+    pub fn is_there(&self) -> bool {
+        !self.0.is_cancelled()
+    }
+
     /// [`ServiceError::CallerGone`] saying what was not kept or not done (`accel "bunny" was not kept`) once the
     /// caller has gone.
     pub fn check(&self, not_done: impl FnOnce() -> String) -> ServiceResult<()> {
-        if self.0.is_cancelled() {
+        if !self.is_there() {
             let not_done = not_done();
             tracing::info!(not_done, "the caller went away");
             return Err(ServiceError::CallerGone(not_done));

@@ -272,7 +272,11 @@ impl Tenant {
         let what = || format!("accel {name:?} was not kept");
         caller.check(what)?;
         let start = Instant::now();
-        let accel = build(context)?;
+        let accel = build(context).map_err(|failed| match caller.check(what) {
+            // A build stopped because its caller went, or one that failed for a caller who is no longer there.
+            Err(gone) => gone,
+            Ok(()) => failed.into(),
+        })?;
         let describe = |_| format!("accel {name:?}, built");
         // A caller gone by now is not worth the accel's file.
         let checked = caller
@@ -715,6 +719,14 @@ mod tests {
         });
         gone(built.unwrap_err(), "accel \"a\" was not kept");
         nothing_left("after a build whose caller went");
+        // A build that asks whether its caller is there stops at its next phase, and says why.
+        let (caller, present) = Caller::watched();
+        let built = tenant.build_accel("a", DEFAULT_DEVICE, &caller, usage, |context| {
+            drop(present);
+            context.build_accel_while(&input(), &options, &|| caller.is_there())
+        });
+        gone(built.unwrap_err(), "accel \"a\" was not kept");
+        nothing_left("after a build stopped for a caller that went");
         // It had gone before: the build does not start.
         let unstarted =
             |_: &Context| -> rayd_engine::Result<Arc<Accel>> { panic!("started for a caller that had gone") };

@@ -147,10 +147,15 @@ impl Backend for CpuBackend {
         Ok(triangles::memory_bounds(counts.iter().sum(), inputs.len(), has_masks, options))
     }
 
-    fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
+    fn build(
+        &self,
+        inputs: &[BuildInput<'_>],
+        options: &BuildOptions,
+        go_on: &dyn Fn() -> bool,
+    ) -> Result<Box<dyn BackendAccel>> {
         options.validate()?;
         let triangles = gather(inputs, options.motion.keys as usize)?;
-        Ok(Box::new(CpuAccel::Triangles(Box::new(TriangleBvh::build(triangles, options)))))
+        Ok(Box::new(CpuAccel::Triangles(Box::new(TriangleBvh::build(triangles, options, go_on)?))))
     }
 
     fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {

@@ -1022,7 +1022,7 @@ pub(super) mod tests {
             (0..mesh.triangles.len() as u32).flat_map(|t| u32::from(t % 5 == 0).to_le_bytes()).collect();
         let input = TriangleInput { masks: masked.then_some(&masks[..]), ..packed.input() };
         let triangles = gather(&[BuildInput::Triangles(input)], 1).expect("valid scene");
-        (TriangleBvh::build(triangles, &BuildOptions::default()), mesh)
+        (TriangleBvh::build(triangles, &BuildOptions::default(), &|| true).expect("a build that goes on"), mesh)
     }
 
     /// Rays from a camera over the lattice through a grid of points, some through its vertices and edges, some

@@ -10,6 +10,7 @@ use super::bvh::{FIXED_BYTES, Footprint, Layout, Node, NodeKeys, VecLen, refit};
 use super::moving_wide::MovingWideTree;
 use super::wide::{WideBvh, WideNode, WideTree};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
+use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, time_average, union};
 use crate::geometry::{GatheredTriangles, GeometryFlags, MotionOptions, TriangleRef, is_degenerate};
 
@@ -95,10 +96,16 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
 }
 
 impl TriangleBvh {
-    /// Builds the BVH over gathered, validated triangles, with `options.motion.keys` keys. A motion BVH's
-    /// topology is built over each triangle's box on average over time ([`time_average`]); its nodes then get their
-    /// boxes at each key.
-    pub fn build(triangles: GatheredTriangles, options: &BuildOptions) -> TriangleBvh {
+    /// Builds the BVH over gathered, validated triangles, with `options.motion.keys` keys, asking `go_on` before
+    /// each phase after the boxes whether to go on ([`Error::Stopped`] once it says no). A motion BVH's topology is
+    /// built over each triangle's box on average over time ([`time_average`]); its nodes then get their boxes at
+    /// each key.
+    pub fn build(
+        triangles: GatheredTriangles,
+        options: &BuildOptions,
+        go_on: &dyn Fn() -> bool,
+    ) -> Result<TriangleBvh> {
+        let phase = || if go_on() { Ok(()) } else { Err(Error::Stopped) };
         let moving = !options.motion.is_static();
         let hittable: Vec<u32> = (0..triangles.len() as u32)
             .into_par_iter()
@@ -112,15 +119,18 @@ impl TriangleBvh {
                 Aabb::new(min.into(), max.into())
             })
             .collect();
+        phase()?;
         let layout = Layout::build(&boxes, &hittable, options.flags, u32::MAX);
         drop(boxes);
+        phase()?;
         let mut bvh = Self::lay_out(&triangles, layout, options);
         if moving {
             bvh.node_keys = Some(NodeKeys::new(bvh.nodes.len(), triangles.keys));
             bvh.refit_nodes();
         }
+        phase()?;
         bvh.collapse_wide();
-        bvh
+        Ok(bvh)
     }
 
     /// Derives the wide nodes from the binary ones: with their corners in blocks for a static accel, with their boxes

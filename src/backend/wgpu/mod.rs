@@ -171,8 +171,13 @@ impl Backend for WgpuBackend {
         Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })
     }
 
-    fn build(&self, inputs: &[BuildInput<'_>], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {
-        self.upload(self.host.build(inputs, options)?)
+    fn build(
+        &self,
+        inputs: &[BuildInput<'_>],
+        options: &BuildOptions,
+        go_on: &dyn Fn() -> bool,
+    ) -> Result<Box<dyn BackendAccel>> {
+        self.upload(self.host.build(inputs, options, go_on)?)
     }
 
     /// The host's bound and [`DEVICE_COPY_BOUND`] − 1 times it for the instance accel's own arrays on the device.
