@@ -346,8 +346,8 @@ impl Context {
     }
 
     /// As [`Context::build_accel`], asking `go_on` between the build's phases whether to go on: told no, the build
-    /// stops there with [`Error::Stopped`] (a server stops a build whose caller has gone). The phases of a large
-    /// build after the first (about half its time on the CPU) are then not run.
+    /// stops there with [`Error::Stopped`] (a server stops a build whose caller has gone). obvhs's tree build, most of
+    /// a build's time, cannot stop midway: told no during it, the build stops once it ends.
     pub fn build_accel_while(
         &self,
         inputs: &[BuildInput<'_>],

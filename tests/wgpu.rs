@@ -871,3 +871,20 @@ fn an_accel_deeper_than_the_kernels_stack_is_refused_by_name_and_kept_on_the_cpu
     assert!(error.to_string().contains("stack entries"), "{error}");
     Context::new(Device::cpu()).build_accel(&inputs, &BuildOptions::default()).expect("the CPU has no such limit");
 }
+
+#[test]
+fn a_build_told_not_to_go_on_before_its_upload_keeps_nothing_on_the_device() {
+    let Some(device) = gpu() else { return };
+    let packed = random_soup(500, 3).pack();
+    let inputs = [BuildInput::Triangles(packed.input())];
+    let context = Context::new(device);
+    // The host's three questions, then the upload's.
+    let asked = std::sync::atomic::AtomicUsize::new(0);
+    let go_on = || asked.fetch_add(1, std::sync::atomic::Ordering::SeqCst) + 1 < 4;
+    let stopped = context.build_accel_while(&inputs, &BuildOptions::default(), &go_on).unwrap_err();
+    assert_eq!(stopped, rayd_engine::Error::Stopped);
+    assert_eq!(asked.into_inner(), 4, "stopped at the upload's question");
+    assert!(context.accel_handles().is_empty() && context.memory_in_use() == 0);
+    let built = context.build_accel_while(&inputs, &BuildOptions::default(), &|| true).unwrap();
+    assert_eq!(context.accel_handles(), [built.handle()]);
+}

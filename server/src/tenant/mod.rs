@@ -723,7 +723,9 @@ mod tests {
         let (caller, present) = Caller::watched();
         let built = tenant.build_accel("a", DEFAULT_DEVICE, &caller, usage, |context| {
             drop(present);
-            context.build_accel_while(&input(), &options, &|| caller.is_there())
+            let stopped = context.build_accel_while(&input(), &options, &|| caller.is_there());
+            assert!(matches!(stopped, Err(rayd_engine::Error::Stopped)), "the build went on: {stopped:?}");
+            stopped
         });
         gone(built.unwrap_err(), "accel \"a\" was not kept");
         nothing_left("after a build stopped for a caller that went");

@@ -177,7 +177,12 @@ impl Backend for WgpuBackend {
         options: &BuildOptions,
         go_on: &dyn Fn() -> bool,
     ) -> Result<Box<dyn BackendAccel>> {
-        self.upload(self.host.build(inputs, options, go_on)?)
+        let host = self.host.build(inputs, options, go_on)?;
+        // The upload, the last phase, up to twice the host's bytes on the device.
+        if !go_on() {
+            return Err(Error::Stopped);
+        }
+        self.upload(host)
     }
 
     /// The host's bound and [`DEVICE_COPY_BOUND`] − 1 times it for the instance accel's own arrays on the device.
