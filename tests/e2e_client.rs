@@ -284,21 +284,30 @@ async fn calls_in_flight_together_are_spread_over_the_connections_asked_for() {
     let query = queries()[0];
     let rays = bunny.camera_rays(query.ray_format, width, height);
     let expected = bunny.trace(&query, &rays);
-    let calls: Vec<_> = (0..12)
-        .map(|_| {
-            let (client, rays) = (three.clone(), rays.clone());
-            tokio::spawn(async move { client.trace("bunny", &query, rays.into()).await })
-        })
-        .collect();
-    for call in calls {
-        let traced = call.await.expect("the call's task").expect("a trace over three connections");
-        assert_traced_as_expected(&traced, &expected, "a trace over three connections");
+    // The balancer opens its connections as calls need them and sends calls only on those that are ready: on a
+    // loaded machine a round of calls was once over before the third connection was up (2 were seen). Rounds go on
+    // until three are up, or fail the test after many.
+    let mut opened = 0;
+    for _round in 0..20 {
+        let calls: Vec<_> = (0..12)
+            .map(|_| {
+                let (client, rays) = (three.clone(), rays.clone());
+                tokio::spawn(async move { client.trace("bunny", &query, rays.into()).await })
+            })
+            .collect();
+        for call in calls {
+            let traced = call.await.expect("the call's task").expect("a trace over three connections");
+            assert_traced_as_expected(&traced, &expected, "a trace over three connections");
+        }
+        opened = established_to(port).saturating_sub(before);
+        if opened >= 3 {
+            break;
+        }
     }
-    // Spread over three connections at least, and not one a call: the client's first connection (which asked for
-    // the server's limits) may linger as it closes, and on a loaded machine the balancer was once seen to have
-    // reconnected all three (7 in all; the cause was not found), which a user would not mind.
-    let opened = established_to(port) - before;
-    assert!((3..12).contains(&opened), "{opened} connections for a client of three, for 12 calls");
+    // Three connections at least, and not one a call: the client's first connection (which asked for the server's
+    // limits) may linger as it closes, and on a loaded machine the balancer was once seen to have reconnected all
+    // three (7 in all; the cause was not found), which a user would not mind.
+    assert!((3..12).contains(&opened), "{opened} connections for a client of three, for rounds of 12 calls");
 }
 
 #[tokio::test]
