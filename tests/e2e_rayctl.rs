@@ -749,6 +749,10 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     let rays_up = || buffers().iter().any(|buffer| buffer.size_bytes == rays_bytes);
     interrupt_when(&server, &args, rays_up, "the rays went up");
     assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
+    // Hits from a pipe whose writer neither writes nor closes it: the read is given up at Ctrl-C.
+    let args = [&trace[..], &formats, &["--reflect", "--primary-hits", "/dev/stdin", "--hit-format", "t"]].concat();
+    interrupt_when(&server, &args, rays_up, "the rays went up, before the piped hits");
+    assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
     let left = || std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect::<Vec<_>>();
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 
@@ -759,14 +763,16 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 }
 
-/// Runs rayctl with `args`, sends it SIGINT (Ctrl-C) once `ready` holds (`what`, waited for up to 60 s), and checks
-/// that it ended as a failure saying so.
+/// Runs rayctl with `args` (its standard input a pipe kept open and empty), sends it SIGINT (Ctrl-C) once `ready`
+/// holds (`what`, waited for up to 60 s), and checks that it ended within 30 s as a failure saying so.
 fn interrupt_when(server: &str, args: &[&str], ready: impl Fn() -> bool, what: &str) {
-    let rayctl = rayctl_command(server, args)
+    let mut rayctl = rayctl_command(server, args)
+        .stdin(std::process::Stdio::piped())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
+    let _open_stdin = rayctl.stdin.take();
     let waiting_since = std::time::Instant::now();
     while !ready() {
         assert!(waiting_since.elapsed().as_secs() < 60, "never: {what}");
@@ -774,6 +780,14 @@ fn interrupt_when(server: &str, args: &[&str], ready: impl Fn() -> bool, what: &
     }
     let interrupted = Command::new("kill").args(["-INT", &rayctl.id().to_string()]).status().unwrap();
     assert!(interrupted.success());
+    let interrupted_at = std::time::Instant::now();
+    while rayctl.try_wait().unwrap().is_none() {
+        if interrupted_at.elapsed().as_secs() >= 30 {
+            rayctl.kill().unwrap();
+            panic!("rayctl went on for 30 s after Ctrl-C ({what})");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
     let output = rayctl.wait_with_output().unwrap();
     assert_eq!(output.status.code(), Some(1), "{}", printed(&output));
     let stderr = String::from_utf8_lossy(&output.stderr);

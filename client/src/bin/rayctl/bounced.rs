@@ -119,7 +119,7 @@ async fn upload(node: &Client, file: PackedFile, temporary: &mut Temporary) -> R
             let parts = file.chunks(node.options().upload_chunk_bytes);
             node.upload_buffer_parts(&name, bytes, parts).await?
         }
-        None => node.upload_buffer(&name, file.read()?).await?,
+        None => node.upload_buffer(&name, file.read().await?).await?,
     };
     Ok(rayd_client::convert::buffer_ref(&buffer.id))
 }

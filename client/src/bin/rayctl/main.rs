@@ -13,17 +13,28 @@ use std::process::ExitCode;
 
 use clap::Parser;
 
-#[tokio::main]
-async fn main() -> ExitCode {
+fn main() -> ExitCode {
     let cli = args::Cli::parse();
-    match commands::run(&cli).await {
-        Ok(output) => print(&if cli.json { output.json.to_string() } else { output.text }),
-        Err(error) => {
-            // Nothing is left to do if standard error has gone too.
-            let _ = writeln!(io::stderr(), "error: {:?}: {error}", error.code());
-            ExitCode::FAILURE
+    let runtime = match tokio::runtime::Runtime::new() {
+        Ok(runtime) => runtime,
+        Err(e) => return failure(&format!("Internal: cannot start tokio's runtime: {e}")),
+    };
+    let code = runtime.block_on(async {
+        match commands::run(&cli).await {
+            Ok(output) => print(&if cli.json { output.json.to_string() } else { output.text }),
+            Err(error) => failure(&format!("{:?}: {error}", error.code())),
         }
-    }
+    });
+    // Without waiting for reads on blocking threads: one given up at Ctrl-C may wait on a pipe that stays open.
+    runtime.shutdown_background();
+    code
+}
+
+/// Prints `error: <message>` on standard error; failure.
+fn failure(message: &str) -> ExitCode {
+    // Nothing is left to do if standard error has gone too.
+    let _ = writeln!(io::stderr(), "error: {message}");
+    ExitCode::FAILURE
 }
 
 /// Prints `text` and a newline on standard output: success, also when the reader has gone (a closed pipe), as
@@ -33,9 +44,6 @@ fn print(text: &str) -> ExitCode {
     match writeln!(stdout, "{text}").and_then(|()| stdout.flush()) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if e.kind() == io::ErrorKind::BrokenPipe => ExitCode::SUCCESS,
-        Err(e) => {
-            let _ = writeln!(io::stderr(), "error: standard output: {e}");
-            ExitCode::FAILURE
-        }
+        Err(e) => failure(&format!("standard output: {e}")),
     }
 }

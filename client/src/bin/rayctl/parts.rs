@@ -99,10 +99,12 @@ impl PackedFile {
         self.records.named()
     }
 
-    /// The whole file.
-    pub fn read(mut self) -> Result<Bytes> {
+    /// The whole file, read on a blocking thread: the future can be dropped (at a Ctrl-C) while a pipe's writer is
+    /// still writing.
+    pub async fn read(self) -> Result<Bytes> {
         let mut bytes = Vec::new();
-        std::io::Read::read_to_end(&mut self.file, &mut bytes).map_err(|e| Error::io(&self.records.path, e))?;
+        let mut file = tokio::fs::File::from_std(self.file);
+        file.read_to_end(&mut bytes).await.map_err(|e| Error::io(&self.records.path, e))?;
         self.records.check_whole(bytes.len() as u64)?;
         Ok(bytes.into())
     }
