@@ -763,8 +763,8 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 }
 
-/// Runs rayctl with `args` (its standard input a pipe kept open and empty), sends it SIGINT (Ctrl-C) once `ready`
-/// holds (`what`, waited for up to 60 s), and checks that it ended within 30 s as a failure saying so.
+/// Runs rayctl with `args` (its standard input a pipe kept open and empty), sends it SIGINT (Ctrl-C) as soon as
+/// `ready` holds (`what`, waited for up to 60 s), and checks that it ended within 30 s as a failure saying so.
 fn interrupt_when(server: &str, args: &[&str], ready: impl Fn() -> bool, what: &str) {
     let mut rayctl = rayctl_command(server, args)
         .stdin(std::process::Stdio::piped())
@@ -778,8 +778,12 @@ fn interrupt_when(server: &str, args: &[&str], ready: impl Fn() -> bool, what: &
         assert!(waiting_since.elapsed().as_secs() < 60, "never: {what}");
         std::thread::sleep(std::time::Duration::from_millis(1));
     }
-    let interrupted = Command::new("kill").args(["-INT", &rayctl.id().to_string()]).status().unwrap();
-    assert!(interrupted.success());
+    // Stopped at once, so that the work left cannot end before the signal is seen (a trace of `rays` was once seen
+    // to end first), then interrupted and continued: the pending SIGINT is delivered as it goes on.
+    for signal in ["-STOP", "-INT", "-CONT"] {
+        let sent = Command::new("kill").args([signal, &rayctl.id().to_string()]).status().unwrap();
+        assert!(sent.success(), "kill {signal}");
+    }
     let interrupted_at = std::time::Instant::now();
     while rayctl.try_wait().unwrap().is_none() {
         if interrupted_at.elapsed().as_secs() >= 30 {
