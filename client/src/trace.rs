@@ -86,7 +86,7 @@ impl TraceResult {
         counts: Bytes,
         stats: proto::TraceStats,
     ) -> Result<TraceResult> {
-        let layout = query.output_layout(rays).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let layout = output_layout(query, rays)?;
         check_lengths(what, (hits.len(), counts.len()), (layout.hits, layout.counts))?;
         Ok(TraceResult { query: *query, rays: layout.rays, hits, counts, stats })
     }
@@ -112,7 +112,7 @@ impl Client {
     /// `TraceBatch` when the rays and the expected hits and counts each fit in
     /// [`ClientOptions::batch_limit_bytes`](crate::ClientOptions::batch_limit_bytes), else through `TraceStream`.
     pub async fn trace(&self, accel: &str, query: &Query, rays: Bytes) -> Result<TraceResult> {
-        let layout = query.output_layout(rays.len()).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let layout = output_layout(query, rays.len())?;
         let limit = self.options.batch_limit_bytes;
         if rays.len() <= limit && layout.hits + layout.counts <= limit && layout.rays <= self.options.max_rays_per_call
         {
@@ -161,7 +161,7 @@ impl Client {
         generator: proto::RayGenerator,
         total: usize,
     ) -> Result<TraceParts> {
-        let layout = generated_layout(query, total)?;
+        let layout = output_layout_of_rays(query, total as u64)?;
         let per_call = self.generated_rays_per_call(query, &layout);
         Ok(self.range_parts(accel, query, generator, total, per_call))
     }
@@ -175,7 +175,7 @@ impl Client {
         generator: proto::RayGenerator,
         total: usize,
     ) -> Result<TraceResult> {
-        let layout = generated_layout(query, total)?;
+        let layout = output_layout_of_rays(query, total as u64)?;
         let per_call = self.generated_rays_per_call(query, &layout);
         if per_call >= total {
             // One call (none for no rays): its answer's buffers as they are.
@@ -510,11 +510,17 @@ async fn concatenate(
     Ok(TraceResult { query: *query, rays, hits: hits.into(), counts: counts.into(), stats })
 }
 
-/// The hits and counts of `total` generated rays of `query`.
-fn generated_layout(query: &Query, total: usize) -> Result<OutputLayout> {
-    query
-        .output_layout(total.saturating_mul(query.ray_format.size()))
-        .map_err(|e| Error::InvalidArgument(e.to_string()))
+/// The hits and counts that `ray_bytes` of packed rays traced with `query` make; [`Error::InvalidArgument`] where
+/// the engine refuses the query or the length (not whole rays).
+pub fn output_layout(query: &Query, ray_bytes: usize) -> Result<OutputLayout> {
+    query.output_layout(ray_bytes).map_err(|e| Error::InvalidArgument(e.to_string()))
+}
+
+/// The hits and counts that `rays` rays (made by a generator, or counted from a file's size) traced with `query`
+/// make, as [`output_layout`] checks them (their bytes saturate at `usize::MAX`).
+pub fn output_layout_of_rays(query: &Query, rays: u64) -> Result<OutputLayout> {
+    let ray_bytes = usize::try_from(rays).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size());
+    output_layout(query, ray_bytes)
 }
 
 /// A `TraceBatch` request for inline `rays`, with the hits returned inline.

@@ -48,7 +48,7 @@ use crate::client::{Client, RpcClient, copy_request};
 use crate::convert::{generator_to_proto, reduction_to_proto, trace_query_ref};
 use crate::error::{Error, Result};
 use crate::reduce::ReducedTrace;
-use crate::trace::{TraceResult, inline_trace};
+use crate::trace::{TraceResult, inline_trace, output_layout, output_layout_of_rays};
 
 /// Messages queued for the transport before enqueueing waits.
 const REQUEST_QUEUE: usize = 16;
@@ -238,7 +238,7 @@ impl Stream {
         rays: Bytes,
     ) -> Result<Operation<TraceResult>> {
         let ray_bytes = rays.len();
-        query.output_layout(ray_bytes).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        output_layout(query, ray_bytes)?;
         let request = inline_trace(trace_query_ref(self.accel_ref(accel.into())?, query), rays);
         self.enqueue(Op::Trace(request), Vec::new(), Expect::Trace(*query, ray_bytes), |o| match o {
             Outcome::Trace(result) => Some(result.clone()),
@@ -254,9 +254,7 @@ impl Stream {
         query: &Query,
         generator: &Generator,
     ) -> Result<Operation<TraceResult>> {
-        let ray_bytes =
-            usize::try_from(generator.count()).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size());
-        query.output_layout(ray_bytes).map_err(|e| Error::InvalidArgument(e.to_string()))?;
+        let ray_bytes = output_layout_of_rays(query, generator.count())?.rays * query.ray_format.size();
         let request = proto::TraceBatchRequest {
             query: Some(trace_query_ref(self.accel_ref(accel.into())?, query)),
             rays: Some(Rays::RaysGenerator(generator_to_proto(generator))),

@@ -281,9 +281,7 @@ impl TracedRays {
             TracedRays::Generated(generator) => Some(generator.count()),
             TracedRays::Bounced(bounced) => bounced.rays(),
         };
-        let Some(rays) = rays else { return Ok(None) };
-        let ray_bytes = usize::try_from(rays).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size());
-        query.output_layout(ray_bytes).map(Some).map_err(|e| Error::InvalidArgument(e.to_string()))
+        rays.map(|rays| rayd_client::output_layout_of_rays(query, rays)).transpose()
     }
 }
 
