@@ -604,6 +604,25 @@ impl Context {
         Ok(accel)
     }
 
+    /// Puts `old` back in the place of `new`, its update ([`Context::update_accel`] and the like), when what had to
+    /// follow the update failed (a server could not store it): `old` is the current version again, accels placing
+    /// it trace again, and `new` is superseded. FAILED_PRECONDITION when `new` is no longer the current version.
+    pub fn undo_update(&self, old: &Arc<Accel>, new: &Accel) -> Result<()> {
+        let mut current =
+            self.accels.get_mut(&old.handle).ok_or(Error::NotFound { what: "accel", id: old.handle.0 })?;
+        if old.handle != new.handle || !std::ptr::eq(Arc::as_ptr(&current), new) {
+            return Err(Error::FailedPrecondition(format!(
+                "this update of accel {} is not its current version: it cannot be undone",
+                old.handle.0
+            )));
+        }
+        *current = Arc::clone(old);
+        drop(current);
+        new.superseded.store(true, Ordering::Release);
+        old.superseded.store(false, Ordering::Release);
+        Ok(())
+    }
+
     /// Marks `accel` stale: it places an older version of a child than the one it now places (as when it is
     /// restored after that child was updated), so it refuses traces until it is updated.
     pub fn mark_stale(&self, accel: &Accel) {

@@ -307,8 +307,24 @@ async fn a_full_or_read_only_data_directory_refuses_writes_by_code_and_serving_g
     let (mut daemon, client) = start(&disk.dir).await;
     let bunny = shared_mesh("stanford-bunny");
     client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
+    client.build_mesh("moving", &bunny, "", BuildFlags::ALLOW_UPDATE).await.unwrap();
+    let moved = Mesh {
+        positions: bunny.positions.iter().map(|p| *p + Vec3::new(0.01, 0.0, 0.0)).collect(),
+        triangles: bunny.triangles.clone(),
+    };
     let rays = rays();
     let expected = answers(&client, "bunny", &rays).await;
+    // An update that cannot be stored changes nothing: the old version traces (and comes back after a restart).
+    let refused_update = |code: Code, why: &'static str| {
+        let (client, moved, rays, expected) = (&client, &moved, &rays, &expected);
+        async move {
+            let refused = client.update_mesh("moving", moved).await.expect_err(why);
+            assert_eq!(refused.code(), code, "{refused}");
+            assert!(refused.to_string().contains(r#"storing accel "moving""#), "{refused}");
+            let traced = answers(client, "moving", rays).await;
+            assert!(&traced == expected, "the update that failed ({why}) is undone: other hits");
+        }
+    };
 
     // Full: 4 MiB blocks, then 64 KiB ones, until the disk has less than 64 KiB left.
     let mut stored = Vec::new();
@@ -321,8 +337,9 @@ async fn a_full_or_read_only_data_directory_refuses_writes_by_code_and_serving_g
     let full = client.build_mesh("bunny2", &bunny, "", BuildFlags::empty()).await.expect_err("no room for an accel");
     assert_eq!(full.code(), Code::ResourceExhausted, "{full}");
     assert!(full.to_string().contains(r#"storing accel "bunny2""#), "{full}");
-    assert_eq!(listing(&client).await.len(), 1, "the refused accel is not kept");
+    assert_eq!(listing(&client).await.len(), 2, "the refused accel is not kept");
     assert_eq!(answers(&client, "bunny", &rays).await, expected, "tracing goes on with a full disk");
+    refused_update(Code::ResourceExhausted, "a full disk").await;
     client.delete_buffer(&stored.remove(0)).await.unwrap();
     stored.push(client.upload_buffer("after", Bytes::from(vec![1u8; 1 << 20])).await.unwrap().id);
 
@@ -337,9 +354,10 @@ async fn a_full_or_read_only_data_directory_refuses_writes_by_code_and_serving_g
     let read_only = client.delete_buffer(&stored[0]).await.expect_err("its file cannot be removed");
     assert_eq!(read_only.code(), Code::FailedPrecondition, "{read_only}");
     let before = listing(&client).await;
-    assert_eq!(before.len(), 1, "the accel whose destroy failed stays");
+    assert_eq!(before.len(), 2, "the accel whose destroy failed stays");
     assert_eq!(buffer_ids(&client).await, stored, "the buffer whose delete failed stays");
     assert_eq!(answers(&client, "bunny", &rays).await, expected, "tracing goes on with a read-only disk");
+    refused_update(Code::FailedPrecondition, "a read-only disk").await;
 
     // What was acknowledged is what comes back.
     disk.remount("rw");
@@ -348,4 +366,10 @@ async fn a_full_or_read_only_data_directory_refuses_writes_by_code_and_serving_g
     assert_eq!(listing(&client).await, before);
     assert_eq!(buffer_ids(&client).await, stored);
     assert_eq!(answers(&client, "bunny", &rays).await, expected);
+    assert!(answers(&client, "moving", &rays).await == expected, "the refused updates came back undone: other hits");
+    for id in &stored {
+        client.delete_buffer(id).await.unwrap();
+    }
+    client.update_mesh("moving", &moved).await.expect("room for the update again");
+    assert!(answers(&client, "moving", &rays).await != expected, "an update that is kept changes the hits");
 }

@@ -1,6 +1,6 @@
 //! Updates (refits): a deformed mesh traces as a fresh build of it; structure changes and accels built without
 //! `ALLOW_UPDATE` are refused; instance accels follow moved instances; accels placing an updated child refuse
-//! traces until they are updated themselves; handles, referrers and memory stay right.
+//! traces until they are updated themselves (or the update is undone); handles, referrers and memory stay right.
 
 mod common;
 
@@ -107,6 +107,15 @@ fn instance_accels_follow_moved_instances_and_refuse_traces_until_updated_after_
     let error = hits(&context, &moved, view).unwrap_err();
     assert_eq!(error.kind(), ErrorKind::FailedPrecondition);
     assert!(error.to_string().contains("as it was before an update"), "{error}");
+    // Undone (as a server does when it cannot store the update): the old version is current, and traces, again.
+    context.undo_update(&child, &new_child).unwrap();
+    assert!(Arc::ptr_eq(&context.accel(child.handle()).unwrap(), &child), "the old version is current again");
+    assert!(hits(&context, &moved, view).is_ok(), "the scene traces again");
+    let error = context.undo_update(&child, &new_child).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::FailedPrecondition);
+    assert!(error.to_string().contains("is not its current version"), "{error}");
+    let new_child = context.update_accel(&child, &[BuildInput::Triangles(packed_bent.input())]).unwrap();
+    assert!(hits(&context, &moved, view).is_err(), "superseded again");
     let refreshed = context.update_instance_accel(&moved, &[at(&new_child, 2.0)]).unwrap();
     let fresh_child =
         context.build_accel(&[BuildInput::Triangles(packed_bent.input())], &BuildOptions::default()).unwrap();

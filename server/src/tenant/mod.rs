@@ -412,6 +412,7 @@ impl Tenant {
 
     /// Updates `entry`'s accel with `update` (which gets its context) and keeps the new version under the same handle
     /// and name; not started once `caller` has gone (an update that has started replaces the version as it ends).
+    /// An update that cannot be stored is undone.
     /// Blocks: call it off the async runtime.
     pub fn update_accel(
         &self,
@@ -428,9 +429,19 @@ impl Tenant {
         let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
         let file = self.prepare_accel_file(&updated);
         let _keeping = self.keep();
-        self.accels.replace(&entry.handle, updated.clone())?;
+        let kept = file.and_then(|file| {
+            self.accels.replace(&entry.handle, updated.clone())?;
+            file.put().inspect_err(|_| {
+                // Replacing what was just replaced cannot fail: the entry is there.
+                let _ = self.accels.replace(&entry.handle, entry.clone());
+            })
+        });
+        if let Err(unsaved) = kept {
+            // An update that cannot be stored changes nothing: the old version is current again.
+            context.undo_update(&entry.accel, &updated.accel)?;
+            return Err(unsaved);
+        }
         self.depart(&entry.accel);
-        file?.put()?;
         Ok(updated)
     }
 
