@@ -420,6 +420,9 @@ async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
                 }
             }
             out.write(rays).await?;
+            // Writes to the page cache finish before the next part is made, so the loop would never wait: it
+            // yields, for Ctrl-C to be seen.
+            tokio::task::yield_now().await;
         }
         out.finish().await
     };
