@@ -321,6 +321,37 @@ async fn cancelling_a_stream_frees_what_it_held_and_its_buffering_is_bounded() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancelling_a_stream_whose_answers_wait_unread_drops_them_and_ends_with_cancelled() {
+    let daemon = Daemon::start(&[("RAYD_LIMITS_STREAM_WINDOW", "2")]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    client.build_mesh("bunny", &bunny().mesh, "", BuildFlags::empty()).await.unwrap();
+    // 12 traces whose answers (1.8 MB of hits each) are not read: flow control stops them, the window's answers
+    // wait in the server and the next one waits for room.
+    let rays = Bytes::from(bunny().camera_rays(RayFormat::OriginTminDirectionTmax, 320, 240));
+    let channel = Channel::from_shared(daemon.url()).unwrap().connect_lazy();
+    let w = open_raw(&channel).await;
+    let sending = send_all(w.sender, (1..=12).map(|id| (id, trace_op("bunny", rays.clone()))).collect());
+    let held = usage_when(&client, "answers waiting", |u| u.stream_bytes >= 2 * 320 * 240 * 12).await;
+    // On another connection: this one's window is full of the stream's unread answers and unsent rays.
+    let mut rpc = RaydClient::new(Channel::from_shared(daemon.url()).unwrap().connect_lazy());
+    rpc.cancel_stream(proto::CancelStreamRequest { stream_id: w.id }).await.unwrap();
+    usage_when(&client, "after cancelling", |u| u.streams == 0 && u.stream_bytes == 0).await;
+    let mut answers = w.answers;
+    let mut answered = 0;
+    let ended = loop {
+        match answers.message().await {
+            Ok(Some(_)) => answered += 1,
+            ended => break ended,
+        }
+    };
+    let ended = ended.expect_err("a cancelled stream's call does not end with OK");
+    assert_eq!(ended.code(), Code::Cancelled, "{ended}");
+    assert!(ended.message().contains("unsent answers dropped"), "{ended}");
+    assert!(answered < 12, "{answered} answers came of 12; {} bytes were held", held.stream_bytes);
+    drop(sending);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_client_holds_back_enqueueing_beyond_its_bytes_in_flight() {
     let daemon = Daemon::start(&[]);
     let options = ClientOptions { stream_bytes_in_flight: 3 << 20, ..Default::default() };

@@ -64,13 +64,22 @@ impl<T> Outbox<T> {
     pub async fn send(&self, answer: Result<T, Status>) -> Result<(), Undelivered> {
         let sent = match self.stall {
             None => self.sender.send(answer).await,
-            Some(stall) => match tokio::time::timeout(stall, self.sender.send(answer)).await {
-                Ok(sent) => sent,
-                Err(_) => {
-                    self.fail(stall);
-                    return Err(Undelivered);
+            Some(stall) => {
+                match tokio::time::timeout(stall, self.sender.send(answer)).await {
+                    Ok(sent) => sent,
+                    Err(_) => {
+                        self.fail(|held| {
+                        tracing::warn!(held, seconds = stall.as_secs(), "a stream's client stopped reading: stream failed");
+                        Status::resource_exhausted(format!(
+                            "the client read no answer for {} s (limits.stream_stall_seconds): the stream is failed \
+                             and the {held} answers it held are dropped",
+                            stall.as_secs()
+                        ))
+                    });
+                        return Err(Undelivered);
+                    }
                 }
-            },
+            }
         };
         sent.map_err(|_| Undelivered)
     }
@@ -85,17 +94,13 @@ impl<T> Outbox<T> {
         self.sender.closed().await
     }
 
-    /// Drops the answers held and ends the stream with the stall's status.
-    fn fail(&self, stall: Duration) {
+    /// Drops the answers held and ends the stream with the status that `why` makes of their count (after a stall,
+    /// or when the stream is cancelled).
+    pub fn fail(&self, why: impl FnOnce(usize) -> Status) {
         let Some(shared) = self.shared.upgrade() else { return };
         let mut shared = lock(&shared);
         let held = shared.queued.take().map_or(0, |queue| queue.len());
-        shared.failure = Some(Status::resource_exhausted(format!(
-            "the client read no answer for {} s (limits.stream_stall_seconds): the stream is failed and the {held} \
-             answers it held are dropped",
-            stall.as_secs()
-        )));
-        tracing::warn!(held, seconds = stall.as_secs(), "a stream's client stopped reading: stream failed");
+        shared.failure = Some(why(held));
         if let Some(waker) = shared.waker.take() {
             waker.wake();
         }

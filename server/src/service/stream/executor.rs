@@ -48,10 +48,7 @@ impl Executor {
         'operations: loop {
             let responses = tokio::select! {
                 biased;
-                () = abort.cancelled() => {
-                    abort.abort(Some(Status::cancelled("the stream was cancelled")));
-                    break;
-                }
+                () = abort.cancelled() => break,
                 () = answers.closed() => break,
                 responses = self.next(&mut queue) => responses,
             };
@@ -64,6 +61,11 @@ impl Executor {
                     sent = answers.send(Ok(answer)) => if sent.is_err() { break 'operations },
                 }
             }
+        }
+        if abort.is_cancelled() && !abort.has_reason() {
+            // Cancelled (CancelStream, or the call reset): the answers not yet sent are dropped, and the call ends
+            // with CANCELLED. A message the reader could not take ends it with its own status instead, after them.
+            answers.fail(|held| Status::cancelled(format!("the stream was cancelled: {held} unsent answers dropped")));
         }
         // The reader stops too, if it is still reading.
         abort.abort(None);

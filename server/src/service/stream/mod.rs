@@ -84,6 +84,16 @@ impl Abort {
         self.token.cancelled().await
     }
 
+    /// Whether the stream must stop.
+    fn is_cancelled(&self) -> bool {
+        self.token.is_cancelled()
+    }
+
+    /// Whether a reason to end the call with was given.
+    fn has_reason(&self) -> bool {
+        self.reason.lock().expect("not poisoned").is_some()
+    }
+
     /// The status to end the call with, if any.
     fn take_reason(&self) -> Option<Status> {
         self.reason.lock().expect("not poisoned").take()
