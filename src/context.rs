@@ -731,12 +731,12 @@ impl Context {
     }
 }
 
-/// What every trace checks before its backend runs: the accel is current, and packed rays' times are numbers (a
-/// checked generator makes only such times).
+/// What every trace checks before its backend runs: the accel is current, packed rays' times are numbers (a
+/// checked generator makes only such times), and the query's ray format keeps a generator's ranges.
 fn check_trace(accel: &Accel, query: &Query, rays: RaySource<'_>) -> Result<()> {
     accel.check_current()?;
-    if let RaySource::Packed(rays) = rays {
-        query.check_times(rays)?;
+    match rays {
+        RaySource::Packed(rays) => query.check_times(rays),
+        RaySource::Generated { generator, .. } => generator.check_format(query.ray_format),
     }
-    Ok(())
 }

@@ -630,7 +630,8 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
     let scratch = Scratch::new("e2e-rayctl-large-secondary");
     build_bunny(&server);
     let (lo, hi) = bunny().info().bounds;
-    let ray_format = RayFormat::OriginDirection;
+    // With tmax: shadow rays stop at their light.
+    let ray_format = RayFormat::OriginTminDirectionTmax;
     let trace = |rays: &[&str], hit_format: &str, out: &str| {
         let formats = ["--ray-format", ray_format.name(), "--hit-format", hit_format, "--out", out];
         json(&server, &[&["trace", "--accel", "bunny"][..], rays, &formats].concat())
@@ -661,7 +662,7 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
     let args = [&camera[..], &["--reflect", "--primary-hits", &primary_file, "--offset", "0.0001"]].concat();
     check("reflections", &args, &Generator::Secondary(reflect.clone()));
 
-    // A file's rays as the primaries, both the rays (86 KB) and their hits uploaded.
+    // A file's rays as the primaries, both the rays (115 KB) and their hits uploaded.
     let camera_rays = scratch.path("camera.rays");
     std::fs::write(&camera_rays, pinhole.rays(ray_format)).unwrap();
     let camera_hits = scratch.path("camera.hits");
@@ -677,6 +678,13 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
     let args =
         ["--rays", &camera_rays, "--towards-light", &light, "--primary-hits", &camera_hits, "--offset", "0.0002"];
     check("shadows", &args, &Generator::Secondary(shadows));
+    let args = [&camera[..], &["--towards-light", &light, "--primary-hits", &primary_file]].concat();
+    let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
+    let refused = fails(&server, &[&["trace", "--accel", "bunny"][..], &args, &formats].concat(), 1);
+    assert!(
+        refused.contains("origin_direction rays carry no tmax"),
+        "shadow rays that would pass the light: {refused}"
+    );
 
     // Hits already on the server: only the reflections' hits, more than a message, need ranges.
     let runtime = tokio::runtime::Runtime::new().expect("a tokio runtime");

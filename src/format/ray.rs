@@ -110,12 +110,28 @@ impl RayFormat {
         }
     }
 
+    /// Whether a ray of this format carries its `tmin` (without it, a ray starts at 0).
+    pub const fn has_tmin(self) -> bool {
+        !matches!(self, RayFormat::OriginDirection | RayFormat::OriginMaskDirectionTmax)
+    }
+
+    /// Whether a ray of this format carries its `tmax` (without it, a ray reaches +∞).
+    pub const fn has_tmax(self) -> bool {
+        !matches!(self, RayFormat::OriginDirection)
+    }
+
     /// Byte offset of the time within a ray, for the formats that carry one.
     pub const fn time_offset(self) -> Option<usize> {
         match self {
             RayFormat::OriginTminDirectionTmaxTime | RayFormat::Full => Some(32),
             _ => None,
         }
+    }
+
+    /// The first of packed `rays` whose time (in the formats that carry one) is NaN, if any.
+    pub fn first_nan_time(self, rays: &[u8]) -> Option<usize> {
+        let offset = self.time_offset()?;
+        rays.chunks_exact(self.size()).position(|ray| super::read_f32(ray, offset).is_nan())
     }
 
     /// Looks a format up by [`RayFormat::name`].

@@ -10,7 +10,7 @@ pub use collect::{AcceptedHit, Collector, InstanceScope, TriangleCandidate, acce
 pub use rows::{ImageRows, split_from};
 
 use crate::error::{Error, Result};
-use crate::format::{HitFormat, RayFlags, RayFormat, read_f32};
+use crate::format::{HitFormat, RayFlags, RayFormat};
 
 /// What a trace reports for each ray.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
@@ -87,9 +87,7 @@ impl Query {
     /// Checks that every ray's time (in the formats that carry one) is a number: a NaN time makes the whole batch
     /// INVALID_ARGUMENT, naming the first such ray. Infinite times are fine (they clamp or vanish).
     pub fn check_times(&self, rays: &[u8]) -> Result<()> {
-        let Some(offset) = self.ray_format.time_offset() else { return Ok(()) };
-        let size = self.ray_format.size();
-        match rays.chunks_exact(size).position(|ray| read_f32(ray, offset).is_nan()) {
+        match self.ray_format.first_nan_time(rays) {
             None => Ok(()),
             Some(index) => Err(Error::InvalidQuery {
                 field: "rays.time",

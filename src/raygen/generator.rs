@@ -10,7 +10,7 @@ use glam::{Vec3, Vec3A};
 
 use rayon::prelude::*;
 
-use super::{Camera, Secondary, sin_cos, tan, uniform};
+use super::{Bounce, Camera, Secondary, sin_cos, tan, uniform};
 #[cfg(target_arch = "x86_64")]
 use crate::cpu_features::{has_avx2, has_avx512};
 use crate::error::{Error, Result};
@@ -178,6 +178,43 @@ fn check_camera_frame(eye: Vec3, target: Vec3, up: Vec3) -> Result<()> {
 }
 
 impl Generator {
+    /// Checks that rays packed in `format` keep the range the generator gives its rays (a lidar's or a sphere's
+    /// `tmin` above 0 or finite `tmax`, a shadow ray's `tmax`): rays that lost it would reach past what was asked.
+    /// INVALID_ARGUMENT naming `query.ray_format` and the generator's field otherwise.
+    pub fn check_format(&self, format: RayFormat) -> Result<()> {
+        let range =
+            |field: &str, value: f32, unset: f32| (value != unset).then(|| format!("generator.{field} ({value})"));
+        // What sets the rays' tmin and tmax, where the generator sets them.
+        let (tmin, tmax) = match self {
+            Generator::Pinhole(..) | Generator::Orthographic(..) => (None, None),
+            Generator::Lidar(lidar) => {
+                (range("min_range", lidar.min_range, 0.0), range("max_range", lidar.max_range, f32::INFINITY))
+            }
+            Generator::Sphere(sphere) => (
+                range("min_distance", sphere.min_distance, 0.0),
+                range("max_distance", sphere.max_distance, f32::INFINITY),
+            ),
+            Generator::Secondary(secondary) => match secondary.bounce {
+                Bounce::Reflect => (None, None),
+                Bounce::TowardsLight(_) => {
+                    (None, Some("generator.secondary.towards_light (the light's distance)".into()))
+                }
+            },
+        };
+        for (set, carried, what) in [(tmin, format.has_tmin(), "tmin"), (tmax, format.has_tmax(), "tmax")] {
+            if let Some(set) = set.filter(|_| !carried) {
+                return Err(Error::InvalidQuery {
+                    field: "query.ray_format",
+                    rule: format!(
+                        "{} rays carry no {what}, which {set} sets: use a format with tmin and tmax",
+                        format.name()
+                    ),
+                });
+            }
+        }
+        Ok(())
+    }
+
     /// Checks the numbers: finite, in range, a frame that exists; INVALID_ARGUMENT naming the field.
     pub fn check(&self) -> Result<()> {
         match self {
@@ -706,6 +743,7 @@ mod tests {
         let format = RayFormat::OriginTminDirectionTmaxTime;
         for generator in [lidar, sphere, jittered] {
             generator.check().unwrap();
+            generator.check_format(format).unwrap();
             let whole = generator.rays(format);
             let size = format.size();
             // From within a point's (a step's, a pixel's) rays, and across to the next point's.
@@ -715,6 +753,40 @@ mod tests {
                 assert_eq!(part, whole[first * size..(first + 17) * size], "{generator:?} from ray {first}");
             }
         }
+    }
+
+    #[test]
+    fn a_format_that_cannot_keep_a_generators_range_is_refused_naming_both() {
+        let lidar = |min_range: f32, max_range: f32| {
+            Generator::Lidar(Lidar {
+                origin: Vec3::ZERO,
+                forward: Vec3::X,
+                up: Vec3::Z,
+                elevations_degrees: vec![0.0],
+                steps: 4,
+                min_range,
+                max_range,
+                time: (0.0, 0.0),
+            })
+        };
+        let refusal = |generator: Generator, format: RayFormat| match generator.check_format(format) {
+            Err(Error::InvalidQuery { field, rule }) => format!("{field}: {rule}"),
+            other => panic!("{other:?}"),
+        };
+        let unlimited = lidar(0.0, f32::INFINITY);
+        for format in RayFormat::ALL {
+            unlimited.check_format(format).unwrap();
+            Generator::Pinhole(camera(), CENTRES).check_format(format).unwrap();
+        }
+        assert_eq!(
+            refusal(lidar(0.5, f32::INFINITY), RayFormat::OriginMaskDirectionTmax),
+            "query.ray_format: origin_mask_direction_tmax rays carry no tmin, which generator.min_range (0.5) sets: \
+             use a format with tmin and tmax"
+        );
+        lidar(0.0, 20.0).check_format(RayFormat::OriginMaskDirectionTmax).unwrap();
+        let far = refusal(lidar(0.0, 20.0), RayFormat::OriginDirection);
+        assert!(far.contains("no tmax, which generator.max_range (20) sets"), "{far}");
+        lidar(0.5, 20.0).check_format(RayFormat::OriginTminDirectionTmax).unwrap();
     }
 
     #[test]

@@ -92,8 +92,8 @@ impl Primary {
 }
 
 impl Secondary {
-    /// Checks the parts: a primary that is not itself secondary, one `Full` hit record a primary ray, a finite light,
-    /// a finite offset ≥ 0; INVALID_ARGUMENT naming the field.
+    /// Checks the parts: packed primary rays whose times are numbers, a primary that is not itself secondary, one
+    /// `Full` hit record a primary ray, a finite light, a finite offset ≥ 0; INVALID_ARGUMENT naming the field.
     pub fn check(&self) -> Result<()> {
         match &self.primary {
             Primary::Packed(format, bytes) => {
@@ -104,7 +104,12 @@ impl Secondary {
                         format.size(),
                         format.name()
                     )
-                })?
+                })?;
+                // A secondary ray takes its primary ray's time: a NaN one is refused as in packed rays.
+                let nan = format.first_nan_time(bytes);
+                require(nan.is_none(), "generator.secondary.primary_rays", || {
+                    format!("ray {} has time NaN; a ray's time must be a number", nan.unwrap_or(0))
+                })?;
             }
             Primary::Generated(generator) => {
                 require(
@@ -276,9 +281,20 @@ mod tests {
         assert_eq!(refused(short), "generator.secondary.primary_hits");
         let ragged = Secondary { primary: Primary::Packed(format, Bytes::from(vec![0u8; 25])), ..base.clone() };
         assert_eq!(refused(ragged), "generator.secondary.primary_rays");
+        let timed = RayFormat::Full;
+        let mut rays = vec![0u8; 2 * timed.size()];
+        timed.encode(&Ray { time: f32::NAN, ..Ray::default() }, &mut rays[timed.size()..]);
+        let at_nan = Secondary { primary: Primary::Packed(timed, Bytes::from(rays)), ..base.clone() };
+        assert_eq!(refused(at_nan), "generator.secondary.primary_rays", "ray 1's time is NaN");
         let nested =
             Secondary { primary: Primary::Generated(Box::new(Generator::Secondary(base.clone()))), ..base.clone() };
         assert_eq!(refused(nested), "generator.secondary.primary_generator");
+        // Shadow rays need their tmax (the light's distance) in the format they are traced in; reflections do not.
+        let shadows = Generator::Secondary(Secondary { bounce: Bounce::TowardsLight(Vec3::Y), ..base.clone() });
+        let lost = shadows.check_format(RayFormat::OriginDirection).unwrap_err().to_string();
+        assert!(lost.contains("no tmax, which generator.secondary.towards_light"), "{lost}");
+        shadows.check_format(RayFormat::OriginMaskDirectionTmax).unwrap();
+        Generator::Secondary(base.clone()).check_format(RayFormat::OriginDirection).unwrap();
         let light = Secondary { bounce: Bounce::TowardsLight(Vec3::NAN), ..base.clone() };
         assert_eq!(refused(light), "generator.secondary.towards_light");
         assert_eq!(refused(Secondary { offset: -1.0, ..base }), "generator.secondary.offset");
