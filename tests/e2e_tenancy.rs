@@ -330,3 +330,41 @@ async fn loads_are_checked_by_their_loaded_bytes() {
     assert!(zeta.accels().await.unwrap().is_empty(), "nothing of the refused load remains");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn loads_are_checked_against_the_tenants_graph_depth_and_motion_keys() {
+    use rayd_engine::geometry::{BuildInput, MotionFlags, MotionOptions, TransformInput};
+    // Blobs the engine makes as the server saves them: a transform over a triangle (2 levels), whose motion has 3
+    // keys.
+    let engine = rayd_engine::Context::new(rayd_engine::Device::cpu());
+    let packed = common::icosphere(1, Vec3::ZERO).pack();
+    let inputs = [BuildInput::Triangles(packed.input())];
+    let child = engine.build_accel(&inputs, &rayd_engine::accel::BuildOptions::default()).unwrap();
+    let identity = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0];
+    let motion = MotionOptions { keys: 3, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
+    let moving = TransformInput::MatrixMotion { keys: vec![identity; 3], motion };
+    let transform = engine.build_transform(&moving, &child).unwrap();
+    let blob = Bytes::from(engine.serialize_accel(&transform, &[]).unwrap());
+
+    let key = "eta-write-key-0123456789";
+    for (case, limits, named) in [
+        (
+            "deep-load",
+            "max_graph_depth = 1",
+            "levels of accel 1 of the blob, loaded: 2 exceeds limits.max_graph_depth = 1",
+        ),
+        (
+            "keyed-load",
+            "max_motion_keys = 2",
+            "motion keys of accel 1 of the blob, loaded: 3 exceeds limits.max_motion_keys = 2",
+        ),
+    ] {
+        let (daemon, dir) = one_tenant(case, "eta", key, limits);
+        let eta = client(&daemon, Some(key)).await;
+        let error = eta.load_accel("moving", "", blob.clone()).await.unwrap_err();
+        assert_eq!(error.code(), Code::ResourceExhausted, "{error}");
+        assert!(error.to_string().contains(named), "{error}");
+        assert!(eta.accels().await.unwrap().is_empty(), "nothing of the refused load remains");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -357,15 +357,29 @@ impl Tenant {
         let accels = context.deserialize_accel(blob, &[])?;
         let build_ns = start.elapsed().as_nanos() as u64;
         let describe = |index| format!("accel {index} of the blob, loaded");
-        let _reserved = match caller.check(what).and_then(|()| self.check_made(&accels, blob.len() as u64, describe)) {
-            Ok(loaded_bytes) => (blob_bytes, loaded_bytes),
-            Err(refused) => {
-                for accel in accels.iter().rev() {
-                    context.destroy_accel(accel.handle())?;
-                }
-                return Err(refused);
-            }
-        };
+        let kept = caller.check(what).and_then(|()| self.check_made(&accels, blob.len() as u64, describe)).and_then(
+            |loaded_bytes| {
+                let _reserved = (blob_bytes, loaded_bytes);
+                self.keep_loaded(&accels, names, device, build_ns, caller, what)
+            },
+        );
+        kept.or_else(|refused| {
+            destroy_made(context, accels)?;
+            Err(refused)
+        })
+    }
+
+    /// Keeps the accels a load made under `names`, with their files: all, or none (the error, each entry that was
+    /// kept forgotten again, and no clone of an accel left, so that the caller can destroy them).
+    fn keep_loaded(
+        &self,
+        accels: &[Arc<Accel>],
+        names: Vec<String>,
+        device: &str,
+        build_ns: u64,
+        caller: &Caller,
+        what: impl FnOnce() -> String,
+    ) -> ServiceResult<Vec<AccelEntry>> {
         let loaded = accels.iter().zip(names).map(|(accel, name)| AccelEntry {
             handle: format!("acc-{}", accel.handle().0),
             accel: Arc::clone(accel),
@@ -375,20 +389,10 @@ impl Tenant {
             version: 0,
             pace: Arc::default(),
         });
-        let destroy_loaded = || accels.iter().rev().try_for_each(|accel| context.destroy_accel(accel.handle()));
-        let files: ServiceResult<Vec<_>> = loaded.map(|entry| Ok((self.prepare_accel_file(&entry)?, entry))).collect();
-        let files = match files {
-            Ok(files) => files,
-            Err(unsaved) => {
-                destroy_loaded()?;
-                return Err(unsaved);
-            }
-        };
+        let files =
+            loaded.map(|entry| Ok((self.prepare_accel_file(&entry)?, entry))).collect::<ServiceResult<Vec<_>>>()?;
         let _keeping = self.keep();
-        if let Err(gone) = caller.check(what) {
-            destroy_loaded()?;
-            return Err(gone);
-        }
+        caller.check(what)?;
         let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
         for (file, entry) in files {
             let inserted = self.accels.insert(entry.handle.clone(), &entry.name, entry.clone());
@@ -400,7 +404,6 @@ impl Tenant {
                 for done in entries.iter().rev() {
                     self.forget_accel(done)?;
                 }
-                destroy_loaded()?;
                 return Err(failed);
             }
         }
@@ -472,8 +475,9 @@ impl Tenant {
     }
 
     /// Checks accels just made (built, or loaded from a blob), for which `reserved` bytes were reserved beforehand,
-    /// against the byte limits: each one's bytes against `max_accel_bytes` (`describe` names the one by its
-    /// index), and what their sum exceeds `reserved` by against `max_total_accel_bytes`, which stays reserved until
+    /// against the limits: each one's bytes against `max_accel_bytes`, its levels against `max_graph_depth` and its
+    /// motion keys against `max_motion_keys` (a build checked those two before; a blob can hold any), `describe`
+    /// naming the one by its index; and what their sum exceeds `reserved` by against `max_total_accel_bytes`, which stays reserved until
     /// they are kept. (A blob's accels take more than its bytes; a GPU instance accel more than its bound, which
     /// leaves out its device's copy of its children.)
     fn check_made(
@@ -484,9 +488,24 @@ impl Tenant {
     ) -> ServiceResult<Option<Reservation>> {
         let mut made = 0u64;
         for (index, accel) in accels.iter().enumerate() {
-            let size = accel.info().size_bytes;
-            ServiceError::check_limit(|| describe(index), size, "max_accel_bytes", self.limits.max_accel_bytes)?;
-            made = made.saturating_add(size);
+            let info = accel.info();
+            let limits = &self.limits;
+            ServiceError::check_limit(|| describe(index), info.size_bytes, "max_accel_bytes", limits.max_accel_bytes)?;
+            let depth = (u64::from(info.depth), u64::from(limits.max_graph_depth));
+            ServiceError::check_limit(
+                || format!("levels of {}", describe(index)),
+                depth.0,
+                "max_graph_depth",
+                depth.1,
+            )?;
+            let keys = (u64::from(info.options.motion.keys), u64::from(limits.max_motion_keys));
+            ServiceError::check_limit(
+                || format!("motion keys of {}", describe(index)),
+                keys.0,
+                "max_motion_keys",
+                keys.1,
+            )?;
+            made = made.saturating_add(info.size_bytes);
         }
         (made > reserved).then(|| self.reserve_accel_bytes(made - reserved)).transpose()
     }
@@ -620,6 +639,15 @@ impl Tenant {
         self.context(DEFAULT_DEVICE)?.1.destroy_buffer(entry.handle)?;
         Ok(())
     }
+}
+
+/// Destroys accels a load made that are not kept, the root first: each is dropped before the accels it places are
+/// destroyed, which are then placed no more.
+fn destroy_made(context: &Context, mut accels: Vec<Arc<Accel>>) -> ServiceResult<()> {
+    while let Some(accel) = accels.pop() {
+        context.destroy_accel(accel.handle())?;
+    }
+    Ok(())
 }
 
 #[cfg(test)]
