@@ -629,6 +629,9 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
     assert_refused(&mut client, result, Code::InvalidArgument, "buffer_name: \"a/b\"").await;
     assert_eq!(list_buffers(&mut client).await, [second], "the refused calls left no buffer");
     upload(&mut client, "third", &[7; 10]).await.expect("room for a buffer again");
+    let save = pb::SaveAccelRequest { accel: by_name("tri"), buffer_name: "third".into() };
+    let result = client.save_accel(save).await;
+    assert_refused(&mut client, result, Code::AlreadyExists, "\"third\"").await;
 
     // With the client's idle connection still open.
     let exit = tokio::task::block_in_place(|| daemon.stop());

@@ -83,6 +83,8 @@ pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> Ser
 /// goes first).
 pub async fn save(tenant: Arc<Tenant>, request: pb::SaveAccelRequest) -> ServiceResult<pb::BufferInfo> {
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
+    // The buffer's name and count before the work; its bytes once the blob is made.
+    tenant.check_new_buffers("buffer_name", &[(&request.buffer_name, 0)])?;
     let buffer = blocking_for_caller(move |caller| {
         let not_kept = || format!("the blob of accel {:?} was not kept", entry.name);
         caller.check(not_kept)?;
