@@ -17,6 +17,7 @@ mod daemon;
 mod reference;
 
 use std::collections::HashSet;
+use std::os::unix::fs::OpenOptionsExt;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 
@@ -241,6 +242,11 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     let colours: HashSet<&[u8]> = pixels.chunks_exact(3).collect();
     assert!(colours.len() > 1, "not one flat colour: {colours:?}");
     assert_same_bytes(&pixels, &bunny_picture(width, height), "the picture's pixels");
+    // A file that cannot be written fails the command (a full disk: /dev/full), saves and scans too.
+    for args in [&["render", "--accel", "bunny", "-o", "/dev/full"][..], &["save", "bunny", "-o", "/dev/full"]] {
+        let stderr = fails(&server, args, 1);
+        assert!(stderr.contains("/dev/full: No space left on device"), "{args:?}: {stderr}");
+    }
 
     // A lidar scan: the returns of the same rays traced in-process, as PLY vertices.
     let ply_file = scratch.path("scan.ply");
@@ -755,11 +761,11 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     let args =
         [&trace[..], &formats, &["--reflect", "--primary-hits", &hits, "--hit-format", "t", "--out", &out]].concat();
     let rays_up = || buffers().iter().any(|buffer| buffer.size_bytes == rays_bytes);
-    interrupt_when(&server, &args, rays_up, "the rays went up");
+    interrupt_when(&server, &args, |_| rays_up(), "the rays went up");
     assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
     // Hits from a pipe whose writer neither writes nor closes it: the read is given up at Ctrl-C.
     let args = [&trace[..], &formats, &["--reflect", "--primary-hits", "/dev/stdin", "--hit-format", "t"]].concat();
-    interrupt_when(&server, &args, rays_up, "the rays went up, before the piped hits");
+    interrupt_when(&server, &args, |_| rays_up(), "the rays went up, before the piped hits");
     assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
     let left = || std::fs::read_dir(&scratch.0).unwrap().map(|entry| entry.unwrap().file_name()).collect::<Vec<_>>();
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
@@ -767,13 +773,35 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     // `rayctl rays` too: interrupted while it writes beside `-o` (244 MiB of rays), it leaves nothing.
     let many = scratch.path("many.rays");
     let args = ["rays", "--accel", "bunny", "--random", "8000000", "-o", &many];
-    interrupt_when(&server, &args, || left().len() > 2, "something was written beside -o");
+    interrupt_when(&server, &args, |_| left().len() > 2, "something was written beside -o");
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
+
+    // Rays from a named pipe that no writer opens: Ctrl-C while rayctl waits in its open (a thread of it in the
+    // openat system call, 257 on x86-64), then once it has opened it and its writer (this test) writes nothing.
+    let fifo = scratch.path("rays.fifo");
+    assert!(Command::new("mkfifo").arg(&fifo).status().unwrap().success());
+    let args = ["trace", "--accel", "bunny", "--rays", &fifo, "--ray-format", "origin_direction", "--hit-format", "t"];
+    if cfg!(target_arch = "x86_64") {
+        let in_openat = |pid: u32| {
+            let threads = std::fs::read_dir(format!("/proc/{pid}/task")).into_iter().flatten().flatten();
+            threads.into_iter().any(|thread| {
+                std::fs::read_to_string(thread.path().join("syscall")).is_ok_and(|call| call.starts_with("257 "))
+            })
+        };
+        interrupt_when(&server, &args, in_openat, "rayctl waits to open the pipe");
+    }
+    let writer = std::cell::RefCell::new(None);
+    // Opening a pipe's writing end without waiting succeeds once it has a reader (Linux's O_NONBLOCK).
+    let opened_by_rayctl = |_| {
+        let open = std::fs::OpenOptions::new().write(true).custom_flags(0o4000).open(&fifo);
+        open.map(|file| writer.replace(Some(file))).is_ok()
+    };
+    interrupt_when(&server, &args, opened_by_rayctl, "rayctl opened the pipe");
 }
 
 /// Runs rayctl with `args` (its standard input a pipe kept open and empty), sends it SIGINT (Ctrl-C) as soon as
-/// `ready` holds (`what`, waited for up to 60 s), and checks that it ended within 30 s as a failure saying so.
-fn interrupt_when(server: &str, args: &[&str], ready: impl Fn() -> bool, what: &str) {
+/// `ready` holds of its process id (`what`, waited for up to 60 s), and checks that it ended within 30 s as a failure saying so.
+fn interrupt_when(server: &str, args: &[&str], ready: impl Fn(u32) -> bool, what: &str) {
     let mut rayctl = rayctl_command(server, args)
         .stdin(std::process::Stdio::piped())
         .stdout(std::process::Stdio::piped())
@@ -782,7 +810,7 @@ fn interrupt_when(server: &str, args: &[&str], ready: impl Fn() -> bool, what: &
         .unwrap();
     let _open_stdin = rayctl.stdin.take();
     let waiting_since = std::time::Instant::now();
-    while !ready() {
+    while !ready(rayctl.id()) {
         assert!(waiting_since.elapsed().as_secs() < 60, "never: {what}");
         std::thread::sleep(std::time::Duration::from_millis(1));
     }
@@ -909,6 +937,22 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
         stderr.starts_with(&format!("error: InvalidArgument: --out {rays_file}: is the file of --rays {rays_file}")),
         "{stderr}"
     );
+
+    // Hits to standard output, itself a file: the file holds the hits alone, the report goes to standard error.
+    // Counts have no file beside a device: refused.
+    let other = Scratch::new("e2e-rayctl-stdout");
+    let (file_out, stdout_out) = (other.path("closest.hits"), other.path("stdout.hits"));
+    let closest = [&args[..9], &["--out"]].concat();
+    json(&server, &[&closest[..], &[&file_out]].concat());
+    let to_stdout = rayctl_command(&server, &[&closest[..], &["/dev/stdout"]].concat())
+        .stdout(std::fs::File::create(&stdout_out).unwrap())
+        .output()
+        .unwrap();
+    assert!(to_stdout.status.success(), "{}", printed(&to_stdout));
+    assert!(read(&stdout_out) == read(&file_out), "only the hits on standard output");
+    assert!(String::from_utf8_lossy(&to_stdout.stderr).contains(" rays, "), "{}", printed(&to_stdout));
+    let stderr = fails(&server, &[&args[..args.len() - 1], &["/dev/null"]].concat(), 1);
+    assert!(stderr.contains("--out /dev/null: the counts of this query go to /dev/null.counts"), "{stderr}");
 
     // A NaN time in the last ray: the server refuses its part after the parts before it were written.
     let last = rays.len() - 4;

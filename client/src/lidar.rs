@@ -1,9 +1,6 @@
 //! Lidar scans made and reduced by the server: a spinning lidar's rays are generated where they are traced and
 //! only the returns' points come back, written as a PLY point cloud.
 
-use std::io::Write;
-use std::path::Path;
-
 use bytes::Bytes;
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::glam::Vec3;
@@ -12,7 +9,7 @@ use rayd_engine::raygen::{Generator, Lidar};
 use rayd_engine::reduce::{PointCloud, PointEncoding, Reduction};
 
 use crate::client::Client;
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::reduce::ReducedTrace;
 
 /// The returns of one lidar revolution.
@@ -35,21 +32,15 @@ impl LidarScan {
         self.points.is_empty()
     }
 
-    /// Writes the returns as a binary little-endian PLY file of `x y z` float vertices.
-    pub fn write_ply(&self, path: &Path) -> Result<()> {
-        let header = format!(
+    /// The header of a binary little-endian PLY file of the returns as `x y z` float vertices, which
+    /// [`LidarScan::points`] follow.
+    pub fn ply_header(&self) -> String {
+        format!(
             "ply\nformat binary_little_endian 1.0\ncomment rayd lidar scan, {} rays\nelement vertex {}\n\
              property float x\nproperty float y\nproperty float z\nend_header\n",
             self.rays,
             self.len()
-        );
-        let write = || -> std::io::Result<()> {
-            let mut file = std::io::BufWriter::new(std::fs::File::create(path)?);
-            file.write_all(header.as_bytes())?;
-            file.write_all(&self.points)?;
-            file.flush()
-        };
-        write().map_err(|e| Error::io(path, e))
+        )
     }
 }
 

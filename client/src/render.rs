@@ -2,8 +2,6 @@
 //! server from a camera and reduced by it to an image of depths or normals (neither rays nor hits cross the
 //! network), shaded here and written as PNG.
 
-use std::path::Path;
-
 use rayd_engine::format::{HitFormat, RayFormat};
 use rayd_engine::query::Query;
 use rayd_engine::raygen::{Camera, Generator, PixelSampling};
@@ -46,14 +44,18 @@ pub struct Image {
 }
 
 impl Image {
-    /// Writes the picture as a PNG file.
-    pub fn write_png(&self, path: &Path) -> Result<()> {
-        let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
-        let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), self.width, self.height);
+    /// The picture encoded as a PNG file's bytes.
+    pub fn png(&self) -> Result<Vec<u8>> {
+        let mut bytes = Vec::new();
+        let mut encoder = png::Encoder::new(&mut bytes, self.width, self.height);
         encoder.set_color(png::ColorType::Rgb);
         encoder.set_depth(png::BitDepth::Eight);
-        let encoded = encoder.write_header().and_then(|mut writer| writer.write_image_data(&self.rgb));
-        encoded.map_err(|e| Error::io(path, std::io::Error::other(e)))
+        let encoded = encoder.write_header().and_then(|mut writer| {
+            writer.write_image_data(&self.rgb)?;
+            writer.finish()
+        });
+        encoded.map_err(|e| Error::InvalidArgument(format!("the picture cannot be encoded as PNG: {e}")))?;
+        Ok(bytes)
     }
 }
 
@@ -133,10 +135,8 @@ mod tests {
 
     #[test]
     fn png_has_the_picture_size() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("picture.png");
-        Image { width: 2, height: 1, rgb: vec![1, 2, 3, 4, 5, 6] }.write_png(&path).unwrap();
-        let decoder = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(&path).unwrap()));
+        let png = Image { width: 2, height: 1, rgb: vec![1, 2, 3, 4, 5, 6] }.png().unwrap();
+        let decoder = png::Decoder::new(std::io::Cursor::new(png));
         let info = decoder.read_info().unwrap().info().clone();
         assert_eq!((info.width, info.height, info.color_type), (2, 1, png::ColorType::Rgb));
     }

@@ -659,9 +659,12 @@ fn parse_seconds(text: &str) -> Result<Duration, String> {
     let seconds: f64 = text.parse().map_err(|e| format!("{text:?}: {e}"))?;
     Duration::try_from_secs_f64(seconds)
         .ok()
-        .filter(|d| !d.is_zero())
-        .ok_or_else(|| format!("{text}: not a positive duration"))
+        .filter(|d| !d.is_zero() && d.as_secs() <= MAX_SECONDS)
+        .ok_or_else(|| format!("{text}: not a positive duration of at most {MAX_SECONDS} s"))
 }
+
+/// Longest duration an option takes (about 31 years): a deadline that far from now is still a time.
+const MAX_SECONDS: u64 = 1_000_000_000;
 
 #[cfg(test)]
 mod tests {
@@ -713,6 +716,18 @@ mod tests {
         let error = error.unwrap_err();
         assert_eq!(error.kind(), clap::error::ErrorKind::InvalidValue);
         assert!(error.to_string().contains("origin_direction"), "the error lists the valid names");
+    }
+
+    #[test]
+    fn durations_are_positive_and_at_most_a_billion_seconds() {
+        assert_eq!(parse_seconds("1.5"), Ok(Duration::from_millis(1500)));
+        assert_eq!(parse_seconds("1e9"), Ok(Duration::from_secs(MAX_SECONDS)));
+        for refused in ["0", "-1", "1e19", "inf", "NaN"] {
+            let error = parse_seconds(refused).unwrap_err();
+            assert!(error.contains("not a positive duration of at most 1000000000 s"), "{refused}: {error}");
+        }
+        let error = parse(&["bench", "--accel", "a", "--duration", "1e19"]).unwrap_err();
+        assert_eq!(error.kind(), clap::error::ErrorKind::ValueValidation, "{error}");
     }
 
     #[test]

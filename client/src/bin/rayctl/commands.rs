@@ -65,7 +65,7 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         }
         Command::Save { name, output } => {
             let blob = client.save_accel(name).await?;
-            std::fs::write(output, &blob).map_err(|e| Error::io(output, e))?;
+            parts::write_whole(output, &[&blob]).await?;
             let file = output.display().to_string();
             Ok(Output {
                 json: json!({ "accel": name, "file": file, "bytes": blob.len() }),
@@ -122,27 +122,28 @@ async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
 }
 
 /// `rayctl trace`: the rays are read from their file and the hits written to `--out` a part at a time
-/// ([`parts`]), so that rayctl holds neither whole; the wall time counts the reading and the writing.
+/// ([`parts`]), so that rayctl holds neither whole; the wall time counts everything from the start (lookups, the
+/// reading and the writing), all of which Ctrl-C interrupts.
 async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
     let interrupt = ctrl_c()?;
-    let query = args.query.query(args.ray_format, args.hit_format);
-    let rays = traced_rays(client, args).await?;
-    let options = ray_count_options(args);
-    let layout = rays.layout(&query)?;
-    let outputs = match &args.out {
-        Some(out) => {
-            let outputs = Outputs::create(out, query.kind.has_counts(), rays.file())?;
-            if let Some(layout) = &layout {
-                outputs.check_room(layout, &options)?;
-            }
-            Some(outputs)
-        }
-        None => None,
-    };
     let start = Instant::now();
+    let query = args.query.query(args.ray_format, args.hit_format);
+    let options = ray_count_options(args);
     let node = client.for_scene(&args.accel);
     let mut temporary = Temporary::default();
     let traced = async {
+        let rays = traced_rays(client, args).await?;
+        let layout = rays.layout(&query)?;
+        let outputs = match &args.out {
+            Some(out) => {
+                let outputs = Outputs::create(out, query.kind.has_counts(), rays.file())?;
+                if let Some(layout) = &layout {
+                    outputs.check_room(layout, &options)?;
+                }
+                Some(outputs)
+            }
+            None => None,
+        };
         let parts = match rays {
             TracedRays::File(file) => {
                 let chunks = file.chunks(client.part_rays(&query) * query.ray_format.size());
@@ -297,7 +298,7 @@ async fn traced_rays(client: &Client, args: &TraceArgs) -> Result<TracedRays> {
         });
     };
     let hits = match (&secondary.primary_hits, &secondary.primary_hits_buffer) {
-        (Some(file), _) => PrimaryHits::File(PackedFile::primary_hits(file)?),
+        (Some(file), _) => PrimaryHits::File(PackedFile::primary_hits(file).await?),
         (None, Some(name)) => PrimaryHits::Buffer(name.clone()),
         (None, None) => unreachable!("clap requires --primary-hits or --primary-hits-buffer with a bounce"),
     };
@@ -309,7 +310,7 @@ async fn traced_rays(client: &Client, args: &TraceArgs) -> Result<TracedRays> {
 /// The rays of `rayctl trace`'s one ray source: `--rays`, `--pixels`, `--lidar`, or `--point`/`--points`.
 async fn ray_source(client: &Client, args: &TraceArgs) -> Result<RaySource> {
     if let Some(file) = &args.rays {
-        return Ok(RaySource::File(PackedFile::rays(file, args.ray_format)?));
+        return Ok(RaySource::File(PackedFile::rays(file, args.ray_format).await?));
     }
     let generator = if let Some((width, height)) = args.pixels {
         let sampling = args.pixel_sampling();
@@ -458,7 +459,7 @@ async fn render(client: &Client, args: &RenderArgs) -> Result<Output> {
     let start = Instant::now();
     let image = client.render(&args.accel, &camera, args.shading.into()).await?;
     let wall_ms = start.elapsed().as_secs_f64() * 1e3;
-    image.write_png(&args.output)?;
+    parts::write_whole(&args.output, &[&image.png()?]).await?;
     let file = args.output.display().to_string();
     Ok(Output {
         json: json!({ "file": file, "width": image.width, "height": image.height, "wall_ms": wall_ms }),
@@ -472,7 +473,7 @@ async fn lidar(client: &Client, args: &LidarArgs) -> Result<Output> {
     let start = Instant::now();
     let scan = client.lidar(&args.accel, &lidar).await?;
     let wall_ms = start.elapsed().as_secs_f64() * 1e3;
-    scan.write_ply(&args.output)?;
+    parts::write_whole(&args.output, &[scan.ply_header().as_bytes(), &scan.points]).await?;
     let file = args.output.display().to_string();
     Ok(Output {
         json: json!({ "file": file, "rays": scan.rays, "points": scan.len(), "wall_ms": wall_ms }),

@@ -21,7 +21,7 @@ fn main() -> ExitCode {
     };
     let code = runtime.block_on(async {
         match commands::run(&cli).await {
-            Ok(output) => print(&if cli.json { output.json.to_string() } else { output.text }),
+            Ok(output) => report(&if cli.json { output.json.to_string() } else { output.text }),
             Err(error) => failure(&format!("{:?}: {error}", error.code())),
         }
     });
@@ -37,11 +37,17 @@ fn failure(message: &str) -> ExitCode {
     ExitCode::FAILURE
 }
 
-/// Prints `text` and a newline on standard output: success, also when the reader has gone (a closed pipe), as
-/// other command-line tools end; any other failure to write is an error.
-fn print(text: &str) -> ExitCode {
-    let mut stdout = io::stdout().lock();
-    match writeln!(stdout, "{text}").and_then(|()| stdout.flush()) {
+/// Prints the report `text` and a newline on standard output, or on standard error where data went to standard
+/// output (`--out /dev/stdout`): success, also when the reader has gone (a closed pipe), as other command-line tools
+/// end; any other failure to write is an error.
+fn report(text: &str) -> ExitCode {
+    let written = if parts::standard_output_taken() {
+        writeln!(io::stderr(), "{text}")
+    } else {
+        let mut stdout = io::stdout().lock();
+        writeln!(stdout, "{text}").and_then(|()| stdout.flush())
+    };
+    match written {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) if e.kind() == io::ErrorKind::BrokenPipe => ExitCode::SUCCESS,
         Err(e) => failure(&format!("standard output: {e}")),

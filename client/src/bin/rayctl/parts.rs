@@ -5,6 +5,7 @@
 use std::io::ErrorKind;
 use std::os::unix::fs::{MetadataExt, PermissionsExt};
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 
 use bytes::{Bytes, BytesMut};
 use futures_util::{Stream, StreamExt};
@@ -56,24 +57,33 @@ impl Records {
 
 impl PackedFile {
     /// The ray file `--rays` at `path`, of rays packed in `format`.
-    pub fn rays(path: &Path, format: RayFormat) -> Result<PackedFile> {
+    pub async fn rays(path: &Path, format: RayFormat) -> Result<PackedFile> {
         PackedFile::open(Records {
             path: path.into(),
             option: "--rays",
             record_bytes: format.size(),
             format: format.name(),
         })
+        .await
     }
 
     /// The hits file `--primary-hits` at `path`, of `full` hit records.
-    pub fn primary_hits(path: &Path) -> Result<PackedFile> {
+    pub async fn primary_hits(path: &Path) -> Result<PackedFile> {
         let full = HitFormat::Full;
         let record_bytes = full.size().expect("full records have a size");
-        PackedFile::open(Records { path: path.into(), option: "--primary-hits", record_bytes, format: full.name() })
+        let records = Records { path: path.into(), option: "--primary-hits", record_bytes, format: full.name() };
+        PackedFile::open(records).await
     }
 
-    /// The file `records` says.
-    fn open(records: Records) -> Result<PackedFile> {
+    /// The file `records` says, opened on a blocking thread: opening a pipe waits for its writer, and Ctrl-C must
+    /// still be seen.
+    async fn open(records: Records) -> Result<PackedFile> {
+        let opening = tokio::task::spawn_blocking(move || PackedFile::open_now(records));
+        opening.await.map_err(|e| Error::Status(tonic::Status::internal(format!("opening a file: {e}"))))?
+    }
+
+    /// The file `records` says, opened on this thread.
+    fn open_now(records: Records) -> Result<PackedFile> {
         let file = std::fs::File::open(&records.path).map_err(|e| Error::io(&records.path, e))?;
         let metadata = file.metadata().map_err(|e| Error::io(&records.path, e))?;
         let size = metadata.is_file().then_some(metadata.len());
@@ -177,6 +187,14 @@ impl Outputs {
     /// The outputs of `out` (counts too when `counts`), refused when one of them is the file `read` that the trace
     /// reads as it goes (writing would overwrite it while it is read).
     pub fn create(out: &Path, counts: bool, read: Option<&PackedFile>) -> Result<Outputs> {
+        if counts && std::fs::metadata(out).is_ok_and(|target| !target.is_file()) {
+            return Err(Error::InvalidArgument(format!(
+                "--out {}: the counts of this query go to {}, beside --out, which a device or a pipe has not: give \
+                 --out a file",
+                out.display(),
+                counts_path(out).display()
+            )));
+        }
         let counts = counts.then(|| counts_path(out));
         let hits = OutFile::create(out, read)?;
         let counts = counts.map(|path| OutFile::create(&path, read)).transpose()?;
@@ -274,6 +292,9 @@ impl OutFile {
                 (file, Some(beside))
             }
         };
+        if is_standard_output(&file) {
+            STANDARD_OUTPUT_TAKEN.store(true, Ordering::Relaxed);
+        }
         let empty_first = beside.is_none() && file.metadata().map_err(io)?.is_file();
         let writer = BufWriter::with_capacity(1 << 20, tokio::fs::File::from_std(file));
         Ok(OutFile { path: path.into(), beside, writer, empty_first })
@@ -336,6 +357,34 @@ impl OutFile {
         }
         Ok(())
     }
+}
+
+/// Set once a file written is this process's standard output (`--out /dev/stdout`): the report then goes to
+/// standard error, so that the data written there stays whole.
+static STANDARD_OUTPUT_TAKEN: AtomicBool = AtomicBool::new(false);
+
+/// Whether a file written was this process's standard output.
+pub fn standard_output_taken() -> bool {
+    STANDARD_OUTPUT_TAKEN.load(Ordering::Relaxed)
+}
+
+/// Whether `file` is what standard output is (the same file, device or pipe).
+fn is_standard_output(file: &std::fs::File) -> bool {
+    let identity = |stat: rustix::fs::Stat| (stat.st_dev, stat.st_ino);
+    match (rustix::fs::fstat(file), rustix::fs::fstat(std::io::stdout())) {
+        (Ok(written), Ok(stdout)) => identity(written) == identity(stdout),
+        _ => false,
+    }
+}
+
+/// Writes `parts` one after the other as the whole file `path`, as [`OutFile`] writes (a plain or new file beside
+/// itself, put in place once all is written).
+pub async fn write_whole(path: &Path, parts: &[&[u8]]) -> Result<()> {
+    let mut out = OutFile::create(path, None)?;
+    for part in parts {
+        out.write(part).await?;
+    }
+    out.finish().await
 }
 
 /// Bytes free to this user on the file system of `path`.
