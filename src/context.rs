@@ -125,6 +125,9 @@ pub struct Accel {
     data: Box<dyn BackendAccel>,
     /// The backend that built it.
     backend: BackendKind,
+    /// The device it lives on (its backend's instance): accels of two devices of one backend (two GPUs) do not
+    /// share memory.
+    home: Arc<dyn Backend>,
     /// The accels it places (its instances' children, a transform's child): kept alive while it lives.
     children: Vec<Arc<Accel>>,
     /// Live accels that place this one (in any of its versions); while there are any it cannot be destroyed.
@@ -473,20 +476,21 @@ impl Context {
     /// Copies `source` (from this or another context) into this context, as `rtpModelCopy` does; with `compact`, as
     /// `optixAccelCompact` does: the copy then occupies at most the source's `compacted_size_bytes`, and the source
     /// must allow compaction. The copy traces as the source does, has its options and places the same children.
-    /// (Every copy is exact-size on the CPU backend.) A geometry accel may be copied from a device of another
-    /// backend (its host structure is copied, or uploaded); an instance accel or transform only within a backend,
-    /// since its children stay where they are (FAILED_PRECONDITION: copy the children, then build it there).
+    /// (Every copy is exact-size on the CPU backend.) A geometry accel may be copied from another device (its host
+    /// structure is copied, or uploaded); an instance accel or transform only to a device that reads its children
+    /// where they stay: its own, or the CPU from the CPU (FAILED_PRECONDITION: copy the children, then build it
+    /// there). Two GPU devices of one backend share no memory.
     pub fn copy_accel(&self, source: &Accel, compact: bool) -> Result<Arc<Accel>> {
         if compact && !source.info.options.flags.contains(BuildFlags::ALLOW_COMPACTION) {
             return Err(Error::FailedPrecondition("compaction needs an accel built with ALLOW_COMPACTION".into()));
         }
-        let data = if source.backend == self.device.info.kind {
+        let data = if self.shares_memory_with(source) {
             source.data.duplicate()
         } else {
             let host = source.data.host().filter(|_| source.info.kind == AccelKind::Triangles).ok_or_else(|| {
                 Error::FailedPrecondition(format!(
-                    "copying a {:?} {:?} accel to a {:?} device is not supported (geometry accels are): copy its \
-                     children and build it there",
+                    "copying a {:?} {:?} accel to another {:?} device is not supported (geometry accels are): copy \
+                     its children and build it there",
                     source.backend, source.info.kind, self.device.info.kind
                 ))
             })?;
@@ -506,16 +510,24 @@ impl Context {
         Ok(copy)
     }
 
-    /// FAILED_PRECONDITION unless `child` was built by this context's backend (an instance accel or transform
-    /// places accels of its own device).
+    /// FAILED_PRECONDITION unless `child` lives where this context's device can read it (an instance accel or
+    /// transform places accels of its own device).
     fn check_device(&self, child: &Accel) -> Result<()> {
-        if child.backend != self.device.info.kind {
+        if !self.shares_memory_with(child) {
             return Err(Error::FailedPrecondition(format!(
-                "accel {} is a {:?} accel: a {:?} device places accels of its own device only",
+                "accel {} is a {:?} accel of another device: a {:?} device places accels of its own device only",
                 child.handle.0, child.backend, self.device.info.kind
             )));
         }
         Ok(())
+    }
+
+    /// Whether this context's device reads `accel` where it is: it lives on this device, or both are the CPU's
+    /// (host memory is one).
+    fn shares_memory_with(&self, accel: &Accel) -> bool {
+        let cpu = BackendKind::Cpu;
+        std::ptr::addr_eq(Arc::as_ptr(&accel.home), Arc::as_ptr(&self.device.backend))
+            || (accel.backend == cpu && self.device.info.kind == cpu)
     }
 
     /// Gives a built (or deserialized) structure a handle, its description and its memory charge; counts it as a
@@ -550,6 +562,7 @@ impl Context {
             info,
             data,
             backend: self.device.info.kind,
+            home: Arc::clone(&self.device.backend),
             children,
             referrers: Arc::default(),
             superseded: AtomicBool::new(false),
@@ -583,6 +596,7 @@ impl Context {
             info,
             data,
             backend: old.backend,
+            home: Arc::clone(&old.home),
             children: refer_to(children),
             referrers: Arc::clone(&old.referrers),
             superseded: AtomicBool::new(false),

@@ -1,7 +1,7 @@
 //! The wgpu backend against the CPU backend: every ray format × hit format × query kind on the bunny, a random
 //! soup with masks, flags and two geometries, a vertex-motion mesh and a graph of instance accels and transforms
 //! (visibility masks, instance flags, ties, static, matrix and SRT motion, a motion instance accel); large
-//! batches; batches split into many chunks; copies between devices; what the backend refuses.
+//! batches; batches split into many chunks; copies between devices (two GPU devices too); what the backend refuses.
 //!
 //! The two backends run the same algorithm, but a GPU may fuse multiplies and adds, so answers are compared with
 //! tolerances (issue 8): a ray agrees when hit/miss, primitive, geometry and instance ids, facing and counts are
@@ -802,6 +802,18 @@ fn geometry_accels_copy_between_devices_and_graphs_stay_on_theirs() {
     let copy = gpu.copy_accel(&placed, true).unwrap();
     let (placed_hits, _) = trace(&gpu, &copy, &query, &packed);
     assert_eq!(placed_hits, got, "an identity instance traces as its child");
+
+    // Another device of the same backend (a second wgpu device, as on a machine with two GPUs) shares no memory
+    // with the first: a geometry accel is uploaded there; a graph, whose children stay, is not copied there.
+    let Some(second) = gpu_with(WgpuOptions::default()) else { return };
+    let second = Context::new(second);
+    let to_second = second.copy_accel(&to_gpu, false).unwrap();
+    assert_eq!(trace(&second, &to_second, &query, &packed).0, got, "the copy on the second device traces the same");
+    let error = second.copy_accel(&placed, false).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::FailedPrecondition, "{error}");
+    let over_first = instance(&to_gpu, Affine3A::IDENTITY, 0, 0xFF, InstanceFlags::empty());
+    let error = second.build_instance_accel(&[over_first], &BuildOptions::default()).unwrap_err();
+    assert!(error.to_string().contains("of another device"), "{error}");
 }
 
 #[test]
