@@ -139,13 +139,32 @@ async fn moving_meshes_and_transforms_trace_at_each_rays_time() {
     let error = client
         .build(proto::BuildAccelRequest {
             name: "both".into(),
-            inputs: vec![proto::BuildInput { input: Some(proto::build_input::Input::Transform(both)) }],
+            inputs: vec![proto::BuildInput { input: Some(proto::build_input::Input::Transform(both.clone())) }],
             ..Default::default()
         })
         .await
         .unwrap_err();
     assert_eq!(error.code(), Code::InvalidArgument, "{error}");
     assert!(error.to_string().contains("inputs[0].transform"), "{error}");
+    // A transform's build ignores the build options, even ones a mesh's build refuses (both preferences, more motion
+    // keys than max_motion_keys).
+    let still = proto::TransformInput { srt_keys: Vec::new(), ..both };
+    let ignored = proto::BuildOptions {
+        prefer_fast_trace: true,
+        prefer_fast_build: true,
+        motion: Some(proto::MotionOptions { keys: 1000, ..Default::default() }),
+        ..Default::default()
+    };
+    let built = client
+        .build(proto::BuildAccelRequest {
+            name: "still".into(),
+            inputs: vec![proto::BuildInput { input: Some(proto::build_input::Input::Transform(still)) }],
+            options: Some(ignored),
+            ..Default::default()
+        })
+        .await
+        .expect("a transform built whatever the options");
+    assert!(built.options.is_some_and(|o| o.allow_update && o.allow_compaction), "a transform's own options");
 
     // A NaN time fails the whole batch before anything is traced.
     let rays = [Ray { origin: Vec3A::new(0.2, 0.2, 10.0), direction: -Vec3A::Z, time: f32::NAN, ..Ray::default() }];

@@ -30,7 +30,7 @@ pub fn info(entry: &AccelEntry) -> pb::AccelInfo {
 /// Builds an accel (off the async runtime; not kept if the caller goes first).
 pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
-    let options = inputs::options(&tenant, request.options.as_ref())?;
+    let options = inputs::options(&tenant, &resolved, request.options.as_ref())?;
     let entry = blocking_for_caller(move |caller| {
         tenant.build_accel(
             &request.name,

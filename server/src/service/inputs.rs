@@ -240,8 +240,16 @@ fn transform_motion(tenant: &Tenant, motion: Option<&pb::MotionOptions>) -> Serv
     Ok(motion)
 }
 
-/// The engine's build options of a request, within the tenant's `max_motion_keys`.
-pub fn options(tenant: &Tenant, options: Option<&pb::BuildOptions>) -> ServiceResult<BuildOptions> {
+/// The engine's build options of a request for `resolved`, within the tenant's `max_motion_keys`; a transform's build
+/// ignores them (its input's motion moves it).
+pub fn options(
+    tenant: &Tenant,
+    resolved: &Resolved,
+    options: Option<&pb::BuildOptions>,
+) -> ServiceResult<BuildOptions> {
+    if let Resolved::Transform { .. } = resolved {
+        return Ok(BuildOptions::default());
+    }
     let options = convert::build_options(options);
     check_motion_keys(tenant, &options.motion, "options.motion.keys")?;
     Ok(options)
