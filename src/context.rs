@@ -524,7 +524,7 @@ impl Context {
 
     /// Whether this context's device reads `accel` where it is: it lives on this device, or both are the CPU's
     /// (host memory is one).
-    fn shares_memory_with(&self, accel: &Accel) -> bool {
+    pub(crate) fn shares_memory_with(&self, accel: &Accel) -> bool {
         let cpu = BackendKind::Cpu;
         std::ptr::addr_eq(Arc::as_ptr(&accel.home), Arc::as_ptr(&self.device.backend))
             || (accel.backend == cpu && self.device.info.kind == cpu)

@@ -788,6 +788,13 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
                 std::fs::read_to_string(thread.path().join("syscall")).is_ok_and(|call| call.starts_with("257 "))
             })
         };
+        // Still there 200 ms later: the pipe's open, not one of the quick ones before Ctrl-C is listened for.
+        let in_openat = |pid: u32| {
+            in_openat(pid) && {
+                std::thread::sleep(std::time::Duration::from_millis(200));
+                in_openat(pid)
+            }
+        };
         interrupt_when(&server, &args, in_openat, "rayctl waits to open the pipe");
     }
     let writer = std::cell::RefCell::new(None);
@@ -953,6 +960,16 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
     assert!(String::from_utf8_lossy(&to_stdout.stderr).contains(" rays, "), "{}", printed(&to_stdout));
     let stderr = fails(&server, &[&args[..args.len() - 1], &["/dev/null"]].concat(), 1);
     assert!(stderr.contains("--out /dev/null: the counts of this query go to /dev/null.counts"), "{stderr}");
+    let counted = rayctl_command(&server, &[&args[..args.len() - 1], &["/dev/stdout"]].concat())
+        .stdout(std::fs::File::create(&stdout_out).unwrap())
+        .output()
+        .unwrap();
+    assert_eq!(counted.status.code(), Some(1), "{}", printed(&counted));
+    assert!(
+        String::from_utf8_lossy(&counted.stderr).contains("which standard output has not"),
+        "{}",
+        printed(&counted)
+    );
 
     // A NaN time in the last ray: the server refuses its part after the parts before it were written.
     let last = rays.len() - 4;

@@ -803,8 +803,9 @@ fn geometry_accels_copy_between_devices_and_graphs_stay_on_theirs() {
     let (placed_hits, _) = trace(&gpu, &copy, &query, &packed);
     assert_eq!(placed_hits, got, "an identity instance traces as its child");
 
-    // Another device of the same backend (a second wgpu device, as on a machine with two GPUs) shares no memory
-    // with the first: a geometry accel is uploaded there; a graph, whose children stay, is not copied there.
+    // Another device of the same backend (here a second handle on the one adapter, which the engine treats as it
+    // treats a second GPU) shares no memory with the first: a geometry accel is uploaded there; a graph, whose
+    // children stay, is not copied there.
     let Some(second) = gpu_with(WgpuOptions::default()) else { return };
     let second = Context::new(second);
     let to_second = second.copy_accel(&to_gpu, false).unwrap();

@@ -13,7 +13,6 @@ use super::entry::{EXTERNAL_BIT, Entry, ExternalRecord, kind_of};
 use super::header::{HEADER_BYTES, Header};
 use super::wire::{Reader, invalid};
 use crate::accel::AccelKind;
-use crate::backend::BackendKind;
 use crate::context::{Accel, Context};
 use crate::error::{Error, Result};
 use crate::geometry::MAX_GRAPH_DEPTH;
@@ -37,7 +36,7 @@ pub(crate) fn accels(context: &Context, blob: &[u8], external: &[Arc<Accel>]) ->
     }
     let mut graph = Graph { context, made: Vec::new(), external: Vec::with_capacity(external.len()) };
     for (index, (accel, record)) in external.iter().zip(&records).enumerate() {
-        let moved = check_external(index, accel, record, device)?;
+        let moved = check_external(index, accel, record, context)?;
         graph.external.push((Arc::clone(accel), moved));
     }
     for index in 0..header.accels as usize {
@@ -50,15 +49,16 @@ pub(crate) fn accels(context: &Context, blob: &[u8], external: &[Arc<Accel>]) ->
     Ok(graph.keep())
 }
 
-/// Checks external accel `index` against what the blob recorded of it: of this context's device
+/// Checks external accel `index` against what the blob recorded of it: where `context`'s device reads it
 /// (FAILED_PRECONDITION otherwise) and of the recorded kind (INVALID_ARGUMENT otherwise). Returns whether its
 /// bounds differ from the recorded ones.
-fn check_external(index: usize, accel: &Accel, record: &ExternalRecord, device: BackendKind) -> Result<bool> {
-    if accel.backend_kind() != device {
+fn check_external(index: usize, accel: &Accel, record: &ExternalRecord, context: &Context) -> Result<bool> {
+    if !context.shares_memory_with(accel) {
         return Err(Error::FailedPrecondition(format!(
-            "external accel {index} (accel {}) is a {:?} accel; this context's device is {device:?}",
+            "external accel {index} (accel {}) is a {:?} accel of another device; this context's device is {:?}",
             accel.handle().0,
-            accel.backend_kind()
+            accel.backend_kind(),
+            context.device().info().kind
         )));
     }
     let given = ExternalRecord::of(accel);

@@ -432,18 +432,17 @@ impl Tenant {
         let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
         let file = self.prepare_accel_file(&updated);
         let _keeping = self.keep();
-        let kept = file.and_then(|file| {
-            self.accels.replace(&entry.handle, updated.clone())?;
-            file.put().inspect_err(|_| {
-                // Replacing what was just replaced cannot fail: the entry is there.
-                let _ = self.accels.replace(&entry.handle, entry.clone());
-            })
+        // Stored, then listed: until then no call can find the new version to update it again, so that an update
+        // that cannot be stored can be undone (it changes nothing: the old version is current again).
+        let stored = file.and_then(|file| {
+            self.accels.get(Some(&entry.handle), None)?;
+            file.put()
         });
-        if let Err(unsaved) = kept {
-            // An update that cannot be stored changes nothing: the old version is current again.
+        if let Err(unsaved) = stored {
             context.undo_update(&entry.accel, &updated.accel)?;
             return Err(unsaved);
         }
+        self.accels.replace(&entry.handle, updated.clone())?;
         self.depart(&entry.accel);
         Ok(updated)
     }

@@ -197,6 +197,12 @@ impl Outputs {
         }
         let counts = counts.then(|| counts_path(out));
         let hits = OutFile::create(out, read)?;
+        if counts.is_some() && standard_output_taken() {
+            return Err(Error::InvalidArgument(format!(
+                "--out {}: the counts of this query go beside --out, which standard output has not: give --out a file",
+                out.display()
+            )));
+        }
         let counts = counts.map(|path| OutFile::create(&path, read)).transpose()?;
         Ok(Outputs { hits, counts })
     }
