@@ -161,8 +161,7 @@ impl Client {
         generator: proto::RayGenerator,
         total: usize,
     ) -> Result<TraceParts> {
-        let layout = output_layout_of_rays(query, total as u64)?;
-        let per_call = self.generated_rays_per_call(query, &layout);
+        let (_, per_call) = self.generated_calls(query, total)?;
         Ok(self.range_parts(accel, query, generator, total, per_call))
     }
 
@@ -175,8 +174,7 @@ impl Client {
         generator: proto::RayGenerator,
         total: usize,
     ) -> Result<TraceResult> {
-        let layout = output_layout_of_rays(query, total as u64)?;
-        let per_call = self.generated_rays_per_call(query, &layout);
+        let (layout, per_call) = self.generated_calls(query, total)?;
         if per_call >= total {
             // One call (none for no rays): its answer's buffers as they are.
             let mut parts = self.range_parts(accel, query, generator, total, per_call);
@@ -186,16 +184,19 @@ impl Client {
         concatenate(answer, query, total, self.range_parts(accel, query, generator, total, per_call)).await
     }
 
-    /// Rays of one `TraceBatch` call of generated rays whose hits and counts are `layout`: all of them when their
-    /// hits and counts fit in a batch, else as many as keep each call's hits and counts within one.
-    fn generated_rays_per_call(&self, query: &Query, layout: &OutputLayout) -> usize {
+    /// The hits and counts of `total` generated rays of `query`, and the rays of one `TraceBatch` call of them: all
+    /// of them when their hits and counts fit in a batch, else as many as keep each call's hits and counts within
+    /// one.
+    fn generated_calls(&self, query: &Query, total: usize) -> Result<(OutputLayout, usize)> {
+        let layout = output_layout_of_rays(query, total as u64)?;
         let (limit, max_rays) = (self.options.batch_limit_bytes, self.options.max_rays_per_call);
-        if layout.hits + layout.counts <= limit && layout.rays <= max_rays {
+        let per_call = if layout.hits + layout.counts <= limit && layout.rays <= max_rays {
             layout.rays
         } else {
             // Generated rays cost nothing on the wire: only the hits and counts must fit.
             chunk_rays(&Query { ray_format: RayFormat::OriginDirection, ..*query }, limit, max_rays)
-        }
+        };
+        Ok((layout, per_call))
     }
 
     /// The results of [`Client::range_answers`] (no reduction), one part a call.
