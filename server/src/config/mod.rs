@@ -364,9 +364,8 @@ mod tests {
 
     #[test]
     fn file_then_environment_override_defaults() {
-        let dir = std::env::temp_dir().join(format!("rayd-config-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("rayd.toml");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rayd.toml");
         std::fs::write(&path, "listen = \"0.0.0.0:7000\"\n[limits]\nmax_rays_per_batch = 1000\nmax_buffers = 3\n")
             .unwrap();
         let config = Config::load(
@@ -387,9 +386,8 @@ mod tests {
 
     #[test]
     fn tenants_inherit_the_server_limits_they_do_not_set_and_bad_tenants_are_refused() {
-        let dir = std::env::temp_dir().join(format!("rayd-config-tenants-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("rayd.toml");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rayd.toml");
         let good = r#"
             [limits]
             max_buffers = 7
@@ -421,9 +419,8 @@ mod tests {
 
     #[test]
     fn unknown_keys_and_bad_values_are_errors_naming_them() {
-        let dir = std::env::temp_dir().join(format!("rayd-config-bad-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("rayd.toml");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rayd.toml");
         std::fs::write(&path, "[limits]\nmax_rayz = 1\n").unwrap();
         let error = Config::load(Some(&path), env(&[])).unwrap_err().to_string();
         assert!(error.contains("max_rayz"), "{error}");
