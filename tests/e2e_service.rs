@@ -459,7 +459,27 @@ async fn malformed_requests_get_their_codes_and_the_server_keeps_serving() {
     assert_refused(&mut client, result, Code::NotFound, "missing").await;
 
     let result = trace_batch(&mut client, trace_query("tri", &query), &[0; 33]).await;
-    assert_refused(&mut client, result, Code::InvalidArgument, "rays").await;
+    assert_refused(&mut client, result, Code::InvalidArgument, "rays_inline: 33 bytes is not a multiple of 32").await;
+    let counts = pb::Reduction { kind: Some(pb::reduction::Kind::Counts(pb::HitCountsReduction {})) };
+    let rays = Some(pb::trace_batch_request::Rays::RaysInline(vec![0; 33].into()));
+    let request = pb::TraceBatchRequest {
+        query: Some(trace_query("tri", &query)),
+        rays,
+        reduction: Some(counts),
+        ..Default::default()
+    };
+    let result = client.trace_batch(request).await;
+    assert_refused(&mut client, result, Code::InvalidArgument, "rays_inline: 33 bytes").await;
+    // A huge name is shown by its start and its length only (1 MiB of control characters once made a message of
+    // several times its size, logged whole).
+    let huge_name: String = "\u{1}".repeat(1 << 20);
+    for result in [
+        client.get_accel(pb::GetAccelRequest { accel: by_name(&huge_name) }).await.map(|_| ()),
+        build(&mut client, &huge_name, vec![triangle([0, 1, 2])]).await.map(|_| ()),
+    ] {
+        let status = result.expect_err("a name that names nothing, or that is too long");
+        assert!(status.message().len() < 1024 && status.message().contains("(1048576 bytes)"), "{}", status.message());
+    }
     let unspecified_rays = pb::TraceQuery { ray_format: 0, ..trace_query("tri", &query) };
     let result = trace_batch(&mut client, unspecified_rays, &[0; 32]).await;
     assert_refused(&mut client, result, Code::InvalidArgument, "query.ray_format").await;
@@ -622,8 +642,8 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
     assert_refused(&mut client, result, Code::InvalidArgument, "hits_buffer_name: \"a/b\"").await;
     let longest = "n".repeat(128);
     let result = client.trace_batch(named(&count, &longest)).await;
-    assert_refused(&mut client, result, Code::InvalidArgument, &format!("hits_buffer_name: \"{longest}.counts\""))
-        .await;
+    let rule = "hits_buffer_name: 128 characters: at most 121 with counts, whose buffer's name adds \".counts\"";
+    assert_refused(&mut client, result, Code::InvalidArgument, rule).await;
     let save = pb::SaveAccelRequest { accel: by_name("tri"), buffer_name: "a/b".into() };
     let result = client.save_accel(save).await;
     assert_refused(&mut client, result, Code::InvalidArgument, "buffer_name: \"a/b\"").await;

@@ -301,6 +301,7 @@ async fn cancelling_a_stream_frees_what_it_held_and_its_buffering_is_bounded() {
     usage_when(&client, "after x", |u| u.streams == 0).await;
     let unknown = rpc.cancel_stream(proto::CancelStreamRequest { stream_id: 99 }).await.unwrap_err();
     assert_eq!(unknown.code(), Code::NotFound);
+    assert_eq!(unknown.message(), "stream_id: stream \"99\" not found");
 
     // Dropping a client library stream cancels it too: of three long traces, at most the running one finishes.
     let stream = client.create_stream().await.unwrap();
@@ -458,6 +459,14 @@ async fn many_streams_trace_at_once_up_to_max_streams() {
     let refused = client.create_stream().await.expect_err("one stream too many");
     assert_eq!(refused.code(), Code::ResourceExhausted);
     assert!(refused.to_string().contains("max_streams"), "{refused}");
+    // A TraceStream call is a stream too: it holds a place for as long as it lasts.
+    let mut rpc = RaydClient::new(Channel::from_shared(daemon.url()).unwrap().connect_lazy());
+    let (requests, queued) = mpsc::channel(1);
+    let query = proto::trace_stream_request::Part::Query(rayd_client::convert::trace_query("bunny", &closest()));
+    requests.send(proto::TraceStreamRequest { part: Some(query.clone()) }).await.unwrap();
+    let refused = rpc.trace_stream(ReceiverStream::new(queued)).await.expect_err("a trace stream too many");
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert!(refused.message().contains("max_streams"), "{refused:?}");
 
     let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 48, 32));
     let mut tasks = tokio::task::JoinSet::new();
@@ -483,6 +492,12 @@ async fn many_streams_trace_at_once_up_to_max_streams() {
     assert_eq!(answered, 3 * STREAMS);
     usage_when(&client, "after every stream finished", |u| u.streams == 0).await;
     client.create_stream().await.expect("places are freed when streams end");
+    let (requests, queued) = mpsc::channel(1);
+    requests.send(proto::TraceStreamRequest { part: Some(query) }).await.unwrap();
+    let answers = rpc.trace_stream(ReceiverStream::new(queued)).await.expect("a trace stream within max_streams");
+    usage_when(&client, "with a trace stream open", |u| u.streams == 1).await;
+    drop((requests, answers));
+    usage_when(&client, "after the trace stream ended", |u| u.streams == 0).await;
 }
 
 /// A moving build on a stream whose every motion key is a buffer uploaded earlier on the stream, named by its

@@ -18,7 +18,7 @@ pub enum ServiceError {
         rule: String,
     },
     /// An object that does not exist for this tenant.
-    #[error("{}{what} {name:?} not found", field_prefix(field, what))]
+    #[error("{}{what} {} not found", field_prefix(field, what), quoted(name))]
     NotFound {
         /// `accel`, `buffer` or `device`.
         what: &'static str,
@@ -29,7 +29,7 @@ pub enum ServiceError {
         field: String,
     },
     /// A name that is taken.
-    #[error("{what} {name:?} already exists")]
+    #[error("{what} {} already exists", quoted(name))]
     AlreadyExists {
         /// `accel` or `buffer`.
         what: &'static str,
@@ -102,6 +102,18 @@ impl ServiceError {
             return Err(ServiceError::Limit { what: what(), requested, limit, allowed });
         }
         Ok(())
+    }
+}
+
+/// The most characters of a request's string that a message shows.
+const QUOTED_CHARS: usize = 64;
+
+/// `text` (a name or an id from a request) quoted for a message: whole up to 64 characters, else its first 64 and
+/// its length, so that a huge string in a request never makes a huge message (or log line).
+pub fn quoted(text: &str) -> String {
+    match text.char_indices().nth(QUOTED_CHARS) {
+        None => format!("{text:?}"),
+        Some((end, _)) => format!("{:?}… ({} bytes)", &text[..end], text.len()),
     }
 }
 

@@ -30,7 +30,9 @@ pub const MAX_PIECE_MS: u32 = 60_000;
 pub struct Config {
     /// Address of the gRPC service.
     pub listen: SocketAddr,
-    /// Address of the admin HTTP endpoint (`/metrics`, `/healthz`); none disables it.
+    /// Address of the admin HTTP endpoint (`/metrics`, `/healthz`); none (`off` in the file and the environment)
+    /// disables it.
+    #[serde(with = "address_or_off")]
     pub admin_listen: Option<SocketAddr>,
     /// Directory where every buffer and accel is persisted and restored from at start; none keeps them in memory
     /// only.
@@ -144,7 +146,7 @@ pub struct Limits {
     /// full) before it is failed with RESOURCE_EXHAUSTED and the answers it holds are dropped; 0 waits as long as
     /// the call lasts.
     pub stream_stall_seconds: u64,
-    /// Most `OpenStream` streams open at once per tenant.
+    /// Most streams (`OpenStream` and `TraceStream` calls) open at once per tenant.
     pub max_streams: u32,
     /// Deepest traversable graph an accel may head (a geometry accel is 1 level, each instance accel or transform
     /// above it 1 more); 1 to 8.
@@ -158,7 +160,7 @@ pub struct Limits {
     /// Rays a tenant may trace per second, averaged over a second (a batch may exceed the rest of the second's
     /// allowance; the next ones wait for it to refill); 0 means no limit.
     pub max_rays_per_second: u64,
-    /// Builds, updates, copies, loads and traces a tenant may have running at once.
+    /// Builds, updates, copies, loads, saves and traces a tenant may have running at once.
     pub max_concurrent_operations: u32,
 }
 
@@ -241,6 +243,7 @@ impl Config {
         }
         let env: Vec<(String, String)> = env.into_iter().filter(|(k, _)| k.starts_with("RAYD_")).collect();
         overlay_env(&mut table, "RAYD", &env)?;
+        overlay_optional_env(&mut table, &env);
         inherit_limits(&mut table);
         let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
         config.limits.check("limits").map_err(ConfigError::Invalid)?;
@@ -347,6 +350,55 @@ fn overlay_env(table: &mut toml::Table, prefix: &str, env: &[(String, String)]) 
     Ok(())
 }
 
+/// An optional address as the file and the environment write it: the address, or `off` for none.
+mod address_or_off {
+    use std::net::SocketAddr;
+
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    /// The word for none.
+    const OFF: &str = "off";
+
+    /// Writes `address`, or `off`.
+    pub fn serialize<S: Serializer>(address: &Option<SocketAddr>, serializer: S) -> Result<S::Ok, S::Error> {
+        match address {
+            Some(address) => serializer.collect_str(address),
+            None => serializer.serialize_str(OFF),
+        }
+    }
+
+    /// Reads an address, or `off`.
+    pub fn deserialize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<SocketAddr>, D::Error> {
+        let text = String::deserialize(deserializer)?;
+        if text == OFF {
+            return Ok(None);
+        }
+        let address = text.parse().map_err(|e| serde::de::Error::custom(format!("{text:?}: {e} (or \"{OFF}\")")))?;
+        Ok(Some(address))
+    }
+}
+
+/// The keys that may hold nothing, as their paths from the top of the file: absent from the defaults' table when
+/// none, so [`overlay_env`] cannot find them there.
+const OPTIONAL_KEYS: [&[&str]; 4] = [&["data_dir"], &["tls", "cert"], &["tls", "key"], &["tls", "client_ca"]];
+
+/// Sets each of [`OPTIONAL_KEYS`] for which `RAYD_<PATH>` is in `env` (as a string), making the tables on its path.
+fn overlay_optional_env(table: &mut toml::Table, env: &[(String, String)]) {
+    'keys: for path in OPTIONAL_KEYS {
+        let name = format!("RAYD_{}", path.join("_").to_uppercase());
+        let Some((_, raw)) = env.iter().find(|(k, _)| *k == name) else { continue };
+        let (key, sections) = path.split_last().expect("a key's path is not empty");
+        let mut inner = &mut *table;
+        for section in sections {
+            let entry = inner.entry(section.to_string()).or_insert_with(|| toml::Value::Table(toml::Table::new()));
+            // A file that made the section something else is refused as it is when the file is read.
+            let Some(section_table) = entry.as_table_mut() else { continue 'keys };
+            inner = section_table;
+        }
+        inner.insert(key.to_string(), toml::Value::String(raw.clone()));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -415,6 +467,22 @@ mod tests {
             let error = Config::load(Some(&path), env(&[])).unwrap_err().to_string();
             assert!(error.contains(why), "{why}: {error}");
         }
+    }
+
+    #[test]
+    fn keys_that_may_hold_nothing_are_set_from_the_environment_too() {
+        let tls = [("RAYD_TLS_CERT", "/etc/rayd/cert.pem"), ("RAYD_TLS_KEY", "/etc/rayd/key.pem")];
+        let config = Config::load(None, env(&[tls[0], tls[1], ("RAYD_DATA_DIR", "/data")])).unwrap();
+        let expected =
+            TlsConfig { cert: "/etc/rayd/cert.pem".into(), key: "/etc/rayd/key.pem".into(), client_ca: None };
+        assert_eq!(config.tls, Some(expected));
+        assert_eq!(config.data_dir, Some(PathBuf::from("/data")));
+        let half = Config::load(None, env(&tls[..1])).unwrap_err().to_string();
+        assert!(half.contains("key"), "{half}");
+        let off = Config::load(None, env(&[("RAYD_ADMIN_LISTEN", "off")])).unwrap();
+        assert_eq!((off.admin_listen, Config::default().admin_listen.is_some()), (None, true));
+        let moved = Config::load(None, env(&[("RAYD_ADMIN_LISTEN", "127.0.0.1:9000")])).unwrap();
+        assert_eq!(moved.admin_listen, Some("127.0.0.1:9000".parse().unwrap()));
     }
 
     #[test]

@@ -2,8 +2,6 @@
 
 use std::sync::Arc;
 
-use bytes::Bytes;
-
 use rayd_engine::accel::MemoryUsage;
 use rayd_proto as pb;
 
@@ -83,16 +81,9 @@ pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> Ser
 /// goes first).
 pub async fn save(tenant: Arc<Tenant>, request: pb::SaveAccelRequest) -> ServiceResult<pb::BufferInfo> {
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
-    // The buffer's name and count before the work; its bytes once the blob is made.
-    tenant.check_new_buffers("buffer_name", &[(&request.buffer_name, 0)])?;
-    let buffer = blocking_for_caller(move |caller| {
-        let not_kept = || format!("the blob of accel {:?} was not kept", entry.name);
-        caller.check(not_kept)?;
-        let blob = tenant.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
-        caller.check(not_kept)?;
-        tenant.create_buffer("buffer_name", &request.buffer_name, Bytes::from(blob))
-    })
-    .await?;
+    let buffer =
+        blocking_for_caller(move |caller| tenant.save_accel(&entry, "buffer_name", &request.buffer_name, caller))
+            .await?;
     Ok(super::buffers::info(&buffer))
 }
 

@@ -87,9 +87,10 @@ fn restore_logged(name: &str, tenant: &Tenant) -> Result<(), ServiceError> {
     Ok(())
 }
 
-/// Runs blocking work (builds, loads, writes to the data directory) on tokio's blocking pool so the async runtime keeps serving.
+/// Runs blocking work (builds, loads, writes to the data directory) on tokio's blocking pool so the async runtime keeps
+/// serving. A panic in it (a bug, here or in a backend) fails the call with INTERNAL, as a trace's piece does.
 async fn blocking<T: Send + 'static>(work: impl FnOnce() -> ServiceResult<T> + Send + 'static) -> ServiceResult<T> {
-    tokio::task::spawn_blocking(work).await.expect("blocking work does not panic")
+    tokio::task::spawn_blocking(work).await.unwrap_or_else(|failed| Err(ServiceError::Internal(failed.to_string())))
 }
 
 /// Runs `work` off the async runtime for a caller that goes when this future is dropped ([`Caller`]): what `work`
@@ -307,9 +308,21 @@ impl Rayd for RaydService {
     ) -> Result<Response<pb::CancelStreamResponse>, Status> {
         let tenant = self.caller(&request, "CancelStream", Role::Write)?;
         observe("CancelStream", tenant.name().to_owned(), async {
-            tenant.streams().cancel(request.get_ref().stream_id)?;
+            tenant.streams().cancel(request.get_ref().stream_id).map_err(|e| e.in_field("stream_id"))?;
             Ok(pb::CancelStreamResponse {})
         })
         .await
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn blocking_work_that_panics_fails_its_call_with_internal() {
+        let failed = blocking(|| -> ServiceResult<()> { panic!("a bug in a build") }).await.unwrap_err();
+        assert!(matches!(&failed, ServiceError::Internal(why) if why.contains("a bug in a build")), "{failed}");
+        assert_eq!(blocking(|| Ok(7)).await.unwrap(), 7);
     }
 }

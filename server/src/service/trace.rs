@@ -15,7 +15,7 @@ use super::outbox::outbox;
 use super::{accels, blocking, buffers};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
-use crate::tenant::{AccelEntry, Rays, Tenant, TraceResult};
+use crate::tenant::{AccelEntry, MAX_NAME_CHARS, Rays, Tenant, TraceResult};
 
 /// The response stream of `TraceStream`.
 pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::TraceStreamResponse, Status>> + Send>>;
@@ -23,9 +23,12 @@ pub type ResponseStream = Pin<Box<dyn Stream<Item = Result<pb::TraceStreamRespon
 /// The request field that names the buffers a trace writes its hits and counts to.
 const HITS_BUFFER_NAME: &str = "hits_buffer_name";
 
+/// What the name of a trace's counts buffer adds to its hits buffer's.
+const COUNTS_SUFFIX: &str = ".counts";
+
 /// The name of the buffer a trace writes its counts to, beside its hits buffer `hits`.
 fn counts_buffer_name(hits: &str) -> String {
-    format!("{hits}.counts")
+    format!("{hits}{COUNTS_SUFFIX}")
 }
 
 /// Room left in a reply message for everything but the hit and count bytes.
@@ -80,13 +83,23 @@ async fn trace(
     Ok(result)
 }
 
+/// The rays of request field `field`, packed in `query`'s ray format: whole records only.
+fn packed(bytes: Bytes, query: &Query, field: &str) -> ServiceResult<Rays> {
+    let size = query.ray_format.size();
+    if !bytes.len().is_multiple_of(size) {
+        let rule = format!("{} bytes is not a multiple of {size} ({})", bytes.len(), query.ray_format.name());
+        return Err(ServiceError::invalid(field, rule));
+    }
+    Ok(Rays::Packed(bytes))
+}
+
 /// One batch in one call.
 pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> ServiceResult<pb::TraceBatchResponse> {
     let (accel, query) = resolve_query(&tenant, request.query.as_ref())?;
     let rays = match request.rays {
-        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => Rays::Packed(bytes),
+        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => packed(bytes, &query, "rays_inline")?,
         Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => {
-            Rays::Packed(buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1)
+            packed(buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1, &query, "rays_buffer")?
         }
         Some(pb::trace_batch_request::Rays::RaysGenerator(generator)) => {
             let buffer =
@@ -119,6 +132,14 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
         let (hits, counts) = (&request.hits_buffer_name, counts_buffer_name(&request.hits_buffer_name));
         let mut buffers = vec![(hits.as_str(), layout.hits as u64)];
         if layout.counts > 0 {
+            let most = MAX_NAME_CHARS - COUNTS_SUFFIX.len();
+            if hits.len() > most {
+                let rule = format!(
+                    "{} characters: at most {most} with counts, whose buffer's name adds \"{COUNTS_SUFFIX}\"",
+                    hits.len()
+                );
+                return Err(ServiceError::invalid(HITS_BUFFER_NAME, rule));
+            }
             buffers.push((&counts, layout.counts as u64));
         }
         tenant.check_new_buffers(HITS_BUFFER_NAME, &buffers)?;
@@ -190,6 +211,9 @@ pub async fn stream(
     // Checked now, so that a stream of a missing accel fails at once; each chunk finds the accel again, so that it
     // traces the accel as it is when the chunk comes (updated, or gone: NOT_FOUND), as a call of its own would.
     let (_, query) = resolve_query(&tenant, Some(&header))?;
+    // One of the tenant's `max_streams` places for as long as the call lasts: each stream's chunks and answers are
+    // bounded by the window, so the places bound them all.
+    let place = tenant.streams().open(tenant.limits().max_streams)?;
     let accel = header.accel;
     let window = tenant.limits().stream_window.max(1) as usize;
     let (chunk_sender, mut chunks) = mpsc::channel(window);
@@ -213,6 +237,7 @@ pub async fn stream(
     });
     let (answers, stream) = outbox(window, tenant.limits().stream_stall());
     tokio::spawn(async move {
+        let _place = place;
         let mut first_ray = 0u64;
         while let Some(chunk) = chunks.recv().await {
             let reply = match chunk {

@@ -22,7 +22,7 @@ use rayd_engine::query::TraceStats;
 use rayd_engine::{Accel, BufferHandle, Context, Device};
 
 use crate::config::Limits;
-use crate::error::{ServiceError, ServiceResult};
+use crate::error::{ServiceError, ServiceResult, quoted};
 use crate::persist::Store;
 use crate::registry::Registry;
 use crate::schedule::{Flow, Pace, Schedulers};
@@ -138,12 +138,16 @@ pub struct Usage {
     pub operations: u32,
 }
 
-/// Checks an accel or buffer name: 1 to 128 characters of `[A-Za-z0-9._-]`.
+/// The longest accel or buffer name, in characters.
+pub const MAX_NAME_CHARS: usize = 128;
+
+/// Checks an accel or buffer name: 1 to [`MAX_NAME_CHARS`] characters of `[A-Za-z0-9._-]`.
 pub fn check_name(field: &str, name: &str) -> ServiceResult<()> {
-    let valid =
-        (1..=128).contains(&name.len()) && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
+    let valid = (1..=MAX_NAME_CHARS).contains(&name.len())
+        && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
     if !valid {
-        return Err(ServiceError::invalid(field, format!("{name:?} must be 1 to 128 characters of [A-Za-z0-9._-]")));
+        let rule = format!("{} must be 1 to {MAX_NAME_CHARS} characters of [A-Za-z0-9._-]", quoted(name));
+        return Err(ServiceError::invalid(field, rule));
     }
     Ok(())
 }
@@ -207,7 +211,11 @@ impl Tenant {
     /// Counts `version` (an accel that an update replaced or a destroy removed) among the tenant's accel bytes for
     /// as long as something still holds it.
     fn depart(&self, version: &Arc<Accel>) {
-        self.departed.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(Arc::downgrade(version));
+        let mut departed = self.departed.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        // Versions nothing holds any more are dropped here too, so that a tenant that only updates (a refit each
+        // frame) does not pile up their entries between the counts that prune them.
+        departed.retain(|version| version.strong_count() > 0);
+        departed.push(Arc::downgrade(version));
     }
 
     /// Bytes of the tenant's buffers.
@@ -588,6 +596,26 @@ impl Tenant {
         )
     }
 
+    /// Serializes `entry`'s accel (with every accel below it) into a new buffer named `name`, which request field
+    /// `field` gave; one of the tenant's operations while it runs (so that at most `max_concurrent_operations` blobs
+    /// are being made at once), not kept if `caller` goes first. The name and the count of buffers are checked
+    /// before the blob is made, its bytes once it is. Blocks: call it off the async runtime.
+    pub fn save_accel(
+        &self,
+        entry: &AccelEntry,
+        field: &str,
+        name: &str,
+        caller: &Caller,
+    ) -> ServiceResult<BufferEntry> {
+        self.check_new_buffers(field, &[(name, 0)])?;
+        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
+        let not_kept = || format!("the blob of accel {:?} was not kept", entry.name);
+        caller.check(not_kept)?;
+        let blob = self.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
+        caller.check(not_kept)?;
+        self.create_buffer(field, name, Bytes::from(blob))
+    }
+
     /// Keeps `data` as a buffer named `name`, which request field `field` gave.
     pub fn create_buffer(&self, field: &str, name: &str, data: Bytes) -> ServiceResult<BufferEntry> {
         self.check_new_buffers(field, &[(name, data.len() as u64)])?;
@@ -797,6 +825,27 @@ mod tests {
     }
 
     #[test]
+    fn a_save_is_one_of_the_operations_running_at_once() {
+        let tenant = cpu_tenant(Limits { max_concurrent_operations: 1, ..Limits::default() });
+        let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
+        let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        let options = BuildOptions::default();
+        let usage = |context: &Context| context.compute_memory_usage(&input, &options);
+        let built = |context: &Context| context.build_accel(&input, &options);
+        let entry = tenant.build_accel("a", DEFAULT_DEVICE, &Caller::default(), usage, built).unwrap();
+        let running = tenant.quotas.start(1).unwrap();
+        let refused = tenant.save_accel(&entry, "buffer_name", "blob", &Caller::default()).unwrap_err();
+        assert!(refused.to_string().contains("max_concurrent_operations = 1"), "{refused}");
+        assert!(tenant.buffers().is_empty());
+        drop(running);
+        let saved = tenant.save_accel(&entry, "buffer_name", "blob", &Caller::default()).unwrap();
+        assert_eq!(tenant.buffers().len(), 1);
+        assert_eq!(tenant.usage().operations, 0, "the save's operation ended with it");
+        assert!(saved.size_bytes > 0);
+    }
+
+    #[test]
     fn builds_at_once_keep_no_more_accels_than_max_accels() {
         let tenant = cpu_tenant(Limits { max_accels: 2, ..Limits::default() });
         let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
@@ -883,6 +932,14 @@ mod tests {
         assert!(refused.to_string().contains("max_total_accel_bytes"), "{refused}");
         drop(held);
         assert_eq!(tenant.usage().accel_bytes, size);
-        build("third").unwrap();
+        let mut current = build("third").unwrap();
+        // Updates only (a refit each frame), nothing that counts the bytes: the replaced versions let go are not
+        // remembered.
+        for _ in 0..100 {
+            let update = |context: &Context| context.update_accel(&current.accel, &input());
+            current = tenant.update_accel(&current, &Caller::default(), update).unwrap();
+        }
+        let departed = tenant.departed.lock().unwrap().len();
+        assert!(departed <= 2, "{departed} replaced versions remembered");
     }
 }

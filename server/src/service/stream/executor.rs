@@ -208,7 +208,9 @@ impl Executor {
             // Earlier operations of this stream have finished: that is the stream's order.
             return Ok(());
         }
-        if let Waitable::Open(mut progress) = self.tenant.streams().waitable(event.stream_id)? {
+        if let Waitable::Open(mut progress) =
+            self.tenant.streams().waitable(event.stream_id).map_err(|e| e.in_field("wait_event.stream_id"))?
+        {
             // An error means the other stream's slot is gone: it closed, so there is nothing left to wait for.
             let _ = progress.wait_for(|p| p.closed || p.finished >= event.operation).await;
         }
