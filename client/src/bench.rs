@@ -7,6 +7,7 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use glam::Vec3;
 use rayd_engine::query::Query;
+use rayd_proto as proto;
 use tokio::task::JoinSet;
 
 use crate::client::Client;
@@ -79,6 +80,27 @@ struct TaskTally {
     latencies: Vec<Duration>,
 }
 
+impl TaskTally {
+    /// Counts one call that took `latency` and traced `rays` rays, with the server's `stats` for it.
+    fn count_call(&mut self, latency: Duration, rays: usize, stats: &proto::TraceStats) {
+        self.latencies.push(latency);
+        self.add(rays as u64, stats.rays_hit, stats.trace_ns);
+    }
+
+    /// Adds another task's tally to this one.
+    fn absorb(&mut self, other: TaskTally) {
+        self.add(other.rays, other.rays_hit, other.server_ns);
+        self.latencies.extend(other.latencies);
+    }
+
+    /// Adds rays, rays hit and server time, each sum saturating at `u64::MAX`.
+    fn add(&mut self, rays: u64, rays_hit: u64, server_ns: u64) {
+        self.rays = self.rays.saturating_add(rays);
+        self.rays_hit = self.rays_hit.saturating_add(rays_hit);
+        self.server_ns = self.server_ns.saturating_add(server_ns);
+    }
+}
+
 impl Client {
     /// Runs `options.concurrency` tasks (at most the server's `max_concurrent_operations`) that each trace batches of random rays (origins in the accel's box,
     /// uniform directions, a different seed a task) against `accel` until `options.duration` is over, calling
@@ -104,10 +126,7 @@ impl Client {
                 while Instant::now() < deadline {
                     let call = Instant::now();
                     let traced = client.trace(&accel, &query, rays.clone()).await?;
-                    tally.latencies.push(call.elapsed());
-                    tally.rays += traced.rays() as u64;
-                    tally.rays_hit += traced.stats().rays_hit;
-                    tally.server_ns += traced.stats().trace_ns;
+                    tally.count_call(call.elapsed(), traced.rays(), traced.stats());
                     on_batch(traced.rays());
                 }
                 Ok::<_, Error>(tally)
@@ -116,10 +135,7 @@ impl Client {
         let mut total = TaskTally::default();
         while let Some(joined) = tasks.join_next().await {
             let tally = joined.map_err(|e| Error::Protocol(format!("a bench task failed: {e}")))??;
-            total.rays += tally.rays;
-            total.rays_hit += tally.rays_hit;
-            total.server_ns += tally.server_ns;
-            total.latencies.extend(tally.latencies);
+            total.absorb(tally);
         }
         total.latencies.sort_unstable();
         Ok(BenchReport {
@@ -175,5 +191,17 @@ mod tests {
         assert_eq!(capped(4, 64), 4);
         assert_eq!(capped(0, 64), 1, "at least one call");
         assert_eq!(capped(200, 0), 200, "no limit known");
+    }
+
+    #[test]
+    fn tallies_past_u64_saturate() {
+        let most = proto::TraceStats { rays_hit: u64::MAX, trace_ns: u64::MAX, ..Default::default() };
+        let mut task = TaskTally::default();
+        task.count_call(Duration::from_millis(1), 8, &most);
+        task.count_call(Duration::from_millis(2), 8, &most);
+        let mut total = TaskTally { rays: u64::MAX, ..TaskTally::default() };
+        total.absorb(task);
+        assert_eq!((total.rays, total.rays_hit, total.server_ns), (u64::MAX, u64::MAX, u64::MAX));
+        assert_eq!(total.latencies, [Duration::from_millis(1), Duration::from_millis(2)]);
     }
 }

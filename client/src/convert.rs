@@ -208,6 +208,22 @@ pub fn generator_to_proto(generator: &Generator) -> proto::RayGenerator {
     proto::RayGenerator { kind: Some(kind), ..Default::default() }
 }
 
+/// Rays the server makes from `generator` as [`generator_to_proto`] sends it: [`Generator::count`], but with a
+/// camera's 0 samples a pixel read as 1, as the contract's `PixelSampling` has it (the engine would count 0).
+pub(crate) fn generated_ray_count(generator: &Generator) -> u64 {
+    let once = |sampling: &PixelSampling| PixelSampling { samples: 1, ..*sampling };
+    match generator {
+        Generator::Pinhole(camera, sampling) if sampling.samples == 0 => {
+            Generator::Pinhole(*camera, once(sampling)).count()
+        }
+        Generator::Orthographic(camera, sampling) if sampling.samples == 0 => {
+            Generator::Orthographic(*camera, once(sampling)).count()
+        }
+        Generator::Secondary(Secondary { primary: Primary::Generated(primary), .. }) => generated_ray_count(primary),
+        other => other.count(),
+    }
+}
+
 /// The contract's form of engine secondary rays: their primary rays and hits inline (or the primary generator).
 fn secondary_to_proto(s: &Secondary) -> proto::SecondaryRays {
     use proto::secondary_rays::{Primary as P, PrimaryHits};
@@ -342,5 +358,20 @@ mod tests {
         assert_eq!(bounds(&info), None);
         info.bounds = Some(proto::Bounds { min: v(-1.0), max: v(1.0) });
         assert_eq!(bounds(&info), Some((Vec3::new(-1.0, 0.0, 0.0), Vec3::new(1.0, 0.0, 0.0))));
+    }
+
+    #[test]
+    fn a_camera_of_0_samples_a_pixel_counts_1_ray_a_pixel_as_the_server_makes_them() {
+        use rayd_engine::raygen::{Camera, Orthographic};
+        let sampling = |samples| PixelSampling { samples, jitter_seed: None };
+        let camera = Camera::framing(Vec3::ZERO, Vec3::ONE, 4, 3);
+        let (eye, target, up) = (Vec3::Z, Vec3::ZERO, Vec3::Y);
+        let orthographic = Orthographic { eye, target, up, view_height: 1.0, width: 5, height: 2 };
+        assert_eq!(generated_ray_count(&Generator::Pinhole(camera, sampling(0))), 12);
+        assert_eq!(generated_ray_count(&Generator::Pinhole(camera, sampling(3))), 36);
+        assert_eq!(generated_ray_count(&Generator::Orthographic(orthographic, sampling(0))), 10);
+        let primary = Primary::Generated(Box::new(Generator::Pinhole(camera, sampling(0))));
+        let secondary = Secondary { primary, hits: Bytes::new(), bounce: Bounce::Reflect, offset: 0.0 };
+        assert_eq!(generated_ray_count(&Generator::Secondary(secondary)), 12, "a ray a primary ray");
     }
 }

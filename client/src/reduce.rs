@@ -2,7 +2,7 @@
 //! point cloud, counts …), so neither rays nor hits cross the network.
 
 use bytes::Bytes;
-use futures_util::StreamExt;
+use futures_util::{Stream, StreamExt};
 use rayd_engine::query::Query;
 use rayd_engine::raygen::Generator;
 use rayd_engine::reduce::{PixelEncoding, Reduction};
@@ -10,7 +10,7 @@ use rayd_proto as proto;
 use rayd_proto::trace_batch_request::Rays;
 
 use crate::client::Client;
-use crate::convert::{generator_to_proto, reduction_to_proto, trace_query};
+use crate::convert::{generated_ray_count, generator_to_proto, reduction_to_proto, trace_query};
 use crate::error::{Error, Result};
 use crate::memory::{append, reserved};
 use crate::trace::add_stats;
@@ -52,7 +52,7 @@ impl Client {
         generator: &Generator,
         reduction: &Reduction,
     ) -> Result<ReducedTrace> {
-        let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        let total = usize::try_from(generated_ray_count(generator)).unwrap_or(usize::MAX);
         match self.rays_per_reduced_call(query, reduction) {
             Some(per_call) if per_call < total => {
                 let generator = generator_to_proto(generator);
@@ -107,17 +107,9 @@ impl Client {
     ) -> Result<ReducedTrace> {
         let what = || format!("the reduction of {total} rays");
         let known_bytes = reduction.answer_bytes(query, total as u64).unwrap_or(0);
-        let mut data = reserved(usize::try_from(known_bytes).unwrap_or(usize::MAX), what)?;
-        let (mut dropped, mut stats) = (0, proto::TraceStats::default());
-        let mut answers =
-            self.range_answers(accel, query, generator, Some(reduction_to_proto(reduction)), total, per_call);
-        while let Some((_, response)) = answers.next().await.transpose()? {
-            let part = ReducedTrace::from_response(response).map_err(Error::Protocol)?;
-            append(&mut data, &part.data, what)?;
-            dropped += part.dropped;
-            add_stats(&mut stats, &part.stats);
-        }
-        Ok(ReducedTrace { data: data.into(), dropped, stats })
+        let data = reserved(usize::try_from(known_bytes).unwrap_or(usize::MAX), what)?;
+        let answers = self.range_answers(accel, query, generator, Some(reduction_to_proto(reduction)), total, per_call);
+        joined(data, answers, what).await
     }
 
     /// One reduced `TraceBatch` call.
@@ -139,10 +131,45 @@ impl Client {
     }
 }
 
+/// The reductions of consecutive ranges of rays that `answers` carries, as one: their data one after another (after
+/// what `data` holds, named by `what`), their dropped items and statistics summed (saturating at `u64::MAX`).
+async fn joined(
+    mut data: Vec<u8>,
+    mut answers: impl Stream<Item = Result<(usize, proto::TraceBatchResponse)>> + Unpin,
+    what: impl Fn() -> String,
+) -> Result<ReducedTrace> {
+    let (mut dropped, mut stats) = (0u64, proto::TraceStats::default());
+    while let Some((_, response)) = answers.next().await.transpose()? {
+        let part = ReducedTrace::from_response(response).map_err(Error::Protocol)?;
+        append(&mut data, &part.data, &what)?;
+        dropped = dropped.saturating_add(part.dropped);
+        add_stats(&mut stats, &part.stats);
+    }
+    Ok(ReducedTrace { data: data.into(), dropped, stats })
+}
+
 impl ReducedTrace {
     /// The reduction a `TraceBatch` answer (or a stream's trace operation) carries; an error when it has none.
     pub(crate) fn from_response(response: proto::TraceBatchResponse) -> std::result::Result<ReducedTrace, String> {
         let reduced = response.reduced.ok_or("a reduced trace answered without its reduction")?;
         Ok(ReducedTrace { data: reduced.data, dropped: reduced.dropped, stats: response.stats.unwrap_or_default() })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A range's answer of `data` with `dropped` items left out.
+    fn answer(data: &'static [u8], dropped: u64) -> Result<(usize, proto::TraceBatchResponse)> {
+        let reduced = proto::ReducedHits { data: Bytes::from_static(data), dropped };
+        Ok((1, proto::TraceBatchResponse { reduced: Some(reduced), ..Default::default() }))
+    }
+
+    #[tokio::test]
+    async fn ranges_are_joined_in_order_and_their_dropped_items_summed_saturating() {
+        let answers = futures_util::stream::iter([answer(b"ab", 3), answer(b"c", u64::MAX)]);
+        let whole = joined(b"_".to_vec(), answers, || unreachable!("4 bytes fit")).await.unwrap();
+        assert_eq!((whole.data.as_ref(), whole.dropped), (b"_abc".as_ref(), u64::MAX));
     }
 }

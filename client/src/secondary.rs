@@ -10,7 +10,7 @@ use rayd_engine::raygen::{Bounce, Generator, Primary, Secondary};
 use rayd_proto as proto;
 
 use crate::client::Client;
-use crate::convert::{bounce_to_proto, generator_to_proto, ray_format_to_proto};
+use crate::convert::{bounce_to_proto, generated_ray_count, generator_to_proto, ray_format_to_proto};
 use crate::error::{Error, Result};
 use crate::trace::{TraceParts, TraceResult};
 
@@ -126,7 +126,7 @@ impl Client {
     /// The number of `primary` rays; those in a buffer by its size, as `ListBuffers` reports it.
     async fn primary_ray_count(&self, primary: &PrimaryRays) -> Result<usize> {
         Ok(match primary {
-            PrimaryRays::Generated(generator) => usize::try_from(generator.count()).unwrap_or(usize::MAX),
+            PrimaryRays::Generated(generator) => usize::try_from(generated_ray_count(generator)).unwrap_or(usize::MAX),
             PrimaryRays::Inline(rays, format) => rays.len() / format.size(),
             PrimaryRays::Buffer(buffer, format) => self.buffer_bytes(buffer).await? / format.size(),
         })

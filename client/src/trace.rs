@@ -16,7 +16,7 @@ use tokio::sync::Semaphore;
 use tokio::sync::mpsc::error::TryRecvError;
 
 use crate::client::Client;
-use crate::convert::{generator_to_proto, trace_query};
+use crate::convert::{generated_ray_count, generator_to_proto, trace_query};
 use crate::error::{Error, Result};
 use crate::memory::reserved;
 use crate::secondary::inline_bytes;
@@ -135,7 +135,7 @@ impl Client {
         {
             return self.trace_uploaded_secondary(accel, query, secondary).await;
         }
-        let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        let total = usize::try_from(generated_ray_count(generator)).unwrap_or(usize::MAX);
         self.trace_in_ranges(accel, query, generator_to_proto(generator), total).await
     }
 
@@ -148,7 +148,7 @@ impl Client {
         {
             return Ok(self.trace_uploaded_secondary(accel, query, secondary).await?.into_parts());
         }
-        let total = usize::try_from(generator.count()).unwrap_or(usize::MAX);
+        let total = usize::try_from(generated_ray_count(generator)).unwrap_or(usize::MAX);
         self.generated_parts(accel, query, generator_to_proto(generator), total)
     }
 
@@ -491,7 +491,7 @@ impl Receiving {
 }
 
 /// The whole result of a trace of `rays` rays from its `parts`, appended in ray order to `answer` (buffers with room
-/// for all the hits and counts).
+/// for all the hits and counts); [`Error::Protocol`] where the parts do not add up to it.
 async fn concatenate(
     answer: (Vec<u8>, Vec<u8>),
     query: &Query,
@@ -500,7 +500,7 @@ async fn concatenate(
 ) -> Result<TraceResult> {
     let ((mut hits, mut counts), mut stats, mut traced) = (answer, proto::TraceStats::default(), 0);
     while let Some(part) = parts.next().await.transpose()? {
-        hits.extend_from_slice(&part.hits);
+        append_hits(&mut hits, query, traced, &part.hits, part.rays);
         counts.extend_from_slice(&part.counts);
         add_stats(&mut stats, &part.stats);
         traced += part.rays;
@@ -508,7 +508,42 @@ async fn concatenate(
     if traced != rays {
         return Err(Error::Protocol(format!("the trace ended after {traced} of {rays} rays")));
     }
-    Ok(TraceResult { query: *query, rays, hits: hits.into(), counts: counts.into(), stats })
+    let ray_bytes = rays * query.ray_format.size();
+    TraceResult::checked(query, ray_bytes, "the parts together", hits.into(), counts.into(), stats)
+}
+
+/// Appends the hits of a part of `part_rays` rays to those of the `rays_before` rays before it in `hits`. Bitmask
+/// hits are shifted into place where the rays before end within a byte.
+fn append_hits(hits: &mut Vec<u8>, query: &Query, rays_before: usize, part: &[u8], part_rays: usize) {
+    if query.hit_format.size().is_some() {
+        hits.extend_from_slice(part);
+    } else {
+        let records_per_ray = query.records_per_ray();
+        append_bits(hits, rays_before * records_per_ray, part, part_rays * records_per_ray);
+    }
+}
+
+/// Appends the first `count` bits of `part` to the first `filled` bits of `bits`, both packed least significant bit
+/// first as bitmask hits are; the unused bits of the last byte are left 0, as the contract has them.
+fn append_bits(bits: &mut Vec<u8>, filled: usize, part: &[u8], count: usize) {
+    let shift = filled % 8;
+    if shift == 0 {
+        bits.extend_from_slice(part);
+    } else {
+        for &byte in part {
+            if let Some(last) = bits.last_mut() {
+                *last |= byte << shift;
+            }
+            bits.push(byte >> (8 - shift));
+        }
+    }
+    let end = filled + count;
+    bits.truncate(end.div_ceil(8));
+    if let Some(last) = bits.last_mut()
+        && !end.is_multiple_of(8)
+    {
+        *last &= (1 << (end % 8)) - 1;
+    }
 }
 
 /// The hits and counts that `ray_bytes` of packed rays traced with `query` make; [`Error::InvalidArgument`] where
@@ -561,14 +596,14 @@ fn check_lengths(what: &str, got: (usize, usize), expected: (usize, usize)) -> R
     Ok(())
 }
 
-/// Adds a part's statistics (a chunk's, a call's) to a running total.
+/// Adds a part's statistics (a chunk's, a call's) to a running total, each sum saturating at `u64::MAX`.
 pub fn add_stats(total: &mut proto::TraceStats, chunk: &proto::TraceStats) {
-    total.rays += chunk.rays;
-    total.rays_hit += chunk.rays_hit;
-    total.nodes_visited += chunk.nodes_visited;
-    total.triangle_tests += chunk.triangle_tests;
-    total.trace_ns += chunk.trace_ns;
-    total.device_ns += chunk.device_ns;
+    total.rays = total.rays.saturating_add(chunk.rays);
+    total.rays_hit = total.rays_hit.saturating_add(chunk.rays_hit);
+    total.nodes_visited = total.nodes_visited.saturating_add(chunk.nodes_visited);
+    total.triangle_tests = total.triangle_tests.saturating_add(chunk.triangle_tests);
+    total.trace_ns = total.trace_ns.saturating_add(chunk.trace_ns);
+    total.device_ns = total.device_ns.saturating_add(chunk.device_ns);
 }
 
 /// Closes the stream's window when the call ends, so the request stream stops waiting for permits that will
@@ -639,6 +674,60 @@ mod tests {
         assert_eq!(chunk_rays(&query, 1000, usize::MAX), 8, "never fewer than 8 rays");
         assert_eq!(chunk_rays(&query, 4 << 20, 20), 16, "the server's max_rays_per_batch caps chunks");
         assert_eq!(chunk_rays(&query, 4 << 20, 5), 5, "below 8 rays only when the server allows fewer");
+    }
+
+    /// A bitmask result of one ray a flag of `hits`, as a part of a trace.
+    fn bitmask_part(hits: &[bool]) -> TraceResult {
+        let mut packed = vec![0u8; hits.len().div_ceil(8)];
+        for (ray, _) in hits.iter().enumerate().filter(|(_, hit)| **hit) {
+            packed[ray / 8] |= 1 << (ray % 8);
+        }
+        TraceResult {
+            query: Query::closest(RayFormat::OriginDirection, HitFormat::Bitmask),
+            rays: hits.len(),
+            hits: packed.into(),
+            counts: Bytes::new(),
+            stats: proto::TraceStats::default(),
+        }
+    }
+
+    /// `parts` as the parts of a trace.
+    fn as_parts(parts: Vec<TraceResult>) -> TraceParts {
+        futures_util::stream::iter(parts.into_iter().map(Ok)).boxed()
+    }
+
+    #[tokio::test]
+    async fn bitmask_parts_of_fewer_than_8_rays_are_joined_bit_by_bit() {
+        let hits: Vec<bool> = (0..13).map(|ray| ray % 3 == 0 || ray == 4).collect();
+        let query = Query::closest(RayFormat::OriginDirection, HitFormat::Bitmask);
+        let parts = as_parts(hits.chunks(5).map(bitmask_part).collect());
+        let whole = concatenate((Vec::new(), Vec::new()), &query, hits.len(), parts).await.unwrap();
+        assert_eq!(whole.hits(), bitmask_part(&hits).hits());
+        assert_eq!(whole.hit_view().iter().map(|hit| hit.is_hit()).collect::<Vec<_>>(), hits);
+    }
+
+    #[tokio::test]
+    async fn parts_whose_hits_do_not_make_the_whole_are_a_protocol_error() {
+        let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+        let stats = proto::TraceStats::default();
+        let short = TraceResult { query, rays: 2, hits: Bytes::from_static(&[0; 4]), counts: Bytes::new(), stats };
+        let error = concatenate((Vec::new(), Vec::new()), &query, 2, as_parts(vec![short])).await.unwrap_err();
+        assert!(matches!(error, Error::Protocol(_)), "{error}");
+    }
+
+    #[test]
+    fn statistics_summed_past_u64_saturate() {
+        let most = proto::TraceStats {
+            rays: u64::MAX,
+            rays_hit: u64::MAX,
+            nodes_visited: u64::MAX,
+            triangle_tests: u64::MAX,
+            trace_ns: u64::MAX,
+            device_ns: u64::MAX,
+        };
+        let mut total = most;
+        add_stats(&mut total, &most);
+        assert_eq!(total, most);
     }
 
     #[test]

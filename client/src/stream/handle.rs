@@ -32,7 +32,8 @@ impl<T> Operation<T> {
         self.id
     }
 
-    /// Whether its answer has arrived (never blocks).
+    /// Whether its answer has arrived, or its stream broke before it did (never blocks): either way
+    /// [`Operation::result`] has it.
     pub fn is_done(&self) -> bool {
         self.slot.answer.get().is_some()
     }
@@ -66,7 +67,8 @@ impl<T> Operation<T> {
 }
 
 /// A point recorded in a stream: it completes when every operation enqueued on that stream before it has
-/// finished. Other streams can wait for it ([`Stream::wait_event`](super::Stream::wait_event)).
+/// finished. Other streams can wait for it ([`Stream::wait_event`](super::Stream::wait_event)). If its stream
+/// breaks first, it never completes, and [`Event::wait`] returns the stream's error at once.
 #[derive(Debug)]
 pub struct Event {
     /// The record operation.
@@ -89,14 +91,15 @@ impl Event {
         EventId { stream_id: self.record.shared.stream_id, operation: self.record.id }
     }
 
-    /// Whether the event has completed (never blocks).
+    /// Whether the event has completed (never blocks); false for good once it cannot (its stream broke first), and
+    /// [`Event::wait`] then returns the error at once.
     pub fn query(&self) -> bool {
-        self.record.is_done()
+        self.record.result().is_some_and(|result| result.is_ok())
     }
 
     /// When the record operation finished on the server (nanoseconds since the Unix epoch), once completed.
     pub fn completed_unix_ns(&self) -> Option<u64> {
-        self.record.ran_unix_ns().map(|(_, finished)| finished)
+        self.record.ran_unix_ns().filter(|_| self.query()).map(|(_, finished)| finished)
     }
 
     /// Waits until the event has completed; fails if its stream broke first.

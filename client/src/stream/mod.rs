@@ -18,6 +18,9 @@
 //! in flight already hold [`ClientOptions::stream_bytes_in_flight`](crate::ClientOptions::stream_bytes_in_flight).
 //! An operation whose message would pass the server's `max_message_bytes` is refused when enqueued
 //! (INVALID_ARGUMENT naming it), and the stream goes on: sent, it would end the whole call.
+//! Once an enqueue call has numbered its operation (it has waited for room in flight), the operation is sent in
+//! full even if the call's future is dropped before it returns (a timeout, a `select!`): the operation runs in its
+//! turn and a synchronize covers it, but there is no handle to it.
 //! Dropping a [`Stream`] cancels it: the server drops its queued operations, and unanswered handles fail.
 
 mod handle;
@@ -36,7 +39,7 @@ use rayd_proto as proto;
 use rayd_proto::data_source::Source;
 use rayd_proto::stream_request::Op;
 use rayd_proto::trace_batch_request::Rays;
-use tokio::sync::{Mutex, Semaphore, mpsc};
+use tokio::sync::{Mutex, OwnedMutexGuard, Semaphore, mpsc};
 use tokio::task::JoinHandle;
 use tokio_stream::wrappers::ReceiverStream;
 
@@ -44,8 +47,8 @@ pub use handle::{Event, EventId, Operation};
 use state::{Expect, Outcome, Shared, Slot, Unanswered};
 
 use crate::build::{mesh_request, packed};
-use crate::client::{Client, RpcClient, copy_request};
-use crate::convert::{generator_to_proto, reduction_to_proto, trace_query_ref};
+use crate::client::{Client, ClientOptions, RpcClient, copy_request};
+use crate::convert::{generated_ray_count, generator_to_proto, reduction_to_proto, trace_query_ref};
 use crate::error::{Error, Result};
 use crate::reduce::ReducedTrace;
 use crate::trace::{TraceResult, inline_trace, output_layout, output_layout_of_rays};
@@ -115,8 +118,9 @@ impl<'a> From<&'a Operation<proto::BufferInfo>> for BufferArg<'a> {
 pub struct Stream {
     /// What the handles and the receiving task share.
     shared: Arc<Shared>,
-    /// The way to the call; `None` once finished.
-    sender: Mutex<Option<mpsc::Sender<proto::StreamRequest>>>,
+    /// The way to the call; `None` once finished. Held from numbering an operation until its messages are sent, so
+    /// operations go out whole and in id order.
+    sender: Arc<Mutex<Option<RequestSender>>>,
     /// Bytes of unanswered operations, bounded.
     in_flight: Arc<Semaphore>,
     /// The bound, in bytes.
@@ -133,6 +137,9 @@ pub struct Stream {
     rpc: Option<RpcClient>,
 }
 
+/// The sending end of a stream's requests.
+type RequestSender = mpsc::Sender<proto::StreamRequest>;
+
 impl Client {
     /// Opens a stream (one `OpenStream` call). Its operations may name any accel, so it carries no scene of its
     /// own: open it on [`Client::for_scene`] to send it to a scene's node behind a router.
@@ -144,22 +151,35 @@ impl Client {
             _ => return Err(Error::Protocol("a stream did not start with its `opened` message".into())),
         };
         let shared = Arc::new(Shared::new(opened.stream_id));
-        let in_flight_bytes = u32::try_from(self.options.stream_bytes_in_flight).unwrap_or(u32::MAX).max(1);
-        Ok(Stream {
-            receiver: tokio::spawn(receive::answers(responses, Arc::clone(&shared))),
-            shared,
-            sender: Mutex::new(Some(sender)),
-            in_flight: Arc::new(Semaphore::new(in_flight_bytes as usize)),
-            in_flight_bytes,
-            upload_chunk_bytes: self.options.upload_chunk_bytes.max(1),
-            max_message_bytes: self.options.max_message_bytes,
-            inline_mesh_bytes: self.options.inline_mesh_bytes,
-            rpc: Some(self.rpc.clone()),
-        })
+        let receiver = tokio::spawn(receive::answers(responses, Arc::clone(&shared)));
+        Ok(Stream::new(&self.options, shared, sender, receiver, Some(self.rpc.clone())))
     }
 }
 
 impl Stream {
+    /// A stream set up by `options` that sends its requests through `sender`, its answers read by `receiver` into
+    /// `shared`; `rpc` cancels it when it is dropped unfinished.
+    fn new(
+        options: &ClientOptions,
+        shared: Arc<Shared>,
+        sender: RequestSender,
+        receiver: JoinHandle<()>,
+        rpc: Option<RpcClient>,
+    ) -> Stream {
+        let in_flight_bytes = u32::try_from(options.stream_bytes_in_flight).unwrap_or(u32::MAX).max(1);
+        Stream {
+            shared,
+            sender: Arc::new(Mutex::new(Some(sender))),
+            in_flight: Arc::new(Semaphore::new(in_flight_bytes as usize)),
+            in_flight_bytes,
+            upload_chunk_bytes: options.upload_chunk_bytes.max(1),
+            max_message_bytes: options.max_message_bytes,
+            inline_mesh_bytes: options.inline_mesh_bytes,
+            receiver,
+            rpc,
+        }
+    }
+
     /// The server's id of this stream.
     pub fn id(&self) -> u64 {
         self.shared.stream_id
@@ -254,7 +274,7 @@ impl Stream {
         query: &Query,
         generator: &Generator,
     ) -> Result<Operation<TraceResult>> {
-        let ray_bytes = output_layout_of_rays(query, generator.count())?.rays * query.ray_format.size();
+        let ray_bytes = output_layout_of_rays(query, generated_ray_count(generator))?.rays * query.ray_format.size();
         let request = proto::TraceBatchRequest {
             query: Some(trace_query_ref(self.accel_ref(accel.into())?, query)),
             rays: Some(Rays::RaysGenerator(generator_to_proto(generator))),
@@ -359,9 +379,10 @@ impl Stream {
         if failures.is_empty() { Ok(()) } else { Err(Error::Operations(failures)) }
     }
 
-    /// Whether every operation enqueued so far has finished (never blocks).
+    /// Whether every operation enqueued so far has finished, or the stream broke: then nothing more will run, and
+    /// [`Stream::synchronize`] returns the stream's error (never blocks).
     pub fn query(&self) -> bool {
-        self.shared.is_answered(self.shared.book().sent)
+        self.shared.is_answered(self.shared.book().sent) || self.shared.progress.borrow().broken.is_some()
     }
 
     /// Synchronizes, then closes the stream cleanly (the server ends the call with OK).
@@ -379,6 +400,8 @@ impl Stream {
 
     /// Numbers `op`, books its slot and sends it (followed by `upload_data` messages, each smaller than a
     /// message), once the bytes in flight leave room for it. An `op` larger than a message is refused, unsent.
+    /// Once booked, the messages are sent by a task of their own, so that dropping this future cannot leave the
+    /// operation unsent or cut short, which would stall or break the stream.
     async fn enqueue<T>(
         &self,
         op: Op,
@@ -393,8 +416,8 @@ impl Stream {
             .acquire_many_owned(permits)
             .await
             .map_err(|_| Error::InvalidArgument("the stream is closed".into()))?;
-        let sender = self.sender.lock().await;
-        let sender = sender.as_ref().ok_or_else(|| Error::InvalidArgument("the stream is finished".into()))?;
+        let turn = Arc::clone(&self.sender).lock_owned().await;
+        let sender = turn.clone().ok_or_else(|| Error::InvalidArgument("the stream is finished".into()))?;
         if let Some(broken) = self.shared.progress.borrow().broken.clone() {
             return Err(Error::Status(broken));
         }
@@ -407,12 +430,8 @@ impl Stream {
             id
         };
         let messages = std::iter::once(op).chain(upload_data.into_iter().map(Op::UploadData));
-        for op in messages {
-            if sender.send(proto::StreamRequest { operation: id, op: Some(op) }).await.is_err() {
-                // The call is gone; the receiving task fails the slot with the reason.
-                break;
-            }
-        }
+        // The task runs on if this future is dropped; waiting for it keeps enqueueing paced by the transport.
+        let _ = tokio::spawn(send_in_turn(turn, sender, id, messages)).await;
         Ok(Operation::new(id, slot, Arc::clone(&self.shared), extract))
     }
 
@@ -455,6 +474,23 @@ impl Stream {
     }
 }
 
+/// Sends operation `id`'s `messages` in order, holding the stream's `turn` to send until they are all sent (so the
+/// next operation's messages follow them); stops early only when the call is gone, and the receiving task then
+/// fails the operation with the reason.
+async fn send_in_turn(
+    turn: OwnedMutexGuard<Option<RequestSender>>,
+    sender: RequestSender,
+    id: u64,
+    messages: impl Iterator<Item = Op>,
+) {
+    for op in messages {
+        if sender.send(proto::StreamRequest { operation: id, op: Some(op) }).await.is_err() {
+            break;
+        }
+    }
+    drop(turn);
+}
+
 /// The accel description in an answer.
 fn accel_outcome(outcome: &Outcome) -> Option<proto::AccelInfo> {
     if let Outcome::Accel(info) = outcome { Some(info.clone()) } else { None }
@@ -483,5 +519,69 @@ impl Drop for Stream {
         }
         self.receiver.abort();
         self.shared.break_with(tonic::Status::cancelled("the stream was dropped"));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use super::*;
+
+    /// A stream whose requests come out of the returned receiver, which holds `queued` of them before enqueueing
+    /// waits, and whose answers come only as a test gives them.
+    fn unconnected(queued: usize, upload_chunk_bytes: usize) -> (Stream, mpsc::Receiver<proto::StreamRequest>) {
+        let (sender, requests) = mpsc::channel(queued);
+        let options = ClientOptions { upload_chunk_bytes, ..ClientOptions::default() };
+        let stream = Stream::new(&options, Arc::new(Shared::new(7)), sender, tokio::spawn(async {}), None);
+        (stream, requests)
+    }
+
+    /// The operation id and kind of each of the next `count` requests, or of as many as come within a second.
+    async fn next_requests(requests: &mut mpsc::Receiver<proto::StreamRequest>, count: usize) -> Vec<(u64, String)> {
+        let mut received = Vec::new();
+        while received.len() < count {
+            match tokio::time::timeout(Duration::from_secs(1), requests.recv()).await {
+                Ok(Some(request)) => received.push((request.operation, kind_name(request.op))),
+                _ => break,
+            }
+        }
+        received
+    }
+
+    /// The name of a request's kind.
+    fn kind_name(op: Option<Op>) -> String {
+        match op {
+            Some(Op::Upload(_)) => "upload".into(),
+            Some(Op::UploadData(_)) => "data".into(),
+            Some(Op::RecordEvent(_)) => "record".into(),
+            other => format!("{other:?}"),
+        }
+    }
+
+    #[tokio::test]
+    async fn an_enqueue_given_up_once_booked_still_sends_its_messages_whole_and_before_the_next() {
+        let (stream, mut requests) = unconnected(1, 2);
+        let upload = stream.upload("", Bytes::from_static(b"abcdefgh"));
+        let given_up = tokio::time::timeout(Duration::from_millis(50), upload).await;
+        assert!(given_up.is_err(), "the transport holds one message, so the upload waits");
+        let (event, received) = tokio::join!(stream.record_event(), next_requests(&mut requests, 5));
+        let expected = [(1, "upload"), (1, "data"), (1, "data"), (1, "data"), (2, "record")];
+        assert_eq!(received, expected.map(|(id, kind)| (id, kind.to_owned())));
+        assert_eq!(event.expect("enqueued").id().operation, 2);
+    }
+
+    #[tokio::test]
+    async fn after_a_break_the_stream_is_idle_and_events_that_never_ran_have_not_completed() {
+        let (stream, _requests) = unconnected(8, 1024);
+        let (done, pending) = (stream.record_event().await.unwrap(), stream.record_event().await.unwrap());
+        assert!(!stream.query());
+        stream.shared.answer(1, Ok(Outcome::Nothing), (5, 9)).unwrap();
+        assert!(done.query() && done.completed_unix_ns() == Some(9));
+        stream.shared.break_with(tonic::Status::unavailable("the connection dropped"));
+        assert!(!pending.query() && pending.completed_unix_ns().is_none(), "it never ran");
+        assert!(pending.wait().await.is_err(), "waiting gives the error");
+        assert!(stream.query(), "nothing more will run");
+        assert!(stream.synchronize().await.is_err(), "synchronize gives the error");
     }
 }

@@ -2,7 +2,6 @@
 
 use std::sync::Arc;
 
-use bytes::{Bytes, BytesMut};
 use rayd_proto as proto;
 use rayd_proto::operation_result::Outcome as Produced;
 use rayd_proto::stream_response::Kind;
@@ -10,11 +9,13 @@ use tonic::{Code, Status, Streaming};
 
 use super::state::{Expect, Outcome, Shared};
 use crate::reduce::ReducedTrace;
+use crate::saved::Download;
 use crate::trace::TraceResult;
 
-/// Reads answers until the server ends the stream or the call breaks; then fails whatever is still unanswered.
+/// Reads answers until the server ends the stream or the call breaks (a download chunk out of order, or more than
+/// this process can hold, breaks it too); then fails whatever is still unanswered.
 pub(crate) async fn answers(mut responses: Streaming<proto::StreamResponse>, shared: Arc<Shared>) {
-    let mut download = BytesMut::new();
+    let mut download = Download::default();
     let end = loop {
         let response = match responses.message().await {
             Ok(Some(response)) => response,
@@ -22,9 +23,13 @@ pub(crate) async fn answers(mut responses: Streaming<proto::StreamResponse>, sha
             Err(status) => break status,
         };
         match response.kind {
-            Some(Kind::DownloadChunk(chunk)) => download.extend_from_slice(&chunk.data),
+            Some(Kind::DownloadChunk(chunk)) => {
+                if let Err(e) = download.push(&chunk) {
+                    break Status::new(e.code(), e.to_string());
+                }
+            }
             Some(Kind::Result(result)) => {
-                if let Err(broken) = answer(&shared, result, download.split().freeze()) {
+                if let Err(broken) = answer(&shared, result, std::mem::take(&mut download)) {
                     break Status::internal(format!("the server broke the contract: {broken}"));
                 }
             }
@@ -35,7 +40,7 @@ pub(crate) async fn answers(mut responses: Streaming<proto::StreamResponse>, sha
 }
 
 /// Hands one answer (and the download data before it) to its slot.
-fn answer(shared: &Shared, result: proto::OperationResult, data: Bytes) -> Result<(), String> {
+fn answer(shared: &Shared, result: proto::OperationResult, data: Download) -> Result<(), String> {
     let id = result.operation;
     let ran = (result.started_unix_ns, result.finished_unix_ns);
     let slot = shared.book().unanswered.front().map(|u| Arc::clone(&u.slot));
@@ -48,14 +53,18 @@ fn answer(shared: &Shared, result: proto::OperationResult, data: Bytes) -> Resul
     shared.answer(id, outcome, ran)
 }
 
-/// What a successful answer is made into; an answer of the wrong kind is an INTERNAL error for its operation.
-fn outcome(id: u64, expect: &Expect, produced: Option<Produced>, data: Bytes) -> Result<Outcome, Status> {
+/// What a successful answer is made into; an answer of the wrong kind, or a download of the wrong size, is an
+/// INTERNAL error for its operation.
+fn outcome(id: u64, expect: &Expect, produced: Option<Produced>, data: Download) -> Result<Outcome, Status> {
     let wrong = || Status::internal(format!("the server broke the contract: operation {id} got the wrong outcome"));
     match (expect, produced) {
         (Expect::Nothing, None) => Ok(Outcome::Nothing),
         (Expect::Buffer, Some(Produced::Buffer(info))) => Ok(Outcome::Buffer(info)),
         (Expect::Accel, Some(Produced::Accel(info))) => Ok(Outcome::Accel(info)),
-        (Expect::Download, Some(Produced::Buffer(_))) => Ok(Outcome::Bytes(data)),
+        (Expect::Download, Some(Produced::Buffer(info))) => data
+            .whole(info.size_bytes)
+            .map(Outcome::Bytes)
+            .map_err(|e| Status::internal(format!("operation {id}: {e}"))),
         (Expect::Trace(query, rays), Some(Produced::Trace(response))) => {
             TraceResult::from_batch(query, *rays, response)
                 .map(Outcome::Trace)
@@ -65,5 +74,29 @@ fn outcome(id: u64, expect: &Expect, produced: Option<Produced>, data: Bytes) ->
             .map(Outcome::Reduced)
             .map_err(|e| Status::internal(format!("operation {id}: {e}"))),
         _ => Err(wrong()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use bytes::Bytes;
+
+    use super::*;
+
+    /// The download of one chunk of `data`.
+    fn downloaded(data: &'static [u8]) -> Download {
+        let mut download = Download::default();
+        download.push(&proto::BufferChunk { offset: 0, data: Bytes::from_static(data) }).unwrap();
+        download
+    }
+
+    #[test]
+    fn a_download_answer_must_bring_the_whole_buffer() {
+        let buffer = |size_bytes| Some(Produced::Buffer(proto::BufferInfo { size_bytes, ..Default::default() }));
+        let whole = outcome(3, &Expect::Download, buffer(4), downloaded(b"abcd")).unwrap();
+        assert!(matches!(whole, Outcome::Bytes(data) if data == b"abcd".as_ref()));
+        let error = outcome(3, &Expect::Download, buffer(5), downloaded(b"abcd")).unwrap_err();
+        assert_eq!(error.code(), Code::Internal);
+        assert!(error.message().starts_with("operation 3: the server broke the contract"), "{}", error.message());
     }
 }
