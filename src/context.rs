@@ -445,7 +445,7 @@ impl Context {
         let placed: Vec<PlacedInstance> =
             instances.iter().enumerate().map(|(index, instance)| place(index, instance)).collect::<Result<_>>()?;
         for instance in &placed {
-            self.check_device(&instance.child)?;
+            self.check_device(&instance.child, "places")?;
         }
         let data = self.device.backend.build_instances(&placed, options)?;
         let shape = Shape {
@@ -465,7 +465,7 @@ impl Context {
     pub fn build_transform(&self, transform: &TransformInput, child: &Arc<Accel>) -> Result<Arc<Accel>> {
         let checked: Transform = transform.check()?;
         check_depth(child.info.depth, "child", None)?;
-        self.check_device(child)?;
+        self.check_device(child, "places")?;
         let data = self.device.backend.build_transform(&checked, child)?;
         let shape = Shape { kind: transform_kind(transform), triangle_count: 0, geometry_count: 0, instance_count: 0 };
         let options = BuildOptions { flags: TRANSFORM_FLAGS, motion: checked.motion() };
@@ -510,13 +510,13 @@ impl Context {
         Ok(copy)
     }
 
-    /// FAILED_PRECONDITION unless `child` lives where this context's device can read it (an instance accel or
-    /// transform places accels of its own device).
-    fn check_device(&self, child: &Accel) -> Result<()> {
-        if !self.shares_memory_with(child) {
+    /// FAILED_PRECONDITION unless `accel` lives where this context's device can read it (an instance accel or
+    /// transform places accels of its own device, a trace traces them): `use_` says which (`places`, `traces`).
+    fn check_device(&self, accel: &Accel, use_: &str) -> Result<()> {
+        if !self.shares_memory_with(accel) {
             return Err(Error::FailedPrecondition(format!(
-                "accel {} is a {:?} accel of another device: a {:?} device places accels of its own device only",
-                child.handle.0, child.backend, self.device.info.kind
+                "accel {} is a {:?} accel of another device: a {:?} device {use_} accels of its own device only",
+                accel.handle.0, accel.backend, self.device.info.kind
             )));
         }
         Ok(())
@@ -702,7 +702,7 @@ impl Context {
     /// Traces `rays` against `accel` and writes the results into `out` in place. FAILED_PRECONDITION when the
     /// accel places an accel in a version an update has replaced (update the placing accel first).
     pub fn trace(&self, accel: &Accel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
-        check_trace(accel, query, RaySource::Packed(rays))?;
+        self.check_trace(accel, query, RaySource::Packed(rays))?;
         self.device.backend.trace(accel.data.as_ref(), query, rays, out)
     }
 
@@ -712,7 +712,7 @@ impl Context {
     /// device. FAILED_PRECONDITION on a device without a kernel or timestamps (the CPU), INVALID_ARGUMENT for
     /// `launches` outside 1 ..= 2,048, RESOURCE_EXHAUSTED when the rays do not fit one launch.
     pub fn time_launches(&self, accel: &Accel, query: &Query, rays: &[u8], launches: u32) -> Result<Vec<Duration>> {
-        check_trace(accel, query, RaySource::Packed(rays))?;
+        self.check_trace(accel, query, RaySource::Packed(rays))?;
         self.device.backend.time_launches(accel.data.as_ref(), query, rays, launches)
     }
 
@@ -725,7 +725,7 @@ impl Context {
         rays: RaySource<'_>,
         out: TraceOutput<'_>,
     ) -> Result<TraceStats> {
-        check_trace(accel, query, rays)?;
+        self.check_trace(accel, query, rays)?;
         self.device.backend.trace_source(accel.data.as_ref(), query, rays, out)
     }
 
@@ -740,17 +740,19 @@ impl Context {
         first_ray: u64,
         reduction: &Reduction,
     ) -> Result<(Partial, TraceStats)> {
-        check_trace(accel, query, rays)?;
+        self.check_trace(accel, query, rays)?;
         self.device.backend.trace_reduced(accel.data.as_ref(), query, rays, first_ray, reduction)
     }
-}
 
-/// What every trace checks before its backend runs: the accel is current, packed rays' times are numbers (a
-/// checked generator makes only such times), and the query's ray format keeps a generator's ranges.
-fn check_trace(accel: &Accel, query: &Query, rays: RaySource<'_>) -> Result<()> {
-    accel.check_current()?;
-    match rays {
-        RaySource::Packed(rays) => query.check_times(rays),
-        RaySource::Generated { generator, .. } => generator.check_format(query.ray_format),
+    /// What every trace checks before its backend runs: the accel is current and on this context's device, packed
+    /// rays' times are numbers (a checked generator makes only such times), and the query's ray format keeps a
+    /// generator's ranges.
+    fn check_trace(&self, accel: &Accel, query: &Query, rays: RaySource<'_>) -> Result<()> {
+        accel.check_current()?;
+        self.check_device(accel, "traces")?;
+        match rays {
+            RaySource::Packed(rays) => query.check_times(rays),
+            RaySource::Generated { generator, .. } => generator.check_format(query.ray_format),
+        }
     }
 }

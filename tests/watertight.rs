@@ -1,11 +1,13 @@
 //! Watertightness: rays aimed exactly at shared vertices and edges of closed meshes never slip through, and
-//! crossing counts give a consistent inside/outside answer.
+//! crossing counts give a consistent inside/outside answer, on the CPU and on the first wgpu device (adapter policy
+//! as in `tests/wgpu.rs`).
 
 mod common;
 
-use common::{f32_at, icosphere, pack_rays, shared_mesh, u32_at};
+use common::{f32_at, gpu_with, icosphere, pack_rays, shared_mesh, u32_at};
 use glam::{Vec3, Vec3A};
 use rayd_engine::accel::BuildOptions;
+use rayd_engine::backend::wgpu::WgpuOptions;
 use rayd_engine::format::{HitFormat, Ray, RayFormat};
 use rayd_engine::geometry::BuildInput;
 use rayd_engine::mesh::Mesh;
@@ -13,10 +15,15 @@ use rayd_engine::query::{Query, QueryKind, TraceOutput};
 use rayd_engine::raygen::uniform;
 use rayd_engine::{Context, Device};
 
-/// Traces a count query and returns (closest t, crossings) per ray.
-fn crossings(mesh: &Mesh, rays: &[Ray]) -> Vec<(f32, u32)> {
+/// The CPU, and the first wgpu device where there is one.
+fn devices() -> Vec<Device> {
+    std::iter::once(Device::cpu()).chain(gpu_with(WgpuOptions::default())).collect()
+}
+
+/// Traces a count query on `device` and returns (closest t, crossings) per ray.
+fn crossings(device: &Device, mesh: &Mesh, rays: &[Ray]) -> Vec<(f32, u32)> {
     let packed = mesh.pack();
-    let context = Context::new(Device::cpu());
+    let context = Context::new(device.clone());
     let accel = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
     let query = Query { kind: QueryKind::Count, ..Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T) };
     let rays = pack_rays(rays, RayFormat::OriginTminDirectionTmax);
@@ -66,15 +73,18 @@ fn rays_from_inside_a_sphere_through_every_vertex_and_edge_cross_exactly_once() 
         let offset = Vec3::new(uniform(k, 0), uniform(k, 1), uniform(k, 2)) * 0.8 - 0.4;
         rays.extend(targets.iter().map(|&p| ray_towards(centre + offset, p)));
     }
-    for (i, (t, count)) in crossings(&sphere, &rays).into_iter().enumerate() {
-        assert!(t > 0.0, "ray {i} escaped the closed sphere");
-        assert_eq!(count, 1, "ray {i} crossed the sphere {count} times");
+    for device in devices() {
+        let on = &device.info().id;
+        for (i, (t, count)) in crossings(&device, &sphere, &rays).into_iter().enumerate() {
+            assert!(t > 0.0, "{on}: ray {i} escaped the closed sphere");
+            assert_eq!(count, 1, "{on}: ray {i} crossed the sphere {count} times");
+        }
     }
 }
 
 #[test]
 fn crossing_parity_is_the_same_in_every_direction_on_closed_shared_meshes() {
-    let mut checked = 0;
+    let (devices, mut checked) = (devices(), 0);
     for name in ["cow", "spot", "fandisk", "nefertiti"] {
         let mesh = shared_mesh(name);
         assert!(is_closed(&mesh), "{name} is expected to be closed");
@@ -91,19 +101,23 @@ fn crossing_parity_is_the_same_in_every_direction_on_closed_shared_meshes() {
                 rays.push(ray_towards(from, if d % 2 == 0 { a } else { (a + b) * 0.5 }));
             }
         }
-        let results = crossings(&mesh, &rays);
-        let mut inside_points = 0;
-        for (p, point_results) in results.chunks(DIRECTIONS).enumerate() {
-            let parity = point_results[0].1 % 2;
-            for (d, &(t, count)) in point_results.iter().enumerate() {
-                assert_eq!(count % 2, parity, "{name}: point {p}, ray {d}: {count} crossings disagree with ray 0");
-                assert!(parity == 0 || t > 0.0, "{name}: point {p}, ray {d} escaped from inside");
+        for device in &devices {
+            let on = &device.info().id;
+            let results = crossings(device, &mesh, &rays);
+            let mut inside_points = 0;
+            for (p, point_results) in results.chunks(DIRECTIONS).enumerate() {
+                let parity = point_results[0].1 % 2;
+                for (d, &(t, count)) in point_results.iter().enumerate() {
+                    let disagree = format!("{on}: {name}: point {p}, ray {d}: {count} crossings disagree with ray 0");
+                    assert_eq!(count % 2, parity, "{disagree}");
+                    assert!(parity == 0 || t > 0.0, "{on}: {name}: point {p}, ray {d} escaped from inside");
+                }
+                inside_points += parity;
             }
-            inside_points += parity;
+            // Both inside and outside points were tested.
+            assert!(inside_points > 0 && inside_points < POINTS as u32, "{on}: {name}: {inside_points} inside");
+            checked += 1;
         }
-        // Both inside and outside points were tested.
-        assert!(inside_points > 0 && inside_points < POINTS as u32, "{name}: {inside_points} inside");
-        checked += 1;
     }
-    assert_eq!(checked, 4);
+    assert!(checked == 4 * devices.len(), "{checked} meshes and devices checked");
 }

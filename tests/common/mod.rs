@@ -4,10 +4,25 @@
 use std::path::PathBuf;
 
 use glam::{Vec3, Vec3A};
+use rayd_engine::Device;
+use rayd_engine::backend::wgpu::WgpuOptions;
 use rayd_engine::format::{Ray, RayFlags, RayFormat};
 use rayd_engine::geometry::{BuildInput, TriangleInput};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::raygen::uniform;
+
+/// The first wgpu device with `options`, or `None` (after a notice) on a machine without an adapter; panics
+/// instead when `RAYD_REQUIRE_GPU=1`.
+pub fn gpu_with(options: WgpuOptions) -> Option<Device> {
+    if let Some(device) = Device::wgpu(options).into_iter().next() {
+        return Some(device);
+    }
+    if std::env::var("RAYD_REQUIRE_GPU").as_deref() == Ok("1") {
+        panic!("RAYD_REQUIRE_GPU=1 but wgpu found no adapter (install mesa-vulkan-drivers for lavapipe)");
+    }
+    eprintln!("skipped: no wgpu adapter (set RAYD_REQUIRE_GPU=1 to fail instead)");
+    None
+}
 
 /// `../shared/data/meshes/NAME.obj`.
 pub fn shared_mesh(name: &str) -> Mesh {

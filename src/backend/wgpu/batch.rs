@@ -163,13 +163,18 @@ impl Capacity {
 
     /// Bytes of a slot of this capacity: its buffers, staging included.
     fn bytes(&self) -> u64 {
-        let readback = self.given_back + self.tallies + TIMESTAMP_BYTES;
-        2 * self.rays + self.hits + self.tallies + self.scratch + self.reduced + readback
+        2 * self.rays + self.hits + self.tallies + self.scratch + self.reduced + self.readback()
     }
 
-    /// The largest buffer.
+    /// Bytes of `readback`: what is given back, the tallies and the timestamps.
+    fn readback(&self) -> u64 {
+        self.given_back + self.tallies + TIMESTAMP_BYTES
+    }
+
+    /// The largest buffer, the readback staging included (a buffer, if not a binding, of at most the adapter's
+    /// `max_buffer_size`).
     fn largest(&self) -> u64 {
-        self.rays.max(self.hits).max(self.tallies).max(self.scratch).max(self.reduced)
+        self.rays.max(self.hits).max(self.tallies).max(self.scratch).max(self.reduced).max(self.readback())
     }
 
     /// Whether every buffer is at least as large as `need`'s.
@@ -299,8 +304,7 @@ impl Slot {
         let tallies = buffer("rayd tallies", capacity.tallies, U::STORAGE | U::COPY_SRC | U::COPY_DST, false);
         let scratch = buffer("rayd scratch", capacity.scratch, U::STORAGE, false);
         let reduced = buffer("rayd reduced", capacity.reduced, U::STORAGE | U::COPY_SRC, false);
-        let readback_bytes = capacity.given_back + capacity.tallies + TIMESTAMP_BYTES;
-        let readback = buffer("rayd readback", readback_bytes, U::MAP_READ | U::COPY_DST, false);
+        let readback = buffer("rayd readback", capacity.readback(), U::MAP_READ | U::COPY_DST, false);
         let timestamps = opened.timestamp_period.map(|_| {
             let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
                 label: Some("rayd kernel time"),
@@ -792,5 +796,21 @@ mod tests {
             &Output::Hits(TraceOutput { hits: &mut [], counts: &mut [] }),
         );
         assert!(SLOTS as u64 * ordinary.bytes() <= MAX_IDLE_SLOT_BYTES, "a trace's ordinary slots stay");
+    }
+
+    #[test]
+    fn a_chunks_readback_staging_fits_the_limit_as_its_bindings_do() {
+        // Counts: the hits are given back, and the counts with the tallies after them, so the readback staging is
+        // the largest buffer of a chunk.
+        let rays_of_24_bytes = crate::format::RayFormat::OriginDirection;
+        let query = Query { kind: QueryKind::Count, ..Query::closest(rays_of_24_bytes, HitFormat::Full) };
+        let (rays, output) = (1 << 16, Output::Hits(TraceOutput { hits: &mut [], counts: &mut [] }));
+        let whole = Capacity::for_chunk(&query, rays, &Input::Packed(&[]), &output);
+        let bindings = whole.rays.max(whole.hits).max(whole.tallies).max(whole.scratch).max(whole.reduced);
+        assert!(whole.readback() > bindings);
+        let plan = Plan::new(&query, rays, &Input::Packed(&[]), &output, bindings, rays).unwrap();
+        assert!(plan.chunk_rays < rays && plan.need.readback() <= bindings, "{} rays a chunk", plan.chunk_rays);
+        let plan = Plan::new(&query, rays, &Input::Packed(&[]), &output, whole.readback(), rays).unwrap();
+        assert_eq!(plan.chunk_rays, rays);
     }
 }

@@ -15,8 +15,9 @@
 //! graphs whose rays could need more than the kernel's 128 stack entries.
 //!
 //! Results agree with the CPU backend up to rounding: the kernel runs the same watertight test, edge rule and tie
-//! rule, but a GPU may fuse multiplies and adds (and divides less exactly), so `t` can differ in the last bits and
-//! a ray through an edge can pick the neighbouring triangle. The traversal order differs (4-wide nodes here,
+//! rule, its arithmetic operation by operation as the CPU's (no multiply and add fused: [`spirv`]), but a GPU
+//! divides less exactly and may fuse the arithmetic of the boxes and of the rays' transforms, so `t`, `u` and `v`
+//! can differ in the last bits and a ray through an edge can pick the neighbouring triangle. The traversal order differs (4-wide nodes here,
 //! 8-wide on the CPU), which only `any` queries and terminate-on-first-hit rays can see: they may stop at another
 //! hit, equally valid.
 

@@ -8,6 +8,15 @@
 //!   test relies on Rust's rule (a NaN operand is ignored); [`ignore_nan_operands`] gives every float `min`, `max`
 //!   and `clamp` that rule instead.
 //!
+//! - SPIR-V lets a driver fuse a multiply and an add into one FMA (NVIDIA's does) unless the result is decorated
+//!   `NoContraction`; naga never writes that decoration. Fused, the watertight test's edge functions of two
+//!   triangles sharing an edge are no longer exact negations of each other, so a ray through the edge could hit
+//!   both or neither, and the kernel's answers round otherwise than the CPU's (Rust never fuses on its own).
+//!   [`forbid_contraction`] decorates every float multiply, add and subtract of the triangle test
+//!   ([`EXACT_FUNCTIONS`]); the kernel's own `fma` calls, where the CPU calls `mul_add`, stay fused. Elsewhere (the
+//!   box tests, the rays' transforms) a fused operation only rounds otherwise, and forbidding it everywhere cost the
+//!   kernels 1–5% on an H100 (BENCHMARKS.md, "No contraction in the GPU's triangle test").
+//!
 //! The rest is what wgpu would do itself on Vulkan: pipeline constants applied by naga, the module written for the
 //! one entry point, workgroup memory zeroed by naga's polyfill; without naga's run-time checks (see
 //! [`super::kernel::Kernel::new`]).
@@ -19,11 +28,24 @@ use naga::back::spv;
 /// begins, level `l + 1` when it descends from `l`, and only levels up to the current one are read).
 const WRITTEN_BEFORE_READ: [&str; 4] = ["stack", "level_object", "level_origin", "level_direction"];
 
-/// SPIR-V's `OpName`, `OpExtInstImport`, `OpExtInst` and `OpVariable` opcodes.
+/// SPIR-V's `OpName`, `OpExtInstImport`, `OpExtInst`, `OpVariable`, `OpDecorate` and `OpMemberDecorate` opcodes.
 const OP_NAME: u32 = 5;
 const OP_EXT_INST_IMPORT: u32 = 11;
 const OP_EXT_INST: u32 = 12;
 const OP_VARIABLE: u32 = 59;
+const OP_DECORATE: u32 = 71;
+const OP_MEMBER_DECORATE: u32 = 72;
+/// The float arithmetic a driver may contract: `OpFAdd`, `OpFSub`, `OpFMul`, `OpVectorTimesScalar`,
+/// `OpMatrixTimesScalar`, `OpVectorTimesMatrix`, `OpMatrixTimesVector`, `OpMatrixTimesMatrix`, `OpDot`.
+const CONTRACTIBLE: [u32; 9] = [129, 131, 133, 142, 143, 144, 145, 146, 148];
+/// The `NoContraction` decoration.
+const NO_CONTRACTION: u32 = 42;
+/// `OpFunction` and `OpFunctionEnd`.
+const OP_FUNCTION: u32 = 54;
+const OP_FUNCTION_END: u32 = 56;
+/// The functions of `trace.wgsl` whose arithmetic must round as the CPU's does, operation by operation: the
+/// watertight triangle test and its exact edge functions.
+const EXACT_FUNCTIONS: [&str; 2] = ["intersect_triangle", "exact_difference"];
 /// The instruction set whose float `min`, `max` and `clamp` naga writes.
 const GLSL_STD_450: &[u8] = b"GLSL.std.450";
 /// GLSL.std.450's `FMin`, `FMax`, `FClamp` and the NaN-ignoring instruction each becomes.
@@ -51,11 +73,13 @@ impl Source {
     }
 
     /// The SPIR-V of compute entry point `entry` with the pipeline constants `constants`, without the initializers
-    /// of [`WRITTEN_BEFORE_READ`], its float `min`, `max` and `clamp` ignoring NaN operands.
+    /// of [`WRITTEN_BEFORE_READ`], its float `min`, `max` and `clamp` ignoring NaN operands, none of its float
+    /// arithmetic contracted.
     pub fn spirv(&self, entry: &str, constants: &[(&str, f64)]) -> Vec<u32> {
         let mut words = self.written(entry, constants);
         drop_initializers(&mut words, &WRITTEN_BEFORE_READ);
         ignore_nan_operands(&mut words);
+        forbid_contraction(&mut words, &EXACT_FUNCTIONS);
         words
     }
 
@@ -127,19 +151,52 @@ fn ignore_nan_operands(words: &mut [u32]) -> usize {
     changed
 }
 
+/// Decorates the result of every [`CONTRACTIBLE`] instruction of the functions named `functions` `NoContraction`,
+/// so that each rounds on its own as on the CPU; the decorations go before the module's first (its annotations'
+/// section). Returns how many results were decorated.
+fn forbid_contraction(words: &mut Vec<u32>, functions: &[&str]) -> usize {
+    let named = ids_named(words, functions);
+    let mut inside = false;
+    // `OpFunction result-type result-id …` … `OpFunctionEnd`; `OpFAdd result-type result-id operands…`, and the
+    // same for the others.
+    let results: Vec<u32> = instructions(words)
+        .filter(|&(_, opcode, operands)| {
+            match opcode {
+                OP_FUNCTION => inside = operands.len() >= 2 && named.contains(&operands[1]),
+                OP_FUNCTION_END => inside = false,
+                _ => {}
+            }
+            inside && CONTRACTIBLE.contains(&opcode) && operands.len() >= 2
+        })
+        .map(|(_, _, operands)| operands[1])
+        .collect();
+    let annotations = instructions(words)
+        .find(|&(_, opcode, _)| opcode == OP_DECORATE || opcode == OP_MEMBER_DECORATE)
+        .map(|(at, _, _)| at)
+        .expect("the kernel's bindings are decorated");
+    let decorations = results.iter().flat_map(|&id| [(3 << 16) | OP_DECORATE, id, NO_CONTRACTION]);
+    words.splice(annotations..annotations, decorations);
+    results.len()
+}
+
 /// A string operand's text (nul-terminated, little-endian words).
 fn string_operand(words: &[u32]) -> Vec<u8> {
     let bytes: Vec<u8> = words.iter().flat_map(|w| w.to_le_bytes()).collect();
     bytes.split(|&b| b == 0).next().unwrap_or_default().to_vec()
 }
 
-/// Drops the initializer operand of every `OpVariable` whose `OpName` is one of `names`; returns how many went.
-fn drop_initializers(words: &mut Vec<u32>, names: &[&str]) -> usize {
-    let named: Vec<u32> = instructions(words)
+/// The ids whose `OpName` is one of `names`.
+fn ids_named(words: &[u32], names: &[&str]) -> Vec<u32> {
+    instructions(words)
         .filter(|&(_, opcode, operands)| opcode == OP_NAME && !operands.is_empty())
         .filter(|(_, _, operands)| names.iter().any(|n| n.as_bytes() == string_operand(&operands[1..])))
         .map(|(_, _, operands)| operands[0])
-        .collect();
+        .collect()
+}
+
+/// Drops the initializer operand of every `OpVariable` whose `OpName` is one of `names`; returns how many went.
+fn drop_initializers(words: &mut Vec<u32>, names: &[&str]) -> usize {
+    let named = ids_named(words, names);
     // `OpVariable result-type result-id storage-class [initializer]`: 5 words with an initializer.
     let initialized: Vec<usize> = instructions(words)
         .filter(|&(_, opcode, operands)| opcode == OP_VARIABLE && operands.len() == 4 && named.contains(&operands[1]))
@@ -197,6 +254,60 @@ mod tests {
             .filter(|&(_, opcode, operands)| opcode == OP_EXT_INST && operands.len() >= 4)
             .map(|(_, _, operands)| operands[3])
             .collect()
+    }
+
+    /// The results of `words`' contractible instructions, by the name of the function they are in.
+    fn arithmetic_by_function(words: &[u32]) -> Vec<(String, u32)> {
+        let names: Vec<(u32, String)> = instructions(words)
+            .filter(|&(_, opcode, _)| opcode == OP_NAME)
+            .map(|(_, _, operands)| {
+                (operands[0], String::from_utf8_lossy(&string_operand(&operands[1..])).into_owned())
+            })
+            .collect();
+        let mut function = String::new();
+        let mut results = Vec::new();
+        for (_, opcode, operands) in instructions(words) {
+            if opcode == OP_FUNCTION {
+                function = names.iter().find(|(id, _)| *id == operands[1]).map(|(_, n)| n.clone()).unwrap_or_default();
+            } else if CONTRACTIBLE.contains(&opcode) {
+                results.push((function.clone(), operands[1]));
+            }
+        }
+        results
+    }
+
+    #[test]
+    fn the_triangle_tests_float_arithmetic_and_nothing_else_is_decorated_no_contraction_once() {
+        let source = Source::new(SOURCE);
+        let constants = [("LEVELS", 1.0), ("MOTION", 1.0), ("QUERY_KIND", 3.0), ("FULL_HITS", 1.0)];
+        let written = source.written("trace", &constants);
+        let mut words = written.clone();
+        let decorated = forbid_contraction(&mut words, &EXACT_FUNCTIONS);
+        let arithmetic = arithmetic_by_function(&words);
+        let mut expected: Vec<u32> =
+            arithmetic.iter().filter(|(f, _)| EXACT_FUNCTIONS.contains(&f.as_str())).map(|&(_, id)| id).collect();
+        let mut no_contraction: Vec<u32> = instructions(&words)
+            .filter(|&(_, opcode, operands)| opcode == OP_DECORATE && operands[1] == NO_CONTRACTION)
+            .map(|(_, _, operands)| operands[0])
+            .collect();
+        // The edge functions alone are six multiplies and three subtractions, their exact forms two and three more;
+        // the box tests' arithmetic elsewhere is left as it was.
+        assert!(decorated >= 14 && decorated < arithmetic.len(), "{decorated} of {}", arithmetic.len());
+        for function in EXACT_FUNCTIONS {
+            assert!(arithmetic.iter().any(|(f, _)| f == function), "no arithmetic found in {function}");
+        }
+        no_contraction.sort_unstable();
+        expected.sort_unstable();
+        assert_eq!(no_contraction, expected);
+        // Nothing else changed: the old words follow once the decorations are taken out again.
+        let at = instructions(&words).find(|&(_, opcode, _)| opcode == OP_DECORATE).unwrap().0;
+        let mut undone = words.clone();
+        undone.drain(at..at + 3 * decorated);
+        assert!(undone == written);
+        // Every decoration is in the annotations' section: before the first type, constant or variable.
+        let first_type = instructions(&words).position(|(_, opcode, _)| (19..=39).contains(&opcode)).unwrap();
+        let last_decoration = instructions(&words).enumerate().filter(|(_, (_, opcode, _))| *opcode == OP_DECORATE);
+        assert!(last_decoration.last().unwrap().0 < first_type);
     }
 
     #[test]
