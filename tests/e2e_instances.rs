@@ -49,10 +49,10 @@ async fn down_at(client: &Client, accel: &str, points: &[(f32, f32)]) -> Vec<(f3
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn instance_accels_and_transforms_trace_through_the_service() {
-    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_GRAPH_DEPTH", "3")]);
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_GRAPH_DEPTH", "3"), ("RAYD_LIMITS_MAX_ACCEL_BYTES", "1000000")]);
     let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
     let limits = client.server_info().await.unwrap().limits.unwrap();
-    assert_eq!(limits.max_graph_depth, 3);
+    assert_eq!((limits.max_graph_depth, limits.max_accel_bytes), (3, 1_000_000));
     let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
     client.build_mesh("tri", &triangle, "", BuildFlags::empty()).await.unwrap();
     let lifted = client.build_transform("lifted", "", "tri", translation(0.0, 0.0, 2.0)).await.unwrap();
@@ -129,6 +129,15 @@ async fn instance_accels_and_transforms_trace_through_the_service() {
     assert!(error.to_string().contains("only input"), "{error}");
     let error = client.build_instances("ghost", "", &["nope"], &[], BuildFlags::empty()).await.unwrap_err();
     assert_eq!(error.code(), Code::NotFound);
+    // Instances whose accel could not be built within max_accel_bytes are refused before they are made.
+    let many = vec![record(0, 0, translation(0.0, 0.0, 0.0)); 20_000];
+    let error = client.build_instances("many", "", &["tri"], &many, BuildFlags::empty()).await.unwrap_err();
+    assert_eq!(error.code(), Code::ResourceExhausted);
+    assert!(
+        error.to_string().contains("the bytes of an instance accel of 20000 instances")
+            && error.to_string().contains("max_accel_bytes = 1000000"),
+        "{error}"
+    );
 
     for name in ["scene", "prime", "lifted", "tri"] {
         client.destroy_accel(name).await.unwrap_or_else(|e| panic!("{name}: {e}"));

@@ -50,7 +50,7 @@ impl Upload {
     /// Starts an upload after checking its name and declared size; a header alone never reserves the whole
     /// declared size.
     pub fn begin(tenant: &Tenant, header: pb::UploadBufferHeader) -> ServiceResult<Upload> {
-        let reserved = tenant.reserve_upload(&header.name, header.size_bytes)?;
+        let reserved = tenant.reserve_new_buffers("header.name", &[(&header.name, header.size_bytes)])?;
         let data = BytesMut::with_capacity(header.size_bytes.min(UPLOAD_RESERVE_BYTES) as usize);
         Ok(Upload { header, data, reserved })
     }

@@ -6,8 +6,9 @@ use std::sync::Arc;
 use bytes::Bytes;
 use rayd_engine::accel::{BuildOptions, MemoryUsage};
 use rayd_engine::geometry::{
-    BuildInput, GeometryFlags, IndexBuffer, IndexFormat, Instance, MotionOptions, TransformFormat, TransformInput,
-    TriangleInput, VertexBuffer, VertexFormat, instances_from_prime, instances_from_records,
+    BuildInput, GeometryFlags, INSTANCE_RECORD_BYTES, IndexBuffer, IndexFormat, Instance, MotionOptions,
+    TransformFormat, TransformInput, TriangleInput, VertexBuffer, VertexFormat, instances_from_prime,
+    instances_from_records,
 };
 use rayd_engine::{Accel, Context};
 use rayd_proto as pb;
@@ -183,6 +184,7 @@ fn resolve_instances(tenant: &Tenant, device: &str, input: &pb::InstanceInput) -
         Some(Instances::Records(records)) => {
             let records = data(tenant, Some(records), "inputs[0].instances.records")?
                 .ok_or_else(|| required("inputs[0].instances.records"))?;
+            check_instance_count(tenant, device, records.len() / INSTANCE_RECORD_BYTES)?;
             instances_from_records(&records, &children)?
         }
         Some(Instances::Prime(prime)) => {
@@ -196,10 +198,25 @@ fn resolve_instances(tenant: &Tenant, device: &str, input: &pb::InstanceInput) -
                 Ok(pb::TransformFormat::Float4x3) => TransformFormat::Float4x3,
                 _ => return Err(ServiceError::invalid(field("transform_format"), "must be FLOAT4X4 or FLOAT4X3")),
             };
+            check_instance_count(tenant, device, indices.len() / size_of::<u32>())?;
             instances_from_prime(&indices, &transforms, format, &children)?
         }
         None => return Err(ServiceError::invalid("inputs[0].instances", "records or prime is required")),
     })
+}
+
+/// RESOURCE_EXHAUSTED before `count` instances are made when even the smallest instance accel over them (its
+/// default build) would pass `max_accel_bytes`: the instances' records, up to a buffer's size, are not expanded for
+/// an accel that cannot be built.
+fn check_instance_count(tenant: &Tenant, device: &str, count: usize) -> ServiceResult<()> {
+    let (_, context) = tenant.context(device)?;
+    let bytes = context.compute_instance_memory_usage(count, &BuildOptions::default())?.output_bytes;
+    ServiceError::check_limit(
+        || format!("the bytes of an instance accel of {count} instances"),
+        bytes,
+        "max_accel_bytes",
+        tenant.limits().max_accel_bytes,
+    )
 }
 
 /// The matrix or keys and the child of a transform input.

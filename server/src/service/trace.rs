@@ -127,6 +127,7 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
         }
         return reduced(&tenant, accel, query, rays, reduction).await;
     }
+    let mut reserved = None;
     if to_buffer {
         let layout = query.output_layout(ray_count as usize * query.ray_format.size())?;
         let (hits, counts) = (&request.hits_buffer_name, counts_buffer_name(&request.hits_buffer_name));
@@ -142,7 +143,9 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
             }
             buffers.push((&counts, layout.counts as u64));
         }
-        tenant.check_new_buffers(HITS_BUFFER_NAME, &buffers)?;
+        // The buffers' bytes are reserved while the trace writes them (as an upload's are), so that traces at
+        // once cannot make more than max_total_buffer_bytes of them.
+        reserved = Some(tenant.reserve_new_buffers(HITS_BUFFER_NAME, &buffers)?);
     } else {
         check_reply_size(&tenant, &query, ray_count)?;
     }
@@ -153,6 +156,8 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     }
     // With a data directory the buffers are written to disk: off the async runtime.
     blocking(move || {
+        // The buffers' own bytes take the reservation's place.
+        drop(reserved);
         let name = &request.hits_buffer_name;
         let hits_buffer = tenant.create_buffer(HITS_BUFFER_NAME, name, result.hits)?;
         let counts_buffer = if result.counts.is_empty() {

@@ -555,7 +555,7 @@ impl Tenant {
     }
 
     /// Checks that the buffers `new` (each a name, which request field `field` gave, and a size) may be created
-    /// together: their names, each size against `max_buffer_bytes`, their bytes with those held or being uploaded
+    /// together: their names, each size against `max_buffer_bytes`, their bytes with those held or being made
     /// against `max_total_buffer_bytes`, their count against `max_buffers`. An empty name is checked for its size.
     pub fn check_new_buffers(&self, field: &str, new: &[(&str, u64)]) -> ServiceResult<()> {
         for &(name, size) in new {
@@ -566,9 +566,9 @@ impl Tenant {
             ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
         }
         let size = new.iter().map(|&(_, size)| size).fold(0, u64::saturating_add);
-        let held = self.buffer_bytes() + self.quotas.uploading.get();
+        let held = self.buffer_bytes() + self.quotas.buffer_bytes_coming.get();
         ServiceError::check_limit(
-            || format!("buffer bytes of this tenant ({held} held or being uploaded, {size} more)"),
+            || format!("buffer bytes of this tenant ({held} held or being made, {size} more)"),
             held.saturating_add(size),
             "max_total_buffer_bytes",
             self.limits.max_total_buffer_bytes,
@@ -582,17 +582,17 @@ impl Tenant {
         )
     }
 
-    /// Checks a new buffer of `size` bytes as [`Tenant::check_new_buffers`] does, and reserves its bytes against
-    /// `max_total_buffer_bytes` while it is uploaded (until the reservation is dropped).
-    pub fn reserve_upload(&self, name: &str, size: u64) -> ServiceResult<Reservation> {
-        self.check_new_buffers("header.name", &[(name, size)])?;
-        self.quotas.uploading.reserve(
+    /// Checks new buffers as [`Tenant::check_new_buffers`] does (`field` naming them), and reserves their bytes
+    /// against `max_total_buffer_bytes` while they are made (uploaded, or written by a trace), until the reservation
+    /// is dropped: just before they are created, which checks them again.
+    pub fn reserve_new_buffers(&self, field: &str, new: &[(&str, u64)]) -> ServiceResult<Reservation> {
+        self.check_new_buffers(field, new)?;
+        let size = new.iter().map(|&(_, size)| size).fold(0, u64::saturating_add);
+        self.quotas.buffer_bytes_coming.reserve(
             size,
             || self.buffer_bytes(),
             ("max_total_buffer_bytes", self.limits.max_total_buffer_bytes),
-            |held, uploading| {
-                format!("buffer bytes of this tenant ({held} held, {uploading} being uploaded, {size} more)")
-            },
+            |held, coming| format!("buffer bytes of this tenant ({held} held, {coming} being made, {size} more)"),
         )
     }
 
@@ -632,9 +632,14 @@ impl Tenant {
             }
         };
         let _keeping = self.keep();
-        if let Err(taken) = self.buffers.insert(id, name, entry.clone()) {
+        // Checked again where changes are ordered: two creates that both passed the check above while their files
+        // were written must not both be kept past a limit.
+        let kept = self
+            .check_new_buffers(field, &[(name, size_bytes)])
+            .and_then(|()| self.buffers.insert(id, name, entry.clone()));
+        if let Err(refused) = kept {
             context.destroy_buffer(handle)?;
-            return Err(taken);
+            return Err(refused);
         }
         if let Err(unsaved) = file.put() {
             self.buffers.remove(&entry.id, &entry.name)?;
@@ -750,6 +755,47 @@ mod tests {
             assert!(written_under("buf") && !written_under("tmp"));
         });
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn creates_that_passed_their_first_check_at_once_keep_no_more_than_the_limits() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = crate::persist::Store::open(dir.path(), "t").unwrap();
+        let tenant = cpu_tenant(Limits { max_buffers: 1, ..Limits::default() }).with_store(store);
+        let buffers = dir.path().join("tenants/t/buffers");
+        let temporary_files = || {
+            std::fs::read_dir(&buffers)
+                .map_or(0, |d| d.flatten().filter(|e| e.path().extension().is_some_and(|x| x == "tmp")).count())
+        };
+        // Both pass the check before their files are written, then wait for the lock that orders changes.
+        let made: Vec<ServiceResult<BufferEntry>> = std::thread::scope(|scope| {
+            let held = tenant.keep();
+            let creates: Vec<_> = ["one", "two"]
+                .map(|name| scope.spawn(|| tenant.create_buffer("header.name", name, Bytes::from(vec![1; 1 << 20]))))
+                .into();
+            let waiting_since = Instant::now();
+            while temporary_files() < 2 {
+                assert!(waiting_since.elapsed().as_secs() < 60, "the two files were never written");
+                std::thread::yield_now();
+            }
+            drop(held);
+            creates.into_iter().map(|create| create.join().unwrap()).collect()
+        });
+        assert_eq!(made.iter().filter(|m| m.is_ok()).count(), 1, "{made:?}");
+        let refused = made.iter().find_map(|m| m.as_ref().err()).unwrap();
+        assert!(refused.to_string().contains("max_buffers = 1"), "{refused}");
+        assert_eq!((tenant.buffers().len(), temporary_files()), (1, 0));
+        assert_eq!(std::fs::read_dir(&buffers).unwrap().count(), 1, "the refused buffer's file is gone");
+    }
+
+    #[test]
+    fn buffers_being_made_are_reserved_against_the_tenants_buffer_bytes() {
+        let tenant = cpu_tenant(Limits { max_total_buffer_bytes: 1000, ..Limits::default() });
+        let first = tenant.reserve_new_buffers("hits_buffer_name", &[("hits", 600), ("hits.counts", 100)]).unwrap();
+        let refused = tenant.reserve_new_buffers("hits_buffer_name", &[("other", 400)]).unwrap_err();
+        assert!(refused.to_string().contains("700 held or being made, 400 more"), "{refused}");
+        drop(first);
+        let _second = tenant.reserve_new_buffers("hits_buffer_name", &[("other", 400)]).unwrap();
     }
 
     #[test]

@@ -1,7 +1,7 @@
 //! A tenant's running quotas: operations at once (a counter, taken for the life of a guard), rays per second (a
 //! token bucket that may go into debt by one batch, so a batch larger than a second's allowance still runs, and
 //! the ones after it wait for the bucket to refill), and what operations in progress will add to what it holds:
-//! the bytes of uploads, and the accels of builds, copies and loads with their bytes (reserved for the life of a
+//! the bytes of buffers being made (uploads, traces into buffers), and the accels of builds, copies and loads with their bytes (reserved for the life of a
 //! guard, so that operations at once cannot together outgrow `max_total_buffer_bytes`, `max_accels` or
 //! `max_total_accel_bytes`).
 
@@ -18,8 +18,8 @@ pub struct Quotas {
     running: AtomicU32,
     /// Rays that may still be traced, and when that was computed.
     rays: Mutex<(f64, Instant)>,
-    /// Bytes declared by the uploads in progress.
-    pub uploading: Pending,
+    /// Bytes of buffers being made: declared by the uploads in progress, or written by traces into buffers.
+    pub buffer_bytes_coming: Pending,
     /// Accels that builds, copies and loads in progress will add.
     pub accels_coming: Pending,
     /// Bytes those accels will take at most.
@@ -98,7 +98,7 @@ impl Quotas {
         Quotas {
             running: AtomicU32::new(0),
             rays: Mutex::new((rays_per_second as f64, Instant::now())),
-            uploading: Pending::default(),
+            buffer_bytes_coming: Pending::default(),
             accels_coming: Pending::default(),
             accel_bytes_coming: Pending::default(),
         }
