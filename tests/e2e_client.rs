@@ -446,3 +446,35 @@ async fn an_upload_from_parts_that_fail_keeps_nothing_and_returns_their_error() 
     let data = client.download_buffer(&info.id).await.unwrap();
     assert_eq!(data, [vec![1u8; 3], vec![2u8; 1500], vec![3u8; 497]].concat());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn temporary_buffers_of_a_call_given_up_midway_are_deleted_all_the_same() {
+    let daemon = Daemon::start(&[]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    // Sixteen bunnies side by side (1.1M triangles): uploaded as buffers, and a build long enough to give up during.
+    let bunny = &bunny().mesh;
+    let mut mesh = rayd_engine::mesh::Mesh { positions: Vec::new(), triangles: Vec::new() };
+    for copy in 0..16 {
+        let first = mesh.positions.len() as u32;
+        let offset = rayd_engine::glam::Vec3::new(copy as f32 * 0.2, 0.0, 0.0);
+        mesh.positions.extend(bunny.positions.iter().map(|&p| p + offset));
+        mesh.triangles.extend(bunny.triangles.iter().map(|t| t.map(|i| i + first)));
+    }
+    let building = {
+        let client = client.clone();
+        tokio::spawn(async move { client.build_mesh("herd", &mesh, "", BuildFlags::empty()).await })
+    };
+    // Given up once both buffers are up (the build is then running, or has just ended).
+    let started = std::time::Instant::now();
+    while client.buffers().await.unwrap().len() < 2 {
+        assert!(started.elapsed().as_secs() < 60, "the mesh's buffers never went up");
+        tokio::time::sleep(std::time::Duration::from_millis(1)).await;
+    }
+    building.abort();
+    let _ = building.await;
+    let given_up = std::time::Instant::now();
+    while !client.buffers().await.unwrap().is_empty() {
+        assert!(given_up.elapsed().as_secs() < 30, "buffers left behind: {:?}", client.buffers().await.unwrap());
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    }
+}

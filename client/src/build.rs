@@ -12,6 +12,7 @@ use crate::convert::{
     accel_ref, buffer_ref, build_options_to_proto, index_format_to_proto, motion_to_proto, vertex_format_to_proto,
 };
 use crate::error::Result;
+use crate::upload::Temporary;
 
 impl Client {
     /// Builds an accel from a request made by hand (sent for the scene of its name: buffers it uses must have been
@@ -88,20 +89,18 @@ impl Client {
         if total < self.options.inline_mesh_bytes {
             return call(vertices.into_iter().map(Source::Inline).collect(), Source::Inline(indices)).await;
         }
-        let mut uploaded = Vec::new();
+        let mut temporary = Temporary::new(self);
         let result = async {
+            let mut uploaded = Vec::new();
             for data in vertices.into_iter().chain([indices]) {
-                uploaded.push(self.upload_buffer("", data).await?.id);
+                uploaded.push(temporary.hold(self.upload_buffer("", data).await?.id));
             }
             let by_id = |id: &String| Source::Buffer(buffer_ref(id));
             let (indices, vertices) = uploaded.split_last().expect("the indices were uploaded");
             call(vertices.iter().map(by_id).collect(), by_id(indices)).await
         }
         .await;
-        for id in &uploaded {
-            // Best effort: a buffer left behind only counts against the tenant's limits.
-            let _ = self.delete_buffer(id).await;
-        }
+        temporary.delete().await;
         result
     }
 }

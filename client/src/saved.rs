@@ -10,6 +10,7 @@ use crate::client::Client;
 use crate::convert::{accel_ref, buffer_ref};
 use crate::error::{Error, Result};
 use crate::memory::append;
+use crate::upload::Temporary;
 
 /// A whole buffer's bytes put together from the chunks a download streams, checked as they come: each must start
 /// where the bytes before it end.
@@ -66,10 +67,11 @@ impl Client {
     pub async fn save_accel(&self, name: &str) -> Result<Bytes> {
         let request = proto::SaveAccelRequest { accel: Some(accel_ref(name)), buffer_name: String::new() };
         let node = self.for_scene(name);
+        let mut temporary = Temporary::new(&node);
         let buffer = node.rpc.clone().save_accel(request).await?.into_inner();
-        let blob = node.download_chunks(&buffer.id).await.and_then(|download| download.whole(buffer.size_bytes));
-        // Best effort: a buffer left behind only counts against the tenant's limits.
-        let _ = node.delete_buffer(&buffer.id).await;
+        let id = temporary.hold(buffer.id);
+        let blob = node.download_chunks(&id).await.and_then(|download| download.whole(buffer.size_bytes));
+        temporary.delete().await;
         blob
     }
 

@@ -57,17 +57,62 @@ impl Client {
     }
 
     /// Uploads `data` as a temporary buffer, calls `call` with a reference to it, and deletes the buffer again
-    /// whatever the call's outcome.
+    /// whatever the call's outcome, also if this future is dropped first ([`Temporary`]).
     pub(crate) async fn with_temporary_buffer<T, Call: Future<Output = Result<T>>>(
         &self,
         data: Bytes,
         call: impl FnOnce(proto::BufferRef) -> Call,
     ) -> Result<T> {
-        let buffer = self.upload_buffer("", data).await?;
-        let result = call(buffer_ref(&buffer.id)).await;
-        // Best effort: a buffer left behind only counts against the tenant's limits.
-        let _ = self.delete_buffer(&buffer.id).await;
+        let mut temporary = Temporary::new(self);
+        let id = temporary.hold(self.upload_buffer("", data).await?.id);
+        let result = call(buffer_ref(&id)).await;
+        temporary.delete().await;
         result
+    }
+}
+
+/// Server buffers a call made for its own use, deleted when it is over: by [`Temporary::delete`], or, where the
+/// call's future is dropped midway (a timeout, a `select!`), by a task of their own. Deletes are best effort: a
+/// buffer left behind only counts against the tenant's limits.
+pub(crate) struct Temporary {
+    /// The client that made them.
+    client: Client,
+    /// Their ids.
+    ids: Vec<String>,
+}
+
+impl Temporary {
+    /// None yet, made through `client`.
+    pub fn new(client: &Client) -> Temporary {
+        Temporary { client: client.clone(), ids: Vec::new() }
+    }
+
+    /// Deletes buffer `id` with the others; returns it.
+    pub fn hold(&mut self, id: String) -> String {
+        self.ids.push(id.clone());
+        id
+    }
+
+    /// Deletes them now.
+    pub async fn delete(mut self) {
+        delete_all(&self.client, std::mem::take(&mut self.ids)).await;
+    }
+}
+
+impl Drop for Temporary {
+    fn drop(&mut self) {
+        let ids = std::mem::take(&mut self.ids);
+        if let (false, Ok(runtime)) = (ids.is_empty(), tokio::runtime::Handle::try_current()) {
+            let client = self.client.clone();
+            runtime.spawn(async move { delete_all(&client, ids).await });
+        }
+    }
+}
+
+/// Deletes buffers `ids` through `client`, ignoring failures.
+async fn delete_all(client: &Client, ids: Vec<String>) {
+    for id in ids {
+        let _ = client.delete_buffer(&id).await;
     }
 }
 
