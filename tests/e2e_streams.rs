@@ -326,15 +326,23 @@ async fn cancelling_a_stream_whose_answers_wait_unread_drops_them_and_ends_with_
     let daemon = Daemon::start(&[("RAYD_LIMITS_STREAM_WINDOW", "2")]);
     let client = connect(&daemon, ClientOptions::default()).await;
     client.build_mesh("bunny", &bunny().mesh, "", BuildFlags::empty()).await.unwrap();
-    // 12 traces whose answers (1.2 MB of hits each) are not read: flow control stops them, the window's answers
-    // wait in the server and the next one waits for room.
-    let rays = Bytes::from(bunny().camera_rays(RayFormat::OriginTminDirectionTmax, 320, 240));
-    let hit_bytes = 320 * 240 * closest().hit_format.size().unwrap() as u64;
+    // 12 traces whose answers (4.9 MB of hits each, more than the client's 2 MiB stream window) are not read: flow
+    // control stops the first, the window's answers wait in the server and the next one waits for room.
+    let rays = Bytes::from(bunny().camera_rays(RayFormat::OriginTminDirectionTmax, 640, 480));
+    let hit_bytes = 640 * 480 * closest().hit_format.size().unwrap() as u64;
     let channel = Channel::from_shared(daemon.url()).unwrap().connect_lazy();
     let w = open_raw(&channel).await;
+    let traces_run = || daemon.metric("rayd_stream_operations_total", &["op=\"trace\""]).unwrap_or(0.0);
     let sending = send_all(w.sender, (1..=12).map(|id| (id, trace_op("bunny", rays.clone()))).collect());
-    // The reader's 3 traces held (the window's and its own), and 2 answers at least.
-    let waiting = 3 * rays.len() as u64 + 2 * hit_bytes;
+    // Three traces run: the first answer taken by the call (which flow control then holds), the second waiting in
+    // the window at least. (The bytes held alone could be the reader's traces before any answer, and with answers
+    // smaller than the window the call took all of them in time: both seen.)
+    let started = std::time::Instant::now();
+    while traces_run() < 3.0 {
+        assert!(started.elapsed().as_secs() < 60, "{} traces ran", traces_run());
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    let waiting = 2 * hit_bytes;
     let held = usage_when(&client, "answers waiting", |u| u.stream_bytes >= waiting).await;
     // On another connection: this one's window is full of the stream's unread answers and unsent rays.
     let mut rpc = RaydClient::new(Channel::from_shared(daemon.url()).unwrap().connect_lazy());
