@@ -464,10 +464,14 @@ async fn temporary_buffers_of_a_call_given_up_midway_are_deleted_all_the_same() 
         let client = client.clone();
         tokio::spawn(async move { client.build_mesh("herd", &mesh, "", BuildFlags::empty()).await })
     };
-    // Given up once both buffers are up (the build is then running, or has just ended).
+    // Given up while the build runs (both buffers are up, and the client has their ids: it asked for the build).
     let started = std::time::Instant::now();
-    while client.buffers().await.unwrap().len() < 2 {
-        assert!(started.elapsed().as_secs() < 60, "the mesh's buffers never went up");
+    let building_now = || async {
+        let usage = client.server_info().await.unwrap().usage.unwrap();
+        usage.buffers == 2 && usage.operations == 1
+    };
+    while !building_now().await {
+        assert!(started.elapsed().as_secs() < 60, "the build never ran");
         tokio::time::sleep(std::time::Duration::from_millis(1)).await;
     }
     building.abort();

@@ -93,9 +93,10 @@ impl Temporary {
         id
     }
 
-    /// Deletes them now.
+    /// Deletes them now, by a task of their own that goes on if this future is dropped first.
     pub async fn delete(mut self) {
-        delete_all(&self.client, std::mem::take(&mut self.ids)).await;
+        let (client, ids) = (self.client.clone(), std::mem::take(&mut self.ids));
+        let _ = tokio::spawn(async move { delete_all(&client, ids).await }).await;
     }
 }
 

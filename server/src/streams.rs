@@ -51,6 +51,22 @@ pub struct StreamSlot {
     pub cancel: CancellationToken,
     /// The table it belongs to.
     streams: Arc<Streams>,
+    /// Its place among the streams open.
+    _place: Place,
+}
+
+/// A place among a tenant's `max_streams`: an `OpenStream`'s (in its [`StreamSlot`]) or a `TraceStream`'s; freed
+/// when dropped.
+#[derive(Debug)]
+pub struct Place {
+    /// The table whose count it holds one of.
+    streams: Arc<Streams>,
+}
+
+impl Drop for Place {
+    fn drop(&mut self) {
+        self.streams.open_count.fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 /// Bytes a stream holds, counted in its tenant's usage until dropped.
@@ -72,8 +88,8 @@ pub enum Waitable {
 }
 
 impl Streams {
-    /// Opens a stream unless `max_streams` are open already.
-    pub fn open(self: &Arc<Self>, max_streams: u32) -> ServiceResult<StreamSlot> {
+    /// Takes a place among the streams open unless `max_streams` are open already (RESOURCE_EXHAUSTED naming it).
+    pub fn place(self: &Arc<Self>, max_streams: u32) -> ServiceResult<Place> {
         let admitted =
             self.open_count.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < max_streams).then_some(n + 1));
         if let Err(open) = admitted {
@@ -84,11 +100,17 @@ impl Streams {
                 allowed: max_streams as u64,
             });
         }
+        Ok(Place { streams: Arc::clone(self) })
+    }
+
+    /// Opens a stream (an id, its progress, a way to cancel it) unless `max_streams` are open already.
+    pub fn open(self: &Arc<Self>, max_streams: u32) -> ServiceResult<StreamSlot> {
+        let place = self.place(max_streams)?;
         let id = self.next_id.fetch_add(1, Ordering::Relaxed) + 1;
         let (progress, receiver) = watch::channel(Progress::default());
         let cancel = CancellationToken::new();
         self.open.insert(id, OpenStream { progress: receiver, cancel: cancel.clone() });
-        Ok(StreamSlot { id, progress, cancel, streams: Arc::clone(self) })
+        Ok(StreamSlot { id, progress, cancel, streams: Arc::clone(self), _place: place })
     }
 
     /// Cancels stream `id` if it is open; NOT_FOUND for an id never given out.
@@ -142,7 +164,6 @@ impl Drop for StreamSlot {
     fn drop(&mut self) {
         self.streams.open.remove(&self.id);
         self.progress.send_modify(|p| p.closed = true);
-        self.streams.open_count.fetch_sub(1, Ordering::AcqRel);
     }
 }
 

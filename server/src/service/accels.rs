@@ -27,7 +27,7 @@ pub fn info(entry: &AccelEntry) -> pb::AccelInfo {
 
 /// Builds an accel (off the async runtime; not kept if the caller goes first).
 pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> ServiceResult<pb::AccelInfo> {
-    let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
+    let resolved = inputs::resolve(&tenant, &request.device, &request.inputs, inputs::Purpose::Build)?;
     let options = inputs::options(&tenant, &resolved, request.options.as_ref())?;
     let entry = blocking_for_caller(move |caller| {
         tenant.build_accel(
@@ -69,7 +69,7 @@ pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> Service
 /// Updates (refits) an accel in place (off the async runtime; not started if the caller goes first).
 pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
-    let resolved = inputs::resolve(&tenant, &entry.device, &request.inputs)?;
+    let resolved = inputs::resolve(&tenant, &entry.device, &request.inputs, inputs::Purpose::Other)?;
     let updated = blocking_for_caller(move |caller| {
         tenant.update_accel(&entry, caller, |context| resolved.update(context, &entry.accel))
     })

@@ -9,7 +9,7 @@ use tokio_stream::Stream;
 use tonic::Streaming;
 
 use crate::error::{ServiceError, ServiceResult};
-use crate::tenant::{BufferEntry, Reservation, Tenant};
+use crate::tenant::{BufferEntry, BufferReservation, Tenant};
 
 /// Bytes per downloaded message when the request gives none.
 const DEFAULT_CHUNK_BYTES: u64 = 1 << 20;
@@ -42,8 +42,9 @@ pub struct Upload {
     header: pb::UploadBufferHeader,
     /// What arrived so far.
     data: BytesMut,
-    /// The declared size, reserved against the tenant's `max_total_buffer_bytes` until the upload ends.
-    reserved: Reservation,
+    /// The declared size and the buffer's place, reserved against the tenant's `max_total_buffer_bytes` and
+    /// `max_buffers` until the upload ends.
+    reserved: BufferReservation,
 }
 
 impl Upload {
@@ -51,6 +52,7 @@ impl Upload {
     /// declared size.
     pub fn begin(tenant: &Tenant, header: pb::UploadBufferHeader) -> ServiceResult<Upload> {
         let reserved = tenant.reserve_new_buffers("header.name", &[(&header.name, header.size_bytes)])?;
+        let reserved = reserved.into_iter().next().expect("a reservation a buffer");
         let data = BytesMut::with_capacity(header.size_bytes.min(UPLOAD_RESERVE_BYTES) as usize);
         Ok(Upload { header, data, reserved })
     }
@@ -86,9 +88,7 @@ impl Upload {
             ));
         }
         let Upload { header, data, reserved } = self;
-        // The buffer's own bytes take the reservation's place.
-        drop(reserved);
-        tenant.create_buffer("header.name", &header.name, data.freeze())
+        tenant.create_buffer("header.name", &header.name, data.freeze(), Some(reserved))
     }
 }
 

@@ -207,7 +207,7 @@ impl Rayd for RaydService {
         let tenant = self.caller(&request, "ComputeMemoryUsage", Role::Read)?;
         observe("ComputeMemoryUsage", tenant.name().to_owned(), async {
             let request = request.into_inner();
-            let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
+            let resolved = inputs::resolve(&tenant, &request.device, &request.inputs, inputs::Purpose::Other)?;
             let options = inputs::options(&tenant, &resolved, request.options.as_ref())?;
             let (_, context) = tenant.context(&request.device)?;
             Ok(convert::memory_usage(&resolved.memory_usage(context, &options)?))

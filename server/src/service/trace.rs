@@ -8,7 +8,7 @@ use rayd_engine::query::Query;
 use rayd_engine::reduce::Reduction;
 use rayd_proto as pb;
 use tokio::sync::mpsc;
-use tokio_stream::Stream;
+use tokio_stream::{Stream, StreamExt};
 use tonic::{Status, Streaming};
 
 use super::outbox::outbox;
@@ -156,15 +156,14 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     }
     // With a data directory the buffers are written to disk: off the async runtime.
     blocking(move || {
-        // The buffers' own bytes take the reservation's place.
-        drop(reserved);
+        let mut reserved = reserved.into_iter().flatten();
         let name = &request.hits_buffer_name;
-        let hits_buffer = tenant.create_buffer(HITS_BUFFER_NAME, name, result.hits)?;
+        let hits_buffer = tenant.create_buffer(HITS_BUFFER_NAME, name, result.hits, reserved.next())?;
         let counts_buffer = if result.counts.is_empty() {
             None
         } else {
             // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
-            match tenant.create_buffer(HITS_BUFFER_NAME, &counts_buffer_name(name), result.counts) {
+            match tenant.create_buffer(HITS_BUFFER_NAME, &counts_buffer_name(name), result.counts, reserved.next()) {
                 Ok(entry) => Some(buffers::info(&entry)),
                 Err(error) => {
                     tenant.delete_buffer(&hits_buffer)?;
@@ -216,9 +215,9 @@ pub async fn stream(
     // Checked now, so that a stream of a missing accel fails at once; each chunk finds the accel again, so that it
     // traces the accel as it is when the chunk comes (updated, or gone: NOT_FOUND), as a call of its own would.
     let (_, query) = resolve_query(&tenant, Some(&header))?;
-    // One of the tenant's `max_streams` places for as long as the call lasts: each stream's chunks and answers are
-    // bounded by the window, so the places bound them all.
-    let place = tenant.streams().open(tenant.limits().max_streams)?;
+    // One of the tenant's `max_streams` places for as long as the call lasts (its response stream holds it): each
+    // stream's chunks and answers are bounded by the window, so the places bound them all.
+    let place = tenant.streams().place(tenant.limits().max_streams)?;
     let accel = header.accel;
     let window = tenant.limits().stream_window.max(1) as usize;
     let (chunk_sender, mut chunks) = mpsc::channel(window);
@@ -242,7 +241,6 @@ pub async fn stream(
     });
     let (answers, stream) = outbox(window, tenant.limits().stream_stall());
     tokio::spawn(async move {
-        let _place = place;
         let mut first_ray = 0u64;
         while let Some(chunk) = chunks.recv().await {
             let reply = match chunk {
@@ -259,7 +257,10 @@ pub async fn stream(
             }
         }
     });
-    Ok(Box::pin(stream))
+    Ok(Box::pin(stream.map(move |answer| {
+        let _held = &place;
+        answer
+    })))
 }
 
 /// The status of a stream's chunk that failed, its message naming the chunk by its first ray (ray numbers in the

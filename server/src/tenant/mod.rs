@@ -8,7 +8,7 @@ mod quota;
 mod trace;
 
 pub use caller::Caller;
-pub use quota::Reservation;
+use quota::Reservation;
 pub use trace::Rays;
 
 use std::collections::HashMap;
@@ -136,6 +136,15 @@ pub struct Usage {
     pub buffer_bytes: u64,
     /// Operations running now.
     pub operations: u32,
+}
+
+/// A new buffer's bytes and its place among the tenant's buffers, reserved while it is made.
+#[derive(Debug)]
+pub struct BufferReservation {
+    /// Its bytes, against `max_total_buffer_bytes`.
+    bytes: Reservation,
+    /// Its place, against `max_buffers`.
+    count: Reservation,
 }
 
 /// The longest accel or buffer name, in characters.
@@ -556,8 +565,20 @@ impl Tenant {
 
     /// Checks that the buffers `new` (each a name, which request field `field` gave, and a size) may be created
     /// together: their names, each size against `max_buffer_bytes`, their bytes with those held or being made
-    /// against `max_total_buffer_bytes`, their count against `max_buffers`. An empty name is checked for its size.
+    /// against `max_total_buffer_bytes`, their count with those held or being made against `max_buffers`. An empty
+    /// name is checked for its size.
     pub fn check_new_buffers(&self, field: &str, new: &[(&str, u64)]) -> ServiceResult<()> {
+        self.check_new_buffers_beside(field, new, None)
+    }
+
+    /// [`Tenant::check_new_buffers`] of buffers whose own reservation (if any) is `own`: what it reserves is not
+    /// counted twice.
+    fn check_new_buffers_beside(
+        &self,
+        field: &str,
+        new: &[(&str, u64)],
+        own: Option<&BufferReservation>,
+    ) -> ServiceResult<()> {
         for &(name, size) in new {
             if !name.is_empty() {
                 check_name(field, name)?;
@@ -565,35 +586,50 @@ impl Tenant {
             }
             ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
         }
+        let (own_bytes, own_count) = own.map_or((0, 0), |own| (own.bytes.amount(), own.count.amount()));
         let size = new.iter().map(|&(_, size)| size).fold(0, u64::saturating_add);
-        let held = self.buffer_bytes() + self.quotas.buffer_bytes_coming.get();
+        let coming = self.quotas.buffer_bytes_coming.get().saturating_sub(own_bytes);
+        let held = self.buffer_bytes() + coming;
         ServiceError::check_limit(
             || format!("buffer bytes of this tenant ({held} held or being made, {size} more)"),
             held.saturating_add(size),
             "max_total_buffer_bytes",
             self.limits.max_total_buffer_bytes,
         )?;
-        let count = self.buffers.len() as u64 + new.len() as u64;
+        let coming = self.quotas.buffers_coming.get().saturating_sub(own_count);
         ServiceError::check_limit(
-            || "buffers of this tenant".into(),
-            count,
+            || "buffers of this tenant (held or being made)".into(),
+            self.buffers.len() as u64 + coming + new.len() as u64,
             "max_buffers",
             self.limits.max_buffers as u64,
         )
     }
 
-    /// Checks new buffers as [`Tenant::check_new_buffers`] does (`field` naming them), and reserves their bytes
-    /// against `max_total_buffer_bytes` while they are made (uploaded, or written by a trace), until the reservation
-    /// is dropped: just before they are created, which checks them again.
-    pub fn reserve_new_buffers(&self, field: &str, new: &[(&str, u64)]) -> ServiceResult<Reservation> {
+    /// Checks new buffers as [`Tenant::check_new_buffers`] does (`field` naming them), and reserves each one's bytes
+    /// and place against `max_total_buffer_bytes` and `max_buffers` while they are made (uploaded, or written by a
+    /// trace): each reservation is handed to [`Tenant::create_buffer`], which lets it go once the buffer is kept.
+    pub fn reserve_new_buffers(&self, field: &str, new: &[(&str, u64)]) -> ServiceResult<Vec<BufferReservation>> {
         self.check_new_buffers(field, new)?;
-        let size = new.iter().map(|&(_, size)| size).fold(0, u64::saturating_add);
-        self.quotas.buffer_bytes_coming.reserve(
-            size,
-            || self.buffer_bytes(),
-            ("max_total_buffer_bytes", self.limits.max_total_buffer_bytes),
-            |held, coming| format!("buffer bytes of this tenant ({held} held, {coming} being made, {size} more)"),
-        )
+        let (bytes_limit, count_limit) = (self.limits.max_total_buffer_bytes, u64::from(self.limits.max_buffers));
+        new.iter()
+            .map(|&(_, size)| {
+                let bytes = self.quotas.buffer_bytes_coming.reserve(
+                    size,
+                    || self.buffer_bytes(),
+                    ("max_total_buffer_bytes", bytes_limit),
+                    |held, coming| {
+                        format!("buffer bytes of this tenant ({held} held, {coming} being made, {size} more)")
+                    },
+                )?;
+                let count = self.quotas.buffers_coming.reserve(
+                    1,
+                    || self.buffers.len() as u64,
+                    ("max_buffers", count_limit),
+                    |held, coming| format!("buffers of this tenant ({held} held, {coming} being made, 1 more)"),
+                )?;
+                Ok(BufferReservation { bytes, count })
+            })
+            .collect()
     }
 
     /// Serializes `entry`'s accel (with every accel below it) into a new buffer named `name`, which request field
@@ -613,12 +649,19 @@ impl Tenant {
         caller.check(not_kept)?;
         let blob = self.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
         caller.check(not_kept)?;
-        self.create_buffer(field, name, Bytes::from(blob))
+        self.create_buffer(field, name, Bytes::from(blob), None)
     }
 
-    /// Keeps `data` as a buffer named `name`, which request field `field` gave.
-    pub fn create_buffer(&self, field: &str, name: &str, data: Bytes) -> ServiceResult<BufferEntry> {
-        self.check_new_buffers(field, &[(name, data.len() as u64)])?;
+    /// Keeps `data` as a buffer named `name`, which request field `field` gave; `reserved` is what was reserved for
+    /// it while it was made ([`Tenant::reserve_new_buffers`]), let go once it is kept (or refused).
+    pub fn create_buffer(
+        &self,
+        field: &str,
+        name: &str,
+        data: Bytes,
+        reserved: Option<BufferReservation>,
+    ) -> ServiceResult<BufferEntry> {
+        self.check_new_buffers_beside(field, &[(name, data.len() as u64)], reserved.as_ref())?;
         let id = format!("buf-{}", self.next_buffer.fetch_add(1, Ordering::Relaxed));
         let size_bytes = data.len() as u64;
         let context = self.context(DEFAULT_DEVICE)?.1;
@@ -635,8 +678,10 @@ impl Tenant {
         // Checked again where changes are ordered: two creates that both passed the check above while their files
         // were written must not both be kept past a limit.
         let kept = self
-            .check_new_buffers(field, &[(name, size_bytes)])
+            .check_new_buffers_beside(field, &[(name, size_bytes)], reserved.as_ref())
             .and_then(|()| self.buffers.insert(id, name, entry.clone()));
+        // Counted now among the buffers held (or refused): its reservation goes, while changes are still ordered.
+        drop(reserved);
         if let Err(refused) = kept {
             context.destroy_buffer(handle)?;
             return Err(refused);
@@ -718,7 +763,7 @@ mod tests {
                         std::thread::yield_now();
                     }
                 });
-                let made = tenant.create_buffer("header.name", &name, Bytes::from(vec![round as u8; 4 << 20]));
+                let made = tenant.create_buffer("header.name", &name, Bytes::from(vec![round as u8; 4 << 20]), None);
                 assert!(made.is_ok() && deleter.join().unwrap().is_ok(), "round {round}: made {made:?}");
             });
             assert_eq!((tenant.buffers().len(), files()), (0, 0), "round {round}: a file left behind");
@@ -737,7 +782,7 @@ mod tests {
         // in place once the lock is free.
         std::thread::scope(|scope| {
             let held = tenant.keep();
-            let create = scope.spawn(|| tenant.create_buffer("header.name", "big", Bytes::from(vec![1; size])));
+            let create = scope.spawn(|| tenant.create_buffer("header.name", "big", Bytes::from(vec![1; size]), None));
             let written_under = |extension: &str| {
                 std::fs::read_dir(&buffers).unwrap().map(|entry| entry.unwrap().path()).any(|path| {
                     path.extension().is_some_and(|e| e == extension)
@@ -771,7 +816,9 @@ mod tests {
         let made: Vec<ServiceResult<BufferEntry>> = std::thread::scope(|scope| {
             let held = tenant.keep();
             let creates: Vec<_> = ["one", "two"]
-                .map(|name| scope.spawn(|| tenant.create_buffer("header.name", name, Bytes::from(vec![1; 1 << 20]))))
+                .map(|name| {
+                    scope.spawn(|| tenant.create_buffer("header.name", name, Bytes::from(vec![1; 1 << 20]), None))
+                })
                 .into();
             let waiting_since = Instant::now();
             while temporary_files() < 2 {
@@ -789,13 +836,25 @@ mod tests {
     }
 
     #[test]
-    fn buffers_being_made_are_reserved_against_the_tenants_buffer_bytes() {
-        let tenant = cpu_tenant(Limits { max_total_buffer_bytes: 1000, ..Limits::default() });
-        let first = tenant.reserve_new_buffers("hits_buffer_name", &[("hits", 600), ("hits.counts", 100)]).unwrap();
-        let refused = tenant.reserve_new_buffers("hits_buffer_name", &[("other", 400)]).unwrap_err();
+    fn buffers_being_made_are_reserved_until_kept_and_counted_once() {
+        let tenant = cpu_tenant(Limits { max_total_buffer_bytes: 1000, max_buffers: 3, ..Limits::default() });
+        let field = "hits_buffer_name";
+        let mut first = tenant.reserve_new_buffers(field, &[("hits", 600), ("hits.counts", 100)]).unwrap();
+        let refused = tenant.reserve_new_buffers(field, &[("other", 400)]).unwrap_err();
         assert!(refused.to_string().contains("700 held or being made, 400 more"), "{refused}");
-        drop(first);
-        let _second = tenant.reserve_new_buffers("hits_buffer_name", &[("other", 400)]).unwrap();
+        // Kept with its own reservation, a buffer is not counted twice (held and being made) on the way.
+        let counts = first.pop();
+        tenant.create_buffer(field, "hits", Bytes::from(vec![0; 600]), first.pop()).unwrap();
+        assert_eq!((tenant.quotas.buffer_bytes_coming.get(), tenant.quotas.buffers_coming.get()), (100, 1));
+        let refused = tenant.reserve_new_buffers(field, &[("other", 400)]).unwrap_err();
+        assert!(refused.to_string().contains("700 held or being made, 400 more"), "{refused}");
+        tenant.create_buffer(field, "hits.counts", Bytes::from(vec![0; 100]), counts).unwrap();
+        // Places too: two buffers held, one being made, none left.
+        let third = tenant.reserve_new_buffers(field, &[("third", 10)]).unwrap();
+        let refused = tenant.reserve_new_buffers(field, &[("fourth", 10)]).unwrap_err();
+        assert!(refused.to_string().contains("max_buffers = 3"), "{refused}");
+        drop(third);
+        tenant.reserve_new_buffers(field, &[("fourth", 10)]).unwrap();
     }
 
     #[test]

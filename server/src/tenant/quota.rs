@@ -1,9 +1,9 @@
 //! A tenant's running quotas: operations at once (a counter, taken for the life of a guard), rays per second (a
 //! token bucket that may go into debt by one batch, so a batch larger than a second's allowance still runs, and
 //! the ones after it wait for the bucket to refill), and what operations in progress will add to what it holds:
-//! the bytes of buffers being made (uploads, traces into buffers), and the accels of builds, copies and loads with their bytes (reserved for the life of a
-//! guard, so that operations at once cannot together outgrow `max_total_buffer_bytes`, `max_accels` or
-//! `max_total_accel_bytes`).
+//! the buffers being made (uploads, traces into buffers) with their bytes, and the accels of builds, copies and
+//! loads with their bytes (reserved for the life of a guard, so that operations at once cannot together outgrow
+//! `max_total_buffer_bytes`, `max_buffers`, `max_accels` or `max_total_accel_bytes`).
 
 use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -20,6 +20,8 @@ pub struct Quotas {
     rays: Mutex<(f64, Instant)>,
     /// Bytes of buffers being made: declared by the uploads in progress, or written by traces into buffers.
     pub buffer_bytes_coming: Pending,
+    /// Those buffers.
+    pub buffers_coming: Pending,
     /// Accels that builds, copies and loads in progress will add.
     pub accels_coming: Pending,
     /// Bytes those accels will take at most.
@@ -38,6 +40,13 @@ pub struct Reservation {
     pending: Arc<AtomicU64>,
     /// How much.
     amount: u64,
+}
+
+impl Reservation {
+    /// How much it reserves.
+    pub fn amount(&self) -> u64 {
+        self.amount
+    }
 }
 
 impl Drop for Reservation {
@@ -99,6 +108,7 @@ impl Quotas {
             running: AtomicU32::new(0),
             rays: Mutex::new((rays_per_second as f64, Instant::now())),
             buffer_bytes_coming: Pending::default(),
+            buffers_coming: Pending::default(),
             accels_coming: Pending::default(),
             accel_bytes_coming: Pending::default(),
         }
