@@ -40,7 +40,7 @@ struct OpenStream {
     cancel: CancellationToken,
 }
 
-/// One open stream's place in the table; dropping it marks the stream closed and frees its place.
+/// One open stream's entry in the table; dropping it marks the stream closed (nothing more runs on it).
 #[derive(Debug)]
 pub struct StreamSlot {
     /// The stream's id.
@@ -51,12 +51,10 @@ pub struct StreamSlot {
     pub cancel: CancellationToken,
     /// The table it belongs to.
     streams: Arc<Streams>,
-    /// Its place among the streams open.
-    _place: Place,
 }
 
-/// A place among a tenant's `max_streams`: an `OpenStream`'s (in its [`StreamSlot`]) or a `TraceStream`'s; freed
-/// when dropped.
+/// A place among a tenant's `max_streams`, an `OpenStream`'s or a `TraceStream`'s, held for as long as its call
+/// lasts (its last answers sent, or the call gone); freed when dropped.
 #[derive(Debug)]
 pub struct Place {
     /// The table whose count it holds one of.
@@ -103,14 +101,15 @@ impl Streams {
         Ok(Place { streams: Arc::clone(self) })
     }
 
-    /// Opens a stream (an id, its progress, a way to cancel it) unless `max_streams` are open already.
-    pub fn open(self: &Arc<Self>, max_streams: u32) -> ServiceResult<StreamSlot> {
+    /// Opens a stream unless `max_streams` are open already: its entry (an id, its progress, a way to cancel it),
+    /// and its place.
+    pub fn open(self: &Arc<Self>, max_streams: u32) -> ServiceResult<(StreamSlot, Place)> {
         let place = self.place(max_streams)?;
         let id = self.next_id.fetch_add(1, Ordering::Relaxed) + 1;
         let (progress, receiver) = watch::channel(Progress::default());
         let cancel = CancellationToken::new();
         self.open.insert(id, OpenStream { progress: receiver, cancel: cancel.clone() });
-        Ok(StreamSlot { id, progress, cancel, streams: Arc::clone(self), _place: place })
+        Ok((StreamSlot { id, progress, cancel, streams: Arc::clone(self) }, place))
     }
 
     /// Cancels stream `id` if it is open; NOT_FOUND for an id never given out.
@@ -188,8 +187,8 @@ mod tests {
     #[test]
     fn slots_are_limited_numbered_and_leave_a_closed_mark_behind() {
         let streams = Arc::new(Streams::default());
-        let first = streams.open(2).unwrap();
-        let second = streams.open(2).unwrap();
+        let (first, first_place) = streams.open(2).unwrap();
+        let (second, _second_place) = streams.open(2).unwrap();
         assert_eq!((first.id, second.id), (1, 2));
         assert!(matches!(streams.open(2), Err(ServiceError::Limit { limit: "max_streams", .. })));
         let Waitable::Open(mut progress) = streams.waitable(1).unwrap() else { panic!("stream 1 is open") };
@@ -197,14 +196,19 @@ mod tests {
         assert_eq!(progress.borrow_and_update().finished, 3);
         drop(first);
         assert!(progress.borrow().closed);
+        // Closed, its call may still be sending its last answers: the place is held until that ends.
+        assert!(matches!(streams.place(2), Err(ServiceError::Limit { limit: "max_streams", .. })));
+        drop(first_place);
         assert!(matches!(streams.waitable(1).unwrap(), Waitable::Closed));
         assert!(matches!(streams.waitable(9), Err(ServiceError::NotFound { .. })));
         streams.cancel(2).unwrap();
         assert!(second.cancel.is_cancelled());
         streams.cancel(1).expect("cancelling a closed stream is not an error");
         assert!(matches!(streams.cancel(9), Err(ServiceError::NotFound { .. })));
-        assert_eq!(streams.open(2).unwrap().id, 3, "ids are not reused; the freed place is");
-        assert_eq!(streams.open_count(), 1);
+        let (third, _third_place) = streams.open(2).unwrap();
+        assert_eq!(third.id, 3, "ids are not reused; the freed place is");
+        assert_eq!(streams.open_count(), 2);
+        assert!(matches!(streams.place(2), Err(ServiceError::Limit { limit: "max_streams", .. })));
     }
 
     #[test]

@@ -137,7 +137,7 @@ pub struct Limits {
     pub max_accels: u32,
     /// Largest buffer (bytes).
     pub max_buffer_bytes: u64,
-    /// Most buffers per tenant.
+    /// Most buffers per tenant, those being made (uploads, traces into buffers) counted.
     pub max_buffers: u32,
     /// Per `TraceStream`: chunks read ahead of the one being traced, and answers waiting to be sent. Per
     /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent.
@@ -155,7 +155,8 @@ pub struct Limits {
     pub max_motion_keys: u32,
     /// Most bytes of all of a tenant's accels together.
     pub max_total_accel_bytes: u64,
-    /// Most bytes of all of a tenant's buffers together.
+    /// Most bytes of all of a tenant's buffers together, those being made counted (an upload by its declared size,
+    /// a trace into buffers by its output's).
     pub max_total_buffer_bytes: u64,
     /// Rays a tenant may trace per second, averaged over a second (a batch may exceed the rest of the second's
     /// allowance; the next ones wait for it to refill); 0 means no limit.
