@@ -102,9 +102,9 @@ impl TaskTally {
 }
 
 impl Client {
-    /// Runs `options.concurrency` tasks (at most the server's `max_concurrent_operations`) that each trace batches of random rays (origins in the accel's box,
-    /// uniform directions, a different seed a task) against `accel` until `options.duration` is over, calling
-    /// `on_batch` with the ray count after every call. The first failed call ends the run with its error.
+    /// Runs `options.concurrency` tasks (at most the server's `max_concurrent_operations`) that each trace batches of
+    /// random rays (origins in the accel's box, uniform directions, a different seed a task) against `accel` until
+    /// `options.duration` is over, calling `on_batch` with the ray count after every call. The first failed call ends the run with its error.
     pub async fn bench(
         &self,
         accel: &str,

@@ -5,6 +5,7 @@ use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 
 use dashmap::DashMap;
 use tokio::sync::watch;
+use tokio_stream::{Stream, StreamExt};
 use tokio_util::sync::CancellationToken;
 
 use crate::error::{ServiceError, ServiceResult};
@@ -59,6 +60,16 @@ pub struct StreamSlot {
 pub struct Place {
     /// The table whose count it holds one of.
     streams: Arc<Streams>,
+}
+
+impl Place {
+    /// `stream` (a call's answers), holding this place until it is dropped: until the call has ended.
+    pub fn held_by<S: Stream>(self, stream: S) -> impl Stream<Item = S::Item> {
+        stream.map(move |answer| {
+            let _held = &self;
+            answer
+        })
+    }
 }
 
 impl Drop for Place {

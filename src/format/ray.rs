@@ -134,6 +134,16 @@ impl RayFormat {
         rays.chunks_exact(self.size()).position(|ray| super::read_f32(ray, offset).is_nan())
     }
 
+    /// How many rays `bytes` bytes of rays packed in this format hold; the rule they break when they are not whole
+    /// rays.
+    pub fn whole_rays(self, bytes: usize) -> Result<usize, String> {
+        let size = self.size();
+        if !bytes.is_multiple_of(size) {
+            return Err(format!("{bytes} bytes is not a multiple of {size} ({})", self.name()));
+        }
+        Ok(bytes / size)
+    }
+
     /// Looks a format up by [`RayFormat::name`].
     pub fn from_name(name: &str) -> Option<RayFormat> {
         Self::ALL.into_iter().find(|f| f.name() == name)

@@ -105,14 +105,7 @@ impl Query {
                 rule: "must be at least 1 for an `all` query".into(),
             });
         }
-        let ray_size = self.ray_format.size();
-        if !ray_bytes.is_multiple_of(ray_size) {
-            return Err(Error::BufferSize {
-                buffer: "rays",
-                rule: format!("{ray_bytes} bytes is not a multiple of {ray_size} ({})", self.ray_format.name()),
-            });
-        }
-        let rays = ray_bytes / ray_size;
+        let rays = self.ray_format.whole_rays(ray_bytes).map_err(|rule| Error::BufferSize { buffer: "rays", rule })?;
         let records = rays.checked_mul(self.records_per_ray()).ok_or(Error::TooLarge {
             what: "hit records",
             unit: "records",

@@ -8,7 +8,7 @@ use rayd_engine::query::Query;
 use rayd_engine::reduce::Reduction;
 use rayd_proto as pb;
 use tokio::sync::mpsc;
-use tokio_stream::{Stream, StreamExt};
+use tokio_stream::Stream;
 use tonic::{Status, Streaming};
 
 use super::outbox::outbox;
@@ -85,11 +85,7 @@ async fn trace(
 
 /// The rays of request field `field`, packed in `query`'s ray format: whole records only.
 fn packed(bytes: Bytes, query: &Query, field: &str) -> ServiceResult<Rays> {
-    let size = query.ray_format.size();
-    if !bytes.len().is_multiple_of(size) {
-        let rule = format!("{} bytes is not a multiple of {size} ({})", bytes.len(), query.ray_format.name());
-        return Err(ServiceError::invalid(field, rule));
-    }
+    query.ray_format.whole_rays(bytes.len()).map_err(|rule| ServiceError::invalid(field, rule))?;
     Ok(Rays::Packed(bytes))
 }
 
@@ -257,10 +253,7 @@ pub async fn stream(
             }
         }
     });
-    Ok(Box::pin(stream.map(move |answer| {
-        let _held = &place;
-        answer
-    })))
+    Ok(Box::pin(place.held_by(stream)))
 }
 
 /// The status of a stream's chunk that failed, its message naming the chunk by its first ray (ray numbers in the

@@ -493,9 +493,9 @@ impl Tenant {
     /// Checks accels just made (built, or loaded from a blob), for which `reserved` bytes were reserved beforehand,
     /// against the limits: each one's bytes against `max_accel_bytes`, its levels against `max_graph_depth` and its
     /// motion keys against `max_motion_keys` (a build checked those two before; a blob can hold any), `describe`
-    /// naming the one by its index; and what their sum exceeds `reserved` by against `max_total_accel_bytes`, which stays reserved until
-    /// they are kept. (A blob's accels take more than its bytes; a GPU instance accel more than its bound, which
-    /// leaves out its device's copy of its children.)
+    /// naming the one by its index; and what their sum exceeds `reserved` by against `max_total_accel_bytes`, which
+    /// stays reserved until they are kept. (A blob's accels take more than its bytes; a GPU instance accel more than
+    /// its bound, which leaves out its device's copy of its children.)
     fn check_made(
         &self,
         accels: &[Arc<Accel>],
@@ -507,20 +507,12 @@ impl Tenant {
             let info = accel.info();
             let limits = &self.limits;
             ServiceError::check_limit(|| describe(index), info.size_bytes, "max_accel_bytes", limits.max_accel_bytes)?;
-            let depth = (u64::from(info.depth), u64::from(limits.max_graph_depth));
-            ServiceError::check_limit(
-                || format!("levels of {}", describe(index)),
-                depth.0,
-                "max_graph_depth",
-                depth.1,
-            )?;
-            let keys = (u64::from(info.options.motion.keys), u64::from(limits.max_motion_keys));
-            ServiceError::check_limit(
-                || format!("motion keys of {}", describe(index)),
-                keys.0,
-                "max_motion_keys",
-                keys.1,
-            )?;
+            let levels = || format!("levels of {}", describe(index));
+            let (depth, most_depth) = (u64::from(info.depth), u64::from(limits.max_graph_depth));
+            ServiceError::check_limit(levels, depth, "max_graph_depth", most_depth)?;
+            let keys = || format!("motion keys of {}", describe(index));
+            let (motion_keys, most_keys) = (u64::from(info.options.motion.keys), u64::from(limits.max_motion_keys));
+            ServiceError::check_limit(keys, motion_keys, "max_motion_keys", most_keys)?;
             made = made.saturating_add(info.size_bytes);
         }
         (made > reserved).then(|| self.reserve_accel_bytes(made - reserved)).transpose()

@@ -116,11 +116,7 @@ pub fn open(tenant: Arc<Tenant>, requests: Streaming<pb::StreamRequest>) -> Serv
     tokio::spawn(reader::run(requests, queue, Arc::clone(tenant.streams()), Arc::clone(&abort)));
     tokio::spawn(executor::Executor::new(tenant, slot).run(queued, answers, Arc::clone(&abort)));
     let answers = answered.map(|answer| answer.map(|answer| answer.response));
+    let ending = tokio_stream::iter(std::iter::once_with(move || abort.take_reason())).filter_map(|r| r.map(Err));
     // The stream's place goes with the call: once its last answer has been sent, or the call is gone.
-    let ending = std::iter::once_with(move || {
-        drop(place);
-        abort.take_reason()
-    });
-    let ending = tokio_stream::iter(ending).filter_map(|r| r.map(Err));
-    Ok(Box::pin(answers.chain(ending)))
+    Ok(Box::pin(place.held_by(answers.chain(ending))))
 }
