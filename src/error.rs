@@ -13,6 +13,8 @@ pub enum ErrorKind {
     FailedPrecondition,
     /// A size or count exceeds what can be represented or allocated.
     ResourceExhausted,
+    /// The device failed or was lost during the call; the same call may succeed if made again.
+    Unavailable,
 }
 
 /// Every failure the engine reports. Messages name the field, the element and the rule or limit.
@@ -91,6 +93,24 @@ pub enum Error {
         /// The largest size allowed.
         limit: u64,
     },
+    /// A device had no memory left for what a call needed to make on it.
+    #[error("{device} ran out of memory {what}: {detail}")]
+    DeviceMemory {
+        /// The device, e.g. `wgpu:0`.
+        device: String,
+        /// What was being made, e.g. `uploading the accel`.
+        what: &'static str,
+        /// The driver's words.
+        detail: String,
+    },
+    /// A device was lost during the call (reset, removed or failed); the next call on it opens it anew.
+    #[error("{device} was lost ({detail}); the next call opens it anew")]
+    DeviceLost {
+        /// The device, e.g. `wgpu:0`.
+        device: String,
+        /// Why, as the driver reported it.
+        detail: String,
+    },
 }
 
 impl Error {
@@ -107,7 +127,8 @@ impl Error {
             Error::FailedPrecondition(_) | Error::IncompatibleBlob { .. } | Error::Stopped => {
                 ErrorKind::FailedPrecondition
             }
-            Error::TooLarge { .. } => ErrorKind::ResourceExhausted,
+            Error::TooLarge { .. } | Error::DeviceMemory { .. } => ErrorKind::ResourceExhausted,
+            Error::DeviceLost { .. } => ErrorKind::Unavailable,
         }
     }
 }

@@ -125,6 +125,7 @@ impl From<ServiceError> for Status {
                 ErrorKind::NotFound => Code::NotFound,
                 ErrorKind::FailedPrecondition => Code::FailedPrecondition,
                 ErrorKind::ResourceExhausted => Code::ResourceExhausted,
+                ErrorKind::Unavailable => Code::Unavailable,
             },
             ServiceError::Invalid { .. } => Code::InvalidArgument,
             ServiceError::NotFound { .. } => Code::NotFound,
@@ -159,3 +160,23 @@ fn storage_code(kind: std::io::ErrorKind) -> Code {
 
 /// The result type of the service's logic.
 pub type ServiceResult<T> = Result<T, ServiceError>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_devices_failures_get_the_codes_the_contract_names() {
+        let status = |error: rayd_engine::Error| Status::from(ServiceError::Engine(error));
+        let full = status(rayd_engine::Error::DeviceMemory {
+            device: "wgpu:0".into(),
+            what: "uploading an accel",
+            detail: "Out of Memory".into(),
+        });
+        assert_eq!(full.code(), Code::ResourceExhausted);
+        assert_eq!(full.message(), "wgpu:0 ran out of memory uploading an accel: Out of Memory");
+        let lost = status(rayd_engine::Error::DeviceLost { device: "wgpu:1".into(), detail: "Unknown: reset".into() });
+        assert_eq!(lost.code(), Code::Unavailable);
+        assert_eq!(lost.message(), "wgpu:1 was lost (Unknown: reset); the next call opens it anew");
+    }
+}

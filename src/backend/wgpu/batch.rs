@@ -286,8 +286,13 @@ pub(super) struct Slot {
 }
 
 impl Slot {
-    /// A slot of `capacity`, its upload buffer mapped.
-    fn new(opened: &Opened, capacity: Capacity) -> Slot {
+    /// A slot of `capacity`, its upload buffer mapped; RESOURCE_EXHAUSTED if the device has no memory left for it.
+    fn new(opened: &Opened, capacity: Capacity) -> Result<Slot> {
+        opened.allocate("making a trace's buffers", || Slot::make(opened, capacity))
+    }
+
+    /// The buffers of [`Slot::new`].
+    fn make(opened: &Opened, capacity: Capacity) -> Slot {
         use wgpu::BufferUsages as U;
         let buffer = |label: &str, size: u64, usage: U, mapped: bool| {
             opened.device.create_buffer(&wgpu::BufferDescriptor {
@@ -331,7 +336,7 @@ impl Slot {
 
 /// Keeps the smallest of the idle slots `pool`, as many as take at most [`MAX_IDLE_SLOT_BYTES`], and lets go of the
 /// others, ordered so that the largest kept are taken first.
-pub(super) fn trim_idle(pool: &mut Vec<Slot>) {
+fn trim_idle(pool: &mut Vec<Slot>) {
     keep_within(pool, |slot| slot.capacity.bytes(), MAX_IDLE_SLOT_BYTES);
 }
 
@@ -423,6 +428,8 @@ fn wait_mapped(
             Err(TryRecvError::Empty) => {
                 let wait = wgpu::PollType::Wait { submission_index: Some(submission.clone()), timeout: None };
                 opened.device.poll(wait).map_err(|e| device_error("tracing", e))?;
+                // A lost device may never report the mapping.
+                opened.check_not_lost()?;
                 // Another thread's poll may be delivering the callback right now.
                 std::thread::yield_now();
             }
@@ -430,10 +437,9 @@ fn wait_mapped(
     }
 }
 
-/// Traces the batch of `plan` with `query` against `accel`, its rays from `input`, into `output`, through `slots`
-/// (made or grown to [`SLOTS`] slots of the plan's needs; emptied if the trace fails, since their state is then
-/// unknown).
-#[allow(clippy::too_many_arguments)]
+/// Traces the batch of `plan` with `query` against `accel`, its rays from `input`, into `output`, through [`SLOTS`]
+/// slots of the plan's needs: taken from the device's idle ones (made or grown as needed) and given back after, unless
+/// the trace failed, since their state is then unknown.
 pub(super) fn trace(
     opened: &Opened,
     accel: &GpuGraph,
@@ -441,28 +447,46 @@ pub(super) fn trace(
     plan: &Plan,
     input: Input<'_>,
     output: Output<'_>,
-    slots: &mut Vec<Slot>,
 ) -> Result<TraceStats> {
     if plan.rays == 0 {
         return Ok(TraceStats::default());
     }
     let started = Instant::now();
-    for index in 0..SLOTS {
-        match slots.get(index) {
-            Some(slot) if slot.capacity.holds(&plan.need) => {}
-            Some(slot) => slots[index] = Slot::new(opened, slot.capacity.max(plan.need)),
-            None => slots.push(Slot::new(opened, plan.need)),
-        }
-    }
+    let mut slots = take_idle(opened);
+    ready_slots(opened, &mut slots, plan.need)?;
     let mut params = Params { root: accel.root, ..Params::for_query(query) };
     if let Output::Pixels { image, .. } = output {
         (params.group_rays, params.pixel_words) = (image.rays_per_pixel, OnDevice::pixel_words(&image));
     }
-    let traced = run_chunks(opened, accel, query, plan, &params, input, output, slots, started);
-    if traced.is_err() {
-        slots.clear();
+    let stats = run_chunks(opened, accel, query, plan, &params, input, output, &slots, started)?;
+    give_back_idle(opened, slots);
+    Ok(stats)
+}
+
+/// Up to [`SLOTS`] of the device's idle slots, the largest first.
+fn take_idle(opened: &Opened) -> Vec<Slot> {
+    let mut pool = opened.idle_slots.lock().unwrap_or_else(|e| e.into_inner());
+    let keep = pool.len().saturating_sub(SLOTS);
+    pool.split_off(keep)
+}
+
+/// Gives `slots` back to the device's idle ones, which keep what their budget allows ([`trim_idle`]).
+fn give_back_idle(opened: &Opened, slots: Vec<Slot>) {
+    let mut pool = opened.idle_slots.lock().unwrap_or_else(|e| e.into_inner());
+    pool.extend(slots);
+    trim_idle(&mut pool);
+}
+
+/// Makes `slots` [`SLOTS`] slots that hold `need`, growing or adding what it lacks.
+fn ready_slots(opened: &Opened, slots: &mut Vec<Slot>, need: Capacity) -> Result<()> {
+    for index in 0..SLOTS {
+        match slots.get(index) {
+            Some(slot) if slot.capacity.holds(&need) => {}
+            Some(slot) => slots[index] = Slot::new(opened, slot.capacity.max(need))?,
+            None => slots.push(Slot::new(opened, need)?),
+        }
     }
-    traced
+    Ok(())
 }
 
 /// The chunk loop of [`trace`] (which started at `started`); logs its timings at debug level.
@@ -495,7 +519,10 @@ fn run_chunks(
         }
         let chunk = Chunk { first, rays: plan.chunk_rays.min(plan.rays - first) };
         let start = Instant::now();
-        in_flight[slot] = Some(submit(opened, accel, &slots[slot], query, params, chunk, &input, &output)?);
+        let submitted = opened.allocate("submitting a chunk of rays", || {
+            submit(opened, accel, &slots[slot], query, params, chunk, &input, &output)
+        });
+        in_flight[slot] = Some(submitted??);
         submitting += start.elapsed();
     }
     let mut rest: Vec<(usize, InFlight)> =
@@ -551,26 +578,28 @@ pub(super) fn time_launches(
             limit: plan.chunk_rays as u64,
         });
     }
-    let slot = Slot::new(opened, plan.need);
+    let slot = Slot::new(opened, plan.need)?;
     opened.queue.write_buffer(&slot.rays, 0, rays);
     let params = Params { ray_count: count as u32, root: accel.root, ..Params::for_query(query) };
     opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
-    let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
-        label: Some("rayd launches"),
-        ty: wgpu::QueryType::Timestamp,
-        count: 2 * launches,
-    });
     let bytes = u64::from(launches) * TIMESTAMP_BYTES;
-    let buffer = |usage| {
-        opened.device.create_buffer(&wgpu::BufferDescriptor {
+    let (queries, resolved, readback) = opened.allocate("making the launches' timestamp queries", || {
+        let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
             label: Some("rayd launches"),
-            size: bytes,
-            usage,
-            mapped_at_creation: false,
-        })
-    };
-    let resolved = buffer(wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC);
-    let readback = buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
+            ty: wgpu::QueryType::Timestamp,
+            count: 2 * launches,
+        });
+        let buffer = |usage| {
+            opened.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("rayd launches"),
+                size: bytes,
+                usage,
+                mapped_at_creation: false,
+            })
+        };
+        let resolved = buffer(wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC);
+        (queries, resolved, buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST))
+    })?;
     let mut encoder =
         opened.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("rayd launches") });
     for launch in 0..launches {

@@ -1,10 +1,14 @@
 //! Adapters and their devices. Every adapter that wgpu enumerates on the backends of `WGPU_BACKEND` (Vulkan when
 //! it is unset) is a device `wgpu:N`, in enumeration order. Enumeration happens once a process; an adapter's wgpu
 //! device (with the kernel's shader module; its pipelines are compiled as traces need them) is opened on first use
-//! and shared by every context and backend on it.
+//! and shared by every context and backend on it. A device that is lost (reset, removed or failed: the driver
+//! reports it) fails the calls on it with UNAVAILABLE and is opened anew by the next call; accels are uploaded to
+//! the new device as they are next traced (`super::DeviceCopy`).
 
-use std::sync::{Arc, OnceLock};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
 
+use super::batch::Slot;
 use super::kernel::Kernel;
 use crate::backend::cpu::host_memory_bytes;
 use crate::backend::{BackendKind, DeviceInfo};
@@ -16,12 +20,24 @@ pub(super) struct Gpu {
     index: usize,
     /// The adapter, to open its device.
     adapter: wgpu::Adapter,
-    /// Its device, once opened (or why it could not be).
-    opened: OnceLock<Result<Opened>>,
+    /// Its device, once opened; replaced when it is lost.
+    opened: Mutex<Option<Arc<Opened>>>,
 }
+
+/// Devices opened in this process: the next one's [`Opened::generation`].
+static OPENINGS: AtomicU64 = AtomicU64::new(0);
 
 /// An opened adapter: its device, queue and the trace pipeline.
 pub(super) struct Opened {
+    /// `wgpu:N`, for messages.
+    pub name: String,
+    /// Which opening of a device in this process it is: what was made on a device remembers it.
+    pub generation: u64,
+    /// Why the device was lost, once the driver reports it.
+    lost: Arc<OnceLock<String>>,
+    /// Idle per-chunk buffer sets (staging included), reused by later traces; a trace takes two and gives them back,
+    /// and the pool keeps the smallest within a budget ([`super::batch::trim_idle`]).
+    pub idle_slots: Mutex<Vec<Slot>>,
     /// The device, created with the adapter's own limits.
     pub device: wgpu::Device,
     /// Its queue.
@@ -38,6 +54,37 @@ impl Opened {
         let limits = self.device.limits();
         let adapter = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
         cap.map_or(adapter, |cap| cap.min(adapter))
+    }
+
+    /// Makes device objects for `what` with `make`: RESOURCE_EXHAUSTED if the device had no memory left for them
+    /// (they are then unusable and are dropped), UNAVAILABLE if it was lost.
+    pub fn allocate<T>(&self, what: &'static str, make: impl FnOnce() -> T) -> Result<T> {
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let made = make();
+        match pollster::block_on(scope.pop()) {
+            Some(error) => {
+                Err(self.failed(Error::DeviceMemory { device: self.name.clone(), what, detail: error.to_string() }))
+            }
+            None => Ok(made),
+        }
+        .and_then(|made| self.check_not_lost().map(|()| made))
+    }
+
+    /// `error` of a call on this device, or UNAVAILABLE naming why the device was lost if it was: whatever failed
+    /// on a lost device failed because of that. Polls the device first, which is when wgpu reports a loss that
+    /// it has not reported yet.
+    pub fn failed(&self, error: Error) -> Error {
+        // An error of the poll itself changes nothing: the call has failed already.
+        let _ = self.device.poll(wgpu::PollType::Poll);
+        self.check_not_lost().err().unwrap_or(error)
+    }
+
+    /// UNAVAILABLE if the device was lost.
+    pub fn check_not_lost(&self) -> Result<()> {
+        match self.lost.get() {
+            Some(why) => Err(Error::DeviceLost { device: self.name.clone(), detail: why.clone() }),
+            None => Ok(()),
+        }
     }
 }
 
@@ -56,7 +103,7 @@ pub(super) fn adapters() -> &'static [Arc<Gpu>] {
             let adapters = pollster::block_on(instance.enumerate_adapters(backends))
                 .into_iter()
                 .enumerate()
-                .map(|(index, adapter)| Arc::new(Gpu { index, adapter, opened: OnceLock::new() }))
+                .map(|(index, adapter)| Arc::new(Gpu { index, adapter, opened: Mutex::default() }))
                 .collect();
             (instance, adapters)
         })
@@ -72,7 +119,7 @@ impl Gpu {
     /// The device description (see [`super::WgpuBackend::info`]).
     pub fn info(&self) -> DeviceInfo {
         let info = self.adapter.get_info();
-        let software = info.device_type == wgpu::DeviceType::Cpu;
+        let software = self.software();
         let threads = std::thread::available_parallelism().map_or(0, |n| n.get() as u32);
         DeviceInfo {
             id: format!("wgpu:{}", self.index),
@@ -83,26 +130,53 @@ impl Gpu {
         }
     }
 
-    /// The opened device; FAILED_PRECONDITION if the adapter refused it.
-    pub fn open(&self) -> Result<&Opened> {
-        self.opened
-            .get_or_init(|| {
-                let timestamps = self.adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
-                let descriptor = wgpu::DeviceDescriptor {
-                    label: Some("rayd"),
-                    // The kernel is handed to the driver as SPIR-V (`spirv.rs`); every Vulkan adapter has this.
-                    required_features: timestamps | wgpu::Features::PASSTHROUGH_SHADERS,
-                    required_limits: self.adapter.limits(),
-                    ..wgpu::DeviceDescriptor::default()
-                };
-                let (device, queue) = pollster::block_on(self.adapter.request_device(&descriptor)).map_err(|e| {
-                    Error::FailedPrecondition(format!("wgpu:{}: opening the device failed: {e}", self.index))
-                })?;
-                let kernel = Kernel::new(&device);
-                let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
-                Ok(Opened { device, queue, kernel, timestamp_period })
-            })
-            .as_ref()
-            .map_err(Clone::clone)
+    /// Another handle on the same adapter, which opens a device of its own: tests lose or fill it without touching the
+    /// device that the others share.
+    #[cfg(test)]
+    pub fn alone(&self) -> Gpu {
+        Gpu { index: self.index, adapter: self.adapter.clone(), opened: Mutex::default() }
+    }
+
+    /// Whether the adapter is the CPU (lavapipe): its memory is the host's.
+    pub fn software(&self) -> bool {
+        self.adapter.get_info().device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// The opened device, opened now if it was not or was lost; FAILED_PRECONDITION if the adapter refused it.
+    pub fn open(&self) -> Result<Arc<Opened>> {
+        let mut opened = self.opened.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(current) = opened.as_ref() {
+            match current.lost.get() {
+                None => return Ok(Arc::clone(current)),
+                Some(why) => tracing::warn!(device = current.name, why, "the device was lost: opening it anew"),
+            }
+        }
+        let fresh = Arc::new(self.open_device()?);
+        *opened = Some(Arc::clone(&fresh));
+        Ok(fresh)
+    }
+
+    /// Opens a device on the adapter, with the adapter's own limits, and compiles the kernel's module.
+    fn open_device(&self) -> Result<Opened> {
+        let name = format!("wgpu:{}", self.index);
+        let timestamps = self.adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
+        let descriptor = wgpu::DeviceDescriptor {
+            label: Some("rayd"),
+            // The kernel is handed to the driver as SPIR-V (`spirv.rs`); every Vulkan adapter has this.
+            required_features: timestamps | wgpu::Features::PASSTHROUGH_SHADERS,
+            required_limits: self.adapter.limits(),
+            ..wgpu::DeviceDescriptor::default()
+        };
+        let (device, queue) = pollster::block_on(self.adapter.request_device(&descriptor))
+            .map_err(|e| Error::FailedPrecondition(format!("{name}: opening the device failed: {e}")))?;
+        let lost = Arc::new(OnceLock::new());
+        let reported = Arc::clone(&lost);
+        device.set_device_lost_callback(move |reason, message| {
+            let _ = reported.set(format!("{reason:?}: {message}"));
+        });
+        let kernel = Kernel::new(&device);
+        let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
+        let generation = OPENINGS.fetch_add(1, Ordering::Relaxed);
+        Ok(Opened { name, generation, lost, idle_slots: Mutex::default(), device, queue, kernel, timestamp_period })
     }
 }

@@ -137,11 +137,14 @@ pub(super) struct GpuGraph {
     pub variant: Variant,
     /// Bytes of the five buffers.
     bytes: u64,
+    /// The [`Opened::generation`] of the device it is on.
+    pub generation: u64,
 }
 
 impl GpuGraph {
     /// Flattens and uploads the graph under `host`. FAILED_PRECONDITION if a ray through it could need more stack
-    /// than the kernel's; RESOURCE_EXHAUSTED if an array exceeds what the adapter can bind.
+    /// than the kernel's; RESOURCE_EXHAUSTED if an array exceeds what the adapter can bind or the device has no
+    /// memory left for it.
     pub fn upload(opened: &Opened, host: &CpuAccel) -> Result<GpuGraph> {
         let flat = graph::flatten(host)?;
         if flat.stack > STACK_SIZE {
@@ -157,11 +160,13 @@ impl GpuGraph {
             let contents = if contents.is_empty() { &[0u8; 32][..] } else { contents };
             array.check_fits(opened, contents.len() as u64)?;
             bytes += contents.len() as u64;
-            Ok(opened.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some(array.label),
-                contents,
-                usage: wgpu::BufferUsages::STORAGE,
-            }))
+            opened.allocate("uploading an accel", || {
+                opened.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(array.label),
+                    contents,
+                    usage: wgpu::BufferUsages::STORAGE,
+                })
+            })
         };
         let buffers = [
             buffer(DeviceArray::NODES, bytemuck::cast_slice(&flat.nodes))?,
@@ -183,7 +188,7 @@ impl GpuGraph {
             layout: &opened.kernel.accel_layout,
             entries: &entries,
         });
-        Ok(GpuGraph { bind_group, root: flat.root, variant: flat.variant, bytes })
+        Ok(GpuGraph { bind_group, root: flat.root, variant: flat.variant, bytes, generation: opened.generation })
     }
 
     /// Bytes the accel occupies on the device.

@@ -45,7 +45,7 @@ use crate::geometry::{BuildInput, PlacedInstance, Transform, triangle_counts};
 use crate::query::{Query, TraceOutput, TraceStats};
 use crate::reduce::{Partial, Reduction};
 
-use batch::{Input, Output, Slot};
+use batch::{Input, Output};
 use device::{Gpu, Opened};
 use layout::{DeviceArray, GpuGraph};
 use offload::{DeviceGenerator, OnDevice};
@@ -71,9 +71,6 @@ pub struct WgpuBackend {
     options: WgpuOptions,
     /// Builds, updates and serialization run on the host, as on the CPU backend.
     host: CpuBackend,
-    /// Idle per-chunk buffer sets (staging included), reused by later traces; a trace takes two and gives them back,
-    /// and the pool keeps the smallest within a budget ([`batch::trim_idle`]).
-    slots: Mutex<Vec<Slot>>,
 }
 
 impl std::fmt::Debug for WgpuBackend {
@@ -84,10 +81,7 @@ impl std::fmt::Debug for WgpuBackend {
 
 /// A backend for every adapter wgpu enumerates (an empty list on a machine without one).
 pub fn backends(options: WgpuOptions) -> Vec<WgpuBackend> {
-    device::adapters()
-        .iter()
-        .map(|gpu| WgpuBackend { gpu: Arc::clone(gpu), options, host: CpuBackend, slots: Mutex::default() })
-        .collect()
+    device::adapters().iter().map(|gpu| WgpuBackend { gpu: Arc::clone(gpu), options, host: CpuBackend }).collect()
 }
 
 /// An accel of the wgpu backend: the host's structure (which builds, updates, bounds, vertex access,
@@ -97,18 +91,38 @@ pub struct WgpuAccel {
     /// The CPU backend's accel.
     host: CpuAccel,
     /// Its graph's arrays on the device; immutable, so copies of the accel share them.
-    device: Arc<GpuGraph>,
+    device: Arc<DeviceCopy>,
+}
+
+/// An accel's graph on the device, uploaded again from the host structure when the device it was on is lost.
+#[derive(Debug)]
+struct DeviceCopy {
+    /// The graph, on the device of its [`GpuGraph::generation`].
+    graph: Mutex<Arc<GpuGraph>>,
+    /// Bytes of its buffers (the same on every device).
+    bytes: u64,
+}
+
+impl DeviceCopy {
+    /// The graph on `opened`, first uploaded there from `host` if it was on a device that was lost.
+    fn on(&self, opened: &Opened, host: &CpuAccel) -> Result<Arc<GpuGraph>> {
+        let mut graph = self.graph.lock().unwrap_or_else(|e| e.into_inner());
+        if graph.generation != opened.generation {
+            *graph = Arc::new(GpuGraph::upload(opened, host)?);
+        }
+        Ok(Arc::clone(&graph))
+    }
 }
 
 impl BackendAccel for WgpuAccel {
     /// The host's arrays as allocated plus the device's buffers, which hold the arrays of every accel below it too
     /// (copies of an accel share the device buffers but each counts them).
     fn size_bytes(&self) -> u64 {
-        self.host.size_bytes() + self.device.bytes()
+        self.host.size_bytes() + self.device.bytes
     }
 
     fn compacted_size_bytes(&self) -> u64 {
-        self.host.compacted_size_bytes() + self.device.bytes()
+        self.host.compacted_size_bytes() + self.device.bytes
     }
 
     fn duplicate(&self) -> Box<dyn BackendAccel> {
@@ -137,8 +151,8 @@ impl BackendAccel for WgpuAccel {
 }
 
 impl WgpuBackend {
-    /// The adapter's device, opened on first use.
-    fn opened(&self) -> Result<&Opened> {
+    /// The adapter's device, opened on first use and again after it is lost.
+    fn opened(&self) -> Result<Arc<Opened>> {
         self.gpu.open()
     }
 
@@ -168,7 +182,7 @@ impl Backend for WgpuBackend {
         let host = self.host.compute_memory_usage(inputs, options)?;
         let triangles = triangle_counts(inputs, options.motion.keys as usize)?.into_iter().sum::<usize>();
         let corners = DeviceArray::corner_bytes(triangles as u64, u64::from(options.motion.keys));
-        DeviceArray::CORNERS.check_fits(self.opened()?, corners)?;
+        DeviceArray::CORNERS.check_fits(&*self.opened()?, corners)?;
         Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })
     }
 
@@ -231,8 +245,10 @@ impl Backend for WgpuBackend {
 
     /// Uploads the host structure's graph.
     fn adopt(&self, host: &CpuAccel) -> Result<Box<dyn BackendAccel>> {
-        let device = Arc::new(GpuGraph::upload(self.opened()?, host)?);
-        Ok(Box::new(WgpuAccel { host: host.clone(), device }))
+        let opened = self.opened()?;
+        let graph = GpuGraph::upload(&opened, host).map_err(|e| opened.failed(e))?;
+        let device = DeviceCopy { bytes: graph.bytes(), graph: Mutex::new(Arc::new(graph)) };
+        Ok(Box::new(WgpuAccel { host: host.clone(), device: Arc::new(device) }))
     }
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
@@ -247,7 +263,7 @@ impl Backend for WgpuBackend {
         launches: u32,
     ) -> Result<Vec<Duration>> {
         query.output_layout(rays.len())?;
-        batch::time_launches(self.opened()?, &wgpu_accel(accel)?.device, query, rays, launches)
+        self.on_device(wgpu_accel(accel)?, |opened, graph| batch::time_launches(opened, graph, query, rays, launches))
     }
 
     /// Camera and lidar generators' rays are made by the kernel; other generators' on the host.
@@ -333,21 +349,15 @@ impl WgpuBackend {
         input: Input<'_>,
         output: Output<'_>,
     ) -> Result<TraceStats> {
-        let mut slots = self.take_slots();
-        let traced = batch::trace(self.opened()?, &accel.device, query, plan, input, output, &mut slots);
-        let mut pool = self.slots.lock().unwrap_or_else(|e| e.into_inner());
-        pool.extend(slots);
-        batch::trim_idle(&mut pool);
-        traced
+        self.on_device(accel, |opened, graph| batch::trace(opened, graph, query, plan, input, output))
     }
-}
 
-impl WgpuBackend {
-    /// Up to two idle slots from the pool (the trace makes or grows what it lacks).
-    fn take_slots(&self) -> Vec<Slot> {
-        let mut pool = self.slots.lock().unwrap_or_else(|e| e.into_inner());
-        let keep = pool.len().saturating_sub(batch::SLOTS);
-        pool.split_off(keep)
+    /// Runs `work` with the device and `accel`'s graph on it (uploaded anew if the device was lost since); an error
+    /// of a device lost meanwhile is UNAVAILABLE.
+    fn on_device<T>(&self, accel: &WgpuAccel, work: impl FnOnce(&Opened, &GpuGraph) -> Result<T>) -> Result<T> {
+        let opened = self.opened()?;
+        let done = accel.device.on(&opened, &accel.host).and_then(|graph| work(&opened, &graph));
+        done.map_err(|e| opened.failed(e))
     }
 }
 
@@ -357,4 +367,132 @@ fn wgpu_accel(accel: &dyn BackendAccel) -> Result<&WgpuAccel> {
         .as_any()
         .downcast_ref::<WgpuAccel>()
         .ok_or_else(|| Error::FailedPrecondition("the accel was built on another device".into()))
+}
+
+#[cfg(test)]
+mod tests {
+    use glam::Vec3A;
+
+    use super::*;
+    use crate::ErrorKind;
+    use crate::format::{HitFormat, Ray, RayFormat};
+    use crate::geometry::TriangleInput;
+    use crate::mesh::Mesh;
+
+    /// The tests here lose a device or fill the adapter's memory: one at a time.
+    static ONE_AT_A_TIME: Mutex<()> = Mutex::new(());
+
+    /// A backend on a device of its own, opened on the first adapter; `None` (and a note) without an adapter unless
+    /// `RAYD_REQUIRE_GPU=1`.
+    fn backend_alone() -> Option<WgpuBackend> {
+        let Some(gpu) = device::adapters().first() else {
+            assert_ne!(std::env::var("RAYD_REQUIRE_GPU").as_deref(), Ok("1"), "RAYD_REQUIRE_GPU=1 but no adapter");
+            eprintln!("skipped: no wgpu adapter");
+            return None;
+        };
+        Some(WgpuBackend { gpu: Arc::new(gpu.alone()), options: WgpuOptions::default(), host: CpuBackend })
+    }
+
+    /// The bunny (`../shared/data/meshes/stanford-bunny.obj`), built and uploaded by `backend`.
+    fn bunny(backend: &WgpuBackend) -> Result<Box<dyn BackendAccel>> {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/meshes/stanford-bunny.obj");
+        let packed = Mesh::load_obj(path).unwrap_or_else(|e| panic!("{e}")).pack();
+        let input: [BuildInput<'_>; 1] =
+            [BuildInput::Triangles(TriangleInput::indexed(&packed.vertices, &packed.indices))];
+        backend.build(&input, &BuildOptions::default(), &|| true)
+    }
+
+    /// `side`² rays along +z through the bunny's box, packed as origins and directions.
+    fn rays_through(accel: &dyn BackendAccel, side: usize) -> Vec<u8> {
+        let (low, high) = accel.bounds_during(TimeSpan::at(0.0));
+        let (low, high) = (Vec3A::from(low), Vec3A::from(high));
+        let format = RayFormat::OriginDirection;
+        let mut packed = vec![0; side * side * format.size()];
+        for (index, bytes) in packed.chunks_exact_mut(format.size()).enumerate() {
+            let across = Vec3A::new((index % side) as f32 + 0.5, (index / side) as f32 + 0.5, 0.0) / side as f32;
+            let origin = low + (high - low) * across - Vec3A::Z;
+            format.encode(&Ray { origin, direction: Vec3A::Z, ..Ray::default() }, bytes);
+        }
+        packed
+    }
+
+    /// The closest hits of `rays` on `accel`, or the trace's error.
+    fn closest_hits(backend: &WgpuBackend, accel: &dyn BackendAccel, rays: &[u8]) -> Result<Vec<u8>> {
+        let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriidUV);
+        let layout = query.output_layout(rays.len())?;
+        let mut hits = vec![0xEE; layout.hits];
+        backend.trace(accel, &query, rays, TraceOutput { hits: &mut hits, counts: &mut [] })?;
+        Ok(hits)
+    }
+
+    #[test]
+    fn a_lost_device_fails_its_call_unavailable_and_the_next_call_traces_on_a_new_device() {
+        let _alone = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(backend) = backend_alone() else { return };
+        let accel = bunny(&backend).unwrap();
+        let copy = accel.duplicate();
+        let rays = rays_through(accel.as_ref(), 64);
+        let before = closest_hits(&backend, accel.as_ref(), &rays).unwrap();
+        let first = backend.opened().unwrap();
+        assert!(before.chunks_exact(16).any(|hit| hit[0..4] != f32::INFINITY.to_le_bytes()), "some rays hit");
+
+        first.device.destroy();
+        let failed = closest_hits(&backend, accel.as_ref(), &rays).unwrap_err();
+        assert_eq!(failed.kind(), ErrorKind::Unavailable, "{failed}");
+        assert!(failed.to_string().starts_with("wgpu:0 was lost (Destroyed"), "{failed}");
+
+        assert_eq!(closest_hits(&backend, accel.as_ref(), &rays).unwrap(), before, "uploaded anew, traced as before");
+        assert_eq!(closest_hits(&backend, copy.as_ref(), &rays).unwrap(), before, "a copy shares the new upload");
+        let second = backend.opened().unwrap();
+        assert_ne!(second.generation, first.generation);
+        let rebuilt = bunny(&backend).unwrap();
+        assert_eq!(closest_hits(&backend, rebuilt.as_ref(), &rays).unwrap(), before, "accels built after the loss");
+    }
+
+    #[test]
+    fn running_out_of_device_memory_is_resource_exhausted_and_the_device_goes_on() {
+        let _alone = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(backend) = backend_alone() else { return };
+        if backend.gpu.software() {
+            eprintln!("skipped: a software adapter's memory is the host's, which this test would fill");
+            return;
+        }
+        let accel = bunny(&backend).unwrap();
+        let (rays, more_rays) = (rays_through(accel.as_ref(), 64), rays_through(accel.as_ref(), 1024));
+        let before = closest_hits(&backend, accel.as_ref(), &rays).unwrap();
+        let opened = backend.opened().unwrap();
+        // The device filled with buffers of halving sizes, until not even a MiB more is made.
+        let mut filler = Vec::new();
+        let mut size = opened.device.limits().max_buffer_size.min(1 << 32);
+        while size >= 1 << 20 {
+            let descriptor = wgpu::BufferDescriptor {
+                label: None,
+                size,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            };
+            match opened.allocate("filling the device", || opened.device.create_buffer(&descriptor)) {
+                Ok(buffer) => filler.push(buffer),
+                Err(full) => {
+                    assert_eq!(full.kind(), ErrorKind::ResourceExhausted, "{full}");
+                    size /= 2;
+                }
+            }
+        }
+        assert!(filler.len() > 1, "{} buffers filled the device", filler.len());
+
+        let Err(refused) = bunny(&backend) else { panic!("an accel was uploaded to a full device") };
+        assert_eq!(refused.kind(), ErrorKind::ResourceExhausted, "{refused}");
+        assert!(refused.to_string().starts_with("wgpu:0 ran out of memory uploading an accel: "), "{refused}");
+        let refused = closest_hits(&backend, accel.as_ref(), &more_rays).unwrap_err();
+        assert_eq!(refused.kind(), ErrorKind::ResourceExhausted, "{refused}");
+        assert!(refused.to_string().starts_with("wgpu:0 ran out of memory making a trace's buffers: "), "{refused}");
+
+        drop(filler);
+        assert_eq!(closest_hits(&backend, accel.as_ref(), &rays).unwrap(), before, "the device goes on");
+        let rebuilt = bunny(&backend).unwrap();
+        assert_eq!(closest_hits(&backend, rebuilt.as_ref(), &rays).unwrap(), before);
+        let all = closest_hits(&backend, accel.as_ref(), &more_rays).unwrap();
+        assert_eq!(all.len(), 1024 * 1024 * 16);
+    }
 }
