@@ -98,7 +98,7 @@ pub enum Error {
     DeviceMemory {
         /// The device, e.g. `wgpu:0`.
         device: String,
-        /// What was being made, e.g. `uploading the accel`.
+        /// What was being made, e.g. `uploading an accel`.
         what: &'static str,
         /// The driver's words.
         detail: String,

@@ -288,7 +288,7 @@ pub(super) struct Slot {
 impl Slot {
     /// A slot of `capacity`, its upload buffer mapped; RESOURCE_EXHAUSTED if the device has no memory left for it.
     fn new(opened: &Opened, capacity: Capacity) -> Result<Slot> {
-        opened.allocate("making a trace's buffers", || Slot::make(opened, capacity))
+        opened.checked("making a trace's buffers", || Slot::make(opened, capacity))
     }
 
     /// The buffers of [`Slot::new`].
@@ -429,7 +429,9 @@ fn wait_mapped(
                 let wait = wgpu::PollType::Wait { submission_index: Some(submission.clone()), timeout: None };
                 opened.device.poll(wait).map_err(|e| device_error("tracing", e))?;
                 // A lost device may never report the mapping.
-                opened.check_not_lost()?;
+                if let Some(lost) = opened.lost() {
+                    return Err(lost);
+                }
                 // Another thread's poll may be delivering the callback right now.
                 std::thread::yield_now();
             }
@@ -519,9 +521,10 @@ fn run_chunks(
         }
         let chunk = Chunk { first, rays: plan.chunk_rays.min(plan.rays - first) };
         let start = Instant::now();
-        let submitted = opened.allocate("submitting a chunk of rays", || {
+        let submitted = opened.checked("submitting a chunk of rays", || {
             submit(opened, accel, &slots[slot], query, params, chunk, &input, &output)
         });
+        // The scope's error, then the submission's own.
         in_flight[slot] = Some(submitted??);
         submitting += start.elapsed();
     }
@@ -579,11 +582,11 @@ pub(super) fn time_launches(
         });
     }
     let slot = Slot::new(opened, plan.need)?;
-    opened.queue.write_buffer(&slot.rays, 0, rays);
-    let params = Params { ray_count: count as u32, root: accel.root, ..Params::for_query(query) };
-    opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
     let bytes = u64::from(launches) * TIMESTAMP_BYTES;
-    let (queries, resolved, readback) = opened.allocate("making the launches' timestamp queries", || {
+    let (readback, submission) = opened.checked("timing launches", || {
+        opened.queue.write_buffer(&slot.rays, 0, rays);
+        let params = Params { ray_count: count as u32, root: accel.root, ..Params::for_query(query) };
+        opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
         let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
             label: Some("rayd launches"),
             ty: wgpu::QueryType::Timestamp,
@@ -598,25 +601,26 @@ pub(super) fn time_launches(
             })
         };
         let resolved = buffer(wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC);
-        (queries, resolved, buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST))
+        let readback = buffer(wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
+        let mut encoder =
+            opened.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("rayd launches") });
+        for launch in 0..launches {
+            let timestamp_writes = wgpu::ComputePassTimestampWrites {
+                query_set: &queries,
+                beginning_of_pass_write_index: Some(2 * launch),
+                end_of_pass_write_index: Some(2 * launch + 1),
+            };
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("rayd launch"),
+                timestamp_writes: Some(timestamp_writes),
+            });
+            dispatch_trace(&mut pass, opened, accel, &slot, accel.variant.for_query(query), count);
+        }
+        encoder.resolve_query_set(&queries, 0..2 * launches, &resolved, 0);
+        encoder.copy_buffer_to_buffer(&resolved, 0, &readback, 0, bytes);
+        let submission = opened.queue.submit([encoder.finish()]);
+        (readback, submission)
     })?;
-    let mut encoder =
-        opened.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("rayd launches") });
-    for launch in 0..launches {
-        let timestamp_writes = wgpu::ComputePassTimestampWrites {
-            query_set: &queries,
-            beginning_of_pass_write_index: Some(2 * launch),
-            end_of_pass_write_index: Some(2 * launch + 1),
-        };
-        let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
-            label: Some("rayd launch"),
-            timestamp_writes: Some(timestamp_writes),
-        });
-        dispatch_trace(&mut pass, opened, accel, &slot, accel.variant.for_query(query), count);
-    }
-    encoder.resolve_query_set(&queries, 0..2 * launches, &resolved, 0);
-    encoder.copy_buffer_to_buffer(&resolved, 0, &readback, 0, bytes);
-    let submission = opened.queue.submit([encoder.finish()]);
     wait_mapped(opened, &request_map(&readback, wgpu::MapMode::Read, bytes), &submission)?;
     let ticks = readback.slice(..).get_mapped_range().map_err(|e| device_error("mapping the timestamps", e))?;
     Ok(ticks

@@ -20,8 +20,8 @@ pub(super) struct Gpu {
     index: usize,
     /// The adapter, to open its device.
     adapter: wgpu::Adapter,
-    /// Its device, once opened; replaced when it is lost.
-    opened: Mutex<Option<Arc<Opened>>>,
+    /// Its device once opened (or why the adapter refused it); replaced when it is lost.
+    opened: Mutex<Option<Result<Arc<Opened>>>>,
 }
 
 /// Devices opened in this process: the next one's [`Opened::generation`].
@@ -56,35 +56,43 @@ impl Opened {
         cap.map_or(adapter, |cap| cap.min(adapter))
     }
 
-    /// Makes device objects for `what` with `make`: RESOURCE_EXHAUSTED if the device had no memory left for them
-    /// (they are then unusable and are dropped), UNAVAILABLE if it was lost.
-    pub fn allocate<T>(&self, what: &'static str, make: impl FnOnce() -> T) -> Result<T> {
-        let scope = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let made = make();
-        match pollster::block_on(scope.pop()) {
-            Some(error) => {
-                Err(self.failed(Error::DeviceMemory { device: self.name.clone(), what, detail: error.to_string() }))
-            }
-            None => Ok(made),
+    /// Runs `work`, the device calls of `what`, under error scopes: RESOURCE_EXHAUSTED if the device had no memory
+    /// left for an object it makes (what it made is then unusable, and is dropped), UNAVAILABLE if the device was
+    /// lost. wgpu loses the device itself when memory runs out for some objects (staging, command buffers, bind
+    /// groups): UNAVAILABLE then too.
+    pub fn checked<T>(&self, what: &'static str, work: impl FnOnce() -> T) -> Result<T> {
+        let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let done = work();
+        let (memory, validation) = (pollster::block_on(memory.pop()), pollster::block_on(validation.pop()));
+        if let Some(error) = memory {
+            // Objects made from one the device had no memory for fail validation: the memory is the cause.
+            return Err(self.or_lost(Error::DeviceMemory {
+                device: self.name.clone(),
+                what,
+                detail: error.to_string(),
+            }));
         }
-        .and_then(|made| self.check_not_lost().map(|()| made))
+        if let Some(error) = validation {
+            // Objects of a lost device fail validation too; otherwise it is a bug, a panic as wgpu's handler has it.
+            return Err(self.lost().unwrap_or_else(|| panic!("the wgpu device refused {what}: {error}")));
+        }
+        Ok(done)
     }
 
     /// `error` of a call on this device, or UNAVAILABLE naming why the device was lost if it was: whatever failed
-    /// on a lost device failed because of that. Polls the device first, which is when wgpu reports a loss that
-    /// it has not reported yet.
-    pub fn failed(&self, error: Error) -> Error {
-        // An error of the poll itself changes nothing: the call has failed already.
-        let _ = self.device.poll(wgpu::PollType::Poll);
-        self.check_not_lost().err().unwrap_or(error)
+    /// on a lost device failed because of that.
+    pub fn or_lost(&self, error: Error) -> Error {
+        self.lost().unwrap_or(error)
     }
 
-    /// UNAVAILABLE if the device was lost.
-    pub fn check_not_lost(&self) -> Result<()> {
-        match self.lost.get() {
-            Some(why) => Err(Error::DeviceLost { device: self.name.clone(), detail: why.clone() }),
-            None => Ok(()),
-        }
+    /// UNAVAILABLE naming why the device was lost, if it was. Polls the device first, which is when wgpu reports a
+    /// loss that it has not reported yet.
+    pub fn lost(&self) -> Option<Error> {
+        // An error of the poll itself is seen by the call's own waits.
+        let _ = self.device.poll(wgpu::PollType::Poll);
+        let why = self.lost.get()?;
+        Some(Error::DeviceLost { device: self.name.clone(), detail: why.clone() })
     }
 }
 
@@ -122,7 +130,7 @@ impl Gpu {
         let software = self.software();
         let threads = std::thread::available_parallelism().map_or(0, |n| n.get() as u32);
         DeviceInfo {
-            id: format!("wgpu:{}", self.index),
+            id: self.name(),
             kind: BackendKind::Wgpu,
             name: format!("{} ({:?} {:?}, {})", info.name, info.backend, info.device_type, info.driver_info),
             memory_bytes: if software { host_memory_bytes() } else { 0 },
@@ -142,23 +150,41 @@ impl Gpu {
         self.adapter.get_info().device_type == wgpu::DeviceType::Cpu
     }
 
-    /// The opened device, opened now if it was not or was lost; FAILED_PRECONDITION if the adapter refused it.
+    /// The opened device, opened now if it was not or was lost. FAILED_PRECONDITION if the adapter refused its
+    /// first device (kept: every later call gets it), UNAVAILABLE if it refused a device to replace a lost one (the
+    /// next call tries again).
     pub fn open(&self) -> Result<Arc<Opened>> {
         let mut opened = self.opened.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(current) = opened.as_ref() {
-            match current.lost.get() {
+        let lost = match opened.as_ref() {
+            None => None,
+            Some(Err(refused)) => return Err(refused.clone()),
+            Some(Ok(current)) => match current.lost.get() {
                 None => return Ok(Arc::clone(current)),
-                Some(why) => tracing::warn!(device = current.name, why, "the device was lost: opening it anew"),
-            }
-        }
-        let fresh = Arc::new(self.open_device()?);
-        *opened = Some(Arc::clone(&fresh));
+                Some(why) => Some(why.clone()),
+            },
+        };
+        let Some(why) = lost else {
+            let first = self.open_device().map(Arc::new);
+            *opened = Some(first.clone());
+            return first;
+        };
+        tracing::warn!(device = self.name(), why, "the device was lost: opening it anew");
+        let fresh = Arc::new(self.open_device().map_err(|refused| Error::DeviceLost {
+            device: self.name(),
+            detail: format!("{why}; opening it anew failed: {refused}"),
+        })?);
+        *opened = Some(Ok(Arc::clone(&fresh)));
         Ok(fresh)
+    }
+
+    /// `wgpu:N`.
+    fn name(&self) -> String {
+        format!("wgpu:{}", self.index)
     }
 
     /// Opens a device on the adapter, with the adapter's own limits, and compiles the kernel's module.
     fn open_device(&self) -> Result<Opened> {
-        let name = format!("wgpu:{}", self.index);
+        let name = self.name();
         let timestamps = self.adapter.features() & wgpu::Features::TIMESTAMP_QUERY;
         let descriptor = wgpu::DeviceDescriptor {
             label: Some("rayd"),

@@ -28,7 +28,7 @@
 //!   motion transform's 16 floats a key (`sx a b sy c sz pvx pvy pvz qx qy qz qw tx ty tz`, unit quaternion).
 
 use bytemuck::{Pod, Zeroable};
-use wgpu::util::DeviceExt;
+use wgpu::BufferUsages;
 
 use super::device::Opened;
 use super::graph;
@@ -160,13 +160,22 @@ impl GpuGraph {
             let contents = if contents.is_empty() { &[0u8; 32][..] } else { contents };
             array.check_fits(opened, contents.len() as u64)?;
             bytes += contents.len() as u64;
-            opened.allocate("uploading an accel", || {
-                opened.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(array.label),
-                    contents,
-                    usage: wgpu::BufferUsages::STORAGE,
-                })
-            })
+            let size = (contents.len() as u64).next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
+            let descriptor = wgpu::BufferDescriptor {
+                label: Some(array.label),
+                size,
+                usage: BufferUsages::STORAGE,
+                mapped_at_creation: true,
+            };
+            // Made under the scope, filled after it: a buffer the device had no memory for cannot be mapped.
+            let made = opened.checked("uploading an accel", || opened.device.create_buffer(&descriptor))?;
+            let mut mapped = made.get_mapped_range_mut(..).map_err(|e| {
+                opened.or_lost(Error::FailedPrecondition(format!("mapping the accel's {} failed: {e}", array.label)))
+            })?;
+            mapped.slice(..contents.len()).copy_from_slice(contents);
+            drop(mapped);
+            made.unmap();
+            Ok(made)
         };
         let buffers = [
             buffer(DeviceArray::NODES, bytemuck::cast_slice(&flat.nodes))?,
