@@ -168,6 +168,11 @@ async fn damaged_files_are_skipped_with_what_depends_on_them() {
     let (_daemon, client) = start(&dir).await;
     let names: Vec<String> = listing(&client).await.into_iter().map(|(name, _, _)| name).collect();
     assert_eq!(names, ["intact"], "the damaged accel, the one above it and the garbage are skipped");
+    let new = client.build_mesh("new", &triangle, "", BuildFlags::empty()).await.unwrap();
+    let number: u64 = new.handle.strip_prefix("acc-").and_then(|n| n.parse().ok()).unwrap();
+    assert!(number > 999, "a new accel takes no skipped file's handle: {}", new.handle);
+    let garbage = std::fs::read(dir.join("tenants/default/accels/acc-999.acc")).unwrap();
+    assert_eq!(garbage, b"not an accel", "skipped files stay as they were");
     let _ = std::fs::remove_dir_all(&dir);
 }
 
@@ -221,8 +226,8 @@ async fn a_kill_9_during_builds_and_updates_leaves_every_object_whole_or_absent(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_saved_scene_loads_back_under_a_new_name_and_bad_blobs_are_refused() {
-    let daemon = Daemon::start(&[]);
-    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let dir = data_dir("load");
+    let (mut daemon, client) = start(&dir).await;
     let bunny = shared_mesh("stanford-bunny");
     client.build_mesh("bunny", &bunny, "", BuildFlags::empty()).await.unwrap();
     let records = [record(0, 1, 0.0), record(0, 2, 0.5)];
@@ -242,6 +247,14 @@ async fn a_saved_scene_loads_back_under_a_new_name_and_bad_blobs_are_refused() {
     let error = client.load_accel("other", "", damaged.into()).await.unwrap_err();
     assert_eq!(error.code(), Code::InvalidArgument, "{error}");
     assert!(client.accel("other").await.is_err(), "nothing of a refused blob stays");
+
+    let expected = answers(&client, "scene", &rays).await;
+    daemon.kill();
+    let (_daemon, client) = start(&dir).await;
+    let names: Vec<String> = listing(&client).await.into_iter().map(|(name, _, _)| name).collect();
+    assert_eq!(names.len(), 4, "the scene, its child and the loaded copies come back: {names:?}");
+    assert_eq!(answers(&client, "copy", &rays).await, expected, "the loaded scene as it was");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// A tmpfs of a few MiB mounted on a fresh directory, to fill up and to make read-only (the tests run as root, as

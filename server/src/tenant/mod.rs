@@ -315,7 +315,7 @@ impl Tenant {
             version: 0,
             pace: Arc::default(),
         };
-        let file = match self.prepare_accel_file(&entry) {
+        let file = match self.prepare_accel_file(&entry, &[]) {
             Ok(file) => file,
             Err(unsaved) => {
                 context.destroy_accel(entry.accel.handle())?;
@@ -406,21 +406,21 @@ impl Tenant {
             version: 0,
             pace: Arc::default(),
         });
+        let loaded: Vec<AccelEntry> = loaded.collect();
         let files =
-            loaded.map(|entry| Ok((self.prepare_accel_file(&entry)?, entry))).collect::<ServiceResult<Vec<_>>>()?;
+            loaded.iter().map(|entry| self.prepare_accel_file(entry, &loaded)).collect::<ServiceResult<Vec<_>>>()?;
         let _keeping = self.keep();
         caller.check(what)?;
         let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
-        for (file, entry) in files {
+        for (file, entry) in files.into_iter().zip(loaded) {
             let inserted = self.accels.insert(entry.handle.clone(), &entry.name, entry.clone());
             let saved = inserted.and_then(|()| {
                 entries.push(entry);
                 file.put()
             });
             if let Err(failed) = saved {
-                for done in entries.iter().rev() {
-                    self.forget_accel(done)?;
-                }
+                // Every entry kept is forgotten, even past one that cannot be; the first such error is the answer.
+                entries.iter().rev().map(|done| self.forget_accel(done)).fold(Ok(()), Result::and)?;
                 return Err(failed);
             }
         }
@@ -447,7 +447,7 @@ impl Tenant {
         let accel = update(context)?;
         let build_ns = start.elapsed().as_nanos() as u64;
         let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
-        let file = self.prepare_accel_file(&updated);
+        let file = self.prepare_accel_file(&updated, &[]);
         let _keeping = self.keep();
         // Stored, then listed: until then no call can find the new version to update it again, so that an update
         // that cannot be stored can be undone (it changes nothing: the old version is current again).
@@ -535,7 +535,7 @@ impl Tenant {
         self.unpersist_accel(&entry.handle)?;
         if let Err(refused) = context.destroy_accel(entry.accel.handle()) {
             // An instance accel came to place it since the check: it stays, so its file is written back.
-            self.prepare_accel_file(entry)?.put()?;
+            self.prepare_accel_file(entry, &[])?.put()?;
             return Err(refused.into());
         }
         self.accels.remove(&entry.handle, &entry.name)?;

@@ -60,15 +60,16 @@ impl Tenant {
     }
 
     /// Writes `entry`'s accel (its children referred to) to a file of the store, if there is one, to be put in
-    /// place.
-    pub(super) fn prepare_accel_file(&self, entry: &AccelEntry) -> ServiceResult<Pending> {
+    /// place. Its children are registered accels or among `arriving` (made with it, registered with it).
+    pub(super) fn prepare_accel_file(&self, entry: &AccelEntry, arriving: &[AccelEntry]) -> ServiceResult<Pending> {
         let Some(store) = &self.store else { return Ok(Pending(None)) };
         let children = entry.accel.children();
         let registered = self.accels.values();
         let child_records = children
             .iter()
             .map(|child| {
-                let placed = registered.iter().find(|e| Arc::ptr_eq(&e.accel, child)).ok_or_else(|| {
+                let mut known = registered.iter().chain(arriving);
+                let placed = known.find(|e| Arc::ptr_eq(&e.accel, child)).ok_or_else(|| {
                     ServiceError::Precondition(format!("accel {:?} places an accel that is not registered", entry.name))
                 })?;
                 Ok(ChildRecord { handle: placed.handle.clone(), version: placed.version })
@@ -111,17 +112,21 @@ impl Tenant {
     pub fn restore(&self) -> ServiceResult<Restored> {
         let Some(store) = &self.store else { return Ok(Restored::default()) };
         let stored = store.read_all().map_err(|e| ServiceError::storage("reading the stored objects".into(), e))?;
-        let mut restored = Restored {
-            skipped: stored.skipped.into_iter().map(|(path, why)| (path.display().to_string(), why)).collect(),
-            ..Restored::default()
-        };
-        // New objects must never take an id or handle a restored one has.
+        // New objects must never take an id or handle a stored one has, restored or skipped: a skipped file stays
+        // for the operator, and a new object's file must not replace it.
+        let skipped =
+            stored.skipped.iter().map(|(path, _)| path.file_stem().and_then(|stem| number(&stem.to_string_lossy())));
         let highest = stored
             .buffers
             .iter()
             .map(|(r, _)| number(&r.id))
-            .chain(stored.accels.iter().map(|(r, _)| number(&r.handle)));
+            .chain(stored.accels.iter().map(|(r, _)| number(&r.handle)))
+            .chain(skipped);
         let highest = highest.flatten().max().unwrap_or(0);
+        let mut restored = Restored {
+            skipped: stored.skipped.into_iter().map(|(path, why)| (path.display().to_string(), why)).collect(),
+            ..Restored::default()
+        };
         self.next_buffer.fetch_max(highest + 1, std::sync::atomic::Ordering::Relaxed);
         for context in self.contexts.values() {
             context.advance_handles(highest);
