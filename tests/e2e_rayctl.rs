@@ -958,6 +958,14 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
     assert!(to_stdout.status.success(), "{}", printed(&to_stdout));
     assert!(read(&stdout_out) == read(&file_out), "only the hits on standard output");
     assert!(String::from_utf8_lossy(&to_stdout.stderr).contains(" rays, "), "{}", printed(&to_stdout));
+    // Appended to (`>> file`): what the file held stays, the hits follow it.
+    std::fs::write(&stdout_out, b"before").unwrap();
+    let appended = rayctl_command(&server, &[&closest[..], &["/dev/stdout"]].concat())
+        .stdout(std::fs::OpenOptions::new().append(true).open(&stdout_out).unwrap())
+        .output()
+        .unwrap();
+    assert!(appended.status.success(), "{}", printed(&appended));
+    assert!(read(&stdout_out) == [&b"before"[..], &read(&file_out)].concat(), "the hits after what was there");
     let stderr = fails(&server, &[&args[..args.len() - 1], &["/dev/null"]].concat(), 1);
     assert!(stderr.contains("--out /dev/null: the counts of this query go to /dev/null.counts"), "{stderr}");
     let counted = rayctl_command(&server, &[&args[..args.len() - 1], &["/dev/stdout"]].concat())

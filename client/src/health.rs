@@ -8,7 +8,7 @@ use tonic_health::pb::health_client::HealthClient;
 pub use tonic_health::pb::health_check_response::ServingStatus;
 
 use crate::client::{ClientTls, connect_channel, endpoint};
-use crate::error::Result;
+use crate::error::{Error, Result};
 
 /// The service name rayd reports on: SERVING while it accepts calls, NOT_SERVING from the start of a shutdown.
 pub const RAYD_SERVICE: &str = "rayd.v1.Rayd";
@@ -22,8 +22,13 @@ pub async fn check_health(
     timeout: Duration,
 ) -> Result<ServingStatus> {
     let endpoint = endpoint(url, tls)?.connect_timeout(timeout).timeout(timeout);
-    let mut health = HealthClient::new(connect_channel(endpoint, url).await?);
-    let request = HealthCheckRequest { service: service.to_owned() };
-    let status = health.check(request).await?.into_inner().status;
-    Ok(ServingStatus::try_from(status).unwrap_or(ServingStatus::Unknown))
+    let check = async {
+        let mut health = HealthClient::new(connect_channel(endpoint, url).await?);
+        let request = HealthCheckRequest { service: service.to_owned() };
+        let status = health.check(request).await?.into_inner().status;
+        Ok(ServingStatus::try_from(status).unwrap_or(ServingStatus::Unknown))
+    };
+    // The connection and the answer together, not each, within `timeout`.
+    let late = || Error::Connect { url: url.into(), reason: format!("no answer within {} s", timeout.as_secs_f64()) };
+    tokio::time::timeout(timeout, check).await.unwrap_or_else(|_| Err(late()))
 }

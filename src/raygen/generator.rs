@@ -179,8 +179,9 @@ fn check_camera_frame(eye: Vec3, target: Vec3, up: Vec3) -> Result<()> {
 
 impl Generator {
     /// Checks that rays packed in `format` keep the range the generator gives its rays (a lidar's or a sphere's
-    /// `tmin` above 0 or finite `tmax`, a shadow ray's `tmax`): rays that lost it would reach past what was asked.
-    /// INVALID_ARGUMENT naming `query.ray_format` and the generator's field otherwise.
+    /// `tmin` above 0 or finite `tmax`, a shadow ray's `tmax`): rays that lost it would reach past what was asked;
+    /// and a lidar's times other than 0: its rays would all be traced at time 0. INVALID_ARGUMENT naming
+    /// `query.ray_format` and the generator's field otherwise.
     pub fn check_format(&self, format: RayFormat) -> Result<()> {
         let range =
             |field: &str, value: f32, unset: f32| (value != unset).then(|| format!("generator.{field} ({value})"));
@@ -211,6 +212,19 @@ impl Generator {
                     ),
                 });
             }
+        }
+        if let Generator::Lidar(lidar) = self
+            && lidar.time != (0.0, 0.0)
+            && format.time_offset().is_none()
+        {
+            let (begin, end) = lidar.time;
+            return Err(Error::InvalidQuery {
+                field: "query.ray_format",
+                rule: format!(
+                    "{} rays carry no time, which generator.time ({begin}, {end}) sets: use a format with time",
+                    format.name()
+                ),
+            });
         }
         Ok(())
     }
@@ -787,6 +801,14 @@ mod tests {
         let far = refusal(lidar(0.0, 20.0), RayFormat::OriginDirection);
         assert!(far.contains("no tmax, which generator.max_range (20) sets"), "{far}");
         lidar(0.5, 20.0).check_format(RayFormat::OriginTminDirectionTmax).unwrap();
+        let Generator::Lidar(scan) = lidar(0.0, f32::INFINITY) else { unreachable!() };
+        let revolving = Generator::Lidar(Lidar { time: (0.0, 0.5), ..scan });
+        revolving.check_format(RayFormat::OriginTminDirectionTmaxTime).unwrap();
+        assert_eq!(
+            refusal(revolving, RayFormat::OriginTminDirectionTmax),
+            "query.ray_format: origin_tmin_direction_tmax rays carry no time, which generator.time (0, 0.5) sets: use \
+             a format with time"
+        );
     }
 
     #[test]

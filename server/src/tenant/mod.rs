@@ -323,17 +323,13 @@ impl Tenant {
             }
         };
         let _keeping = self.keep();
-        if let Err(refused) =
-            caller.check(what).and_then(|()| self.accels.insert(entry.handle.clone(), name, entry.clone()))
-        {
+        // Its file goes in place before it is listed, so that no other call can place an accel whose file may yet
+        // fail. The name is checked first: nothing is listed in between, every insert holding the keeping lock.
+        if let Err(refused) = caller.check(what).and_then(|()| self.accels.check_free(name)).and_then(|()| file.put()) {
             context.destroy_accel(entry.accel.handle())?;
             return Err(refused);
         }
-        if let Err(unsaved) = file.put() {
-            self.accels.remove(&entry.handle, &entry.name)?;
-            context.destroy_accel(entry.accel.handle())?;
-            return Err(unsaved);
-        }
+        self.accels.insert(entry.handle.clone(), name, entry.clone())?;
         crate::metrics::accel_built(&self.name, &entry);
         Ok(entry)
     }
@@ -386,8 +382,8 @@ impl Tenant {
         })
     }
 
-    /// Keeps the accels a load made under `names`, with their files: all, or none (the error, each entry that was
-    /// kept forgotten again, and no clone of an accel left, so that the caller can destroy them).
+    /// Keeps the accels a load made under `names`, with their files: all, or none (the error, each file put taken
+    /// back, none listed, and no clone of an accel left, so that the caller can destroy them).
     fn keep_loaded(
         &self,
         accels: &[Arc<Accel>],
@@ -411,23 +407,20 @@ impl Tenant {
             loaded.iter().map(|entry| self.prepare_accel_file(entry, &loaded)).collect::<ServiceResult<Vec<_>>>()?;
         let _keeping = self.keep();
         caller.check(what)?;
-        let mut entries: Vec<AccelEntry> = Vec::with_capacity(accels.len());
-        for (file, entry) in files.into_iter().zip(loaded) {
-            let inserted = self.accels.insert(entry.handle.clone(), &entry.name, entry.clone());
-            let saved = inserted.and_then(|()| {
-                entries.push(entry);
-                file.put()
-            });
-            if let Err(failed) = saved {
-                // Every entry kept is forgotten, even past one that cannot be; the first such error is the answer.
-                entries.iter().rev().map(|done| self.forget_accel(done)).fold(Ok(()), Result::and)?;
-                return Err(failed);
+        loaded.iter().try_for_each(|entry| self.accels.check_free(&entry.name))?;
+        // Files in place before any accel is listed, as a build's (`build_accel`); a file that fails takes back
+        // those put before it (all of them, even past one that cannot be: the first such error is the answer).
+        for (put, file) in files.into_iter().enumerate() {
+            if let Err(unsaved) = file.put() {
+                loaded[..put].iter().map(|entry| self.unpersist_accel(&entry.handle)).fold(Ok(()), Result::and)?;
+                return Err(unsaved);
             }
         }
-        for entry in &entries {
+        for entry in &loaded {
+            self.accels.insert(entry.handle.clone(), &entry.name, entry.clone())?;
             crate::metrics::accel_built(&self.name, entry);
         }
-        Ok(entries)
+        Ok(loaded)
     }
 
     /// Updates `entry`'s accel with `update` (which gets its context) and keeps the new version under the same handle
@@ -532,6 +525,9 @@ impl Tenant {
         let context = self.context(&entry.device)?.1;
         context.check_destroyable(entry.accel.handle())?;
         let _keeping = self.keep();
+        // Another call may have destroyed or updated it since `entry` was looked up: NOT_FOUND for the first (its
+        // file must not be written back below), the version now listed for the second.
+        let entry = &self.accels.get(Some(&entry.handle), None)?;
         self.unpersist_accel(&entry.handle)?;
         if let Err(refused) = context.destroy_accel(entry.accel.handle()) {
             // An instance accel came to place it since the check: it stays, so its file is written back.
@@ -547,12 +543,6 @@ impl Tenant {
     /// Holds [`Tenant::keeping`] while the guard lives.
     fn keep(&self) -> std::sync::MutexGuard<'_, ()> {
         self.keeping.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-    }
-
-    /// Drops `entry` from the registry and the store (its accel is destroyed by the caller).
-    fn forget_accel(&self, entry: &AccelEntry) -> ServiceResult<()> {
-        self.accels.remove(&entry.handle, &entry.name)?;
-        self.unpersist_accel(&entry.handle)
     }
 
     /// Checks that the buffers `new` (each a name, which request field `field` gave, and a size) may be created
@@ -668,21 +658,17 @@ impl Tenant {
         };
         let _keeping = self.keep();
         // Checked again where changes are ordered: two creates that both passed the check above while their files
-        // were written must not both be kept past a limit.
-        let kept = self
-            .check_new_buffers_beside(field, &[(name, size_bytes)], reserved.as_ref())
-            .and_then(|()| self.buffers.insert(id, name, entry.clone()));
-        // Counted now among the buffers held (or refused): its reservation goes, while changes are still ordered.
-        drop(reserved);
+        // were written must not both be kept past a limit. Its file goes in place before it is listed, as an
+        // accel's (`build_accel`).
+        let kept =
+            self.check_new_buffers_beside(field, &[(name, size_bytes)], reserved.as_ref()).and_then(|()| file.put());
         if let Err(refused) = kept {
             context.destroy_buffer(handle)?;
             return Err(refused);
         }
-        if let Err(unsaved) = file.put() {
-            self.buffers.remove(&entry.id, &entry.name)?;
-            context.destroy_buffer(handle)?;
-            return Err(unsaved);
-        }
+        self.buffers.insert(id, name, entry.clone())?;
+        // Counted now among the buffers held: its reservation goes, while changes are still ordered.
+        drop(reserved);
         Ok(entry)
     }
 
@@ -918,6 +904,36 @@ mod tests {
         let updated =
             tenant.update_accel(&kept, &Caller::default(), |context| context.update_accel(&kept.accel, &input()));
         assert_eq!(updated.unwrap().version, 1);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn an_accel_destroyed_twice_at_once_stays_destroyed_on_disk() {
+        let dir = std::env::temp_dir().join(format!("rayd-destroy-twice-{}", std::process::id()));
+        let store = crate::persist::Store::open(&dir, "t").unwrap();
+        let tenant = cpu_tenant(Limits::default()).with_store(store);
+        let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+        let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
+        let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+        let options = BuildOptions::default();
+        let usage = |context: &Context| context.compute_memory_usage(&input, &options);
+        let built = |context: &Context| context.build_accel(&input, &options);
+        let entry = tenant.build_accel("a", DEFAULT_DEVICE, &Caller::default(), usage, built).unwrap();
+        let files = || std::fs::read_dir(dir.join("tenants/t/accels")).unwrap().count();
+        assert_eq!(files(), 1);
+        // Two calls that looked the accel up and checked it before either destroyed it: both wait for the keeping
+        // lock (held here until they have surely reached it).
+        let results: Vec<ServiceResult<()>> = std::thread::scope(|scope| {
+            let held = tenant.keep();
+            let calls: Vec<_> = (0..2).map(|_| scope.spawn(|| tenant.destroy_accel(&entry))).collect();
+            std::thread::sleep(std::time::Duration::from_millis(200));
+            drop(held);
+            calls.into_iter().map(|call| call.join().unwrap()).collect()
+        });
+        assert_eq!(results.iter().filter(|r| r.is_ok()).count(), 1, "{results:?}");
+        let second = results.into_iter().find_map(Result::err).unwrap();
+        assert!(matches!(second, ServiceError::NotFound { .. }), "{second}");
+        assert_eq!(files(), 0, "the second call wrote no file back");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

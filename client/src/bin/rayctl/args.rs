@@ -621,12 +621,16 @@ fn ten_numbers(text: &str) -> Result<[f32; 10], String> {
     numbers.try_into().map_err(|_| format!("expected 10 comma-separated numbers, got {count}"))
 }
 
-/// The eye, target and up of the first nine of `numbers`, which must make a view: the eye apart from the target,
-/// up not along the view.
+/// The eye, target and up of the first nine of `numbers`, which must make a view: finite, the eye apart from the
+/// target, up not along the view.
 fn placement(numbers: &[f32; 10]) -> Result<(Vec3, Vec3, Vec3), String> {
     let [ex, ey, ez, tx, ty, tz, ux, uy, uz, _] = *numbers;
     let (eye, target, up) = (Vec3::new(ex, ey, ez), Vec3::new(tx, ty, tz), Vec3::new(ux, uy, uz));
-    if !(eye - target).is_finite() || eye == target || (target - eye).cross(up).length_squared() == 0.0 {
+    if numbers[..9].iter().any(|n| !n.is_finite()) || !(eye - target).is_finite() {
+        return Err("the eye, the target and up must be finite".into());
+    }
+    let across = (target - eye).cross(up).length_squared();
+    if eye == target || !across.is_finite() || across == 0.0 {
         return Err("the eye must differ from the target and up must not be parallel to the view".into());
     }
     Ok((eye, target, up))
@@ -842,7 +846,11 @@ mod tests {
         let cli = parse(&["render", "--accel", "a", "-o", "x.png", "--camera", "-1,-2,-3,0,0,0,0,1,0,60"]).unwrap();
         let Command::Render(render) = cli.command else { panic!("not render") };
         assert_eq!(render.camera.unwrap().eye, Vec3::new(-1.0, -2.0, -3.0), "negative numbers are values");
-        for bad in ["0,0,5,0,0,0,0,1,0", "0,0,5,0,0,0,0,1,0,200", "0,0,0,0,0,0,0,1,0,40", "0,5,0,0,0,0,0,1,0,40"] {
+        let unbounded = ["0,0,5,0,0,0,0,inf,0,40", "0,0,5,0,0,0,NaN,1,0,40", "3e38,0,0,-3e38,0,0,0,1,0,40"];
+        for bad in ["0,0,5,0,0,0,0,1,0", "0,0,5,0,0,0,0,1,0,200", "0,0,0,0,0,0,0,1,0,40", "0,5,0,0,0,0,0,1,0,40"]
+            .into_iter()
+            .chain(unbounded)
+        {
             assert!(parse(&["render", "--accel", "a", "-o", "x.png", "--camera", bad]).is_err(), "{bad}");
         }
         assert!(parse(&["render", "--accel", "a"]).is_err(), "-o is required");

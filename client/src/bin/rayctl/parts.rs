@@ -3,6 +3,7 @@
 //! rayctl holds a few parts, never the whole rays or hits.
 
 use std::io::ErrorKind;
+use std::os::fd::AsFd;
 use std::os::unix::fs::{MetadataExt, PermissionsExt};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -298,10 +299,16 @@ impl OutFile {
                 (file, Some(beside))
             }
         };
-        if is_standard_output(&file) {
+        // Standard output is written through the descriptor rayctl was given, at its offset and with its append
+        // flag, and never emptied: `>> file` appends, and what the shell wrote before stays.
+        let standard_output = is_standard_output(&file);
+        let file = if standard_output {
             STANDARD_OUTPUT_TAKEN.store(true, Ordering::Relaxed);
-        }
-        let empty_first = beside.is_none() && file.metadata().map_err(io)?.is_file();
+            std::fs::File::from(std::io::stdout().as_fd().try_clone_to_owned().map_err(io)?)
+        } else {
+            file
+        };
+        let empty_first = !standard_output && beside.is_none() && file.metadata().map_err(io)?.is_file();
         let writer = BufWriter::with_capacity(1 << 20, tokio::fs::File::from_std(file));
         Ok(OutFile { path: path.into(), beside, writer, empty_first })
     }
@@ -329,9 +336,12 @@ impl OutFile {
     /// Bytes free for it on its file system; `None` for a device or a pipe.
     fn free_bytes(&self) -> Result<Option<u64>> {
         let Some(beside) = &self.beside else {
-            // A plain file behind a link gives its room back when it is emptied.
+            // A plain file behind a link gives its room back when it is emptied (standard output is not).
             return match std::fs::metadata(&self.path) {
-                Ok(target) if target.is_file() => Ok(Some(statvfs_free(&self.path)?.saturating_add(target.len()))),
+                Ok(target) if target.is_file() => {
+                    let given_back = if self.empty_first { target.len() } else { 0 };
+                    Ok(Some(statvfs_free(&self.path)?.saturating_add(given_back)))
+                }
                 _ => Ok(None),
             };
         };
