@@ -907,18 +907,23 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
-    #[test]
-    fn an_accel_destroyed_twice_at_once_stays_destroyed_on_disk() {
-        let dir = std::env::temp_dir().join(format!("rayd-destroy-twice-{}", std::process::id()));
-        let store = crate::persist::Store::open(&dir, "t").unwrap();
-        let tenant = cpu_tenant(Limits::default()).with_store(store);
+    /// An accel "a" of one triangle, built by `tenant`.
+    fn one_triangle_accel(tenant: &Tenant) -> AccelEntry {
         let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
         let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
         let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
         let options = BuildOptions::default();
         let usage = |context: &Context| context.compute_memory_usage(&input, &options);
         let built = |context: &Context| context.build_accel(&input, &options);
-        let entry = tenant.build_accel("a", DEFAULT_DEVICE, &Caller::default(), usage, built).unwrap();
+        tenant.build_accel("a", DEFAULT_DEVICE, &Caller::default(), usage, built).unwrap()
+    }
+
+    #[test]
+    fn an_accel_destroyed_twice_at_once_stays_destroyed_on_disk() {
+        let dir = std::env::temp_dir().join(format!("rayd-destroy-twice-{}", std::process::id()));
+        let store = crate::persist::Store::open(&dir, "t").unwrap();
+        let tenant = cpu_tenant(Limits::default()).with_store(store);
+        let entry = one_triangle_accel(&tenant);
         let files = || std::fs::read_dir(dir.join("tenants/t/accels")).unwrap().count();
         assert_eq!(files(), 1);
         // Two calls that looked the accel up and checked it before either destroyed it: both wait for the keeping
@@ -940,13 +945,7 @@ mod tests {
     #[test]
     fn a_save_is_one_of_the_operations_running_at_once() {
         let tenant = cpu_tenant(Limits { max_concurrent_operations: 1, ..Limits::default() });
-        let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
-        let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
-        let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
-        let options = BuildOptions::default();
-        let usage = |context: &Context| context.compute_memory_usage(&input, &options);
-        let built = |context: &Context| context.build_accel(&input, &options);
-        let entry = tenant.build_accel("a", DEFAULT_DEVICE, &Caller::default(), usage, built).unwrap();
+        let entry = one_triangle_accel(&tenant);
         let running = tenant.quotas.start(1).unwrap();
         let refused = tenant.save_accel(&entry, "buffer_name", "blob", &Caller::default()).unwrap_err();
         assert!(refused.to_string().contains("max_concurrent_operations = 1"), "{refused}");
