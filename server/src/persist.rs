@@ -97,6 +97,10 @@ impl Store {
                 }
             }
         }
+        // Directories just made are durable once their parents are synced: up to the data directory.
+        for dir in [&store.buffers, &store.accels, &root, &data_dir.join("tenants"), data_dir] {
+            File::open(dir)?.sync_all()?;
+        }
         Ok(store)
     }
 
@@ -170,10 +174,12 @@ pub struct Prepared {
 }
 
 impl Prepared {
-    /// Renames the file into place, replacing the object's old file, and syncs the directory.
+    /// Renames the file into place, replacing the object's old file, and syncs the directory (opened first, so
+    /// that running out of file descriptors fails the put before it changes anything).
     pub fn put(self) -> io::Result<()> {
+        let directory = File::open(self.path.parent().expect("a file in a directory"))?;
         fs::rename(&self.temporary, &self.path)?;
-        File::open(self.path.parent().expect("a file in a directory"))?.sync_all()
+        directory.sync_all()
     }
 }
 
@@ -184,13 +190,45 @@ impl Drop for Prepared {
     }
 }
 
-/// Removes `dir/name` durably; a file that is already gone is fine.
+/// Removes `dir/name` durably; a file that is already gone is fine. The directory is opened first, as in
+/// [`Prepared::put`].
 fn remove(dir: &Path, name: &str) -> io::Result<()> {
+    let directory = File::open(dir)?;
     match fs::remove_file(dir.join(name)) {
         Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e),
         _ => {}
     }
-    File::open(dir)?.sync_all()
+    directory.sync_all()
+}
+
+/// The data directory held by this process: a lock on `<data-dir>/lock`, let go when dropped or when the process
+/// ends, however it ends. Two rayd processes on one data directory would overwrite each other's files.
+#[derive(Debug)]
+pub struct DataDirLock {
+    /// The locked file; none where the directory cannot be written (nor then overwritten by anyone).
+    _file: Option<File>,
+}
+
+impl DataDirLock {
+    /// Makes `data_dir` if needed and takes its lock; an error of kind `WouldBlock` if another process holds it.
+    pub fn take(data_dir: &Path) -> io::Result<DataDirLock> {
+        fs::create_dir_all(data_dir)?;
+        let path = data_dir.join("lock");
+        // Made if missing, then held open read-only: a file open for writing would keep its file system from being
+        // remounted read-only.
+        match fs::OpenOptions::new().create(true).append(true).open(&path) {
+            Err(e) if matches!(e.kind(), io::ErrorKind::ReadOnlyFilesystem | io::ErrorKind::PermissionDenied) => {
+                return Ok(DataDirLock { _file: None });
+            }
+            made => drop(made?),
+        }
+        let file = File::open(&path)?;
+        match file.try_lock() {
+            Ok(()) => Ok(DataDirLock { _file: Some(file) }),
+            Err(fs::TryLockError::WouldBlock) => Err(io::ErrorKind::WouldBlock.into()),
+            Err(fs::TryLockError::Error(e)) => Err(e),
+        }
+    }
 }
 
 /// The files of `dir` with extension `extension`, sorted.

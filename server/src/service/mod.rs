@@ -20,7 +20,7 @@ use crate::config::{Config, Limits, Role};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::metrics::observe;
-use crate::persist::Store;
+use crate::persist::{DataDirLock, Store};
 use crate::schedule::Schedulers;
 use crate::tenant::{Caller, Tenant};
 
@@ -31,6 +31,8 @@ pub struct RaydService {
     devices: Vec<Device>,
     /// The tenants, and how a call reaches its own.
     tenants: Tenants,
+    /// The data directory's lock, held while the service lives.
+    _data_dir: Option<DataDirLock>,
 }
 
 impl RaydService {
@@ -38,6 +40,7 @@ impl RaydService {
     /// held to its limits; with a data directory, each tenant's objects are restored from its directory (what
     /// cannot be restored is logged and skipped) and persisted there from now on.
     pub fn new(devices: Vec<Device>, config: &Config) -> Result<RaydService, ServiceError> {
+        let data_dir = config.data_dir.as_deref().map(lock_data_dir).transpose()?;
         let schedulers = Arc::new(Schedulers::new(&devices, &config.scheduler));
         let make = |name: &str, limits: Limits, share: u32| -> Result<Arc<Tenant>, ServiceError> {
             let mut tenant = Tenant::new(name, limits, share, &devices, Arc::clone(&schedulers));
@@ -59,13 +62,25 @@ impl RaydService {
             }
             Tenants::with_keys(keys)
         };
-        Ok(RaydService { devices, tenants })
+        Ok(RaydService { devices, tenants, _data_dir: data_dir })
     }
 
     /// The tenant a request acts for, if its key may make `call`, which needs `needs`.
     fn caller<T>(&self, request: &Request<T>, call: &str, needs: Role) -> Result<Arc<Tenant>, Status> {
         self.tenants.caller(request, call, needs)
     }
+}
+
+/// Takes the lock of the data directory `dir` (made if needed); FAILED_PRECONDITION if another process holds it.
+fn lock_data_dir(dir: &std::path::Path) -> Result<DataDirLock, ServiceError> {
+    DataDirLock::take(dir).map_err(|e| match e.kind() {
+        std::io::ErrorKind::WouldBlock => ServiceError::Precondition(format!(
+            "data directory {}: another process holds its lock ({}): one rayd a data directory",
+            dir.display(),
+            dir.join("lock").display()
+        )),
+        _ => ServiceError::storage(format!("locking data directory {}", dir.display()), e),
+    })
 }
 
 /// Restores `tenant`'s objects, logging what was restored and what was skipped (and why).
@@ -324,5 +339,18 @@ mod tests {
         let failed = blocking(|| -> ServiceResult<()> { panic!("a bug in a build") }).await.unwrap_err();
         assert!(matches!(&failed, ServiceError::Internal(why) if why.contains("a bug in a build")), "{failed}");
         assert_eq!(blocking(|| Ok(7)).await.unwrap(), 7);
+    }
+
+    #[test]
+    fn one_service_a_data_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let config = Config { data_dir: Some(dir.path().join("data")), ..Config::default() };
+        let first = RaydService::new(vec![Device::cpu()], &config).unwrap();
+        let Err(refused) = RaydService::new(vec![Device::cpu()], &config) else { panic!("a second service started") };
+        let status = Status::from(refused);
+        assert_eq!(status.code(), tonic::Code::FailedPrecondition);
+        assert!(status.message().contains("another process holds its lock"), "{}", status.message());
+        drop(first);
+        RaydService::new(vec![Device::cpu()], &config).unwrap();
     }
 }
