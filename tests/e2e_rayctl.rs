@@ -322,13 +322,27 @@ fn usage_errors_exit_2_before_connecting_and_an_unreachable_server_or_tls_over_h
     assert!(stderr.contains("--connections") && stderr.contains("0"), "names the flag: {stderr}");
     let stderr = fails(NOWHERE, &["devices"], 1);
     assert!(stderr.starts_with("error: Unavailable: ") && stderr.contains(NOWHERE), "{stderr}");
-    for tls in [&["--ca-cert", "Cargo.toml"][..], &["--client-cert", "Cargo.toml", "--client-key", "Cargo.toml"]] {
+    let scratch = Scratch::new("e2e-rayctl-pem");
+    let pem = scratch.path("both.pem");
+    let blocks =
+        ["CERTIFICATE", "PRIVATE KEY"].map(|kind| format!("-----BEGIN {kind}-----\nAAAA\n-----END {kind}-----\n"));
+    std::fs::write(&pem, blocks.concat()).unwrap();
+    for tls in [&["--ca-cert", &pem][..], &["--client-cert", &pem, "--client-key", &pem]] {
         for command in ["devices", "health"] {
             let stderr = fails(NOWHERE, &[tls, &[command]].concat(), 1);
             let refused = stderr.starts_with("error: InvalidArgument: ") && stderr.contains("https://");
             assert!(refused, "TLS options for an http:// URL are refused, not ignored: {stderr}");
         }
     }
+    // Files that hold no PEM block of their kind are refused by option and file, before anything connects.
+    let https = "https://127.0.0.1:1";
+    let stderr = fails(https, &["--ca-cert", "Cargo.toml", "devices"], 1);
+    assert!(stderr.starts_with("error: InvalidArgument: --ca-cert Cargo.toml: holds no PEM certificate"), "{stderr}");
+    let stderr = fails(https, &["--client-cert", &pem, "--client-key", "Cargo.toml", "health"], 1);
+    assert!(
+        stderr.starts_with("error: InvalidArgument: --client-key Cargo.toml: holds no PEM private key"),
+        "{stderr}"
+    );
 }
 
 #[test]

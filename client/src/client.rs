@@ -244,9 +244,10 @@ pub(crate) fn endpoint(url: &str, tls: Option<&ClientTls>) -> Result<Endpoint> {
         Some(_) if endpoint.uri().scheme_str() != Some("https") => Err(Error::InvalidArgument(format!(
             "server URL {url:?}: TLS options (a CA certificate, a client certificate and key) need an https:// URL"
         ))),
-        Some(tls) => {
-            endpoint.tls_config(tls.config()).map_err(|e| Error::Connect { url: url.to_owned(), reason: chain(&e) })
-        }
+        // A certificate or key that cannot be used is the caller's to fix, not the server's to answer.
+        Some(tls) => endpoint
+            .tls_config(tls.config())
+            .map_err(|e| Error::InvalidArgument(format!("TLS options for {url:?}: {}", chain(&e)))),
         None => Ok(endpoint),
     }
 }

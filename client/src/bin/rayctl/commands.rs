@@ -1,6 +1,6 @@
 //! What each rayctl command does: read local files, call the library, and shape the answer for [`show`].
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
@@ -30,14 +30,14 @@ use crate::show::{self, Output, ms};
 /// Connects to the server and runs the command.
 pub async fn run(cli: &Cli) -> Result<Output> {
     let max_message_bytes = usize::try_from(cli.max_message_bytes).unwrap_or(usize::MAX);
-    let read = |path: &PathBuf| std::fs::read(path).map_err(|e| Error::io(path, e));
     let identity = match (&cli.client_cert, &cli.client_key) {
-        (Some(cert), Some(key)) => Some((read(cert)?, read(key)?)),
+        (Some(cert), Some(key)) => {
+            Some((read_pem("--client-cert", cert, Pem::Certificate)?, read_pem("--client-key", key, Pem::PrivateKey)?))
+        }
         _ => None,
     };
-    let tls = (cli.ca_cert.is_some() || identity.is_some())
-        .then(|| Ok::<_, Error>(ClientTls { ca_cert: cli.ca_cert.as_ref().map(read).transpose()?, identity }))
-        .transpose()?;
+    let ca_cert = cli.ca_cert.as_ref().map(|ca| read_pem("--ca-cert", ca, Pem::Certificate)).transpose()?;
+    let tls = (ca_cert.is_some() || identity.is_some()).then_some(ClientTls { ca_cert, identity });
     if let Command::Health { service, timeout } = &cli.command {
         return health(&cli.server, tls.as_ref(), service, *timeout).await;
     }
@@ -91,6 +91,43 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         Command::Bench(args) => bench(&client, args, cli.json).await,
         Command::Health { .. } => unreachable!("answered before connecting"),
     }
+}
+
+/// What a PEM file given to a TLS option must hold.
+#[derive(Debug, Clone, Copy)]
+enum Pem {
+    /// One certificate or more.
+    Certificate,
+    /// A private key (PKCS#8, PKCS#1 or SEC1).
+    PrivateKey,
+}
+
+impl Pem {
+    /// What it is called in messages.
+    fn name(self) -> &'static str {
+        match self {
+            Pem::Certificate => "PEM certificate",
+            Pem::PrivateKey => "PEM private key",
+        }
+    }
+
+    /// Whether `line` begins a block of it.
+    fn begins(self, line: &str) -> bool {
+        match self {
+            Pem::Certificate => line == "-----BEGIN CERTIFICATE-----",
+            Pem::PrivateKey => line.starts_with("-----BEGIN ") && line.ends_with("PRIVATE KEY-----"),
+        }
+    }
+}
+
+/// The bytes of the PEM file `path` given for `option`, which must hold `kind`: INVALID_ARGUMENT naming the option
+/// and the file otherwise, before anything connects.
+fn read_pem(option: &str, path: &Path, kind: Pem) -> Result<Vec<u8>> {
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    if !String::from_utf8_lossy(&bytes).lines().any(|line| kind.begins(line.trim_end())) {
+        return Err(Error::InvalidArgument(format!("{option} {}: holds no {}", path.display(), kind.name())));
+    }
+    Ok(bytes)
 }
 
 /// `rayctl health`: the status, or an `UNAVAILABLE` error naming it when it is not SERVING.
