@@ -2,6 +2,7 @@
 //! the primaries' hits (a file or a server-side buffer). Files go up as temporary buffers of the accel's scene, read
 //! and sent a part at a time, so that rayctl holds neither whole; the server makes the secondary rays from them.
 
+use std::io::Write;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use rayd_client::{Client, Error, PrimaryRays, Result, SecondaryRays, proto};
@@ -55,18 +56,32 @@ impl Temporary {
     }
 
     /// Deletes the buffers through `node`, for at most [`DELETE_TIME`] (best effort: a buffer left behind only counts
-    /// against the tenant's limits, and `rayctl buffers` lists it by its name).
+    /// against the tenant's limits); where that fails, says so on standard error, naming them (`rayctl buffers` lists
+    /// them by name). The command's own outcome stands.
     pub async fn delete(self, node: &Client) {
         if self.names.is_empty() {
             return;
         }
         let deleting = async {
-            let Ok(buffers) = node.buffers().await else { return };
+            let buffers = node.buffers().await?;
+            let mut first_failure = Ok(());
             for buffer in buffers.iter().filter(|buffer| self.names.contains(&buffer.name)) {
-                let _ = node.delete_buffer(&buffer.id).await;
+                let deleted = node.delete_buffer(&buffer.id).await;
+                first_failure = first_failure.and(deleted);
             }
+            first_failure
         };
-        let _ = tokio::time::timeout(DELETE_TIME, deleting).await;
+        let why = match tokio::time::timeout(DELETE_TIME, deleting).await {
+            Ok(Ok(())) => return,
+            Ok(Err(failed)) => failed.to_string(),
+            Err(_) => format!("no answer within {} s", DELETE_TIME.as_secs()),
+        };
+        let names = self.names.join(", ");
+        // Nothing is left to do if standard error has gone.
+        let _ = writeln!(
+            std::io::stderr(),
+            "warning: temporary buffers may be left on the server ({why}): {names} (`rayctl buffers` lists them)"
+        );
     }
 }
 
