@@ -1062,6 +1062,18 @@ fn a_scene_that_fails_leaves_no_accel_behind_and_builds_once_its_cause_is_fixed(
     let built = json(&server, &["scene", "--file", &moving, "--name", "barn"]);
     assert_eq!((built["name"].as_str(), built["instance_count"].as_u64()), (Some("barn"), Some(1)), "{built}");
     assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn.cow", "barn.0.motion", "barn"]);
+
+    // Ctrl-C once the first of sixteen meshes is built: what was built is destroyed again.
+    let ogre = meshes.join("ogre.obj");
+    let scene = serde_json::json!({
+        "meshes": (0..16).map(|m| (format!("m{m:02}"), serde_json::json!(ogre))).collect::<serde_json::Map<_, _>>(),
+        "instances": (0..16).map(|m| serde_json::json!({ "mesh": format!("m{m:02}") })).collect::<Vec<_>>()
+    });
+    let many = scratch.path("many.json");
+    std::fs::write(&many, scene.to_string()).unwrap();
+    let first_built = |_| accel_names(&server).iter().any(|name| name.starts_with("many."));
+    interrupt_when(&server, &["scene", "--file", &many], first_built, "the first mesh was built");
+    assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn.cow", "barn.0.motion", "barn"]);
 }
 
 #[test]

@@ -276,39 +276,70 @@ impl Client {
         scene: &Scene,
         flags: BuildFlags,
     ) -> Result<proto::AccelInfo> {
-        let records = scene.records()?;
-        let meshes =
-            scene.meshes.iter().map(|(mesh, file)| Ok((mesh, load_mesh(file)?))).collect::<Result<Vec<_>>>()?;
-        let mut built = Vec::new();
-        let result = async {
-            for (mesh, loaded) in &meshes {
-                let child = format!("{name}.{mesh}");
-                self.build_mesh(&child, loaded, device, BuildFlags::empty()).await?;
-                built.push(child);
-            }
-            for (index, mesh, transform) in scene.motion_transforms() {
-                let child = format!("{name}.{index}.motion");
-                self.build_transform_input(&child, device, &format!("{name}.{mesh}"), &transform).await?;
-                built.push(child);
-            }
-            let children: Vec<&str> = built.iter().map(String::as_str).collect();
-            self.build_moving_instances(name, device, &children, &records, flags, &scene.motion_options()).await
-        }
-        .await;
+        let mut building = Vec::new();
+        let result = self.build_scene_noting(name, device, scene, flags, &mut building).await;
         if result.is_err() {
-            self.destroy_in_reverse(&built).await;
+            self.destroy_in_reverse(&building).await;
         }
         result
     }
 
-    /// Destroys the accels called `names`, the last first (so that an accel goes before those it places); best
-    /// effort, as the clean-up of a call that has already failed.
-    async fn destroy_in_reverse(&self, names: &[String]) {
-        for name in names.iter().rev() {
-            // An accel left behind is the caller's to remove (`rayctl rm`); the call's own error is what it reports.
-            let _ = self.destroy_accel(name).await;
+    /// [`Client::build_scene`] without the clean-up: the name of each accel is pushed onto `building` before its
+    /// build starts, so that a caller that drops the call midway (an interrupted command) can destroy what it made
+    /// with [`Client::destroy_in_reverse`].
+    pub async fn build_scene_noting(
+        &self,
+        name: &str,
+        device: &str,
+        scene: &Scene,
+        flags: BuildFlags,
+        building: &mut Vec<String>,
+    ) -> Result<proto::AccelInfo> {
+        let records = scene.records()?;
+        let meshes =
+            scene.meshes.iter().map(|(mesh, file)| Ok((mesh, load_mesh(file)?))).collect::<Result<Vec<_>>>()?;
+        let mut children = Vec::new();
+        for (mesh, loaded) in &meshes {
+            let child = format!("{name}.{mesh}");
+            noted(building, &child, self.build_mesh(&child, loaded, device, BuildFlags::empty())).await?;
+            children.push(child);
         }
+        for (index, mesh, transform) in scene.motion_transforms() {
+            let child = format!("{name}.{index}.motion");
+            let placed = format!("{name}.{mesh}");
+            noted(building, &child, self.build_transform_input(&child, device, &placed, &transform)).await?;
+            children.push(child);
+        }
+        let children: Vec<&str> = children.iter().map(String::as_str).collect();
+        let motion = scene.motion_options();
+        noted(building, name, self.build_moving_instances(name, device, &children, &records, flags, &motion)).await
     }
+
+    /// Destroys the accels called `names` that exist, the last first (so that an accel goes before those it
+    /// places); best effort, as the clean-up of a call that has already failed. Returns those it could not
+    /// destroy, with the first reason.
+    pub async fn destroy_in_reverse(&self, names: &[String]) -> Option<(Vec<String>, Error)> {
+        let mut left: Option<(Vec<String>, Error)> = None;
+        for name in names.iter().rev() {
+            match self.destroy_accel(name).await {
+                Ok(()) => {}
+                Err(e) if e.code() == tonic::Code::NotFound => {}
+                Err(e) => left.get_or_insert_with(|| (Vec::new(), e)).0.push(name.clone()),
+            }
+        }
+        left
+    }
+}
+
+/// Runs `build`, the build of accel `name`, noted in `building` while it runs and after it succeeds: one that fails
+/// made nothing (and its name may be another accel's, which must stay).
+async fn noted<T>(building: &mut Vec<String>, name: &str, build: impl Future<Output = Result<T>>) -> Result<T> {
+    building.push(name.to_owned());
+    let built = build.await;
+    if built.is_err() {
+        building.pop();
+    }
+    built
 }
 
 #[cfg(test)]

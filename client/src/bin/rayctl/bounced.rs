@@ -2,7 +2,6 @@
 //! the primaries' hits (a file or a server-side buffer). Files go up as temporary buffers of the accel's scene, read
 //! and sent a part at a time, so that rayctl holds neither whole; the server makes the secondary rays from them.
 
-use std::io::Write;
 use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use rayd_client::{Client, Error, PrimaryRays, Result, SecondaryRays, proto};
@@ -77,11 +76,9 @@ impl Temporary {
             Err(_) => format!("no answer within {} s", DELETE_TIME.as_secs()),
         };
         let names = self.names.join(", ");
-        // Nothing is left to do if standard error has gone.
-        let _ = writeln!(
-            std::io::stderr(),
-            "warning: temporary buffers may be left on the server ({why}): {names} (`rayctl buffers` lists them)"
-        );
+        crate::warn(&format!(
+            "temporary buffers may be left on the server ({why}): {names} (`rayctl buffers` lists them)"
+        ));
     }
 }
 

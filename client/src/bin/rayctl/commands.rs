@@ -155,7 +155,18 @@ async fn build(client: &Client, args: &BuildArgs) -> Result<Output> {
 async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
     let scene = Scene::load(&args.file)?;
     let name = args.name.clone().unwrap_or_else(|| args.file.file_stem().unwrap_or_default().to_string_lossy().into());
-    Ok(show::accel(&client.build_scene(&name, &args.device, &scene, BuildFlags::empty()).await?))
+    let interrupt = ctrl_c()?;
+    let mut building = Vec::new();
+    let built = client.build_scene_noting(&name, &args.device, &scene, BuildFlags::empty(), &mut building);
+    match until_interrupted(interrupt, built).await {
+        Ok(info) => Ok(show::accel(&info)),
+        Err(failed) => {
+            if let Some((left, why)) = client.destroy_in_reverse(&building).await {
+                crate::warn(&format!("accels left on the server ({why}): {}", left.join(", ")));
+            }
+            Err(failed)
+        }
+    }
 }
 
 /// `rayctl trace`: the rays are read from their file and the hits written to `--out` a part at a time

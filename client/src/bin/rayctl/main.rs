@@ -30,6 +30,12 @@ fn main() -> ExitCode {
     code
 }
 
+/// Prints `warning: <message>` on standard error: what a command left undone beside its outcome.
+fn warn(message: &str) {
+    // Nothing is left to do if standard error has gone.
+    let _ = writeln!(io::stderr(), "warning: {message}");
+}
+
 /// Prints `error: <message>` on standard error; failure.
 fn failure(message: &str) -> ExitCode {
     // Nothing is left to do if standard error has gone too.
