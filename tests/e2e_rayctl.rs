@@ -810,6 +810,13 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
             }
         };
         interrupt_when(&server, &args, in_openat, "rayctl waits to open the pipe");
+        // Hits or rays into a named pipe that no reader opens: the same.
+        let out_fifo = scratch.path("out.fifo");
+        assert!(Command::new("mkfifo").arg(&out_fifo).status().unwrap().success());
+        let args = [&trace[..], &formats, &["--hit-format", "t", "--out", &out_fifo]].concat();
+        interrupt_when(&server, &args, in_openat, "rayctl waits to open the pipe of --out");
+        let args = ["rays", "--accel", "bunny", "--random", "1000", "-o", &out_fifo];
+        interrupt_when(&server, &args, in_openat, "rayctl waits to open the pipe of -o");
     }
     let writer = std::cell::RefCell::new(None);
     // Opening a pipe's writing end without waiting succeeds once it has a reader (Linux's O_NONBLOCK).

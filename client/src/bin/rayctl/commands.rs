@@ -184,7 +184,7 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
         let layout = rays.layout(&query)?;
         let outputs = match &args.out {
             Some(out) => {
-                let outputs = Outputs::create(out, query.kind.has_counts(), rays.file())?;
+                let outputs = Outputs::create(out, query.kind.has_counts(), rays.file()).await?;
                 if let Some(layout) = &layout {
                     outputs.check_room(layout, &options)?;
                 }
@@ -453,11 +453,11 @@ async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
         }
     };
     let interrupt = ctrl_c()?;
-    let mut out = OutFile::create(&args.output, None)?;
     let size = format.size();
     let what = || format!("{count} {} rays", format.name());
-    out.check_room((count as u64).saturating_mul(size as u64), &options, what)?;
     let written = async {
+        let mut out = OutFile::create(&args.output, None).await?;
+        out.check_room((count as u64).saturating_mul(size as u64), &options, what)?;
         let mut part = vec![0u8; RAYS_A_PART.min(count) * size];
         for first in (0..count).step_by(RAYS_A_PART) {
             let rays = &mut part[..RAYS_A_PART.min(count - first) * size];

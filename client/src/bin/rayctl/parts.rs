@@ -187,7 +187,7 @@ pub struct Outputs {
 impl Outputs {
     /// The outputs of `out` (counts too when `counts`), refused when one of them is the file `read` that the trace
     /// reads as it goes (writing would overwrite it while it is read).
-    pub fn create(out: &Path, counts: bool, read: Option<&PackedFile>) -> Result<Outputs> {
+    pub async fn create(out: &Path, counts: bool, read: Option<&PackedFile>) -> Result<Outputs> {
         if counts && std::fs::metadata(out).is_ok_and(|target| !target.is_file()) {
             return Err(Error::InvalidArgument(format!(
                 "--out {}: the counts of this query go to {}, beside --out, which a device or a pipe has not: give \
@@ -197,14 +197,17 @@ impl Outputs {
             )));
         }
         let counts = counts.then(|| counts_path(out));
-        let hits = OutFile::create(out, read)?;
+        let hits = OutFile::create(out, read).await?;
         if counts.is_some() && standard_output_taken() {
             return Err(Error::InvalidArgument(format!(
                 "--out {}: the counts of this query go beside --out, which standard output has not: give --out a file",
                 out.display()
             )));
         }
-        let counts = counts.map(|path| OutFile::create(&path, read)).transpose()?;
+        let counts = match counts {
+            Some(path) => Some(OutFile::create(&path, read).await?),
+            None => None,
+        };
         Ok(Outputs { hits, counts })
     }
 
@@ -269,9 +272,9 @@ pub struct OutFile {
 
 impl OutFile {
     /// The file at `path`: a new or plain file is written beside itself (with the old file's permissions), anything
-    /// else (a link, a device, a pipe) through itself. Refused when it is the file `read`, which the trace reads as
-    /// it goes.
-    pub fn create(path: &Path, read: Option<&PackedFile>) -> Result<OutFile> {
+    /// else (a link, a device, a pipe) through itself, opened on a blocking thread (opening a pipe waits for its
+    /// reader, and Ctrl-C must still be seen). Refused when it is the file `read`, which the trace reads as it goes.
+    pub async fn create(path: &Path, read: Option<&PackedFile>) -> Result<OutFile> {
         let io = |e| Error::io(path, e);
         if let (Some(read), Ok(target)) = (read, std::fs::metadata(path))
             && read.is(&target)
@@ -285,7 +288,12 @@ impl OutFile {
         let (file, beside) = match std::fs::symlink_metadata(path) {
             Ok(existing) if !existing.is_file() => {
                 // Not emptied yet: a plain file behind a link is emptied once checked for room, at the first write.
-                (std::fs::OpenOptions::new().write(true).create(true).truncate(false).open(path).map_err(io)?, None)
+                let through = path.to_path_buf();
+                let opening = tokio::task::spawn_blocking(move || {
+                    std::fs::OpenOptions::new().write(true).create(true).truncate(false).open(through)
+                });
+                let opened = opening.await.map_err(|e| Error::Status(tonic::Status::internal(e.to_string())))?;
+                (opened.map_err(io)?, None)
             }
             existing => {
                 let directory = match path.parent() {
@@ -396,7 +404,7 @@ fn is_standard_output(file: &std::fs::File) -> bool {
 /// Writes `parts` one after the other as the whole file `path`, as [`OutFile`] writes (a plain or new file beside
 /// itself, put in place once all is written).
 pub async fn write_whole(path: &Path, parts: &[&[u8]]) -> Result<()> {
-    let mut out = OutFile::create(path, None)?;
+    let mut out = OutFile::create(path, None).await?;
     for part in parts {
         out.write(part).await?;
     }
