@@ -162,7 +162,10 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
             match tenant.create_buffer(HITS_BUFFER_NAME, &counts_buffer_name(name), result.counts, reserved.next()) {
                 Ok(entry) => Some(buffers::info(&entry)),
                 Err(error) => {
-                    tenant.delete_buffer(&hits_buffer)?;
+                    // The call's answer is why the counts failed; a hits buffer that cannot be taken back is logged.
+                    if let Err(left) = tenant.delete_buffer(&hits_buffer) {
+                        tracing::warn!(buffer = hits_buffer.id, %left, "a hits buffer without its counts was left");
+                    }
                     return Err(error);
                 }
             }
