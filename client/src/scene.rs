@@ -298,13 +298,22 @@ impl Client {
         let records = scene.records()?;
         let meshes =
             scene.meshes.iter().map(|(mesh, file)| Ok((mesh, load_mesh(file)?))).collect::<Result<Vec<_>>>()?;
+        // Names taken are refused before anything is built: what `building` notes is this call's alone, even where
+        // it is dropped while the server refuses a name.
+        let names = scene.meshes.keys().map(|mesh| format!("{name}.{mesh}"));
+        let transforms = scene.motion_transforms();
+        let names = names.chain(transforms.iter().map(|(index, _, _)| format!("{name}.{index}.motion")));
+        let existing = self.accels().await?;
+        if let Some(taken) = names.chain([name.to_owned()]).find(|new| existing.iter().any(|a| &a.name == new)) {
+            return Err(Error::Status(tonic::Status::already_exists(format!("accel {taken:?} already exists"))));
+        }
         let mut children = Vec::new();
         for (mesh, loaded) in &meshes {
             let child = format!("{name}.{mesh}");
             noted(building, &child, self.build_mesh(&child, loaded, device, BuildFlags::empty())).await?;
             children.push(child);
         }
-        for (index, mesh, transform) in scene.motion_transforms() {
+        for (index, mesh, transform) in transforms {
             let child = format!("{name}.{index}.motion");
             let placed = format!("{name}.{mesh}");
             noted(building, &child, self.build_transform_input(&child, device, &placed, &transform)).await?;

@@ -124,7 +124,7 @@ impl Client {
 
     /// Traces the rays of `generator`, which the server makes itself (no ray crosses the network), against the
     /// accel called `accel`; the hits come back in the generator's ray order. The rays are made in
-    /// `query.ray_format` (a format with time keeps a lidar's times). One `TraceBatch` call when the hits fit in
+    /// `query.ray_format` (a lidar with times other than 0 needs a format with time). One `TraceBatch` call when the hits fit in
     /// [`ClientOptions::batch_limit_bytes`](crate::ClientOptions::batch_limit_bytes), else one per range of rays
     /// whose hits do, `stream_window` of them at once. Secondary rays whose hits and packed primary rays together
     /// pass `batch_limit_bytes` go through temporary buffers of the accel's scene instead of with every call (see

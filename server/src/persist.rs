@@ -12,7 +12,7 @@
 //! children referred to, not embedded: the record lists them, and they are restored first.
 
 use std::fs::{self, File};
-use std::io::{self, Write};
+use std::io::{self, ErrorKind, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 
@@ -214,18 +214,35 @@ impl DataDirLock {
     pub fn take(data_dir: &Path) -> io::Result<DataDirLock> {
         fs::create_dir_all(data_dir)?;
         let path = data_dir.join("lock");
-        // Made if missing, then held open read-only: a file open for writing would keep its file system from being
-        // remounted read-only.
         match fs::OpenOptions::new().create(true).append(true).open(&path) {
-            Err(e) if matches!(e.kind(), io::ErrorKind::ReadOnlyFilesystem | io::ErrorKind::PermissionDenied) => {
+            Ok(made) => drop(made),
+            // One there already is locked as it is. Where none can be made (a read-only, forbidden or full
+            // directory), rayd starts unlocked, as before it had locks, and says so.
+            Err(_) if path.exists() => {}
+            Err(e)
+                if matches!(
+                    e.kind(),
+                    ErrorKind::ReadOnlyFilesystem | ErrorKind::PermissionDenied | ErrorKind::StorageFull
+                ) =>
+            {
+                tracing::warn!(path = %path.display(), %e, "the data directory is not locked");
                 return Ok(DataDirLock { _file: None });
             }
-            made => drop(made?),
+            Err(e) => return Err(e),
         }
-        let file = File::open(&path)?;
-        match file.try_lock() {
-            Ok(()) => Ok(DataDirLock { _file: Some(file) }),
-            Err(fs::TryLockError::WouldBlock) => Err(io::ErrorKind::WouldBlock.into()),
+        // Held open read-only where the lock allows it: a file open for writing would keep its file system from
+        // being remounted read-only. Over NFS an exclusive lock needs the file open for writing.
+        let read_only = File::open(&path)?;
+        let file = match read_only.try_lock() {
+            Err(fs::TryLockError::Error(_)) => {
+                let writable = fs::OpenOptions::new().read(true).write(true).open(&path)?;
+                writable.try_lock().map(|()| writable)
+            }
+            locked => locked.map(|()| read_only),
+        };
+        match file {
+            Ok(file) => Ok(DataDirLock { _file: Some(file) }),
+            Err(fs::TryLockError::WouldBlock) => Err(ErrorKind::WouldBlock.into()),
             Err(fs::TryLockError::Error(e)) => Err(e),
         }
     }

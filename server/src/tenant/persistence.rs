@@ -127,7 +127,7 @@ impl Tenant {
             skipped: stored.skipped.into_iter().map(|(path, why)| (path.display().to_string(), why)).collect(),
             ..Restored::default()
         };
-        self.next_buffer.fetch_max(highest + 1, std::sync::atomic::Ordering::Relaxed);
+        self.next_buffer.fetch_max(highest.saturating_add(1), std::sync::atomic::Ordering::Relaxed);
         for context in self.contexts.values() {
             context.advance_handles(highest);
         }

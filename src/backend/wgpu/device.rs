@@ -51,9 +51,7 @@ pub(super) struct Opened {
 impl Opened {
     /// The largest buffer a trace binds: the adapter's storage binding limit, lowered to `cap` if given.
     pub fn binding_limit(&self, cap: Option<u64>) -> u64 {
-        let limits = self.device.limits();
-        let adapter = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
-        cap.map_or(adapter, |cap| cap.min(adapter))
+        binding_limit(&self.device.limits(), cap)
     }
 
     /// Runs `work`, the device calls of `what`, under error scopes: RESOURCE_EXHAUSTED if the device had no memory
@@ -94,6 +92,12 @@ impl Opened {
         let why = self.lost.get()?;
         Some(Error::DeviceLost { device: self.name.clone(), detail: why.clone() })
     }
+}
+
+/// The largest storage binding of a device with `limits`, lowered to `cap` if given.
+fn binding_limit(limits: &wgpu::Limits, cap: Option<u64>) -> u64 {
+    let adapter = limits.max_storage_buffer_binding_size.min(limits.max_buffer_size);
+    cap.map_or(adapter, |cap| cap.min(adapter))
 }
 
 /// The wgpu instance and its adapters, enumerated once.
@@ -143,6 +147,11 @@ impl Gpu {
     #[cfg(test)]
     pub fn alone(&self) -> Gpu {
         Gpu { index: self.index, adapter: self.adapter.clone(), opened: Mutex::default() }
+    }
+
+    /// [`Opened::binding_limit`] without opening the device, which is opened with the adapter's own limits.
+    pub fn binding_limit(&self) -> u64 {
+        binding_limit(&self.adapter.limits(), None)
     }
 
     /// Whether the adapter is the CPU (lavapipe): its memory is the host's.

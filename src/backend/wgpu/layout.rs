@@ -116,9 +116,9 @@ impl DeviceArray {
         triangles.saturating_mul(keys.max(1)).saturating_mul(3 * size_of::<[f32; 4]>() as u64)
     }
 
-    /// RESOURCE_EXHAUSTED naming the array and the adapter's binding limit if `bytes` of it cannot be bound.
-    pub(super) fn check_fits(self, opened: &Opened, bytes: u64) -> Result<()> {
-        let limit = opened.binding_limit(None);
+    /// RESOURCE_EXHAUSTED naming the array and the adapter's binding limit, `limit`, if `bytes` of it cannot be
+    /// bound.
+    pub(super) fn check_fits(self, limit: u64, bytes: u64) -> Result<()> {
         if bytes > limit {
             return Err(Error::TooLarge { what: self.what, unit: "bytes", requested: bytes, limit });
         }
@@ -158,7 +158,7 @@ impl GpuGraph {
         let mut buffer = |array: DeviceArray, contents: &[u8]| -> Result<wgpu::Buffer> {
             // Bindings must not be empty: an empty array gets zero words.
             let contents = if contents.is_empty() { &[0u8; 32][..] } else { contents };
-            array.check_fits(opened, contents.len() as u64)?;
+            array.check_fits(opened.binding_limit(None), contents.len() as u64)?;
             bytes += contents.len() as u64;
             let size = (contents.len() as u64).next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT);
             let descriptor = wgpu::BufferDescriptor {

@@ -90,7 +90,8 @@ pub fn backends(options: WgpuOptions) -> Vec<WgpuBackend> {
 pub struct WgpuAccel {
     /// The CPU backend's accel.
     host: CpuAccel,
-    /// Its graph's arrays on the device; immutable, so copies of the accel share them.
+    /// Its graph's arrays on the device, shared by copies of the accel (uploaded anew, for all of them, after the
+    /// device is lost).
     device: Arc<DeviceCopy>,
 }
 
@@ -188,7 +189,8 @@ impl Backend for WgpuBackend {
         let host = self.host.compute_memory_usage(inputs, options)?;
         let triangles = triangle_counts(inputs, options.motion.keys as usize)?.into_iter().sum::<usize>();
         let corners = DeviceArray::corner_bytes(triangles as u64, u64::from(options.motion.keys));
-        DeviceArray::CORNERS.check_fits(&*self.opened()?, corners)?;
+        // The adapter's limit: this runs where a call is answered, and opening the device there would hold it up.
+        DeviceArray::CORNERS.check_fits(self.gpu.binding_limit(), corners)?;
         Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })
     }
 

@@ -2,7 +2,7 @@
 //! the primaries' hits (a file or a server-side buffer). Files go up as temporary buffers of the accel's scene, read
 //! and sent a part at a time, so that rayctl holds neither whole; the server makes the secondary rays from them.
 
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::{SystemTime, UNIX_EPOCH};
 
 use rayd_client::{Client, Error, PrimaryRays, Result, SecondaryRays, proto};
 use rayd_engine::format::RayFormat;
@@ -41,10 +41,6 @@ pub struct Temporary {
     names: Vec<String>,
 }
 
-/// How long deleting the temporary buffers may take: a server that does not answer (often why a trace was
-/// interrupted) does not hold rayctl.
-const DELETE_TIME: Duration = Duration::from_secs(10);
-
 impl Temporary {
     /// A name for one more buffer, noted.
     fn name_next(&mut self) -> String {
@@ -54,7 +50,7 @@ impl Temporary {
         name
     }
 
-    /// Deletes the buffers through `node`, for at most [`DELETE_TIME`] (best effort: a buffer left behind only counts
+    /// Deletes the buffers through `node`, for at most [`CLEAN_UP_TIME`](crate::CLEAN_UP_TIME) (best effort: a buffer left behind only counts
     /// against the tenant's limits); where that fails, says so on standard error, naming them (`rayctl buffers` lists
     /// them by name). The command's own outcome stands.
     pub async fn delete(self, node: &Client) {
@@ -70,10 +66,10 @@ impl Temporary {
             }
             first_failure
         };
-        let why = match tokio::time::timeout(DELETE_TIME, deleting).await {
+        let why = match tokio::time::timeout(crate::CLEAN_UP_TIME, deleting).await {
             Ok(Ok(())) => return,
             Ok(Err(failed)) => failed.to_string(),
-            Err(_) => format!("no answer within {} s", DELETE_TIME.as_secs()),
+            Err(_) => format!("no answer within {} s", crate::CLEAN_UP_TIME.as_secs()),
         };
         let names = self.names.join(", ");
         crate::warn(&format!(

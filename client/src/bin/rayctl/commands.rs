@@ -161,8 +161,13 @@ async fn scene(client: &Client, args: &SceneArgs) -> Result<Output> {
     match until_interrupted(interrupt, built).await {
         Ok(info) => Ok(show::accel(&info)),
         Err(failed) => {
-            if let Some((left, why)) = client.destroy_in_reverse(&building).await {
-                crate::warn(&format!("accels left on the server ({why}): {}", left.join(", ")));
+            // A server that does not answer does not hold rayctl (as for temporary buffers).
+            let left = match tokio::time::timeout(crate::CLEAN_UP_TIME, client.destroy_in_reverse(&building)).await {
+                Ok(left) => left.map(|(left, why)| (left, why.to_string())),
+                Err(_) => Some((building, format!("no answer within {} s", crate::CLEAN_UP_TIME.as_secs()))),
+            };
+            if let Some((left, why)) = left {
+                crate::warn(&format!("accels may be left on the server ({why}): {}", left.join(", ")));
             }
             Err(failed)
         }

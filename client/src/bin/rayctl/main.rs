@@ -30,6 +30,10 @@ fn main() -> ExitCode {
     code
 }
 
+/// How long a command's clean-up (temporary buffers, a failed scene's accels) may take: a server that does not
+/// answer (often why the command failed) does not hold rayctl.
+const CLEAN_UP_TIME: std::time::Duration = std::time::Duration::from_secs(10);
+
 /// Prints `warning: <message>` on standard error: what a command left undone beside its outcome.
 fn warn(message: &str) {
     // Nothing is left to do if standard error has gone.
