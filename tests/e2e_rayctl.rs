@@ -1032,7 +1032,8 @@ fn accel_names(server: &str) -> Vec<String> {
 
 #[test]
 fn a_scene_that_fails_leaves_no_accel_behind_and_builds_once_its_cause_is_fixed() {
-    let daemon = Daemon::start(&[]);
+    // Five accels at most: a scene of three beside one of two cannot be kept whole.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_ACCELS", "5")]);
     let server = daemon.url();
     let scratch = Scratch::new("e2e-rayctl-scene-failures");
     let meshes = std::fs::canonicalize("../shared/data/meshes").expect("the shared meshes");
@@ -1053,25 +1054,39 @@ fn a_scene_that_fails_leaves_no_accel_behind_and_builds_once_its_cause_is_fixed(
     succeeds(&server, &["scene", "--file", &half]);
     assert_eq!(accel_names(&server), ["half.a", "half.b", "half"]);
 
-    // A build the server refuses after the scene's first accels: the instance accel's name is taken. The mesh and
+    // A build the server refuses after the scene's first accels (its instance accel, a sixth accel): the mesh and
     // the motion transform placing it are destroyed again, the transform first (the mesh cannot go while placed).
-    succeeds(&server, &["build", "--mesh", teapot.to_str().unwrap(), "--name", "barn"]);
     let scene = serde_json::json!({
         "meshes": { "cow": cow },
         "instances": [{ "mesh": "cow", "motion": { "time": [0, 1], "keys": [{}, { "translate": [1, 0, 0] }] } }]
     });
     let moving = scratch.path("moving.json");
     std::fs::write(&moving, scene.to_string()).unwrap();
+    let refused = fails(&server, &["scene", "--file", &moving], 1);
+    assert!(refused.starts_with("error: ResourceExhausted: ") && refused.contains("max_accels"), "{refused}");
+    assert_eq!(accel_names(&server), ["half.a", "half.b", "half"], "only what was there before");
+
+    // A scene whose name is taken is refused before anything is built.
+    succeeds(&server, &["build", "--mesh", teapot.to_str().unwrap(), "--name", "barn"]);
     let refused = fails(&server, &["scene", "--file", &moving, "--name", "barn"], 1);
     assert!(refused.starts_with("error: AlreadyExists: ") && refused.contains("barn"), "{refused}");
     assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn"], "only what was there before");
-    succeeds(&server, &["rm", "barn"]);
+    // Room made and the name freed, the same command builds.
+    for name in ["barn", "half", "half.a"] {
+        succeeds(&server, &["rm", name]);
+    }
     let built = json(&server, &["scene", "--file", &moving, "--name", "barn"]);
     assert_eq!((built["name"].as_str(), built["instance_count"].as_u64()), (Some("barn"), Some(1)), "{built}");
-    assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn.cow", "barn.0.motion", "barn"]);
+    assert_eq!(accel_names(&server), ["half.b", "barn.cow", "barn.0.motion", "barn"]);
+}
 
-    // Ctrl-C once the first of sixteen meshes is built: what was built is destroyed again.
-    let ogre = meshes.join("ogre.obj");
+#[test]
+fn ctrl_c_during_a_scene_destroys_what_it_built() {
+    let daemon = Daemon::start(&[]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-scene-ctrl-c");
+    let ogre = std::fs::canonicalize("../shared/data/meshes/ogre.obj").expect("the shared ogre");
+    // Ctrl-C once the first of sixteen meshes is built.
     let scene = serde_json::json!({
         "meshes": (0..16).map(|m| (format!("m{m:02}"), serde_json::json!(ogre))).collect::<serde_json::Map<_, _>>(),
         "instances": (0..16).map(|m| serde_json::json!({ "mesh": format!("m{m:02}") })).collect::<Vec<_>>()
@@ -1080,7 +1095,7 @@ fn a_scene_that_fails_leaves_no_accel_behind_and_builds_once_its_cause_is_fixed(
     std::fs::write(&many, scene.to_string()).unwrap();
     let first_built = |_| accel_names(&server).iter().any(|name| name.starts_with("many."));
     interrupt_when(&server, &["scene", "--file", &many], first_built, "the first mesh was built");
-    assert_eq!(accel_names(&server), ["half.a", "half.b", "half", "barn.cow", "barn.0.motion", "barn"]);
+    assert_eq!(accel_names(&server), Vec::<String>::new(), "what was built is destroyed again");
 }
 
 #[test]
