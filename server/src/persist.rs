@@ -83,7 +83,7 @@ pub struct Store {
 
 impl Store {
     /// Opens (creating it if needed) tenant `tenant`'s directory under `data_dir`, and removes temporary files a
-    /// crash left behind.
+    /// crash left behind (one that cannot be removed is left, with a warning).
     pub fn open(data_dir: &Path, tenant: &str) -> io::Result<Store> {
         let root = data_dir.join("tenants").join(tenant);
         let store =
@@ -92,8 +92,11 @@ impl Store {
             fs::create_dir_all(dir)?;
             for entry in fs::read_dir(dir)? {
                 let path = entry?.path();
-                if path.extension().is_some_and(|e| e == TEMPORARY) {
-                    fs::remove_file(&path)?;
+                // One that cannot be removed (a directory of that name, say) is left: it is never read.
+                if path.extension().is_some_and(|e| e == TEMPORARY)
+                    && let Err(e) = fs::remove_file(&path)
+                {
+                    tracing::warn!(path = %path.display(), %e, "a temporary file could not be removed");
                 }
             }
         }
@@ -315,6 +318,7 @@ mod tests {
         fs::write(&damaged, bytes).unwrap();
         fs::write(dir.join("tenants/default/buffers/buf-4.buf"), b"RAYD").unwrap();
         fs::write(dir.join("tenants/default/buffers/buf-5.0.tmp"), b"half-written").unwrap();
+        fs::create_dir(dir.join("tenants/default/accels/acc-12.0.tmp")).unwrap();
 
         let store = Store::open(&dir, "default").unwrap();
         let stored = store.read_all().unwrap();
@@ -323,6 +327,7 @@ mod tests {
         let reasons: Vec<&str> = stored.skipped.iter().map(|(_, why)| why.as_str()).collect();
         assert_eq!(reasons, ["too short to be an object file", "checksum mismatch: the file is damaged"]);
         assert!(!dir.join("tenants/default/buffers/buf-5.0.tmp").exists(), "temporary files are cleared");
+        assert!(dir.join("tenants/default/accels/acc-12.0.tmp").is_dir(), "what cannot be removed is left");
 
         store.remove_accel("acc-9").unwrap();
         store.remove_accel("acc-9").unwrap();

@@ -463,6 +463,12 @@ mod tests {
             (good.replace("max_accels = 3", "max_graph_depth = 9"), "tenants[0].limits.max_graph_depth"),
             (good.replace("max_accels = 3", "max_message_bytes = 1048576"), "tenants[0].limits.max_message_bytes"),
             (good.replace("name = \"acme\"", "name = \"acme\"\nshare = 0"), "tenants[0].share = 0 must be 1 to 1000"),
+            (
+                format!(
+                    "{good}\n[[tenants]]\nname = \"ACME\"\nkeys = [{{ key = \"0000111122223333\", role = \"read\" }}]"
+                ),
+                "tenants[1].name \"ACME\" is used twice (\"acme\"; names are compared without case)",
+            ),
         ] {
             std::fs::write(&path, bad).unwrap();
             let error = Config::load(Some(&path), env(&[])).unwrap_err().to_string();

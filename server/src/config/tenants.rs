@@ -78,7 +78,7 @@ fn default_share() -> u32 {
 /// The largest share.
 pub const MAX_SHARE: u32 = 1000;
 
-/// Checks the tenants: valid, unique names; shares in range; at least one key each; keys long enough and unique across tenants.
+/// Checks the tenants: valid names, unique without case; shares in range; at least one key each; keys long enough and unique across tenants.
 pub fn check(tenants: &[TenantConfig]) -> Result<(), String> {
     let mut keys: Vec<&str> = Vec::new();
     for (i, tenant) in tenants.iter().enumerate() {
@@ -90,8 +90,13 @@ pub fn check(tenants: &[TenantConfig]) -> Result<(), String> {
         if !valid {
             return Err(format!("tenants[{i}].name {name:?} must be 1 to 64 characters of [A-Za-z0-9._-]"));
         }
-        if tenants[..i].iter().any(|t| t.name == *name) {
-            return Err(format!("tenants[{i}].name {name:?} is used twice"));
+        // Compared without case: the names are directories of the data directory, one on a file system that
+        // ignores case (macOS, Windows) for "Acme" and "acme".
+        if let Some(other) = tenants[..i].iter().find(|t| t.name.eq_ignore_ascii_case(name)) {
+            return Err(format!(
+                "tenants[{i}].name {name:?} is used twice ({:?}; names are compared without case)",
+                other.name
+            ));
         }
         if !(1..=MAX_SHARE).contains(&tenant.share) {
             return Err(format!("tenants[{i}].share = {} must be 1 to {MAX_SHARE}", tenant.share));

@@ -912,15 +912,15 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
-    /// An accel "a" of one triangle, built by `tenant`.
-    fn one_triangle_accel(tenant: &Tenant) -> AccelEntry {
+    /// An accel called `name` of one triangle, built by `tenant`.
+    fn one_triangle_accel(tenant: &Tenant, name: &str) -> AccelEntry {
         let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
         let indices: Vec<u8> = [0u32, 1, 2].iter().flat_map(|i| i.to_le_bytes()).collect();
         let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
         let options = BuildOptions::default();
         let usage = |context: &Context| context.compute_memory_usage(&input, &options);
         let built = |context: &Context| context.build_accel(&input, &options);
-        tenant.build_accel("a", DEFAULT_DEVICE, &Caller::default(), usage, built).unwrap()
+        tenant.build_accel(name, DEFAULT_DEVICE, &Caller::default(), usage, built).unwrap()
     }
 
     #[test]
@@ -928,7 +928,7 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("rayd-destroy-twice-{}", std::process::id()));
         let store = crate::persist::Store::open(&dir, "t").unwrap();
         let tenant = cpu_tenant(Limits::default()).with_store(store);
-        let entry = one_triangle_accel(&tenant);
+        let entry = one_triangle_accel(&tenant, "a");
         let files = || std::fs::read_dir(dir.join("tenants/t/accels")).unwrap().count();
         assert_eq!(files(), 1);
         // Two calls that looked the accel up and checked it before either destroyed it: both wait for the keeping
@@ -949,9 +949,37 @@ mod tests {
     }
 
     #[test]
+    fn a_restore_keeps_the_accels_within_limits_lowered_since_they_were_stored() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = || crate::persist::Store::open(dir.path(), "t").unwrap();
+        let tenant = cpu_tenant(Limits::default()).with_store(store());
+        let size = ["a", "b", "c"].map(|name| one_triangle_accel(&tenant, name).accel.info().size_bytes)[0];
+        drop(tenant);
+        let restore = |limits: Limits| {
+            let tenant = cpu_tenant(limits).with_store(store());
+            let restored = tenant.restore().unwrap();
+            let names: Vec<String> = tenant.accels().into_iter().map(|e| e.name).collect();
+            let reasons: Vec<String> =
+                restored.skipped.into_iter().map(|(handle, why)| format!("{handle}: {why}")).collect();
+            (names, reasons)
+        };
+        let (names, reasons) = restore(Limits { max_accels: 2, ..Limits::default() });
+        assert_eq!(names, ["a", "b"]);
+        assert!(reasons.len() == 1 && reasons[0].contains("max_accels = 2"), "{reasons:?}");
+        let (names, reasons) = restore(Limits { max_total_accel_bytes: 2 * size, ..Limits::default() });
+        assert_eq!(names, ["a", "b"]);
+        assert!(reasons.len() == 1 && reasons[0].contains("max_total_accel_bytes"), "{reasons:?}");
+        let (names, reasons) = restore(Limits { max_accel_bytes: size - 1, ..Limits::default() });
+        assert!(names.is_empty());
+        assert!(reasons.len() == 3 && reasons.iter().all(|r| r.contains("max_accel_bytes")), "{reasons:?}");
+        let (names, reasons) = restore(Limits::default());
+        assert_eq!((names, reasons), (vec!["a".to_owned(), "b".into(), "c".into()], vec![]), "the files stayed");
+    }
+
+    #[test]
     fn a_save_is_one_of_the_operations_running_at_once() {
         let tenant = cpu_tenant(Limits { max_concurrent_operations: 1, ..Limits::default() });
-        let entry = one_triangle_accel(&tenant);
+        let entry = one_triangle_accel(&tenant, "a");
         let running = tenant.quotas.start(1).unwrap();
         let refused = tenant.save_accel(&entry, "buffer_name", "blob", &Caller::default()).unwrap_err();
         assert!(refused.to_string().contains("max_concurrent_operations = 1"), "{refused}");

@@ -168,7 +168,7 @@ impl Tenant {
         Ok(restored)
     }
 
-    /// Restores one buffer under its id and name.
+    /// Restores one buffer under its id and name, within the tenant's buffer limits.
     fn restore_buffer(&self, record: &BufferRecord, data: bytes::Bytes) -> ServiceResult<()> {
         self.check_new_buffers("name", &[(&record.name, data.len() as u64)])?;
         let size_bytes = data.len() as u64;
@@ -180,7 +180,8 @@ impl Tenant {
         })
     }
 
-    /// Restores one accel over its restored children; also says whether it comes back stale.
+    /// Restores one accel over its restored children, within the tenant's accel limits; also says whether it comes
+    /// back stale.
     fn restore_accel(
         &self,
         record: &AccelRecord,
@@ -207,7 +208,13 @@ impl Tenant {
             version: record.version,
             pace: Arc::default(),
         };
-        self.accels.insert(record.handle.clone(), &record.name, entry.clone()).inspect_err(|_| {
+        // Held to the limits, as a load is: they may have been lowered since the accel was stored.
+        let kept = self.reserve_accels(1).and_then(|_counted| {
+            let describe = |_| format!("accel {}", record.handle);
+            let _bytes = self.check_made(std::slice::from_ref(&entry.accel), 0, describe)?;
+            self.accels.insert(record.handle.clone(), &record.name, entry.clone())
+        });
+        kept.inspect_err(|_| {
             let _ = context.destroy_accel(entry.accel.handle());
         })?;
         crate::metrics::accel_built(&self.name, &entry);
