@@ -190,6 +190,10 @@ fn rayctl_builds_traces_renders_benches_and_removes_the_bunny_as_the_engine_does
     assert_same_bytes(&untimed(&timed), &untimed(&with_time), "the same rays apart from their times");
     let stderr = fails(&server, &["rays", "--accel", "bunny", "--time", "1", "-o", &timed_file], 1);
     assert!(stderr.contains("--time") && stderr.contains("carries no time"), "{stderr}");
+    // A camera of its own does not need the accel's box, but the accel must be there all the same.
+    let camera = ["--camera", "0,0,1,0,0,0,0,1,0,40", "-o", &timed_file];
+    let stderr = fails(&server, &[&["rays", "--accel", "nothing"], &camera[..]].concat(), 1);
+    assert!(stderr.starts_with("error: NotFound: ") && stderr.contains("nothing"), "{stderr}");
 
     let trace = |kind: &str, out: &str| {
         let formats = ["--ray-format", "origin_tmin_direction_tmax", "--hit-format", "t_triid_u_v"];
@@ -987,6 +991,15 @@ fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trac
         .unwrap();
     assert!(appended.status.success(), "{}", printed(&appended));
     assert!(read(&stdout_out) == [&b"before"[..], &read(&file_out)].concat(), "the hits after what was there");
+    // To a pipe whose reader has gone (`| head -c 0`): rayctl ends quietly, as other tools do.
+    let mut unread = rayctl_command(&server, &[&closest[..], &["/dev/stdout"]].concat())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(unread.stdout.take());
+    let unread = unread.wait_with_output().unwrap();
+    assert!(unread.status.success() && unread.stderr.is_empty(), "{}", printed(&unread));
     let stderr = fails(&server, &[&args[..args.len() - 1], &["/dev/null"]].concat(), 1);
     assert!(stderr.contains("--out /dev/null: the counts of this query go to /dev/null.counts"), "{stderr}");
     let counted = rayctl_command(&server, &[&args[..args.len() - 1], &["/dev/stdout"]].concat())

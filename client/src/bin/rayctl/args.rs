@@ -317,10 +317,11 @@ pub struct AroundPointsArgs {
     #[arg(long, default_value_t = 7, requires = "sphere_points")]
     pub seed: u64,
     /// Where the rays start along their direction (their tmin), to leave the surface a point lies on.
-    #[arg(long, value_name = "D", default_value_t = 0.0, requires = "sphere_points")]
+    #[arg(long, value_name = "D", default_value_t = 0.0, requires = "sphere_points", value_parser = parse_distance)]
     pub min_distance: f32,
     /// How far the rays reach (their tmax; default unlimited).
-    #[arg(long, value_name = "D", default_value_t = f32::INFINITY, requires = "sphere_points")]
+    #[arg(long, value_name = "D", default_value_t = f32::INFINITY, requires = "sphere_points",
+          value_parser = parse_distance)]
     pub max_distance: f32,
 }
 
@@ -349,7 +350,7 @@ pub struct SecondaryArgs {
     pub primary_hits_buffer: Option<String>,
     /// World units (≥ 0) that the secondary rays' origins move off the surface, so that a ray does not hit the
     /// triangle it leaves.
-    #[arg(long, value_name = "D", default_value_t = 0.0, requires = "bounce")]
+    #[arg(long, value_name = "D", default_value_t = 0.0, requires = "bounce", value_parser = parse_distance)]
     pub offset: f32,
 }
 
@@ -387,7 +388,7 @@ pub struct RaysArgs {
     #[arg(long, value_name = "EYE,TARGET,UP,FOVY", value_parser = parse_view, allow_hyphen_values = true)]
     pub camera: Option<View>,
     /// Instead of a camera: this many rays with origins uniform in the accel's box and uniform directions.
-    #[arg(long, value_name = "N", conflicts_with = "camera")]
+    #[arg(long, value_name = "N", conflicts_with_all = ["camera", "width", "height"])]
     pub random: Option<usize>,
     /// Seed of the random rays.
     #[arg(long, default_value_t = 7)]
@@ -407,14 +408,30 @@ pub struct RaysArgs {
 
 /// `T` or `T0,T1`: a span of time (`T0 ≤ T1`, finite).
 fn parse_times(text: &str) -> Result<(f32, f32), String> {
-    let values = text
-        .split(',')
-        .map(|v| v.trim().parse::<f32>().map_err(|e| format!("{v:?}: {e}")))
-        .collect::<Result<Vec<_>, _>>()?;
-    match values[..] {
-        [t] if t.is_finite() => Ok((t, t)),
-        [start, end] if start.is_finite() && end.is_finite() && start <= end => Ok((start, end)),
+    if text.contains(',') {
+        return parse_span(text);
+    }
+    match text.trim().parse::<f32>() {
+        Ok(t) if t.is_finite() => Ok((t, t)),
         _ => Err(format!("expected a finite number T or a span T0,T1 with T0 <= T1, got {text:?}")),
+    }
+}
+
+/// `LO,HI`: two finite numbers, `LO ≤ HI`.
+fn parse_span(text: &str) -> Result<(f32, f32), String> {
+    let values: Vec<Option<f32>> = text.split(',').map(|v| v.trim().parse::<f32>().ok()).collect();
+    match values[..] {
+        [Some(low), Some(high)] if low.is_finite() && high.is_finite() && low <= high => Ok((low, high)),
+        _ => Err(format!("expected two finite numbers LO,HI with LO <= HI, got {text:?}")),
+    }
+}
+
+/// A distance in world units: a number ≥ 0, or `inf`. A number past f32's range is refused, not taken as `inf`.
+fn parse_distance(text: &str) -> Result<f32, String> {
+    let spelled_infinite = text.trim().trim_start_matches('+').to_ascii_lowercase().starts_with("inf");
+    match text.trim().parse::<f32>() {
+        Ok(d) if d >= 0.0 && (d.is_finite() || spelled_infinite) => Ok(d),
+        _ => Err(format!("expected a distance: a number >= 0 of at most {:e}, or inf; got {text:?}", f32::MAX)),
     }
 }
 
@@ -474,16 +491,16 @@ pub struct LidarScanArgs {
     #[arg(long, value_name = "N", default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=65536))]
     pub channels: u32,
     /// Lowest and highest channel elevation in degrees.
-    #[arg(long, value_name = "LO,HI", default_value = "-25,15", value_parser = parse_times, allow_hyphen_values = true)]
+    #[arg(long, value_name = "LO,HI", default_value = "-25,15", value_parser = parse_span, allow_hyphen_values = true)]
     pub elevations: (f32, f32),
     /// Azimuth steps a revolution.
     #[arg(long, value_name = "N", default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..))]
     pub steps: u32,
     /// Nearest range (the rays' tmin).
-    #[arg(long, value_name = "R", default_value_t = 0.0)]
+    #[arg(long, value_name = "R", default_value_t = 0.0, value_parser = parse_distance)]
     pub min_range: f32,
     /// Farthest range (the rays' tmax; default unlimited).
-    #[arg(long, value_name = "R", default_value_t = f32::INFINITY)]
+    #[arg(long, value_name = "R", default_value_t = f32::INFINITY, value_parser = parse_distance)]
     pub max_range: f32,
     /// Motion scenes: the revolution fires at time T, or over [T0, T1] (step s of N at T0 + (T1 − T0)·s/N).
     #[arg(long, value_name = "T|T0,T1", default_value = "0", value_parser = parse_times, allow_hyphen_values = true)]
@@ -780,6 +797,29 @@ mod tests {
         let reflections = trace(&["--pixels", "4x4", "--reflect", "--primary-hits", "h.bin"]);
         assert_eq!(reflections.secondary.bounce(), Some(Bounce::Reflect));
         assert_eq!(trace(&["--rays", "r"]).secondary.bounce(), None, "the rays themselves");
+    }
+
+    #[test]
+    fn options_that_would_be_ignored_or_overflow_are_refused() {
+        let formats = ["--ray-format", "origin_direction", "--hit-format", "t"];
+        let traced = |extra: &[&str]| parse(&[&["trace", "--accel", "a"], extra, &formats[..]].concat());
+        let refused = |parsed: Result<Cli, clap::Error>, kind| assert_eq!(parsed.unwrap_err().kind(), kind);
+        let invalid = clap::error::ErrorKind::ValueValidation;
+        refused(traced(&["--lidar", "--elevations", "-10"]), invalid);
+        refused(traced(&["--lidar", "--elevations", "10,-10"]), invalid);
+        refused(traced(&["--lidar", "--min-range", "1e39"]), invalid);
+        refused(traced(&["--lidar", "--max-range=-1"]), invalid);
+        refused(traced(&["--point", "0,0,0", "--max-distance", "NaN"]), invalid);
+        refused(traced(&["--rays", "r", "--reflect", "--primary-hits", "h", "--offset", "3e38e"]), invalid);
+        let Cli { command: Command::Trace(scan), .. } = traced(&["--lidar", "--max-range", "inf"]).unwrap() else {
+            panic!("not trace")
+        };
+        assert_eq!((scan.lidar_scan.min_range, scan.lidar_scan.max_range), (0.0, f32::INFINITY));
+        let rays = |extra: &[&str]| parse(&[&["rays", "--accel", "a", "-o", "r.bin"], extra].concat());
+        for ignored in ["--width", "--height"] {
+            refused(rays(&["--random", "100", ignored, "64"]), clap::error::ErrorKind::ArgumentConflict);
+        }
+        assert!(rays(&["--random", "100"]).is_ok() && rays(&["--width", "64"]).is_ok());
     }
 
     #[test]

@@ -287,10 +287,12 @@ async fn accel_bounds(client: &Client, accel: &str) -> Result<(glam::Vec3, glam:
     bounds(&info).ok_or_else(|| Error::InvalidArgument(format!("accel {accel}: no triangles to frame")))
 }
 
-/// The camera of `view`, or one framing the accel's box.
+/// The camera of `view`, or one framing the accel's box; NOT_FOUND without the accel.
 async fn camera(client: &Client, accel: &str, view: Option<View>, width: u32, height: u32) -> Result<Camera> {
     Ok(match view {
         Some(view) => {
+            // Looked up all the same: the rays are for it, and a name that is wrong is better said now.
+            client.accel(accel).await?;
             Camera { eye: view.eye, target: view.target, up: view.up, fov_y_degrees: view.fov_y_degrees, width, height }
         }
         None => {

@@ -1,6 +1,7 @@
 //! `rayctl`: the command-line client of rayd. Parsing lives in [`args`], the work in `rayd-client`, the printing
 //! in [`show`]. Errors print `error: <gRPC code>: <message>` and exit with 1; usage errors exit with 2 (clap). A
-//! reader of the output that has gone (`rayctl … | head`) ends rayctl quietly, with 0.
+//! reader of the output that has gone (`rayctl … | head`, the report's or the data's: `--out /dev/stdout`) ends
+//! rayctl quietly, with 0.
 
 mod args;
 mod bounced;
@@ -22,6 +23,10 @@ fn main() -> ExitCode {
     let code = runtime.block_on(async {
         match commands::run(&cli).await {
             Ok(output) => report(&if cli.json { output.json.to_string() } else { output.text }),
+            // Data for a reader that has gone (`rayctl trace --out /dev/stdout … | head`).
+            Err(rayd_client::Error::Io { source, .. }) if source.kind() == io::ErrorKind::BrokenPipe => {
+                ExitCode::SUCCESS
+            }
             Err(error) => failure(&format!("{:?}: {error}", error.code())),
         }
     });
