@@ -1,10 +1,11 @@
-//! `rayd [--listen ADDR] [--admin-listen ADDR] [--config FILE] [--data-dir DIR]`: reads the configuration, binds,
-//! prints where it listens, and serves until SIGTERM or Ctrl-C.
+//! `rayd [--listen ADDR] [--admin-listen ADDR] [--config FILE] [--data-dir DIR] [--insecure]`: reads the
+//! configuration, binds, prints where it listens, and serves until SIGTERM or Ctrl-C.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 
 use clap::Parser;
+use clap::builder::TypedValueParser;
 use rayd_server::Config;
 use tokio::net::TcpListener;
 
@@ -25,8 +26,8 @@ struct Cli {
     /// TOML configuration file.
     #[arg(long, env = "RAYD_CONFIG")]
     config: Option<PathBuf>,
-    /// Directory for persisted state.
-    #[arg(long, env = "RAYD_DATA_DIR")]
+    /// Directory for persisted state; empty for none (over the file's).
+    #[arg(long, env = "RAYD_DATA_DIR", value_parser = clap::builder::OsStringValueParser::new().map(PathBuf::from))]
     data_dir: Option<PathBuf>,
     /// Allow listening on a non-loopback address without authentication (no tenants configured).
     #[arg(long, env = "RAYD_INSECURE")]
@@ -46,8 +47,8 @@ fn configure(cli: Cli) -> Result<Config, Box<dyn std::error::Error + Send + Sync
             config.admin_listen = Some(address.parse().map_err(|e| format!("--admin-listen {address:?}: {e}"))?)
         }
     }
-    if cli.data_dir.is_some() {
-        config.data_dir = cli.data_dir;
+    if let Some(dir) = cli.data_dir {
+        config.data_dir = Config::directory_or_none(dir);
     }
     config.insecure |= cli.insecure;
     config.check_exposure()?;

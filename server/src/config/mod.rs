@@ -34,8 +34,8 @@ pub struct Config {
     /// disables it.
     #[serde(with = "address_or_off")]
     pub admin_listen: Option<SocketAddr>,
-    /// Directory where every buffer and accel is persisted and restored from at start; none keeps them in memory
-    /// only.
+    /// Directory where every buffer and accel is persisted and restored from at start; none (empty in the file and
+    /// the environment, so that `RAYD_DATA_DIR=` switches a file's off) keeps them in memory only.
     pub data_dir: Option<PathBuf>,
     /// Log output: `text` or `json`.
     pub log_format: String,
@@ -159,7 +159,7 @@ pub struct Limits {
     /// a trace into buffers by its output's).
     pub max_total_buffer_bytes: u64,
     /// Rays a tenant may trace per second, averaged over a second (a batch may exceed the rest of the second's
-    /// allowance; the next ones wait for it to refill); 0 means no limit.
+    /// allowance; the next ones are refused with RESOURCE_EXHAUSTED until it refills); 0 means no limit.
     pub max_rays_per_second: u64,
     /// Builds, updates, copies, loads, saves and traces a tenant may have running at once.
     pub max_concurrent_operations: u32,
@@ -246,7 +246,8 @@ impl Config {
         overlay_env(&mut table, "RAYD", &env)?;
         overlay_optional_env(&mut table, &env);
         inherit_limits(&mut table);
-        let config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
+        let mut config: Config = table.try_into().map_err(|e: toml::de::Error| ConfigError::Invalid(e.to_string()))?;
+        config.data_dir = config.data_dir.and_then(Config::directory_or_none);
         config.limits.check("limits").map_err(ConfigError::Invalid)?;
         config.transport.check().map_err(ConfigError::Invalid)?;
         if config.scheduler.worker_nice > 19 {
@@ -284,6 +285,11 @@ impl Config {
         }
         tenants::check(&config.tenants).map_err(ConfigError::Invalid)?;
         Ok(config)
+    }
+
+    /// `dir` as a data directory: none where it is empty.
+    pub fn directory_or_none(dir: PathBuf) -> Option<PathBuf> {
+        (!dir.as_os_str().is_empty()).then_some(dir)
     }
 }
 
@@ -484,6 +490,11 @@ mod tests {
             TlsConfig { cert: "/etc/rayd/cert.pem".into(), key: "/etc/rayd/key.pem".into(), client_ca: None };
         assert_eq!(config.tls, Some(expected));
         assert_eq!(config.data_dir, Some(PathBuf::from("/data")));
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rayd.toml");
+        std::fs::write(&path, "data_dir = \"/var/lib/rayd\"").unwrap();
+        let switched_off = Config::load(Some(&path), env(&[("RAYD_DATA_DIR", "")])).unwrap();
+        assert_eq!(switched_off.data_dir, None, "an empty directory is none");
         let half = Config::load(None, env(&tls[..1])).unwrap_err().to_string();
         assert!(half.contains("key"), "{half}");
         let off = Config::load(None, env(&[("RAYD_ADMIN_LISTEN", "off")])).unwrap();
