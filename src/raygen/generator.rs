@@ -134,9 +134,9 @@ fn check_frame(
     up_field: &'static str,
     up: Vec3,
 ) -> Result<()> {
-    let forward = direction.normalize_or_zero();
+    let forward = unit(direction);
     require(forward != Vec3::ZERO, view_field, || view_rule.into())?;
-    require(forward.cross(up).normalize_or_zero() != Vec3::ZERO, up_field, || {
+    require(unit(forward.cross(up)) != Vec3::ZERO, up_field, || {
         "must not be zero or parallel to the view direction".into()
     })
 }
@@ -144,9 +144,18 @@ fn check_frame(
 /// An orthonormal frame looking along `direction` with `up` as close to up as can be (both checked by
 /// [`check_frame`]).
 fn frame(direction: Vec3, up: Vec3) -> (Vec3, Vec3, Vec3) {
-    let forward = direction.normalize();
-    let right = forward.cross(up).normalize();
+    let forward = unit(direction);
+    let right = unit(forward.cross(up));
     (forward, right, right.cross(forward))
+}
+
+/// The unit vector along `v` (glam's `normalize`), or zero where `v` has no direction (zero, or not finite). A
+/// finite vector too long or too short for its squared length in `f32` (1e20, 1e-30) is scaled first.
+pub(super) fn unit(v: Vec3) -> Vec3 {
+    match v.normalize_or_zero() {
+        Vec3::ZERO if v.is_finite() && v != Vec3::ZERO => (v / v.abs().max_element()).normalize_or_zero(),
+        unit => unit,
+    }
 }
 
 impl PixelSampling {
@@ -167,7 +176,8 @@ impl PixelSampling {
 
 /// Checks a camera's image size and sampling.
 fn check_image(width: u32, height: u32, sampling: &PixelSampling) -> Result<()> {
-    require(width > 0 && height > 0, "generator.width", || format!("{width}×{height} must have pixels"))?;
+    require(width > 0, "generator.width", || "must be at least 1".into())?;
+    require(height > 0, "generator.height", || "must be at least 1".into())?;
     require(sampling.samples > 0, "generator.samples_per_pixel", || "must be at least 1".into())
 }
 
@@ -242,7 +252,12 @@ impl Generator {
                 check_camera_frame(camera.eye, camera.target, camera.up)?;
                 let h = camera.view_height;
                 require(h.is_finite() && h > 0.0, "generator.view_height", || format!("{h} must be positive"))?;
-                check_image(camera.width, camera.height, sampling)
+                check_image(camera.width, camera.height, sampling)?;
+                // Its half width as the frame works it out ([`Generator::camera_frame`]).
+                let half_width = h * 0.5 * camera.width as f32 / camera.height as f32;
+                require(half_width.is_finite(), "generator.view_height", || {
+                    format!("{h} makes a view of {}×{} pixels too wide for f32", camera.width, camera.height)
+                })
             }
             Generator::Lidar(lidar) => {
                 finite_fields(&[
@@ -260,7 +275,7 @@ impl Generator {
                     format!("channel {} must be −90 to 90 degrees", bad.unwrap_or(0))
                 })?;
                 require(lidar.steps > 0, "generator.steps", || "must be at least 1".into())?;
-                check_range("generator.min_range", lidar.min_range, lidar.max_range)?;
+                check_range(("generator.min_range", "generator.max_range"), lidar.min_range, lidar.max_range)?;
                 let (begin, end) = lidar.time;
                 // Its span must be finite too, so that every step's time is a number.
                 require((end - begin).is_finite(), "generator.time", || {
@@ -276,12 +291,13 @@ impl Generator {
                 require(sphere.normals.is_empty() || sphere.normals.len() == points, "generator.normals", || {
                     format!("{} normals for {points} points: none, or one a point", sphere.normals.len())
                 })?;
-                let bad = sphere.normals.iter().position(|n| n.normalize_or_zero() == Vec3::ZERO);
+                let bad = sphere.normals.iter().position(|&n| unit(n) == Vec3::ZERO);
                 require(bad.is_none(), "generator.normals", || {
                     format!("normal {} must be finite and non-zero", bad.unwrap_or(0))
                 })?;
                 require(sphere.samples > 0, "generator.samples", || "must be at least 1".into())?;
-                check_range("generator.min_distance", sphere.min_distance, sphere.max_distance)
+                let fields = ("generator.min_distance", "generator.max_distance");
+                check_range(fields, sphere.min_distance, sphere.max_distance)
             }
             Generator::Secondary(secondary) => secondary.check(),
         }
@@ -404,11 +420,11 @@ impl Generator {
     }
 }
 
-/// Checks a `tmin`/`tmax` pair: finite `tmin` ≥ 0, `tmax` ≥ `tmin` (may be +∞).
-fn check_range(field: &'static str, min: f32, max: f32) -> Result<()> {
-    require(min.is_finite() && min >= 0.0 && !max.is_nan() && max >= min, field, || {
-        format!("range {min} .. {max}: need 0 ≤ min ≤ max, min finite")
-    })
+/// Checks a `tmin`/`tmax` pair, given by the `fields` named: finite `tmin` ≥ 0, `tmax` ≥ `tmin` (may be +∞).
+fn check_range(fields: (&'static str, &'static str), min: f32, max: f32) -> Result<()> {
+    let rule = || format!("range {min} .. {max}: need 0 ≤ min ≤ max, min finite");
+    require(min.is_finite() && min >= 0.0, fields.0, rule)?;
+    require(!max.is_nan() && max >= min, fields.1, rule)
 }
 
 /// A camera generator's frame, computed once for many rays: what [`Generator::fill`] (and the wgpu kernel, from
@@ -498,7 +514,7 @@ impl CameraFrame {
                 // One ray a pixel through its centre ([`PixelSampling::point`]'s (0.5, 0.5)).
                 let centres = samples == 1 && self.sampling.jitter_seed.is_none();
                 for block in out.chunks_mut(CAMERA_BLOCK * size) {
-                    if centres && x + CAMERA_BLOCK as u32 <= self.width {
+                    if centres && self.width - x >= CAMERA_BLOCK as u32 {
                         // A block of pixel centres within a row: the common case, without a test a lane.
                         for lane in 0..CAMERA_BLOCK {
                             (px[lane], py[lane]) = ((x + lane as u32) as f32 + 0.5, y as f32 + 0.5);
@@ -639,7 +655,10 @@ pub struct LidarChannel {
 impl LidarFrame<'_> {
     /// The frame of a checked lidar.
     pub fn new(lidar: &Lidar) -> LidarFrame<'_> {
-        let (forward, right, up) = frame(lidar.forward, lidar.up);
+        // `up` is the axis; azimuth 0 is `forward` laid on the plane across it (unchanged where it lies there
+        // already, so that such lidars make the bytes they always made).
+        let axis = unit(lidar.up);
+        let (forward, right, up) = frame(lidar.forward - axis * lidar.forward.dot(axis), lidar.up);
         LidarFrame { lidar, forward, left: -right, up }
     }
 
@@ -693,7 +712,7 @@ struct HemisphereFrame {
 impl HemisphereFrame {
     /// The frame around `normal` (finite and non-zero), normalized.
     fn new(normal: Vec3) -> HemisphereFrame {
-        let normal = normal.normalize();
+        let normal = unit(normal);
         let (tangent, bitangent) = normal.any_orthonormal_pair();
         HemisphereFrame { normal, tangent, bitangent }
     }
@@ -913,17 +932,22 @@ mod tests {
         }
     }
 
+    /// `samples` rays from the origin around `normal`, reaching 1, seeded with `seed`.
+    fn around_the_origin(normal: Vec3, samples: u32, seed: u64) -> Generator {
+        Generator::Sphere(SphereSampling {
+            points: vec![Vec3::ZERO],
+            normals: vec![normal],
+            samples,
+            min_distance: 0.0,
+            max_distance: 1.0,
+            seed,
+        })
+    }
+
     #[test]
     fn hemisphere_samples_stay_above_their_normal() {
         let normal = Vec3::new(1.0, 2.0, -0.5).normalize();
-        let sphere = Generator::Sphere(SphereSampling {
-            points: vec![Vec3::ZERO],
-            normals: vec![normal],
-            samples: 1000,
-            min_distance: 0.0,
-            max_distance: 1.0,
-            seed: 1,
-        });
+        let sphere = around_the_origin(normal, 1000, 1);
         let rays = sphere.rays(RayFormat::OriginDirection);
         let mean_cos: f32 = rays
             .chunks_exact(RayFormat::OriginDirection.size())
@@ -1053,15 +1077,8 @@ mod tests {
         assert!(Generator::Pinhole(wide, CENTRES).check().unwrap_err().to_string().contains("fov_y_degrees"));
         let none = PixelSampling { samples: 0, jitter_seed: None };
         assert!(Generator::Pinhole(camera(), none).check().unwrap_err().to_string().contains("samples_per_pixel"));
-        let sphere = SphereSampling {
-            points: vec![Vec3::ZERO],
-            normals: vec![Vec3::ZERO],
-            samples: 1,
-            min_distance: 0.0,
-            max_distance: 1.0,
-            seed: 0,
-        };
-        assert!(Generator::Sphere(sphere).check().unwrap_err().to_string().contains("generator.normals"));
+        let sphere = around_the_origin(Vec3::ZERO, 1, 0);
+        assert!(sphere.check().unwrap_err().to_string().contains("generator.normals"));
         // Finite times whose span is not: the first step's time would be NaN.
         let lidar = Lidar {
             origin: Vec3::ZERO,
@@ -1073,7 +1090,67 @@ mod tests {
             max_range: 1.0,
             time: (-3e38, 3e38),
         };
-        assert!(Generator::Lidar(lidar).check().unwrap_err().to_string().contains("generator.time"));
+        assert!(Generator::Lidar(lidar.clone()).check().unwrap_err().to_string().contains("generator.time"));
+        // Each field of a pair named when it is the one at fault.
+        let error = |generator: Generator| generator.check().unwrap_err().to_string();
+        assert!(error(Generator::Pinhole(Camera { height: 0, ..camera() }, CENTRES)).contains("generator.height"));
+        let unreached = Lidar { max_range: f32::NAN, time: (0.0, 0.0), ..lidar.clone() };
+        assert!(error(Generator::Lidar(unreached)).contains("generator.max_range"));
+        let behind = Lidar { min_range: -1.0, time: (0.0, 0.0), ..lidar };
+        assert!(error(Generator::Lidar(behind)).contains("generator.min_range"));
+        // A view height whose width passes f32's range.
+        let Camera { eye, target, up, .. } = camera();
+        let vast = Orthographic { eye, target, up, view_height: 2e38, width: 4, height: 1 };
+        assert!(error(Generator::Orthographic(vast, CENTRES)).contains("generator.view_height"));
+    }
+
+    #[test]
+    fn vectors_too_long_or_too_short_for_their_squared_length_still_give_a_direction() {
+        let far_apart = Camera { eye: Vec3::new(-1e20, 0.0, 0.0), target: Vec3::new(1e20, 0.0, 0.0), ..camera() };
+        let frame = Generator::Pinhole(far_apart, CENTRES).camera_frame().unwrap();
+        assert_eq!((frame.forward, frame.right.length()), (Vec3::X, 1.0));
+        for normal in [Vec3::new(1e20, 0.0, 0.0), Vec3::new(1e-30, 0.0, 0.0)] {
+            let generator = around_the_origin(normal, 8, 0);
+            generator.check().unwrap();
+            let rays = generator.rays(RayFormat::OriginDirection);
+            let directions = rays.chunks_exact(24).map(|ray| RayFormat::OriginDirection.decode(ray).direction);
+            assert!(directions.into_iter().all(|d| d.x > 0.0 && (d.length() - 1.0).abs() < 1e-6), "{normal}");
+        }
+        assert_eq!(unit(Vec3::ZERO), Vec3::ZERO);
+        assert_eq!(unit(Vec3::new(f32::INFINITY, 0.0, 0.0)), Vec3::ZERO);
+    }
+
+    #[test]
+    fn a_lidar_spins_about_up_from_forward_laid_on_the_plane_across_it() {
+        let lidar = Lidar {
+            origin: Vec3::ZERO,
+            forward: Vec3::new(1.0, 0.0, 1.0),
+            up: Vec3::Z,
+            elevations_degrees: vec![0.0],
+            steps: 4,
+            min_range: 0.0,
+            max_range: 1.0,
+            time: (0.0, 0.0),
+        };
+        let rays = Generator::Lidar(lidar).rays(RayFormat::OriginDirection);
+        let ray = |i: usize| RayFormat::OriginDirection.decode(&rays[i * 24..]).direction;
+        for (step, expected) in [Vec3A::X, Vec3A::Y, -Vec3A::X, -Vec3A::Y].into_iter().enumerate() {
+            assert!((ray(step) - expected).length() < 1e-6, "step {step}: {}", ray(step));
+        }
+    }
+
+    #[test]
+    fn camera_rays_of_an_image_as_wide_as_u32_allows_are_those_made_by_index() {
+        let widest = Camera { width: u32::MAX, height: 2, ..camera() };
+        let frame = Generator::Pinhole(widest, CENTRES).camera_frame().unwrap();
+        let (first, format) = (u64::from(u32::MAX) - 15, RayFormat::OriginDirection);
+        let mut made = vec![0; 32 * format.size()];
+        frame.fill(format, first, &mut made);
+        for (index, slot) in (first..).zip(made.chunks_exact(format.size())) {
+            let mut expected = vec![0; format.size()];
+            format.encode(&frame.ray(index), &mut expected);
+            assert_eq!(slot, expected, "ray {index}");
+        }
     }
 
     /// The bytes of generators whose rays take sines and tangents, as a CRC-32 each: a client and a server expand a

@@ -10,7 +10,7 @@
 use bytes::Bytes;
 use glam::{Vec3, Vec3A};
 
-use super::generator::{Generator, require};
+use super::generator::{Generator, require, unit};
 use crate::error::Result;
 use crate::format::{HitFormat, Ray, RayFormat};
 
@@ -92,8 +92,9 @@ impl Primary {
 }
 
 impl Secondary {
-    /// Checks the parts: packed primary rays whose times are numbers, a primary that is not itself secondary, one
-    /// `Full` hit record a primary ray, a finite light, a finite offset ≥ 0; INVALID_ARGUMENT naming the field.
+    /// Checks the parts: packed primary rays (at least one) whose times are numbers, a primary that is not itself
+    /// secondary, one `Full` hit record a primary ray, a finite light, a finite offset ≥ 0; INVALID_ARGUMENT naming
+    /// the field.
     pub fn check(&self) -> Result<()> {
         match &self.primary {
             Primary::Packed(format, bytes) => {
@@ -110,6 +111,7 @@ impl Secondary {
                 require(nan.is_none(), "generator.secondary.primary_rays", || {
                     format!("ray {} has time NaN; a ray's time must be a number", nan.unwrap_or(0))
                 })?;
+                require(!bytes.is_empty(), "generator.secondary.primary_rays", || "must hold at least one ray".into())?;
             }
             Primary::Generated(generator) => {
                 require(
@@ -164,7 +166,13 @@ impl Secondary {
         if !HitFormat::Full.read(hit, 0).is_hit() {
             return missed;
         }
-        let normal = Vec3A::new(f32_at(NORMAL_OFFSET), f32_at(NORMAL_OFFSET + 4), f32_at(NORMAL_OFFSET + 8));
+        // Made unit here: the records may be the caller's. One without a direction, or a hit at no finite t,
+        // makes a ray that hits nothing, as a miss does.
+        let normal = unit(Vec3::new(f32_at(NORMAL_OFFSET), f32_at(NORMAL_OFFSET + 4), f32_at(NORMAL_OFFSET + 8)));
+        if normal == Vec3::ZERO || !t.is_finite() {
+            return missed;
+        }
+        let normal = Vec3A::from(normal);
         // The normal on the side the primary ray came from.
         let facing = if normal.dot(primary.direction) > 0.0 { -normal } else { normal };
         let origin = primary.origin + primary.direction * t + facing * self.offset;
@@ -202,6 +210,11 @@ mod tests {
     /// Two primary rays down onto the plane y = 0 (a hit at t = 2 on a normal facing down, so the facing side is
     /// up; and a miss), packed with time and the secondary rays they make.
     fn secondary(bounce: Bounce) -> Vec<Ray> {
+        secondary_after(bounce, hit(2.0, Vec3::NEG_Y))
+    }
+
+    /// [`secondary`]'s rays with `first` as the first primary ray's hit record.
+    fn secondary_after(bounce: Bounce, first: Vec<u8>) -> Vec<Ray> {
         let down = Ray {
             origin: Vec3A::new(0.0, 2.0, 0.0),
             direction: Vec3A::new(1.0, -1.0, 0.0),
@@ -212,7 +225,7 @@ mod tests {
         let mut rays = vec![0u8; 2 * format.size()];
         format.encode(&down, &mut rays[..format.size()]);
         format.encode(&down, &mut rays[format.size()..]);
-        let hits = [hit(2.0, Vec3::NEG_Y), hit(-1.0, Vec3::ZERO)].concat();
+        let hits = [first, hit(-1.0, Vec3::ZERO)].concat();
         let secondary = Secondary {
             primary: Primary::Packed(format, Bytes::from(rays)),
             hits: Bytes::from(hits),
@@ -233,6 +246,16 @@ mod tests {
         assert!((reflected.direction - expected).length() < 1e-6, "{:?}", reflected.direction);
         assert_eq!((reflected.tmin, reflected.tmax, reflected.time), (0.0, f32::INFINITY, 0.5));
         assert_eq!(missed.direction, Vec3A::ZERO, "a miss makes a ray that hits nothing");
+    }
+
+    #[test]
+    fn the_callers_hit_records_are_made_unit_or_make_rays_that_hit_nothing() {
+        // A normal twice as long: the same rays.
+        assert_eq!(secondary_after(Bounce::Reflect, hit(2.0, Vec3::new(0.0, -2.0, 0.0))), secondary(Bounce::Reflect));
+        for (t, normal) in [(2.0, Vec3::ZERO), (2.0, Vec3::NAN), (f32::INFINITY, Vec3::NEG_Y)] {
+            let [made, _] = secondary_after(Bounce::Reflect, hit(t, normal)).try_into().unwrap();
+            assert_eq!(made.direction, Vec3A::ZERO, "t {t}, normal {normal}: hits nothing");
+        }
     }
 
     #[test]
@@ -281,6 +304,8 @@ mod tests {
         assert_eq!(refused(short), "generator.secondary.primary_hits");
         let ragged = Secondary { primary: Primary::Packed(format, Bytes::from(vec![0u8; 25])), ..base.clone() };
         assert_eq!(refused(ragged), "generator.secondary.primary_rays");
+        let none = Secondary { primary: Primary::Packed(format, Bytes::new()), hits: Bytes::new(), ..base.clone() };
+        assert_eq!(refused(none), "generator.secondary.primary_rays");
         let timed = RayFormat::Full;
         let mut rays = vec![0u8; 2 * timed.size()];
         timed.encode(&Ray { time: f32::NAN, ..Ray::default() }, &mut rays[timed.size()..]);

@@ -35,8 +35,13 @@ pub enum PointEncoding {
 }
 
 impl PointCloud {
-    /// Checks the step and origin of the integer encodings.
-    pub(super) fn check(&self) -> Result<()> {
+    /// Checks the step and origin of the integer encodings, and that a batch of `rays` has u32 ray indices where
+    /// they are asked for.
+    pub(super) fn check(&self, rays: u64) -> Result<()> {
+        if self.ray_indices && rays > 1 << 32 {
+            let rule = format!("the batch's {rays} rays have indices past u32's: at most 2^32 rays with them");
+            return Err(super::invalid("reduction.point_cloud.ray_indices", rule));
+        }
         if self.encoding != PointEncoding::Float32 {
             if !(self.step.is_finite() && self.step > 0.0) {
                 return Err(super::invalid(

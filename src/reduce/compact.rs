@@ -76,7 +76,9 @@ pub(super) fn encode(traced: &Query, t_far: f32, first_ray: u64, rays: &[u8], hi
         }
         let ray = traced.ray_format.decode(ray);
         let (lo, hi) = range(ray.tmin, ray.tmax, t_far);
-        let q = if hi > lo { ((hit.t - lo) / (hi - lo)).clamp(0.0, 1.0) * 65534.0 } else { 0.0 };
+        // In f64: hi − lo can pass f32's range (tmin −3e38, tmax 3e38).
+        let (t, lo, hi) = (f64::from(hit.t), f64::from(lo), f64::from(hi));
+        let q = if hi > lo { ((t - lo) / (hi - lo)).clamp(0.0, 1.0) * 65534.0 } else { 0.0 };
         bytes.extend_from_slice(&(q.round() as u16).to_le_bytes());
         if fields.prim {
             push_varint(&mut bytes, zigzag(hit.prim_id.wrapping_sub(prim) as i32));
@@ -120,7 +122,9 @@ pub fn decode_compact(query: &Query, t_far: f32, rays: &[u8], bytes: &[u8]) -> R
         }
         let ray = query.ray_format.decode(ray);
         let (lo, hi) = range(ray.tmin, ray.tmax, t_far);
-        let mut hit = Hit { t: if hi > lo { lo + f32::from(q) / 65534.0 * (hi - lo) } else { lo }, ..Hit::MISS };
+        let (wide_lo, wide_hi) = (f64::from(lo), f64::from(hi));
+        let t = if hi > lo { (wide_lo + f64::from(q) / 65534.0 * (wide_hi - wide_lo)) as f32 } else { lo };
+        let mut hit = Hit { t, ..Hit::MISS };
         if fields.prim {
             prim = prim.wrapping_add(unzigzag(read_varint(&mut take)?) as u32);
             hit.prim_id = prim;

@@ -79,9 +79,22 @@ impl Image {
             return Err(invalid("reduction.image.width", rule));
         }
         let quantized = self.encoding != PixelEncoding::Float32 && self.channel == ImageChannel::Depth;
-        if quantized && !(self.near.is_finite() && self.far.is_finite() && self.near < self.far) {
-            let rule = format!("near {} and far {} must be finite with near < far", self.near, self.far);
-            return Err(invalid("reduction.image.far", rule));
+        if quantized {
+            // far − near too: the depth is (t − near)/(far − near), in f32 on every device.
+            let rule =
+                || format!("near {} and far {} must be finite with near < far, far − near finite", self.near, self.far);
+            if !self.near.is_finite() {
+                return Err(invalid("reduction.image.near", rule()));
+            }
+            if !(self.far.is_finite() && self.near < self.far && (self.far - self.near).is_finite()) {
+                return Err(invalid("reduction.image.far", rule()));
+            }
+        }
+        if self.encoding == PixelEncoding::Png && rays == 0 {
+            return Err(invalid(
+                "reduction.image.encoding",
+                "a PNG has at least one row: the batch has no rays".into(),
+            ));
         }
         Ok(())
     }

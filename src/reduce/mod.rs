@@ -104,7 +104,9 @@ impl Reduction {
                 }
                 if !(t_min.is_finite() && t_max.is_finite() && t_min < t_max) {
                     let rule = format!("[{t_min}, {t_max}) must be finite and non-empty");
-                    return Err(invalid("reduction.histogram.t_max", rule));
+                    let field =
+                        if t_min.is_finite() { "reduction.histogram.t_max" } else { "reduction.histogram.t_min" };
+                    return Err(invalid(field, rule));
                 }
                 Ok(())
             }
@@ -119,7 +121,7 @@ impl Reduction {
                 }
                 check_groups("reduction.nearest.group", *group, rays)
             }
-            Reduction::PointCloud(cloud) => cloud.check(),
+            Reduction::PointCloud(cloud) => cloud.check(rays),
             Reduction::CompactHits { t_far } => {
                 needs_one_hit_a_ray()?;
                 compact::check(query, *t_far)
@@ -358,7 +360,7 @@ pub(super) fn nearest(format: HitFormat, hits: &[u8], rays: std::ops::Range<usiz
     let mut nearest = (rays.start, None);
     for index in rays {
         if let Some(t) = format.hit_t(hits, index)
-            && nearest.1.is_none_or(|nearest: f32| t.total_cmp(&nearest).is_lt())
+            && nearest.1.is_none_or(|nearest: f32| t < nearest)
         {
             nearest = (index, Some(t));
         }

@@ -101,6 +101,10 @@ fn nearest_per_group_keeps_the_first_of_the_nearest() {
     assert_eq!(HitFormat::TTriid.read(&reduced.bytes, 0).prim_id, 1);
     assert!(!HitFormat::TTriid.read(&reduced.bytes, 1).is_hit());
     assert_eq!(reduced.bytes.len(), 16);
+    // −0 and +0 are equal t: the first ray's hit.
+    let zeros = [hit(0.0, 1, 0, 0), hit(-0.0, 2, 0, 0)];
+    let reduced = reduce(&Reduction::NearestPerGroup { group: 2 }, HitFormat::TTriid, &zeros);
+    assert_eq!(HitFormat::TTriid.read(&reduced.bytes, 0).prim_id, 1);
 }
 
 #[test]
@@ -222,6 +226,12 @@ fn bad_numbers_name_their_field() {
         far: 1.0,
     };
     assert_eq!(field(Reduction::Image(image), &closest, 16), "reduction.image.far");
+    assert_eq!(field(Reduction::Image(Image { near: f32::NAN, ..image }), &closest, 16), "reduction.image.near");
+    let vast = Image { near: -3e38, far: 3e38, ..image };
+    assert_eq!(field(Reduction::Image(vast), &closest, 16), "reduction.image.far", "far − near past f32");
+    let png = Image { encoding: PixelEncoding::Png, far: 2.0, ..image };
+    assert_eq!(field(Reduction::Image(png), &closest, 0), "reduction.image.encoding", "a PNG of no rows");
+    assert!(Reduction::Image(Image { encoding: PixelEncoding::Float32, ..png }).check(&closest, 0).is_ok());
     assert_eq!(field(Reduction::Image(Image { far: 2.0, ..image }), &closest, 12), "reduction.image.width");
     assert_eq!(field(Reduction::Image(Image { width: 0, ..image }), &closest, 16), "reduction.image.width");
     assert_eq!(field(Reduction::Image(Image { far: 2.0, ..image }), &all, 16), "query.query");
@@ -233,11 +243,18 @@ fn bad_numbers_name_their_field() {
         field(Reduction::Histogram { bins: 1, t_min: 1.0, t_max: 1.0 }, &closest, 1),
         "reduction.histogram.t_max"
     );
+    assert_eq!(
+        field(Reduction::Histogram { bins: 1, t_min: f32::NAN, t_max: 1.0 }, &closest, 1),
+        "reduction.histogram.t_min"
+    );
     assert_eq!(field(Reduction::NearestPerGroup { group: 3 }, &closest, 10), "reduction.nearest.group");
     let bitmask = Query { hit_format: HitFormat::Bitmask, ..closest };
     assert_eq!(field(Reduction::NearestPerGroup { group: 1 }, &bitmask, 10), "query.hit_format");
     let cloud = PointCloud { encoding: PointEncoding::Int16, step: 0.0, origin: Vec3::ZERO, ray_indices: false };
     assert_eq!(field(Reduction::PointCloud(cloud), &closest, 1), "reduction.point_cloud.step");
+    let indexed = PointCloud { encoding: PointEncoding::Float32, ray_indices: true, ..cloud };
+    assert!(Reduction::PointCloud(indexed).check(&closest, 1 << 32).is_ok());
+    assert_eq!(field(Reduction::PointCloud(indexed), &closest, (1 << 32) + 1), "reduction.point_cloud.ray_indices");
     assert!(Reduction::Counts.check(&all, 7).is_ok());
 }
 
@@ -297,6 +314,18 @@ fn compact_hits_decode_to_the_hits_within_their_quantization() {
     let full = Query { hit_format: HitFormat::Full, ..query };
     assert!(compact.check(&full, 1).is_err(), "FULL has no compact form");
     assert!(Reduction::CompactHits { t_far: f32::INFINITY }.check(&query, 1).is_err());
+
+    // A range wider than f32 holds (tmin −3e38 to t_far 3e38): t still within the bound.
+    let wide = Ray { tmin: -3e38, tmax: f32::INFINITY, ..along_x([0.0; 3]) };
+    let mut wide_ray = vec![0u8; query.ray_format.size()];
+    query.ray_format.encode(&wide, &mut wide_ray);
+    let wide_hit = [hit(1e38, 1, 0, 0)];
+    let (_, _, wide_hit_bytes) = batch(query.hit_format, &[wide], &wide_hit);
+    let wide_compact = Reduction::CompactHits { t_far: 3e38 };
+    let encoded = wide_compact.reduce_all(&query, &wide_ray, &wide_hit_bytes, &[]).unwrap().bytes;
+    let decoded = decode_compact(&query, 3e38, &wide_ray, &encoded).unwrap();
+    let bound = (3e38f64 + 3e38) / 131068.0;
+    assert!((f64::from(decoded[0].t) - 1e38).abs() <= bound * 1.01, "{}", decoded[0].t);
 }
 
 #[test]

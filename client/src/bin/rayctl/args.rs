@@ -321,7 +321,7 @@ pub struct AroundPointsArgs {
     pub min_distance: f32,
     /// How far the rays reach (their tmax; default unlimited).
     #[arg(long, value_name = "D", default_value_t = f32::INFINITY, requires = "sphere_points",
-          value_parser = parse_distance)]
+          value_parser = parse_reach)]
     pub max_distance: f32,
 }
 
@@ -426,12 +426,19 @@ fn parse_span(text: &str) -> Result<(f32, f32), String> {
     }
 }
 
-/// A distance in world units: a number ≥ 0, or `inf`. A number past f32's range is refused, not taken as `inf`.
+/// A distance in world units: a finite number ≥ 0. A number past f32's range is refused, not taken as `inf`.
 fn parse_distance(text: &str) -> Result<f32, String> {
-    let spelled_infinite = text.trim().trim_start_matches('+').to_ascii_lowercase().starts_with("inf");
     match text.trim().parse::<f32>() {
-        Ok(d) if d >= 0.0 && (d.is_finite() || spelled_infinite) => Ok(d),
-        _ => Err(format!("expected a distance: a number >= 0 of at most {:e}, or inf; got {text:?}", f32::MAX)),
+        Ok(d) if d >= 0.0 && d.is_finite() => Ok(d),
+        _ => Err(format!("expected a distance: a number >= 0 of at most {:e}; got {text:?}", f32::MAX)),
+    }
+}
+
+/// How far rays reach: a distance ([`parse_distance`]), or `inf` for no limit.
+fn parse_reach(text: &str) -> Result<f32, String> {
+    match text.trim().trim_start_matches('+').to_ascii_lowercase().as_str() {
+        "inf" | "infinity" => Ok(f32::INFINITY),
+        _ => parse_distance(text).map_err(|e| format!("{e} (or inf)")),
     }
 }
 
@@ -500,7 +507,7 @@ pub struct LidarScanArgs {
     #[arg(long, value_name = "R", default_value_t = 0.0, value_parser = parse_distance)]
     pub min_range: f32,
     /// Farthest range (the rays' tmax; default unlimited).
-    #[arg(long, value_name = "R", default_value_t = f32::INFINITY, value_parser = parse_distance)]
+    #[arg(long, value_name = "R", default_value_t = f32::INFINITY, value_parser = parse_reach)]
     pub max_range: f32,
     /// Motion scenes: the revolution fires at time T, or over [T0, T1] (step s of N at T0 + (T1 − T0)·s/N).
     #[arg(long, value_name = "T|T0,T1", default_value = "0", value_parser = parse_times, allow_hyphen_values = true)]
@@ -811,6 +818,8 @@ mod tests {
         refused(traced(&["--lidar", "--max-range=-1"]), invalid);
         refused(traced(&["--point", "0,0,0", "--max-distance", "NaN"]), invalid);
         refused(traced(&["--rays", "r", "--reflect", "--primary-hits", "h", "--offset", "3e38e"]), invalid);
+        refused(traced(&["--rays", "r", "--reflect", "--primary-hits", "h", "--offset", "inf"]), invalid);
+        refused(traced(&["--lidar", "--min-range", "inf"]), invalid);
         let Cli { command: Command::Trace(scan), .. } = traced(&["--lidar", "--max-range", "inf"]).unwrap() else {
             panic!("not trace")
         };
