@@ -62,7 +62,7 @@ helm template rayd deploy/kubernetes/rayd --namespace default --set-json "$tenan
   --set envoy.enabled=true,serviceMonitor.enabled=true,gpu.enabled=true,limits.max_total_accel_bytes=34359738368 \
   > "$rendered/full.yaml"
 helm template rayd deploy/kubernetes/rayd --set tls.secretName=rayd-tls,tls.clientCa=true,persistence.enabled=false \
-  --set existingSecret=rayd-config,podDisruptionBudget.enabled=false > "$rendered/tls.yaml"
+  --set existingSecret=rayd-config,podDisruptionBudget.enabled=false,envoy.enabled=true > "$rendered/tls.yaml"
 # Rendered output: the same rules less line length (Envoy's type URLs are long once indented).
 yamllint -d '{extends: deploy/.yamllint.yaml, rules: {line-length: disable}}' "$rendered"
 
@@ -70,6 +70,13 @@ echo "-- rendered objects, compose schema, Envoy configurations"
 python3 deploy/check_static.py "$tools/compose_spec.json" "$rendered"
 envoy --mode validate -c deploy/envoy/envoy.yaml --log-level error
 envoy --mode validate -c "$rendered/envoy-from-chart.yaml" --log-level error
+# Under TLS Envoy reads the Secret's files where the chart mounts them: made for the check.
+tls_dir="$rendered/tls" && mkdir -p "$tls_dir"
+openssl req -x509 -newkey rsa:2048 -nodes -days 1 -subj /CN=localhost -keyout "$tls_dir/tls.key" \
+  -out "$tls_dir/tls.crt" 2>/dev/null
+cp "$tls_dir/tls.crt" "$tls_dir/ca.crt"
+sed "s|/etc/rayd/tls/|$tls_dir/|" "$rendered/envoy-from-chart-tls.yaml" > "$rendered/envoy-tls-here.yaml"
+envoy --mode validate -c "$rendered/envoy-tls-here.yaml" --log-level error
 
 echo "-- the Dockerfile's build command (dev profile) and run commands"
 PROFILE=dev deploy/docker/build.sh target/deploy-check/bin

@@ -1,6 +1,7 @@
 """deploy/check.sh's static checks of what YAML parsing alone cannot see: the compose file against the compose
 schema, the files it mounts, and the Helm chart's rendered objects (kinds, probes, GPU request, rayd.toml).
-Usage: check_static.py COMPOSE_SCHEMA RENDERED_DIR (writes RENDERED_DIR/envoy-from-chart.yaml)."""
+Usage: check_static.py COMPOSE_SCHEMA RENDERED_DIR (writes RENDERED_DIR/envoy-from-chart.yaml and
+envoy-from-chart-tls.yaml)."""
 
 import json
 import sys
@@ -70,7 +71,22 @@ def chart(rendered):
 
     tls = objects(rendered / "tls.yaml")
     assert ("Secret", "rayd") not in tls and ("PodDisruptionBudget", "rayd") not in tls
-    assert container(tls)["readinessProbe"]["exec"]["command"][:2] == ["rayctl", "health"]
+    # The TLS files' paths reach rayd through the ConfigMap, whoever made the Secret with rayd.toml.
+    env = tls[("ConfigMap", "rayd")]["data"]
+    files = {key: env.get(f"RAYD_TLS_{key}") for key in ("CERT", "KEY", "CLIENT_CA")}
+    assert files == {"CERT": "/etc/rayd/tls/tls.crt", "KEY": "/etc/rayd/tls/tls.key", "CLIENT_CA": "/etc/rayd/tls/ca.crt"}
+    # Under mutual TLS the probes present a client certificate.
+    for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
+        command = container(tls)[probe]["exec"]["command"]
+        assert command[:2] == ["rayctl", "health"] and "--client-cert" in command and "--client-key" in command, probe
+    envoy = yaml.safe_load(tls[("ConfigMap", "rayd-envoy")]["data"]["envoy.yaml"])
+    assert envoy["static_resources"]["clusters"][0]["transport_socket"]["name"] == "envoy.transport_sockets.tls"
+    assert envoy["static_resources"]["listeners"][0]["filter_chains"][0]["transport_socket"]["typed_config"][
+        "require_client_certificate"
+    ]
+    envoy_mounts = tls[("Deployment", "rayd-envoy")]["spec"]["template"]["spec"]["containers"][0]["volumeMounts"]
+    assert {"name": "tls", "mountPath": "/etc/rayd/tls", "readOnly": True} in envoy_mounts
+    (rendered / "envoy-from-chart-tls.yaml").write_text(tls[("ConfigMap", "rayd-envoy")]["data"]["envoy.yaml"])
     assert "volumeClaimTemplates" not in tls[("StatefulSet", "rayd")]["spec"]
     volumes = tls[("StatefulSet", "rayd")]["spec"]["template"]["spec"]["volumes"]
     assert {"name": "config", "secret": {"secretName": "rayd-config"}} in volumes
