@@ -373,8 +373,8 @@ impl Context {
     /// Updates (refits) a geometry accel built with `ALLOW_UPDATE` with new vertex positions of the same structure
     /// (per input: triangle count, indices, masks, flags, offset, as many motion keys; FAILED_PRECONDITION naming
     /// the difference otherwise). The accel keeps its handle; traces already running finish on the old version,
-    /// and accels that place it refuse traces until they are updated too. Triangles degenerate at the build stay
-    /// unhittable.
+    /// and accels that place it refuse traces until they are updated too. A triangle without area now is never
+    /// hit, and one built without area is hit once an update gives it some.
     pub fn update_accel(&self, accel: &Accel, inputs: &[BuildInput<'_>]) -> Result<Arc<Accel>> {
         let built = accel.retained.structure.as_ref().ok_or_else(|| {
             Error::FailedPrecondition("the accel is not a geometry accel built with ALLOW_UPDATE".into())

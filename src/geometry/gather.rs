@@ -56,9 +56,20 @@ impl GatheredTriangles {
 /// differences without rounding for all but extreme exponents), is the zero vector. Such triangles are legal
 /// and never hit.
 pub fn is_degenerate(corners: &[Vec3; 3]) -> bool {
-    let [a, b, c] = corners.map(|v| v.as_dvec3());
-    let cross: DVec3 = (b - a).cross(c - a);
-    cross == DVec3::ZERO
+    has_no_area(corners.map(|v| v.as_dvec3()))
+}
+
+/// Whether a moving triangle, its corners at each key in `keys`, has zero area at every time: at every key and
+/// halfway between neighbouring keys (exact in f64), so that its edge cross product, a quadratic in time along each
+/// segment, is zero all along it. For one key, [`is_degenerate`].
+pub fn is_degenerate_throughout(keys: &[[Vec3; 3]]) -> bool {
+    let halfway = |pair: &[[Vec3; 3]]| std::array::from_fn(|c| (pair[0][c].as_dvec3() + pair[1][c].as_dvec3()) * 0.5);
+    keys.iter().all(is_degenerate) && keys.windows(2).all(|pair| has_no_area(halfway(pair)))
+}
+
+/// Whether the triangle `[a, b, c]` has a zero edge cross product.
+fn has_no_area([a, b, c]: [DVec3; 3]) -> bool {
+    (b - a).cross(c - a) == DVec3::ZERO
 }
 
 /// Validates `inputs` for a build with `keys` motion keys and returns each input's triangle count. Errors name the
@@ -336,5 +347,12 @@ mod tests {
         assert!(is_degenerate(&[Vec3::ZERO, Vec3::X, Vec3::X * 2.0]));
         assert!(is_degenerate(&[Vec3::ONE; 3]));
         assert!(!is_degenerate(&[Vec3::ZERO, Vec3::X, Vec3::new(2.0, 1e-30, 0.0)]));
+        // Moving: lines at both keys, with or without area in between.
+        let flat = [Vec3::ZERO, Vec3::X, Vec3::X * 2.0];
+        let (still, swapped) = ([flat, flat], [flat, [Vec3::ZERO, Vec3::X * 2.0, Vec3::X]]);
+        assert!(is_degenerate_throughout(&still) && is_degenerate_throughout(&swapped));
+        let opening = [flat, [Vec3::ZERO, Vec3::Y * 2.0, Vec3::Y]];
+        assert!(opening.iter().all(is_degenerate) && !is_degenerate_throughout(&opening), "a triangle in between");
+        assert!(!is_degenerate_throughout(&[flat, [Vec3::ZERO, Vec3::X, Vec3::Y]]));
     }
 }

@@ -8,7 +8,7 @@ pub mod motion;
 mod structure;
 mod transform;
 
-pub use gather::{GatheredTriangles, TriangleRef, gather, is_degenerate, triangle_counts};
+pub use gather::{GatheredTriangles, TriangleRef, gather, is_degenerate, is_degenerate_throughout, triangle_counts};
 pub use input::{BuildInput, GeometryFlags, IndexBuffer, IndexFormat, TriangleInput, VertexBuffer, VertexFormat};
 pub use instance::{Instance, InstanceFlags, MAX_GRAPH_DEPTH, PlacedInstance, Placement, check_depth, place};
 pub use instance_records::{

@@ -9,7 +9,9 @@
 //!
 //! 1. array of nodes, 32 bytes each: `f32` min.xyz, `u32` index, `f32` max.xyz, `u32` count (as [`Node`]);
 //! 2. array of node key boxes (motion only: nodes × keys, node-major), 24 bytes each: `f32` min.xyz, max.xyz;
-//! 3. array of triangle corners, slots × keys (slot-major), 36 bytes each: 3 × `f32` xyz;
+//! 3. array of triangle corners, slots × keys (slot-major), 36 bytes each: 3 × `f32` xyz (as given: a triangle held
+//!    collapsed has its first key's own corners, where random vertex access kept them, and is collapsed again when
+//!    read, as a build collapses it);
 //! 4. array of triangle ids, one a slot, 8 bytes each: `u32` geometry id, `u32` primitive id;
 //! 5. optional array of `u32` masks, one a slot;
 //! 6. array of `u32` geometry flags, one a geometry;
@@ -276,7 +278,7 @@ impl TriangleBvh {
     /// Appends the payload of a geometry accel.
     fn encode(&self, out: &mut Vec<u8>) {
         put_nodes(out, &self.nodes, self.node_keys.as_ref());
-        put_array(out, &self.corners);
+        put_array(out, &self.corners_as_given());
         put_array(out, &self.refs);
         put_optional(out, self.masks.as_ref(), |out, masks| put_array(out, masks));
         put_array(out, &self.geometry_flags.iter().map(|f| f.bits()).collect::<Vec<_>>());
@@ -339,7 +341,9 @@ impl TriangleBvh {
             depth,
             update_order,
             random_access,
+            collapsed: Vec::new(),
         };
+        bvh.collapse_degenerate();
         bvh.collapse_wide();
         Ok(bvh)
     }

@@ -12,7 +12,9 @@ use super::wide::{WideBvh, WideNode, WideTree};
 use crate::accel::{BuildFlags, BuildOptions, MemoryUsage};
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, EMPTY, TimeSpan, time_average, union};
-use crate::geometry::{GatheredTriangles, GeometryFlags, MotionOptions, TriangleRef, is_degenerate};
+use crate::geometry::{
+    GatheredTriangles, GeometryFlags, MotionOptions, TriangleRef, is_degenerate, is_degenerate_throughout,
+};
 
 /// The build's working memory per triangle: measured at 243–257 bytes on the shared meshes and random soups for
 /// every preset (`tests/memory_usage.rs` prints it); 384 leaves a 1.5× margin.
@@ -36,9 +38,14 @@ pub struct TriangleBvh {
     /// The motion options (static without motion).
     pub(crate) motion: MotionOptions,
     /// Triangle corners, `motion.keys` sets a triangle (slot `i`'s at key `k` at `i·keys + k`): first those of the
-    /// leaves, in leaf order, then the degenerate ones (never traversed, kept for random vertex access). With
-    /// motion no triangle is left out: one degenerate at every key may have area in between.
+    /// leaves, in leaf order, then the degenerate ones of a static accel without `ALLOW_UPDATE` (never traversed,
+    /// kept for random vertex access). An updatable or moving accel leaves no triangle out (an update may give one
+    /// area; one degenerate at every key may have area in between); those of its leaves without area at any time
+    /// are held collapsed, every corner at the first ([`TriangleBvh::collapse_degenerate`]), which no test hits.
     pub(crate) corners: Vec<[Vec3; 3]>,
+    /// The first key's corners of the triangles held collapsed, by slot, where random vertex access needs them
+    /// (not those whose corners are all one point already).
+    pub(super) collapsed: Vec<(u32, [Vec3; 3])>,
     /// Ids of each triangle, parallel to `corners`.
     pub(crate) refs: Vec<TriangleRef>,
     /// Prime masks parallel to `corners`, when the build had masks.
@@ -84,8 +91,11 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     let wide = wide_nodes * (size_of::<WideNode>() as u64 + 1) + blocks + slot_ids + moving;
     let per_triangle =
         (keys as usize * size_of::<[Vec3; 3]>() + size_of::<TriangleRef>()) as u64 + if masks { 4 } else { 0 };
-    let random_access = if options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS) { 4 * n + 8 * g } else { 0 };
+    let random = options.flags.contains(BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS);
     let updatable = options.flags.contains(BuildFlags::ALLOW_UPDATE);
+    // With the first key's corners of every triangle held collapsed, at most.
+    let collapsed = if holds_all(updatable, options.motion) { n * size_of::<(u32, [Vec3; 3])>() as u64 } else { 0 };
+    let random_access = if random { 4 * n + 8 * g + collapsed } else { 0 };
     let update_order = if updatable { 4 * n } else { 0 };
     let output_bytes = FIXED_BYTES + nodes + wide + n * per_triangle + 4 * g + random_access + update_order;
     let temp_bytes = BUILD_TEMP_FIXED_BYTES + n * BUILD_TEMP_BYTES_PER_TRIANGLE;
@@ -106,10 +116,10 @@ impl TriangleBvh {
         go_on: &dyn Fn() -> bool,
     ) -> Result<TriangleBvh> {
         let phase = || if go_on() { Ok(()) } else { Err(Error::Stopped) };
-        let moving = !options.motion.is_static();
+        let all_placed = holds_all(options.flags.contains(BuildFlags::ALLOW_UPDATE), options.motion);
         let hittable: Vec<u32> = (0..triangles.len() as u32)
             .into_par_iter()
-            .filter(|&i| moving || !is_degenerate(&triangles.vertices[i as usize]))
+            .filter(|&i| all_placed || !is_degenerate(&triangles.vertices[i as usize]))
             .collect();
         let boxes: Vec<Aabb> = hittable
             .par_iter()
@@ -124,7 +134,8 @@ impl TriangleBvh {
         drop(boxes);
         phase()?;
         let mut bvh = Self::lay_out(&triangles, layout, options);
-        if moving {
+        bvh.collapse_degenerate();
+        if !options.motion.is_static() {
             bvh.node_keys = Some(NodeKeys::new(bvh.nodes.len(), triangles.keys));
             bvh.refit_nodes();
         }
@@ -148,6 +159,47 @@ impl TriangleBvh {
     /// Stack entries a traversal needs.
     pub(super) fn stack_size(&self) -> usize {
         (self.depth + 1).max(self.wide.stack_size()).max(self.moving.stack_size())
+    }
+
+    /// Holds collapsed, in `corners`, the triangles of an accel that leaves none out ([`holds_all`]) which have no
+    /// area at any time, keeping their first key's corners for random vertex access, and makes `bounds` again.
+    /// A collapsed triangle's edge functions are exactly 0 for every ray, on every path and device, so it is never
+    /// hit; left as it was, a triangle of distinct collinear corners can be, its sheared corners rounded off the line.
+    pub(super) fn collapse_degenerate(&mut self) {
+        if !holds_all(self.update_order.is_some(), self.motion) {
+            return;
+        }
+        let keep = self.random_access.is_some();
+        self.collapsed = self
+            .corners
+            .par_chunks_mut(self.motion.keys as usize)
+            .enumerate()
+            .filter_map(|(slot, keys)| {
+                let first = keys[0];
+                let point = keys.iter().all(|[a, b, c]| a == b && b == c);
+                if point || !is_degenerate_throughout(keys) {
+                    return None;
+                }
+                keys.iter_mut().for_each(|key| *key = [key[0]; 3]);
+                keep.then_some((slot as u32, first))
+            })
+            .collect();
+        // Counted as allocated: no spare room.
+        self.collapsed.shrink_to_fit();
+        self.bounds = corner_bounds(&self.corners);
+    }
+
+    /// The corners with the first key's own corners of the triangles held collapsed, where they were kept: what
+    /// a blob stores, from which [`TriangleBvh::collapse_degenerate`] makes the same accel again.
+    pub(super) fn corners_as_given(&self) -> std::borrow::Cow<'_, [[Vec3; 3]]> {
+        if self.collapsed.is_empty() {
+            return std::borrow::Cow::Borrowed(&self.corners);
+        }
+        let mut corners = self.corners.clone();
+        for &(slot, first) in &self.collapsed {
+            corners[slot as usize * self.motion.keys as usize] = first;
+        }
+        std::borrow::Cow::Owned(corners)
     }
 
     /// Recomputes the nodes' boxes (and key boxes) from the corners.
@@ -203,11 +255,13 @@ impl TriangleBvh {
             depth,
             random_access,
             update_order,
+            collapsed: Vec::new(),
         }
     }
 
     /// A copy with the positions (and masks) of `triangles`, of the same structure, and its boxes refitted;
-    /// `None` unless it was built with `ALLOW_UPDATE`. Triangles degenerate at the build stay out of the leaves.
+    /// `None` unless it was built with `ALLOW_UPDATE`. Its leaves hold every triangle: one without area, at the build
+    /// or now, is held collapsed ([`TriangleBvh::collapse_degenerate`]) until an update gives it area.
     pub fn refit(&self, triangles: &GatheredTriangles) -> Option<TriangleBvh> {
         let order = self.update_order.as_ref()?;
         let mut next = self.clone();
@@ -215,6 +269,7 @@ impl TriangleBvh {
         for (slot, &i) in order.iter().enumerate() {
             next.corners[slot * keys..(slot + 1) * keys].copy_from_slice(triangles.corners(i as usize));
         }
+        next.collapse_degenerate();
         if let (Some(masks), Some(new)) = (next.masks.as_mut(), triangles.masks.as_ref()) {
             for (slot, &i) in order.iter().enumerate() {
                 masks[slot] = new[i as usize];
@@ -225,7 +280,6 @@ impl TriangleBvh {
             None => next.wide = self.wide.refit(&next.nodes, &next.corners, next.masks.as_deref()),
             Some(keys) => next.moving = MovingWideTree::collapse(&next.nodes, keys),
         }
-        next.bounds = corner_bounds(&next.corners);
         Some(next)
     }
 
@@ -245,6 +299,7 @@ impl TriangleBvh {
             + bytes(&self.geometry_flags, 4)
             + random_access
             + update_order
+            + bytes(&self.collapsed, size_of::<(u32, [Vec3; 3])>())
     }
 
     /// A box around every triangle at every time of `span`.
@@ -261,8 +316,18 @@ impl TriangleBvh {
         let &(first, offset) = access.geometries.get(geom_id as usize)?;
         let end = access.geometries.get(geom_id as usize + 1).map_or(access.slots.len() as u32, |g| g.0);
         let index = first.checked_add(prim_id.checked_sub(offset)?)?;
-        (index < end).then(|| self.corners[access.slots[index as usize] as usize * self.motion.keys as usize])
+        let slot = *access.slots.get(index as usize).filter(|_| index < end)?;
+        match self.collapsed.binary_search_by_key(&slot, |&(collapsed, _)| collapsed) {
+            Ok(at) => Some(self.collapsed[at].1),
+            Err(_) => Some(self.corners[slot as usize * self.motion.keys as usize]),
+        }
     }
+}
+
+/// Whether an accel places every triangle in its leaves, degenerate ones too: an `updatable` one (an update may give
+/// them area) or one with `motion` (a triangle degenerate at every key may have area in between).
+fn holds_all(updatable: bool, motion: MotionOptions) -> bool {
+    updatable || !motion.is_static()
 }
 
 /// `items` in the order of `order` (indices into them), gathered by rayon's threads into a vector of exactly their

@@ -15,7 +15,7 @@
 //!   One zero box when no BVH moves.
 //! - `corners`: triangle slot `s`'s corners at key `k` from vector `corner_base + ((s − base)·keys + k)·3` of its
 //!   object, 16 bytes a corner: `v0.xyz 0 | v1.xyz 0 | v2.xyz 0` (leaf order, then the never-traversed degenerate
-//!   triangles, as on the host).
+//!   triangles; those held collapsed, as on the host).
 //! - `prims`: per triangle slot, 16 bytes ([`Prim`]): `0 geom_id u32 | 4 prim_id u32 | 8 mask u32 (0 without
 //!   masks) | 12 geometry_flags u32`.
 //! - `graph`: words. An object (a BVH or transform, [`OBJECT_WORDS`] words at its offset): `0 kind` ([`ObjectKind`])
