@@ -15,13 +15,13 @@ use crate::format::{HitFormat, RayFlags, RayFormat};
 /// What a trace reports for each ray.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum QueryKind {
-    /// The closest hit in `[tmin, tmax]`; of hits at the same `t`, the one with the lowest (geometry id, primitive
-    /// id). One hit record a ray; no counts.
+    /// The closest hit in `[tmin, tmax]`; of hits at the same `t`, the one with the lowest (instance path, geometry
+    /// id, primitive id). One hit record a ray; no counts.
     Closest,
     /// Any hit in `[tmin, tmax]` (Prime's `ANY`): traversal stops at the first one found, so `t` and the ids are
     /// those of some hit, not necessarily the closest. One hit record a ray; no counts.
     Any,
-    /// Every hit in `[tmin, tmax]`, sorted by `t` then (geometry id, primitive id): `max_hits_per_ray` hit records
+    /// Every hit in `[tmin, tmax]`, sorted by `t` then (instance path, geometry id, primitive id): `max_hits_per_ray` hit records
     /// a ray (unused ones are misses), and a count a ray: the number of hits found, which is larger than
     /// `max_hits_per_ray` exactly when hits were left out (overflow).
     All,
