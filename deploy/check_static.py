@@ -74,7 +74,8 @@ def chart(rendered):
     # The TLS files' paths reach rayd through the ConfigMap, whoever made the Secret with rayd.toml.
     env = tls[("ConfigMap", "rayd")]["data"]
     files = {key: env.get(f"RAYD_TLS_{key}") for key in ("CERT", "KEY", "CLIENT_CA")}
-    assert files == {"CERT": "/etc/rayd/tls/tls.crt", "KEY": "/etc/rayd/tls/tls.key", "CLIENT_CA": "/etc/rayd/tls/ca.crt"}
+    tls_files = {"CERT": "tls.crt", "KEY": "tls.key", "CLIENT_CA": "ca.crt"}
+    assert files == {key: f"/etc/rayd/tls/{name}" for key, name in tls_files.items()}, files
     # Under mutual TLS the probes present a client certificate.
     for probe in ("startupProbe", "readinessProbe", "livenessProbe"):
         command = container(tls)[probe]["exec"]["command"]

@@ -15,7 +15,7 @@ use rayd_engine::{Accel, Context, Device};
 /// watertight test alone accepts the ray below.
 const COLLINEAR: [Vec3; 3] = [Vec3::new(1.5, -2.0, -1.0), Vec3::new(2.5, -2.5, -2.0), Vec3::new(3.5, -3.0, -3.0)];
 
-/// A ray through the middle point of [`COLLINEAR`] at t = 4, in a direction not along its line.
+/// A ray through a point of [`COLLINEAR`]'s segment at t = 4, in a direction not along its line.
 fn through_the_line(time: f32) -> Ray {
     Ray {
         origin: Vec3::new(-1.5, -5.25, -1.5).into(),
@@ -115,5 +115,47 @@ fn a_moving_triangle_without_area_throughout_is_missed() {
         // A line at its first key that opens into a triangle: hit once it has area.
         let opening = moving(COLLINEAR, crossed());
         assert!(closest(&context, &opening, &through_the_line(1.0)).is_hit(), "{name}: opened");
+    }
+}
+
+#[test]
+fn many_triangles_held_collapsed_keep_their_own_vertices_through_a_save_and_a_load() {
+    // Two inputs, the second's primitive ids from 100, each: collinear, with area, collinear elsewhere, all zeros.
+    let shifted = COLLINEAR.map(|c| c + Vec3::splat(7.0));
+    let corners = [COLLINEAR, crossed(), shifted, [Vec3::ZERO; 3]];
+    let vertices: Vec<u8> = corners.iter().flat_map(|&c| packed(c)).collect();
+    let indices: Vec<u8> = (0..12u32).flat_map(u32::to_le_bytes).collect();
+    let input = || TriangleInput::indexed(&vertices, &indices);
+    let motion_vertices = [vertices.as_slice()];
+    let moving = MotionOptions { keys: 2, time_begin: 0.0, time_end: 1.0, ..MotionOptions::STATIC };
+    let random = BuildFlags::ALLOW_RANDOM_VERTEX_ACCESS;
+    for device in devices() {
+        let context = Context::new(device);
+        let name = context.device().info().id.clone();
+        let builds = [
+            (BuildOptions::new(random | BuildFlags::ALLOW_UPDATE), input()),
+            (
+                BuildOptions { flags: random, motion: moving },
+                TriangleInput { motion_vertices: &motion_vertices, ..input() },
+            ),
+        ];
+        for (options, first) in builds {
+            let second = TriangleInput { primitive_index_offset: 100, ..first };
+            let built =
+                context.build_accel(&[BuildInput::Triangles(first), BuildInput::Triangles(second)], &options).unwrap();
+            let blob = context.serialize_accel(&built, &[]).unwrap();
+            let loaded = context.deserialize_accel(&blob, &[]).unwrap().pop().unwrap();
+            for accel in [&built, &loaded] {
+                for (geom_id, offset) in [(0, 0), (1, 100)] {
+                    for (index, expected) in corners.iter().enumerate() {
+                        let found = accel.triangle_vertices(geom_id, offset + index as u32).unwrap();
+                        assert_eq!(&found, expected, "{name}, {options:?}: geometry {geom_id}, triangle {index}");
+                    }
+                }
+                // Only the triangles with area are hit: the first input's, of the two at the same t.
+                let hit = closest(&context, accel, &through_the_line(0.0));
+                assert_eq!((hit.t, hit.geom_id, hit.prim_id), (4.0, 0, 1), "{name}, {options:?}");
+            }
+        }
     }
 }

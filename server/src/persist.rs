@@ -86,8 +86,10 @@ impl Store {
     /// crash left behind (one that cannot be removed is left, with a warning).
     pub fn open(data_dir: &Path, tenant: &str) -> io::Result<Store> {
         let root = data_dir.join("tenants").join(tenant);
-        let store =
-            Store { buffers: root.join("buffers"), accels: root.join("accels"), next_temporary: AtomicU64::new(0) };
+        // Numbered from the time, so that a temporary file an earlier run could not remove is not reused.
+        let since_epoch = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
+        let next_temporary = AtomicU64::new(since_epoch.as_nanos() as u64);
+        let store = Store { buffers: root.join("buffers"), accels: root.join("accels"), next_temporary };
         for dir in [&store.buffers, &store.accels] {
             fs::create_dir_all(dir)?;
             for entry in fs::read_dir(dir)? {

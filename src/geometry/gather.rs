@@ -60,8 +60,9 @@ pub fn is_degenerate(corners: &[Vec3; 3]) -> bool {
 }
 
 /// Whether a moving triangle, its corners at each key in `keys`, has zero area at every time: at every key and
-/// halfway between neighbouring keys (exact in f64), so that its edge cross product, a quadratic in time along each
-/// segment, is zero all along it. For one key, [`is_degenerate`].
+/// halfway between neighbouring keys (in f64, exact as in [`is_degenerate`] for all but extreme exponents), so that
+/// its edge cross product, a quadratic in time along each segment, is zero all along it. For one key,
+/// [`is_degenerate`].
 pub fn is_degenerate_throughout(keys: &[[Vec3; 3]]) -> bool {
     let halfway = |pair: &[[Vec3; 3]]| std::array::from_fn(|c| (pair[0][c].as_dvec3() + pair[1][c].as_dvec3()) * 0.5);
     keys.iter().all(is_degenerate) && keys.windows(2).all(|pair| has_no_area(halfway(pair)))

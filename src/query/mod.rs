@@ -21,8 +21,8 @@ pub enum QueryKind {
     /// Any hit in `[tmin, tmax]` (Prime's `ANY`): traversal stops at the first one found, so `t` and the ids are
     /// those of some hit, not necessarily the closest. One hit record a ray; no counts.
     Any,
-    /// Every hit in `[tmin, tmax]`, sorted by `t` then (instance path, geometry id, primitive id): `max_hits_per_ray` hit records
-    /// a ray (unused ones are misses), and a count a ray: the number of hits found, which is larger than
+    /// Every hit in `[tmin, tmax]`, sorted by `t` then (instance path, geometry id, primitive id): `max_hits_per_ray`
+    /// hit records a ray (unused ones are misses), and a count a ray: the number of hits found, which is larger than
     /// `max_hits_per_ray` exactly when hits were left out (overflow).
     All,
     /// The number of crossings in `[tmin, tmax]` (for inside/outside tests: see the edge rule in

@@ -150,12 +150,12 @@ fn frame(direction: Vec3, up: Vec3) -> (Vec3, Vec3, Vec3) {
 }
 
 /// The unit vector along `v` (glam's `normalize`), or zero where `v` has no direction (zero, or not finite). A
-/// finite vector too long or too short for its squared length in `f32` (1e20, 1e-30) is scaled first.
+/// finite vector too long or too short for its squared length to be a normal `f32` (1e20, 1e-22) is scaled first.
 pub(super) fn unit(v: Vec3) -> Vec3 {
-    match v.normalize_or_zero() {
-        Vec3::ZERO if v.is_finite() && v != Vec3::ZERO => (v / v.abs().max_element()).normalize_or_zero(),
-        unit => unit,
+    if v.length_squared().is_normal() || !v.is_finite() {
+        return v.normalize_or_zero();
     }
+    (v / v.abs().max_element()).normalize_or_zero()
 }
 
 impl PixelSampling {
@@ -532,7 +532,8 @@ impl CameraFrame {
                             if sample == samples {
                                 (sample, x) = (0, x + 1);
                                 if x == self.width {
-                                    (x, y) = (0, y + 1);
+                                    // Past the last row only in lanes past the end, whose rays are dropped.
+                                    (x, y) = (0, y.wrapping_add(1));
                                 }
                             }
                         }
@@ -655,10 +656,15 @@ pub struct LidarChannel {
 impl LidarFrame<'_> {
     /// The frame of a checked lidar.
     pub fn new(lidar: &Lidar) -> LidarFrame<'_> {
-        // `up` is the axis; azimuth 0 is `forward` laid on the plane across it (unchanged where it lies there
-        // already, so that such lidars make the bytes they always made).
-        let axis = unit(lidar.up);
-        let (forward, right, up) = frame(lidar.forward - axis * lidar.forward.dot(axis), lidar.up);
+        // `up` is the axis; azimuth 0 is `forward` laid on the plane across it. One at right angles to it already
+        // takes the camera's frame, as before forward could be tilted, so that such lidars make the bytes they made.
+        let (forward, right, up) = if lidar.forward.dot(lidar.up) == 0.0 {
+            frame(lidar.forward, lidar.up)
+        } else {
+            let axis = unit(lidar.up);
+            let right = unit(lidar.forward.cross(axis));
+            (axis.cross(right), right, axis)
+        };
         LidarFrame { lidar, forward, left: -right, up }
     }
 
@@ -1109,13 +1115,14 @@ mod tests {
         let far_apart = Camera { eye: Vec3::new(-1e20, 0.0, 0.0), target: Vec3::new(1e20, 0.0, 0.0), ..camera() };
         let frame = Generator::Pinhole(far_apart, CENTRES).camera_frame().unwrap();
         assert_eq!((frame.forward, frame.right.length()), (Vec3::X, 1.0));
-        for normal in [Vec3::new(1e20, 0.0, 0.0), Vec3::new(1e-30, 0.0, 0.0)] {
+        for normal in [1e20, 1e-22, 1e-30].map(|x| Vec3::new(x, 0.0, 0.0)) {
             let generator = around_the_origin(normal, 8, 0);
             generator.check().unwrap();
             let rays = generator.rays(RayFormat::OriginDirection);
             let directions = rays.chunks_exact(24).map(|ray| RayFormat::OriginDirection.decode(ray).direction);
             assert!(directions.into_iter().all(|d| d.x > 0.0 && (d.length() - 1.0).abs() < 1e-6), "{normal}");
         }
+        assert_eq!((unit(Vec3::new(1e-22, 0.0, 0.0)), unit(Vec3::new(0.0, -3e19, 0.0))), (Vec3::X, Vec3::NEG_Y));
         assert_eq!(unit(Vec3::ZERO), Vec3::ZERO);
         assert_eq!(unit(Vec3::new(f32::INFINITY, 0.0, 0.0)), Vec3::ZERO);
     }
@@ -1132,10 +1139,22 @@ mod tests {
             max_range: 1.0,
             time: (0.0, 0.0),
         };
-        let rays = Generator::Lidar(lidar).rays(RayFormat::OriginDirection);
+        let rays = Generator::Lidar(lidar.clone()).rays(RayFormat::OriginDirection);
         let ray = |i: usize| RayFormat::OriginDirection.decode(&rays[i * 24..]).direction;
         for (step, expected) in [Vec3A::X, Vec3A::Y, -Vec3A::X, -Vec3A::Y].into_iter().enumerate() {
             assert!((ray(step) - expected).length() < 1e-6, "step {step}: {}", ray(step));
+        }
+        // Off every axis, and nearly along up: still level with the plane across up, a quarter turn apart.
+        for (forward, up) in [((8.999999, -3.0, 12.0), (3.0, -1.0, 4.0)), ((1.0, 1.0000001, 0.0), (1.0, 1.0, 0.0))] {
+            let (forward, up) = (Vec3::from(forward), Vec3::from(up));
+            let tilted = Lidar { forward, up, steps: 4, ..lidar.clone() };
+            let rays = Generator::Lidar(tilted).rays(RayFormat::OriginDirection);
+            let ray = |i: usize| Vec3::from(RayFormat::OriginDirection.decode(&rays[i * 24..]).direction);
+            for step in 0..4 {
+                assert!(ray(step).dot(up.normalize()).abs() < 1e-6 && (ray(step).length() - 1.0).abs() < 1e-6);
+                assert!(ray(step).dot(ray((step + 1) % 4)).abs() < 1e-6, "{forward} {up}: step {step}");
+            }
+            assert!(ray(0).dot(forward) > 0.0, "azimuth 0 towards forward");
         }
     }
 

@@ -78,7 +78,8 @@ fn default_share() -> u32 {
 /// The largest share.
 pub const MAX_SHARE: u32 = 1000;
 
-/// Checks the tenants: valid names, unique without case; shares in range; at least one key each; keys long enough and unique across tenants.
+/// Checks the tenants: valid names, unique without case; shares in range; at least one key each; keys long enough
+/// and unique across tenants.
 pub fn check(tenants: &[TenantConfig]) -> Result<(), String> {
     let mut keys: Vec<&str> = Vec::new();
     for (i, tenant) in tenants.iter().enumerate() {

@@ -101,7 +101,9 @@ pub(super) fn memory_bounds(triangles: usize, geometries: usize, masks: bool, op
     let temp_bytes = BUILD_TEMP_FIXED_BYTES + n * BUILD_TEMP_BYTES_PER_TRIANGLE;
     // An update gathers the new triangles (corners, ids, masks) and writes a refitted copy of the accel.
     let gathered = n * (per_triangle + 4) + 4 * g;
-    let temp_update_bytes = if updatable { output_bytes + gathered + FIXED_BYTES } else { 0 };
+    // The copy it refits starts with the old version's collapsed corners too, until it collapses its own.
+    let copied_collapsed = if random { collapsed } else { 0 };
+    let temp_update_bytes = if updatable { output_bytes + gathered + copied_collapsed + FIXED_BYTES } else { 0 };
     MemoryUsage { output_bytes, temp_bytes, temp_update_bytes }
 }
 

@@ -287,12 +287,10 @@ async fn accel_bounds(client: &Client, accel: &str) -> Result<(glam::Vec3, glam:
     bounds(&info).ok_or_else(|| Error::InvalidArgument(format!("accel {accel}: no triangles to frame")))
 }
 
-/// The camera of `view`, or one framing the accel's box; NOT_FOUND without the accel.
+/// The camera of `view`, or one framing the accel's box.
 async fn camera(client: &Client, accel: &str, view: Option<View>, width: u32, height: u32) -> Result<Camera> {
     Ok(match view {
         Some(view) => {
-            // Looked up all the same: the rays are for it, and a name that is wrong is better said now.
-            client.accel(accel).await?;
             Camera { eye: view.eye, target: view.target, up: view.up, fov_y_degrees: view.fov_y_degrees, width, height }
         }
         None => {
@@ -454,6 +452,10 @@ async fn rays(client: &Client, args: &RaysArgs) -> Result<Output> {
             (count, format!("--random {count}"), RayMaker::Random { lo, hi, seed: args.seed })
         }
         None => {
+            if args.camera.is_some() {
+                // Not needed for its box, but the rays are for it: a name that is wrong is better said now.
+                client.accel(&args.accel).await?;
+            }
             let camera = camera(client, &args.accel, args.camera, args.width, args.height).await?;
             let count = args.width as usize * args.height as usize;
             (count, format!("--width {} --height {}", args.width, args.height), RayMaker::Camera(camera))
