@@ -144,7 +144,8 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
     // A client that vanishes in the middle of a trace: its connection is cut once a piece has been traced.
     let (channel, connection) = daemon.cuttable_channel().await;
     let mut rpc = RaydClient::new(channel).max_decoding_message_size(usize::MAX);
-    let calling = tokio::spawn(async move { rpc.trace_batch(request(rays)).await });
+    let rays_again = rays.clone();
+    let calling = tokio::spawn(async move { rpc.trace_batch(request(rays_again)).await });
     pieces_when(&daemon, "the second trace starting", |t, _| t > traced).await;
     connection.shutdown(std::net::Shutdown::Both).unwrap();
     assert!(calling.await.unwrap().is_err(), "the cut call fails");
@@ -152,6 +153,23 @@ async fn a_passed_deadline_or_a_vanished_client_stops_a_long_trace_at_its_next_p
     assert_eq!(skipped_now, 2, "one piece skipped, and the trace ended there");
     assert!(traced_now - traced < total, "the trace stopped at the cut: {} pieces", traced_now - traced);
     println!("cut: {} pieces traced, then one skipped", traced_now - traced);
+
+    // The same for a TraceStream's chunk, which traced on for nobody once its call had ended.
+    let (channel, connection) = daemon.cuttable_channel().await;
+    let mut rpc = RaydClient::new(channel).max_decoding_message_size(usize::MAX);
+    let (sending, requests) = mpsc::channel(2);
+    let query = rayd_client::convert::trace_query("pile", &closest());
+    for part in [proto::trace_stream_request::Part::Query(query), proto::trace_stream_request::Part::Rays(rays)] {
+        sending.send(proto::TraceStreamRequest { part: Some(part) }).await.unwrap();
+    }
+    let streaming = tokio::spawn(async move { rpc.trace_stream(ReceiverStream::new(requests)).await.map(drop) });
+    pieces_when(&daemon, "the stream's chunk starting", |t, _| t > traced_now).await;
+    connection.shutdown(std::net::Shutdown::Both).unwrap();
+    drop(sending);
+    let _ = streaming.await;
+    let (traced_last, skipped_last) = pieces_when(&daemon, "after the stream's cut", |_, s| s >= 3).await;
+    assert_eq!(skipped_last, 3, "one piece skipped, and the chunk's trace ended there");
+    assert!(traced_last - traced_now < total, "the chunk stopped at the cut: {} pieces", traced_last - traced_now);
 
     let usage = client.server_info().await.unwrap().usage.unwrap();
     assert_eq!(usage.operations, 0, "nothing is left running");

@@ -189,6 +189,8 @@ async fn a_failed_operation_reports_on_its_handle_and_at_synchronize_and_the_str
     let Some(Err(Error::Operation { operation: 1, status })) = missing.result() else { panic!("the handle fails") };
     assert!(status.message().contains("\"missing\""), "{status:?}");
     assert_eq!(on_failed.result().unwrap().unwrap_err().code(), Code::FailedPrecondition);
+    assert_eq!(on_failed.ran_unix_ns(), Some((0, 0)), "refused before it started: no times");
+    assert!(missing.ran_unix_ns().is_some_and(|(started, _)| started > 0), "failed once started: its times");
     assert_as_engine(&fine, &closest(), &rays, "the operation after the failures ran");
     stream.record_event().await.unwrap();
     stream.synchronize().await.expect("failures are reported once");

@@ -243,7 +243,12 @@ pub async fn stream(
         let mut first_ray = 0u64;
         while let Some(chunk) = chunks.recv().await {
             let reply = match chunk {
-                Ok(rays) => answer_chunk(&tenant, accel.as_ref(), query, rays, first_ray).await.map_err(Status::from),
+                // Given up when the call ends (the client went, or its deadline passed), as a TraceBatch is: the
+                // chunk's trace is abandoned, not run for nobody after the call's stream place is free.
+                Ok(rays) => tokio::select! {
+                    reply = answer_chunk(&tenant, accel.as_ref(), query, rays, first_ray) => reply.map_err(Status::from),
+                    () = answers.closed() => break,
+                },
                 Err(status) => Err(status),
             };
             let reply = reply.map_err(|refused| in_chunk(refused, first_ray));

@@ -14,8 +14,8 @@ use crate::error::{ServiceError, ServiceResult};
 /// The state behind a tenant's quotas.
 #[derive(Debug)]
 pub struct Quotas {
-    /// Operations running now.
-    running: AtomicU32,
+    /// Operations running now (shared with their guards, which may outlive a borrow: a trace's is held by its job).
+    running: Arc<AtomicU32>,
     /// Rays that may still be traced, and when that was computed.
     rays: Mutex<(f64, Instant)>,
     /// Bytes of buffers being made: declared by the uploads in progress, or written by traces into buffers.
@@ -90,12 +90,12 @@ impl Pending {
 
 /// One running operation; it ends when dropped.
 #[derive(Debug)]
-pub struct Running<'a> {
+pub struct Running {
     /// The counter it holds one of.
-    running: &'a AtomicU32,
+    running: Arc<AtomicU32>,
 }
 
-impl Drop for Running<'_> {
+impl Drop for Running {
     fn drop(&mut self) {
         self.running.fetch_sub(1, Ordering::AcqRel);
     }
@@ -105,7 +105,7 @@ impl Quotas {
     /// No operation running; a full second of rays allowed.
     pub fn new(rays_per_second: u64) -> Quotas {
         Quotas {
-            running: AtomicU32::new(0),
+            running: Arc::default(),
             rays: Mutex::new((rays_per_second as f64, Instant::now())),
             buffer_bytes_coming: Pending::default(),
             buffers_coming: Pending::default(),
@@ -120,9 +120,9 @@ impl Quotas {
     }
 
     /// Starts an operation, unless `limit` are running (RESOURCE_EXHAUSTED naming `max_concurrent_operations`).
-    pub fn start(&self, limit: u32) -> ServiceResult<Running<'_>> {
+    pub fn start(&self, limit: u32) -> ServiceResult<Running> {
         let now = self.running.fetch_add(1, Ordering::AcqRel) + 1;
-        let running = Running { running: &self.running };
+        let running = Running { running: Arc::clone(&self.running) };
         ServiceError::check_limit(
             || "operations running at once".into(),
             u64::from(now),

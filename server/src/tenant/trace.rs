@@ -15,6 +15,7 @@ use rayd_engine::raygen::Generator;
 use rayd_engine::reduce::{Partial, Reduction};
 use tokio::sync::oneshot;
 
+use super::quota::Running;
 use super::{AccelEntry, Tenant, TraceResult};
 use crate::error::{ServiceError, ServiceResult};
 use crate::schedule::{Pace, PieceSizer, Scheduler};
@@ -87,8 +88,7 @@ impl Tenant {
             None => query.output_layout(rays.byte_len(ray_size))?,
             Some(_) => OutputLayout { rays: rays.count(ray_size) as usize, hits: 0, counts: 0 },
         };
-        let _running = self.quotas.start(self.limits.max_concurrent_operations)?;
-        self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
+        let operation = self.quotas.start(self.limits.max_concurrent_operations)?;
         if let Rays::Packed(bytes) = &rays {
             // Checked on the whole batch, so that the error names the ray by its index in the batch.
             query.check_times(bytes)?;
@@ -98,6 +98,8 @@ impl Tenant {
             name: accel.device.clone(),
             field: String::new(),
         })?;
+        // Taken last: a request refused for another reason spends none of the allowance.
+        self.quotas.take_rays(layout.rays as u64, self.limits.max_rays_per_second)?;
         // Rays that reduce together stay in one piece; pieces of hits are whole bytes of a bitmask.
         let granule = reduction.as_ref().map_or(HIT_GRANULE, |r| r.group_rays());
         let generated = matches!(rays, Rays::Generated(..));
@@ -116,7 +118,7 @@ impl Tenant {
             reduction,
             rays,
             abandoned: AtomicBool::new(false),
-            progress: Mutex::new(Progress::new(sizer, untaken)),
+            progress: Mutex::new(Progress::new(sizer, untaken, operation)),
         });
         // A trace of one piece runs here if the device lends a slot; an empty one always does (it has no work).
         let slot = (layout.rays <= first_piece).then(|| scheduler.try_slot()).flatten();
@@ -194,6 +196,10 @@ struct Progress {
     started: Option<Instant>,
     /// Where the answer goes (none while a caller traces the whole batch itself).
     reply: Option<oneshot::Sender<ServiceResult<Finished>>>,
+    /// The trace's place among the tenant's operations running at once, let go as the answer is sent, or else with
+    /// the job: pieces of an abandoned trace still queued hold its rays and buffers until they are skipped, so it
+    /// counts as running until then (a tenant cannot pile up abandoned traces beyond `max_concurrent_operations`).
+    operation: Option<Running>,
 }
 
 /// A piece taken: the rays it traces and where its output goes.
@@ -316,14 +322,17 @@ impl TraceJob {
                 None if !all_taken => Err(abandoned()),
                 None => progress.finish(self),
             };
+            // Let go before the caller hears, so that its next operation finds the place free.
+            progress.operation = None;
             let _ = reply.send(answer);
         }
     }
 }
 
 impl Progress {
-    /// Nothing taken yet: pieces sized by `sizer` take their shares of `untaken` (the reply's hit and counts buffers).
-    fn new(sizer: PieceSizer, untaken: (BytesMut, BytesMut)) -> Progress {
+    /// Nothing taken yet: pieces sized by `sizer` take their shares of `untaken` (the reply's hit and counts buffers);
+    /// the trace holds `operation` until it answers.
+    fn new(sizer: PieceSizer, untaken: (BytesMut, BytesMut), operation: Running) -> Progress {
         Progress {
             outputs: Vec::new(),
             taken: 0,
@@ -336,6 +345,7 @@ impl Progress {
             failure: None,
             started: None,
             reply: None,
+            operation: Some(operation),
         }
     }
 
@@ -497,12 +507,12 @@ mod tests {
     fn tenant_with_a_pile(piece_ms: u32) -> (Arc<Tenant>, AccelEntry) {
         let devices = [Device::cpu()];
         let config = SchedulerConfig { workers: 2, piece_ms, ..SchedulerConfig::default() };
-        tenant_with_a_pile_on("t", Arc::new(Schedulers::new(&devices, &config)))
+        tenant_with_a_pile_on("t", Limits::default(), Arc::new(Schedulers::new(&devices, &config)))
     }
 
-    /// Tenant `name` on a CPU served by `schedulers`, with the pile built as `pile`.
-    fn tenant_with_a_pile_on(name: &str, schedulers: Arc<Schedulers>) -> (Arc<Tenant>, AccelEntry) {
-        let tenant = Arc::new(Tenant::new(name, Limits::default(), 1, &[Device::cpu()], schedulers));
+    /// Tenant `name` with `limits` on a CPU served by `schedulers`, with the pile built as `pile`.
+    fn tenant_with_a_pile_on(name: &str, limits: Limits, schedulers: Arc<Schedulers>) -> (Arc<Tenant>, AccelEntry) {
+        let tenant = Arc::new(Tenant::new(name, limits, 1, &[Device::cpu()], schedulers));
         let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
         let indices: Vec<u8> = [0u32, 1, 2].repeat(PILE).iter().flat_map(|i| i.to_le_bytes()).collect();
         let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
@@ -603,6 +613,41 @@ mod tests {
     }
 
     #[test]
+    fn traces_given_up_while_queued_hold_their_places_until_their_pieces_are_skipped() {
+        // A long trace's pieces go ahead of the tenant's later traces; those given up meanwhile keep their rays in
+        // their queued pieces, so they count against max_concurrent_operations until the pieces are skipped.
+        let devices = [Device::cpu()];
+        let config = SchedulerConfig { workers: 2, piece_ms: 1, ..SchedulerConfig::default() };
+        let limits = Limits { max_concurrent_operations: 4, ..Limits::default() };
+        let (tenant, entry) = tenant_with_a_pile_on("t", limits, Arc::new(Schedulers::new(&devices, &config)));
+        let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+        let operations = || tenant.usage().operations;
+        std::thread::scope(|scope| {
+            let long = scope.spawn(|| trace(&tenant, &entry, &query, Rays::Packed(rays_at(16384, |_| 0.25)), None));
+            while entry.pace.get(QueryKind::Closest).is_none() {
+                std::thread::yield_now();
+            }
+            let runtime = tokio::runtime::Builder::new_current_thread().enable_time().build().unwrap();
+            runtime.block_on(async {
+                for _ in 0..3 {
+                    let given_up = tenant.trace(&entry, &query, Rays::Packed(rays(64)), None);
+                    assert!(tokio::time::timeout(Duration::from_millis(1), given_up).await.is_err(), "still queued");
+                }
+                assert_eq!(operations(), 4, "the long trace and the three given up");
+                let refused = tenant.trace(&entry, &query, Rays::Packed(rays(64)), None).await.unwrap_err();
+                assert!(refused.to_string().contains("max_concurrent_operations = 4"), "{refused}");
+            });
+            assert_eq!(long.join().unwrap().stats.rays, 16384);
+        });
+        // Their pieces are skipped once the long trace's are done: a bound against hanging, not a measurement.
+        let since = Instant::now();
+        while operations() > 0 {
+            assert!(since.elapsed() < Duration::from_secs(60), "{} operations still held", operations());
+            std::thread::yield_now();
+        }
+    }
+
+    #[test]
     fn an_empty_batch_is_answered_at_once() {
         let (tenant, entry) = tenant_with_a_pile(10);
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
@@ -617,8 +662,8 @@ mod tests {
         let devices = [Device::cpu()];
         let config = SchedulerConfig { workers: 2, piece_ms: 1, ..SchedulerConfig::default() };
         let schedulers = Arc::new(Schedulers::new(&devices, &config));
-        let (costly, costly_pile) = tenant_with_a_pile_on("costly", Arc::clone(&schedulers));
-        let (cheap, cheap_pile) = tenant_with_a_pile_on("cheap", schedulers);
+        let (costly, costly_pile) = tenant_with_a_pile_on("costly", Limits::default(), Arc::clone(&schedulers));
+        let (cheap, cheap_pile) = tenant_with_a_pile_on("cheap", Limits::default(), schedulers);
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
         let (costly_rays, missing) = (rays_at(2048, |_| 0.25), rays_at(1024, |_| 5.0));
         let (costly_done, cheap_traced) = (AtomicBool::new(false), std::sync::atomic::AtomicU64::new(0));

@@ -90,13 +90,16 @@ impl Executor {
     async fn answer(&mut self, id: u64, mut op: Op, queue: &mut mpsc::Receiver<Queued>) -> Vec<pb::StreamResponse> {
         let producer = Producer::of(&op);
         let name = op_name(&op);
-        let started = unix_ns();
         let mut responses = Vec::new();
-        let result = match self.products.resolve(id, &mut op) {
-            Ok(()) => self.execute(id, op, queue, &mut responses).await,
-            Err(error) => Err(error),
+        // An operation refused before it starts (it uses what a failed operation did not make) has no times.
+        let (result, started, finished) = match self.products.resolve(id, &mut op) {
+            Ok(()) => {
+                let started = unix_ns();
+                let result = self.execute(id, op, queue, &mut responses).await;
+                (result, started, unix_ns())
+            }
+            Err(error) => (Err(error), 0, 0),
         };
-        let finished = unix_ns();
         self.products.record(id, producer, &result);
         self.slot.finished(id);
         let (status, outcome) = match result {
