@@ -224,8 +224,11 @@ async fn every_call_answers_by_key_role_and_tenant() {
     let next = client(&daemon, Some(ACME_WRITE_NEXT)).await;
     let write = codes(&next, "tri", &buffer.id, "acme1").await;
     assert_eq!(write, vec![Code::Ok; CALLS], "a write key may do everything on its tenant's objects");
+    // Builds until the limit: each one kept, or refused by it (acme may hold some accels already).
     for name in ["a", "b", "c"] {
-        let _ = acme.build_mesh(name, &triangle, "", BuildFlags::empty()).await;
+        if let Err(error) = acme.build_mesh(name, &triangle, "", BuildFlags::empty()).await {
+            assert!(error.code() == Code::ResourceExhausted && error.to_string().contains("max_accels = 3"), "{error}");
+        }
     }
     let error = acme.build_mesh("d", &triangle, "", BuildFlags::empty()).await.unwrap_err();
     assert_eq!(error.code(), Code::ResourceExhausted, "{error}");

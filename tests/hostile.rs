@@ -154,8 +154,9 @@ fn hostile_rays_hit_nothing_or_follow_the_range_rule() {
 }
 
 #[test]
-fn a_pile_of_copies_of_one_triangle_or_a_row_of_them_builds_in_n_log_n_and_traces_by_the_tie_rule() {
-    // Quadratic before the obvhs patch (vendor/obvhs/PATCHED.md): 20,000 copies took 12 s, these would take hours.
+fn a_pile_of_copies_of_one_triangle_or_a_row_of_them_builds_and_traces_by_the_tie_rule() {
+    // Quadratic before the obvhs patch (vendor/obvhs/PATCHED.md): 20,000 copies took 12 s, these would take hours,
+    // far past CI's limit. The build's time itself is benchmarked, not asserted here (`cargo bench --bench build`).
     let copies = 200_000;
     let context = Context::new(Device::cpu());
     let pile: Vec<[f32; 3]> = (0..copies).flat_map(|_| triangle(1.0)).collect();

@@ -728,6 +728,28 @@ mod tests {
         let mut total = most;
         add_stats(&mut total, &most);
         assert_eq!(total, most);
+        // Below the top, each field is summed.
+        let few = |n| proto::TraceStats {
+            rays: n,
+            rays_hit: n + 1,
+            nodes_visited: n + 2,
+            triangle_tests: n + 3,
+            trace_ns: n + 4,
+            device_ns: n + 5,
+        };
+        let mut total = few(2);
+        add_stats(&mut total, &few(3));
+        assert_eq!(
+            total,
+            proto::TraceStats {
+                rays: 5,
+                rays_hit: 7,
+                nodes_visited: 9,
+                triangle_tests: 11,
+                trace_ns: 13,
+                device_ns: 15
+            }
+        );
     }
 
     #[test]

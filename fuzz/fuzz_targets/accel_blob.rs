@@ -8,7 +8,7 @@
 use std::sync::OnceLock;
 
 use libfuzzer_sys::fuzz_target;
-use rayd_engine::{Context, Device};
+use rayd_engine::{Context, Device, ErrorKind};
 
 fuzz_target!(|data: &[u8]| {
     static CONTEXT: OnceLock<Context> = OnceLock::new();
@@ -17,12 +17,19 @@ fuzz_target!(|data: &[u8]| {
     blob.extend_from_slice(data);
     let crc = crc32fast::hash(&blob[12..]);
     blob[8..12].copy_from_slice(&crc.to_le_bytes());
-    let _ = rayd_engine::serialize::blob_summary(&blob);
-    if let Ok(accels) = context.deserialize_accel(&blob, &[]) {
-        let root = accels.last().expect("a loaded blob has a root");
-        context.serialize_accel(root, &[]).expect("what was loaded serializes again");
-        for accel in accels.iter().rev() {
-            let _ = context.destroy_accel(accel.handle());
+    // The contract's kinds: a damaged blob, or one of another version or layout.
+    let contract = |kind| matches!(kind, ErrorKind::InvalidArgument | ErrorKind::FailedPrecondition);
+    if let Err(refused) = rayd_engine::serialize::blob_summary(&blob) {
+        assert!(contract(refused.kind()), "its summary: {refused}");
+    }
+    match context.deserialize_accel(&blob, &[]) {
+        Ok(accels) => {
+            let root = accels.last().expect("a loaded blob has a root");
+            context.serialize_accel(root, &[]).expect("what was loaded serializes again");
+            for accel in accels.iter().rev() {
+                let _ = context.destroy_accel(accel.handle());
+            }
         }
+        Err(refused) => assert!(contract(refused.kind()), "{refused}"),
     }
 });

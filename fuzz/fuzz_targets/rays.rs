@@ -35,12 +35,20 @@ fuzz_target!(|data: &[u8]| {
     let hit_format = HitFormat::ALL[(pick as usize / 8) % HitFormat::ALL.len()];
     let kind = QueryKind::ALL[(pick as usize / 64) % QueryKind::ALL.len()];
     let query = Query { kind, max_hits_per_ray: 4, ..Query::closest(ray_format, hit_format) };
-    let Ok(layout) = query.output_layout(rays.len()) else { return };
+    let whole = rays.len().is_multiple_of(ray_format.size());
+    let Ok(layout) = query.output_layout(rays.len()) else {
+        assert!(!whole, "whole records are refused: {} bytes of {}", rays.len(), ray_format.name());
+        return;
+    };
     let (mut hits, mut counts) = (vec![0u8; layout.hits], vec![0u8; layout.counts]);
-    let traced = query
-        .check_times(rays)
-        .and_then(|()| context.trace(accel, &query, rays, TraceOutput { hits: &mut hits, counts: &mut counts }));
-    if traced.is_ok() && hit_format != HitFormat::Bitmask {
+    if query.check_times(rays).is_err() {
+        return;
+    }
+    let traced = context.trace(accel, &query, rays, TraceOutput { hits: &mut hits, counts: &mut counts });
+    if let Err(refused) = traced {
+        panic!("whole records without a NaN time are refused: {refused}");
+    }
+    if hit_format != HitFormat::Bitmask {
         let per_ray = query.records_per_ray();
         for record in 0..layout.rays * per_ray {
             let hit = hit_format.read(&hits, record);

@@ -189,8 +189,9 @@ impl Daemon {
         body.to_string()
     }
 
-    /// The value of the Prometheus sample `name` whose labels include every one of `labels` (`key="value"`) on
-    /// the admin endpoint's `/metrics`, or `None` while there is no such series (a counter never incremented).
+    /// The sum of the Prometheus samples `name` whose labels include every one of `labels` (`key="value"`) on
+    /// the admin endpoint's `/metrics` ([`sample`]), or `None` while there is no such series (a counter never
+    /// incremented).
     pub fn metric(&self, name: &str, labels: &[&str]) -> Option<f64> {
         sample(&self.admin_get("/metrics"), name, labels)
     }
@@ -255,12 +256,14 @@ fn parse_listening(line: &str) -> Option<(SocketAddr, SocketAddr)> {
     Some((grpc.strip_prefix("grpc=")?.parse().ok()?, admin.strip_prefix("admin=")?.parse().ok()?))
 }
 
-/// The value of the Prometheus sample `name` whose labels include every one of `labels` (`key="value"`).
+/// The sum of the Prometheus samples `name` whose labels include every one of `labels` (`key="value"`): of a counter
+/// with other labels besides (`code`, `device`), every series; none where no series matches.
 pub fn sample(metrics: &str, name: &str, labels: &[&str]) -> Option<f64> {
-    metrics.lines().find_map(|line| {
+    let values = metrics.lines().filter_map(|line| {
         let (series, value) = line.rsplit_once(' ')?;
         let (series_name, series_labels) = series.split_once('{').unwrap_or((series, ""));
         let matches = series_name == name && labels.iter().all(|label| series_labels.contains(label));
-        matches.then(|| value.parse().expect("a numeric sample"))
-    })
+        matches.then(|| value.parse::<f64>().expect("a numeric sample"))
+    });
+    values.fold(None, |sum, value| Some(sum.unwrap_or(0.0) + value))
 }
