@@ -44,7 +44,7 @@ use crate::backend::Shape;
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::Bounds;
-use crate::geometry::{GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
+use crate::geometry::{GatheredTriangles, GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
 use crate::serialize::wire::{Reader, Wire, f32_at, invalid, put, put_array, put_optional, u32_at};
 
 /// The version of this layout: bump it whenever the layout or the structures it encodes change.
@@ -238,6 +238,29 @@ fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
     Ok(depth as usize)
 }
 
+/// The triangles of an accel's slots (`corners`, `refs`, `masks`, `keys` corners a slot) in the order of its build
+/// input, which `order` gives (a checked permutation: the input index of each slot).
+fn in_input_order(
+    order: &[u32],
+    keys: usize,
+    corners: &[[Vec3; 3]],
+    refs: &[TriangleRef],
+    masks: Option<&[u32]>,
+    geometry_flags: Vec<GeometryFlags>,
+) -> GatheredTriangles {
+    let mut vertices = vec![[Vec3::ZERO; 3]; corners.len()];
+    let (mut input_refs, mut input_masks) = (refs.to_vec(), masks.map(<[u32]>::to_vec));
+    for (slot, &input) in order.iter().enumerate() {
+        let input = input as usize;
+        vertices[input * keys..(input + 1) * keys].copy_from_slice(&corners[slot * keys..(slot + 1) * keys]);
+        input_refs[input] = refs[slot];
+        if let (Some(input_masks), Some(masks)) = (input_masks.as_mut(), masks) {
+            input_masks[input] = masks[slot];
+        }
+    }
+    GatheredTriangles { keys, vertices, refs: input_refs, masks: input_masks, geometry_flags }
+}
+
 /// Checks that `order` (the input index of each of `slots` slots) is a permutation of `0..slots`.
 fn check_update_order(order: &[u32], slots: usize) -> Result<()> {
     if order.len() != slots {
@@ -326,6 +349,14 @@ impl TriangleBvh {
         check_presence(&update_order, options, BuildFlags::ALLOW_UPDATE, "update order")?;
         if let Some(order) = &update_order {
             check_update_order(order, slots)?;
+        }
+        let placed: usize = nodes.iter().filter(|node| node.count > 0).map(|node| node.count as usize).sum();
+        if let Some(order) = update_order.as_ref().filter(|_| placed < slots) {
+            // Written by a rayd that left an updatable accel's degenerate triangles out of its leaves (before
+            // 2026-12-07): laid out again, as a build of its triangles now would be, so that an update can give them
+            // area.
+            let triangles = in_input_order(order, keys, &corners, &refs, masks.as_deref(), geometry_flags);
+            return TriangleBvh::build(triangles, options, &|| true);
         }
         let mut bvh = TriangleBvh {
             nodes,
