@@ -239,6 +239,28 @@ impl Drop for Abandon {
     }
 }
 
+/// Answers the caller with an internal error when a piece's task panics outside its trace (a bug in recording or
+/// joining the pieces: [`TraceJob::trace_piece_timed`] catches the engine's own): the caller's future holds the job
+/// and so the reply's sender, and would otherwise wait for an answer that never comes, its operation's place taken.
+struct AnswerOnPanic<'a>(&'a TraceJob);
+
+impl Drop for AnswerOnPanic<'_> {
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            return;
+        }
+        let job = self.0;
+        job.abandoned.store(true, Ordering::Release);
+        // The panic may have left the lock poisoned; the reply and the place are all that is taken from it.
+        let mut progress = job.progress.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        progress.operation = None;
+        if let Some(reply) = progress.reply.take() {
+            let what = format!("the server's bookkeeping of a trace on device {:?} panicked (a bug)", job.device);
+            let _ = reply.send(Err(ServiceError::Internal(what)));
+        }
+    }
+}
+
 impl TraceJob {
     /// Queues the job's next piece, estimated to take `estimate` (the fair queue charges the tenant the time it
     /// takes; the piece takes its rays when it starts).
@@ -250,6 +272,8 @@ impl TraceJob {
     /// Takes the next piece, queues the one after it, traces it, and answers when it was the last; takes none when
     /// no rays are left or the job was abandoned (and answers when nothing else runs).
     fn run_next(self: &Arc<Self>) {
+        // Declared first, so dropped last: after any lock a panic below leaves held.
+        let _answer_on_panic = AnswerOnPanic(self);
         let mut progress = self.progress.lock().expect("not poisoned");
         let Some((piece, after)) = progress.take_piece(self) else {
             if progress.taken < self.rays.byte_len(self.query.ray_format.size()) {
@@ -645,6 +669,42 @@ mod tests {
             assert!(since.elapsed() < Duration::from_secs(60), "{} operations still held", operations());
             std::thread::yield_now();
         }
+    }
+
+    #[test]
+    fn a_panic_outside_the_engine_answers_the_caller_and_lets_its_place_go() {
+        let (tenant, entry) = tenant_with_a_pile(10);
+        let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
+        let scheduler = tenant.schedulers.get(DEFAULT_DEVICE).unwrap();
+        let sizer = PieceSizer::new(scheduler.piece_limits(false, false), HIT_GRANULE, None);
+        let operation = tenant.quotas.start(1).unwrap();
+        let job = TraceJob {
+            tenant: Arc::clone(&tenant),
+            accel: Arc::clone(&entry.accel),
+            pace: Arc::clone(&entry.pace),
+            device: DEFAULT_DEVICE.into(),
+            order: scheduler.arrival(),
+            query,
+            reduction: None,
+            rays: Rays::Packed(rays(64)),
+            abandoned: AtomicBool::new(false),
+            progress: Mutex::new(Progress::new(sizer, (BytesMut::new(), BytesMut::new()), operation)),
+        };
+        let (reply, mut answer) = oneshot::channel();
+        job.progress.lock().unwrap().reply = Some(reply);
+        let panicked = std::panic::catch_unwind(AssertUnwindSafe(|| {
+            let _answer_on_panic = AnswerOnPanic(&job);
+            let _held = job.progress.lock().unwrap();
+            panic!("a bug while the progress is locked");
+        }));
+        assert!(panicked.is_err());
+        match answer.try_recv() {
+            Ok(Err(ServiceError::Internal(what))) => assert!(what.contains("panicked"), "{what}"),
+            Ok(Err(other)) => panic!("expected an internal error, got {other}"),
+            Ok(Ok(_)) | Err(_) => panic!("expected an internal error, got an answer or none"),
+        }
+        assert_eq!(tenant.usage().operations, 0, "the trace's place let go");
+        assert!(job.abandoned.load(Ordering::Acquire), "no further piece is taken");
     }
 
     #[test]
