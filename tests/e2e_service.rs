@@ -743,6 +743,28 @@ async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
     let labels = ["method=\"GetAccel\"", "tenant=\"default\"", "code=\"NotFound\""];
     assert_eq!(sample(&metrics, "rayd_errors_total", &labels), Some(1.0), "{metrics}");
     assert_eq!(daemon.admin_get("/healthz"), "ok\n");
+
+    // A stream whose chunk fails counts as an error of its call, though the call was answered as it opened.
+    let messages = [stream_query(trace_query("tri", &query)), stream_rays(&[0; 5])];
+    let mut responses = client.trace_stream(tokio_stream::iter(messages)).await.expect("a stream").into_inner();
+    let refused = responses.message().await.expect_err("5 bytes are no whole ray");
+    assert_eq!(refused.code(), Code::InvalidArgument, "{refused:?}");
+    let labels = ["method=\"TraceStream\"", "tenant=\"default\"", "code=\"InvalidArgument\""];
+    assert_eq!(sample(&daemon.admin_get("/metrics"), "rayd_errors_total", &labels), Some(1.0));
+    // A call whose deadline passes before it is answered (a stream whose query never comes): the server drops it
+    // unanswered, and counts it as cancelled.
+    let mut request = tonic::Request::new(tokio_stream::pending::<pb::TraceStreamRequest>());
+    request.set_timeout(std::time::Duration::from_millis(50));
+    let late = client.trace_stream(request).await.expect_err("no query before the deadline");
+    assert!(matches!(late.code(), Code::Cancelled | Code::DeadlineExceeded), "{late:?}");
+    let labels = ["method=\"TraceStream\"", "tenant=\"default\"", "code=\"Cancelled\""];
+    let cancelled = || sample(&daemon.admin_get("/metrics"), "rayd_errors_total", &labels);
+    // The server records the call as it drops it, about when the client hears: a bound against hanging.
+    let since = std::time::Instant::now();
+    while cancelled().is_none() && since.elapsed() < std::time::Duration::from_secs(30) {
+        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+    }
+    assert_eq!(cancelled(), Some(1.0), "{}", daemon.admin_get("/metrics"));
 }
 
 /// Each chunk of a trace stream traces the accel its query names as it is when the chunk comes, as a call of its own
@@ -782,4 +804,7 @@ async fn a_trace_streams_chunks_trace_the_accel_as_it_is_when_they_come() {
     let gone = next_t(&mut responses).await.expect_err("a chunk traced an accel destroyed before it came");
     assert_eq!(gone.code(), Code::NotFound, "{gone}");
     assert!(gone.message().contains("query.accel"), "{gone}");
+    // The accel memory gauge counted the update's version, so the destroy took it back to nothing.
+    let metrics = daemon.admin_get("/metrics");
+    assert_eq!(sample(&metrics, "rayd_accel_bytes", &["tenant=\"default\""]), Some(0.0), "{metrics}");
 }

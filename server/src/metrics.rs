@@ -49,23 +49,64 @@ pub fn install() -> PrometheusHandle {
 }
 
 /// Runs one call's logic for `tenant` (labels are bounded: tenants come from the configuration), records its latency
-/// and outcome, and turns its error into a status.
+/// and outcome, and turns its error into a status. A call whose future is dropped before it answers (its caller went
+/// away or its deadline passed) is recorded too, with code `Cancelled`.
 pub async fn observe<T>(
     method: &'static str,
     tenant: String,
     call: impl Future<Output = Result<T, ServiceError>>,
 ) -> Result<Response<T>, Status> {
-    let start = Instant::now();
+    let mut unanswered = Unanswered(Some(Call { method, tenant, start: Instant::now() }));
     let result = call.await.map_err(Status::from);
-    let labels = [("method", method.to_owned()), ("tenant", tenant)];
-    histogram!("rayd_request_duration_seconds", &labels).record(start.elapsed().as_secs_f64());
-    counter!("rayd_requests_total", &labels).increment(1);
-    if let Err(status) = &result {
-        let code = ("code", format!("{:?}", status.code()));
-        counter!("rayd_errors_total", &[labels[0].clone(), labels[1].clone(), code]).increment(1);
-        tracing::info!(method, tenant = labels[1].1, code = ?status.code(), message = status.message(), "request failed");
+    if let Some(call) = unanswered.0.take() {
+        call.record(result.as_ref().err());
     }
     result.map(Response::new)
+}
+
+/// A call being answered: what its metrics are recorded under.
+struct Call {
+    /// The RPC.
+    method: &'static str,
+    /// The calling tenant.
+    tenant: String,
+    /// When the call's logic started.
+    start: Instant,
+}
+
+impl Call {
+    /// Records the call's latency, and its `error` if it failed.
+    fn record(self, error: Option<&Status>) {
+        let (method, tenant) = (self.method, self.tenant);
+        let labels = [("method", method.to_owned()), ("tenant", tenant.clone())];
+        histogram!("rayd_request_duration_seconds", &labels).record(self.start.elapsed().as_secs_f64());
+        counter!("rayd_requests_total", &labels).increment(1);
+        if let Some(status) = error {
+            let code = ("code", format!("{:?}", status.code()));
+            counter!("rayd_errors_total", &[labels[0].clone(), labels[1].clone(), code]).increment(1);
+            tracing::info!(method, tenant, code = ?status.code(), message = status.message(), "request failed");
+        }
+    }
+}
+
+/// Records its call, if still held when dropped, as cancelled: the call's future was dropped before it answered.
+struct Unanswered(Option<Call>);
+
+impl Drop for Unanswered {
+    fn drop(&mut self) {
+        if let Some(call) = self.0.take() {
+            call.record(Some(&Status::cancelled("the caller went away or its deadline passed before the answer")));
+        }
+    }
+}
+
+/// Counts a `TraceStream` chunk of `tenant` that failed (which ends its stream) as an error of the call, which
+/// [`observe`] recorded as answered once the stream opened.
+pub fn stream_chunk_failed(tenant: &str, status: &Status) {
+    let labels = [("method", "TraceStream".to_owned()), ("tenant", tenant.to_owned())];
+    let code = ("code", format!("{:?}", status.code()));
+    counter!("rayd_errors_total", &[labels[0].clone(), labels[1].clone(), code]).increment(1);
+    tracing::info!(method = "TraceStream", tenant, code = ?status.code(), message = status.message(), "chunk failed");
 }
 
 /// Counts a finished trace of `tenant` (labels are bounded: tenants come from the configuration), and logs it at
@@ -111,6 +152,12 @@ pub fn accel_built(tenant: &str, entry: &AccelEntry) {
     );
 }
 
+/// Counts the bytes of `tenant`'s accel updated from version `old` to `new` (their sizes may differ).
+pub fn accel_updated(tenant: &str, old: &AccelEntry, new: &AccelEntry) {
+    let change = new.accel.info().size_bytes as f64 - old.accel.info().size_bytes as f64;
+    gauge!("rayd_accel_bytes", "tenant" => tenant.to_owned()).increment(change);
+}
+
 /// Counts a destroyed accel of `tenant`.
 pub fn accel_destroyed(tenant: &str, entry: &AccelEntry) {
     gauge!("rayd_accels", "tenant" => tenant.to_owned()).decrement(1.0);
@@ -118,8 +165,14 @@ pub fn accel_destroyed(tenant: &str, entry: &AccelEntry) {
     tracing::info!(tenant, name = entry.name, handle = entry.handle, "accel destroyed");
 }
 
-/// Counts one finished stream operation.
-pub fn stream_operation(op: &'static str, code: tonic::Code, duration_ns: u64) {
-    histogram!("rayd_stream_operation_duration_seconds", "op" => op).record(duration_ns as f64 * 1e-9);
-    counter!("rayd_stream_operations_total", "op" => op, "code" => format!("{code:?}")).increment(1);
+/// Counts one finished stream operation of `tenant`, and records how long it ran if it started (`took`; an operation
+/// refused before it starts, for using what a failed one did not make, ran for no time).
+pub fn stream_operation(tenant: &str, op: &'static str, code: tonic::Code, took: Option<Duration>) {
+    let tenant = tenant.to_owned();
+    if let Some(took) = took {
+        let labels = [("tenant", tenant.clone()), ("op", op.to_owned())];
+        histogram!("rayd_stream_operation_duration_seconds", &labels).record(took.as_secs_f64());
+    }
+    counter!("rayd_stream_operations_total", "tenant" => tenant, "op" => op, "code" => format!("{code:?}"))
+        .increment(1);
 }

@@ -252,6 +252,9 @@ pub async fn stream(
                 Err(status) => Err(status),
             };
             let reply = reply.map_err(|refused| in_chunk(refused, first_ray));
+            if let Err(status) = &reply {
+                crate::metrics::stream_chunk_failed(tenant.name(), status);
+            }
             let failed = reply.is_err();
             if let Ok(response) = &reply {
                 first_ray += response.stats.as_ref().map_or(0, |s| s.rays);

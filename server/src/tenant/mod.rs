@@ -457,6 +457,7 @@ impl Tenant {
         }
         self.accels.replace(&entry.handle, updated.clone())?;
         self.depart(&entry.accel);
+        crate::metrics::accel_updated(&self.name, entry, &updated);
         Ok(updated)
     }
 

@@ -114,6 +114,7 @@ impl Tenant {
             pace: Arc::clone(&accel.pace),
             device: accel.device.clone(),
             order: scheduler.arrival(),
+            arrived: Instant::now(),
             query: *query,
             reduction,
             rays,
@@ -128,16 +129,14 @@ impl Tenant {
             let (traced, took) = job.trace_piece_timed(rays.clone(), output);
             let mut progress = job.progress.lock().expect("not poisoned");
             progress.record(&job, index, rays, took, traced);
-            return Ok(progress.finish(&job)?.trace);
+            return progress.finish(&job);
         }
         let (reply, result) = oneshot::channel();
         job.progress.lock().expect("not poisoned").reply = Some(reply);
         let _abandon_if_dropped = Abandon(Arc::clone(&job));
-        let queued = Instant::now();
         job.queue_next(scheduler, first_estimate);
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
-        crate::metrics::queued(&self.name, result.trace_start.duration_since(queued));
-        Ok(result.trace)
+        Ok(result)
     }
 }
 
@@ -158,6 +157,8 @@ struct TraceJob {
     device: String,
     /// When it arrived at the device's scheduler: its pieces go ahead of later traces' of the same tenant.
     order: u64,
+    /// When it arrived, for the time it waited before its first piece started.
+    arrived: Instant,
     /// What is asked of every ray.
     query: Query,
     /// What the hits are reduced to, if not returned.
@@ -195,7 +196,7 @@ struct Progress {
     /// When the first piece started.
     started: Option<Instant>,
     /// Where the answer goes (none while a caller traces the whole batch itself).
-    reply: Option<oneshot::Sender<ServiceResult<Finished>>>,
+    reply: Option<oneshot::Sender<ServiceResult<TraceResult>>>,
     /// The trace's place among the tenant's operations running at once, let go as the answer is sent, or else with
     /// the job: pieces of an abandoned trace still queued hold its rays and buffers until they are skipped, so it
     /// counts as running until then (a tenant cannot pile up abandoned traces beyond `max_concurrent_operations`).
@@ -220,14 +221,6 @@ enum PieceOutput {
     Reduced(Partial),
     /// The piece's hits, reduced and folded into [`Progress::folded`].
     Folded,
-}
-
-/// A finished trace and when its first piece started.
-struct Finished {
-    /// The whole trace's result.
-    trace: TraceResult,
-    /// When its first piece started (the end of its wait in the queue).
-    trace_start: Instant,
 }
 
 /// Abandons the job when the caller's future is dropped (the client went away or its deadline passed).
@@ -278,6 +271,10 @@ impl TraceJob {
         let Some((piece, after)) = progress.take_piece(self) else {
             if progress.taken < self.rays.byte_len(self.query.ray_format.size()) {
                 crate::metrics::piece(&self.tenant.name, "skipped");
+            }
+            if progress.started.is_none() {
+                // Given up before its first piece: it waited until now.
+                crate::metrics::queued(&self.tenant.name, self.arrived.elapsed());
             }
             return self.answer_if_done(&mut progress);
         };
@@ -392,7 +389,10 @@ impl Progress {
                 (self.untaken.0.split_to(layout.hits), self.untaken.1.split_to(layout.counts))
             }
         };
-        self.started.get_or_insert_with(Instant::now);
+        if self.started.is_none() {
+            crate::metrics::queued(&job.tenant.name, job.arrived.elapsed());
+            self.started = Some(Instant::now());
+        }
         self.outputs.push(None);
         self.running += 1;
         let left = (total - self.taken) / ray_size;
@@ -462,11 +462,10 @@ impl Progress {
 
     /// The answer once every piece of `job` is done: the first failure, or the outputs joined back into whole
     /// buffers, or the pieces' reductions folded in ray order.
-    fn finish(&mut self, job: &TraceJob) -> ServiceResult<Finished> {
+    fn finish(&mut self, job: &TraceJob) -> ServiceResult<TraceResult> {
         if let Some(failure) = self.failure.take() {
             return Err(failure);
         }
-        let trace_start = self.started.unwrap_or_else(Instant::now);
         let mut outputs = std::mem::take(&mut self.outputs).into_iter();
         let mut trace = TraceResult { stats: self.stats, pieces: outputs.len(), ..Default::default() };
         match &job.reduction {
@@ -497,8 +496,8 @@ impl Progress {
                 trace.reduced = Some(reduction.finish(folded, rays)?);
             }
         }
-        trace.trace_ns = trace_start.elapsed().as_nanos() as u64;
-        Ok(Finished { trace, trace_start })
+        trace.trace_ns = self.started.map_or(0, |started| started.elapsed().as_nanos() as u64);
+        Ok(trace)
     }
 }
 
@@ -684,6 +683,7 @@ mod tests {
             pace: Arc::clone(&entry.pace),
             device: DEFAULT_DEVICE.into(),
             order: scheduler.arrival(),
+            arrived: Instant::now(),
             query,
             reduction: None,
             rays: Rays::Packed(rays(64)),

@@ -1,7 +1,7 @@
 //! Runs a stream's operations one at a time, in order, and answers each in turn.
 
 use std::sync::Arc;
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use prost::Message;
 use rayd_proto as pb;
@@ -92,13 +92,13 @@ impl Executor {
         let name = op_name(&op);
         let mut responses = Vec::new();
         // An operation refused before it starts (it uses what a failed operation did not make) has no times.
-        let (result, started, finished) = match self.products.resolve(id, &mut op) {
+        let (result, started, finished, took) = match self.products.resolve(id, &mut op) {
             Ok(()) => {
-                let started = unix_ns();
+                let (started, clock) = (unix_ns(), Instant::now());
                 let result = self.execute(id, op, queue, &mut responses).await;
-                (result, started, unix_ns())
+                (result, started, unix_ns(), Some(clock.elapsed()))
             }
-            Err(error) => (Err(error), 0, 0),
+            Err(error) => (Err(error), 0, 0, None),
         };
         self.products.record(id, producer, &result);
         self.slot.finished(id);
@@ -109,7 +109,7 @@ impl Executor {
                 (Status::from(error), None)
             }
         };
-        crate::metrics::stream_operation(name, status.code(), finished.saturating_sub(started));
+        crate::metrics::stream_operation(self.tenant.name(), name, status.code(), took);
         responses.push(pb::StreamResponse {
             kind: Some(Kind::Result(pb::OperationResult {
                 operation: id,
