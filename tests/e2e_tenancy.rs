@@ -371,3 +371,29 @@ async fn loads_are_checked_against_the_tenants_graph_depth_and_motion_keys() {
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
+
+/// A call without a known key is refused before its message is read: one beyond `max_message_bytes` is answered
+/// UNAUTHENTICATED, not OUT_OF_RANGE (which it gets with a key), so that unauthenticated callers cannot make the server
+/// receive and decompress large messages. The Bearer scheme's name is matched in any case.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn keys_are_checked_before_messages_are_read() {
+    let key = "delta-write-key-0123456789";
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join(format!("rayd-early-keys-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("rayd.toml");
+    std::fs::write(&path, format!("[[tenants]]\nname = \"delta\"\nkeys = [{{ key = \"{key}\", role = \"write\" }}]\n"))
+        .unwrap();
+    let daemon = Daemon::start(&[("RAYD_CONFIG", path.to_str().unwrap()), ("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
+    let mut raw = rayd_proto::rayd_client::RaydClient::connect(daemon.url()).await.unwrap();
+    let large = || {
+        let rays = Some(rayd_proto::trace_batch_request::Rays::RaysInline(vec![0; 100_000].into()));
+        tonic::Request::new(rayd_proto::TraceBatchRequest { rays, ..Default::default() })
+    };
+    let refused = raw.trace_batch(large()).await.unwrap_err();
+    assert_eq!(refused.code(), Code::Unauthenticated, "{refused:?}");
+    let mut request = large();
+    request.metadata_mut().insert("authorization", format!("bearer  {key}").parse().unwrap());
+    let refused = raw.trace_batch(request).await.unwrap_err();
+    assert_eq!(refused.code(), Code::OutOfRange, "a known key, then the message's size: {refused:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

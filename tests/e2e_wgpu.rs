@@ -81,6 +81,11 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
         InstanceRecord { transform: identity, instance_id: 4, mask: 0xFF, flags: InstanceFlags::empty(), child: 0 },
         InstanceRecord { transform: shifted, instance_id: 9, mask: 0x01, flags: InstanceFlags::empty(), child: 0 },
     ];
+    // A child on another device cannot be placed: the request is valid, the child is in the wrong place.
+    let misplaced = client.build_instances("mixed", "wgpu:0", &["cpu"], &records, BuildFlags::empty()).await;
+    let misplaced = misplaced.expect_err("a cpu:0 child in a wgpu:0 instance accel");
+    assert_eq!(misplaced.code(), tonic::Code::FailedPrecondition, "{misplaced}");
+    assert!(misplaced.to_string().contains("is on device cpu:0"), "{misplaced}");
     for (name, device, child) in [("two-cpu", "cpu:0", "cpu"), ("two-gpu", "wgpu:0", "copied")] {
         client.build_instances(name, device, &[child], &records, BuildFlags::empty()).await.unwrap();
     }

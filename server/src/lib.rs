@@ -23,6 +23,7 @@ use rayd_proto::rayd_server::RaydServer;
 use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tonic::codec::CompressionEncoding;
+use tonic::service::interceptor::InterceptedService;
 use tonic::transport::server::TcpIncoming;
 
 pub use config::{Config, Limits};
@@ -40,14 +41,18 @@ pub async fn run(
     let metrics = metrics::install();
     rayd_engine::backend::cpu::large_pages::set_enabled(config.large_pages);
     let max_message = usize::try_from(config.limits.max_message_bytes).unwrap_or(usize::MAX);
+    let service = RaydService::new(Device::all(), &config)?;
+    let tenants = service.tenants();
     // Compressed messages are accepted, and replies compressed for clients that ask (grpc-accept-encoding).
-    let rayd = RaydServer::new(RaydService::new(Device::all(), &config)?)
+    let rayd = RaydServer::new(service)
         .max_decoding_message_size(max_message)
         .max_encoding_message_size(max_message)
         .accept_compressed(CompressionEncoding::Zstd)
         .accept_compressed(CompressionEncoding::Gzip)
         .send_compressed(CompressionEncoding::Zstd)
         .send_compressed(CompressionEncoding::Gzip);
+    // Calls without a known key are refused before any of their messages is read.
+    let rayd = InterceptedService::new(rayd, move |request| tenants.admit(request));
     let (health, health_service) = tonic_health::server::health_reporter();
     health.set_serving::<RaydServer<RaydService>>().await;
     let reflection = tonic_reflection::server::Builder::configure()

@@ -140,7 +140,8 @@ pub struct Limits {
     /// Most buffers per tenant, those being made (uploads, traces into buffers) counted.
     pub max_buffers: u32,
     /// Per `TraceStream`: chunks read ahead of the one being traced, and answers waiting to be sent. Per
-    /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent.
+    /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent. 0 is
+    /// taken as 1 ([`Limits::window`]).
     pub stream_window: u32,
     /// Seconds a `TraceStream` or `OpenStream` stream waits with its answers unread (all `stream_window` places
     /// full) before it is failed with RESOURCE_EXHAUSTED and the answers it holds are dropped; 0 waits as long as
@@ -189,6 +190,11 @@ impl Default for Limits {
 }
 
 impl Limits {
+    /// The stream window in force: [`Limits::stream_window`], at least 1 (a stream reads one message at a time).
+    pub fn window(&self) -> u32 {
+        self.stream_window.max(1)
+    }
+
     /// How long a stream's answers may wait unread ([`Limits::stream_stall_seconds`]); `None` for no limit.
     pub fn stream_stall(&self) -> Option<std::time::Duration> {
         (self.stream_stall_seconds > 0).then(|| std::time::Duration::from_secs(self.stream_stall_seconds))

@@ -168,7 +168,7 @@ pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
         max_accels: limits.max_accels,
         max_buffer_bytes: limits.max_buffer_bytes,
         max_buffers: limits.max_buffers,
-        stream_window: limits.stream_window,
+        stream_window: limits.window(),
         max_streams: limits.max_streams,
         max_graph_depth: limits.max_graph_depth,
         max_motion_keys: limits.max_motion_keys,

@@ -169,15 +169,16 @@ pub fn resolve(tenant: &Tenant, device: &str, inputs: &[pb::BuildInput], purpose
     Ok(resolved)
 }
 
-/// The child accel `reference` names, which must be on `device`.
+/// The child accel `reference` names, which must be on `device` (FAILED_PRECONDITION otherwise: the request is well
+/// formed, the child is where it cannot be placed).
 fn child(tenant: &Tenant, device: &str, reference: Option<&pb::AccelRef>, field: &str) -> ServiceResult<Arc<Accel>> {
     let entry = accels::resolve(tenant, reference, field)?;
     let (device, _) = tenant.context(device)?;
     if entry.device != device {
-        return Err(ServiceError::invalid(
-            field,
-            format!("accel {:?} is on device {}, the build on {device}", entry.name, entry.device),
-        ));
+        return Err(ServiceError::Precondition(format!(
+            "{field}: accel {:?} is on device {}, the build on {device}; copy it there first (CopyAccel)",
+            entry.name, entry.device
+        )));
     }
     Ok(entry.accel)
 }

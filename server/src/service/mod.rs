@@ -30,7 +30,7 @@ pub struct RaydService {
     /// The devices of this server.
     devices: Vec<Device>,
     /// The tenants, and how a call reaches its own.
-    tenants: Tenants,
+    tenants: Arc<Tenants>,
     /// The data directory's lock, held while the service lives.
     _data_dir: Option<DataDirLock>,
 }
@@ -62,7 +62,13 @@ impl RaydService {
             }
             Tenants::with_keys(keys)
         };
+        let tenants = Arc::new(tenants);
         Ok(RaydService { devices, tenants, _data_dir: data_dir })
+    }
+
+    /// The tenants, and how a call reaches its own ([`Tenants::admit`] runs ahead of the service).
+    pub fn tenants(&self) -> Arc<Tenants> {
+        Arc::clone(&self.tenants)
     }
 
     /// The tenant a request acts for, if its key may make `call`, which needs `needs`.

@@ -218,7 +218,7 @@ pub async fn stream(
     // stream's chunks and answers are bounded by the window, so the places bound them all.
     let place = tenant.streams().place(tenant.limits().max_streams)?;
     let accel = header.accel;
-    let window = tenant.limits().stream_window.max(1) as usize;
+    let window = tenant.limits().window() as usize;
     let (chunk_sender, mut chunks) = mpsc::channel(window);
     tokio::spawn(async move {
         loop {

@@ -103,7 +103,7 @@ impl Abort {
 /// Opens a stream for `tenant` over `requests`.
 pub fn open(tenant: Arc<Tenant>, requests: Streaming<pb::StreamRequest>) -> ServiceResult<ResponseStream> {
     let (slot, place) = tenant.streams().open(tenant.limits().max_streams)?;
-    let window = tenant.limits().stream_window.max(1);
+    let window = tenant.limits().window();
     let (queue, queued) = mpsc::channel(window as usize);
     // One place more than the window, for the `opened` message.
     let (answers, answered) = outbox(window as usize + 1, tenant.limits().stream_stall());
