@@ -3,9 +3,9 @@
 //! `rayd_trace_pieces_total`); an upload in progress reserves its declared size against the tenant's buffer quota,
 //! and a client that vanishes mid-upload leaves nothing behind and frees the reservation; a client that never reads
 //! a `TraceStream`'s answers holds a bounded number of chunks and nothing more is traced for it, and past
-//! `stream_stall_seconds` its stream is failed (RESOURCE_EXHAUSTED) and the answers held dropped, as is an
-//! `OpenStream` stream's; a build whose caller goes (a deadline, a dropped stream) keeps nothing; through all of it
-//! the server answers everyone else correctly.
+//! `stream_stall_seconds` its stream is failed (RESOURCE_EXHAUSTED) and the answers held dropped, as are an
+//! `OpenStream` stream's and a download's; a build whose caller goes (a deadline, a dropped stream) keeps nothing;
+//! through all of it the server answers everyone else correctly.
 
 mod common;
 mod daemon;
@@ -285,6 +285,24 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
     assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
     println!("stalled OpenStream reader: failed after {stall_seconds} s; {delivered} answers were on their way");
     connection.shutdown(std::net::Shutdown::Both).unwrap();
+
+    // The same for a download of 40 chunks of 1 MiB whose client reads none.
+    let large = client.upload_buffer("large", Bytes::from(vec![3u8; 40 << 20])).await.unwrap();
+    let (channel, connection) = daemon.cuttable_channel().await;
+    let request = proto::DownloadBufferRequest {
+        buffer: Some(proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Id(large.id.clone())) }),
+        chunk_bytes: 1 << 20,
+        ..Default::default()
+    };
+    let mut chunks = RaydClient::new(channel).download_buffer(request).await.unwrap().into_inner();
+    tokio::time::sleep(Duration::from_secs(stall_seconds + 2)).await;
+    let (delivered, failure) = read_until_status(&mut chunks).await;
+    assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
+    assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
+    assert!(delivered < 40, "{delivered} chunks delivered: the held ones were dropped");
+    println!("stalled download: failed after {stall_seconds} s; {delivered} chunks were on their way");
+    connection.shutdown(std::net::Shutdown::Both).unwrap();
+    client.delete_buffer(&large.id).await.unwrap();
 
     let after = client.server_info().await.unwrap().usage.unwrap();
     assert_eq!((after.buffers, after.object_bytes, after.operations), (before.buffers, before.object_bytes, 0));

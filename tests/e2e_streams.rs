@@ -196,6 +196,29 @@ async fn a_failed_operation_reports_on_its_handle_and_at_synchronize_and_the_str
     stream.synchronize().await.expect("failures are reported once");
 }
 
+#[tokio::test]
+async fn a_stream_remembers_its_latest_max_stream_products_products() {
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_STREAM_PRODUCTS", "1")]);
+    let client = connect(&daemon, ClientOptions::default()).await;
+    let bunny = bunny();
+    let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 8, 8));
+    let stream = client.create_stream().await.unwrap();
+    let first = stream.build_mesh("first", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let second = stream.build_mesh("second", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let on_first = stream.trace(&first, &closest(), rays.clone()).await.unwrap();
+    let on_second = stream.trace(&second, &closest(), rays.clone()).await.unwrap();
+    let Err(Error::Operations(failed)) = stream.synchronize().await else { panic!("the forgotten product is refused") };
+    let codes: Vec<_> = failed.iter().map(|(id, status)| (*id, status.code())).collect();
+    assert_eq!(codes, [(3, Code::FailedPrecondition)], "only the trace naming the first build fails");
+    let message = failed[0].1.message();
+    assert!(message.contains("operation 1 is older than the products this stream remembers"), "{message}");
+    assert!(message.contains("max_stream_products = 1"), "{message}");
+    assert!(on_first.result().unwrap().is_err());
+    assert_as_engine(&on_second, &closest(), &rays, "the latest product is remembered");
+    // What the first build made is still the tenant's: a call names it by its name.
+    assert_eq!(client.trace("first", &closest(), rays).await.unwrap().rays(), 64);
+}
+
 /// A stream opened by hand: the way to send its messages, its answers, and its id.
 struct RawStream {
     /// Messages to send.
@@ -464,6 +487,7 @@ async fn many_streams_trace_at_once_up_to_max_streams() {
     let client = connect(&daemon, ClientOptions::default()).await;
     let bunny = bunny();
     client.build_mesh("bunny", &bunny.mesh, "", BuildFlags::empty()).await.unwrap();
+    let buffer = client.upload_buffer("bytes", Bytes::from_static(b"a few bytes")).await.unwrap();
     let mut streams = Vec::new();
     for _ in 0..STREAMS {
         streams.push(client.create_stream().await.expect("a stream within max_streams"));
@@ -479,6 +503,10 @@ async fn many_streams_trace_at_once_up_to_max_streams() {
     let refused = rpc.trace_stream(ReceiverStream::new(queued)).await.expect_err("a trace stream too many");
     assert_eq!(refused.code(), Code::ResourceExhausted);
     assert!(refused.message().contains("max_streams"), "{refused:?}");
+    // So is a download: it holds its buffer's bytes while it lasts, even past a delete.
+    let refused = client.download_buffer(&buffer.id).await.expect_err("a download too many");
+    assert_eq!(refused.code(), Code::ResourceExhausted);
+    assert!(refused.to_string().contains("max_streams"), "{refused}");
 
     let rays = Bytes::from(bunny.camera_rays(RayFormat::OriginTminDirectionTmax, 48, 32));
     let mut tasks = tokio::task::JoinSet::new();
@@ -510,6 +538,8 @@ async fn many_streams_trace_at_once_up_to_max_streams() {
     usage_when(&client, "with a trace stream open", |u| u.streams == 1).await;
     drop((requests, answers));
     usage_when(&client, "after the trace stream ended", |u| u.streams == 0).await;
+    assert_eq!(client.download_buffer(&buffer.id).await.unwrap(), Bytes::from_static(b"a few bytes"));
+    usage_when(&client, "after the download", |u| u.streams == 0).await;
 }
 
 /// A moving build on a stream whose every motion key is a buffer uploaded earlier on the stream, named by its

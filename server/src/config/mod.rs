@@ -120,6 +120,9 @@ impl Default for Config {
     }
 }
 
+/// Most products a stream may be configured to remember ([`Limits::max_stream_products`]).
+const MAX_STREAM_PRODUCTS: u32 = 1 << 24;
+
 /// Limits that protect the server; a request beyond one is refused before anything is allocated.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -143,11 +146,11 @@ pub struct Limits {
     /// `OpenStream` stream: messages read ahead of the running operation, and answers waiting to be sent. 0 is
     /// taken as 1 ([`Limits::window`]).
     pub stream_window: u32,
-    /// Seconds a `TraceStream` or `OpenStream` stream waits with its answers unread (all `stream_window` places
-    /// full) before it is failed with RESOURCE_EXHAUSTED and the answers it holds are dropped; 0 waits as long as
-    /// the call lasts.
+    /// Seconds a `TraceStream`, `OpenStream` or `DownloadBuffer` stream waits with its answers unread (all
+    /// `stream_window` places full) before it is failed with RESOURCE_EXHAUSTED and the answers it holds are
+    /// dropped; 0 waits as long as the call lasts.
     pub stream_stall_seconds: u64,
-    /// Most streams (`OpenStream` and `TraceStream` calls) open at once per tenant.
+    /// Most streams (`OpenStream`, `TraceStream` and `DownloadBuffer` calls) open at once per tenant.
     pub max_streams: u32,
     /// Deepest traversable graph an accel may head (a geometry accel is 1 level, each instance accel or transform
     /// above it 1 more); 1 to 8.
@@ -164,6 +167,9 @@ pub struct Limits {
     pub max_rays_per_second: u64,
     /// Builds, updates, copies, loads, saves and traces a tenant may have running at once.
     pub max_concurrent_operations: u32,
+    /// Per `OpenStream` stream: the creating operations (uploads, builds, copies, traces into buffers) whose
+    /// products, or failures, later operations may name by operation id; older ones are forgotten. 1 to 2^24.
+    pub max_stream_products: u32,
 }
 
 impl Default for Limits {
@@ -185,6 +191,7 @@ impl Default for Limits {
             max_total_buffer_bytes: 16 << 30,
             max_rays_per_second: 0,
             max_concurrent_operations: 64,
+            max_stream_products: 4096,
         }
     }
 }
@@ -212,6 +219,10 @@ impl Limits {
         let keys = self.max_motion_keys;
         if !(1..=MAX_MOTION_KEYS).contains(&keys) {
             return Err(format!("{section}.max_motion_keys = {keys} must be 1 to {MAX_MOTION_KEYS}"));
+        }
+        let products = self.max_stream_products;
+        if !(1..=MAX_STREAM_PRODUCTS).contains(&products) {
+            return Err(format!("{section}.max_stream_products = {products} must be 1 to {MAX_STREAM_PRODUCTS}"));
         }
         Ok(())
     }

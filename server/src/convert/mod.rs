@@ -177,6 +177,7 @@ pub fn limits(limits: &crate::config::Limits) -> pb::Limits {
         max_rays_per_second: limits.max_rays_per_second,
         max_concurrent_operations: limits.max_concurrent_operations,
         stream_stall_seconds: limits.stream_stall_seconds,
+        max_stream_products: limits.max_stream_products,
     }
 }
 

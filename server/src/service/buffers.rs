@@ -9,6 +9,7 @@ use tokio_stream::Stream;
 use tonic::Streaming;
 
 use crate::error::{ServiceError, ServiceResult};
+use crate::service::outbox::outbox;
 use crate::tenant::{BufferEntry, BufferReservation, Tenant};
 
 /// Bytes per downloaded message when the request gives none.
@@ -139,10 +140,21 @@ pub fn download_chunks(
     Ok((entry, chunks))
 }
 
-/// Streams a range of a buffer.
+/// Streams a range of a buffer, holding one of the tenant's `max_streams` places while it lasts (it holds the
+/// buffer's bytes, even past a delete), through an outbox of `stream_window` chunks: a client that reads none for
+/// `stream_stall_seconds` gets the download failed, as a stream's.
 pub fn download(tenant: &Tenant, request: &pb::DownloadBufferRequest) -> ServiceResult<ChunkStream> {
     let (_, chunks) = download_chunks(tenant, request)?;
-    Ok(Box::pin(tokio_stream::iter(chunks.map(Ok))))
+    let place = tenant.streams().place(tenant.limits().max_streams)?;
+    let (sender, chunks_sent) = outbox(tenant.limits().window() as usize, tenant.limits().stream_stall());
+    tokio::spawn(async move {
+        for chunk in chunks {
+            if sender.send(Ok(chunk)).await.is_err() {
+                break;
+            }
+        }
+    });
+    Ok(Box::pin(place.held_by(chunks_sent)))
 }
 
 /// Deletes a buffer.

@@ -443,18 +443,24 @@ impl Tenant {
         let accel = update(context)?;
         let build_ns = start.elapsed().as_nanos() as u64;
         let updated = AccelEntry { accel, build_ns, version: entry.version + 1, ..entry.clone() };
-        let file = self.prepare_accel_file(&updated, &[]);
+        let reserved = self.reserve_updated_bytes(entry, &updated);
+        let file = reserved.and_then(|reserved| Ok((reserved, self.prepare_accel_file(&updated, &[])?)));
         let _keeping = self.keep();
         // Stored, then listed: until then no call can find the new version to update it again, so that an update
-        // that cannot be stored can be undone (it changes nothing: the old version is current again).
-        let stored = file.and_then(|file| {
+        // that cannot be kept can be undone (it changes nothing: the old version is current again).
+        let stored = file.and_then(|(reserved, file)| {
             self.accels.get(Some(&entry.handle), None)?;
-            file.put()
+            file.put()?;
+            Ok(reserved)
         });
-        if let Err(unsaved) = stored {
-            context.undo_update(&entry.accel, &updated.accel)?;
-            return Err(unsaved);
-        }
+        // Reserved until listed, where the new version's bytes are counted.
+        let _reserved = match stored {
+            Ok(reserved) => reserved,
+            Err(unkept) => {
+                context.undo_update(&entry.accel, &updated.accel)?;
+                return Err(unkept);
+            }
+        };
         self.accels.replace(&entry.handle, updated.clone())?;
         self.depart(&entry.accel);
         crate::metrics::accel_updated(&self.name, entry, &updated);
@@ -485,6 +491,18 @@ impl Tenant {
             ("max_total_accel_bytes", self.limits.max_total_accel_bytes),
             |held, coming| format!("accel bytes of this tenant ({held} held, {coming} being made, up to {bytes} more)"),
         )
+    }
+
+    /// Checks `updated`, the new version of `entry`'s accel, against `max_accel_bytes`, and reserves what it adds to
+    /// the tenant's accel bytes as it takes the old version's place against `max_total_accel_bytes`. Versions that
+    /// updates replaced count for as long as something still holds them (a trace running on one), so updates while
+    /// traces hold the old versions are refused once those pass the quota: the tenant's accels exceed it by at most
+    /// the one version an update replaces while it is still held.
+    fn reserve_updated_bytes(&self, entry: &AccelEntry, updated: &AccelEntry) -> ServiceResult<Reservation> {
+        let (old, new) = (entry.accel.info().size_bytes, updated.accel.info().size_bytes);
+        let what = || format!("the update of accel {:?}", entry.name);
+        ServiceError::check_limit(what, new, "max_accel_bytes", self.limits.max_accel_bytes)?;
+        self.reserve_accel_bytes(new.saturating_sub(old))
     }
 
     /// Checks accels just made (built, or loaded from a blob), for which `reserved` bytes were reserved beforehand,
@@ -1088,5 +1106,19 @@ mod tests {
         }
         let departed = tenant.departed.lock().unwrap().len();
         assert!(departed <= 2, "{departed} replaced versions remembered");
+        // Updates while their replaced versions stay held (a trace running on each) are refused once those pass the
+        // quota of 2.5 accels: with "first" and "third" held, one fits (leaving 3 counted), the next is refused and
+        // changes nothing.
+        let mut held = vec![Arc::clone(&current.accel)];
+        let update = |context: &Context| context.update_accel(&current.accel, &input());
+        current = tenant.update_accel(&current, &Caller::default(), update).unwrap();
+        assert_eq!(tenant.usage().accel_bytes, 3 * size);
+        held.push(Arc::clone(&current.accel));
+        let update = |context: &Context| context.update_accel(&current.accel, &input());
+        let refused = tenant.update_accel(&current, &Caller::default(), update).unwrap_err();
+        assert!(refused.to_string().contains("max_total_accel_bytes"), "{refused}");
+        assert!(Arc::ptr_eq(&tenant.accel(Some("third"), None).unwrap().accel, &current.accel), "still current");
+        drop(held);
+        assert_eq!(tenant.usage().accel_bytes, 2 * size, "the versions let go count no more");
     }
 }

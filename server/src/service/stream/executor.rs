@@ -39,7 +39,8 @@ pub struct Executor {
 impl Executor {
     /// The executor of the stream in `slot`.
     pub fn new(tenant: Arc<Tenant>, slot: StreamSlot) -> Executor {
-        Executor { tenant, slot, products: Products::default(), pending: None }
+        let products = Products::remembering(tenant.limits().max_stream_products as usize);
+        Executor { tenant, slot, products, pending: None }
     }
 
     /// Runs until the queue ends (the client half-closed and everything ran), the call goes away, or the stream

@@ -2,7 +2,7 @@
 //! (`AccelRef.operation`, `BufferRef.operation`): such references are replaced by the real id or handle just
 //! before an operation runs.
 
-use std::collections::HashMap;
+use std::collections::BTreeMap;
 
 use rayd_proto as pb;
 use rayd_proto::operation_result::Outcome;
@@ -44,15 +44,25 @@ impl Producer {
     }
 }
 
-/// The products of a stream's operations, by operation id.
-#[derive(Debug, Default)]
+/// The products of a stream's latest creating operations, by operation id.
+#[derive(Debug)]
 pub struct Products {
-    /// Only operations that make (or failed to make) something are kept.
-    made: HashMap<u64, Product>,
+    /// Only operations that make (or failed to make) something are kept, the latest `remembered` of them.
+    made: BTreeMap<u64, Product>,
+    /// How many products are remembered (`max_stream_products`).
+    remembered: usize,
+    /// The latest operation whose product was forgotten, if any.
+    forgotten_through: Option<u64>,
 }
 
 impl Products {
-    /// Records what operation `id`, a `producer`, came to.
+    /// None made yet; the latest `remembered` (at least 1) will be remembered.
+    pub fn remembering(remembered: usize) -> Products {
+        Products { made: BTreeMap::new(), remembered: remembered.max(1), forgotten_through: None }
+    }
+
+    /// Records what operation `id`, a `producer`, came to (operations come in id order), forgetting the oldest
+    /// product beyond the latest `remembered`.
     pub fn record(&mut self, id: u64, producer: Producer, result: &ServiceResult<Option<Outcome>>) {
         let product = match (producer, result) {
             (Producer::Nothing, _) => return,
@@ -66,6 +76,11 @@ impl Products {
             _ => return,
         };
         self.made.insert(id, product);
+        if self.made.len() > self.remembered
+            && let Some((forgotten, _)) = self.made.pop_first()
+        {
+            self.forgotten_through = Some(forgotten);
+        }
     }
 
     /// Replaces every operation reference in `op` (operation `id`) by what it names.
@@ -231,6 +246,13 @@ impl Products {
             Some(product) => pick(product)
                 .cloned()
                 .ok_or_else(|| ServiceError::Precondition(format!("{field}: operation {operation} made no {what}"))),
+            None if self.forgotten_through.is_some_and(|latest| operation <= latest) => {
+                Err(ServiceError::Precondition(format!(
+                    "{field}: operation {operation} is older than the products this stream remembers (those of its \
+                     latest max_stream_products = {} creating operations): name its {what} by id or handle",
+                    self.remembered
+                )))
+            }
             None => Err(ServiceError::Precondition(format!("{field}: operation {operation} made no {what}"))),
         }
     }
@@ -250,7 +272,7 @@ mod tests {
 
     #[test]
     fn references_to_earlier_products_become_ids_and_handles() {
-        let mut products = Products::default();
+        let mut products = Products::remembering(16);
         let accel = pb::AccelInfo { handle: "acc-7".into(), ..Default::default() };
         let buffer = pb::BufferInfo { id: "buf-3".into(), ..Default::default() };
         products.record(1, Producer::Accel, &Ok(Some(Outcome::Accel(accel))));
@@ -278,7 +300,7 @@ mod tests {
                 ..Default::default()
             })
         };
-        let mut products = Products::default();
+        let mut products = Products::remembering(16);
         let uploaded = pb::BufferInfo { id: "buf-1".into(), ..Default::default() };
         products.record(1, Producer::Buffer, &Ok(Some(Outcome::Buffer(uploaded))));
         let hits = pb::TraceBatchResponse {
@@ -296,7 +318,7 @@ mod tests {
 
     #[test]
     fn instance_children_and_transform_children_may_name_builds_of_the_stream() {
-        let mut products = Products::default();
+        let mut products = Products::remembering(16);
         let accel = pb::AccelInfo { handle: "acc-9".into(), ..Default::default() };
         products.record(1, Producer::Accel, &Ok(Some(Outcome::Accel(accel))));
         let by_operation = || pb::AccelRef { r#ref: Some(pb::accel_ref::Ref::Operation(1)) };
@@ -324,7 +346,7 @@ mod tests {
 
     #[test]
     fn failed_missing_wrong_kind_and_later_operations_are_refused_by_field() {
-        let mut products = Products::default();
+        let mut products = Products::remembering(16);
         products.record(1, Producer::Accel, &Err(ServiceError::invalid("name", "bad")));
         products.record(2, Producer::Buffer, &Ok(Some(Outcome::Buffer(pb::BufferInfo::default()))));
         products.record(3, Producer::Nothing, &Ok(None));
@@ -341,5 +363,30 @@ mod tests {
             products.resolve(4, &mut trace_on(pb::accel_ref::Ref::Operation(1), pb::buffer_ref::Ref::Id("x".into()))),
             Err(ServiceError::Precondition(_))
         ));
+    }
+
+    #[test]
+    fn only_the_latest_products_are_remembered_and_an_older_one_is_refused_as_forgotten() {
+        let mut products = Products::remembering(2);
+        for id in 1..=4 {
+            let accel = pb::AccelInfo { handle: format!("acc-{id}"), ..Default::default() };
+            products.record(id, Producer::Accel, &Ok(Some(Outcome::Accel(accel))));
+        }
+        assert_eq!(products.made.len(), 2, "no more than max_stream_products kept");
+        let resolve = |accel: u64| {
+            let mut op = trace_on(pb::accel_ref::Ref::Operation(accel), pb::buffer_ref::Ref::Id("rays".into()));
+            products.resolve(20, &mut op).map(|()| op)
+        };
+        let latest = resolve(4).unwrap();
+        assert_eq!(
+            latest,
+            trace_on(pb::accel_ref::Ref::Handle("acc-4".into()), pb::buffer_ref::Ref::Id("rays".into()))
+        );
+        assert!(resolve(3).is_ok());
+        let forgotten = resolve(2).unwrap_err();
+        assert!(matches!(forgotten, ServiceError::Precondition(_)), "{forgotten}");
+        let forgotten = forgotten.to_string();
+        assert!(forgotten.contains("operation 2 is older than the products this stream remembers"), "{forgotten}");
+        assert!(forgotten.contains("max_stream_products = 2"), "{forgotten}");
     }
 }
