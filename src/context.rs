@@ -251,14 +251,40 @@ fn transform_kind(transform: &TransformInput) -> AccelKind {
     }
 }
 
-/// `children` without repeats (in the order of their first appearance), each counting one more referrer.
-fn refer_to(children: Vec<Arc<Accel>>) -> Vec<Arc<Accel>> {
+/// No live accel has `handle`.
+fn not_found(handle: AccelHandle) -> Error {
+    Error::NotFound { what: "accel", id: handle.0 }
+}
+
+/// Accel `handle` cannot be destroyed: `referrers` live accels place it.
+fn placed_by(handle: AccelHandle, referrers: usize) -> Error {
+    Error::FailedPrecondition(format!(
+        "accel {} is placed by {referrers} live instance accel(s) or transform(s); destroy them first",
+        handle.0
+    ))
+}
+
+/// The bit of an accel's referrers that [`Context::destroy_accel`] sets, in the same step as it finds none: a build
+/// that would place the accel after that is refused ([`refer_to`]).
+const DESTROYED: usize = 1 << (usize::BITS - 1);
+
+/// `children` without repeats (in the order of their first appearance), each counting one more referrer;
+/// FAILED_PRECONDITION, counting none, if one was destroyed since it was looked up.
+fn refer_to(children: Vec<Arc<Accel>>) -> Result<Vec<Arc<Accel>>> {
     let mut seen = HashSet::with_capacity(children.len());
     let children: Vec<Arc<Accel>> = children.into_iter().filter(|c| seen.insert(Arc::as_ptr(c))).collect();
-    for child in &children {
-        child.referrers.fetch_add(1, Ordering::AcqRel);
+    for (counted, child) in children.iter().enumerate() {
+        if child.referrers.fetch_add(1, Ordering::AcqRel) & DESTROYED != 0 {
+            for referred in &children[..=counted] {
+                referred.referrers.fetch_sub(1, Ordering::AcqRel);
+            }
+            return Err(Error::FailedPrecondition(format!(
+                "accel {} was destroyed after it was named to be placed",
+                child.handle.0
+            )));
+        }
     }
-    children
+    Ok(children)
 }
 
 /// A buffer held by a context.
@@ -367,7 +393,7 @@ impl Context {
         };
         let structure =
             options.flags.contains(BuildFlags::ALLOW_UPDATE).then(|| Structure::of(inputs, keys)).transpose()?;
-        Ok(self.register(shape, options, data, Vec::new(), Retained { structure, transform: None }))
+        self.register(shape, options, data, Vec::new(), Retained { structure, transform: None })
     }
 
     /// Updates (refits) a geometry accel built with `ALLOW_UPDATE` with new vertex positions of the same structure
@@ -455,7 +481,7 @@ impl Context {
             instance_count: placed.len() as u64,
         };
         let children = placed.into_iter().map(|p| p.child).collect();
-        Ok(self.register(shape, options, data, children, Retained::default()))
+        self.register(shape, options, data, children, Retained::default())
     }
 
     /// Places `child` under a transform (static, matrix motion or SRT motion), as a traversable that instances can
@@ -470,7 +496,7 @@ impl Context {
         let shape = Shape { kind: transform_kind(transform), triangle_count: 0, geometry_count: 0, instance_count: 0 };
         let options = BuildOptions { flags: TRANSFORM_FLAGS, motion: checked.motion() };
         let retained = Retained { structure: None, transform: Some(transform.clone()) };
-        Ok(self.register(shape, &options, data, vec![Arc::clone(child)], retained))
+        self.register(shape, &options, data, vec![Arc::clone(child)], retained)
     }
 
     /// Copies `source` (from this or another context) into this context, as `rtpModelCopy` does; with `compact`, as
@@ -502,7 +528,8 @@ impl Context {
             geometry_count: source.info.geometry_count,
             instance_count: source.info.instance_count,
         };
-        let copy = self.register(shape, &source.info.options, data, source.children.clone(), source.retained.clone());
+        let copy =
+            self.register(shape, &source.info.options, data, source.children.clone(), source.retained.clone())?;
         if source.stale.load(Ordering::Acquire) {
             // It places what the source places, as old: it refuses traces as the source does.
             self.mark_stale(&copy);
@@ -531,7 +558,7 @@ impl Context {
     }
 
     /// Gives a built (or deserialized) structure a handle, its description and its memory charge; counts it as a
-    /// referrer of each of its distinct `children`.
+    /// referrer of each of its distinct `children` (FAILED_PRECONDITION if one was destroyed meanwhile).
     pub(crate) fn register(
         &self,
         shape: Shape,
@@ -539,8 +566,8 @@ impl Context {
         data: Box<dyn BackendAccel>,
         children: Vec<Arc<Accel>>,
         retained: Retained,
-    ) -> Arc<Accel> {
-        let children = refer_to(children);
+    ) -> Result<Arc<Accel>> {
+        let children = refer_to(children)?;
         let size_bytes = data.size_bytes();
         let info = AccelInfo {
             kind: shape.kind,
@@ -571,7 +598,7 @@ impl Context {
             _charge: Charge::new(size_bytes, &self.bytes_in_use),
         });
         self.accels.insert(handle, Arc::clone(&accel));
-        accel
+        Ok(accel)
     }
 
     /// Puts `data` (an update of `old`, placing `children`, keeping `retained`) in `old`'s place: same handle and
@@ -597,7 +624,7 @@ impl Context {
             data,
             backend: old.backend,
             home: Arc::clone(&old.home),
-            children: refer_to(children),
+            children: refer_to(children)?,
             referrers: Arc::clone(&old.referrers),
             superseded: AtomicBool::new(false),
             stale: AtomicBool::new(false),
@@ -651,7 +678,7 @@ impl Context {
 
     /// The accel named by `handle`.
     pub fn accel(&self, handle: AccelHandle) -> Result<Arc<Accel>> {
-        self.accels.get(&handle).map(|a| Arc::clone(&a)).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+        self.accels.get(&handle).map(|a| Arc::clone(&a)).ok_or_else(|| not_found(handle))
     }
 
     /// Handles of the live accels, in creation order.
@@ -664,19 +691,21 @@ impl Context {
     /// Destroys an accel; traces already holding it finish first. An accel that live instance accels or
     /// transforms place cannot be destroyed (FAILED_PRECONDITION): destroy them first.
     pub fn destroy_accel(&self, handle: AccelHandle) -> Result<()> {
-        self.check_destroyable(handle)?;
-        self.accels.remove(&handle).map(drop).ok_or(Error::NotFound { what: "accel", id: handle.0 })
+        let accel = self.accel(handle)?;
+        // Marked destroyed only while nothing places it, in one step: a build placing it meanwhile either counted
+        // itself first (and the destroy is refused) or is refused itself.
+        if let Err(referrers) = accel.referrers.compare_exchange(0, DESTROYED, Ordering::AcqRel, Ordering::Acquire) {
+            return Err(if referrers & DESTROYED != 0 { not_found(handle) } else { placed_by(handle, referrers) });
+        }
+        self.accels.remove(&handle).map(drop).ok_or_else(|| not_found(handle))
     }
 
     /// What [`Context::destroy_accel`] would refuse now: an unknown accel (NOT_FOUND), or one that live instance
     /// accels or transforms place (FAILED_PRECONDITION).
     pub fn check_destroyable(&self, handle: AccelHandle) -> Result<()> {
-        let referrers = self.accel(handle)?.referrers.load(Ordering::Acquire);
+        let referrers = self.accel(handle)?.referrers.load(Ordering::Acquire) & !DESTROYED;
         if referrers > 0 {
-            return Err(Error::FailedPrecondition(format!(
-                "accel {} is placed by {referrers} live instance accel(s) or transform(s); destroy them first",
-                handle.0
-            )));
+            return Err(placed_by(handle, referrers));
         }
         Ok(())
     }

@@ -516,6 +516,14 @@ fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_chil
         context.destroy_accel(handle).unwrap();
     }
     context.destroy_accel(triangle.accel.handle()).expect("nothing places it any more");
+    // A build that named the child before its destroy (a call resolving its children, then building) is refused: it
+    // would place an accel no longer in the context.
+    let late = context.build_instance_accel(&[instance(identity)], &BuildOptions::default()).unwrap_err();
+    assert_eq!(late.kind(), ErrorKind::FailedPrecondition);
+    assert!(late.to_string().contains("was destroyed after it was named to be placed"), "{late}");
+    let late = context.build_transform(&TransformInput::Static(identity), &triangle.accel).unwrap_err();
+    assert_eq!(late.kind(), ErrorKind::FailedPrecondition, "{late}");
+    assert_eq!(context.destroy_accel(triangle.accel.handle()).unwrap_err().kind(), ErrorKind::NotFound);
 }
 
 /// A thin strip along x from −2 to 2, 0.02 wide (128 triangles: several lanes at its root).

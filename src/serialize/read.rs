@@ -114,7 +114,7 @@ impl Graph<'_> {
             _ => return Err(invalid("a transform with a backend payload")),
         };
         let kind = entry.shape.kind;
-        let accel = self.context.register(entry.shape, &entry.options, data, children, entry.retained);
+        let accel = self.context.register(entry.shape, &entry.options, data, children, entry.retained)?;
         let over_moved = moved.contains(&true);
         if over_moved && kind == AccelKind::Instances {
             self.context.mark_stale(&accel);
