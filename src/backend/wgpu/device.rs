@@ -55,14 +55,20 @@ impl Opened {
     }
 
     /// Runs `work`, the device calls of `what`, under error scopes: RESOURCE_EXHAUSTED if the device had no memory
-    /// left for an object it makes (what it made is then unusable, and is dropped), UNAVAILABLE if the device was
-    /// lost. wgpu loses the device itself when memory runs out for some objects (staging, command buffers, bind
-    /// groups): UNAVAILABLE then too.
+    /// left for an object it makes (what it made is then unusable, and is dropped), FAILED_PRECONDITION if the driver
+    /// failed it (an internal error), UNAVAILABLE if the device was lost. wgpu loses the device itself when memory
+    /// runs out for some objects (staging, command buffers, bind groups): UNAVAILABLE then too.
     pub fn checked<T>(&self, what: &'static str, work: impl FnOnce() -> T) -> Result<T> {
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+        let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
         let done = work();
+        let internal = pollster::block_on(internal.pop());
         let (memory, validation) = (pollster::block_on(memory.pop()), pollster::block_on(validation.pop()));
+        if let Some(error) = internal {
+            let failed = Error::FailedPrecondition(format!("{}: the driver failed {what}: {error}", self.name));
+            return Err(self.or_lost(failed));
+        }
         if let Some(error) = memory {
             // Objects made from one the device had no memory for fail validation: the memory is the cause.
             return Err(self.or_lost(Error::DeviceMemory {
@@ -209,7 +215,21 @@ impl Gpu {
         device.set_device_lost_callback(move |reason, message| {
             let _ = reported.set(format!("{reason:?}: {message}"));
         });
+        // wgpu's own handler of errors outside an error scope panics; such an error is logged, and the objects it
+        // left unusable fail the checked calls that use them.
+        let logged = name.clone();
+        device.on_uncaptured_error(Arc::new(move |error| {
+            tracing::error!(device = logged, %error, "a wgpu error outside the checked calls");
+        }));
+        // An adapter that cannot take the kernel's bindings (fewer storage buffers a shader stage than it binds),
+        // or whose driver fails them, is refused here, naming why.
+        let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let internal = device.push_error_scope(wgpu::ErrorFilter::Internal);
         let kernel = Kernel::new(&device);
+        let internal = pollster::block_on(internal.pop());
+        if let Some(error) = internal.or(pollster::block_on(validation.pop())) {
+            return Err(Error::FailedPrecondition(format!("{name}: the device cannot take rayd's kernel: {error}")));
+        }
         let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
         let generation = OPENINGS.fetch_add(1, Ordering::Relaxed);
         Ok(Opened { name, generation, lost, idle_slots: Mutex::default(), device, queue, kernel, timestamp_period })
