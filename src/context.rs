@@ -269,7 +269,8 @@ fn placed_by(handle: AccelHandle, referrers: usize) -> Error {
 const DESTROYED: usize = 1 << (usize::BITS - 1);
 
 /// `children` without repeats (in the order of their first appearance), each counting one more referrer;
-/// FAILED_PRECONDITION, counting none, if one was destroyed since it was looked up.
+/// FAILED_PRECONDITION, counting none, if one was destroyed since it was looked up. (While the count is taken back,
+/// a destroy of a child counted so far is refused, as it would be had the build been kept.)
 fn refer_to(children: Vec<Arc<Accel>>) -> Result<Vec<Arc<Accel>>> {
     let mut seen = HashSet::with_capacity(children.len());
     let children: Vec<Arc<Accel>> = children.into_iter().filter(|c| seen.insert(Arc::as_ptr(c))).collect();
@@ -631,8 +632,7 @@ impl Context {
             retained,
             _charge: Charge::new(size_bytes, &self.bytes_in_use),
         });
-        let mut current =
-            self.accels.get_mut(&old.handle).ok_or(Error::NotFound { what: "accel", id: old.handle.0 })?;
+        let mut current = self.accels.get_mut(&old.handle).ok_or_else(|| not_found(old.handle))?;
         if !std::ptr::eq(Arc::as_ptr(&current), old) {
             return Err(Error::FailedPrecondition(format!(
                 "this version of accel {} was replaced by an update: update its current version",
@@ -649,8 +649,7 @@ impl Context {
     /// follow the update failed (a server could not store it): `old` is the current version again, accels placing
     /// it trace again, and `new` is superseded. FAILED_PRECONDITION when `new` is no longer the current version.
     pub fn undo_update(&self, old: &Arc<Accel>, new: &Accel) -> Result<()> {
-        let mut current =
-            self.accels.get_mut(&old.handle).ok_or(Error::NotFound { what: "accel", id: old.handle.0 })?;
+        let mut current = self.accels.get_mut(&old.handle).ok_or_else(|| not_found(old.handle))?;
         if old.handle != new.handle || !std::ptr::eq(Arc::as_ptr(&current), new) {
             return Err(Error::FailedPrecondition(format!(
                 "this update of accel {} is not its current version: it cannot be undone",

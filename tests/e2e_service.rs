@@ -749,22 +749,24 @@ async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
     let mut responses = client.trace_stream(tokio_stream::iter(messages)).await.expect("a stream").into_inner();
     let refused = responses.message().await.expect_err("5 bytes are no whole ray");
     assert_eq!(refused.code(), Code::InvalidArgument, "{refused:?}");
-    let labels = ["method=\"TraceStream\"", "tenant=\"default\"", "code=\"InvalidArgument\""];
-    assert_eq!(sample(&daemon.admin_get("/metrics"), "rayd_errors_total", &labels), Some(1.0));
+    // The server counts an error about when the client hears of it: waited for, 30 s a bound against hanging.
+    let errors_of = async |code: &str| {
+        let labels = ["method=\"TraceStream\"", "tenant=\"default\"", &format!("code=\"{code}\"")];
+        let errors = || sample(&daemon.admin_get("/metrics"), "rayd_errors_total", &labels);
+        let since = std::time::Instant::now();
+        while errors().is_none() && since.elapsed() < std::time::Duration::from_secs(30) {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+        }
+        errors()
+    };
+    assert_eq!(errors_of("InvalidArgument").await, Some(1.0));
     // A call whose deadline passes before it is answered (a stream whose query never comes): the server drops it
     // unanswered, and counts it as cancelled.
     let mut request = tonic::Request::new(tokio_stream::pending::<pb::TraceStreamRequest>());
     request.set_timeout(std::time::Duration::from_millis(50));
     let late = client.trace_stream(request).await.expect_err("no query before the deadline");
     assert!(matches!(late.code(), Code::Cancelled | Code::DeadlineExceeded), "{late:?}");
-    let labels = ["method=\"TraceStream\"", "tenant=\"default\"", "code=\"Cancelled\""];
-    let cancelled = || sample(&daemon.admin_get("/metrics"), "rayd_errors_total", &labels);
-    // The server records the call as it drops it, about when the client hears: a bound against hanging.
-    let since = std::time::Instant::now();
-    while cancelled().is_none() && since.elapsed() < std::time::Duration::from_secs(30) {
-        tokio::time::sleep(std::time::Duration::from_millis(10)).await;
-    }
-    assert_eq!(cancelled(), Some(1.0), "{}", daemon.admin_get("/metrics"));
+    assert_eq!(errors_of("Cancelled").await, Some(1.0), "{}", daemon.admin_get("/metrics"));
 }
 
 /// Each chunk of a trace stream traces the accel its query names as it is when the chunk comes, as a call of its own

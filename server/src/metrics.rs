@@ -82,11 +82,17 @@ impl Call {
         histogram!("rayd_request_duration_seconds", &labels).record(self.start.elapsed().as_secs_f64());
         counter!("rayd_requests_total", &labels).increment(1);
         if let Some(status) = error {
-            let code = ("code", format!("{:?}", status.code()));
-            counter!("rayd_errors_total", &[labels[0].clone(), labels[1].clone(), code]).increment(1);
-            tracing::info!(method, tenant, code = ?status.code(), message = status.message(), "request failed");
+            count_error(method, &tenant, status, "request failed");
         }
     }
+}
+
+/// Counts a failed call (or a part of one) of `method` for `tenant` by its status's code, and logs it as `what`.
+fn count_error(method: &'static str, tenant: &str, status: &Status, what: &'static str) {
+    let labels =
+        [("method", method.to_owned()), ("tenant", tenant.to_owned()), ("code", format!("{:?}", status.code()))];
+    counter!("rayd_errors_total", &labels).increment(1);
+    tracing::info!(method, tenant, code = ?status.code(), message = status.message(), "{what}");
 }
 
 /// Records its call, if still held when dropped, as cancelled: the call's future was dropped before it answered.
@@ -100,13 +106,10 @@ impl Drop for Unanswered {
     }
 }
 
-/// Counts a `TraceStream` chunk of `tenant` that failed (which ends its stream) as an error of the call, which
-/// [`observe`] recorded as answered once the stream opened.
+/// Counts a `TraceStream` chunk of `tenant` whose failure (which ends its stream) was sent to the client as an error
+/// of the call, which [`observe`] recorded as answered once the stream opened.
 pub fn stream_chunk_failed(tenant: &str, status: &Status) {
-    let labels = [("method", "TraceStream".to_owned()), ("tenant", tenant.to_owned())];
-    let code = ("code", format!("{:?}", status.code()));
-    counter!("rayd_errors_total", &[labels[0].clone(), labels[1].clone(), code]).increment(1);
-    tracing::info!(method = "TraceStream", tenant, code = ?status.code(), message = status.message(), "chunk failed");
+    count_error("TraceStream", tenant, status, "chunk failed");
 }
 
 /// Counts a finished trace of `tenant` (labels are bounded: tenants come from the configuration), and logs it at

@@ -252,14 +252,16 @@ pub async fn stream(
                 Err(status) => Err(status),
             };
             let reply = reply.map_err(|refused| in_chunk(refused, first_ray));
-            if let Err(status) = &reply {
-                crate::metrics::stream_chunk_failed(tenant.name(), status);
-            }
-            let failed = reply.is_err();
+            let failed = reply.as_ref().err().cloned();
             if let Ok(response) = &reply {
                 first_ray += response.stats.as_ref().map_or(0, |s| s.rays);
             }
-            if answers.send(reply).await.is_err() || failed {
+            // A failure that reaches no client (it reset the call, or went) is no error of the server's answer.
+            if answers.send(reply).await.is_err() {
+                break;
+            }
+            if let Some(status) = failed {
+                crate::metrics::stream_chunk_failed(tenant.name(), &status);
                 break;
             }
         }

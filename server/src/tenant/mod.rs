@@ -497,7 +497,7 @@ impl Tenant {
     /// the tenant's accel bytes as it takes the old version's place against `max_total_accel_bytes`. Versions that
     /// updates replaced count for as long as something still holds them (a trace running on one), so updates while
     /// traces hold the old versions are refused once those pass the quota: the tenant's accels exceed it by at most
-    /// the one version an update replaces while it is still held.
+    /// the versions that the updates running at once replace while they are still held.
     fn reserve_updated_bytes(&self, entry: &AccelEntry, updated: &AccelEntry) -> ServiceResult<Reservation> {
         let (old, new) = (entry.accel.info().size_bytes, updated.accel.info().size_bytes);
         let what = || format!("the update of accel {:?}", entry.name);

@@ -4,7 +4,7 @@
 
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError};
 use std::time::{Duration, Instant};
 
 use bytes::{Bytes, BytesMut};
@@ -124,15 +124,15 @@ impl Tenant {
         // A trace of one piece runs here if the device lends a slot; an empty one always does (it has no work).
         let slot = (layout.rays <= first_piece).then(|| scheduler.try_slot()).flatten();
         if slot.is_some() || layout.rays == 0 {
-            let piece = job.progress.lock().expect("not poisoned").take_piece(&job).expect("every ray is left").0;
+            let piece = job.progress().take_piece(&job).expect("every ray is left").0;
             let Piece { index, rays, output } = piece;
             let (traced, took) = job.trace_piece_timed(rays.clone(), output);
-            let mut progress = job.progress.lock().expect("not poisoned");
+            let mut progress = job.progress();
             progress.record(&job, index, rays, took, traced);
             return progress.finish(&job);
         }
         let (reply, result) = oneshot::channel();
-        job.progress.lock().expect("not poisoned").reply = Some(reply);
+        job.progress().reply = Some(reply);
         let _abandon_if_dropped = Abandon(Arc::clone(&job));
         job.queue_next(scheduler, first_estimate);
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
@@ -234,7 +234,8 @@ impl Drop for Abandon {
 
 /// Answers the caller with an internal error when a piece's task panics outside its trace (a bug in recording or
 /// joining the pieces: [`TraceJob::trace_piece_timed`] catches the engine's own): the caller's future holds the job
-/// and so the reply's sender, and would otherwise wait for an answer that never comes, its operation's place taken.
+/// and so the reply's sender, and would otherwise wait for an answer that never comes. The job is abandoned, so its
+/// pieces still queued are skipped; its operation's place goes with the job, once they are.
 struct AnswerOnPanic<'a>(&'a TraceJob);
 
 impl Drop for AnswerOnPanic<'_> {
@@ -244,10 +245,7 @@ impl Drop for AnswerOnPanic<'_> {
         }
         let job = self.0;
         job.abandoned.store(true, Ordering::Release);
-        // The panic may have left the lock poisoned; the reply and the place are all that is taken from it.
-        let mut progress = job.progress.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        progress.operation = None;
-        if let Some(reply) = progress.reply.take() {
+        if let Some(reply) = job.progress().reply.take() {
             let what = format!("the server's bookkeeping of a trace on device {:?} panicked (a bug)", job.device);
             let _ = reply.send(Err(ServiceError::Internal(what)));
         }
@@ -255,6 +253,12 @@ impl Drop for AnswerOnPanic<'_> {
 }
 
 impl TraceJob {
+    /// The job's progress. A panic while it was held ([`AnswerOnPanic`]) leaves the lock poisoned and the job
+    /// abandoned: later pieces only find that they have nothing to take.
+    fn progress(&self) -> MutexGuard<'_, Progress> {
+        self.progress.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
     /// Queues the job's next piece, estimated to take `estimate` (the fair queue charges the tenant the time it
     /// takes; the piece takes its rays when it starts).
     fn queue_next(self: &Arc<Self>, scheduler: &Scheduler, estimate: Duration) {
@@ -267,7 +271,7 @@ impl TraceJob {
     fn run_next(self: &Arc<Self>) {
         // Declared first, so dropped last: after any lock a panic below leaves held.
         let _answer_on_panic = AnswerOnPanic(self);
-        let mut progress = self.progress.lock().expect("not poisoned");
+        let mut progress = self.progress();
         let Some((piece, after)) = progress.take_piece(self) else {
             if progress.taken < self.rays.byte_len(self.query.ray_format.size()) {
                 crate::metrics::piece(&self.tenant.name, "skipped");
@@ -287,7 +291,7 @@ impl TraceJob {
         let Piece { index, rays, output } = piece;
         let (traced, took) = self.trace_piece_timed(rays.clone(), output);
         crate::metrics::piece(&self.tenant.name, if traced.is_ok() { "traced" } else { "failed" });
-        let mut progress = self.progress.lock().expect("not poisoned");
+        let mut progress = self.progress();
         progress.record(self, index, rays, took, traced);
         self.answer_if_done(&mut progress);
     }
@@ -703,8 +707,10 @@ mod tests {
             Ok(Err(other)) => panic!("expected an internal error, got {other}"),
             Ok(Ok(_)) | Err(_) => panic!("expected an internal error, got an answer or none"),
         }
-        assert_eq!(tenant.usage().operations, 0, "the trace's place let go");
         assert!(job.abandoned.load(Ordering::Acquire), "no further piece is taken");
+        assert_eq!(tenant.usage().operations, 1, "held while the job (its pieces still queued) lives");
+        drop(job);
+        assert_eq!(tenant.usage().operations, 0, "the trace's place let go with the job");
     }
 
     #[test]

@@ -78,7 +78,7 @@ impl Opened {
             }));
         }
         if let Some(error) = validation {
-            // Objects of a lost device fail validation too; otherwise it is a bug, a panic as wgpu's handler has it.
+            // Objects of a lost device fail validation too; otherwise it is a bug: a panic.
             return Err(self.lost().unwrap_or_else(|| panic!("the wgpu device refused {what}: {error}")));
         }
         Ok(done)

@@ -248,8 +248,9 @@ impl Products {
                 .ok_or_else(|| ServiceError::Precondition(format!("{field}: operation {operation} made no {what}"))),
             None if self.forgotten_through.is_some_and(|latest| operation <= latest) => {
                 Err(ServiceError::Precondition(format!(
-                    "{field}: operation {operation} is older than the products this stream remembers (those of its \
-                     latest max_stream_products = {} creating operations): name its {what} by id or handle",
+                    "{field}: operation {operation} made no {what}, or is older than the products this stream \
+                     remembers (those of its latest max_stream_products = {} creating operations): name its {what} \
+                     by id or handle",
                     self.remembered
                 )))
             }
@@ -386,7 +387,7 @@ mod tests {
         let forgotten = resolve(2).unwrap_err();
         assert!(matches!(forgotten, ServiceError::Precondition(_)), "{forgotten}");
         let forgotten = forgotten.to_string();
-        assert!(forgotten.contains("operation 2 is older than the products this stream remembers"), "{forgotten}");
+        assert!(forgotten.contains("operation 2 made no accel, or is older than the products"), "{forgotten}");
         assert!(forgotten.contains("max_stream_products = 2"), "{forgotten}");
     }
 }
