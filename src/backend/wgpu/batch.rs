@@ -415,19 +415,25 @@ fn request_map(buffer: &wgpu::Buffer, mode: wgpu::MapMode, size: u64) -> Receive
     receiver
 }
 
-/// Waits until `receiver` reports its mapping (polling the device until `submission` is done).
+/// Waits until `receiver` reports its mapping (polling the device until `submission` is done), for the device's
+/// answer timeout at most: past it the device is taken as hung, and lost ([`Opened::hung`]).
 fn wait_mapped(
     opened: &Opened,
     receiver: &Receiver<Result<(), wgpu::BufferAsyncError>>,
     submission: &wgpu::SubmissionIndex,
 ) -> Result<()> {
+    let deadline = Instant::now() + opened.answer_timeout;
     loop {
         match receiver.try_recv() {
             Ok(result) => return result.map_err(|e| device_error("mapping a buffer", e)),
             Err(TryRecvError::Disconnected) => return Err(device_error("mapping a buffer", "the request was dropped")),
             Err(TryRecvError::Empty) => {
-                let wait = wgpu::PollType::Wait { submission_index: Some(submission.clone()), timeout: None };
-                opened.device.poll(wait).map_err(|e| device_error("tracing", e))?;
+                let timeout = Some(deadline.saturating_duration_since(Instant::now()));
+                let wait = wgpu::PollType::Wait { submission_index: Some(submission.clone()), timeout };
+                match opened.device.poll(wait) {
+                    Err(wgpu::PollError::Timeout) => return Err(opened.hung()),
+                    polled => polled.map_err(|e| device_error("tracing", e))?,
+                };
                 // A lost device may never report the mapping.
                 if let Some(lost) = opened.lost() {
                     return Err(lost);

@@ -7,6 +7,7 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
+use std::time::Duration;
 
 use super::batch::Slot;
 use super::kernel::Kernel;
@@ -22,7 +23,15 @@ pub(super) struct Gpu {
     adapter: wgpu::Adapter,
     /// Its device once opened (or why the adapter refused it); replaced when it is lost.
     opened: Mutex<Option<Result<Arc<Opened>>>>,
+    /// How long a trace waits for the device's answer before it takes the device as hung ([`ANSWER_TIMEOUT`]).
+    answer_timeout: Duration,
 }
+
+/// How long a trace waits for the device's answer to one chunk before it takes the device as hung, and so lost: a
+/// chunk takes milliseconds on a GPU (seconds on a software one, or for the costliest rays), so a device that has
+/// not answered in a minute will not. Without it, a GPU that hangs without its driver reporting it lost would hold
+/// the device's traces, and their callers' operations, for good.
+pub const ANSWER_TIMEOUT: Duration = Duration::from_secs(60);
 
 /// Devices opened in this process: the next one's [`Opened::generation`].
 static OPENINGS: AtomicU64 = AtomicU64::new(0);
@@ -46,6 +55,8 @@ pub(super) struct Opened {
     pub kernel: Kernel,
     /// Nanoseconds a timestamp tick, where the adapter has timestamp queries (traces then time their kernels).
     pub timestamp_period: Option<f32>,
+    /// How long a trace waits for the device's answer to a chunk before it takes the device as hung.
+    pub answer_timeout: Duration,
 }
 
 impl Opened {
@@ -90,6 +101,14 @@ impl Opened {
         self.lost().unwrap_or(error)
     }
 
+    /// Takes the device as lost, for not having answered a trace within [`Opened::answer_timeout`], and returns
+    /// UNAVAILABLE naming why (or why the driver lost it meanwhile): the next call opens the device anew.
+    pub fn hung(&self) -> Error {
+        let _ = self.lost.set(format!("Hung: no answer to a trace in {:?}", self.answer_timeout));
+        let why = self.lost.get().cloned().unwrap_or_default();
+        Error::DeviceLost { device: self.name.clone(), detail: why }
+    }
+
     /// UNAVAILABLE naming why the device was lost, if it was. Polls the device first, which is when wgpu reports a
     /// loss that it has not reported yet.
     pub fn lost(&self) -> Option<Error> {
@@ -121,7 +140,9 @@ pub(super) fn adapters() -> &'static [Arc<Gpu>] {
             let adapters = pollster::block_on(instance.enumerate_adapters(backends))
                 .into_iter()
                 .enumerate()
-                .map(|(index, adapter)| Arc::new(Gpu { index, adapter, opened: Mutex::default() }))
+                .map(|(index, adapter)| {
+                    Arc::new(Gpu { index, adapter, opened: Mutex::default(), answer_timeout: ANSWER_TIMEOUT })
+                })
                 .collect();
             (instance, adapters)
         })
@@ -152,7 +173,18 @@ impl Gpu {
     /// device that the others share.
     #[cfg(test)]
     pub fn alone(&self) -> Gpu {
-        Gpu { index: self.index, adapter: self.adapter.clone(), opened: Mutex::default() }
+        Gpu {
+            index: self.index,
+            adapter: self.adapter.clone(),
+            opened: Mutex::default(),
+            answer_timeout: ANSWER_TIMEOUT,
+        }
+    }
+
+    /// The same, whose traces take the device as hung after `timeout` without its answer.
+    #[cfg(test)]
+    pub fn answering_within(self, timeout: Duration) -> Gpu {
+        Gpu { answer_timeout: timeout, ..self }
     }
 
     /// [`Opened::binding_limit`] without opening the device, which is opened with the adapter's own limits.
@@ -232,6 +264,17 @@ impl Gpu {
         }
         let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
         let generation = OPENINGS.fetch_add(1, Ordering::Relaxed);
-        Ok(Opened { name, generation, lost, idle_slots: Mutex::default(), device, queue, kernel, timestamp_period })
+        let answer_timeout = self.answer_timeout;
+        Ok(Opened {
+            name,
+            generation,
+            lost,
+            idle_slots: Mutex::default(),
+            device,
+            queue,
+            kernel,
+            timestamp_period,
+            answer_timeout,
+        })
     }
 }

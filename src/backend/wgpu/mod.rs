@@ -463,6 +463,25 @@ mod tests {
     }
 
     #[test]
+    fn a_device_that_does_not_answer_in_time_is_taken_as_lost_and_opened_anew() {
+        let _alone = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
+        let Some(backend) = backend_alone() else { return };
+        // No time at all to answer: a trace whose chunk is not done when it first looks takes the device as hung.
+        let impatient = WgpuBackend { gpu: Arc::new(backend.gpu.alone().answering_within(Duration::ZERO)), ..backend };
+        let accel = bunny(&impatient).unwrap();
+        let rays = rays_through(accel.as_ref(), 512);
+        let first = impatient.opened().unwrap();
+        // A fast GPU may finish a chunk before the trace first looks: a few tries (lavapipe never is that fast).
+        let hung = (0..10).find_map(|_| closest_hits(&impatient, accel.as_ref(), &rays).err());
+        let hung = hung.expect("a trace that found its chunk unanswered");
+        assert_eq!(hung.kind(), ErrorKind::Unavailable, "{hung}");
+        assert!(hung.to_string().contains("Hung: no answer to a trace in 0ns"), "{hung}");
+        assert!(first.lost().is_some(), "the device is taken as lost");
+        let second = impatient.opened().unwrap();
+        assert_ne!(second.generation, first.generation, "the next call opens a new device");
+    }
+
+    #[test]
     #[ignore = "fills the GPU's memory: run it with --ignored on a GPU that nothing else uses"]
     fn running_out_of_device_memory_is_resource_exhausted_and_the_device_goes_on() {
         let _alone = ONE_AT_A_TIME.lock().unwrap_or_else(|e| e.into_inner());
