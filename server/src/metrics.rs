@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use metrics::{counter, gauge, histogram};
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
-use tonic::{Response, Status};
+use tonic::{Code, Response, Status};
 
 use crate::error::ServiceError;
 use crate::tenant::{AccelEntry, TraceResult};
@@ -87,12 +87,21 @@ impl Call {
     }
 }
 
-/// Counts a failed call (or a part of one) of `method` for `tenant` by its status's code, and logs it as `what`.
+/// Counts a failed call (or a part of one) of `method` for `tenant` by its status's code, and logs it as `what`: a
+/// failure of the server's own (INTERNAL, UNAVAILABLE, DATA_LOSS, UNKNOWN) as a warning; one the request or its
+/// caller caused (a bad argument, a limit, a missing object, a deadline, …) at debug level only, so that a client
+/// retrying a refused call does not flood the log.
 fn count_error(method: &'static str, tenant: &str, status: &Status, what: &'static str) {
-    let labels =
-        [("method", method.to_owned()), ("tenant", tenant.to_owned()), ("code", format!("{:?}", status.code()))];
+    let code = status.code();
+    let labels = [("method", method.to_owned()), ("tenant", tenant.to_owned()), ("code", format!("{code:?}"))];
     counter!("rayd_errors_total", &labels).increment(1);
-    tracing::info!(method, tenant, code = ?status.code(), message = status.message(), "{what}");
+    let message = status.message();
+    match code {
+        Code::Internal | Code::Unavailable | Code::DataLoss | Code::Unknown => {
+            tracing::warn!(method, tenant, ?code, message, "{what}")
+        }
+        _ => tracing::debug!(method, tenant, ?code, message, "{what}"),
+    }
 }
 
 /// Records its call, if still held when dropped, as cancelled: the call's future was dropped before it answered.
