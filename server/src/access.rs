@@ -29,6 +29,10 @@ fn bearer_key(value: &str) -> Option<&str> {
     (scheme.eq_ignore_ascii_case("bearer") && !key.is_empty()).then_some(key)
 }
 
+/// The role and tenant that [`Tenants::admit`] found for a call's key.
+#[derive(Debug, Clone)]
+struct Admitted(Role, Arc<Tenant>);
+
 /// The tenants of a server and how callers reach them.
 #[derive(Debug)]
 pub struct Tenants {
@@ -64,8 +68,12 @@ impl Tenants {
     /// Lets a call through to its handler only with a known key (any role; every call without configured
     /// tenants): the interceptor ahead of the service, which sees the call's metadata before its messages are
     /// received, decompressed or decoded, so that a caller without a key spends none of the server's memory.
-    pub fn admit(&self, request: Request<()>) -> Result<Request<()>, Status> {
-        self.authenticate(&request)?;
+    /// What it found rides on with the request ([`Admitted`]), so that the handler's [`Tenants::caller`] does not
+    /// look the key up again.
+    pub fn admit(&self, mut request: Request<()>) -> Result<Request<()>, Status> {
+        let (role, tenant) = self.authenticate(&request)?;
+        let admitted = Admitted(role, Arc::clone(tenant));
+        request.extensions_mut().insert(admitted);
         Ok(request)
     }
 
@@ -93,7 +101,12 @@ impl Tenants {
     /// The tenant `request` acts for, if its key's role allows `call`, which needs `needs`: UNAUTHENTICATED
     /// without a key or with an unknown one, PERMISSION_DENIED when the role is not enough.
     pub fn caller<T>(&self, request: &Request<T>, call: &str, needs: Role) -> Result<Arc<Tenant>, Status> {
-        let (role, tenant) = self.authenticate(request)?;
+        // Admitted by the interceptor (extensions never come from the wire), or, for a request that did not pass it,
+        // looked up here.
+        let (role, tenant) = match request.extensions().get::<Admitted>() {
+            Some(Admitted(role, tenant)) => (*role, tenant),
+            None => self.authenticate(request)?,
+        };
         if role < needs {
             return Err(Status::permission_denied(format!(
                 "{call} needs a {} key; this key's role is {}",

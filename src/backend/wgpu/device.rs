@@ -70,12 +70,7 @@ impl Opened {
     /// failed it (an internal error), UNAVAILABLE if the device was lost. wgpu loses the device itself when memory
     /// runs out for some objects (staging, command buffers, bind groups): UNAVAILABLE then too.
     pub fn checked<T>(&self, what: &'static str, work: impl FnOnce() -> T) -> Result<T> {
-        let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
-        let internal = self.device.push_error_scope(wgpu::ErrorFilter::Internal);
-        let done = work();
-        let internal = pollster::block_on(internal.pop());
-        let (memory, validation) = (pollster::block_on(memory.pop()), pollster::block_on(validation.pop()));
+        let (done, Caught { validation, memory, internal }) = caught(&self.device, work);
         if let Some(error) = internal {
             let failed = Error::FailedPrecondition(format!("{}: the driver failed {what}: {error}", self.name));
             return Err(self.or_lost(failed));
@@ -117,6 +112,30 @@ impl Opened {
         let why = self.lost.get()?;
         Some(Error::DeviceLost { device: self.name.clone(), detail: why.clone() })
     }
+}
+
+/// The errors of each kind that wgpu reported while some work ran on a device.
+struct Caught {
+    /// Validation errors (the first).
+    validation: Option<wgpu::Error>,
+    /// Out-of-memory errors (the first).
+    memory: Option<wgpu::Error>,
+    /// The driver's internal errors (the first).
+    internal: Option<wgpu::Error>,
+}
+
+/// Runs `work`, device calls on `device`, under an error scope of each kind, and returns its result with the errors
+/// they caught.
+fn caught<T>(device: &wgpu::Device, work: impl FnOnce() -> T) -> (T, Caught) {
+    let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
+    let memory = device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);
+    let internal = device.push_error_scope(wgpu::ErrorFilter::Internal);
+    let done = work();
+    // Popped in the reverse order of their pushes.
+    let internal = pollster::block_on(internal.pop());
+    let memory = pollster::block_on(memory.pop());
+    let validation = pollster::block_on(validation.pop());
+    (done, Caught { validation, memory, internal })
 }
 
 /// The largest storage binding of a device with `limits`, lowered to `cap` if given.
@@ -255,11 +274,8 @@ impl Gpu {
         }));
         // An adapter that cannot take the kernel's bindings (fewer storage buffers a shader stage than it binds),
         // or whose driver fails them, is refused here, naming why.
-        let validation = device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let internal = device.push_error_scope(wgpu::ErrorFilter::Internal);
-        let kernel = Kernel::new(&device);
-        let internal = pollster::block_on(internal.pop());
-        if let Some(error) = internal.or(pollster::block_on(validation.pop())) {
+        let (kernel, Caught { validation, memory, internal }) = caught(&device, || Kernel::new(&device));
+        if let Some(error) = internal.or(validation).or(memory) {
             return Err(Error::FailedPrecondition(format!("{name}: the device cannot take rayd's kernel: {error}")));
         }
         let timestamp_period = (!timestamps.is_empty()).then(|| queue.get_timestamp_period());
