@@ -1,6 +1,8 @@
 //! End to end against the real `rayd`: it lists the wgpu adapters after `cpu:0`, builds the bunny on `wgpu:0` and
 //! traces it by TraceBatch with the hits the CPU device gives (`t` within 1e-4 relative, same primitive); copies it
-//! from `cpu:0` by CopyAccel, instances it twice on `wgpu:0` and traces that with the instance ids the CPU gives.
+//! from `cpu:0` by CopyAccel, instances it twice on `wgpu:0` and traces that with the instance ids the CPU gives. Its
+//! GPU traces hold 1 MiB of buffers at most (`scheduler.gpu_trace_bytes`): 4,000 rays go in chunks that fit, and an
+//! `all` query too large for it is refused naming the key.
 //!
 //! Adapter policy as in `tests/wgpu.rs`: without one, a notice and a pass, unless `RAYD_REQUIRE_GPU=1`.
 
@@ -20,7 +22,7 @@ use rayd_proto as proto;
 
 #[tokio::test]
 async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one() {
-    let daemon = Daemon::start(&[]);
+    let daemon = Daemon::start(&[("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576")]);
     let client = Client::connect(&daemon.url(), ClientOptions::default()).await.expect("the client connects");
     let devices = client.devices().await.unwrap();
     assert_eq!(devices[0].id, "cpu:0");
@@ -63,6 +65,15 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
         "rays differing on cpu:0 and wgpu:0"
     );
     assert!(on_gpu.stats().rays_hit > 0);
+    // 256 full hits a ray: two chunks of 32 rays take about 3.4 MiB of buffers.
+    let all = Query {
+        kind: rayd_engine::query::QueryKind::All,
+        max_hits_per_ray: 256,
+        ..Query::closest(RayFormat::Full, HitFormat::Full)
+    };
+    let refused = client.trace("gpu", &all, rays.clone()).await.expect_err("256 hits a ray within 1 MiB");
+    assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused}");
+    assert!(refused.to_string().contains("scheduler.gpu_trace_bytes"), "{refused}");
     // An empty batch is answered (it waited forever on a GPU, whose traces all go through its workers).
     let empty = tokio::time::timeout(std::time::Duration::from_secs(60), client.trace("gpu", &query, Bytes::new()));
     let empty = empty.await.expect("an empty batch is answered").unwrap();

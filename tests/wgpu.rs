@@ -30,7 +30,7 @@ use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, QueryKind, TraceOutput};
 use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, PixelSampling};
 use rayd_engine::reduce::{Image, ImageChannel, PixelEncoding, Reduction};
-use rayd_engine::{Accel, Context, Device, ErrorKind};
+use rayd_engine::{Accel, Context, Device, Error, ErrorKind};
 
 /// The first wgpu device with default options.
 fn gpu() -> Option<Device> {
@@ -562,6 +562,29 @@ fn traces_run_at_once_on_one_device_answer_as_each_alone() {
     });
 }
 
+/// Traces the bunny on `device` with 2,500 random and 2,500 camera rays (seed `seed`) by each of `queries` (kind, hit
+/// format, records a ray) and checks the hits against the CPU's; then returns the error of an `all` query of
+/// `too_many` full records a ray.
+fn bunny_in_chunks(device: Device, seed: u64, queries: &[(QueryKind, HitFormat, u32)], too_many: u32) -> Error {
+    let mesh = bunny().pack();
+    let scene = Scene::new(&device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default());
+    let mut rays = rays(2500, seed);
+    rays.extend(camera_rays(2500));
+    let packed = pack_rays(&rays, RayFormat::Full);
+    let mut agreement = Agreement::default();
+    for &(kind, hit_format, hits) in queries {
+        let query = Query { kind, hit_format, max_hits_per_ray: hits, ..Query::closest(RayFormat::Full, hit_format) };
+        scene.compare(&query, &packed, &mut agreement);
+    }
+    agreement.check();
+    let query =
+        Query { kind: QueryKind::All, max_hits_per_ray: too_many, ..Query::closest(RayFormat::Full, HitFormat::Full) };
+    let layout = query.output_layout(packed.len()).unwrap();
+    let (mut hits, mut counts) = (vec![0; layout.hits], vec![0; layout.counts]);
+    let traced = scene.gpu.0.trace(&scene.gpu.1, &query, &packed, TraceOutput { hits: &mut hits, counts: &mut counts });
+    traced.expect_err("records that cannot fit")
+}
+
 #[test]
 fn batches_larger_than_one_binding_are_split_into_chunks() {
     // 8 KiB bindings: 170 full rays a chunk at most (32 for `all`, whose 5 sorted hits a ray take 240 bytes of
@@ -569,28 +592,34 @@ fn batches_larger_than_one_binding_are_split_into_chunks() {
     let Some(device) = gpu_with(WgpuOptions { max_binding_bytes: Some(8192), ..WgpuOptions::default() }) else {
         return;
     };
-    let mesh = bunny().pack();
-    let scene = Scene::new(&device, &[BuildInput::Triangles(mesh.input())], &BuildOptions::default());
-    let mut rays = rays(2500, 5);
-    rays.extend(camera_rays(2500));
-    let packed = pack_rays(&rays, RayFormat::Full);
-    let mut agreement = Agreement::default();
-    for (kind, hit_format) in [
-        (QueryKind::Closest, HitFormat::Full),
-        (QueryKind::All, HitFormat::Bitmask),
-        (QueryKind::Count, HitFormat::TTriid),
-    ] {
-        let query = Query { kind, hit_format, max_hits_per_ray: 5, ..Query::closest(RayFormat::Full, hit_format) };
-        scene.compare(&query, &packed, &mut agreement);
-    }
-    agreement.check();
+    let queries = [
+        (QueryKind::Closest, HitFormat::Full, 5),
+        (QueryKind::All, HitFormat::Bitmask, 5),
+        (QueryKind::Count, HitFormat::TTriid, 5),
+    ];
     // A chunk of 32 rays with 1,000 full records each cannot fit 8 KiB.
-    let query =
-        Query { kind: QueryKind::All, max_hits_per_ray: 1000, ..Query::closest(RayFormat::Full, HitFormat::Full) };
-    let layout = query.output_layout(packed.len()).unwrap();
-    let (mut hits, mut counts) = (vec![0; layout.hits], vec![0; layout.counts]);
-    let error = scene.gpu.0.trace(&scene.gpu.1, &query, &packed, TraceOutput { hits: &mut hits, counts: &mut counts });
-    assert_eq!(error.unwrap_err().kind(), ErrorKind::ResourceExhausted);
+    let error = bunny_in_chunks(device, 5, &queries, 1000);
+    assert_eq!(error.kind(), ErrorKind::ResourceExhausted);
+}
+
+#[test]
+fn traces_within_a_small_buffer_budget_are_cut_into_chunks_that_fit_it() {
+    // 1 MiB for a trace's two slots: an `all` query of 64 full hits a ray takes about 13 KiB a ray there (records,
+    // sorted scratch, readback), so 5,000 rays go in chunks of 32 rays.
+    let budget = 1 << 20;
+    let Some(device) = gpu_with(WgpuOptions { max_trace_bytes: Some(budget), ..WgpuOptions::default() }) else {
+        return;
+    };
+    let queries = [
+        (QueryKind::Closest, HitFormat::Full, 1),
+        (QueryKind::All, HitFormat::Full, 64),
+        (QueryKind::Count, HitFormat::TTriid, 1),
+    ];
+    // Two chunks of 32 rays with 256 full records each do not fit 1 MiB: refused, naming the limit.
+    let error = bunny_in_chunks(device, 7, &queries, 256);
+    assert_eq!(error.kind(), ErrorKind::ResourceExhausted);
+    let message = error.to_string();
+    assert!(message.contains("gpu_trace_bytes") && message.contains(&budget.to_string()), "{message}");
 }
 
 #[test]

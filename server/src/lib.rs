@@ -29,6 +29,20 @@ use tonic::transport::server::TcpIncoming;
 pub use config::{Config, Limits};
 pub use service::RaydService;
 
+/// The devices rayd serves: the CPU, then (with the `wgpu` feature) every wgpu adapter, each trace on one holding at
+/// most `scheduler.gpu_trace_bytes` of buffers.
+#[cfg_attr(not(feature = "wgpu"), allow(unused_variables))]
+fn devices(scheduler: &config::SchedulerConfig) -> Vec<Device> {
+    #[cfg(feature = "wgpu")]
+    let gpus = Device::wgpu(rayd_engine::backend::wgpu::WgpuOptions {
+        max_trace_bytes: Some(scheduler.gpu_trace_bytes),
+        ..Default::default()
+    });
+    #[cfg(not(feature = "wgpu"))]
+    let gpus = Vec::new();
+    std::iter::once(Device::cpu()).chain(gpus).collect()
+}
+
 /// Serves the gRPC service on `listener` and the admin endpoint on `admin` until `shutdown` completes; then the
 /// health service reports NOT_SERVING, no new connection is accepted, and calls in flight finish before it
 /// returns — or `shutdown_grace_seconds` pass, whichever comes first.
@@ -41,7 +55,7 @@ pub async fn run(
     let metrics = metrics::install();
     rayd_engine::backend::cpu::large_pages::set_enabled(config.large_pages);
     let max_message = usize::try_from(config.limits.max_message_bytes).unwrap_or(usize::MAX);
-    let service = RaydService::new(Device::all(), &config)?;
+    let service = RaydService::new(devices(&config.scheduler), &config)?;
     let tenants = service.tenants();
     // Compressed messages are accepted, and replies compressed for clients that ask (grpc-accept-encoding).
     let rayd = RaydServer::new(service)

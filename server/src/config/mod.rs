@@ -24,6 +24,9 @@ pub const MAX_GPU_WORKERS: u32 = 16;
 /// The longest piece time a scheduler may be given, in milliseconds.
 pub const MAX_PIECE_MS: u32 = 60_000;
 
+/// The least and the most bytes of device buffers one GPU trace may be given (1 MiB, 1 TiB).
+pub const GPU_TRACE_BYTES: std::ops::RangeInclusive<u64> = 1 << 20..=1 << 40;
+
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -81,11 +84,48 @@ pub struct SchedulerConfig {
     /// The same for a GPU device, 1 to 60,000 (a piece holds one of its workers and its queue); a GPU piece keeps at
     /// least 2^18 rays (the wgpu backend's chunk) however long they take.
     pub gpu_piece_ms: u32,
+    /// Bytes of device buffers one GPU trace holds at most (its two chunks' rays, hits, `all` scratch and staging),
+    /// 1 MiB to 1 TiB: chunks of many hits a ray are cut to fit, and a query whose 32-ray chunks cannot is
+    /// RESOURCE_EXHAUSTED naming this key. `gpu_workers` times this bounds what traces take of a GPU's memory (and,
+    /// for their staging, of the host's), besides 256 MiB of idle buffers kept for later traces.
+    pub gpu_trace_bytes: u64,
 }
 
 impl Default for SchedulerConfig {
     fn default() -> Self {
-        SchedulerConfig { workers: 0, gpu_workers: 2, worker_nice: 10, piece_ms: 10, gpu_piece_ms: 100 }
+        SchedulerConfig {
+            workers: 0,
+            gpu_workers: 2,
+            worker_nice: 10,
+            piece_ms: 10,
+            gpu_piece_ms: 100,
+            gpu_trace_bytes: 1 << 30,
+        }
+    }
+}
+
+impl SchedulerConfig {
+    /// Checks every value against its range, naming the first one outside it.
+    fn check(&self) -> Result<(), String> {
+        if self.workers > MAX_WORKERS {
+            return Err(format!("scheduler.workers = {} must be 0 (one per core) to {MAX_WORKERS}", self.workers));
+        }
+        if !(1..=MAX_GPU_WORKERS).contains(&self.gpu_workers) {
+            return Err(format!("scheduler.gpu_workers = {} must be 1 to {MAX_GPU_WORKERS}", self.gpu_workers));
+        }
+        if self.worker_nice > 19 {
+            return Err(format!("scheduler.worker_nice = {} must be 0 to 19", self.worker_nice));
+        }
+        for (name, ms) in [("piece_ms", self.piece_ms), ("gpu_piece_ms", self.gpu_piece_ms)] {
+            if !(1..=MAX_PIECE_MS).contains(&ms) {
+                return Err(format!("scheduler.{name} = {ms} must be 1 to {MAX_PIECE_MS}"));
+            }
+        }
+        if !GPU_TRACE_BYTES.contains(&self.gpu_trace_bytes) {
+            let (least, most) = GPU_TRACE_BYTES.into_inner();
+            return Err(format!("scheduler.gpu_trace_bytes = {} must be {least} to {most}", self.gpu_trace_bytes));
+        }
+        Ok(())
     }
 }
 
@@ -267,29 +307,7 @@ impl Config {
         config.data_dir = config.data_dir.and_then(Config::directory_or_none);
         config.limits.check("limits").map_err(ConfigError::Invalid)?;
         config.transport.check().map_err(ConfigError::Invalid)?;
-        if config.scheduler.worker_nice > 19 {
-            return Err(ConfigError::Invalid(format!(
-                "scheduler.worker_nice = {} must be 0 to 19",
-                config.scheduler.worker_nice
-            )));
-        }
-        if !(1..=MAX_GPU_WORKERS).contains(&config.scheduler.gpu_workers) {
-            return Err(ConfigError::Invalid(format!(
-                "scheduler.gpu_workers = {} must be 1 to {MAX_GPU_WORKERS}",
-                config.scheduler.gpu_workers
-            )));
-        }
-        for (name, ms) in [("piece_ms", config.scheduler.piece_ms), ("gpu_piece_ms", config.scheduler.gpu_piece_ms)] {
-            if !(1..=MAX_PIECE_MS).contains(&ms) {
-                return Err(ConfigError::Invalid(format!("scheduler.{name} = {ms} must be 1 to {MAX_PIECE_MS}")));
-            }
-        }
-        if config.scheduler.workers > MAX_WORKERS {
-            return Err(ConfigError::Invalid(format!(
-                "scheduler.workers = {} must be 0 (one per core) to {MAX_WORKERS}",
-                config.scheduler.workers
-            )));
-        }
+        config.scheduler.check().map_err(ConfigError::Invalid)?;
         for (i, tenant) in config.tenants.iter().enumerate() {
             tenant.limits.check(&format!("tenants[{i}].limits")).map_err(ConfigError::Invalid)?;
             let (own, server) = (tenant.limits.max_message_bytes, config.limits.max_message_bytes);
@@ -537,15 +555,20 @@ mod tests {
             }
         }
         for (key, value, error) in [
-            ("RAYD_SCHEDULER_PIECE_MS", "0", Some("scheduler.piece_ms = 0 must be 1 to 60000")),
-            ("RAYD_SCHEDULER_GPU_PIECE_MS", "60001", Some("scheduler.gpu_piece_ms = 60001 must be 1 to 60000")),
-            ("RAYD_SCHEDULER_GPU_PIECE_MS", "60000", None),
+            ("RAYD_SCHEDULER_PIECE_MS", "0", "scheduler.piece_ms = 0 must be 1 to 60000"),
+            ("RAYD_SCHEDULER_GPU_PIECE_MS", "60001", "scheduler.gpu_piece_ms = 60001 must be 1 to 60000"),
+            ("RAYD_SCHEDULER_WORKER_NICE", "20", "scheduler.worker_nice = 20 must be 0 to 19"),
+            (
+                "RAYD_SCHEDULER_GPU_TRACE_BYTES",
+                "1048575",
+                "scheduler.gpu_trace_bytes = 1048575 must be 1048576 to 1099511627776",
+            ),
         ] {
-            let loaded = Config::load(None, env(&[(key, value)]));
-            match error {
-                Some(error) => assert_eq!(loaded.unwrap_err().to_string(), format!("config: {error}")),
-                None => assert_eq!(loaded.unwrap().scheduler.gpu_piece_ms, 60_000),
-            }
+            let error_message = Config::load(None, env(&[(key, value)])).unwrap_err().to_string();
+            assert_eq!(error_message, format!("config: {error}"));
         }
+        let edges = [("RAYD_SCHEDULER_GPU_PIECE_MS", "60000"), ("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576")];
+        let scheduler = Config::load(None, env(&edges)).unwrap().scheduler;
+        assert_eq!((scheduler.gpu_piece_ms, scheduler.gpu_trace_bytes), (60_000, 1 << 20));
     }
 }

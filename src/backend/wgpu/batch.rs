@@ -211,40 +211,60 @@ pub(super) struct Plan {
     need: Capacity,
 }
 
+/// What bounds a trace's chunks besides its query.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct ChunkLimits {
+    /// Bytes of the largest buffer (a binding, or the readback staging).
+    pub binding_bytes: u64,
+    /// Rays of a chunk.
+    pub chunk_rays: usize,
+    /// Bytes of the trace's [`SLOTS`] slots together, staging included ([`WgpuOptions::max_trace_bytes`]).
+    pub trace_bytes: u64,
+}
+
 impl Plan {
-    /// The largest chunks (up to `max_chunk_rays`) whose every buffer fits `binding_limit` bytes and whose
-    /// workgroups fit one dispatch; RESOURCE_EXHAUSTED if even one aligned chunk does not fit (or, for pixels, if
-    /// a chunk cannot hold whole pixels: the caller then reduces on the host).
+    /// The largest chunks (up to `limits.chunk_rays`) whose every buffer fits `limits.binding_bytes`, whose slots fit
+    /// `limits.trace_bytes` together and whose workgroups fit one dispatch; RESOURCE_EXHAUSTED if even one aligned
+    /// chunk does not fit (or, for pixels, if a chunk cannot hold whole pixels: the caller then reduces on the host).
     pub fn new(
         query: &Query,
         rays: usize,
         input: &Input<'_>,
         output: &Output<'_>,
-        binding_limit: u64,
-        max_chunk_rays: usize,
+        limits: ChunkLimits,
     ) -> Result<Plan> {
         let align = lcm(CHUNK_ALIGN, output.group_rays());
-        let most = max_chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS) / align * align;
+        let most = limits.chunk_rays.clamp(CHUNK_ALIGN, MAX_DISPATCH_RAYS) / align * align;
         if most == 0 {
             return Err(Error::TooLarge {
                 what: "a wgpu chunk of whole pixels",
                 unit: "rays",
                 requested: align as u64,
-                limit: max_chunk_rays as u64,
+                limit: limits.chunk_rays as u64,
             });
         }
         let mut chunk_rays = rays.next_multiple_of(align).clamp(align, most);
         loop {
             let need = Capacity::for_chunk(query, chunk_rays, input, output);
-            if need.largest() <= binding_limit {
+            let slots = need.bytes().saturating_mul(SLOTS as u64);
+            if need.largest() <= limits.binding_bytes && slots <= limits.trace_bytes {
                 return Ok(Plan { rays, chunk_rays, need });
             }
             if chunk_rays == align {
-                return Err(Error::TooLarge {
-                    what: "a wgpu chunk of 32 rays (max_hits_per_ray too large)",
-                    unit: "bytes",
-                    requested: need.largest(),
-                    limit: binding_limit,
+                return Err(match need.largest() > limits.binding_bytes {
+                    true => Error::TooLarge {
+                        what: "a wgpu chunk of 32 rays (max_hits_per_ray too large)",
+                        unit: "bytes",
+                        requested: need.largest(),
+                        limit: limits.binding_bytes,
+                    },
+                    false => Error::TooLarge {
+                        what: "the buffers of a wgpu trace in chunks of 32 rays (max_hits_per_ray too large for the \
+                               trace buffer limit, rayd's scheduler.gpu_trace_bytes)",
+                        unit: "bytes",
+                        requested: slots,
+                        limit: limits.trace_bytes,
+                    },
                 });
             }
             chunk_rays = (chunk_rays / 2).next_multiple_of(align);
@@ -578,7 +598,9 @@ pub(super) fn time_launches(
     }
     let count = rays.len() / query.ray_format.size();
     let (input, output) = (Input::Packed(rays), Output::Tallies);
-    let plan = Plan::new(query, count, &input, &output, opened.binding_limit(None), count)?;
+    // One slot of the whole batch, for a benchmark that asked for it: no trace budget.
+    let limits = ChunkLimits { binding_bytes: opened.binding_limit(None), chunk_rays: count, trace_bytes: u64::MAX };
+    let plan = Plan::new(query, count, &input, &output, limits)?;
     if plan.chunk_rays < count {
         return Err(Error::TooLarge {
             what: "rays of one launch",
@@ -847,9 +869,38 @@ mod tests {
         let whole = Capacity::for_chunk(&query, rays, &Input::Packed(&[]), &output);
         let bindings = whole.rays.max(whole.hits).max(whole.tallies).max(whole.scratch).max(whole.reduced);
         assert!(whole.readback() > bindings);
-        let plan = Plan::new(&query, rays, &Input::Packed(&[]), &output, bindings, rays).unwrap();
+        let limits = |binding_bytes| ChunkLimits { binding_bytes, chunk_rays: rays, trace_bytes: u64::MAX };
+        let plan = Plan::new(&query, rays, &Input::Packed(&[]), &output, limits(bindings)).unwrap();
         assert!(plan.chunk_rays < rays && plan.need.readback() <= bindings, "{} rays a chunk", plan.chunk_rays);
-        let plan = Plan::new(&query, rays, &Input::Packed(&[]), &output, whole.readback(), rays).unwrap();
+        let plan = Plan::new(&query, rays, &Input::Packed(&[]), &output, limits(whole.readback())).unwrap();
         assert_eq!(plan.chunk_rays, rays);
+    }
+
+    #[test]
+    fn a_traces_slots_fit_its_budget_and_ordinary_chunks_fit_the_default() {
+        let output = Output::Hits(TraceOutput { hits: &mut [], counts: &mut [] });
+        let limits = |trace_bytes| ChunkLimits { binding_bytes: u64::MAX, chunk_rays: MAX_CHUNK_RAYS, trace_bytes };
+        let closest = Query::closest(crate::format::RayFormat::Full, HitFormat::Full);
+        let default = limits(super::super::DEFAULT_MAX_TRACE_BYTES);
+        let plan = Plan::new(&closest, 1 << 24, &Input::Packed(&[]), &output, default).unwrap();
+        assert_eq!(plan.chunk_rays, MAX_CHUNK_RAYS, "ordinary chunks are not cut");
+        // 256 hits a ray: a full chunk's slots take gigabytes, so chunks are cut until two slots fit the budget.
+        let all = Query { kind: QueryKind::All, max_hits_per_ray: 256, ..closest };
+        let whole = SLOTS as u64 * Capacity::for_chunk(&all, MAX_CHUNK_RAYS, &Input::Packed(&[]), &output).bytes();
+        assert!(whole > 8 << 30, "{whole} bytes");
+        let plan = Plan::new(&all, 1 << 24, &Input::Packed(&[]), &output, default).unwrap();
+        let slots = SLOTS as u64 * plan.need.bytes();
+        assert!(
+            slots <= default.trace_bytes && 2 * slots > default.trace_bytes,
+            "{} rays, {slots} bytes",
+            plan.chunk_rays
+        );
+        // A budget too small for two 32-ray chunks is refused, naming it.
+        let Err(Error::TooLarge { what, requested, limit, .. }) =
+            Plan::new(&all, 1 << 24, &Input::Packed(&[]), &output, limits(1 << 20))
+        else {
+            panic!("a 1 MiB budget for 256 hits a ray")
+        };
+        assert!(what.contains("gpu_trace_bytes") && requested > limit && limit == 1 << 20, "{what}");
     }
 }

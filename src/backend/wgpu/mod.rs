@@ -61,7 +61,16 @@ pub struct WgpuOptions {
     /// the bindings and a dispatch's workgroups cap it too). Larger chunks mean fewer dispatches but less overlap of
     /// copies with tracing: benches sweep it.
     pub max_chunk_rays: Option<usize>,
+    /// Caps the bytes of the buffers one trace holds on the device (its two chunks' buffers, staging included):
+    /// chunks of many records a ray (`all` queries) are cut to fit; `None`: [`DEFAULT_MAX_TRACE_BYTES`]. The traces
+    /// running at once, times this, bound what tracing takes of the device's memory (and, for the staging, of the
+    /// host's), besides at most 256 MiB of idle buffers kept for later traces.
+    pub max_trace_bytes: Option<u64>,
 }
+
+/// [`WgpuOptions::max_trace_bytes`] unless set: 1 GiB, about eight times what a trace of ordinary chunks (2^18 rays
+/// and their closest hits) holds.
+pub const DEFAULT_MAX_TRACE_BYTES: u64 = 1 << 30;
 
 /// One wgpu adapter as a device.
 pub struct WgpuBackend {
@@ -339,13 +348,16 @@ impl Backend for WgpuBackend {
 impl WgpuBackend {
     /// How a batch of `rays` rays of `query`, from `input` into `output`, is cut into chunks on this adapter.
     fn plan(&self, query: &Query, rays: usize, input: &Input<'_>, output: &Output<'_>) -> Result<batch::Plan> {
-        let binding_limit = self.opened()?.binding_limit(self.options.max_binding_bytes);
         let default = match (input, output) {
             (Input::Generated(_), Output::Pixels { .. } | Output::Tallies) => batch::MAX_ON_DEVICE_CHUNK_RAYS,
             _ => batch::MAX_CHUNK_RAYS,
         };
-        let max_chunk_rays = self.options.max_chunk_rays.unwrap_or(default);
-        batch::Plan::new(query, rays, input, output, binding_limit, max_chunk_rays)
+        let limits = batch::ChunkLimits {
+            binding_bytes: self.opened()?.binding_limit(self.options.max_binding_bytes),
+            chunk_rays: self.options.max_chunk_rays.unwrap_or(default),
+            trace_bytes: self.options.max_trace_bytes.unwrap_or(DEFAULT_MAX_TRACE_BYTES),
+        };
+        batch::Plan::new(query, rays, input, output, limits)
     }
 
     /// Traces the batch of `plan` through the slot pool.
