@@ -89,7 +89,7 @@ impl Upload {
             ));
         }
         let Upload { header, data, reserved } = self;
-        tenant.create_buffer("header.name", &header.name, data.freeze(), Some(reserved))
+        tenant.create_buffer("header.name", &header.name, data.freeze(), reserved)
     }
 }
 

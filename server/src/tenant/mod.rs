@@ -639,7 +639,8 @@ impl Tenant {
     /// Serializes `entry`'s accel (with every accel below it) into a new buffer named `name`, which request field
     /// `field` gave; one of the tenant's operations while it runs (so that at most `max_concurrent_operations` blobs
     /// are being made at once), not kept if `caller` goes first. The name and the count of buffers are checked
-    /// before the blob is made, its bytes once it is. Blocks: call it off the async runtime.
+    /// before the blob is made; once it is, its bytes and place are reserved as an upload's are, until it is kept.
+    /// Blocks: call it off the async runtime.
     pub fn save_accel(
         &self,
         entry: &AccelEntry,
@@ -653,19 +654,22 @@ impl Tenant {
         caller.check(not_kept)?;
         let blob = self.context(&entry.device)?.1.serialize_accel(&entry.accel, &[])?;
         caller.check(not_kept)?;
-        self.create_buffer(field, name, Bytes::from(blob), None)
+        let reserved = self.reserve_new_buffers(field, &[(name, blob.len() as u64)])?;
+        let reserved = reserved.into_iter().next().expect("one reservation a buffer");
+        self.create_buffer(field, name, Bytes::from(blob), reserved)
     }
 
     /// Keeps `data` as a buffer named `name`, which request field `field` gave; `reserved` is what was reserved for
-    /// it while it was made ([`Tenant::reserve_new_buffers`]), let go once it is kept (or refused).
+    /// it while it was made ([`Tenant::reserve_new_buffers`]), let go once it is kept (or refused). Every buffer is
+    /// reserved before it is kept, so that what another call reserves meanwhile counts it.
     pub fn create_buffer(
         &self,
         field: &str,
         name: &str,
         data: Bytes,
-        reserved: Option<BufferReservation>,
+        reserved: BufferReservation,
     ) -> ServiceResult<BufferEntry> {
-        self.check_new_buffers_beside(field, &[(name, data.len() as u64)], reserved.as_ref())?;
+        self.check_new_buffers_beside(field, &[(name, data.len() as u64)], Some(&reserved))?;
         let id = format!("buf-{}", self.next_buffer.fetch_add(1, Ordering::Relaxed));
         let size_bytes = data.len() as u64;
         let context = self.context(DEFAULT_DEVICE)?.1;
@@ -683,7 +687,7 @@ impl Tenant {
         // were written must not both be kept past a limit. Its file goes in place before it is listed, as an
         // accel's (`build_accel`).
         let kept =
-            self.check_new_buffers_beside(field, &[(name, size_bytes)], reserved.as_ref()).and_then(|()| file.put());
+            self.check_new_buffers_beside(field, &[(name, size_bytes)], Some(&reserved)).and_then(|()| file.put());
         if let Err(refused) = kept {
             // As in `build_accel`: a file renamed into place before the put failed goes too.
             let _ = self.unpersist_buffer(&entry.id);
@@ -746,6 +750,13 @@ mod tests {
         Tenant::new("t", limits, 1, &devices, schedulers)
     }
 
+    /// Reserves a buffer of `bytes` bytes named `name`, then keeps it, as an upload does.
+    fn create(tenant: &Tenant, name: &str, bytes: Vec<u8>) -> ServiceResult<BufferEntry> {
+        let field = "header.name";
+        let reserved = tenant.reserve_new_buffers(field, &[(name, bytes.len() as u64)])?.pop().unwrap();
+        tenant.create_buffer(field, name, Bytes::from(bytes), reserved)
+    }
+
     #[test]
     fn a_buffer_deleted_while_it_is_being_made_leaves_no_file() {
         let dir = std::env::temp_dir().join(format!("rayd-keeping-{}", std::process::id()));
@@ -765,7 +776,7 @@ mod tests {
                         std::thread::yield_now();
                     }
                 });
-                let made = tenant.create_buffer("header.name", &name, Bytes::from(vec![round as u8; 4 << 20]), None);
+                let made = create(&tenant, &name, vec![round as u8; 4 << 20]);
                 assert!(made.is_ok() && deleter.join().unwrap().is_ok(), "round {round}: made {made:?}");
             });
             assert_eq!((tenant.buffers().len(), files()), (0, 0), "round {round}: a file left behind");
@@ -784,7 +795,7 @@ mod tests {
         // in place once the lock is free.
         std::thread::scope(|scope| {
             let held = tenant.keep();
-            let create = scope.spawn(|| tenant.create_buffer("header.name", "big", Bytes::from(vec![1; size]), None));
+            let create = scope.spawn(|| create(&tenant, "big", vec![1; size]));
             let written_under = |extension: &str| {
                 std::fs::read_dir(&buffers).unwrap().map(|entry| entry.unwrap().path()).any(|path| {
                     path.extension().is_some_and(|e| e == extension)
@@ -805,23 +816,19 @@ mod tests {
     }
 
     #[test]
-    fn creates_that_passed_their_first_check_at_once_keep_no_more_than_the_limits() {
+    fn creates_of_one_name_at_once_keep_one() {
         let dir = tempfile::tempdir().unwrap();
         let store = crate::persist::Store::open(dir.path(), "t").unwrap();
-        let tenant = cpu_tenant(Limits { max_buffers: 1, ..Limits::default() }).with_store(store);
+        let tenant = cpu_tenant(Limits::default()).with_store(store);
         let buffers = dir.path().join("tenants/t/buffers");
         let temporary_files = || {
             std::fs::read_dir(&buffers)
                 .map_or(0, |d| d.flatten().filter(|e| e.path().extension().is_some_and(|x| x == "tmp")).count())
         };
-        // Both pass the check before their files are written, then wait for the lock that orders changes.
+        // Both find the name free before their files are written, then wait for the lock that orders changes.
         let made: Vec<ServiceResult<BufferEntry>> = std::thread::scope(|scope| {
             let held = tenant.keep();
-            let creates: Vec<_> = ["one", "two"]
-                .map(|name| {
-                    scope.spawn(|| tenant.create_buffer("header.name", name, Bytes::from(vec![1; 1 << 20]), None))
-                })
-                .into();
+            let creates: Vec<_> = (0..2).map(|_| scope.spawn(|| create(&tenant, "one", vec![1; 1 << 20]))).collect();
             let waiting_since = Instant::now();
             while temporary_files() < 2 {
                 assert!(waiting_since.elapsed().as_secs() < 60, "the two files were never written");
@@ -832,9 +839,42 @@ mod tests {
         });
         assert_eq!(made.iter().filter(|m| m.is_ok()).count(), 1, "{made:?}");
         let refused = made.iter().find_map(|m| m.as_ref().err()).unwrap();
-        assert!(refused.to_string().contains("max_buffers = 1"), "{refused}");
+        assert!(matches!(refused, ServiceError::AlreadyExists { .. }), "{refused}");
         assert_eq!((tenant.buffers().len(), temporary_files()), (1, 0));
         assert_eq!(std::fs::read_dir(&buffers).unwrap().count(), 1, "the refused buffer's file is gone");
+        assert_eq!((tenant.quotas.buffer_bytes_coming.get(), tenant.quotas.buffers_coming.get()), (0, 0));
+    }
+
+    #[test]
+    fn a_saved_blob_waiting_to_be_kept_holds_its_bytes_against_other_buffers() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = crate::persist::Store::open(dir.path(), "t").unwrap();
+        let probe = cpu_tenant(Limits::default());
+        let blob_bytes = probe.save_accel(&one_triangle_accel(&probe, "a"), "buffer_name", "b", &Caller::default());
+        let blob_bytes = blob_bytes.unwrap().size_bytes;
+        // Room for the blob and 100 bytes more.
+        let limits = Limits { max_total_buffer_bytes: blob_bytes + 100, ..Limits::default() };
+        let tenant = cpu_tenant(limits).with_store(store);
+        let entry = one_triangle_accel(&tenant, "a");
+        let written = || std::fs::read_dir(dir.path().join("tenants/t/buffers")).map_or(0, |d| d.count());
+        std::thread::scope(|scope| {
+            let held = tenant.keep();
+            let save = scope.spawn(|| tenant.save_accel(&entry, "buffer_name", "blob", &Caller::default()));
+            let waiting_since = Instant::now();
+            while written() == 0 {
+                assert!(waiting_since.elapsed().as_secs() < 60, "the blob's file was never written");
+                std::thread::yield_now();
+            }
+            // The blob waits for the lock that orders changes; an upload of more than the room left beside it is
+            // refused now, where it used to be reserved and then both were kept, past the limit.
+            let refused = tenant.reserve_new_buffers("header.name", &[("upload", 101)]).unwrap_err();
+            assert!(refused.to_string().contains("max_total_buffer_bytes"), "{refused}");
+            let fits = tenant.reserve_new_buffers("header.name", &[("upload", 100)]).unwrap();
+            drop(held);
+            assert_eq!(save.join().unwrap().unwrap().size_bytes, blob_bytes);
+            drop(fits);
+        });
+        assert_eq!(tenant.buffer_bytes(), blob_bytes);
     }
 
     #[test]
@@ -846,11 +886,11 @@ mod tests {
         assert!(refused.to_string().contains("700 held or being made, 400 more"), "{refused}");
         // Kept with its own reservation, a buffer is not counted twice (held and being made) on the way.
         let counts = first.pop();
-        tenant.create_buffer(field, "hits", Bytes::from(vec![0; 600]), first.pop()).unwrap();
+        tenant.create_buffer(field, "hits", Bytes::from(vec![0; 600]), first.pop().unwrap()).unwrap();
         assert_eq!((tenant.quotas.buffer_bytes_coming.get(), tenant.quotas.buffers_coming.get()), (100, 1));
         let refused = tenant.reserve_new_buffers(field, &[("other", 400)]).unwrap_err();
         assert!(refused.to_string().contains("700 held or being made, 400 more"), "{refused}");
-        tenant.create_buffer(field, "hits.counts", Bytes::from(vec![0; 100]), counts).unwrap();
+        tenant.create_buffer(field, "hits.counts", Bytes::from(vec![0; 100]), counts.unwrap()).unwrap();
         // Places too: two buffers held, one being made, none left.
         let third = tenant.reserve_new_buffers(field, &[("third", 10)]).unwrap();
         let refused = tenant.reserve_new_buffers(field, &[("fourth", 10)]).unwrap_err();
