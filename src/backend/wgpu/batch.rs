@@ -405,16 +405,15 @@ fn elapsed_nanos(pair: &[u8], period: f32) -> u64 {
     (end.saturating_sub(start) as f64 * f64::from(period)) as u64
 }
 
-/// Sets the trace pipeline of `variant`, the accel's and the slot's bind groups, and dispatches one thread a ray.
+/// Sets `pipeline` (the trace's), the accel's and the slot's bind groups, and dispatches one thread a ray.
 fn dispatch_trace(
     pass: &mut wgpu::ComputePass<'_>,
-    opened: &Opened,
+    pipeline: &wgpu::ComputePipeline,
     accel: &GpuGraph,
     slot: &Slot,
-    variant: super::kernel::Variant,
     rays: usize,
 ) {
-    pass.set_pipeline(opened.kernel.pipeline(&opened.device, variant));
+    pass.set_pipeline(pipeline);
     pass.set_bind_group(0, &accel.bind_group, &[]);
     pass.set_bind_group(1, &slot.bind_group, &[]);
     pass.dispatch_workgroups((rays as u32).div_ceil(WORKGROUP_SIZE), 1, 1);
@@ -610,6 +609,7 @@ pub(super) fn time_launches(
         });
     }
     let slot = Slot::new(opened, plan.need)?;
+    let pipeline = opened.kernel.pipeline(opened, accel.variant.for_query(query))?;
     let bytes = u64::from(launches) * TIMESTAMP_BYTES;
     let (readback, submission) = opened.checked("timing launches", || {
         opened.queue.write_buffer(&slot.rays, 0, rays);
@@ -642,7 +642,7 @@ pub(super) fn time_launches(
                 label: Some("rayd launch"),
                 timestamp_writes: Some(timestamp_writes),
             });
-            dispatch_trace(&mut pass, opened, accel, &slot, accel.variant.for_query(query), count);
+            dispatch_trace(&mut pass, pipeline, accel, &slot, count);
         }
         encoder.resolve_query_set(&queries, 0..2 * launches, &resolved, 0);
         encoder.copy_buffer_to_buffer(&resolved, 0, &readback, 0, bytes);
@@ -698,6 +698,11 @@ fn submit(
         }
     };
     opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
+    let trace = opened.kernel.pipeline(opened, super::kernel::Variant { rays, ..accel.variant.for_query(query) })?;
+    let reduce = match output {
+        Output::Pixels { .. } => Some(opened.kernel.reduce_pixels(opened)?),
+        _ => None,
+    };
     if query.hit_format == HitFormat::Bitmask {
         encoder.clear_buffer(&slot.hits, 0, Some(need.hits));
     }
@@ -710,11 +715,10 @@ fn submit(
         });
         let mut pass =
             encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("rayd trace"), timestamp_writes });
-        let variant = super::kernel::Variant { rays, ..accel.variant.for_query(query) };
-        dispatch_trace(&mut pass, opened, accel, slot, variant, chunk.rays);
-        if let Output::Pixels { image, .. } = output {
+        dispatch_trace(&mut pass, trace, accel, slot, chunk.rays);
+        if let (Output::Pixels { image, .. }, Some(reduce)) = (output, reduce) {
             // Dispatches of one pass see each other's writes: the reduction reads the records just traced.
-            pass.set_pipeline(opened.kernel.reduce_pixels(&opened.device));
+            pass.set_pipeline(reduce);
             pass.dispatch_workgroups((chunk.rays as u32 / image.rays_per_pixel).div_ceil(WORKGROUP_SIZE), 1, 1);
         }
     }

@@ -6,7 +6,9 @@ use std::sync::OnceLock;
 
 use bytemuck::{Pod, Zeroable};
 
+use super::device::Opened;
 use super::spirv::Source;
+use crate::error::Result;
 use crate::format::{HitFormat, RayFormat};
 use crate::query::{Query, QueryKind};
 
@@ -147,6 +149,18 @@ pub(super) struct Kernel {
 }
 
 /// A storage buffer entry of a bind group layout.
+/// The pipeline `cell` holds, or the one `compile` makes, kept in `cell` only if it compiled.
+fn kept(
+    cell: &OnceLock<wgpu::ComputePipeline>,
+    compile: impl FnOnce() -> Result<wgpu::ComputePipeline>,
+) -> Result<&wgpu::ComputePipeline> {
+    if let Some(pipeline) = cell.get() {
+        return Ok(pipeline);
+    }
+    let pipeline = compile()?;
+    Ok(cell.get_or_init(|| pipeline))
+}
+
 fn storage(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,
@@ -219,9 +233,11 @@ impl Kernel {
         }
     }
 
-    /// The pipeline of `variant`, compiled on `device` the first time it is asked for.
-    pub fn pipeline(&self, device: &wgpu::Device, variant: Variant) -> &wgpu::ComputePipeline {
-        self.pipelines[variant.index()].get_or_init(|| {
+    /// The pipeline of `variant`, compiled on `opened`'s device the first time it is asked for (as
+    /// [`Opened::checked`] says, an error if the driver fails it; nothing is kept then, so the next trace that needs
+    /// it compiles it again).
+    pub fn pipeline(&self, opened: &Opened, variant: Variant) -> Result<&wgpu::ComputePipeline> {
+        kept(&self.pipelines[variant.index()], || {
             let constants = [
                 ("LEVELS", f64::from(u8::from(variant.levels))),
                 ("MOTION", f64::from(u8::from(variant.motion))),
@@ -230,14 +246,17 @@ impl Kernel {
                 ("GENERATOR", f64::from(variant.rays as u32)),
                 ("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE)),
             ];
-            self.compile(device, "trace", &constants)
+            opened.checked("compiling the trace kernel", || self.compile(&opened.device, "trace", &constants))
         })
     }
 
-    /// The image reduction's pipeline, compiled on `device` the first time it is asked for.
-    pub fn reduce_pixels(&self, device: &wgpu::Device) -> &wgpu::ComputePipeline {
-        self.reduce_pixels
-            .get_or_init(|| self.compile(device, "reduce_pixels", &[("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE))]))
+    /// The image reduction's pipeline, compiled as [`Kernel::pipeline`] compiles the trace's.
+    pub fn reduce_pixels(&self, opened: &Opened) -> Result<&wgpu::ComputePipeline> {
+        kept(&self.reduce_pixels, || {
+            let constants = [("WORKGROUP_SIZE", f64::from(WORKGROUP_SIZE))];
+            opened
+                .checked("compiling the image reduction", || self.compile(&opened.device, "reduce_pixels", &constants))
+        })
     }
 
     /// The entry point `entry` with the pipeline constants `constants`, as SPIR-V handed to the driver as is.

@@ -192,11 +192,13 @@ impl GpuGraph {
                 resource: buffer.as_entire_binding(),
             })
             .collect();
-        let bind_group = opened.device.create_bind_group(&wgpu::BindGroupDescriptor {
-            label: Some("rayd accel"),
-            layout: &opened.kernel.accel_layout,
-            entries: &entries,
-        });
+        let bind_group = opened.checked("binding an accel", || {
+            opened.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("rayd accel"),
+                layout: &opened.kernel.accel_layout,
+                entries: &entries,
+            })
+        })?;
         Ok(GpuGraph { bind_group, root: flat.root, variant: flat.variant, bytes, generation: opened.generation })
     }
 
