@@ -734,6 +734,12 @@ async fn metrics_count_the_rays_traced_and_the_errors_by_code() {
 
     let metrics = daemon.admin_get("/metrics");
     assert_eq!(sample(&metrics, "rayd_rays_traced_total", &[]), Some(1500.0), "{metrics}");
+    // A batch and two chunks: three traces, as the metric's description says.
+    assert_eq!(sample(&metrics, "rayd_trace_batches_total", &[]), Some(3.0), "{metrics}");
+    assert!(
+        metrics.contains("# HELP rayd_trace_batches_total traces that ended: a TraceBatch call, a TraceStream chunk")
+    );
+    assert!(metrics.contains("# HELP rayd_request_duration_seconds time from"), "{metrics}");
     let labels = ["method=\"TraceBatch\"", "tenant=\"default\""];
     assert_eq!(sample(&metrics, "rayd_requests_total", &labels), Some(1.0), "{metrics}");
     assert!(!metrics.contains("rayd_errors_total"), "no error yet:\n{metrics}");

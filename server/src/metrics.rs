@@ -5,7 +5,7 @@ use std::future::Future;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
-use metrics::{counter, gauge, histogram};
+use metrics::{Unit, counter, describe_counter, describe_gauge, describe_histogram, gauge, histogram};
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
 use tonic::{Code, Response, Status};
 
@@ -33,6 +33,7 @@ pub fn install() -> PrometheusHandle {
                 .expect("non-empty buckets")
                 .install_recorder()
                 .expect("the only metrics recorder of the process");
+            describe();
             let upkept = handle.clone();
             std::thread::Builder::new()
                 .name("rayd-metrics-upkeep".into())
@@ -46,6 +47,56 @@ pub fn install() -> PrometheusHandle {
             handle
         })
         .clone()
+}
+
+/// Describes every metric: the `# HELP` lines of `/metrics`.
+fn describe() {
+    describe_counter!("rayd_requests_total", "gRPC calls answered or dropped, by method and tenant");
+    describe_histogram!(
+        "rayd_request_duration_seconds",
+        Unit::Seconds,
+        "time from a call's arrival to its answer (a stream's: to its opening), by method and tenant"
+    );
+    describe_counter!(
+        "rayd_errors_total",
+        "failed calls by method, tenant and gRPC code, and failed TraceStream chunks (method TraceStream); a call \
+         dropped before its answer (caller gone, deadline passed) counts with code Cancelled"
+    );
+    describe_counter!(
+        "rayd_rays_traced_total",
+        "rays a device traced for the tenant (TraceBatch calls, TraceStream chunks, stream trace operations), \
+         counted once the trace ends, even if the call then fails (e.g. its hits buffer cannot be kept)"
+    );
+    describe_counter!("rayd_rays_hit_total", "of rayd_rays_traced_total, the rays that hit something");
+    describe_counter!(
+        "rayd_trace_batches_total",
+        "traces that ended: a TraceBatch call, a TraceStream chunk or a stream's trace operation is one each"
+    );
+    describe_counter!(
+        "rayd_trace_pieces_total",
+        "pieces of queued traces by outcome: traced, failed, or skipped (its trace was abandoned first)"
+    );
+    describe_histogram!(
+        "rayd_trace_piece_seconds",
+        Unit::Seconds,
+        "how long a piece of a trace held its device (the time the fair queue charged), by tenant and device"
+    );
+    describe_histogram!(
+        "rayd_trace_queue_seconds",
+        Unit::Seconds,
+        "how long a trace waited in its device's queue before its first piece started (or it gave up)"
+    );
+    describe_gauge!("rayd_accels", "accels the tenant holds");
+    describe_gauge!("rayd_accel_bytes", Unit::Bytes, "bytes of the accels the tenant holds (their size_bytes)");
+    describe_counter!(
+        "rayd_stream_operations_total",
+        "OpenStream operations that finished, by tenant, op and gRPC code"
+    );
+    describe_histogram!(
+        "rayd_stream_operation_duration_seconds",
+        Unit::Seconds,
+        "how long an OpenStream operation that started ran, by tenant and op"
+    );
 }
 
 /// Runs one call's logic for `tenant` (labels are bounded: tenants come from the configuration), records its latency
