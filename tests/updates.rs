@@ -10,7 +10,9 @@ use common::shared_mesh;
 use glam::{Affine3A, Vec3};
 use rayd_engine::accel::{BuildFlags, BuildOptions};
 use rayd_engine::format::{HitFormat, RayFormat};
-use rayd_engine::geometry::{BuildInput, Instance, InstanceFlags, Placement};
+use rayd_engine::geometry::{
+    BuildInput, Instance, InstanceFlags, MotionFlags, MotionOptions, Placement, TriangleInput,
+};
 use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{Query, TraceOutput};
 use rayd_engine::raygen::Camera;
@@ -134,4 +136,44 @@ fn instance_accels_follow_moved_instances_and_refuse_traces_until_updated_after_
     let error = context.update_instance_accel(&refreshed, &[at(&new_child, 0.0), at(&new_child, 1.0)]).unwrap_err();
     assert!(error.to_string().contains("2 instances where the build had 1"), "{error}");
     assert_eq!(context.destroy_accel(child.handle()).unwrap_err().kind(), ErrorKind::FailedPrecondition);
+}
+
+#[test]
+fn an_instance_accel_traces_a_moving_child_whose_update_deepened_its_wide_tree() {
+    // A moving child's wide tree is collapsed again by every update, from the refitted boxes. Vertices flattened to
+    // z = 0 and stretched along x past what a float's box side can hold give the upper boxes an infinite side beside
+    // a zero one (a NaN area), so that the collapse opens fewer of their lanes and the tree gets deeper. The instance
+    // accel updated over that version must still have stack enough for a walk into it.
+    let context = Context::new(Device::cpu());
+    let mesh = shared_mesh("cow").normalized_at(Vec3::ZERO);
+    let (lo, hi) = mesh.bounds();
+    let flat = Mesh {
+        positions: mesh
+            .positions
+            .iter()
+            .map(|p| Vec3::new(((p.x - lo.x) / (hi.x - lo.x) * 2.0 - 1.0) * 3e38, p.y, 0.0))
+            .collect(),
+        triangles: mesh.triangles.clone(),
+    };
+    let (packed, packed_flat) = (mesh.pack(), flat.pack());
+    let motion = MotionOptions { keys: 2, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
+    let options = BuildOptions { motion, ..BuildOptions::new(BuildFlags::ALLOW_UPDATE) };
+    let (still, flat_keys) = ([packed.vertices.as_slice()], [packed_flat.vertices.as_slice()]);
+    let child = context
+        .build_accel(&[BuildInput::Triangles(TriangleInput { motion_vertices: &still, ..packed.input() })], &options)
+        .unwrap();
+    let instance = |child: &Arc<Accel>| Instance {
+        transform: Placement::rows(&Affine3A::IDENTITY),
+        instance_id: 1,
+        mask: 0xFF,
+        flags: InstanceFlags::empty(),
+        child: Arc::clone(child),
+    };
+    let updatable = BuildOptions::new(BuildFlags::ALLOW_UPDATE);
+    let scene = context.build_instance_accel(&[instance(&child)], &updatable).unwrap();
+    let flat_input = BuildInput::Triangles(TriangleInput { motion_vertices: &flat_keys, ..packed_flat.input() });
+    let flattened = context.update_accel(&child, &[flat_input]).unwrap();
+    let scene = context.update_instance_accel(&scene, &[instance(&flattened)]).unwrap();
+    let view = (Vec3::splat(-1.0), Vec3::splat(1.0));
+    assert_eq!(hits(&context, &scene, view).unwrap().len(), hits(&context, &flattened, view).unwrap().len());
 }

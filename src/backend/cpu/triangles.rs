@@ -158,9 +158,12 @@ impl TriangleBvh {
         };
     }
 
-    /// Stack entries a traversal needs.
+    /// Stack entries a traversal needs: enough for a walk of the binary nodes and of any collapse of them
+    /// ([`WideTree::stack_size_within`]), so that the versions updates make, whose moving wide trees are collapsed
+    /// again from the refitted boxes (deeper where boxes degenerate), need no more than the build did: an instance
+    /// accel keeps its child's stack size from its build.
     pub(super) fn stack_size(&self) -> usize {
-        (self.depth + 1).max(self.wide.stack_size()).max(self.moving.stack_size())
+        WideTree::stack_size_within(self.depth)
     }
 
     /// Holds collapsed, in `corners`, the triangles of an accel that leaves none out ([`holds_all`]) which have no
