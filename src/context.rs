@@ -170,7 +170,7 @@ impl Accel {
 
     /// Fails with FAILED_PRECONDITION if this accel, or one below it, places an accel in a version an update has
     /// replaced: its results would be stale.
-    fn check_current(&self) -> Result<()> {
+    pub fn check_current(&self) -> Result<()> {
         if self.stale.load(Ordering::Acquire) {
             return Err(Error::FailedPrecondition(format!(
                 "accel {} was saved over an older version of an accel it places (updated since): update accel {} \
@@ -690,13 +690,31 @@ impl Context {
     /// Destroys an accel; traces already holding it finish first. An accel that live instance accels or
     /// transforms place cannot be destroyed (FAILED_PRECONDITION): destroy them first.
     pub fn destroy_accel(&self, handle: AccelHandle) -> Result<()> {
+        self.destroy_accel_after(handle, || Ok::<_, Error>(()))
+    }
+
+    /// [`Context::destroy_accel`] with `before` run once the accel is marked destroyed (nothing places it, and no
+    /// build can come to) and before it leaves the context, e.g. to remove what a server keeps of it: if `before`
+    /// fails, the mark is taken back and its error returned, the accel staying as it was (a build that tried to
+    /// place it meanwhile was refused).
+    pub fn destroy_accel_after<E: From<Error>>(
+        &self,
+        handle: AccelHandle,
+        before: impl FnOnce() -> std::result::Result<(), E>,
+    ) -> std::result::Result<(), E> {
         let accel = self.accel(handle)?;
         // Marked destroyed only while nothing places it, in one step: a build placing it meanwhile either counted
         // itself first (and the destroy is refused) or is refused itself.
         if let Err(referrers) = accel.referrers.compare_exchange(0, DESTROYED, Ordering::AcqRel, Ordering::Acquire) {
-            return Err(if referrers & DESTROYED != 0 { not_found(handle) } else { placed_by(handle, referrers) });
+            let refused = if referrers & DESTROYED != 0 { not_found(handle) } else { placed_by(handle, referrers) };
+            return Err(refused.into());
         }
-        self.accels.remove(&handle).map(drop).ok_or_else(|| not_found(handle))
+        if let Err(failed) = before() {
+            // Builds refused by the mark took their counts back; any still taking theirs back keep them consistent.
+            accel.referrers.fetch_and(!DESTROYED, Ordering::AcqRel);
+            return Err(failed);
+        }
+        Ok(self.accels.remove(&handle).map(drop).ok_or_else(|| not_found(handle))?)
     }
 
     /// What [`Context::destroy_accel`] would refuse now: an unknown accel (NOT_FOUND), or one that live instance

@@ -163,6 +163,10 @@ async fn updates_refit_in_place_and_placing_accels_refuse_traces_until_updated_t
     let stale = client.trace("scene", &query, Bytes::from(pack_rays(&[ray], RayFormat::Full))).await.unwrap_err();
     assert_eq!(stale.code(), Code::FailedPrecondition, "{stale}");
     assert!(stale.to_string().contains("before an update"), "{stale}");
+    // So is a copy of it (without a data directory as with one, which keeps only current versions).
+    let copy = client.copy_accel("scene", "scene-copy", "", false).await.unwrap_err();
+    assert_eq!(copy.code(), Code::FailedPrecondition, "{copy}");
+    assert!(copy.to_string().contains("before an update"), "{copy}");
 
     // The scene is updated with the same child (now its new version) and a new placement, on a stream.
     let stream = client.create_stream().await.unwrap();

@@ -526,6 +526,37 @@ fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_chil
     assert_eq!(context.destroy_accel(triangle.accel.handle()).unwrap_err().kind(), ErrorKind::NotFound);
 }
 
+#[test]
+fn a_destroy_whose_last_step_fails_keeps_the_accel_and_refuses_placing_it_meanwhile() {
+    let context = Context::new(Device::cpu());
+    let triangle = triangles(&context, vec![unit_triangle()]);
+    let placing = || {
+        let instance = Instance {
+            transform: Placement::rows(&Affine3A::IDENTITY),
+            instance_id: 0,
+            mask: 0xFF,
+            flags: InstanceFlags::empty(),
+            child: Arc::clone(&triangle.accel),
+        };
+        context.build_instance_accel(&[instance], &BuildOptions::default())
+    };
+    // A server removing the accel's file runs between the mark and the removal: a build placing the accel then is
+    // refused, and a failure takes the mark back.
+    let failed = context.destroy_accel_after(triangle.accel.handle(), || {
+        let refused = placing().unwrap_err();
+        assert!(refused.to_string().contains("was destroyed after it was named to be placed"), "{refused}");
+        Err(rayd_engine::Error::FailedPrecondition("the file could not be removed".into()))
+    });
+    assert!(failed.unwrap_err().to_string().contains("the file could not be removed"));
+    assert!(context.accel(triangle.accel.handle()).is_ok(), "the accel stays");
+    let parent = placing().expect("placed again once the destroy failed");
+    assert!(context.destroy_accel(triangle.accel.handle()).unwrap_err().to_string().contains("placed by"));
+    context.destroy_accel(parent.handle()).unwrap();
+    drop(parent);
+    context.destroy_accel(triangle.accel.handle()).unwrap();
+    assert_eq!(context.accel(triangle.accel.handle()).unwrap_err().kind(), ErrorKind::NotFound);
+}
+
 /// A thin strip along x from −2 to 2, 0.02 wide (128 triangles: several lanes at its root).
 fn strip() -> Mesh {
     let positions = (0..=64).flat_map(|i| [-0.01, 0.01].map(|y| Vec3::new(i as f32 / 16.0 - 2.0, y, 0.0))).collect();

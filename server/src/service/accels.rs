@@ -52,6 +52,9 @@ pub fn destroy(tenant: &Tenant, request: &pb::DestroyAccelRequest) -> ServiceRes
 /// Copies an accel, or makes a compacted copy (off the async runtime; not kept if the caller goes first).
 pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let source = resolve(&tenant, request.accel.as_ref(), "accel")?;
+    // A copy of an accel that places an old version of another would place it too: it could neither trace nor be
+    // stored (a data directory keeps only current versions), so it is refused as a trace of the source is.
+    source.accel.check_current()?;
     let device = if request.device.is_empty() { source.device.clone() } else { request.device.clone() };
     let entry = blocking_for_caller(move |caller| {
         tenant.build_accel(

@@ -550,12 +550,10 @@ impl Tenant {
         // Another call may have destroyed or updated it since `entry` was looked up: NOT_FOUND for the first (its
         // file must not be written back below), the version now listed for the second.
         let entry = &self.accels.get(Some(&entry.handle), None)?;
-        self.unpersist_accel(&entry.handle)?;
-        if let Err(refused) = context.destroy_accel(entry.accel.handle()) {
-            // An instance accel came to place it since the check: it stays, so its file is written back.
-            self.prepare_accel_file(entry, &[])?.put()?;
-            return Err(refused.into());
-        }
+        // Its file goes once nothing can come to place it, and before it leaves the context: an instance accel that
+        // came to place it since the check refuses the destroy with the file still there, and a file that cannot be
+        // removed keeps the accel.
+        context.destroy_accel_after(entry.accel.handle(), || self.unpersist_accel(&entry.handle))?;
         self.accels.remove(&entry.handle, &entry.name)?;
         self.depart(&entry.accel);
         crate::metrics::accel_destroyed(&self.name, entry);
