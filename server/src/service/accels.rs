@@ -5,7 +5,7 @@ use std::sync::Arc;
 use rayd_engine::accel::MemoryUsage;
 use rayd_proto as pb;
 
-use super::{blocking_for_caller, inputs};
+use super::{blocking, blocking_for_caller, inputs};
 use crate::convert;
 use crate::error::{ServiceError, ServiceResult};
 use crate::tenant::{AccelEntry, Tenant};
@@ -25,11 +25,12 @@ pub fn info(entry: &AccelEntry) -> pb::AccelInfo {
     convert::accel_info(entry.accel.info(), &entry.handle, &entry.name, &entry.device, entry.build_ns)
 }
 
-/// Builds an accel (off the async runtime; not kept if the caller goes first).
+/// Builds an accel (off the async runtime, its inputs' resolution too, which reads their bytes and expands their
+/// instances; not kept if the caller goes first).
 pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> ServiceResult<pb::AccelInfo> {
-    let resolved = inputs::resolve(&tenant, &request.device, &request.inputs, inputs::Purpose::Build)?;
-    let options = inputs::options(&tenant, &resolved, request.options.as_ref())?;
     let entry = blocking_for_caller(move |caller| {
+        let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
+        let options = inputs::options(&tenant, &resolved, request.options.as_ref())?;
         tenant.build_accel(
             &request.name,
             &request.device,
@@ -42,11 +43,10 @@ pub async fn build(tenant: Arc<Tenant>, request: pb::BuildAccelRequest) -> Servi
     Ok(info(&entry))
 }
 
-/// Destroys an accel; traces running on it finish first.
-pub fn destroy(tenant: &Tenant, request: &pb::DestroyAccelRequest) -> ServiceResult<()> {
-    let entry = resolve(tenant, request.accel.as_ref(), "accel")?;
-    tenant.destroy_accel(&entry)?;
-    Ok(())
+/// Destroys an accel; traces running on it finish first. Off the async runtime: it waits for the lock that orders
+/// the tenant's changes, which a load of many accels holds while it writes their files, and removes a file.
+pub async fn destroy(tenant: Arc<Tenant>, request: pb::DestroyAccelRequest) -> ServiceResult<()> {
+    blocking(move || tenant.destroy_accel(&resolve(&tenant, request.accel.as_ref(), "accel")?)).await
 }
 
 /// Copies an accel, or makes a compacted copy (off the async runtime; not kept if the caller goes first).
@@ -69,11 +69,12 @@ pub async fn copy(tenant: Arc<Tenant>, request: pb::CopyAccelRequest) -> Service
     Ok(info(&entry))
 }
 
-/// Updates (refits) an accel in place (off the async runtime; not started if the caller goes first).
+/// Updates (refits) an accel in place (off the async runtime, its inputs' resolution too; not started if the caller
+/// goes first).
 pub async fn update(tenant: Arc<Tenant>, request: pb::UpdateAccelRequest) -> ServiceResult<pb::AccelInfo> {
     let entry = resolve(&tenant, request.accel.as_ref(), "accel")?;
-    let resolved = inputs::resolve(&tenant, &entry.device, &request.inputs, inputs::Purpose::Other)?;
     let updated = blocking_for_caller(move |caller| {
+        let resolved = inputs::resolve(&tenant, &entry.device, &request.inputs)?;
         tenant.update_accel(&entry, caller, |context| resolved.update(context, &entry.accel))
     })
     .await?;

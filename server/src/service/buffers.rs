@@ -157,8 +157,8 @@ pub fn download(tenant: &Tenant, request: &pb::DownloadBufferRequest) -> Service
     Ok(Box::pin(place.held_by(chunks_sent)))
 }
 
-/// Deletes a buffer.
-pub fn delete(tenant: &Tenant, request: &pb::DeleteBufferRequest) -> ServiceResult<()> {
-    let (entry, _) = resolve(tenant, request.buffer.as_ref(), "buffer")?;
-    tenant.delete_buffer(&entry)
+/// Deletes a buffer (off the async runtime: it waits for the lock that orders the tenant's changes, and removes a
+/// file).
+pub async fn delete(tenant: Arc<Tenant>, request: pb::DeleteBufferRequest) -> ServiceResult<()> {
+    super::blocking(move || tenant.delete_buffer(&resolve(&tenant, request.buffer.as_ref(), "buffer")?.0)).await
 }

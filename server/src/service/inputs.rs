@@ -121,27 +121,16 @@ impl OwnedTriangles {
     }
 }
 
-/// What the inputs are resolved for.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Purpose {
-    /// A new accel: instances whose accel could not be built within `max_accel_bytes` are refused before they are
-    /// made.
-    Build,
-    /// A memory bound to report, or an update of an accel already built.
-    Other,
-}
-
-/// Resolves the inputs of a build on `device` for `purpose`, and checks the depth of the graph it would head against
-/// `max_graph_depth`.
-pub fn resolve(tenant: &Tenant, device: &str, inputs: &[pb::BuildInput], purpose: Purpose) -> ServiceResult<Resolved> {
+/// Resolves the inputs of a build on `device` (or of an update, or of a memory bound asked for), and checks the depth
+/// of the graph it would head against `max_graph_depth`. Reads every input's bytes and expands instances: call it off
+/// the async runtime.
+pub fn resolve(tenant: &Tenant, device: &str, inputs: &[pb::BuildInput]) -> ServiceResult<Resolved> {
     use pb::build_input::Input;
     let places = |input: &pb::BuildInput| matches!(input.input, Some(Input::Instances(_) | Input::Transform(_)));
     let resolved = match inputs {
         [] => return Err(ServiceError::invalid("inputs", "a build needs at least one input")),
         [only] if places(only) => match &only.input {
-            Some(Input::Instances(instances)) => {
-                Resolved::Instances(resolve_instances(tenant, device, instances, purpose)?)
-            }
+            Some(Input::Instances(instances)) => Resolved::Instances(resolve_instances(tenant, device, instances)?),
             Some(Input::Transform(transform)) => resolve_transform(tenant, device, transform)?,
             _ => return Err(ServiceError::invalid("inputs[0]", "a build input must be set")),
         },
@@ -184,12 +173,7 @@ fn child(tenant: &Tenant, device: &str, reference: Option<&pb::AccelRef>, field:
 }
 
 /// The instances of an instance input.
-fn resolve_instances(
-    tenant: &Tenant,
-    device: &str,
-    input: &pb::InstanceInput,
-    purpose: Purpose,
-) -> ServiceResult<Vec<Instance>> {
+fn resolve_instances(tenant: &Tenant, device: &str, input: &pb::InstanceInput) -> ServiceResult<Vec<Instance>> {
     use pb::instance_input::Instances;
     let children: Vec<Arc<Accel>> = input
         .children
@@ -202,7 +186,7 @@ fn resolve_instances(
         Some(Instances::Records(records)) => {
             let records = data(tenant, Some(records), "inputs[0].instances.records")?
                 .ok_or_else(|| required("inputs[0].instances.records"))?;
-            check_instance_count(tenant, device, records.len() / INSTANCE_RECORD_BYTES, purpose)?;
+            check_instance_count(tenant, device, records.len() / INSTANCE_RECORD_BYTES)?;
             instances_from_records(&records, &children)?
         }
         Some(Instances::Prime(prime)) => {
@@ -216,20 +200,17 @@ fn resolve_instances(
                 Ok(pb::TransformFormat::Float4x3) => TransformFormat::Float4x3,
                 _ => return Err(ServiceError::invalid(field("transform_format"), "must be FLOAT4X4 or FLOAT4X3")),
             };
-            check_instance_count(tenant, device, indices.len() / size_of::<u32>(), purpose)?;
+            check_instance_count(tenant, device, indices.len() / size_of::<u32>())?;
             instances_from_prime(&indices, &transforms, format, &children)?
         }
         None => return Err(ServiceError::invalid("inputs[0].instances", "records or prime is required")),
     })
 }
 
-/// For a build, RESOURCE_EXHAUSTED before `count` instances are made when even the smallest instance accel over them
-/// (its default build) would pass `max_accel_bytes`: the instances' records, up to a buffer's size, are not expanded
-/// for an accel that cannot be built.
-fn check_instance_count(tenant: &Tenant, device: &str, count: usize, purpose: Purpose) -> ServiceResult<()> {
-    if purpose != Purpose::Build {
-        return Ok(());
-    }
+/// RESOURCE_EXHAUSTED before `count` instances are made when even the smallest instance accel over them (its default
+/// build) would pass `max_accel_bytes`: the instances' records, up to a buffer's size, are not expanded for an accel
+/// that cannot be built (nor for an update, whose count is its build's, nor for the memory bound of one).
+fn check_instance_count(tenant: &Tenant, device: &str, count: usize) -> ServiceResult<()> {
     let (_, context) = tenant.context(device)?;
     let bytes = context.compute_instance_memory_usage(count, &BuildOptions::default())?.output_bytes;
     ServiceError::check_limit(

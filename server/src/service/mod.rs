@@ -204,7 +204,7 @@ impl Rayd for RaydService {
     ) -> Result<Response<pb::DeleteBufferResponse>, Status> {
         let tenant = self.caller(&request, "DeleteBuffer", Role::Write)?;
         observe("DeleteBuffer", tenant.name().to_owned(), async {
-            buffers::delete(&tenant, request.get_ref())?;
+            buffers::delete(Arc::clone(&tenant), request.into_inner()).await?;
             Ok(pb::DeleteBufferResponse {})
         })
         .await
@@ -226,13 +226,19 @@ impl Rayd for RaydService {
         request: Request<pb::ComputeMemoryUsageRequest>,
     ) -> Result<Response<pb::MemoryUsage>, Status> {
         let tenant = self.caller(&request, "ComputeMemoryUsage", Role::Read)?;
-        observe("ComputeMemoryUsage", tenant.name().to_owned(), async {
-            let request = request.into_inner();
-            let resolved = inputs::resolve(&tenant, &request.device, &request.inputs, inputs::Purpose::Other)?;
-            let options = inputs::options(&tenant, &resolved, request.options.as_ref())?;
-            let (_, context) = tenant.context(&request.device)?;
-            Ok(convert::memory_usage(&resolved.memory_usage(context, &options)?))
-        })
+        // Off the async runtime: resolving the inputs reads their bytes (up to whole buffers) and checks them.
+        let name = tenant.name().to_owned();
+        observe(
+            "ComputeMemoryUsage",
+            name,
+            blocking(move || {
+                let request = request.into_inner();
+                let resolved = inputs::resolve(&tenant, &request.device, &request.inputs)?;
+                let options = inputs::options(&tenant, &resolved, request.options.as_ref())?;
+                let (_, context) = tenant.context(&request.device)?;
+                Ok(convert::memory_usage(&resolved.memory_usage(context, &options)?))
+            }),
+        )
         .await
     }
 
@@ -276,7 +282,7 @@ impl Rayd for RaydService {
     ) -> Result<Response<pb::DestroyAccelResponse>, Status> {
         let tenant = self.caller(&request, "DestroyAccel", Role::Write)?;
         observe("DestroyAccel", tenant.name().to_owned(), async {
-            accels::destroy(&tenant, request.get_ref())?;
+            accels::destroy(Arc::clone(&tenant), request.into_inner()).await?;
             Ok(pb::DestroyAccelResponse {})
         })
         .await

@@ -153,11 +153,11 @@ impl Executor {
                 Some(Outcome::Buffer(buffers::info(&entry)))
             }
             Op::DeleteBuffer(request) => {
-                buffers::delete(tenant, &request)?;
+                buffers::delete(Arc::clone(tenant), request).await?;
                 None
             }
             Op::DestroyAccel(request) => {
-                accels::destroy(tenant, &request)?;
+                accels::destroy(Arc::clone(tenant), request).await?;
                 None
             }
             Op::RecordEvent(_) => None,
