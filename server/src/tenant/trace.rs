@@ -126,7 +126,7 @@ impl Tenant {
         if slot.is_some() || layout.rays == 0 {
             let piece = job.progress().take_piece(&job).expect("every ray is left").0;
             let Piece { index, rays, output } = piece;
-            let (traced, took) = blocking_here(|| job.trace_piece_timed(rays.clone(), output));
+            let (traced, took) = job.trace_piece_timed(rays.clone(), output);
             let mut progress = job.progress();
             progress.record(&job, index, rays, took, traced);
             return progress.finish(&job);
@@ -137,18 +137,6 @@ impl Tenant {
         job.queue_next(scheduler, first_estimate);
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
         Ok(result)
-    }
-}
-
-/// Runs `work`, which blocks (an engine trace), on this thread of the async runtime, its other tasks handed to
-/// another thread meanwhile where the runtime has several (tokio's `block_in_place`): a piece whose rays cost far more
-/// than its estimate (a pile of triangles, a pace learned on cheap rays) then holds up no other call, and a small
-/// trace still runs without waiting for a thread.
-fn blocking_here<T>(work: impl FnOnce() -> T) -> T {
-    use tokio::runtime::{Handle, RuntimeFlavor};
-    match Handle::try_current().map(|runtime| runtime.runtime_flavor()) {
-        Ok(RuntimeFlavor::MultiThread) => tokio::task::block_in_place(work),
-        _ => work(),
     }
 }
 
