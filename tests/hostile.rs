@@ -178,3 +178,44 @@ fn a_pile_of_copies_of_one_triangle_or_a_row_of_them_builds_and_traces_by_the_ti
     let traced: Vec<u32> = crossings(&context, &accel, &rays).into_iter().map(|c| c.1).collect();
     assert_eq!(traced, [0, 1, 4999, 77_777]);
 }
+
+#[test]
+fn nested_triangles_and_triangles_spread_wider_than_binary32_spans_build_and_trace() {
+    // Each prefers the same neighbour (a box nested in the next): obvhs's PLOC merged one pair a pass, quadratic
+    // (20,000 nested boxes 9 s, these hours) and a chain as deep as the count (vendor/obvhs/PATCHED.md); its trees
+    // deeper than a BVH may be are built by median splits. Triangle `i` scaled by 1.00001^i: boxes nested in each
+    // other, each crossed by the z axis at z = s/3.
+    let context = Context::new(Device::cpu());
+    let copies = 200_000;
+    let nested: Vec<[f32; 3]> = (0..copies)
+        .flat_map(|i| {
+            let s = 1.00001f32.powi(i);
+            [[-s, -s, -s], [2.0 * s, -s, s], [-s, 2.0 * s, s]]
+        })
+        .collect();
+    let accel = build(&context, &nested).unwrap();
+    let rays = [
+        ray([0.0, 0.0, -100.0], [0.0, 0.0, 1.0], 0.0, f32::INFINITY),
+        ray([0.0, 0.0, 100.0], [0.0, 0.0, -1.0], 0.0, f32::INFINITY),
+    ];
+    let [(up, lowest, crossed_up), (down, highest, crossed_down)] = crossings(&context, &accel, &rays)[..] else {
+        unreachable!()
+    };
+    assert_eq!((lowest, highest, crossed_up, crossed_down), (0, copies as u32 - 1, copies as u32, copies as u32));
+    let s_last = 1.00001f32.powi(copies - 1);
+    let near = |t: f32, expected: f32| (t - expected).abs() < 1e-3;
+    assert!(near(up, 100.0 + 1.0 / 3.0) && near(down, 100.0 - s_last / 3.0), "{up} {down}, {s_last}");
+    // Finite corners over ±3.3e38: the scene's extent and area overflow binary32, and obvhs panicked on them.
+    let spacing = 3.3e38 / (copies / 2) as f32;
+    let x = |i: usize| (i as f32 / (copies / 2) as f32 - 1.0) * 3.3e38;
+    let wide: Vec<[f32; 3]> = (0..copies as usize)
+        .flat_map(|i| [[x(i), -1.0, 5.0], [x(i) + 0.9 * spacing, -1.0, 5.0], [x(i), 1.0, 5.0]])
+        .collect();
+    let accel = build(&context, &wide).unwrap();
+    let rays: Vec<Ray> = [0, 1, 99_999, 199_999]
+        .iter()
+        .map(|&i| ray([x(i) + 0.1 * spacing, 0.0, 0.0], [0.0, 0.0, 1.0], 0.0, f32::INFINITY))
+        .collect();
+    let expected = [0, 1, 99_999, 199_999].map(|i| (5.0, i, 1));
+    assert_eq!(crossings(&context, &accel, &rays), expected);
+}

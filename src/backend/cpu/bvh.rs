@@ -84,16 +84,39 @@ pub(super) struct Layout {
     pub depth: usize,
 }
 
+/// The deepest a BVH may be, in nodes from the root to a leaf: traversal stacks, which every chunk of rays
+/// allocates, are sized by the depth. SAH trees of millions of ordinary triangles are a few dozen deep; boxes nested
+/// in each other (concentric triangles) made obvhs's trees as deep as their count, and such trees are built again
+/// by median splits ([`Layout::build`]). Blobs of deeper trees are refused.
+pub(crate) const MAX_DEPTH: usize = 1024;
+
+/// Leaves of a tree built by median splits hold at most this many primitives.
+const MEDIAN_SPLIT_LEAF: u32 = 4;
+
 impl Layout {
     /// Builds a BVH over `boxes`, the boxes of the caller's primitives `primitives` (parallel to them), with leaves
-    /// of at most `max_leaf` primitives (fewer as the builder's cost model finds best).
+    /// of at most `max_leaf` primitives (fewer as the builder's cost model finds best). Boxes whose scene's surface
+    /// area overflows binary32 (finite coordinates far apart), whose costs and Morton codes obvhs computes as NaN
+    /// (it panicked), and a tree deeper than [`MAX_DEPTH`] are built by median splits instead
+    /// ([`Layout::median_split`]).
     pub fn build(boxes: &[Aabb], primitives: &[u32], flags: BuildFlags, max_leaf: u32) -> Layout {
         if boxes.is_empty() {
             return Layout::default();
         }
-        let mut params = build_params(flags);
-        params.max_prims_per_leaf = params.max_prims_per_leaf.min(max_leaf);
-        let bvh = build_bvh2(boxes, params);
+        let scene = boxes.iter().fold(Aabb::empty(), |scene, b| scene.union(b));
+        if scene.half_area().is_finite() {
+            let mut params = build_params(flags);
+            params.max_prims_per_leaf = params.max_prims_per_leaf.min(max_leaf);
+            let layout = Layout::from_bvh2(&build_bvh2(boxes, params), primitives);
+            if layout.depth <= MAX_DEPTH {
+                return layout;
+            }
+        }
+        Layout::median_split(boxes, primitives, max_leaf.min(MEDIAN_SPLIT_LEAF))
+    }
+
+    /// The depth-first copy of obvhs's `bvh`, its leaves' indices mapped to `primitives`.
+    fn from_bvh2(bvh: &Bvh2, primitives: &[u32]) -> Layout {
         let mut layout = Layout { nodes: Vec::with_capacity(bvh.nodes.len()), ..Layout::default() };
         layout.nodes.push(Node { min: Vec3::ZERO, index: 0, max: Vec3::ZERO, count: 0 });
         let mut pending = vec![(0usize, 0usize, 1usize)];
@@ -114,6 +137,49 @@ impl Layout {
                 layout.order.extend(bvh.primitive_indices[leaf].iter().map(|&p| primitives[p as usize]));
                 layout.nodes[target] = Node { min, index: start, max, count: node.prim_count };
             }
+        }
+        layout
+    }
+
+    /// A BVH over `boxes` by median splits: each node's boxes split in half by their centres along the axis where
+    /// the centres spread most, leaves of at most `max_leaf`. At most ⌈log2 n⌉ + 1 deep whatever the boxes, and
+    /// computed with comparisons, minima and maxima only (no sums of coordinates that could overflow).
+    fn median_split(boxes: &[Aabb], primitives: &[u32], max_leaf: u32) -> Layout {
+        let centre = |i: u32| boxes[i as usize].min * 0.5 + boxes[i as usize].max * 0.5;
+        let mut items: Vec<u32> = (0..boxes.len() as u32).collect();
+        let mut layout = Layout { nodes: Vec::with_capacity(2 * boxes.len()), ..Layout::default() };
+        layout.nodes.push(Node { min: Vec3::ZERO, index: 0, max: Vec3::ZERO, count: 0 });
+        let mut pending = vec![(0..items.len(), 0usize, 1usize)];
+        while let Some((range, target, level)) = pending.pop() {
+            layout.depth = layout.depth.max(level);
+            let here = &mut items[range.clone()];
+            let bounds = here.iter().fold(Aabb::empty(), |b, &i| b.union(&boxes[i as usize]));
+            let (min, max) = (bounds.min.into(), bounds.max.into());
+            if here.len() <= max_leaf as usize {
+                let start = layout.order.len() as u32;
+                layout.order.extend(here.iter().map(|&i| primitives[i as usize]));
+                layout.nodes[target] = Node { min, index: start, max, count: here.len() as u32 };
+                continue;
+            }
+            let (low, high) = here.iter().fold((Vec3A::INFINITY, Vec3A::NEG_INFINITY), |(low, high), &i| {
+                (low.min(centre(i)), high.max(centre(i)))
+            });
+            let spread = high - low;
+            let axis = if spread.x >= spread.y && spread.x >= spread.z {
+                0
+            } else if spread.y >= spread.z {
+                1
+            } else {
+                2
+            };
+            let half = here.len() / 2;
+            here.select_nth_unstable_by(half, |&a, &b| centre(a)[axis].total_cmp(&centre(b)[axis]));
+            let first = layout.nodes.len();
+            layout.nodes.push(layout.nodes[target]);
+            layout.nodes.push(layout.nodes[target]);
+            layout.nodes[target] = Node { min, index: first as u32, max, count: 0 };
+            pending.push((range.start + half..range.end, first + 1, level + 1));
+            pending.push((range.start..range.start + half, first, level + 1));
         }
         layout
     }
@@ -264,5 +330,47 @@ mod tests {
         };
         assert!(largest(u32::MAX) > 1, "the builder's own leaves hold several");
         assert_eq!(largest(1), 1);
+    }
+
+    /// Checks that `layout` over `boxes` is a tree whose leaves hold every primitive once and whose every node's box
+    /// holds its children's (its primitives' for a leaf); returns its depth.
+    fn checked(layout: &Layout, boxes: &[Aabb]) -> usize {
+        let mut order = layout.order.clone();
+        order.sort_unstable();
+        assert_eq!(order, (0..boxes.len() as u32).collect::<Vec<_>>(), "every primitive in one leaf");
+        let holds = |node: &Node, b: &Aabb| {
+            Vec3A::from(node.min).cmple(b.min).all() && Vec3A::from(node.max).cmpge(b.max).all()
+        };
+        for node in &layout.nodes {
+            let (first, count) = (node.index as usize, node.count as usize);
+            let inside: Vec<Aabb> = match count {
+                0 => layout.nodes[first..first + 2].iter().map(|c| Aabb::new(c.min.into(), c.max.into())).collect(),
+                _ => layout.order[first..first + count].iter().map(|&p| boxes[p as usize]).collect(),
+            };
+            assert!(inside.iter().all(|b| holds(node, b)), "{node:?} does not hold {inside:?}");
+        }
+        layout.depth
+    }
+
+    #[test]
+    fn nested_boxes_and_a_scene_wider_than_binary32_get_trees_of_bounded_depth() {
+        // 100,000 boxes nested in each other: obvhs chains them, 99,993 deep.
+        let nested: Vec<Aabb> = (0..100_000)
+            .map(|i| Aabb::new(Vec3A::splat(-1.0001f32.powi(i)), Vec3A::splat(1.0001f32.powi(i))))
+            .collect();
+        // Finite boxes spread over ±3.3e38: the scene's extent overflows, and obvhs panicked.
+        let wide: Vec<Aabb> = (0..100_000)
+            .map(|i| {
+                let x = (i as f32 / 50_000.0 - 1.0) * 3.3e38;
+                Aabb::new(Vec3A::new(x, 0.0, 0.0), Vec3A::new(x + 1e34, 1.0, 0.0))
+            })
+            .collect();
+        for (name, boxes) in [("nested", nested), ("wide", wide)] {
+            let primitives: Vec<u32> = (0..boxes.len() as u32).collect();
+            for flags in [BuildFlags::empty(), BuildFlags::PREFER_FAST_BUILD, BuildFlags::PREFER_FAST_TRACE] {
+                let depth = checked(&Layout::build(&boxes, &primitives, flags, u32::MAX), &boxes);
+                assert!(depth <= 18, "{name}, {flags:?}: {depth} deep");
+            }
+        }
     }
 }

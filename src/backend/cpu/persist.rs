@@ -34,7 +34,7 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use super::CpuAccel;
-use super::bvh::{Node, NodeKeys};
+use super::bvh::{MAX_DEPTH, Node, NodeKeys};
 use super::instances::{InstanceBvh, child_boxes, cpu_child};
 use super::moving_wide::MovingWideTree;
 use super::triangles::{RandomAccess, TriangleBvh, corner_bounds};
@@ -185,17 +185,12 @@ fn read_nodes(
     Ok((nodes, node_keys, depth))
 }
 
-/// The deepest BVH a blob may hold, in nodes from the root to a leaf: the traversal stacks every chunk of rays
-/// allocates are sized by the depth (a tree made deep on purpose, each inner node with a leaf for a child, would
-/// take hundreds of megabytes a chunk). rayd's builds stay far below it (SAH trees of millions of triangles are a few
-/// dozen deep).
-pub const MAX_LOADED_DEPTH: usize = 1024;
-
 /// Checks a depth-first node array over `slots` primitive slots: each inner node's children (at `index` and
 /// `index + 1`) come after it in the array, every node but the root is the child of exactly one node (so the
 /// nodes form one tree), each leaf's primitives lie within the slots, no slot in two leaves (the wide BVH
 /// copies each leaf's triangles into blocks of its own: [`super::blocks::Placement`]), and no node lies deeper than
-/// [`MAX_LOADED_DEPTH`]. Returns the longest root-to-leaf path, in nodes (what the traversal stack is sized by).
+/// [`MAX_DEPTH`] (which rayd's builds keep to). Returns the longest root-to-leaf path, in nodes (what the traversal
+/// stack is sized by).
 fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
     if nodes.len() > u32::MAX as usize {
         return Err(invalid(format!("{} nodes, more than a u32 index reaches", nodes.len())));
@@ -214,8 +209,8 @@ fn check_nodes(nodes: &[Node], slots: usize) -> Result<usize> {
         if here == 0 {
             return Err(invalid(format!("node {i} is the child of no node before it")));
         }
-        if here as usize > MAX_LOADED_DEPTH {
-            return Err(invalid(format!("node {i} is {here} nodes deep; a BVH may be at most {MAX_LOADED_DEPTH}")));
+        if here as usize > MAX_DEPTH {
+            return Err(invalid(format!("node {i} is {here} nodes deep; a BVH may be at most {MAX_DEPTH}")));
         }
         depth = depth.max(here);
         if node.count > 0 {
@@ -504,8 +499,8 @@ mod tests {
 
     #[test]
     fn trees_deeper_than_a_loaded_bvh_may_be_are_refused() {
-        assert_eq!(check_nodes(&caterpillar(MAX_LOADED_DEPTH), MAX_LOADED_DEPTH).unwrap(), MAX_LOADED_DEPTH);
-        let deeper = MAX_LOADED_DEPTH + 1;
+        assert_eq!(check_nodes(&caterpillar(MAX_DEPTH), MAX_DEPTH).unwrap(), MAX_DEPTH);
+        let deeper = MAX_DEPTH + 1;
         let refused = check_nodes(&caterpillar(deeper), deeper).unwrap_err().to_string();
         assert!(refused.contains("1025 nodes deep; a BVH may be at most 1024"), "{refused}");
     }
