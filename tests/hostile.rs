@@ -182,7 +182,7 @@ fn a_pile_of_copies_of_one_triangle_or_a_row_of_them_builds_and_traces_by_the_ti
 #[test]
 fn nested_triangles_and_triangles_spread_wider_than_binary32_spans_build_and_trace() {
     // Each prefers the same neighbour (a box nested in the next): obvhs's PLOC merged one pair a pass, quadratic
-    // (20,000 nested boxes 9 s, these hours) and a chain as deep as the count (vendor/obvhs/PATCHED.md); its trees
+    // (20,000 nested boxes 9 s, these about a quarter of an hour) and a chain as deep as the count (vendor/obvhs/PATCHED.md); its trees
     // deeper than a BVH may be are built by median splits. Triangle `i` scaled by 1.00001^i: boxes nested in each
     // other, each crossed by the z axis at z = s/3.
     let context = Context::new(Device::cpu());

@@ -603,7 +603,7 @@ fn batches_larger_than_one_binding_are_split_into_chunks() {
 }
 
 #[test]
-fn traces_within_a_small_buffer_budget_are_cut_into_chunks_that_fit_it() {
+fn traces_within_a_small_buffer_budget_agree_with_the_cpu_and_those_that_cannot_fit_are_refused() {
     // 1 MiB for a trace's two slots: an `all` query of 64 full hits a ray takes about 13 KiB a ray there (records,
     // sorted scratch, readback), so 5,000 rays go in chunks of 32 rays.
     let budget = 1 << 20;

@@ -87,7 +87,8 @@ pub struct SchedulerConfig {
     /// Bytes of device buffers one GPU trace holds at most (its two chunks' rays, hits, `all` scratch and staging),
     /// 1 MiB to 1 TiB: chunks of many hits a ray are cut to fit, and a query whose 32-ray chunks cannot is
     /// RESOURCE_EXHAUSTED naming this key. `gpu_workers` times this bounds what traces take of a GPU's memory (and,
-    /// for their staging, of the host's), besides 256 MiB of idle buffers kept for later traces.
+    /// for their staging, of the host's), besides 256 MiB of idle buffers kept for later traces (which a trace may
+    /// take up and grow).
     pub gpu_trace_bytes: u64,
 }
 

@@ -153,14 +153,18 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
     // With a data directory the buffers are written to disk: off the async runtime.
     blocking(move || {
         let mut reserved = reserved.into_iter().flatten();
-        let mut next = || reserved.next().expect("a reservation for each buffer the trace writes");
+        let mut next = || {
+            reserved.next().ok_or_else(|| ServiceError::Internal("a buffer the trace writes was not reserved".into()))
+        };
         let name = &request.hits_buffer_name;
-        let hits_buffer = tenant.create_buffer(HITS_BUFFER_NAME, name, result.hits, next())?;
+        let hits_buffer = tenant.create_buffer(HITS_BUFFER_NAME, name, result.hits, next()?)?;
         let counts_buffer = if result.counts.is_empty() {
             None
         } else {
             // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
-            match tenant.create_buffer(HITS_BUFFER_NAME, &counts_buffer_name(name), result.counts, next()) {
+            match next().and_then(|reserved| {
+                tenant.create_buffer(HITS_BUFFER_NAME, &counts_buffer_name(name), result.counts, reserved)
+            }) {
                 Ok(entry) => Some(buffers::info(&entry)),
                 Err(error) => {
                     // The call's answer is why the counts failed; a hits buffer that cannot be taken back is logged.

@@ -681,9 +681,9 @@ impl Tenant {
             }
         };
         let _keeping = self.keep();
-        // Checked again where changes are ordered: two creates that both passed the check above while their files
-        // were written must not both be kept past a limit. Its file goes in place before it is listed, as an
-        // accel's (`build_accel`).
+        // Checked again where changes are ordered: two creates of one name that both passed the check above while
+        // their files were written must not both be kept (their bytes and places are reserved already). Its file goes
+        // in place before it is listed, as an accel's (`build_accel`).
         let kept =
             self.check_new_buffers_beside(field, &[(name, size_bytes)], Some(&reserved)).and_then(|()| file.put());
         if let Err(refused) = kept {

@@ -354,7 +354,8 @@ mod tests {
 
     #[test]
     fn nested_boxes_and_a_scene_wider_than_binary32_get_trees_of_bounded_depth() {
-        // 100,000 boxes nested in each other: obvhs chains them, 99,993 deep.
+        // 100,000 boxes nested in each other: obvhs chained them, 99,993 deep (thousands deep with the patch to its
+        // PLOC, past MAX_DEPTH: median splits); median splits are checked on their own too.
         let nested: Vec<Aabb> = (0..100_000)
             .map(|i| Aabb::new(Vec3A::splat(-1.0001f32.powi(i)), Vec3A::splat(1.0001f32.powi(i))))
             .collect();
@@ -371,6 +372,8 @@ mod tests {
                 let depth = checked(&Layout::build(&boxes, &primitives, flags, u32::MAX), &boxes);
                 assert!(depth <= 18, "{name}, {flags:?}: {depth} deep");
             }
+            let depth = checked(&Layout::median_split(&boxes, &primitives, MEDIAN_SPLIT_LEAF), &boxes);
+            assert_eq!(depth, 16, "{name}: 2^15 < 100,000 / 4 ≤ 2^16 leaves");
         }
     }
 }

@@ -251,20 +251,21 @@ impl Plan {
                 return Ok(Plan { rays, chunk_rays, need });
             }
             if chunk_rays == align {
-                return Err(match need.largest() > limits.binding_bytes {
-                    true => Error::TooLarge {
-                        what: "a wgpu chunk of 32 rays (max_hits_per_ray too large)",
+                return Err(if need.largest() > limits.binding_bytes {
+                    Error::TooLarge {
+                        what: "a wgpu chunk of its fewest rays, 32 or a pixel's (max_hits_per_ray too large)",
                         unit: "bytes",
                         requested: need.largest(),
                         limit: limits.binding_bytes,
-                    },
-                    false => Error::TooLarge {
-                        what: "the buffers of a wgpu trace in chunks of 32 rays (max_hits_per_ray too large for the \
-                               trace buffer limit, rayd's scheduler.gpu_trace_bytes)",
+                    }
+                } else {
+                    Error::TooLarge {
+                        what: "the buffers of a wgpu trace in chunks of its fewest rays, 32 or a pixel's \
+                               (max_hits_per_ray too large for the trace buffer limit, rayd's scheduler.gpu_trace_bytes)",
                         unit: "bytes",
                         requested: slots,
                         limit: limits.trace_bytes,
-                    },
+                    }
                 });
             }
             chunk_rays = (chunk_rays / 2).next_multiple_of(align);

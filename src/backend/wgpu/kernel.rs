@@ -148,8 +148,8 @@ pub(super) struct Kernel {
     pub batch_layout: wgpu::BindGroupLayout,
 }
 
-/// A storage buffer entry of a bind group layout.
-/// The pipeline `cell` holds, or the one `compile` makes, kept in `cell` only if it compiled.
+/// The pipeline `cell` holds, or the one `compile` makes, kept in `cell` only if it compiled (two threads asking at
+/// once for one not compiled yet may both compile it: the first kept is used).
 fn kept(
     cell: &OnceLock<wgpu::ComputePipeline>,
     compile: impl FnOnce() -> Result<wgpu::ComputePipeline>,
@@ -161,6 +161,7 @@ fn kept(
     Ok(cell.get_or_init(|| pipeline))
 }
 
+/// A storage buffer entry of a bind group layout.
 fn storage(binding: u32, read_only: bool) -> wgpu::BindGroupLayoutEntry {
     wgpu::BindGroupLayoutEntry {
         binding,

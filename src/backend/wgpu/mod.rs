@@ -64,7 +64,8 @@ pub struct WgpuOptions {
     /// Caps the bytes of the buffers one trace holds on the device (its two chunks' buffers, staging included):
     /// chunks of many records a ray (`all` queries) are cut to fit; `None`: [`DEFAULT_MAX_TRACE_BYTES`]. The traces
     /// running at once, times this, bound what tracing takes of the device's memory (and, for the staging, of the
-    /// host's), besides at most 256 MiB of idle buffers kept for later traces.
+    /// host's), besides at most 256 MiB of idle buffers kept for later traces (a trace that takes one up, and grows
+    /// it to its chunks, holds it on top of its own).
     pub max_trace_bytes: Option<u64>,
 }
 
