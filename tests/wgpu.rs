@@ -895,22 +895,45 @@ fn triangles_whose_corners_no_binding_can_hold_are_refused_before_their_build() 
 #[test]
 fn an_accel_deeper_than_the_kernels_stack_is_refused_by_name_and_kept_on_the_cpu() {
     let Some(device) = gpu() else { return };
-    // Triangles nested in ever smaller copies of each other: the BVH over them is a chain, one level a triangle.
+    // Triangles nested in ever smaller copies of each other: the BVH over them is a chain, one level a triangle (64 of
+    // them: obvhs's PLOC pairs neighbours where a pass of more stalls). Instance accels over 64 nested copies of the
+    // level below, twice, make chains of their own on top of it.
     let mesh = Mesh {
-        positions: (0..600)
+        positions: (0..64)
             .flat_map(|k| {
                 let s = 0.97f32.powi(k);
                 [Vec3::ZERO, Vec3::new(s, 0.0, 0.0), Vec3::new(0.0, s, s * 0.5)]
             })
             .collect(),
-        triangles: (0..600u32).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect(),
+        triangles: (0..64u32).map(|k| [3 * k, 3 * k + 1, 3 * k + 2]).collect(),
     };
     let packed = mesh.pack();
     let inputs = [BuildInput::Triangles(packed.input())];
-    let error = Context::new(device).build_accel(&inputs, &BuildOptions::default()).expect_err("too deep for the GPU");
+    let nest = |context: &Context, child: &Arc<Accel>| {
+        let copies: Vec<Instance> = (0..64)
+            .map(|k| {
+                instance(
+                    child,
+                    Affine3A::from_scale(Vec3::splat(0.97f32.powi(k))),
+                    k as u32,
+                    0xFF,
+                    InstanceFlags::empty(),
+                )
+            })
+            .collect();
+        context.build_instance_accel(&copies, &BuildOptions::default())
+    };
+    let gpu = Context::new(device);
+    let error = gpu
+        .build_accel(&inputs, &BuildOptions::default())
+        .and_then(|geometry| nest(&gpu, &geometry))
+        .and_then(|once| nest(&gpu, &once))
+        .expect_err("too deep for the GPU");
     assert_eq!(error.kind(), ErrorKind::FailedPrecondition, "{error}");
     assert!(error.to_string().contains("stack entries"), "{error}");
-    Context::new(Device::cpu()).build_accel(&inputs, &BuildOptions::default()).expect("the CPU has no such limit");
+    let cpu = Context::new(Device::cpu());
+    let geometry = cpu.build_accel(&inputs, &BuildOptions::default()).unwrap();
+    nest(&cpu, &nest(&cpu, &geometry).unwrap()).expect("the CPU has no such limit");
 }
 
 #[test]
