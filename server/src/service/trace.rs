@@ -227,7 +227,13 @@ pub async fn stream(
     let (chunk_sender, mut chunks) = mpsc::channel(window);
     tokio::spawn(async move {
         loop {
-            let chunk = match requests.message().await {
+            let message = tokio::select! {
+                // The tracer has ended (the call ended, or a chunk failed): nothing more is read, and the request
+                // stream is let go at once rather than when the client next sends.
+                () = chunk_sender.closed() => break,
+                message = requests.message() => message,
+            };
+            let chunk = match message {
                 Ok(None) => break,
                 // A chunk that could not be received (e.g. above max_message_bytes) keeps tonic's status.
                 Err(status) => Err(status),
