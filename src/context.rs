@@ -358,12 +358,13 @@ impl Context {
 
     /// Upper bounds of the memory that building `transform` would use: an instance accel's of one instance, its
     /// motion keys twice, as built and as given (kept for updates and saves; no larger a key), and its boxes at the
-    /// keys.
+    /// keys. A transform that its build would refuse is refused here too.
     pub fn compute_transform_memory_usage(
         &self,
         transform: &TransformInput,
         options: &BuildOptions,
     ) -> Result<MemoryUsage> {
+        transform.check()?;
         let one = self.compute_instance_memory_usage(1, options)?;
         let keys = 2 * transform.key_bytes() + transform.key_bounds_bytes();
         Ok(MemoryUsage { output_bytes: one.output_bytes + keys, ..one })

@@ -146,6 +146,18 @@ async fn moving_meshes_and_transforms_trace_at_each_rays_time() {
         .unwrap_err();
     assert_eq!(error.code(), Code::InvalidArgument, "{error}");
     assert!(error.to_string().contains("inputs[0].transform"), "{error}");
+    // Motion keys without motion options (one key): refused by name.
+    let unset = proto::TransformInput { transform: Vec::new(), ..both.clone() };
+    let error = client
+        .build(proto::BuildAccelRequest {
+            name: "unset".into(),
+            inputs: vec![proto::BuildInput { input: Some(proto::build_input::Input::Transform(unset)) }],
+            ..Default::default()
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(error.code(), Code::InvalidArgument, "{error}");
+    assert!(error.to_string().contains("transform.motion.keys") && error.to_string().contains("at least 2"), "{error}");
     // A transform's build ignores the build options, even ones a mesh's build refuses (both preferences, more motion
     // keys than max_motion_keys).
     let still = proto::TransformInput { srt_keys: Vec::new(), ..both };

@@ -214,4 +214,8 @@ fn transform_builds() {
             check_within(&case, usage, &options, 1, || context.build_transform(&transform, &child).unwrap());
         }
     }
+    // A transform that its build refuses (motion keys without motion: one key) is refused here too.
+    let one_key = TransformInput::MatrixMotion { keys: vec![moved(0)], motion: MotionOptions::default() };
+    let refused = context.compute_transform_memory_usage(&one_key, &options).unwrap_err();
+    assert!(refused.to_string().contains("at least 2 motion keys"), "{refused}");
 }

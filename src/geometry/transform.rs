@@ -217,9 +217,10 @@ fn check_motion(motion: &MotionOptions, keys: usize) -> Result<()> {
 
 /// The motion of the boxes a motion transform of `motion` keeps ([`Transform::key_bounds`]): its time range and
 /// flags, each of its segments cut into the most equal parts that keep them within [`BOX_SEGMENTS`] (one part when
-/// it has more), so that its own keys are among theirs.
+/// it has more), so that its own keys are among theirs. Motion of fewer than 2 keys, which [`TransformInput::check`]
+/// refuses, is taken as 2 keys' (no division by zero for an input not yet checked).
 fn box_motion(motion: &MotionOptions) -> MotionOptions {
-    let segments = motion.keys - 1;
+    let segments = motion.keys.max(2) - 1;
     MotionOptions { keys: segments * (BOX_SEGMENTS / segments).max(1) + 1, ..*motion }
 }
 

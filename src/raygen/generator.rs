@@ -174,11 +174,19 @@ impl PixelSampling {
     }
 }
 
+/// Most rays a camera makes (width × height × samples per pixel): far more than any trace, and few enough that a
+/// ray's number, its jitter's counters (8 a ray) and a block's last lane stay within u64.
+const MAX_CAMERA_RAYS: u64 = 1 << 48;
+
 /// Checks a camera's image size and sampling.
 fn check_image(width: u32, height: u32, sampling: &PixelSampling) -> Result<()> {
     require(width > 0, "generator.width", || "must be at least 1".into())?;
     require(height > 0, "generator.height", || "must be at least 1".into())?;
-    require(sampling.samples > 0, "generator.samples_per_pixel", || "must be at least 1".into())
+    require(sampling.samples > 0, "generator.samples_per_pixel", || "must be at least 1".into())?;
+    let rays = (u64::from(width) * u64::from(height)).saturating_mul(u64::from(sampling.samples));
+    require(rays <= MAX_CAMERA_RAYS, "generator.samples_per_pixel", || {
+        format!("{width}×{height} pixels × {} samples is more than 2^48 rays", sampling.samples)
+    })
 }
 
 /// Checks a camera's eye, target and up: finite, and a frame.
@@ -1108,6 +1116,15 @@ mod tests {
         let Camera { eye, target, up, .. } = camera();
         let vast = Orthographic { eye, target, up, view_height: 2e38, width: 4, height: 1 };
         assert!(error(Generator::Orthographic(vast, CENTRES)).contains("generator.view_height"));
+        // Cameras of up to 2^48 rays, no more: their rays' numbers and jitter counters stay within u64.
+        let most = PixelSampling { samples: 1 << 16, jitter_seed: Some(1) };
+        let largest = Camera { width: 1 << 16, height: 1 << 16, ..camera() };
+        Generator::Pinhole(largest, most).check().expect("2^48 rays");
+        let over = PixelSampling { samples: (1 << 16) + 1, ..most };
+        assert!(error(Generator::Pinhole(largest, over)).contains("generator.samples_per_pixel"));
+        let huge = Camera { width: u32::MAX, height: u32::MAX, ..camera() };
+        let sampling = PixelSampling { samples: u32::MAX, jitter_seed: None };
+        assert!(error(Generator::Pinhole(huge, sampling)).contains("more than 2^48 rays"));
     }
 
     #[test]

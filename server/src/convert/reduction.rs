@@ -2,7 +2,9 @@
 
 use rayd_engine::glam::Vec3;
 use rayd_engine::raygen::Generator;
-use rayd_engine::reduce::{IdKind, Image, ImageChannel, PixelEncoding, PointCloud, PointEncoding, Reduction};
+use rayd_engine::reduce::{
+    IdKind, Image, ImageChannel, MAX_GROUP_RAYS, PixelEncoding, PointCloud, PointEncoding, Reduction,
+};
 use rayd_proto as pb;
 
 use crate::error::{ServiceError, ServiceResult};
@@ -55,6 +57,10 @@ fn image(image: &pb::ImageReduction, generator: Option<(&Generator, u64)>) -> Se
         (width, _) => width,
     };
     let rays_per_pixel = match (image.rays_per_pixel, camera) {
+        (0, Some((_, samples))) if samples > MAX_GROUP_RAYS => {
+            let rule = format!("{samples} rays a pixel are more than an image reduction takes ({MAX_GROUP_RAYS})");
+            return Err(ServiceError::invalid("generator.sampling.samples_per_pixel", rule));
+        }
         (0, Some((_, samples))) => samples,
         (0, None) => 1,
         (rays, _) => rays,

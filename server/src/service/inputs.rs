@@ -252,10 +252,14 @@ fn resolve_transform(tenant: &Tenant, device: &str, input: &pb::TransformInput) 
     Ok(Resolved::Transform { transform, child: child(tenant, device, input.child.as_ref(), &field("child"))? })
 }
 
-/// A motion transform's motion options, within `max_motion_keys`.
+/// A motion transform's motion options: at least 2 keys, within `max_motion_keys`.
 fn transform_motion(tenant: &Tenant, motion: Option<&pb::MotionOptions>) -> ServiceResult<MotionOptions> {
     let motion = convert::motion_options(motion);
-    check_motion_keys(tenant, &motion, "inputs[0].transform.motion.keys")?;
+    let field = "inputs[0].transform.motion.keys";
+    if motion.is_static() {
+        return Err(ServiceError::invalid(field, format!("a motion transform needs at least 2 keys; {}", motion.keys)));
+    }
+    check_motion_keys(tenant, &motion, field)?;
     Ok(motion)
 }
 

@@ -114,6 +114,17 @@ async fn blocking<T: Send + 'static>(work: impl FnOnce() -> ServiceResult<T> + S
     tokio::task::spawn_blocking(work).await.unwrap_or_else(|failed| Err(ServiceError::Internal(failed.to_string())))
 }
 
+/// How a streaming call's request reader ended, asked once its messages have ended: a reader that panicked (a bug)
+/// let its queue go as one that read the client's last message does, and the call must not then end OK.
+async fn reader_ended(reader: tokio::task::JoinHandle<()>) -> Result<(), Status> {
+    match reader.await {
+        Err(failed) if failed.is_panic() => {
+            Err(Status::internal("the task reading this call's requests panicked (a bug): no requests follow"))
+        }
+        _ => Ok(()),
+    }
+}
+
 /// Runs `work` off the async runtime for a caller that goes when this future is dropped ([`Caller`]): what `work`
 /// makes is then not kept.
 async fn blocking_for_caller<T: Send + 'static>(
@@ -351,6 +362,13 @@ mod tests {
         let failed = blocking(|| -> ServiceResult<()> { panic!("a bug in a build") }).await.unwrap_err();
         assert!(matches!(&failed, ServiceError::Internal(why) if why.contains("a bug in a build")), "{failed}");
         assert_eq!(blocking(|| Ok(7)).await.unwrap(), 7);
+    }
+
+    #[tokio::test]
+    async fn a_reader_that_panicked_ends_its_call_with_internal() {
+        let panicked = reader_ended(tokio::spawn(async { panic!("a bug in a reader") })).await.unwrap_err();
+        assert_eq!(panicked.code(), tonic::Code::Internal, "{panicked:?}");
+        assert!(reader_ended(tokio::spawn(async {})).await.is_ok(), "a reader that returned");
     }
 
     #[test]

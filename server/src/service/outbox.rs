@@ -107,6 +107,21 @@ impl<T> Outbox<T> {
     }
 }
 
+impl<T> Drop for Outbox<T> {
+    /// An outbox dropped while its thread panics belongs to a task that panicked (a bug; the runtime drops a
+    /// panicked task's future as the panic unwinds): the answers queued are still sent, then the call ends with
+    /// INTERNAL rather than as if the task had made its last answer.
+    fn drop(&mut self) {
+        if !std::thread::panicking() {
+            return;
+        }
+        let Some(shared) = self.shared.upgrade() else { return };
+        lock(&shared).failure.get_or_insert_with(|| {
+            Status::internal("the task answering this call panicked (a bug): no answers follow the ones sent")
+        });
+    }
+}
+
 impl<T> Stream for Answers<T> {
     type Item = Result<T, Status>;
 
@@ -159,6 +174,20 @@ mod tests {
         assert!(failure.message().contains("the 2 answers"), "{failure:?}");
         assert!(answers.next().await.is_none(), "and the stream ends");
         assert!(outbox.send(Ok(3)).await.is_err(), "nothing more is queued");
+    }
+
+    #[tokio::test]
+    async fn a_maker_that_panics_ends_the_call_with_internal_after_its_answers() {
+        let (outbox, mut answers) = outbox::<u32>(2, Some(Duration::from_secs(5)));
+        let maker = tokio::spawn(async move {
+            outbox.send(Ok(0)).await.unwrap();
+            panic!("a bug in the maker");
+        });
+        assert!(maker.await.unwrap_err().is_panic());
+        assert_eq!(answers.next().await.unwrap().unwrap(), 0, "what was queued is still sent");
+        let failure = answers.next().await.expect("the failure").expect_err("the call does not end OK");
+        assert_eq!(failure.code(), tonic::Code::Internal, "{failure:?}");
+        assert!(answers.next().await.is_none(), "and the stream ends");
     }
 
     #[tokio::test]

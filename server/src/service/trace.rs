@@ -225,7 +225,7 @@ pub async fn stream(
     let accel = header.accel;
     let window = tenant.limits().window() as usize;
     let (chunk_sender, mut chunks) = mpsc::channel(window);
-    tokio::spawn(async move {
+    let reader = tokio::spawn(async move {
         loop {
             let message = tokio::select! {
                 // The tracer has ended (the call ended, or a chunk failed): nothing more is read, and the request
@@ -252,7 +252,14 @@ pub async fn stream(
     let (answers, stream) = outbox(window, tenant.limits().stream_stall());
     tokio::spawn(async move {
         let mut first_ray = 0u64;
-        while let Some(chunk) = chunks.recv().await {
+        loop {
+            let Some(chunk) = chunks.recv().await else {
+                // The client's last chunk, unless the reader panicked.
+                if let Err(status) = super::reader_ended(reader).await {
+                    let _ = answers.send(Err(status)).await;
+                }
+                break;
+            };
             let reply = match chunk {
                 // Given up when the call ends (the client went, or its deadline passed), as a TraceBatch is: the
                 // chunk's trace is abandoned, not run for nobody after the call's stream place is free.

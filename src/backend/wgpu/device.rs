@@ -1,16 +1,18 @@
 //! Adapters and their devices. Every adapter that wgpu enumerates on the backends of `WGPU_BACKEND` (Vulkan when
 //! it is unset) is a device `wgpu:N`, in enumeration order. Enumeration happens once a process; an adapter's wgpu
 //! device (with the kernel's shader module; its pipelines are compiled as traces need them) is opened on first use
-//! and shared by every context and backend on it. A device that is lost (reset, removed or failed: the driver
+//! and shared by every context and backend on it (a device the adapter refused is asked for again after
+//! [`super::opening::REFUSAL_KEPT`]). A device that is lost (reset, removed or failed: the driver
 //! reports it) fails the calls on it with UNAVAILABLE and is opened anew by the next call; accels are uploaded to
 //! the new device as they are next traced (`super::DeviceCopy`).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use super::batch::Slot;
 use super::kernel::Kernel;
+use super::opening::Opening;
 use crate::backend::cpu::host_memory_bytes;
 use crate::backend::{BackendKind, DeviceInfo};
 use crate::error::{Error, Result};
@@ -22,7 +24,7 @@ pub(super) struct Gpu {
     /// The adapter, to open its device.
     adapter: wgpu::Adapter,
     /// Its device once opened (or why the adapter refused it); replaced when it is lost.
-    opened: Mutex<Option<Result<Arc<Opened>>>>,
+    opened: Mutex<Opening<Opened>>,
     /// How long a trace waits for the device's answer before it takes the device as hung ([`ANSWER_TIMEOUT`]).
     answer_timeout: Duration,
 }
@@ -216,31 +218,12 @@ impl Gpu {
         self.adapter.get_info().device_type == wgpu::DeviceType::Cpu
     }
 
-    /// The opened device, opened now if it was not or was lost. FAILED_PRECONDITION if the adapter refused its
-    /// first device (kept: every later call gets it), UNAVAILABLE if it refused a device to replace a lost one (the
-    /// next call tries again).
+    /// The opened device, opened now if it was not or was lost ([`Opening::get`]): FAILED_PRECONDITION if the
+    /// adapter refused it (given again for [`super::opening::REFUSAL_KEPT`], then tried again), UNAVAILABLE if it
+    /// refused a device to replace a lost one (the next call tries again).
     pub fn open(&self) -> Result<Arc<Opened>> {
         let mut opened = self.opened.lock().unwrap_or_else(|e| e.into_inner());
-        let lost = match opened.as_ref() {
-            None => None,
-            Some(Err(refused)) => return Err(refused.clone()),
-            Some(Ok(current)) => match current.lost.get() {
-                None => return Ok(Arc::clone(current)),
-                Some(why) => Some(why.clone()),
-            },
-        };
-        let Some(why) = lost else {
-            let first = self.open_device().map(Arc::new);
-            *opened = Some(first.clone());
-            return first;
-        };
-        tracing::warn!(device = self.name(), why, "the device was lost: opening it anew");
-        let fresh = Arc::new(self.open_device().map_err(|refused| Error::DeviceLost {
-            device: self.name(),
-            detail: format!("{why}; opening it anew failed: {refused}"),
-        })?);
-        *opened = Some(Ok(Arc::clone(&fresh)));
-        Ok(fresh)
+        opened.get(Instant::now(), |current| current.lost.get().cloned(), || self.open_device(), || self.name())
     }
 
     /// `wgpu:N`.

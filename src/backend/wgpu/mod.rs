@@ -27,6 +27,7 @@ mod graph;
 mod kernel;
 mod layout;
 mod offload;
+mod opening;
 mod spirv;
 
 use std::any::Any;

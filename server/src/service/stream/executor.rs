@@ -9,13 +9,14 @@ use rayd_proto::operation_result::Outcome;
 use rayd_proto::stream_request::Op;
 use rayd_proto::stream_response::Kind;
 use tokio::sync::mpsc;
+use tokio::task::JoinHandle;
 use tonic::Status;
 
 use super::products::{Producer, Products};
 use super::{Abort, Answer, Queued};
 use crate::error::{ServiceError, ServiceResult};
 use crate::service::outbox::Outbox;
-use crate::service::{accels, buffers, trace};
+use crate::service::{accels, buffers, reader_ended, trace};
 use crate::streams::{StreamSlot, Waitable};
 use crate::tenant::Tenant;
 
@@ -45,7 +46,15 @@ impl Executor {
 
     /// Runs until the queue ends (the client half-closed and everything ran), the call goes away, or the stream
     /// is aborted. Dropping the queue and the slot on the way out frees what the stream held and closes it.
-    pub async fn run(mut self, mut queue: mpsc::Receiver<Queued>, answers: Outbox<Answer>, abort: Arc<Abort>) {
+    pub async fn run(
+        mut self,
+        mut queue: mpsc::Receiver<Queued>,
+        reader: JoinHandle<()>,
+        answers: Outbox<Answer>,
+        abort: Arc<Abort>,
+    ) {
+        // However this ends (a panic too), the reader stops, if it is still reading.
+        let _stops_reader = abort.token.clone().drop_guard();
         'operations: loop {
             let responses = tokio::select! {
                 biased;
@@ -53,7 +62,13 @@ impl Executor {
                 () = answers.closed() => break,
                 responses = self.next(&mut queue) => responses,
             };
-            let Some(responses) = responses else { break };
+            let Some(responses) = responses else {
+                // The client's last operation, unless the reader panicked: then the call ends with INTERNAL.
+                if let Err(status) = reader_ended(reader).await {
+                    abort.abort(Some(status));
+                }
+                break;
+            };
             for response in responses {
                 let answer = Answer { _held: self.tenant.streams().hold(response.encoded_len() as u64), response };
                 tokio::select! {
@@ -68,8 +83,6 @@ impl Executor {
             // with CANCELLED. A message the reader could not take ends it with its own status instead, after them.
             answers.fail(|held| Status::cancelled(format!("the stream was cancelled: {held} unsent answers dropped")));
         }
-        // The reader stops too, if it is still reading.
-        abort.abort(None);
     }
 
     /// Runs the next operation and returns its answer (preceded by a download's data); `None` once the queue has

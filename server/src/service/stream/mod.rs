@@ -113,8 +113,8 @@ pub fn open(tenant: Arc<Tenant>, requests: Streaming<pb::StreamRequest>) -> Serv
     let held = tenant.streams().hold(0);
     answers.try_send(Ok(Answer { response: opened, _held: held })).expect("an empty outbox has room");
     let abort = Arc::new(Abort { token: slot.cancel.clone(), reason: Mutex::default() });
-    tokio::spawn(reader::run(requests, queue, Arc::clone(tenant.streams()), Arc::clone(&abort)));
-    tokio::spawn(executor::Executor::new(tenant, slot).run(queued, answers, Arc::clone(&abort)));
+    let reader = tokio::spawn(reader::run(requests, queue, Arc::clone(tenant.streams()), Arc::clone(&abort)));
+    tokio::spawn(executor::Executor::new(tenant, slot).run(queued, reader, answers, Arc::clone(&abort)));
     let answers = answered.map(|answer| answer.map(|answer| answer.response));
     let ending = tokio_stream::iter(std::iter::once_with(move || abort.take_reason())).filter_map(|r| r.map(Err));
     // The stream's place goes with the call: once its last answer has been sent, or the call is gone.
