@@ -73,8 +73,8 @@ impl Tenant {
 
     /// Traces `rays` against `accel` into fresh reply buffers — or, with a `reduction` (checked by the caller),
     /// into its result — once the limits allow it, through the fair scheduler of the accel's device. A trace of at
-    /// most one piece runs right here when the device lends its callers a free slot (the CPU's, with nothing
-    /// queued: [`crate::schedule::Scheduler::try_slot`]).
+    /// most one piece, and at most [`CALLER_TRACE_TIME`] at its rays' known cost, runs right here when the device
+    /// lends its callers a free slot (the CPU's, with nothing queued: [`crate::schedule::Scheduler::try_slot`]).
     pub async fn trace(
         self: &Arc<Self>,
         accel: &AccelEntry,
@@ -104,8 +104,12 @@ impl Tenant {
         let granule = reduction.as_ref().map_or(HIT_GRANULE, |r| r.group_rays());
         let generated = matches!(rays, Rays::Generated(..));
         let limits = scheduler.piece_limits(generated, reduction.is_some());
-        let sizer = PieceSizer::new(limits, granule, accel.pace.get(query.kind));
+        let known = accel.pace.get(query.kind);
+        let sizer = PieceSizer::new(limits, granule, known);
         let first_piece = sizer.next();
+        // Whether the trace may run on this thread, one of the few that answer every call of the server: at most
+        // [`CALLER_TRACE_TIME`] at the rays' known cost. A trace of rays of unknown cost may (it teaches the cost).
+        let quick = known.is_none() || sizer.estimate(layout.rays) <= CALLER_TRACE_TIME;
         let first_estimate = sizer.estimate(first_piece.min(layout.rays));
         let untaken = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
         let job = Arc::new(TraceJob {
@@ -121,14 +125,16 @@ impl Tenant {
             abandoned: AtomicBool::new(false),
             progress: Mutex::new(Progress::new(sizer, untaken, operation)),
         });
-        // A trace of one piece runs here if the device lends a slot; an empty one always does (it has no work).
-        let slot = (layout.rays <= first_piece).then(|| scheduler.try_slot()).flatten();
+        // A quick trace of one piece runs here if the device lends a slot; an empty one always does (it has no work).
+        let slot = (layout.rays <= first_piece && quick).then(|| scheduler.try_slot()).flatten();
         if slot.is_some() || layout.rays == 0 {
             let piece = job.progress().take_piece(&job).expect("every ray is left").0;
             let Piece { index, rays, output } = piece;
             let (traced, took) = job.trace_piece_timed(rays.clone(), output);
             let mut progress = job.progress();
-            progress.record(&job, index, rays, took, traced);
+            // Whatever its rays, it teaches their cost: a piece on the caller's thread has no fixed cost to speak of
+            // (a CPU's), and a trace of a few costly rays must not run here again and again.
+            progress.record(&job, index, rays, took, traced, Teach::Always);
             return progress.finish(&job);
         }
         let (reply, result) = oneshot::channel();
@@ -138,6 +144,20 @@ impl Tenant {
         let result = result.await.map_err(|_| ServiceError::Internal("a trace ended without an answer".into()))??;
         Ok(result)
     }
+}
+
+/// Longest a trace may run on the thread that took its call, at its rays' known cost ([`crate::schedule::Pace`]):
+/// a thread of the async runtime, which answers every call, so a costly trace there would stall the others. A trace
+/// that takes longer gains nothing measurable from skipping the hand-off to a worker (tens of microseconds).
+const CALLER_TRACE_TIME: Duration = Duration::from_millis(1);
+
+/// Which pieces teach the accel's pace ([`Progress::record`]).
+#[derive(Debug, Clone, Copy)]
+enum Teach {
+    /// Every piece with rays.
+    Always,
+    /// Pieces of a probe's rays or more ([`PieceSizer::teaches_pace`]).
+    FromAProbe,
 }
 
 /// Pieces of hit records are multiples of this many rays, so that the pieces of a bitmask (one bit a ray) are
@@ -292,7 +312,7 @@ impl TraceJob {
         let (traced, took) = self.trace_piece_timed(rays.clone(), output);
         crate::metrics::piece(&self.tenant.name, if traced.is_ok() { "traced" } else { "failed" });
         let mut progress = self.progress();
-        progress.record(self, index, rays, took, traced);
+        progress.record(self, index, rays, took, traced, Teach::FromAProbe);
         self.answer_if_done(&mut progress);
     }
 
@@ -405,9 +425,8 @@ impl Progress {
     }
 
     /// Records how piece `index` of `job` went (`traced`, the rays in bytes `rays` of the batch, taking `took`):
-    /// its output kept ([`Progress::keep`]) and its statistics added, its rate taught to the sizer and, for a piece
-    /// of enough rays ([`PieceSizer::teaches_pace`]), to the accel's pace; or the job's first failure, which abandons
-    /// it.
+    /// its output kept ([`Progress::keep`]) and its statistics added, its rate taught to the sizer and, as `teach`
+    /// says, to the accel's pace; or the job's first failure, which abandons it.
     fn record(
         &mut self,
         job: &TraceJob,
@@ -415,13 +434,18 @@ impl Progress {
         rays: std::ops::Range<usize>,
         took: Duration,
         traced: ServiceResult<(PieceOutput, TraceStats)>,
+        teach: Teach,
     ) {
         match traced.and_then(|(output, stats)| Ok((self.keep(job, output)?, stats))) {
             Ok((output, stats)) => {
                 let rays = rays.len() / job.query.ray_format.size();
                 let ns_per_ray = self.sizer.learn(rays, took);
-                // An empty batch's piece teaches nothing: it has fewer rays than any probe.
-                if self.sizer.teaches_pace(rays) {
+                let teaches = match teach {
+                    Teach::Always => true,
+                    Teach::FromAProbe => self.sizer.teaches_pace(rays),
+                };
+                // An empty batch's piece teaches nothing.
+                if teaches && rays > 0 {
                     job.pace.set(job.query.kind, ns_per_ray);
                 }
                 self.stats.add(&stats);
@@ -711,6 +735,29 @@ mod tests {
         assert_eq!(tenant.usage().operations, 1, "held while the job (its pieces still queued) lives");
         drop(job);
         assert_eq!(tenant.usage().operations, 0, "the trace's place let go with the job");
+    }
+
+    #[test]
+    fn a_trace_known_to_take_long_runs_on_a_worker_and_a_few_rays_of_unknown_cost_teach_it() {
+        // Pieces of up to a second: 1,024 rays through the pile fit one piece, and take far more than a millisecond.
+        let (tenant, entry) = tenant_with_a_pile(1000);
+        let closest = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
+        assert_eq!(entry.pace.get(QueryKind::Closest), None);
+        // One ray of unknown cost runs on the caller's thread, and teaches what the pile's rays cost.
+        trace(&tenant, &entry, &closest, Rays::Packed(rays_at(1, |_| 0.25)), None);
+        let ns_per_ray = entry.pace.get(QueryKind::Closest).expect("the one ray taught the pace");
+        assert!(ns_per_ray * 1024.0 > 1e6, "1,024 rays take more than a millisecond: {ns_per_ray} ns a ray");
+        // A trace known to take longer than a millisecond leaves the caller's thread (the only one of this runtime)
+        // free: a timer on it fires while the trace runs.
+        let runtime = tokio::runtime::Builder::new_current_thread().enable_time().build().unwrap();
+        let rays = Rays::Packed(rays_at(1024, |_| 0.25));
+        let fired_first = runtime.block_on(async {
+            let timer = tokio::spawn(tokio::time::sleep(Duration::from_millis(1)));
+            let traced = tenant.trace(&entry, &closest, rays, None).await.unwrap();
+            assert_eq!((traced.stats.rays, traced.pieces), (1024, 1), "one piece");
+            timer.is_finished()
+        });
+        assert!(fired_first, "the trace ran on the caller's thread and held it");
     }
 
     #[test]
