@@ -105,17 +105,21 @@ fn generated_rays_reduced_in_parts_give_the_reduction_of_every_hit() {
     }
 }
 
-/// A camera whose rows hold more rays than `usize` can count four of (2^31 pixels of 2^31 samples, and a row of
-/// 2^62 + 1 rays): a range of its rays is traced as consecutive rays. Rows that wide once made the tiles of a band
-/// overflow: a division by zero, or a tile past the end of its chunk (a panic either way).
+/// A camera of one row of the most rays a camera may make (2^48: 2^31 pixels of 2^17 samples, and an odd row just
+/// under it): a range of its rays is traced as consecutive rays. Rows wider still (2^62 rays, more than `usize` can
+/// count four of) once made the tiles of a band overflow; cameras that large are refused now.
 #[test]
 fn rays_of_rows_wider_than_a_band_can_count_are_traced_as_consecutive_rays() {
     let (context, accel, framing) = scene();
     let Generator::Pinhole(camera, _) = framing else { unreachable!() };
     let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);
-    for (width, samples) in [(1 << 31, 1 << 31), (2_147_549_185, 2_147_418_113)] {
-        let generator =
-            Generator::Pinhole(Camera { width, height: 1, ..camera }, PixelSampling { samples, jitter_seed: None });
+    let row = |width, samples| {
+        Generator::Pinhole(Camera { width, height: 1, ..camera }, PixelSampling { samples, jitter_seed: None })
+    };
+    let refused = row(1 << 31, 1 << 31).check().unwrap_err();
+    assert!(refused.to_string().contains("generator.samples_per_pixel"), "{refused}");
+    for (width, samples) in [(1 << 31, 1 << 17), (2_147_549_185, 131_068)] {
+        let generator = row(width, samples);
         generator.check().unwrap();
         assert_eq!(generator.image_rows(0), None, "{width} × {samples}");
         let count = 3 * PART_RAYS + 17;
