@@ -103,6 +103,20 @@ pub enum Error {
         /// The driver's words.
         detail: String,
     },
+    /// Rays needed more node visits and triangle tests than a device lets one ray take.
+    #[error(
+        "{rays} rays of a chunk on {device} need more than {limit} node visits and triangle tests each, the most a ray \
+         may take there (rayd's scheduler.gpu_ray_work): nothing stops a GPU's walk from outside once it runs, and \
+         a longer one would hold the device from every other trace on it"
+    )]
+    RayWork {
+        /// The device, e.g. `wgpu:0`.
+        device: String,
+        /// Rays of the chunk that went over.
+        rays: u32,
+        /// Node visits and triangle tests a ray may take.
+        limit: u32,
+    },
     /// A device was lost during the call (reset, removed or failed); the next call on it opens it anew.
     #[error("{device} was lost ({detail}); the next call opens it anew")]
     DeviceLost {
@@ -127,7 +141,7 @@ impl Error {
             Error::FailedPrecondition(_) | Error::IncompatibleBlob { .. } | Error::Stopped => {
                 ErrorKind::FailedPrecondition
             }
-            Error::TooLarge { .. } | Error::DeviceMemory { .. } => ErrorKind::ResourceExhausted,
+            Error::TooLarge { .. } | Error::DeviceMemory { .. } | Error::RayWork { .. } => ErrorKind::ResourceExhausted,
             Error::DeviceLost { .. } => ErrorKind::Unavailable,
         }
     }

@@ -2,7 +2,8 @@
 //! traces it by TraceBatch with the hits the CPU device gives (`t` within 1e-4 relative, same primitive); copies it
 //! from `cpu:0` by CopyAccel, instances it twice on `wgpu:0` and traces that with the instance ids the CPU gives. Its
 //! GPU traces hold 1 MiB of buffers at most (`scheduler.gpu_trace_bytes`): 4,000 rays go in chunks that fit, and an
-//! `all` query too large for it is refused naming the key.
+//! `all` query too large for it is refused naming the key. A ray may take 1,024 node visits and triangle tests
+//! (`scheduler.gpu_ray_work`): one through a pile of 2,000 triangles is refused naming the key.
 //!
 //! Adapter policy as in `tests/wgpu.rs`: without one, a notice and a pass, unless `RAYD_REQUIRE_GPU=1`.
 
@@ -15,14 +16,16 @@ use daemon::Daemon;
 use glam::Vec3;
 use rayd_client::{Client, ClientOptions};
 use rayd_engine::accel::BuildFlags;
-use rayd_engine::format::{HitFormat, RayFlags, RayFormat};
+use rayd_engine::format::{HitFormat, Ray, RayFlags, RayFormat};
 use rayd_engine::geometry::{InstanceFlags, InstanceRecord};
+use rayd_engine::mesh::Mesh;
 use rayd_engine::query::Query;
 use rayd_proto as proto;
 
 #[tokio::test]
 async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one() {
-    let daemon = Daemon::start(&[("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576")]);
+    let daemon =
+        Daemon::start(&[("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576"), ("RAYD_SCHEDULER_GPU_RAY_WORK", "1024")]);
     let client = Client::connect(&daemon.url(), ClientOptions::default()).await.expect("the client connects");
     let devices = client.devices().await.unwrap();
     assert_eq!(devices[0].id, "cpu:0");
@@ -112,4 +115,16 @@ async fn rayd_lists_wgpu_devices_and_traces_copied_and_instanced_accels_on_one()
     assert_eq!(differ, 0, "instanced rays differing");
     let shifted_hits = (0..4000).filter(|&i| HitFormat::TTriidInstid.read(on_gpu.hits(), i).inst_id == 9).count();
     assert!(shifted_hits > 0, "the instance only even rays see is hit");
+    // A ray through 2,000 copies of a triangle takes more than the 1,024 node visits and triangle tests a ray may take
+    // here (`scheduler.gpu_ray_work`): its trace is refused naming the key; the CPU traces it.
+    let pile = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]; 2000] };
+    client.build_mesh("pile", &pile, "wgpu:0", BuildFlags::empty()).await.unwrap();
+    client.build_mesh("pile-cpu", &pile, "cpu:0", BuildFlags::empty()).await.unwrap();
+    let down = Ray { origin: glam::Vec3A::new(0.25, 0.25, 1.0), direction: -glam::Vec3A::Z, ..Ray::default() };
+    let one = Bytes::from(pack_rays(&[down], RayFormat::Full));
+    let refused = client.trace("pile", &query, one.clone()).await.expect_err("2,000 tests a ray within 1,024");
+    assert_eq!(refused.code(), tonic::Code::ResourceExhausted, "{refused}");
+    assert!(refused.to_string().contains("scheduler.gpu_ray_work"), "{refused}");
+    let traced = client.trace("pile-cpu", &query, one).await.unwrap();
+    assert_eq!(HitFormat::TTriidInstid.read(traced.hits(), 0).prim_id, 0, "the lowest id of the tie");
 }

@@ -623,6 +623,50 @@ fn traces_within_a_small_buffer_budget_agree_with_the_cpu_and_those_that_cannot_
 }
 
 #[test]
+fn rays_past_their_work_fail_the_trace_by_name_and_the_device_goes_on() {
+    // 3,000 copies of one triangle: a ray through them tests each (the closest hit is the lowest id of a tie).
+    let copies = 3000;
+    let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let indices: Vec<u8> = [0u32, 1, 2].repeat(copies).iter().flat_map(|i| i.to_le_bytes()).collect();
+    let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+    // 100 rays through the pile, 100 beside it.
+    let down = |x: f32| Ray { origin: Vec3A::new(x, 0.25, 1.0), direction: -Vec3A::Z, ..Ray::default() };
+    let rays: Vec<Ray> = (0..200).map(|i| down(if i % 2 == 0 { 0.25 } else { 5.0 })).collect();
+    let query = Query::closest(RayFormat::OriginDirection, HitFormat::TTriid);
+    let packed = pack_rays(&rays, RayFormat::OriginDirection);
+    let Some(strict) = gpu_with(WgpuOptions { max_ray_work: Some(1024), ..WgpuOptions::default() }) else { return };
+    let context = Context::new(strict);
+    let accel = context.build_accel(&input, &BuildOptions::default()).unwrap();
+    let layout = query.output_layout(packed.len()).unwrap();
+    let (mut hits, mut counts) = (vec![0; layout.hits], vec![0; layout.counts]);
+    let output = TraceOutput { hits: &mut hits, counts: &mut counts };
+    let error = context.trace(&accel, &query, &packed, output).unwrap_err();
+    assert_eq!(error.kind(), ErrorKind::ResourceExhausted, "{error}");
+    let message = error.to_string();
+    assert!(message.contains("100 rays") && message.contains("1024") && message.contains("gpu_ray_work"), "{message}");
+    // The rays beside the pile trace on the same device.
+    let beside: Vec<Ray> = rays.iter().copied().skip(1).step_by(2).collect();
+    let (hits, _) = trace(&context, &accel, &query, &pack_rays(&beside, RayFormat::OriginDirection));
+    assert!((0..beside.len()).all(|i| !HitFormat::TTriid.read(&hits, i).is_hit()));
+    // A pile of instances (the walk's work multiplies with its levels): 600 instances of a pile of 3 triangles.
+    let three = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices[..36]))];
+    let child = context.build_accel(&three, &BuildOptions::default()).unwrap();
+    let none = InstanceFlags::empty();
+    let placed: Vec<Instance> = (0..600).map(|id| instance(&child, Affine3A::IDENTITY, id, 0xFF, none)).collect();
+    let piled = context.build_instance_accel(&placed, &BuildOptions::default()).unwrap();
+    let layout = query.output_layout(packed.len()).unwrap();
+    let (mut hits, mut counts) = (vec![0; layout.hits], vec![0; layout.counts]);
+    let output = TraceOutput { hits: &mut hits, counts: &mut counts };
+    let error = context.trace(&piled, &query, &packed, output).unwrap_err();
+    assert!(error.to_string().contains("100 rays") && error.to_string().contains("gpu_ray_work"), "{error}");
+    // With the default work, every ray agrees with the CPU.
+    let Some(device) = gpu() else { return };
+    let mut agreement = Agreement::default();
+    Scene::new(&device, &input, &BuildOptions::default()).compare(&query, &packed, &mut agreement);
+    agreement.check();
+}
+
+#[test]
 fn updates_copies_and_empty_batches_work() {
     let Some(device) = gpu() else { return };
     let context = Context::new(device);

@@ -30,12 +30,13 @@ pub use config::{Config, Limits};
 pub use service::RaydService;
 
 /// The devices rayd serves: the CPU, then (with the `wgpu` feature) every wgpu adapter, each trace on one holding at
-/// most `scheduler.gpu_trace_bytes` of buffers.
+/// most `scheduler.gpu_trace_bytes` of buffers, each ray taking at most `scheduler.gpu_ray_work` steps.
 #[cfg_attr(not(feature = "wgpu"), allow(unused_variables))]
 fn devices(scheduler: &config::SchedulerConfig) -> Vec<Device> {
     #[cfg(feature = "wgpu")]
     let gpus = Device::wgpu(rayd_engine::backend::wgpu::WgpuOptions {
         max_trace_bytes: Some(scheduler.gpu_trace_bytes),
+        max_ray_work: Some(scheduler.gpu_ray_work),
         ..Default::default()
     });
     #[cfg(not(feature = "wgpu"))]

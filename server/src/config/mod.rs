@@ -27,6 +27,9 @@ pub const MAX_PIECE_MS: u32 = 60_000;
 /// The least and the most bytes of device buffers one GPU trace may be given (1 MiB, 1 TiB).
 pub const GPU_TRACE_BYTES: std::ops::RangeInclusive<u64> = 1 << 20..=1 << 40;
 
+/// The least and the most node visits and triangle tests a ray may take on a GPU (2^10, 2^31).
+pub const GPU_RAY_WORK: std::ops::RangeInclusive<u32> = 1 << 10..=1 << 31;
+
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -90,6 +93,11 @@ pub struct SchedulerConfig {
     /// for their staging, of the host's), besides 256 MiB of idle buffers kept for later traces (which a trace may
     /// take up and grow).
     pub gpu_trace_bytes: u64,
+    /// Node visits and triangle tests one ray may take on a GPU, 2^10 to 2^31: a GPU walks a ray to its end once
+    /// started, holding the device from every other trace meanwhile (and a chunk that takes a minute takes the
+    /// device as hung), so a trace with a ray that would take more is RESOURCE_EXHAUSTED naming this key. The
+    /// default, 2^20, is hundreds of times what a ray through an ordinary scene takes, and seconds of a GPU thread.
+    pub gpu_ray_work: u32,
 }
 
 impl Default for SchedulerConfig {
@@ -101,6 +109,7 @@ impl Default for SchedulerConfig {
             piece_ms: 10,
             gpu_piece_ms: 100,
             gpu_trace_bytes: 1 << 30,
+            gpu_ray_work: 1 << 20,
         }
     }
 }
@@ -125,6 +134,10 @@ impl SchedulerConfig {
         if !GPU_TRACE_BYTES.contains(&self.gpu_trace_bytes) {
             let (least, most) = GPU_TRACE_BYTES.into_inner();
             return Err(format!("scheduler.gpu_trace_bytes = {} must be {least} to {most}", self.gpu_trace_bytes));
+        }
+        if !GPU_RAY_WORK.contains(&self.gpu_ray_work) {
+            let (least, most) = GPU_RAY_WORK.into_inner();
+            return Err(format!("scheduler.gpu_ray_work = {} must be {least} to {most}", self.gpu_ray_work));
         }
         Ok(())
     }
@@ -564,12 +577,20 @@ mod tests {
                 "1048575",
                 "scheduler.gpu_trace_bytes = 1048575 must be 1048576 to 1099511627776",
             ),
+            ("RAYD_SCHEDULER_GPU_RAY_WORK", "1023", "scheduler.gpu_ray_work = 1023 must be 1024 to 2147483648"),
         ] {
             let error_message = Config::load(None, env(&[(key, value)])).unwrap_err().to_string();
             assert_eq!(error_message, format!("config: {error}"));
         }
-        let edges = [("RAYD_SCHEDULER_GPU_PIECE_MS", "60000"), ("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576")];
+        let edges = [
+            ("RAYD_SCHEDULER_GPU_PIECE_MS", "60000"),
+            ("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576"),
+            ("RAYD_SCHEDULER_GPU_RAY_WORK", "2147483648"),
+        ];
         let scheduler = Config::load(None, env(&edges)).unwrap().scheduler;
-        assert_eq!((scheduler.gpu_piece_ms, scheduler.gpu_trace_bytes), (60_000, 1 << 20));
+        assert_eq!(
+            (scheduler.gpu_piece_ms, scheduler.gpu_trace_bytes, scheduler.gpu_ray_work),
+            (60_000, 1 << 20, 1 << 31)
+        );
     }
 }

@@ -12,8 +12,8 @@
 //!   caller's buffer), the words cleared before the dispatch. A chunk starts at a multiple of 32 rays, so its
 //!   records start on a word boundary of the caller's bitmask.
 //! - `tallies`: [`TALLY_WORDS`] words of statistics (`0 rays_hit | 4 nodes_visited low | 8 nodes_visited high |
-//!   12 triangle_tests low | 16 triangle_tests high | 20..32 zero`), cleared before the dispatch, then, for the
-//!   counting kinds, one count a ray.
+//!   12 triangle_tests low | 16 triangle_tests high | 20 rays over max_ray_work | 24..32 zero`), cleared before the
+//!   dispatch, then, for the counting kinds, one count a ray.
 //! - `scratch`: for `all` queries, `records_per_ray` sorted hits a ray, 48 bytes each: `0 t f32 | 4 slot u32
 //!   (bit 31: back face) | 8 u f32 | 12 v f32 | 16 levels u32 | 20 records u32×7` (what entered each instance
 //!   level below the root, top to bottom: an instance record's offset in `graph`, or bit 31 and a transform's
@@ -48,6 +48,8 @@ pub(super) const SLOTS: usize = 2;
 /// many hits a ray, chunks as large as a binding) or for traces at once, are let go once they end, so that they do
 /// not stay for the process's life.
 const MAX_IDLE_SLOT_BYTES: u64 = 256 << 20;
+/// The word of `tallies` that counts the rays stopped at their `max_ray_work` (`OVER_RAY_WORK` in `layout.wgsl`).
+const OVER_RAY_WORK: usize = 5;
 /// Words of statistics at the head of `tallies` (`TALLY_WORDS` in `layout.wgsl`).
 const TALLY_WORDS: usize = 8;
 /// Bytes of those words.
@@ -473,6 +475,7 @@ pub(super) fn trace(
     accel: &GpuGraph,
     query: &Query,
     plan: &Plan,
+    ray_work: u32,
     input: Input<'_>,
     output: Output<'_>,
 ) -> Result<TraceStats> {
@@ -482,7 +485,7 @@ pub(super) fn trace(
     let started = Instant::now();
     let mut slots = take_idle(opened);
     ready_slots(opened, &mut slots, plan.need)?;
-    let mut params = Params { root: accel.root, ..Params::for_query(query) };
+    let mut params = Params { root: accel.root, ..Params::for_query(query, ray_work) };
     if let Output::Pixels { image, .. } = output {
         (params.group_rays, params.pixel_words) = (image.rays_per_pixel, OnDevice::pixel_words(&image));
     }
@@ -535,7 +538,7 @@ fn run_chunks(
     let (mut submitting, mut finishing) = (Duration::ZERO, Duration::ZERO);
     let mut finish_one = |slot: usize, flight: InFlight, output: &mut Output<'_>, stats: &mut TraceStats| {
         let start = Instant::now();
-        let finished = finish(opened, &slots[slot], flight, query, output, stats);
+        let finished = finish(opened, &slots[slot], flight, query, params.max_ray_work, output, stats);
         finishing += start.elapsed();
         finished
     };
@@ -614,7 +617,8 @@ pub(super) fn time_launches(
     let bytes = u64::from(launches) * TIMESTAMP_BYTES;
     let (readback, submission) = opened.checked("timing launches", || {
         opened.queue.write_buffer(&slot.rays, 0, rays);
-        let params = Params { ray_count: count as u32, root: accel.root, ..Params::for_query(query) };
+        // A benchmark's launches: no ray is stopped.
+        let params = Params { ray_count: count as u32, root: accel.root, ..Params::for_query(query, u32::MAX) };
         opened.queue.write_buffer(&slot.params, 0, bytemuck::bytes_of(&params));
         let queries = opened.device.create_query_set(&wgpu::QuerySetDescriptor {
             label: Some("rayd launches"),
@@ -792,6 +796,7 @@ fn finish(
     slot: &Slot,
     flight: InFlight,
     query: &Query,
+    ray_work: u32,
     output: &mut Output<'_>,
     stats: &mut TraceStats,
 ) -> Result<()> {
@@ -808,6 +813,11 @@ fn finish(
             .map_err(|e| device_error("mapping the hit staging buffer", e))?;
         let tallies = &view[need.given_back as usize..(need.given_back + need.tallies) as usize];
         let ticks = &view[(need.given_back + need.tallies) as usize..];
+        // The trace fails (its slots are dropped, not given back).
+        let over = read_u32(tallies, 4 * OVER_RAY_WORK);
+        if over > 0 {
+            return Err(Error::RayWork { device: opened.name.clone(), rays: over, limit: ray_work });
+        }
         match output {
             Output::Hits(TraceOutput { hits, counts }) => {
                 let per_ray = query.records_per_ray();

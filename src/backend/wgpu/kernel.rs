@@ -111,6 +111,8 @@ pub(super) struct Params {
     pub group_rays: u32,
     /// The image reduction: words a pixel (1 depth, 4 normal; 0 without it).
     pub pixel_words: u32,
+    /// Node visits and triangle tests a ray may take ([`super::WgpuOptions::max_ray_work`]).
+    pub max_ray_work: u32,
 }
 
 /// The index of `value` in `all`.
@@ -119,9 +121,11 @@ fn index_of<T: PartialEq>(all: &[T], value: &T) -> u32 {
 }
 
 impl Params {
-    /// The query's part of the block; the accel's and the chunk's fields are 0 until filled.
-    pub fn for_query(query: &Query) -> Params {
+    /// The query's part of the block, rays taking up to `ray_work` node visits and triangle tests; the accel's and
+    /// the chunk's fields are 0 until filled.
+    pub fn for_query(query: &Query, ray_work: u32) -> Params {
         Params {
+            max_ray_work: ray_work,
             ray_format: index_of(&RayFormat::ALL, &query.ray_format),
             hit_format: index_of(&HitFormat::ALL, &query.hit_format),
             query_flags: query.flags.bits(),

@@ -68,7 +68,16 @@ pub struct WgpuOptions {
     /// host's), besides at most 256 MiB of idle buffers kept for later traces (a trace that takes one up, and grows
     /// it to its chunks, holds it on top of its own).
     pub max_trace_bytes: Option<u64>,
+    /// Caps the node visits and triangle tests of one ray; `None`: [`DEFAULT_MAX_RAY_WORK`]. Nothing stops a GPU's
+    /// walk from outside once it runs: it holds the device from every other trace meanwhile, and one past a minute
+    /// takes the device as hung ([`device::ANSWER_TIMEOUT`]). A ray stops at this cap, and its trace fails
+    /// (RESOURCE_EXHAUSTED) instead.
+    pub max_ray_work: Option<u32>,
 }
+
+/// [`WgpuOptions::max_ray_work`] unless set: 2^20 node visits and triangle tests, hundreds of times what a ray through
+/// an ordinary scene takes (the bunny's random rays take about 60), and a few seconds of a thread on an H100.
+pub const DEFAULT_MAX_RAY_WORK: u32 = 1 << 20;
 
 /// [`WgpuOptions::max_trace_bytes`] unless set: 1 GiB, about eight times what a trace of ordinary chunks (2^18 rays
 /// and their closest hits) holds.
@@ -302,9 +311,14 @@ impl Backend for WgpuBackend {
         };
         let layout = query.output_layout(rays.packed_len(query.ray_format.size()))?;
         out.check(&layout)?;
+        let accel = wgpu_accel(accel)?;
+        if layout.rays == 0 {
+            // Nothing to trace: the device is neither opened nor given the accel (which may mean an upload).
+            return Ok(TraceStats::default());
+        }
         let output = Output::Hits(out);
         let plan = self.plan(query, layout.rays, &input, &output)?;
-        self.run(wgpu_accel(accel)?, query, &plan, input, output)
+        self.run(accel, query, &plan, input, output)
     }
 
     /// Images and the counts of closest and any queries are reduced on the device ([`offload`]), with camera and
@@ -371,7 +385,8 @@ impl WgpuBackend {
         input: Input<'_>,
         output: Output<'_>,
     ) -> Result<TraceStats> {
-        self.on_device(accel, |opened, graph| batch::trace(opened, graph, query, plan, input, output))
+        let ray_work = self.options.max_ray_work.unwrap_or(DEFAULT_MAX_RAY_WORK);
+        self.on_device(accel, |opened, graph| batch::trace(opened, graph, query, plan, ray_work, input, output))
     }
 
     /// Runs `work` with the device and `accel`'s graph on it (uploaded anew if the device was lost since); an error

@@ -752,9 +752,22 @@ fn consider_triangle(slot: u32) {
     offer(hit.t, slot, hit.u, hit.v, back_face);
 }
 
-// What the walk did, for the statistics.
+// What the walk did, for the statistics, and whether it stopped at `params.max_ray_work`.
 var<private> nodes_visited: u32;
 var<private> triangle_tests: u32;
+var<private> over_work: bool;
+
+// Whether the ray has taken more than `params.max_ray_work` node visits and triangle tests; if so its walk ends
+// (the stack emptied). Asked at each leaf and each instance leaf, which every walk past the work reaches often: the
+// nodes between them are no more than a BVH holds.
+fn past_work() -> bool {
+    if nodes_visited + triangle_tests <= params.max_ray_work {
+        return false;
+    }
+    over_work = true;
+    stack_len = 0u;
+    return true;
+}
 
 fn push(a: u32, b: u32) {
     stack[stack_len] = vec2<u32>(a, b);
@@ -816,8 +829,12 @@ fn enter(first: u32) -> u32 {
 }
 
 // Visits instances `first .. end` of the current instance accel: enters the first one the ray sees (after pushing
-// a resume entry for the rest); `NONE` when none is seen or its child holds nothing to walk.
+// a resume entry for the rest); `NONE` when none is seen, its child holds nothing to walk or the ray is past its
+// work ([`past_work`]).
 fn visit_instances(first: u32, end: u32) -> u32 {
+    if past_work() {
+        return NONE;
+    }
     for (var slot = first; slot < end; slot++) {
         let record = cur.base + slot * INSTANCE_WORDS;
         if (cur_ray.visibility & graph[record + 13u]) == 0u {
@@ -950,7 +967,7 @@ fn traverse(world: PreparedRay) {
     loop {
         let leaf = next_leaf(current);
         current = NONE;
-        if leaf.first == leaf.end {
+        if leaf.first == leaf.end || past_work() {
             return;
         }
         for (var slot = leaf.first; slot < leaf.end; slot++) {
@@ -1135,8 +1152,12 @@ fn trace(@builtin(global_invocation_id) global: vec3<u32>, @builtin(local_invoca
         done = false;
         nodes_visited = 0u;
         triangle_tests = 0u;
+        over_work = false;
         traverse(ray);
         write_ray(index);
+        if over_work {
+            atomicAdd(&tallies[OVER_RAY_WORK], 1u);
+        }
         atomicAdd(&group_tallies[0], select(0u, 1u, hit_count > 0u));
         atomicAdd(&group_tallies[1], nodes_visited);
         atomicAdd(&group_tallies[2], triangle_tests);
