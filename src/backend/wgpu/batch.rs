@@ -189,16 +189,19 @@ impl Capacity {
             && self.given_back >= need.given_back
     }
 
-    /// The larger of each buffer.
-    fn max(self, other: Capacity) -> Capacity {
-        Capacity {
-            rays: self.rays.max(other.rays),
-            hits: self.hits.max(other.hits),
-            tallies: self.tallies.max(other.tallies),
-            scratch: self.scratch.max(other.scratch),
-            reduced: self.reduced.max(other.reduced),
-            given_back: self.given_back.max(other.given_back),
-        }
+    /// This capacity grown to hold `need`: the larger of each buffer, unless a buffer would then pass `limit` (the
+    /// readback staging adds one trace's bytes given back to another's tallies, and can pass what each fit), when
+    /// `need`'s own.
+    fn grown_to(self, need: Capacity, limit: u64) -> Capacity {
+        let grown = Capacity {
+            rays: self.rays.max(need.rays),
+            hits: self.hits.max(need.hits),
+            tallies: self.tallies.max(need.tallies),
+            scratch: self.scratch.max(need.scratch),
+            reduced: self.reduced.max(need.reduced),
+            given_back: self.given_back.max(need.given_back),
+        };
+        if grown.largest() <= limit { grown } else { need }
     }
 }
 
@@ -513,7 +516,7 @@ fn ready_slots(opened: &Opened, slots: &mut Vec<Slot>, need: Capacity) -> Result
     for index in 0..SLOTS {
         match slots.get(index) {
             Some(slot) if slot.capacity.holds(&need) => {}
-            Some(slot) => slots[index] = Slot::new(opened, slot.capacity.max(need))?,
+            Some(slot) => slots[index] = Slot::new(opened, slot.capacity.grown_to(need, opened.binding_limit(None)))?,
             None => slots.push(Slot::new(opened, need)?),
         }
     }
@@ -872,6 +875,17 @@ mod tests {
             &Output::Hits(TraceOutput { hits: &mut [], counts: &mut [] }),
         );
         assert!(SLOTS as u64 * ordinary.bytes() <= MAX_IDLE_SLOT_BYTES, "a trace's ordinary slots stay");
+    }
+
+    #[test]
+    fn an_idle_slot_grows_to_a_traces_need_within_the_limit_or_is_made_anew() {
+        let (gives_back, counts) =
+            (Capacity { given_back: 900, ..Capacity::default() }, Capacity { tallies: 900, ..Capacity::default() });
+        let grown = gives_back.grown_to(counts, 2000);
+        assert!(grown.holds(&gives_back) && grown.holds(&counts), "each buffer the larger");
+        // Each fits 1,000 bytes alone; grown, the readback (given back, tallies and timestamps) would not.
+        assert!(gives_back.largest() <= 1000 && counts.largest() <= 1000 && grown.largest() > 1000);
+        assert_eq!(gives_back.grown_to(counts, 1000), counts, "made anew for the trace's own need");
     }
 
     #[test]
