@@ -132,9 +132,9 @@ impl Tenant {
             let Piece { index, rays, output } = piece;
             let (traced, took) = job.trace_piece_timed(rays.clone(), output);
             let mut progress = job.progress();
-            // Whatever its rays, it teaches their cost: a piece on the caller's thread has no fixed cost to speak of
-            // (a CPU's), and a trace of a few costly rays must not run here again and again.
-            progress.record(&job, index, rays, took, traced, Teach::Always);
+            // Whatever its rays, it teaches their cost if none is known or they cost more: a trace of a few costly
+            // rays must not run here again and again.
+            progress.record(&job, index, rays, took, traced, Teach::IfCostlier);
             return progress.finish(&job);
         }
         let (reply, result) = oneshot::channel();
@@ -154,8 +154,10 @@ const CALLER_TRACE_TIME: Duration = Duration::from_millis(1);
 /// Which pieces teach the accel's pace ([`Progress::record`]).
 #[derive(Debug, Clone, Copy)]
 enum Teach {
-    /// Every piece with rays.
-    Always,
+    /// A piece with rays, when no pace is known or its rays cost more than the pace says (a few rays' fixed cost may
+    /// overstate a ray's, which only cuts later pieces smaller; a few cheap rays, say misses, must not make costly
+    /// ones look cheap).
+    IfCostlier,
     /// Pieces of a probe's rays or more ([`PieceSizer::teaches_pace`]).
     FromAProbe,
 }
@@ -441,7 +443,7 @@ impl Progress {
                 let rays = rays.len() / job.query.ray_format.size();
                 let ns_per_ray = self.sizer.learn(rays, took);
                 let teaches = match teach {
-                    Teach::Always => true,
+                    Teach::IfCostlier => job.pace.get(job.query.kind).is_none_or(|known| ns_per_ray > known),
                     Teach::FromAProbe => self.sizer.teaches_pace(rays),
                 };
                 // An empty batch's piece teaches nothing.
