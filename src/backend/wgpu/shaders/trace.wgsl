@@ -752,21 +752,19 @@ fn consider_triangle(slot: u32) {
     offer(hit.t, slot, hit.u, hit.v, back_face);
 }
 
-// What the walk did, for the statistics, and whether it stopped at `params.max_ray_work`.
+// What the walk did, for the statistics and `params.max_ray_work`.
 var<private> nodes_visited: u32;
 var<private> triangle_tests: u32;
-var<private> over_work: bool;
 
 // Whether the ray has taken more than `params.max_ray_work` node visits and triangle tests; if so its walk ends
 // (the stack emptied). Asked at each leaf and each instance leaf, which every walk past the work reaches often: the
 // nodes between them are no more than a BVH holds.
 fn past_work() -> bool {
-    if nodes_visited + triangle_tests <= params.max_ray_work {
-        return false;
+    let past = nodes_visited + triangle_tests > params.max_ray_work;
+    if past {
+        stack_len = 0u;
     }
-    over_work = true;
-    stack_len = 0u;
-    return true;
+    return past;
 }
 
 fn push(a: u32, b: u32) {
@@ -1152,10 +1150,10 @@ fn trace(@builtin(global_invocation_id) global: vec3<u32>, @builtin(local_invoca
         done = false;
         nodes_visited = 0u;
         triangle_tests = 0u;
-        over_work = false;
         traverse(ray);
         write_ray(index);
-        if over_work {
+        // Stopped at its work, or past it when its walk ended.
+        if nodes_visited + triangle_tests > params.max_ray_work {
             atomicAdd(&tallies[OVER_RAY_WORK], 1u);
         }
         atomicAdd(&group_tallies[0], select(0u, 1u, hit_count > 0u));
