@@ -229,7 +229,7 @@ async fn bad_reductions_name_their_field() {
     // Its samples, when an image reduction cannot take that many rays a pixel, are named as the camera's.
     let crowded = Generator::Pinhole(camera, PixelSampling { samples: (1 << 16) + 1, jitter_seed: None });
     let error = client.trace_generated_reduced("bunny", &query, &crowded, &Reduction::Image(image)).await.unwrap_err();
-    refused(error, Code::InvalidArgument, "generator.sampling.samples_per_pixel");
+    refused(error, Code::InvalidArgument, "generator.samples_per_pixel");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

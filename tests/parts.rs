@@ -109,7 +109,7 @@ fn generated_rays_reduced_in_parts_give_the_reduction_of_every_hit() {
 /// under it): a range of its rays is traced as consecutive rays. Rows wider still (2^62 rays, more than `usize` can
 /// count four of) once made the tiles of a band overflow; cameras that large are refused now.
 #[test]
-fn rays_of_rows_wider_than_a_band_can_count_are_traced_as_consecutive_rays() {
+fn rays_of_the_widest_rows_a_camera_may_make_are_traced_as_consecutive_rays() {
     let (context, accel, framing) = scene();
     let Generator::Pinhole(camera, _) = framing else { unreachable!() };
     let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriid);

@@ -183,7 +183,11 @@ fn check_image(width: u32, height: u32, sampling: &PixelSampling) -> Result<()> 
     require(width > 0, "generator.width", || "must be at least 1".into())?;
     require(height > 0, "generator.height", || "must be at least 1".into())?;
     require(sampling.samples > 0, "generator.samples_per_pixel", || "must be at least 1".into())?;
-    let rays = (u64::from(width) * u64::from(height)).saturating_mul(u64::from(sampling.samples));
+    let pixels = u64::from(width) * u64::from(height);
+    require(pixels <= MAX_CAMERA_RAYS, "generator.width", || {
+        format!("{width}×{height} pixels are more than 2^48 rays")
+    })?;
+    let rays = pixels.saturating_mul(u64::from(sampling.samples));
     require(rays <= MAX_CAMERA_RAYS, "generator.samples_per_pixel", || {
         format!("{width}×{height} pixels × {} samples is more than 2^48 rays", sampling.samples)
     })

@@ -27,8 +27,10 @@ pub const MAX_PIECE_MS: u32 = 60_000;
 /// The least and the most bytes of device buffers one GPU trace may be given (1 MiB, 1 TiB).
 pub const GPU_TRACE_BYTES: std::ops::RangeInclusive<u64> = 1 << 20..=1 << 40;
 
-/// The least and the most node visits and triangle tests a ray may take on a GPU (2^10, 2^31).
-pub const GPU_RAY_WORK: std::ops::RangeInclusive<u32> = 1 << 10..=1 << 31;
+/// The least and the most node visits and triangle tests a ray may take on a GPU (2^10, 2^25): 64 rays of a
+/// workgroup, each up to twice the most, keep the kernel's 32-bit statistics of the workgroup from wrapping, and
+/// more would let a chunk pass its device's answer timeout (2^20 is seconds of an H100's thread).
+pub const GPU_RAY_WORK: std::ops::RangeInclusive<u32> = 1 << 10..=1 << 25;
 
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -93,7 +95,7 @@ pub struct SchedulerConfig {
     /// for their staging, of the host's), besides 256 MiB of idle buffers kept for later traces (which a trace may
     /// take up and grow).
     pub gpu_trace_bytes: u64,
-    /// Node visits and triangle tests one ray may take on a GPU, 2^10 to 2^31: a GPU walks a ray to its end once
+    /// Node visits and triangle tests one ray may take on a GPU, 2^10 to 2^25: a GPU walks a ray to its end once
     /// started, holding the device from every other trace meanwhile (and a chunk that takes a minute takes the
     /// device as hung), so a trace with a ray that would take more is RESOURCE_EXHAUSTED naming this key. The
     /// default, 2^20, is hundreds of times what a ray through an ordinary scene takes, and seconds of a GPU thread.
@@ -577,7 +579,7 @@ mod tests {
                 "1048575",
                 "scheduler.gpu_trace_bytes = 1048575 must be 1048576 to 1099511627776",
             ),
-            ("RAYD_SCHEDULER_GPU_RAY_WORK", "1023", "scheduler.gpu_ray_work = 1023 must be 1024 to 2147483648"),
+            ("RAYD_SCHEDULER_GPU_RAY_WORK", "1023", "scheduler.gpu_ray_work = 1023 must be 1024 to 33554432"),
         ] {
             let error_message = Config::load(None, env(&[(key, value)])).unwrap_err().to_string();
             assert_eq!(error_message, format!("config: {error}"));
@@ -585,12 +587,18 @@ mod tests {
         let edges = [
             ("RAYD_SCHEDULER_GPU_PIECE_MS", "60000"),
             ("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576"),
-            ("RAYD_SCHEDULER_GPU_RAY_WORK", "2147483648"),
+            ("RAYD_SCHEDULER_GPU_RAY_WORK", "33554432"),
         ];
         let scheduler = Config::load(None, env(&edges)).unwrap().scheduler;
+        #[cfg(feature = "wgpu")]
+        assert_eq!(
+            SchedulerConfig::default().gpu_ray_work,
+            rayd_engine::backend::wgpu::DEFAULT_MAX_RAY_WORK,
+            "the engine's default"
+        );
         assert_eq!(
             (scheduler.gpu_piece_ms, scheduler.gpu_trace_bytes, scheduler.gpu_ray_work),
-            (60_000, 1 << 20, 1 << 31)
+            (60_000, 1 << 20, 1 << 25)
         );
     }
 }

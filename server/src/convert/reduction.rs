@@ -59,7 +59,7 @@ fn image(image: &pb::ImageReduction, generator: Option<(&Generator, u64)>) -> Se
     let rays_per_pixel = match (image.rays_per_pixel, camera) {
         (0, Some((_, samples))) if samples > MAX_GROUP_RAYS => {
             let rule = format!("{samples} rays a pixel are more than an image reduction takes ({MAX_GROUP_RAYS})");
-            return Err(ServiceError::invalid("generator.sampling.samples_per_pixel", rule));
+            return Err(ServiceError::invalid("generator.samples_per_pixel", rule));
         }
         (0, Some((_, samples))) => samples,
         (0, None) => 1,

@@ -11,9 +11,10 @@
 //!
 //! On the CPU, a task that fits in one piece runs on the caller's thread when a worker slot is free and nothing is
 //! queued: an idle server answers a small trace without a hop to another thread, and a busy one queues it like any
-//! other (a trace known to take more than a millisecond is queued too: the caller's thread answers every call). A GPU's tasks always run on its workers: a GPU piece may hold the device for seconds (a costly scene, or
-//! another tenant's piece ahead of it in the device's queue), and the caller's thread is one of the few that answer
-//! every call of the server.
+//! other (a trace known to take more than a millisecond is queued too: the caller's thread answers every call). A
+//! GPU's tasks always run on its workers: a GPU piece may hold the device for seconds (a costly scene, or another
+//! tenant's piece ahead of it in the device's queue), and the caller's thread is one of the few that answer every
+//! call of the server.
 
 mod fair;
 mod pieces;

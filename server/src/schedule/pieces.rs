@@ -45,6 +45,12 @@ impl Pace {
     pub fn set(&self, kind: QueryKind, ns_per_ray: f64) {
         self.0[kind_index(kind)].store(ns_per_ray.max(f64::MIN_POSITIVE).to_bits(), Ordering::Relaxed);
     }
+
+    /// Records `ns_per_ray` (positive) for `kind` if it is above the pace known, or none is known; at once, so that
+    /// traces raising it together never lower it (positive floats order as their bits do).
+    pub fn raise(&self, kind: QueryKind, ns_per_ray: f64) {
+        self.0[kind_index(kind)].fetch_max(ns_per_ray.max(f64::MIN_POSITIVE).to_bits(), Ordering::Relaxed);
+    }
 }
 
 /// `kind`'s place in [`QueryKind::ALL`].

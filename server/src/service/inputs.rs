@@ -257,7 +257,10 @@ fn transform_motion(tenant: &Tenant, motion: Option<&pb::MotionOptions>) -> Serv
     let motion = convert::motion_options(motion);
     let field = "inputs[0].transform.motion.keys";
     if motion.is_static() {
-        return Err(ServiceError::invalid(field, format!("a motion transform needs at least 2 keys; {}", motion.keys)));
+        return Err(ServiceError::invalid(
+            field,
+            format!("a motion transform needs at least 2 keys, got {}", motion.keys),
+        ));
     }
     check_motion_keys(tenant, &motion, field)?;
     Ok(motion)

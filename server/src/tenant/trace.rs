@@ -132,9 +132,9 @@ impl Tenant {
             let Piece { index, rays, output } = piece;
             let (traced, took) = job.trace_piece_timed(rays.clone(), output);
             let mut progress = job.progress();
-            // Whatever its rays, it teaches their cost if none is known or they cost more: a trace of a few costly
-            // rays must not run here again and again.
-            progress.record(&job, index, rays, took, traced, Teach::IfCostlier);
+            // Whatever its rays, it teaches their cost if none is known or it held this thread too long: a trace of a
+            // few costly rays must not run here again and again.
+            progress.record(&job, index, rays, took, traced, Teach::IfStalled);
             return progress.finish(&job);
         }
         let (reply, result) = oneshot::channel();
@@ -154,10 +154,10 @@ const CALLER_TRACE_TIME: Duration = Duration::from_millis(1);
 /// Which pieces teach the accel's pace ([`Progress::record`]).
 #[derive(Debug, Clone, Copy)]
 enum Teach {
-    /// A piece with rays, when no pace is known or its rays cost more than the pace says (a few rays' fixed cost may
-    /// overstate a ray's, which only cuts later pieces smaller; a few cheap rays, say misses, must not make costly
-    /// ones look cheap).
-    IfCostlier,
+    /// A piece with rays on the caller's thread, when no pace is known or it held the thread longer than
+    /// [`CALLER_TRACE_TIME`]: it raises the pace, never lowers it (a few cheap rays, say misses, must not make costly
+    /// ones look cheap; a few rays' fixed cost, microseconds, must not make every ray look costly).
+    IfStalled,
     /// Pieces of a probe's rays or more ([`PieceSizer::teaches_pace`]).
     FromAProbe,
 }
@@ -442,13 +442,17 @@ impl Progress {
             Ok((output, stats)) => {
                 let rays = rays.len() / job.query.ray_format.size();
                 let ns_per_ray = self.sizer.learn(rays, took);
-                let teaches = match teach {
-                    Teach::IfCostlier => job.pace.get(job.query.kind).is_none_or(|known| ns_per_ray > known),
-                    Teach::FromAProbe => self.sizer.teaches_pace(rays),
-                };
                 // An empty batch's piece teaches nothing.
-                if teaches && rays > 0 {
-                    job.pace.set(job.query.kind, ns_per_ray);
+                match teach {
+                    Teach::FromAProbe if rays > 0 && self.sizer.teaches_pace(rays) => {
+                        job.pace.set(job.query.kind, ns_per_ray)
+                    }
+                    Teach::IfStalled
+                        if rays > 0 && (job.pace.get(job.query.kind).is_none() || took > CALLER_TRACE_TIME) =>
+                    {
+                        job.pace.raise(job.query.kind, ns_per_ray)
+                    }
+                    _ => {}
                 }
                 self.stats.add(&stats);
                 self.outputs[index] = Some(output);

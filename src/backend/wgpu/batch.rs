@@ -12,7 +12,7 @@
 //!   caller's buffer), the words cleared before the dispatch. A chunk starts at a multiple of 32 rays, so its
 //!   records start on a word boundary of the caller's bitmask.
 //! - `tallies`: [`TALLY_WORDS`] words of statistics (`0 rays_hit | 4 nodes_visited low | 8 nodes_visited high |
-//!   12 triangle_tests low | 16 triangle_tests high | 20 rays over max_ray_work | 24..32 zero`), cleared before the
+//!   12 triangle_tests low | 16 triangle_tests high | 20 rays past max_ray_work | 24..32 zero`), cleared before the
 //!   dispatch, then, for the counting kinds, one count a ray.
 //! - `scratch`: for `all` queries, `records_per_ray` sorted hits a ray, 48 bytes each: `0 t f32 | 4 slot u32
 //!   (bit 31: back face) | 8 u f32 | 12 v f32 | 16 levels u32 | 20 records u32×7` (what entered each instance
@@ -48,7 +48,7 @@ pub(super) const SLOTS: usize = 2;
 /// many hits a ray, chunks as large as a binding) or for traces at once, are let go once they end, so that they do
 /// not stay for the process's life.
 const MAX_IDLE_SLOT_BYTES: u64 = 256 << 20;
-/// The word of `tallies` that counts the rays stopped at their `max_ray_work` (`OVER_RAY_WORK` in `layout.wgsl`).
+/// The word of `tallies` that counts the rays whose walk passed `max_ray_work` (`OVER_RAY_WORK` in `layout.wgsl`).
 const OVER_RAY_WORK: usize = 5;
 /// Words of statistics at the head of `tallies` (`TALLY_WORDS` in `layout.wgsl`).
 const TALLY_WORDS: usize = 8;

@@ -83,9 +83,9 @@ impl Variant {
     }
 }
 
-/// The uniform block of one chunk (`Params` in `layout.wgsl`), 40 bytes: `0 ray_count | 4 ray_format |
+/// The uniform block of one chunk (`Params` in `layout.wgsl`), 44 bytes: `0 ray_count | 4 ray_format |
 /// 8 hit_format | 12 query_flags | 16 records_per_ray | 20 record_words | 24 root | 28 first_ray | 32 group_rays |
-/// 36 pixel_words`, every field a little-endian u32.
+/// 36 pixel_words | 40 max_ray_work`, every field a little-endian u32.
 /// Formats are their indices in [`RayFormat::ALL`] and [`HitFormat::ALL`]; the query kind is the pipeline's
 /// ([`Variant`]).
 #[derive(Debug, Clone, Copy, Pod, Zeroable)]

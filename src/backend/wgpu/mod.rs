@@ -337,6 +337,10 @@ impl Backend for WgpuBackend {
         let traced = reduction.traced_query(query);
         // Checks the query and that packed rays are whole records, as a trace does.
         let count = traced.output_layout(rays.packed_len(query.ray_format.size()))?.rays;
+        if count == 0 {
+            // Reduced on the host: nothing is opened or uploaded for no rays.
+            return host::trace_reduced(self, accel, query, rays, first_ray, reduction, host::MOST_REDUCED_HIT_BYTES);
+        }
         let mut scratch = Vec::new();
         let input = match rays {
             RaySource::Generated { generator, first, count } => DeviceGenerator::input(generator, first, count),
@@ -474,6 +478,13 @@ mod tests {
         assert!(before.chunks_exact(16).any(|hit| hit[0..4] != f32::INFINITY.to_le_bytes()), "some rays hit");
 
         first.device.destroy();
+        // Empty traces answer without opening a device or uploading the accel to it.
+        let graph = |accel: &dyn BackendAccel| Arc::clone(&wgpu_accel(accel).unwrap().device.graph.lock().unwrap());
+        assert!(closest_hits(&backend, accel.as_ref(), &[]).unwrap().is_empty());
+        let counts = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+        let empty = RaySource::Packed(&[]);
+        backend.trace_reduced(accel.as_ref(), &counts, empty, 0, &Reduction::Counts).unwrap();
+        assert_eq!(graph(accel.as_ref()).generation, first.generation, "still the first device's upload");
         let failed = closest_hits(&backend, accel.as_ref(), &rays).unwrap_err();
         assert_eq!(failed.kind(), ErrorKind::Unavailable, "{failed}");
         assert!(failed.to_string().starts_with("wgpu:0 was lost (Destroyed"), "{failed}");
@@ -481,7 +492,6 @@ mod tests {
         assert_eq!(closest_hits(&backend, accel.as_ref(), &rays).unwrap(), before, "uploaded anew, traced as before");
         let second = backend.opened().unwrap();
         assert_ne!(second.generation, first.generation, "a new device");
-        let graph = |accel: &dyn BackendAccel| Arc::clone(&wgpu_accel(accel).unwrap().device.graph.lock().unwrap());
         assert_eq!(graph(accel.as_ref()).generation, second.generation, "on the new device");
         assert_eq!(closest_hits(&backend, copy.as_ref(), &rays).unwrap(), before);
         assert!(Arc::ptr_eq(&graph(accel.as_ref()), &graph(copy.as_ref())), "a copy shares the new upload");

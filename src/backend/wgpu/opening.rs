@@ -9,7 +9,8 @@ use crate::error::{Error, Result};
 /// How long an adapter's refusal to open a device is given to every call before the next call tries again. A
 /// refusal may last (an adapter that cannot take the kernel) or pass (the GPU's memory held by another process when
 /// rayd first used it); trying again at most this often keeps a lasting one cheap and lets a passing one heal
-/// without a restart.
+/// without a restart. The call that tries again opens the device under the adapter's lock: other calls on the
+/// adapter wait for it, as they wait for a first opening.
 pub const REFUSAL_KEPT: Duration = Duration::from_secs(30);
 
 /// An adapter's device `D`: not opened yet, opened (and perhaps lost since), or refused.

@@ -1,7 +1,7 @@
 // Shared by every pipeline of the wgpu backend: the structs and constants whose byte layouts the host writes.
 // Each names the Rust item it must match; change both together.
 
-// `kernel::Params` (src/backend/wgpu/kernel.rs), 40 bytes, one uniform buffer a chunk.
+// `kernel::Params` (src/backend/wgpu/kernel.rs), 44 bytes, one uniform buffer a chunk.
 struct Params {
     // Rays in this chunk.
     ray_count: u32,
@@ -22,8 +22,8 @@ struct Params {
     // The image reduction: rays a pixel, and words a pixel (1 depth, 4 normal; 0 without a reduction).
     group_rays: u32,
     pixel_words: u32,
-    // Node visits and triangle tests a ray may take: a ray that would take more stops, and is counted in the
-    // tallies' word `OVER_RAY_WORK` (the host then fails the trace).
+    // Node visits and triangle tests a ray may take: a ray past them stops (at its next leaf or instance leaf), and
+    // a ray whose walk passed them is counted in the tallies' word `OVER_RAY_WORK` (the host then fails the trace).
     max_ray_work: u32,
 }
 
@@ -89,7 +89,7 @@ const OBJECT_MATRIX_TRANSFORM: u32 = 3u;
 const OBJECT_SRT_TRANSFORM: u32 = 4u;
 
 // Words at the head of the tallies buffer before the per-ray counts (`batch::TALLY_WORDS`): 0 rays hit,
-// 1–2 nodes visited (low, high), 3–4 triangle tests (low, high), 5 rays stopped at `max_ray_work`
+// 1–2 nodes visited (low, high), 3–4 triangle tests (low, high), 5 rays whose walk passed `max_ray_work`
 // (`batch::OVER_RAY_WORK`), 6–7 zero.
 const TALLY_WORDS: u32 = 8u;
 const OVER_RAY_WORK: u32 = 5u;
