@@ -224,5 +224,12 @@ mod tests {
         assert_eq!(pace.get(QueryKind::Closest), Some(250.0));
         assert_eq!(pace.get(QueryKind::Any), None);
         assert!(pace.get(QueryKind::All).is_some_and(|ns| ns > 0.0), "a zero rate is stored as the least positive");
+        // Raised, never lowered; and raised from none.
+        pace.raise(QueryKind::Closest, 100.0);
+        assert_eq!(pace.get(QueryKind::Closest), Some(250.0));
+        pace.raise(QueryKind::Closest, 4000.5);
+        assert_eq!(pace.get(QueryKind::Closest), Some(4000.5));
+        pace.raise(QueryKind::Any, 7.0);
+        assert_eq!(pace.get(QueryKind::Any), Some(7.0));
     }
 }
