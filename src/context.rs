@@ -351,23 +351,56 @@ impl Context {
         self.device.backend.compute_memory_usage(inputs, options)
     }
 
-    /// Upper bounds of the memory that building an instance accel over `instances` instances would use.
-    pub fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
-        self.device.backend.compute_instance_memory_usage(instances, options)
+    /// Upper bounds of the memory that building an instance accel over `instances` would use: its own arrays
+    /// ([`Context::compute_instance_arrays_memory_usage`]) and, on a device whose instance accels hold copies of what
+    /// they place (wgpu), those copies, in its output and once more in its working memory while they are uploaded.
+    /// FAILED_PRECONDITION for a child of another device, as the build.
+    pub fn compute_instance_memory_usage(&self, instances: &[Instance], options: &BuildOptions) -> Result<MemoryUsage> {
+        let own = self.compute_instance_arrays_memory_usage(instances.len(), options)?;
+        self.with_placed_children(own, instances.iter().map(|instance| &instance.child))
     }
 
-    /// Upper bounds of the memory that building `transform` would use: an instance accel's of one instance, its
-    /// motion keys twice, as built and as given (kept for updates and saves; no larger a key), and its boxes at the
-    /// keys. A transform that its build would refuse is refused here too.
+    /// Upper bounds of the memory that the arrays of an instance accel of `count` instances would take, whatever
+    /// they place: a lower bound of what its build takes where children are copied
+    /// ([`Context::compute_instance_memory_usage`]), and its bound where they are not (the CPU).
+    pub fn compute_instance_arrays_memory_usage(&self, count: usize, options: &BuildOptions) -> Result<MemoryUsage> {
+        self.device.backend.compute_instance_arrays_memory_usage(count, options)
+    }
+
+    /// Upper bounds of the memory that building `transform` over `child` would use: an instance accel's of one
+    /// instance, its motion keys twice, as built and as given (kept for updates and saves; no larger a key), and its
+    /// boxes at the keys. A transform that its build would refuse is refused here too.
     pub fn compute_transform_memory_usage(
         &self,
         transform: &TransformInput,
+        child: &Arc<Accel>,
         options: &BuildOptions,
     ) -> Result<MemoryUsage> {
         transform.check()?;
-        let one = self.compute_instance_memory_usage(1, options)?;
+        let one = self.compute_instance_arrays_memory_usage(1, options)?;
         let keys = 2 * transform.key_bytes() + transform.key_bounds_bytes();
-        Ok(MemoryUsage { output_bytes: one.output_bytes + keys, ..one })
+        self.with_placed_children(MemoryUsage { output_bytes: one.output_bytes + keys, ..one }, [child].into_iter())
+    }
+
+    /// `own` with what an instance accel or transform holds for the distinct accels among `children` beyond its own
+    /// arrays ([`Backend::placed_children_bytes`]): in its output, and in its working memory.
+    fn with_placed_children<'a>(
+        &self,
+        own: MemoryUsage,
+        children: impl Iterator<Item = &'a Arc<Accel>>,
+    ) -> Result<MemoryUsage> {
+        let mut seen = HashSet::new();
+        let mut distinct = Vec::new();
+        for child in children.filter(|child| seen.insert(Arc::as_ptr(child))) {
+            self.check_device(child, "places")?;
+            distinct.push(child.as_ref());
+        }
+        let copies = self.device.backend.placed_children_bytes(&distinct)?;
+        Ok(MemoryUsage {
+            output_bytes: own.output_bytes.saturating_add(copies),
+            temp_bytes: own.temp_bytes.saturating_add(copies),
+            ..own
+        })
     }
 
     /// Validates the inputs and builds an accel over them. No lock is held while building, so traces on other

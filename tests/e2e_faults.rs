@@ -89,6 +89,18 @@ async fn still_right(client: &Client) {
 }
 
 /// Reads a stream's answers until it ends with a status: how many came first, and the status.
+/// Polls (for up to 60 s, a bound against hanging) until a `method` stream has been failed for its stall.
+async fn stalled(daemon: &Daemon, method: &str) {
+    let label = format!("method=\"{method}\"");
+    for _ in 0..600 {
+        if daemon.metric("rayd_streams_stalled_total", &[&label]).is_some_and(|count| count >= 1.0) {
+            return;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    panic!("no {method} stream was failed for its stall within 60 s");
+}
+
 async fn read_until_status<T>(answers: &mut tonic::Streaming<T>) -> (usize, tonic::Status) {
     let mut delivered = 0;
     loop {
@@ -243,18 +255,17 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
         .map(move |_| proto::TraceStreamRequest { part: Some(proto::trace_stream_request::Part::Rays(rays.clone())) });
     let mut answers =
         rpc.trace_stream(tokio_stream::iter(std::iter::once(first).chain(chunks))).await.unwrap().into_inner();
-    let stalled_at = std::time::Instant::now();
-    tokio::time::sleep(Duration::from_secs(3)).await;
-    let traced = batches() - batches_before;
+    still_right(&client).await;
+    // The server traces until its answers fill the window and the transport's buffers, waits for room for the stall
+    // limit, then fails the stream: a server that traced on without bound would trace all 1000 chunks and never stall.
+    stalled(&daemon, "TraceStream").await;
+    // One batch is `still_right`'s.
+    let traced = batches() - batches_before - 1;
     // Answers waiting to be sent (the window), the one being sent, and what HTTP/2's flow-control windows take.
     assert!(traced <= window + 8, "{traced} chunks were traced for a client that read none of them");
     println!("stalled reader: {traced} of 1000 chunks traced");
-    still_right(&client).await;
-    tokio::time::sleep(Duration::from_secs(1)).await;
-    assert_eq!(batches() - batches_before - 1, traced, "nothing more was traced for the stalled stream");
-    // Past the stall limit the answers the server held are dropped and the stream is failed: a client that reads
-    // again gets what was already on its way, then the status naming the limit.
-    tokio::time::sleep(Duration::from_secs(stall_seconds + 2).saturating_sub(stalled_at.elapsed())).await;
+    // The answers the server held are dropped and the stream is failed: a client that reads again gets what was
+    // already on its way, then the status naming the limit.
     let (delivered, failure) = read_until_status(&mut answers).await;
     assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
     assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
@@ -279,7 +290,7 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
         })),
     };
     let mut results = rpc.open_stream(tokio_stream::iter((1..=1000).map(trace))).await.unwrap().into_inner();
-    tokio::time::sleep(Duration::from_secs(stall_seconds + 2)).await;
+    stalled(&daemon, "OpenStream").await;
     let (delivered, failure) = read_until_status(&mut results).await;
     assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
     assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");
@@ -295,7 +306,7 @@ async fn a_client_vanishing_mid_upload_leaves_nothing_and_a_reader_that_never_re
         ..Default::default()
     };
     let mut chunks = RaydClient::new(channel).download_buffer(request).await.unwrap().into_inner();
-    tokio::time::sleep(Duration::from_secs(stall_seconds + 2)).await;
+    stalled(&daemon, "DownloadBuffer").await;
     let (delivered, failure) = read_until_status(&mut chunks).await;
     assert_eq!(failure.code(), Code::ResourceExhausted, "{failure:?}");
     assert!(failure.message().contains("limits.stream_stall_seconds"), "{failure:?}");

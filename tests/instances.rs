@@ -495,7 +495,7 @@ fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_chil
         top = transform(&context, identity, top);
     }
     assert_eq!(top.accel.info().depth, MAX_GRAPH_DEPTH);
-    let one_instance = context.compute_instance_memory_usage(1, &BuildOptions::default()).unwrap();
+    let one_instance = context.compute_instance_arrays_memory_usage(1, &BuildOptions::default()).unwrap();
     assert!(top.accel.info().size_bytes <= one_instance.output_bytes, "a transform is bounded as one instance");
     let error = context.build_transform(&TransformInput::Static(identity), &top.accel).unwrap_err();
     assert!(error.to_string().contains(&format!("more than {MAX_GRAPH_DEPTH}")), "{error}");

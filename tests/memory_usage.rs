@@ -183,7 +183,7 @@ fn instance_builds() {
             for flags in [BuildFlags::empty(), BuildFlags::PREFER_FAST_TRACE | BuildFlags::ALLOW_UPDATE] {
                 let motion = MotionOptions { keys, time_begin: 0.0, time_end: 1.0, flags: MotionFlags::empty() };
                 let options = BuildOptions { motion, ..BuildOptions::new(flags) };
-                let usage = context.compute_instance_memory_usage(instances.len(), &options).unwrap();
+                let usage = context.compute_instance_memory_usage(&instances, &options).unwrap();
                 let case = format!("{count} instances, {keys} keys, {flags:?}");
                 check_within(&case, usage, &options, instances.len(), || {
                     context.build_instance_accel(&instances, &options).unwrap()
@@ -209,13 +209,13 @@ fn transform_builds() {
             ("SRT", TransformInput::SrtMotion { keys: (0..keys).map(srt_moved).collect(), motion }),
         ];
         for (kind, transform) in transforms {
-            let usage = context.compute_transform_memory_usage(&transform, &options).unwrap();
+            let usage = context.compute_transform_memory_usage(&transform, &child, &options).unwrap();
             let case = format!("{kind} transform, {keys} keys");
             check_within(&case, usage, &options, 1, || context.build_transform(&transform, &child).unwrap());
         }
     }
     // A transform that its build refuses (motion keys without motion: one key) is refused here too.
     let one_key = TransformInput::MatrixMotion { keys: vec![moved(0)], motion: MotionOptions::default() };
-    let refused = context.compute_transform_memory_usage(&one_key, &options).unwrap_err();
+    let refused = context.compute_transform_memory_usage(&one_key, &child, &options).unwrap_err();
     assert!(refused.to_string().contains("at least 2 motion keys"), "{refused}");
 }

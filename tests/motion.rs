@@ -1381,7 +1381,7 @@ fn bad_motion_inputs_are_refused_naming_field_element_and_rule() {
         let input = at_corners(&vec![Vec3::ZERO; keys.max(1)]);
         assert_bad_options(build_geometry(&context, &[input], &with_motion(options)), rule);
         assert_bad_options(context.build_instance_accel(&[instance(identity, 0, &still)], &with_motion(options)), rule);
-        assert_bad_options(context.compute_instance_memory_usage(1, &with_motion(options)), rule);
+        assert_bad_options(context.compute_instance_arrays_memory_usage(1, &with_motion(options)), rule);
         let matrix = TransformInput::MatrixMotion { keys: vec![identity; options.keys as usize], motion: options };
         assert_refused(context.build_transform(&matrix, &still), "transform.motion", None, rule);
     }

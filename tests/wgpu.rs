@@ -667,6 +667,37 @@ fn rays_past_their_work_fail_the_trace_by_name_and_the_device_goes_on() {
 }
 
 #[test]
+fn instance_accels_and_transforms_are_bounded_with_the_device_copies_of_what_they_place() {
+    let Some(device) = gpu() else { return };
+    let context = Context::new(device);
+    let packed = bunny().pack();
+    let bunny = context.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let options = BuildOptions::default();
+    let transform = TransformInput::Static(rows(Affine3A::from_translation(Vec3::X)));
+    let usage = context.compute_transform_memory_usage(&transform, &bunny, &options).unwrap();
+    let moved = context.build_transform(&transform, &bunny).unwrap();
+    assert!(moved.info().size_bytes <= usage.output_bytes, "{} > {usage:?}", moved.info().size_bytes);
+    // The bunny thrice and the transform over it: the bunny's graph is held once more, and counted twice.
+    let none = InstanceFlags::empty();
+    let placed: Vec<Instance> = (0..3)
+        .map(|id| instance(&bunny, Affine3A::from_translation(Vec3::Y * id as f32), id, 0xFF, none))
+        .chain([instance(&moved, Affine3A::IDENTITY, 3, 0xFF, none)])
+        .collect();
+    let usage = context.compute_instance_memory_usage(&placed, &options).unwrap();
+    let scene = context.build_instance_accel(&placed, &options).unwrap();
+    let size = scene.info().size_bytes;
+    assert!(size <= usage.output_bytes, "{size} > {usage:?}");
+    // Without the children's copies the bound would not hold.
+    let own = context.compute_instance_arrays_memory_usage(placed.len(), &options).unwrap();
+    assert!(size > own.output_bytes, "{size} against {own:?}");
+    // A child of another device is refused as the build refuses it.
+    let elsewhere = Context::new(Device::cpu());
+    let cpu_bunny = elsewhere.build_accel(&[BuildInput::Triangles(packed.input())], &BuildOptions::default()).unwrap();
+    let error = context.compute_transform_memory_usage(&transform, &cpu_bunny, &options).unwrap_err();
+    assert!(error.to_string().contains("another device"), "{error}");
+}
+
+#[test]
 fn updates_copies_and_empty_batches_work() {
     let Some(device) = gpu() else { return };
     let context = Context::new(device);

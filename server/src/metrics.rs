@@ -89,6 +89,11 @@ fn describe() {
     describe_gauge!("rayd_accels", "accels the tenant holds");
     describe_gauge!("rayd_accel_bytes", Unit::Bytes, "bytes of the accels the tenant holds (their size_bytes)");
     describe_counter!(
+        "rayd_streams_stalled_total",
+        "TraceStream, OpenStream and DownloadBuffer calls failed RESOURCE_EXHAUSTED because their client read no \
+         answer for limits.stream_stall_seconds, by method and tenant"
+    );
+    describe_counter!(
         "rayd_stream_operations_total",
         "OpenStream operations that finished, by tenant, op and gRPC code"
     );
@@ -170,6 +175,13 @@ impl Drop for Unanswered {
 /// of the call, which [`observe`] recorded as answered once the stream opened.
 pub fn stream_chunk_failed(tenant: &str, status: &Status) {
     count_error("TraceStream", tenant, status, "chunk failed");
+}
+
+/// Counts a `method` stream of `tenant` failed because its client read no answer for `limits.stream_stall_seconds`,
+/// and logs it with the `held` answers dropped.
+pub fn stream_stalled(method: &'static str, tenant: &str, held: usize) {
+    tracing::warn!(method, tenant, held, "a stream's client stopped reading: stream failed");
+    counter!("rayd_streams_stalled_total", "method" => method, "tenant" => tenant.to_owned()).increment(1);
 }
 
 /// Counts a finished trace of `tenant` (labels are bounded: tenants come from the configuration), and logs it at

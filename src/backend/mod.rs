@@ -104,8 +104,14 @@ pub trait Backend: Send + Sync {
         options: &BuildOptions,
         go_on: &dyn Fn() -> bool,
     ) -> Result<Box<dyn BackendAccel>>;
-    /// Upper bounds of the memory that [`Backend::build_instances`] will use for `instances` instances.
-    fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage>;
+    /// Upper bounds of the memory that [`Backend::build_instances`] will use for `instances` instances, besides
+    /// [`Backend::placed_children_bytes`].
+    fn compute_instance_arrays_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage>;
+    /// Bytes that an instance accel or transform of this backend holds for `children` (the distinct accels it
+    /// places, of this backend) besides its own arrays, at most: none where children are read where they are.
+    fn placed_children_bytes(&self, _children: &[&Accel]) -> Result<u64> {
+        Ok(0)
+    }
     /// Builds an instance accel over checked instances, whose children must be accels of this backend.
     fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>>;
     /// A refitted copy of `accel` (a geometry accel of this backend built with `ALLOW_UPDATE`) with the positions

@@ -146,7 +146,8 @@ pub fn download_chunks(
 pub fn download(tenant: &Tenant, request: &pb::DownloadBufferRequest) -> ServiceResult<ChunkStream> {
     let (_, chunks) = download_chunks(tenant, request)?;
     let place = tenant.streams().place(tenant.limits().max_streams)?;
-    let (sender, chunks_sent) = outbox(tenant.limits().window() as usize, tenant.limits().stream_stall());
+    let (sender, chunks_sent) =
+        outbox(tenant.limits().window() as usize, tenant.limits().stream_stall(), "DownloadBuffer", tenant.name());
     tokio::spawn(async move {
         for chunk in chunks {
             if sender.send(Ok(chunk)).await.is_err() {

@@ -39,8 +39,10 @@ impl Resolved {
     pub fn memory_usage(&self, context: &Context, options: &BuildOptions) -> rayd_engine::Result<MemoryUsage> {
         match self {
             Resolved::Triangles(owned) => with_inputs(owned, |inputs| context.compute_memory_usage(inputs, options)),
-            Resolved::Instances(instances) => context.compute_instance_memory_usage(instances.len(), options),
-            Resolved::Transform { transform, .. } => context.compute_transform_memory_usage(transform, options),
+            Resolved::Instances(instances) => context.compute_instance_memory_usage(instances, options),
+            Resolved::Transform { transform, child } => {
+                context.compute_transform_memory_usage(transform, child, options)
+            }
         }
     }
 
@@ -212,7 +214,7 @@ fn resolve_instances(tenant: &Tenant, device: &str, input: &pb::InstanceInput) -
 /// that cannot be built (nor for an update, whose count is its build's, nor for the memory bound of one).
 fn check_instance_count(tenant: &Tenant, device: &str, count: usize) -> ServiceResult<()> {
     let (_, context) = tenant.context(device)?;
-    let bytes = context.compute_instance_memory_usage(count, &BuildOptions::default())?.output_bytes;
+    let bytes = context.compute_instance_arrays_memory_usage(count, &BuildOptions::default())?.output_bytes;
     ServiceError::check_limit(
         || format!("the bytes of an instance accel of {count} instances"),
         bytes,

@@ -13,12 +13,18 @@ use tokio::sync::mpsc;
 use tokio_stream::Stream;
 use tonic::Status;
 
-/// A new outbox of `window` answers (at least one) whose maker gives up after waiting `stall` for room (`None`:
-/// waits as long as the call lasts).
-pub fn outbox<T>(window: usize, stall: Option<Duration>) -> (Outbox<T>, Answers<T>) {
+/// A new outbox of `window` answers (at least one) for a `method` call of `tenant`, whose maker gives up after
+/// waiting `stall` for room (`None`: waits as long as the call lasts).
+pub fn outbox<T>(
+    window: usize,
+    stall: Option<Duration>,
+    method: &'static str,
+    tenant: &str,
+) -> (Outbox<T>, Answers<T>) {
     let (sender, receiver) = mpsc::channel(window.max(1));
     let shared = Arc::new(Mutex::new(Shared { queued: Some(receiver), failure: None, waker: None }));
-    (Outbox { sender, shared: Arc::downgrade(&shared), stall }, Answers { shared })
+    let call = (method, tenant.to_owned());
+    (Outbox { sender, shared: Arc::downgrade(&shared), stall, call }, Answers { shared })
 }
 
 /// The maker's end.
@@ -31,6 +37,8 @@ pub struct Outbox<T> {
     shared: Weak<Mutex<Shared<T>>>,
     /// How long a send waits for room before the stream is failed.
     stall: Option<Duration>,
+    /// The call's method and tenant, which a stall is counted under.
+    call: (&'static str, String),
 }
 
 /// An answer that was not queued: the call ended, or its client stopped reading (the stream is failed).
@@ -64,22 +72,21 @@ impl<T> Outbox<T> {
     pub async fn send(&self, answer: Result<T, Status>) -> Result<(), Undelivered> {
         let sent = match self.stall {
             None => self.sender.send(answer).await,
-            Some(stall) => {
-                match tokio::time::timeout(stall, self.sender.send(answer)).await {
-                    Ok(sent) => sent,
-                    Err(_) => {
-                        self.fail(|held| {
-                        tracing::warn!(held, seconds = stall.as_secs(), "a stream's client stopped reading: stream failed");
+            Some(stall) => match tokio::time::timeout(stall, self.sender.send(answer)).await {
+                Ok(sent) => sent,
+                Err(_) => {
+                    let (method, tenant) = (self.call.0, self.call.1.as_str());
+                    self.fail(|held| {
+                        crate::metrics::stream_stalled(method, tenant, held);
                         Status::resource_exhausted(format!(
-                            "the client read no answer for {} s (limits.stream_stall_seconds): the stream is failed \
-                             and the {held} answers it held are dropped",
+                            "the client read no answer for {} s (limits.stream_stall_seconds): the stream is \
+                                 failed and the {held} answers it held are dropped",
                             stall.as_secs()
                         ))
                     });
-                        return Err(Undelivered);
-                    }
+                    return Err(Undelivered);
                 }
-            }
+            },
         };
         sent.map_err(|_| Undelivered)
     }
@@ -148,7 +155,7 @@ mod tests {
 
     #[tokio::test]
     async fn answers_come_in_order_and_end_when_the_maker_is_done() {
-        let (outbox, mut answers) = outbox::<u32>(2, Some(Duration::from_secs(5)));
+        let (outbox, mut answers) = outbox::<u32>(2, Some(Duration::from_secs(5)), "Test", "t");
         let maker = tokio::spawn(async move {
             for n in 0..5 {
                 outbox.send(Ok(n)).await.unwrap();
@@ -164,7 +171,7 @@ mod tests {
 
     #[tokio::test]
     async fn a_reader_that_stalls_gets_the_failure_after_what_was_left() {
-        let (outbox, mut answers) = outbox::<u32>(2, Some(Duration::from_millis(50)));
+        let (outbox, mut answers) = outbox::<u32>(2, Some(Duration::from_millis(50)), "Test", "t");
         outbox.send(Ok(0)).await.unwrap();
         outbox.send(Ok(1)).await.unwrap();
         assert!(outbox.send(Ok(2)).await.is_err(), "no room for 50 ms: the stream is failed");
@@ -178,7 +185,7 @@ mod tests {
 
     #[tokio::test]
     async fn a_maker_that_panics_ends_the_call_with_internal_after_its_answers() {
-        let (outbox, mut answers) = outbox::<u32>(2, Some(Duration::from_secs(5)));
+        let (outbox, mut answers) = outbox::<u32>(2, Some(Duration::from_secs(5)), "Test", "t");
         let maker = tokio::spawn(async move {
             outbox.send(Ok(0)).await.unwrap();
             panic!("a bug in the maker");
@@ -192,7 +199,7 @@ mod tests {
 
     #[tokio::test]
     async fn dropping_the_answers_closes_the_outbox() {
-        let (outbox, answers) = outbox::<u32>(2, Some(Duration::from_secs(5)));
+        let (outbox, answers) = outbox::<u32>(2, Some(Duration::from_secs(5)), "Test", "t");
         outbox.send(Ok(0)).await.unwrap();
         drop(answers);
         tokio::time::timeout(Duration::from_secs(5), outbox.closed()).await.expect("closed when the call ends");
@@ -201,7 +208,7 @@ mod tests {
 
     #[tokio::test]
     async fn without_a_stall_limit_the_maker_waits_for_the_reader() {
-        let (outbox, mut answers) = outbox::<u32>(1, None);
+        let (outbox, mut answers) = outbox::<u32>(1, None, "Test", "t");
         outbox.send(Ok(0)).await.unwrap();
         let waiting = tokio::spawn(async move { outbox.send(Ok(1)).await.is_ok() });
         tokio::time::sleep(Duration::from_millis(100)).await;

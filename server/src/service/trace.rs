@@ -249,7 +249,7 @@ pub async fn stream(
             }
         }
     });
-    let (answers, stream) = outbox(window, tenant.limits().stream_stall());
+    let (answers, stream) = outbox(window, tenant.limits().stream_stall(), "TraceStream", tenant.name());
     tokio::spawn(async move {
         let mut first_ray = 0u64;
         loop {

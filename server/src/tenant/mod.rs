@@ -509,8 +509,7 @@ impl Tenant {
     /// against the limits: each one's bytes against `max_accel_bytes`, its levels against `max_graph_depth` and its
     /// motion keys against `max_motion_keys` (a build checked those two before; a blob can hold any), `describe`
     /// naming the one by its index; and what their sum exceeds `reserved` by against `max_total_accel_bytes`, which
-    /// stays reserved until they are kept. (A blob's accels take more than its bytes; a GPU instance accel more than
-    /// its bound, which leaves out its device's copy of its children.)
+    /// stays reserved until they are kept. (A blob's accels take more than its bytes.)
     fn check_made(
         &self,
         accels: &[Arc<Accel>],

@@ -158,7 +158,7 @@ impl Backend for CpuBackend {
         Ok(Box::new(CpuAccel::Triangles(Box::new(TriangleBvh::build(triangles, options, go_on)?))))
     }
 
-    fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
+    fn compute_instance_arrays_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
         options.validate()?;
         Ok(instances::memory_bounds(instances, options))
     }

@@ -2,8 +2,10 @@
 //! careful reading back. Every length, index and range is checked so that traversal, refits and random vertex
 //! access stay in bounds and terminate; depths, stack sizes, the wide nodes (with a static accel's corner blocks), a
 //! geometry accel's bounds and an instance accel's child boxes are made again from what was read, placements
-//! re-derived from their matrices. Node boxes, key boxes and an instance accel's bounds are taken as stored: wrong
-//! ones make a blob trace wrongly, never out of bounds.
+//! re-derived from their matrices. Triangle corners must be finite, as a build's vertices must. Node boxes, key
+//! boxes and an instance accel's bounds are taken as stored but for NaN (no build writes one; infinite bounds are
+//! those of empty boxes): wrong ones make a blob trace wrongly, never out of bounds, and a box placed by a later
+//! instance build stays a number.
 //!
 //! Layout version [`LAYOUT_VERSION`], using the blob's arrays and optional parts. A geometry accel:
 //!
@@ -180,9 +182,20 @@ fn read_nodes(
     if boxes.len() != expected {
         return Err(invalid(format!("{} node key boxes for {} nodes of {keys} keys", boxes.len(), nodes.len())));
     }
+    if let Some(i) = nodes.iter().position(|node| node.min.is_nan() || node.max.is_nan()) {
+        return Err(invalid(format!("node {i}: its box has a NaN bound")));
+    }
+    if let Some(i) = boxes.iter().position(is_nan_box) {
+        return Err(invalid(format!("node {}, key {}: its box has a NaN bound", i / keys, i % keys)));
+    }
     let node_keys = (keys > 1).then_some(NodeKeys { keys, boxes });
     let depth = check_nodes(&nodes, slots)?;
     Ok((nodes, node_keys, depth))
+}
+
+/// Whether a bound of `bounds` is NaN.
+fn is_nan_box(bounds: &Bounds) -> bool {
+    bounds.0.is_nan() || bounds.1.is_nan()
 }
 
 /// Checks a depth-first node array over `slots` primitive slots: each inner node's children (at `index` and
@@ -324,6 +337,9 @@ impl TriangleBvh {
         let (nodes, node_keys, depth) = read_nodes(reader, slots, options)?;
         let corners: Vec<[Vec3; 3]> = reader.array("corners")?;
         check_len("corners", corners.len(), (slots as u64).saturating_mul(keys as u64))?;
+        if let Some(i) = corners.iter().position(|triangle| !triangle.iter().all(|corner| corner.is_finite())) {
+            return Err(invalid(format!("slot {}, key {}: a corner is not finite", i / keys, i % keys)));
+        }
         let refs: Vec<TriangleRef> = reader.array("triangle ids")?;
         check_len("triangle ids", refs.len(), shape.triangle_count)?;
         let masks: Option<Vec<u32>> = reader.optional("masks", |r| r.array("masks"))?;
@@ -458,6 +474,9 @@ impl InstanceBvh {
             return Err(invalid(format!("child {c} is placed by no instance")));
         }
         let bounds: Bounds = reader.value("bounds")?;
+        if is_nan_box(&bounds) {
+            return Err(invalid("the instance accel's bounds have a NaN bound"));
+        }
         let update_order: Option<Vec<u32>> = reader.optional("update order", |r| r.array("update order"))?;
         check_presence(&update_order, options, BuildFlags::ALLOW_UPDATE, "update order")?;
         if let Some(order) = &update_order {

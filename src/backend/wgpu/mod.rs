@@ -229,11 +229,15 @@ impl Backend for WgpuBackend {
     }
 
     /// The host's bound and [`DEVICE_COPY_BOUND`] − 1 times it for the instance accel's own arrays on the device.
-    /// The device copies of its children's arrays are not in it (only their count is known here): they are counted
-    /// in its `size_bytes`.
-    fn compute_instance_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
-        let host = self.host.compute_instance_memory_usage(instances, options)?;
+    fn compute_instance_arrays_memory_usage(&self, instances: usize, options: &BuildOptions) -> Result<MemoryUsage> {
+        let host = self.host.compute_instance_arrays_memory_usage(instances, options)?;
         Ok(MemoryUsage { output_bytes: DEVICE_COPY_BOUND * host.output_bytes, ..host })
+    }
+
+    /// The children's device graphs: an instance accel's or transform's graph holds every accel below it once more
+    /// (a grandchild that two children share is counted twice here, held once).
+    fn placed_children_bytes(&self, children: &[&Accel]) -> Result<u64> {
+        children.iter().map(|child| Ok(wgpu_accel(child.backend_accel())?.device.bytes)).sum()
     }
 
     fn build_instances(&self, instances: &[PlacedInstance], options: &BuildOptions) -> Result<Box<dyn BackendAccel>> {

@@ -106,7 +106,7 @@ pub fn open(tenant: Arc<Tenant>, requests: Streaming<pb::StreamRequest>) -> Serv
     let window = tenant.limits().window();
     let (queue, queued) = mpsc::channel(window as usize);
     // One place more than the window, for the `opened` message.
-    let (answers, answered) = outbox(window as usize + 1, tenant.limits().stream_stall());
+    let (answers, answered) = outbox(window as usize + 1, tenant.limits().stream_stall(), "OpenStream", tenant.name());
     let opened = pb::StreamResponse {
         kind: Some(pb::stream_response::Kind::Opened(pb::StreamOpened { stream_id: slot.id, window })),
     };
