@@ -39,9 +39,15 @@ impl std::fmt::Debug for Device {
 }
 
 impl Device {
-    /// The CPU device, always present.
+    /// The CPU device, always present, its rays held to the default work ([`Device::cpu_with_max_ray_work`]).
     pub fn cpu() -> Device {
-        let backend = Arc::new(CpuBackend);
+        Device::cpu_with_max_ray_work(crate::backend::cpu::DEFAULT_MAX_RAY_WORK)
+    }
+
+    /// The CPU device, each of its rays taking at most `max_ray_work` node visits and triangle tests
+    /// ([`CpuBackend::with_max_ray_work`]).
+    pub fn cpu_with_max_ray_work(max_ray_work: u32) -> Device {
+        let backend = Arc::new(CpuBackend::with_max_ray_work(max_ray_work));
         Device { info: backend.info(), backend }
     }
 

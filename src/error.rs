@@ -105,17 +105,19 @@ pub enum Error {
     },
     /// Rays needed more node visits and triangle tests than a device lets one ray take.
     #[error(
-        "{rays} rays of a chunk on {device} need more than {limit} node visits and triangle tests each, the most a ray \
-         may take there (rayd's scheduler.gpu_ray_work): nothing stops a GPU's walk from outside once it runs, and \
-         a longer one would hold the device from every other trace on it"
+        "{rays} rays of the trace on {device} need more than {limit} node visits and triangle tests each, the most a \
+         ray may take there (rayd's {setting}): nothing stops a walk from outside once it runs, and a longer one \
+         would hold the device, or a worker of it, from every other trace"
     )]
     RayWork {
         /// The device, e.g. `wgpu:0`.
         device: String,
-        /// Rays of the chunk that went over.
-        rays: u32,
+        /// Rays that went over (of the trace's first chunk that had any, on a GPU).
+        rays: u64,
         /// Node visits and triangle tests a ray may take.
         limit: u32,
+        /// The setting of rayd that sets the limit.
+        setting: &'static str,
     },
     /// A device was lost during the call (reset, removed or failed); the next call on it opens it anew.
     #[error("{device} was lost ({detail}); the next call opens it anew")]

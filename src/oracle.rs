@@ -15,6 +15,7 @@ pub fn trace(triangles: &GatheredTriangles, query: &Query, rays: &[u8], out: Tra
         query,
         rays,
         out,
+        u64::MAX,
         || (),
         |_, rays, collectors, stats| {
             for (ray, collector) in rays.iter().zip(collectors) {

@@ -197,3 +197,28 @@ async fn updates_refit_in_place_and_placing_accels_refuse_traces_until_updated_t
     let error = client.update_mesh("fixed", &lowered).await.unwrap_err();
     assert!(error.to_string().contains("ALLOW_UPDATE"), "{error}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_ray_through_a_pile_of_instances_of_piles_is_stopped_at_its_work_and_named() {
+    // 1,000 instances of 1,000 instances of 1,000 copies of one triangle: a ray through them would test 10^9
+    // triangles, holding the thread that traces it for minutes (the first, of unknown cost, on a thread that answers
+    // calls). The default `scheduler.cpu_ray_work` (2^20) stops it.
+    let daemon = Daemon::start(&[]);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    let pile = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]; 1000] };
+    client.build_mesh("pile", &pile, "", BuildFlags::empty()).await.unwrap();
+    let records: Vec<InstanceRecord> = (0..1000).map(|id| record(0, id, translation(0.0, 0.0, 0.0))).collect();
+    client.build_instances("piles", "", &["pile"], &records, BuildFlags::empty()).await.unwrap();
+    client.build_instances("deep", "", &["piles"], &records, BuildFlags::empty()).await.unwrap();
+    let down = |x: f32| Ray { origin: Vec3A::new(x, 0.25, 10.0), direction: -Vec3A::Z, ..Ray::default() };
+    let query = Query::closest(RayFormat::Full, HitFormat::TTriid);
+    let one = Bytes::from(pack_rays(&[down(0.25)], RayFormat::Full));
+    let refused = client.trace("deep", &query, one.clone()).await.expect_err("10^9 tests a ray within 2^20");
+    assert_eq!(refused.code(), Code::ResourceExhausted, "{refused}");
+    assert!(refused.to_string().contains("scheduler.cpu_ray_work"), "{refused}");
+    // The service goes on: a ray beside the pile, and one through a single level of it, trace.
+    let beside = client.trace("deep", &query, Bytes::from(pack_rays(&[down(5.0)], RayFormat::Full))).await.unwrap();
+    assert!(!HitFormat::TTriid.read(beside.hits(), 0).is_hit());
+    let traced = client.trace("pile", &query, one).await.unwrap();
+    assert_eq!(HitFormat::TTriid.read(traced.hits(), 0).prim_id, 0, "the lowest id of the tie");
+}

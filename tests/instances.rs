@@ -624,3 +624,74 @@ fn a_ray_through_a_turned_transforms_placed_box_that_misses_the_child_tests_only
     assert_eq!(corner, 1, "in the placed box's corner: the child's own box, and none of its nodes");
     assert!(on_strip > 2, "on the strip: the child's nodes too ({on_strip} boxes)");
 }
+
+/// A geometry accel of `copies` copies of one triangle (x and y in 0..1, at z = 0) on `context`.
+fn pile(context: &Context, copies: usize) -> Arc<Accel> {
+    let vertices: Vec<u8> = [0f32, 0., 0., 1., 0., 0., 0., 1., 0.].iter().flat_map(|x| x.to_le_bytes()).collect();
+    let indices: Vec<u8> = [0u32, 1, 2].repeat(copies).iter().flat_map(|i| i.to_le_bytes()).collect();
+    let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
+    context.build_accel(&input, &BuildOptions::default()).unwrap()
+}
+
+/// An instance accel of `count` instances of `child`, all in its place.
+fn piled(context: &Context, child: &Arc<Accel>, count: u32) -> Arc<Accel> {
+    let instances: Vec<Instance> = (0..count)
+        .map(|id| Instance {
+            transform: [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+            instance_id: id,
+            mask: 0xFF,
+            flags: InstanceFlags::empty(),
+            child: Arc::clone(child),
+        })
+        .collect();
+    context.build_instance_accel(&instances, &BuildOptions::default()).unwrap()
+}
+
+/// The error of tracing `rays` through `accel` with `query`.
+fn trace_error(context: &Context, accel: &Accel, query: &Query, rays: &[Ray]) -> rayd_engine::Error {
+    let packed = pack_rays(rays, query.ray_format);
+    let layout = query.output_layout(packed.len()).unwrap();
+    let (mut hits, mut counts) = (vec![0; layout.hits], vec![0; layout.counts]);
+    let output = TraceOutput { hits: &mut hits, counts: &mut counts };
+    context.trace(accel, query, &packed, output).unwrap_err()
+}
+
+#[test]
+fn rays_past_their_work_in_an_instance_graph_fail_the_trace_by_name_and_rays_within_it_are_whole() {
+    // 1,000 instances of 1,000 instances of 1,000 copies of one triangle: a ray through them would test 10^9
+    // triangles, for seconds; the default limit (2^20 a ray) stops it.
+    let context = Context::new(Device::cpu());
+    let copies = pile(&context, 1000);
+    let deep = piled(&context, &piled(&context, &copies, 1000), 1000);
+    let down = |x: f32| Ray { origin: Vec3A::new(x, 0.25, 1.0), direction: -Vec3A::Z, ..Ray::default() };
+    // 64 rays, every other one through the pile (those of a group are walked as packets where they make them), and
+    // one ray alone.
+    let through: Vec<Ray> = (0..64).map(|i| down(if i % 2 == 0 { 0.25 } else { 5.0 })).collect();
+    for query in [
+        Query::closest(RayFormat::Full, HitFormat::TTriid),
+        Query { kind: QueryKind::Count, ..Query::closest(RayFormat::Full, HitFormat::T) },
+    ] {
+        for rays in [&through[..], &through[..1]] {
+            let error = trace_error(&context, &deep, &query, rays);
+            assert_eq!(error.kind(), ErrorKind::ResourceExhausted, "{error}");
+            let message = error.to_string();
+            assert!(message.contains("1048576") && message.contains("scheduler.cpu_ray_work"), "{message}");
+        }
+    }
+    // The rays beside the pile trace through the same graph.
+    let beside: Vec<Ray> = through.iter().copied().skip(1).step_by(2).collect();
+    let closest = Query::closest(RayFormat::Full, HitFormat::TTriid);
+    let (hits, _) = trace(&context, &deep, &closest, &beside);
+    assert!((0..beside.len()).all(|i| !HitFormat::TTriid.read(&hits, i).is_hit()));
+    // Within the limit every hit is counted: 10 instances of the pile, 10,000 hits a ray through it.
+    let shallow = piled(&context, &copies, 10);
+    let count = Query { kind: QueryKind::Count, ..Query::closest(RayFormat::Full, HitFormat::T) };
+    let (_, counts) = trace(&context, &shallow, &count, &through);
+    let expected = |i: usize| if i.is_multiple_of(2) { 10_000 } else { 0 };
+    assert!((0..through.len()).all(|i| u32_at(&counts, i) == expected(i)), "every hit counted");
+    // A device held to 1,024 steps a ray refuses that trace by its own limit.
+    let strict = Context::new(Device::cpu_with_max_ray_work(1024));
+    let shallow = piled(&strict, &pile(&strict, 1000), 10);
+    let message = trace_error(&strict, &shallow, &count, &through).to_string();
+    assert!(message.contains("1024 node visits") && message.contains("scheduler.cpu_ray_work"), "{message}");
+}

@@ -29,9 +29,9 @@ use tonic::transport::server::TcpIncoming;
 pub use config::{Config, Limits};
 pub use service::RaydService;
 
-/// The devices rayd serves: the CPU, then (with the `wgpu` feature) every wgpu adapter, each trace on one holding at
-/// most `scheduler.gpu_trace_bytes` of buffers, each ray taking at most `scheduler.gpu_ray_work` steps.
-#[cfg_attr(not(feature = "wgpu"), allow(unused_variables))]
+/// The devices rayd serves: the CPU, each ray taking at most `scheduler.cpu_ray_work` steps, then (with the `wgpu`
+/// feature) every wgpu adapter, each trace on one holding at most `scheduler.gpu_trace_bytes` of buffers, each ray
+/// taking at most `scheduler.gpu_ray_work` steps.
 fn devices(scheduler: &config::SchedulerConfig) -> Vec<Device> {
     #[cfg(feature = "wgpu")]
     let gpus = Device::wgpu(rayd_engine::backend::wgpu::WgpuOptions {
@@ -41,7 +41,7 @@ fn devices(scheduler: &config::SchedulerConfig) -> Vec<Device> {
     });
     #[cfg(not(feature = "wgpu"))]
     let gpus = Vec::new();
-    std::iter::once(Device::cpu()).chain(gpus).collect()
+    std::iter::once(Device::cpu_with_max_ray_work(scheduler.cpu_ray_work)).chain(gpus).collect()
 }
 
 /// Serves the gRPC service on `listener` and the admin endpoint on `admin` until `shutdown` completes; then the

@@ -305,7 +305,7 @@ mod tests {
             .flat_map(u32::to_le_bytes)
             .collect();
         let input = [BuildInput::Triangles(TriangleInput::indexed(&vertices, &indices))];
-        let accel = CpuBackend.build(&input, &BuildOptions::default(), &|| true).unwrap();
+        let accel = CpuBackend::default().build(&input, &BuildOptions::default(), &|| true).unwrap();
         let camera = Camera::framing(Vec3::new(0.0, 0.0, 0.0), Vec3::new(16.0, 16.0, 1.0), 40, 30);
         let generator = Generator::Pinhole(camera, PixelSampling { samples: 3, jitter_seed: Some(4) });
         let rays = RaySource::Generated { generator: &generator, first: 0, count: 3_600 };
@@ -330,7 +330,8 @@ mod tests {
         for (query, reduction) in cases {
             let reduced = |most_hit_bytes| {
                 let (partial, stats) =
-                    trace_reduced(&CpuBackend, accel.as_ref(), &query, rays, 7, &reduction, most_hit_bytes).unwrap();
+                    trace_reduced(&CpuBackend::default(), accel.as_ref(), &query, rays, 7, &reduction, most_hit_bytes)
+                        .unwrap();
                 (reduction.finish(partial, 3_600).unwrap(), stats.rays)
             };
             let whole = reduced(usize::MAX);

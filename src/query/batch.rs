@@ -41,11 +41,13 @@ pub fn batch_chunks(query: &Query, rays: &[u8]) -> (Option<ImageRows>, Vec<Range
 /// chunks of [`batch_chunks`], in parallel. `traverse` gets a group of up to [`GROUP_RAYS`] neighbouring rays (as
 /// [`traced`] makes them: the query's flags added) with a collector each, offers each ray's candidate triangles to
 /// its collector and adds what it did to the stats; it gets working state (a traversal stack) made once per chunk by
-/// `new_state`.
+/// `new_state`. A ray whose walk would take more than `max_ray_work` node visits and triangle tests (counted over
+/// its group, checked as it enters an instance) is stopped, and counted in [`TraceStats::rays_past_work`].
 pub fn trace_batch<S, N, F>(
     query: &Query,
     rays: &[u8],
     out: TraceOutput<'_>,
+    max_ray_work: u64,
     new_state: N,
     traverse: F,
 ) -> Result<TraceStats>
@@ -56,7 +58,7 @@ where
     let out = checked(query, rays, out)?;
     let (rows, chunks) = batch_chunks(query, rays);
     let trace_chunk = |range: Range<usize>, hits: &mut [u8], counts: &mut [u8]| {
-        trace_chunk(query, rays, rows, range, hits, counts, &new_state, &traverse)
+        trace_chunk(query, rays, rows, range, (hits, counts), max_ray_work, &new_state, &traverse)
     };
     if let [only] = chunks.as_slice() {
         // One chunk: traced on the caller's thread, without a hop to the thread pool (small-batch latency).
@@ -78,6 +80,7 @@ pub fn trace_batch_here<S, F>(
     rays: &[u8],
     rows: Option<ImageRows>,
     out: TraceOutput<'_>,
+    max_ray_work: u64,
     new_state: impl Fn() -> S,
     traverse: F,
 ) -> Result<TraceStats>
@@ -86,7 +89,7 @@ where
 {
     let out = checked(query, rays, out)?;
     let count = rays.len() / query.ray_format.size();
-    Ok(trace_chunk(query, rays, rows, 0..count, out.hits, out.counts, &new_state, &traverse))
+    Ok(trace_chunk(query, rays, rows, 0..count, (out.hits, out.counts), max_ray_work, &new_state, &traverse))
 }
 
 /// `out`, once checked against the query's layout for `rays`, its bitmask's unused last bits cleared.
@@ -100,15 +103,16 @@ fn checked<'o>(query: &Query, rays: &[u8], out: TraceOutput<'o>) -> Result<Trace
 }
 
 /// Traces the rays `range` of `rays` (following `rows`, if given, in the batch's indices) in groups, writing their
-/// records and counts into `hits` and `counts` (the chunk's own, from its first ray).
+/// records and counts into `hits` and `counts` (the chunk's own, from its first ray). A group's rays may enter
+/// instances until the chunk's work has grown by `max_ray_work` a ray of the group ([`Collector::stop_past`]).
 #[allow(clippy::too_many_arguments)]
 fn trace_chunk<S>(
     query: &Query,
     rays: &[u8],
     rows: Option<ImageRows>,
     range: Range<usize>,
-    hits: &mut [u8],
-    counts: &mut [u8],
+    (hits, counts): (&mut [u8], &mut [u8]),
+    max_ray_work: u64,
     new_state: &impl Fn() -> S,
     traverse: &impl Fn(&mut S, &[Ray], &mut [Collector<'_>], &mut TraceStats),
 ) -> TraceStats {
@@ -145,7 +149,10 @@ fn trace_chunk<S>(
                 len
             },
         );
+        let ceiling = stats.work().saturating_add(max_ray_work.saturating_mul(len as u64));
+        collectors[..len].iter_mut().for_each(|collector| collector.set_work_ceiling(ceiling));
         traverse(&mut state, &decoded[..len], &mut collectors[..len], &mut stats);
+        stats.rays_past_work += collectors[..len].iter().filter(|collector| collector.past_work()).count() as u64;
         let found = Collector::found_bits(&collectors[..len]);
         let group_collectors = &collectors[..len];
         query.hit_format.specialized(

@@ -203,6 +203,11 @@ pub struct Collector<'s> {
     len: usize,
     /// Whether traversal may stop.
     done: bool,
+    /// The work of the ray's chunk ([`super::TraceStats::work`]) past which the ray enters no more instances: what its
+    /// group of rays may take, set by the batch driver; unbounded until then.
+    work_ceiling: u64,
+    /// Whether the ray was stopped at its work ceiling ([`Collector::stop_past`]): its answer is incomplete.
+    past_work: bool,
 }
 
 impl<'s> Collector<'s> {
@@ -221,6 +226,8 @@ impl<'s> Collector<'s> {
             sorted: scratch,
             len: 0,
             done: false,
+            work_ceiling: u64::MAX,
+            past_work: false,
         }
     }
 
@@ -239,6 +246,33 @@ impl<'s> Collector<'s> {
         self.count = 0;
         self.len = 0;
         self.done = false;
+        self.past_work = false;
+    }
+
+    /// Lets the ray's walk enter instances while its chunk's work is at most `ceiling` ([`Collector::stop_past`]).
+    #[inline(always)]
+    pub(crate) fn set_work_ceiling(&mut self, ceiling: u64) {
+        self.work_ceiling = ceiling;
+    }
+
+    /// Stops the ray if its chunk's `work` so far passed its ceiling, and says whether it did: the collector is done
+    /// and culls every box, so that its walk ends at once, and [`Collector::past_work`] tells the trace to fail.
+    /// Asked before the ray enters an instance, where a graph multiplies a ray's work.
+    #[inline(always)]
+    pub(crate) fn stop_past(&mut self, work: u64) -> bool {
+        if work <= self.work_ceiling {
+            return false;
+        }
+        self.past_work = true;
+        self.done = true;
+        self.cull_tmax = f32::NEG_INFINITY;
+        true
+    }
+
+    /// Whether the ray was stopped at its work ceiling.
+    #[inline(always)]
+    pub(crate) fn past_work(&self) -> bool {
+        self.past_work
     }
 
     /// Whether the order in which boxes are entered matters to the answer's cost: a closest-hit query prunes by its

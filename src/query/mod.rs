@@ -195,6 +195,9 @@ pub struct TraceStats {
     /// Nanoseconds the device spent in trace kernels, where it measures them (wgpu adapters with timestamp
     /// queries); 0 elsewhere.
     pub device_nanos: u64,
+    /// Rays stopped for passing the work a ray may take on the device (their answers incomplete: a backend fails
+    /// such a trace with [`crate::Error::RayWork`]).
+    pub rays_past_work: u64,
 }
 
 impl TraceStats {
@@ -205,5 +208,12 @@ impl TraceStats {
         self.nodes_visited += other.nodes_visited;
         self.triangle_tests += other.triangle_tests;
         self.device_nanos += other.device_nanos;
+        self.rays_past_work += other.rays_past_work;
+    }
+
+    /// Node visits and triangle tests so far: the work a ray's limit counts.
+    #[inline(always)]
+    pub fn work(&self) -> u64 {
+        self.nodes_visited + self.triangle_tests
     }
 }

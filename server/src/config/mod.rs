@@ -32,6 +32,9 @@ pub const GPU_TRACE_BYTES: std::ops::RangeInclusive<u64> = 1 << 20..=1 << 40;
 /// more would let a chunk pass its device's answer timeout (2^20 is seconds of an H100's thread).
 pub const GPU_RAY_WORK: std::ops::RangeInclusive<u32> = 1 << 10..=1 << 25;
 
+/// The least and the most node visits and triangle tests a ray may take on the CPU (2^10, 2^32 − 1).
+pub const CPU_RAY_WORK: std::ops::RangeInclusive<u32> = 1 << 10..=u32::MAX;
+
 /// Everything `rayd` can be configured with.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -100,6 +103,12 @@ pub struct SchedulerConfig {
     /// device as hung), so a trace with a ray that would take more is RESOURCE_EXHAUSTED naming this key. The
     /// default, 2^20, is hundreds of times what a ray through an ordinary scene takes, and seconds of a GPU thread.
     pub gpu_ray_work: u32,
+    /// Node visits and triangle tests one ray may take on the CPU, on average over the up to 16 neighbouring rays
+    /// traced together, 2^10 to 2^32 − 1: an instance graph multiplies a ray's work level by level, and a piece of a
+    /// trace cannot be stopped once it runs (it would hold a worker, or a thread that answers calls, for hours), so
+    /// a ray past this enters no more instances and its trace is RESOURCE_EXHAUSTED naming this key. The default,
+    /// 2^20, is the GPU's.
+    pub cpu_ray_work: u32,
 }
 
 impl Default for SchedulerConfig {
@@ -112,6 +121,7 @@ impl Default for SchedulerConfig {
             gpu_piece_ms: 100,
             gpu_trace_bytes: 1 << 30,
             gpu_ray_work: 1 << 20,
+            cpu_ray_work: 1 << 20,
         }
     }
 }
@@ -140,6 +150,10 @@ impl SchedulerConfig {
         if !GPU_RAY_WORK.contains(&self.gpu_ray_work) {
             let (least, most) = GPU_RAY_WORK.into_inner();
             return Err(format!("scheduler.gpu_ray_work = {} must be {least} to {most}", self.gpu_ray_work));
+        }
+        if !CPU_RAY_WORK.contains(&self.cpu_ray_work) {
+            let (least, most) = CPU_RAY_WORK.into_inner();
+            return Err(format!("scheduler.cpu_ray_work = {} must be {least} to {most}", self.cpu_ray_work));
         }
         Ok(())
     }
@@ -580,6 +594,7 @@ mod tests {
                 "scheduler.gpu_trace_bytes = 1048575 must be 1048576 to 1099511627776",
             ),
             ("RAYD_SCHEDULER_GPU_RAY_WORK", "1023", "scheduler.gpu_ray_work = 1023 must be 1024 to 33554432"),
+            ("RAYD_SCHEDULER_CPU_RAY_WORK", "1023", "scheduler.cpu_ray_work = 1023 must be 1024 to 4294967295"),
         ] {
             let error_message = Config::load(None, env(&[(key, value)])).unwrap_err().to_string();
             assert_eq!(error_message, format!("config: {error}"));
@@ -588,6 +603,7 @@ mod tests {
             ("RAYD_SCHEDULER_GPU_PIECE_MS", "60000"),
             ("RAYD_SCHEDULER_GPU_TRACE_BYTES", "1048576"),
             ("RAYD_SCHEDULER_GPU_RAY_WORK", "33554432"),
+            ("RAYD_SCHEDULER_CPU_RAY_WORK", "1024"),
         ];
         let scheduler = Config::load(None, env(&edges)).unwrap().scheduler;
         #[cfg(feature = "wgpu")]
@@ -597,8 +613,13 @@ mod tests {
             "the engine's default"
         );
         assert_eq!(
-            (scheduler.gpu_piece_ms, scheduler.gpu_trace_bytes, scheduler.gpu_ray_work),
-            (60_000, 1 << 20, 1 << 25)
+            SchedulerConfig::default().cpu_ray_work,
+            rayd_engine::backend::cpu::DEFAULT_MAX_RAY_WORK,
+            "the engine's default"
+        );
+        assert_eq!(
+            (scheduler.gpu_piece_ms, scheduler.gpu_trace_bytes, scheduler.gpu_ray_work, scheduler.cpu_ray_work),
+            (60_000, 1 << 20, 1 << 25, 1 << 10)
         );
     }
 }

@@ -146,8 +146,12 @@ impl InstanceBvh {
     ) -> u32 {
         let instance = &self.instances[slot];
         let visible = lanes_where(active, |lane| rays[lane].visibility & instance.mask != 0);
+        // Rays past their work enter no instance ([`Collector::stop_past`]): they are done.
+        let work = stats.work();
+        let stopped = lanes_where(visible, |lane| collectors[lane].stop_past(work));
+        let visible = visible & !stopped;
         if visible == 0 {
-            return 0;
+            return stopped;
         }
         let Ok(child) = cpu_child(&instance.child) else { return 0 };
         let scope = scope.enter(instance);
@@ -160,12 +164,12 @@ impl InstanceBvh {
             let (to_object, child_box) = (&instance.placement.world_to_object, self.child_boxes[slot]);
             for lane in set_bits(visible) {
                 let (ray, collector) = (PreparedRay::from_traced(&rays[lane]), &mut collectors[lane]);
-                if let Some(local) = carried_into(&ray, to_object, child_box, collector.cull_tmax(), stats) {
+                if let Some(local) = carried_into(&ray, to_object, child_box, collector, stats) {
                     child.traverse(single_stack, &local, &scope, collector, stats);
                 }
             }
         }
-        lanes_where(visible, |lane| collectors[lane].done())
+        stopped | lanes_where(visible, |lane| collectors[lane].done())
     }
 
     /// Walks `child`, the child of the instance in `slot`, in `scope` (the instance's) with those of `rays` whose bits
@@ -293,7 +297,7 @@ fn carried_all<'a>(rays: &[Ray], to_object: &Affine3A, local: &'a mut [Ray; MAX_
 
 /// The lanes set in `lanes` for which `keep` holds, a bit each.
 #[inline(always)]
-fn lanes_where(lanes: u32, keep: impl Fn(usize) -> bool) -> u32 {
+fn lanes_where(lanes: u32, mut keep: impl FnMut(usize) -> bool) -> u32 {
     set_bits(lanes).filter(|&lane| keep(lane)).fold(0, |kept, lane| kept | 1 << lane)
 }
 

@@ -40,21 +40,62 @@ use crate::accel::{BuildOptions, MemoryUsage};
 use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, RaySource, Shape, host};
 use crate::context::Accel;
 use crate::error::{Error, Result};
+use crate::format::Ray;
 use crate::geometry::motion::{Bounds, TimeSpan};
 use crate::geometry::{BuildInput, PlacedInstance, Transform, gather, triangle_counts};
-use crate::query::{ImageRows, Query, TraceOutput, TraceStats, trace_batch, trace_batch_here};
+use crate::query::{Collector, ImageRows, Query, TraceOutput, TraceStats, trace_batch, trace_batch_here};
 use crate::reduce::{Partial, Reduction};
 
 use bvh::Footprint;
 #[cfg(feature = "wgpu")]
 pub(crate) use instances::cpu_child;
 pub use instances::{InstanceBvh, TransformNode};
+use traverse::Stacks;
 pub use triangles::TriangleBvh;
 
 /// The CPU device. It uses rayon's current thread pool, so a caller can bound its threads with
 /// `ThreadPool::install`.
-#[derive(Debug, Default)]
-pub struct CpuBackend;
+#[derive(Debug, Clone, Copy)]
+pub struct CpuBackend {
+    /// Node visits and triangle tests a ray may take ([`CpuBackend::with_max_ray_work`]).
+    max_ray_work: u32,
+}
+
+/// [`CpuBackend::with_max_ray_work`] unless set: 2^20 node visits and triangle tests, as on a GPU
+/// ([`crate::backend::wgpu`]'s default), hundreds of times what a ray through an ordinary scene takes and a few
+/// milliseconds of a core.
+pub const DEFAULT_MAX_RAY_WORK: u32 = 1 << 20;
+
+impl Default for CpuBackend {
+    fn default() -> Self {
+        CpuBackend::with_max_ray_work(DEFAULT_MAX_RAY_WORK)
+    }
+}
+
+impl CpuBackend {
+    /// A CPU backend whose rays may take at most `max_ray_work` node visits and triangle tests each, on average over
+    /// the group of up to 16 neighbouring rays traced together. A geometry accel's walk is bounded by its own size,
+    /// but an instance graph multiplies a ray's work level by level (a pile of instances of piles, a few megabytes,
+    /// makes billions of tests a ray), and a piece of a trace cannot be stopped from outside once it runs: it would
+    /// hold a worker, or the thread that answers calls, for hours. So a ray past the limit enters no more instances,
+    /// and its trace fails with [`Error::RayWork`] (RESOURCE_EXHAUSTED).
+    pub fn with_max_ray_work(max_ray_work: u32) -> CpuBackend {
+        CpuBackend { max_ray_work }
+    }
+
+    /// `stats` of a trace, or [`Error::RayWork`] if a ray of it was stopped at the work limit.
+    fn within_work(&self, stats: TraceStats) -> Result<TraceStats> {
+        match stats.rays_past_work {
+            0 => Ok(stats),
+            rays => Err(Error::RayWork {
+                device: "cpu:0".into(),
+                rays,
+                limit: self.max_ray_work,
+                setting: "scheduler.cpu_ray_work",
+            }),
+        }
+    }
+}
 
 /// A CPU accel of any kind.
 #[derive(Debug, Clone)]
@@ -212,13 +253,9 @@ impl Backend for CpuBackend {
 
     fn trace(&self, accel: &dyn BackendAccel, query: &Query, rays: &[u8], out: TraceOutput<'_>) -> Result<TraceStats> {
         let accel = cpu(accel)?;
-        trace_batch(
-            query,
-            rays,
-            out,
-            || accel.new_stacks(),
-            |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats),
-        )
+        let work = u64::from(self.max_ray_work);
+        let stats = trace_batch(query, rays, out, work, || accel.new_stacks(), walk(accel))?;
+        self.within_work(stats)
     }
 
     fn trace_source(
@@ -228,7 +265,7 @@ impl Backend for CpuBackend {
         rays: RaySource<'_>,
         out: TraceOutput<'_>,
     ) -> Result<TraceStats> {
-        host::trace_source_in_parts(self, accel, query, rays, out, &part_tracer(cpu(accel)?))
+        host::trace_source_in_parts(self, accel, query, rays, out, &self.part_tracer(cpu(accel)?))
     }
 
     fn trace_reduced(
@@ -239,25 +276,28 @@ impl Backend for CpuBackend {
         first_ray: u64,
         reduction: &Reduction,
     ) -> Result<(Partial, TraceStats)> {
-        host::trace_reduced_in_parts(query, rays, first_ray, reduction, &part_tracer(cpu(accel)?))
+        host::trace_reduced_in_parts(query, rays, first_ray, reduction, &self.part_tracer(cpu(accel)?))
     }
 }
 
-/// How a part of a trace in parts is traced on the CPU: by the batch driver on the calling thread
-/// ([`trace_batch_here`]).
-fn part_tracer(
-    accel: &CpuAccel,
-) -> impl Fn(&Query, &[u8], Option<ImageRows>, TraceOutput<'_>) -> Result<TraceStats> + Sync {
-    move |query, rays, rows, out| {
-        trace_batch_here(
-            query,
-            rays,
-            rows,
-            out,
-            || accel.new_stacks(),
-            |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats),
-        )
+impl CpuBackend {
+    /// How a part of a trace in parts is traced on the CPU: by the batch driver on the calling thread
+    /// ([`trace_batch_here`]).
+    fn part_tracer<'a>(
+        &'a self,
+        accel: &'a CpuAccel,
+    ) -> impl Fn(&Query, &[u8], Option<ImageRows>, TraceOutput<'_>) -> Result<TraceStats> + Sync + 'a {
+        move |query, rays, rows, out| {
+            let work = u64::from(self.max_ray_work);
+            let stats = trace_batch_here(query, rays, rows, out, work, || accel.new_stacks(), walk(accel))?;
+            self.within_work(stats)
+        }
     }
+}
+
+/// How the batch driver walks a group of rays through `accel` ([`CpuAccel::traverse_group`]).
+fn walk(accel: &CpuAccel) -> impl Fn(&mut Stacks, &[Ray], &mut [Collector<'_>], &mut TraceStats) + Sync + '_ {
+    |stacks, rays, collectors, stats| accel.traverse_group(stacks, rays, collectors, stats)
 }
 
 /// The CPU structure of `accel`; FAILED_PRECONDITION for an accel of another device.

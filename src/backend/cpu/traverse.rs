@@ -536,7 +536,7 @@ impl InstanceBvh {
             }
             let Ok(child) = cpu_child(&instance.child) else { continue };
             let to_object = &instance.placement.world_to_object;
-            let Some(local) = carried_into(ray, to_object, (min, max), collector.cull_tmax(), stats) else { continue };
+            let Some(local) = carried_into(ray, to_object, (min, max), collector, stats) else { continue };
             child.traverse(rest, &local, &scope.enter(instance), collector, stats);
             if collector.done() {
                 return true;
@@ -559,7 +559,7 @@ impl TransformNode {
         let Some(placement) = self.transform.placement_at(ray.time) else { return };
         let Ok(child) = cpu_child(&self.child) else { return };
         let to_object = &placement.world_to_object;
-        if let Some(local) = carried_into(ray, to_object, self.child_box, collector.cull_tmax(), stats) {
+        if let Some(local) = carried_into(ray, to_object, self.child_box, collector, stats) {
             child.traverse(stack, &local, &scope.through(&placement), collector, stats);
         }
     }
@@ -568,17 +568,22 @@ impl TransformNode {
 /// `ray` carried into the space `to_object` maps into and prepared there, if it reaches the box `(min, max)` there
 /// (a child's own box) within its `tmin` and `tmax`; the box is tested before the ray is prepared, which costs
 /// several times the test, and counted as a box tested. Most rays that reach a turned child's placed box miss the
-/// child (BENCHMARKS.md, "Instances entered through their children's own boxes").
+/// child (BENCHMARKS.md, "Instances entered through their children's own boxes"). None for a ray past its work,
+/// which `collector` stops ([`Collector::stop_past`]).
 #[inline(always)]
 pub(super) fn carried_into(
     ray: &PreparedRay,
     to_object: &Affine3A,
     (min, max): Bounds,
-    tmax: f32,
+    collector: &mut Collector<'_>,
     stats: &mut TraceStats,
 ) -> Option<PreparedRay> {
+    if collector.stop_past(stats.work()) {
+        return None;
+    }
     let (origin, direction) = ray.carried(to_object);
     stats.nodes_visited += 1;
+    let tmax = collector.cull_tmax();
     aabb::reaches(origin, direction, min.into(), max.into(), ray.tmin, tmax).then(|| ray.moved(origin, direction))
 }
 

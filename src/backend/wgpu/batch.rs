@@ -819,7 +819,13 @@ fn finish(
         // The trace fails (its slots are dropped, not given back).
         let over = read_u32(tallies, 4 * OVER_RAY_WORK);
         if over > 0 {
-            return Err(Error::RayWork { device: opened.name.clone(), rays: over, limit: ray_work });
+            let device = opened.name.clone();
+            return Err(Error::RayWork {
+                device,
+                rays: u64::from(over),
+                limit: ray_work,
+                setting: "scheduler.gpu_ray_work",
+            });
         }
         match output {
             Output::Hits(TraceOutput { hits, counts }) => {
@@ -850,6 +856,8 @@ fn finish(
             nodes_visited: wide(1),
             triangle_tests: wide(3),
             device_nanos: opened.timestamp_period.map_or(0, |period| elapsed_nanos(ticks, period)),
+            // A chunk with such rays fails above.
+            rays_past_work: 0,
         });
     }
     slot.readback.unmap();

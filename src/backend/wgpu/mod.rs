@@ -101,7 +101,10 @@ impl std::fmt::Debug for WgpuBackend {
 
 /// A backend for every adapter wgpu enumerates (an empty list on a machine without one).
 pub fn backends(options: WgpuOptions) -> Vec<WgpuBackend> {
-    device::adapters().iter().map(|gpu| WgpuBackend { gpu: Arc::clone(gpu), options, host: CpuBackend }).collect()
+    device::adapters()
+        .iter()
+        .map(|gpu| WgpuBackend { gpu: Arc::clone(gpu), options, host: CpuBackend::default() })
+        .collect()
 }
 
 /// An accel of the wgpu backend: the host's structure (which builds, updates, bounds, vertex access,
@@ -435,7 +438,7 @@ mod tests {
             eprintln!("skipped: no wgpu adapter");
             return None;
         };
-        Some(WgpuBackend { gpu: Arc::new(gpu.alone()), options: WgpuOptions::default(), host: CpuBackend })
+        Some(WgpuBackend { gpu: Arc::new(gpu.alone()), options: WgpuOptions::default(), host: CpuBackend::default() })
     }
 
     /// The bunny (`../shared/data/meshes/stanford-bunny.obj`), built and uploaded by `backend`.
