@@ -104,7 +104,7 @@ fn checked<'o>(query: &Query, rays: &[u8], out: TraceOutput<'o>) -> Result<Trace
 
 /// Traces the rays `range` of `rays` (following `rows`, if given, in the batch's indices) in groups, writing their
 /// records and counts into `hits` and `counts` (the chunk's own, from its first ray). A group's rays may enter
-/// instances until the chunk's work has grown by `max_ray_work` a ray of the group ([`Collector::stop_past`]).
+/// instances until the chunk's work has grown by `max_ray_work` times [`GROUP_RAYS`] ([`Collector::stop_past`]).
 #[allow(clippy::too_many_arguments)]
 fn trace_chunk<S>(
     query: &Query,
@@ -131,7 +131,10 @@ fn trace_chunk<S>(
         let part = if all { parts.next().expect("a scratch part a ray") } else { &mut [] };
         Collector::new(query, &unused, part)
     });
+    // What a group of rays may take together, at most: each ray's share.
+    let group_work = max_ray_work.saturating_mul(GROUP_RAYS as u64);
     for group in groups(range, rows, GROUP_RAYS) {
+        let work_ceiling = stats.work().saturating_add(group_work);
         // Decoded by a loop compiled once a ray format, without a match a ray.
         let len = query.ray_format.specialized(
             #[inline(always)]
@@ -142,17 +145,14 @@ fn trace_chunk<S>(
                     let slots = decoded[len..].iter_mut().zip(&mut collectors[len..]);
                     for ((ray, collector), bytes) in slots.zip(bytes.chunks_exact(format.size())) {
                         *ray = traced(&format.decode(bytes), query.flags);
-                        collector.restart(ray);
+                        collector.restart(ray, work_ceiling);
                     }
                     len += run;
                 }
                 len
             },
         );
-        let ceiling = stats.work().saturating_add(max_ray_work.saturating_mul(len as u64));
-        collectors[..len].iter_mut().for_each(|collector| collector.set_work_ceiling(ceiling));
         traverse(&mut state, &decoded[..len], &mut collectors[..len], &mut stats);
-        stats.rays_past_work += collectors[..len].iter().filter(|collector| collector.past_work()).count() as u64;
         let found = Collector::found_bits(&collectors[..len]);
         let group_collectors = &collectors[..len];
         query.hit_format.specialized(

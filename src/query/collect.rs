@@ -3,7 +3,7 @@
 
 use glam::{Mat3A, Vec3, Vec3A};
 
-use super::{Query, QueryKind};
+use super::{Query, QueryKind, TraceStats};
 use crate::format::hit::write_bitmask_run;
 use crate::format::{Hit, HitFormat, InstancePath, Ray, RayFlags, write_u32};
 use crate::geometry::{GeometryFlags, InstanceFlags, PlacedInstance, Placement, TriangleRef};
@@ -203,11 +203,9 @@ pub struct Collector<'s> {
     len: usize,
     /// Whether traversal may stop.
     done: bool,
-    /// The work of the ray's chunk ([`super::TraceStats::work`]) past which the ray enters no more instances: what its
+    /// The work of the ray's chunk ([`TraceStats::work`]) past which the ray enters no more instances: what its
     /// group of rays may take, set by the batch driver; unbounded until then.
     work_ceiling: u64,
-    /// Whether the ray was stopped at its work ceiling ([`Collector::stop_past`]): its answer is incomplete.
-    past_work: bool,
 }
 
 impl<'s> Collector<'s> {
@@ -227,7 +225,6 @@ impl<'s> Collector<'s> {
             len: 0,
             done: false,
             work_ceiling: u64::MAX,
-            past_work: false,
         }
     }
 
@@ -238,41 +235,32 @@ impl<'s> Collector<'s> {
         self.cull_tmax
     }
 
-    /// Makes it collect for `ray` from the start, as [`Collector::new`] would, keeping its scratch.
+    /// Makes it collect for `ray` from the start, as [`Collector::new`] would, keeping its scratch; the ray may enter
+    /// instances while its chunk's work is at most `work_ceiling` ([`Collector::stop_past`]).
     #[inline(always)]
-    pub fn restart(&mut self, ray: &Ray) {
+    pub fn restart(&mut self, ray: &Ray, work_ceiling: u64) {
         self.cull_tmax = ray.tmax;
         self.terminate_on_first_hit = ray.flags.contains(RayFlags::TERMINATE_ON_FIRST_HIT);
         self.count = 0;
         self.len = 0;
         self.done = false;
-        self.past_work = false;
+        self.work_ceiling = work_ceiling;
     }
 
-    /// Lets the ray's walk enter instances while its chunk's work is at most `ceiling` ([`Collector::stop_past`]).
+    /// Stops the ray if its chunk's work so far (`stats`') passed its ceiling, counting it in
+    /// [`TraceStats::rays_past_work`] (its answer is incomplete: the trace fails), and says whether it did: the
+    /// collector is then done and culls every box, so that the ray's walk ends at once. Asked before the ray enters an
+    /// instance, where a graph multiplies a ray's work.
     #[inline(always)]
-    pub(crate) fn set_work_ceiling(&mut self, ceiling: u64) {
-        self.work_ceiling = ceiling;
-    }
-
-    /// Stops the ray if its chunk's `work` so far passed its ceiling, and says whether it did: the collector is done
-    /// and culls every box, so that its walk ends at once, and [`Collector::past_work`] tells the trace to fail.
-    /// Asked before the ray enters an instance, where a graph multiplies a ray's work.
-    #[inline(always)]
-    pub(crate) fn stop_past(&mut self, work: u64) -> bool {
-        if work <= self.work_ceiling {
+    pub(crate) fn stop_past(&mut self, stats: &mut TraceStats) -> bool {
+        if stats.work() <= self.work_ceiling {
             return false;
         }
-        self.past_work = true;
+        stats.rays_past_work += 1;
+        self.work_ceiling = u64::MAX;
         self.done = true;
         self.cull_tmax = f32::NEG_INFINITY;
         true
-    }
-
-    /// Whether the ray was stopped at its work ceiling.
-    #[inline(always)]
-    pub(crate) fn past_work(&self) -> bool {
-        self.past_work
     }
 
     /// Whether the order in which boxes are entered matters to the answer's cost: a closest-hit query prunes by its

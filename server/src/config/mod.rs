@@ -103,8 +103,8 @@ pub struct SchedulerConfig {
     /// device as hung), so a trace with a ray that would take more is RESOURCE_EXHAUSTED naming this key. The
     /// default, 2^20, is hundreds of times what a ray through an ordinary scene takes, and seconds of a GPU thread.
     pub gpu_ray_work: u32,
-    /// Node visits and triangle tests one ray may take on the CPU, on average over the up to 16 neighbouring rays
-    /// traced together, 2^10 to 2^32 − 1: an instance graph multiplies a ray's work level by level, and a piece of a
+    /// Node visits and triangle tests one ray may take on the CPU (16 times it a group of up to 16 neighbouring rays
+    /// traced together), 2^10 to 2^32 − 1: an instance graph multiplies a ray's work level by level, and a piece of a
     /// trace cannot be stopped once it runs (it would hold a worker, or a thread that answers calls, for hours), so
     /// a ray past this enters no more instances and its trace is RESOURCE_EXHAUSTED naming this key. The default,
     /// 2^20, is the GPU's.

@@ -147,8 +147,7 @@ impl InstanceBvh {
         let instance = &self.instances[slot];
         let visible = lanes_where(active, |lane| rays[lane].visibility & instance.mask != 0);
         // Rays past their work enter no instance ([`Collector::stop_past`]): they are done.
-        let work = stats.work();
-        let stopped = lanes_where(visible, |lane| collectors[lane].stop_past(work));
+        let stopped = lanes_where(visible, |lane| collectors[lane].stop_past(stats));
         let visible = visible & !stopped;
         if visible == 0 {
             return stopped;

@@ -73,8 +73,8 @@ impl Default for CpuBackend {
 }
 
 impl CpuBackend {
-    /// A CPU backend whose rays may take at most `max_ray_work` node visits and triangle tests each, on average over
-    /// the group of up to 16 neighbouring rays traced together. A geometry accel's walk is bounded by its own size,
+    /// A CPU backend whose rays may take at most `max_ray_work` node visits and triangle tests each (16 times it a
+    /// group of up to 16 neighbouring rays traced together). A geometry accel's walk is bounded by its own size,
     /// but an instance graph multiplies a ray's work level by level (a pile of instances of piles, a few megabytes,
     /// makes billions of tests a ray), and a piece of a trace cannot be stopped from outside once it runs: it would
     /// hold a worker, or the thread that answers calls, for hours. So a ray past the limit enters no more instances,

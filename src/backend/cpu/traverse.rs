@@ -578,7 +578,7 @@ pub(super) fn carried_into(
     collector: &mut Collector<'_>,
     stats: &mut TraceStats,
 ) -> Option<PreparedRay> {
-    if collector.stop_past(stats.work()) {
+    if collector.stop_past(stats) {
         return None;
     }
     let (origin, direction) = ray.carried(to_object);
