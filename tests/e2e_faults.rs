@@ -88,7 +88,6 @@ async fn still_right(client: &Client) {
     );
 }
 
-/// Reads a stream's answers until it ends with a status: how many came first, and the status.
 /// Polls (for up to 60 s, a bound against hanging) until a `method` stream has been failed for its stall.
 async fn stalled(daemon: &Daemon, method: &str) {
     let label = format!("method=\"{method}\"");
@@ -101,6 +100,7 @@ async fn stalled(daemon: &Daemon, method: &str) {
     panic!("no {method} stream was failed for its stall within 60 s");
 }
 
+/// Reads a stream's answers until it ends with a status: how many came first, and the status.
 async fn read_until_status<T>(answers: &mut tonic::Streaming<T>) -> (usize, tonic::Status) {
     let mut delivered = 0;
     loop {

@@ -216,7 +216,7 @@ async fn a_ray_through_a_pile_of_instances_of_piles_is_stopped_at_its_work_and_n
     let refused = client.trace("deep", &query, one.clone()).await.expect_err("10^9 tests a ray within 2^20");
     assert_eq!(refused.code(), Code::ResourceExhausted, "{refused}");
     assert!(refused.to_string().contains("scheduler.cpu_ray_work"), "{refused}");
-    // The service goes on: a ray beside the pile, and one through a single level of it, trace.
+    // The service goes on: a ray beside the pile traces through the graph, and one through the pile itself.
     let beside = client.trace("deep", &query, Bytes::from(pack_rays(&[down(5.0)], RayFormat::Full))).await.unwrap();
     assert!(!HitFormat::TTriid.read(beside.hits(), 0).is_hit());
     let traced = client.trace("pile", &query, one).await.unwrap();

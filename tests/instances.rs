@@ -664,14 +664,15 @@ fn rays_past_their_work_in_an_instance_graph_fail_the_trace_by_name_and_rays_wit
     let copies = pile(&context, 1000);
     let deep = piled(&context, &piled(&context, &copies, 1000), 1000);
     let down = |x: f32| Ray { origin: Vec3A::new(x, 0.25, 1.0), direction: -Vec3A::Z, ..Ray::default() };
-    // 64 rays, every other one through the pile (those of a group are walked as packets where they make them), and
-    // one ray alone.
+    // 64 rays, every other one through the pile (too far apart to make packets), and one ray alone.
     let through: Vec<Ray> = (0..64).map(|i| down(if i % 2 == 0 { 0.25 } else { 5.0 })).collect();
+    // 16 rays from one origin make a packet, which enters the instances together.
+    let packet = vec![down(0.25); 16];
     for query in [
         Query::closest(RayFormat::Full, HitFormat::TTriid),
         Query { kind: QueryKind::Count, ..Query::closest(RayFormat::Full, HitFormat::T) },
     ] {
-        for rays in [&through[..], &through[..1]] {
+        for rays in [&through[..], &through[..1], &packet[..]] {
             let error = trace_error(&context, &deep, &query, rays);
             assert_eq!(error.kind(), ErrorKind::ResourceExhausted, "{error}");
             let message = error.to_string();

@@ -62,9 +62,9 @@
 //!
 //! Reading never trusts a blob: every length is checked against the bytes left before anything is allocated,
 //! every count, index, range, flag, option, transform and triangle corner is checked (as a build would check
-//! them, and as traversal relies on them), no box may have a NaN bound, child references may only name earlier
-//! accels or the external ones, graph depths and traversal stack sizes are recomputed, and a failure destroys every
-//! accel already made from the blob.
+//! them, and as traversal relies on them), child references may only name earlier accels or the external ones,
+//! graph depths and traversal stack sizes are recomputed, and a failure destroys every accel already made from the
+//! blob.
 
 mod entry;
 mod header;

@@ -152,7 +152,7 @@ impl InstanceBvh {
         if visible == 0 {
             return stopped;
         }
-        let Ok(child) = cpu_child(&instance.child) else { return 0 };
+        let Ok(child) = cpu_child(&instance.child) else { return stopped };
         let scope = scope.enter(instance);
         let stacks = (&mut packet_stack[..], &mut single_stack[..]);
         // SAFETY: the CPU has `V`'s instruction set and AVX2 (this function's contract).

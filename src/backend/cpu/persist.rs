@@ -3,9 +3,8 @@
 //! access stay in bounds and terminate; depths, stack sizes, the wide nodes (with a static accel's corner blocks), a
 //! geometry accel's bounds and an instance accel's child boxes are made again from what was read, placements
 //! re-derived from their matrices. Triangle corners must be finite, as a build's vertices must. Node boxes, key
-//! boxes and an instance accel's bounds are taken as stored but for NaN (no build writes one; infinite bounds are
-//! those of empty boxes): wrong ones make a blob trace wrongly, never out of bounds, and a box placed by a later
-//! instance build stays a number.
+//! boxes and an instance accel's bounds are taken as stored (a build over coordinates near `f32::MAX` can write NaN
+//! ones, which must load again): wrong ones make a blob trace wrongly, never out of bounds.
 //!
 //! Layout version [`LAYOUT_VERSION`], using the blob's arrays and optional parts. A geometry accel:
 //!
@@ -182,20 +181,9 @@ fn read_nodes(
     if boxes.len() != expected {
         return Err(invalid(format!("{} node key boxes for {} nodes of {keys} keys", boxes.len(), nodes.len())));
     }
-    if let Some(i) = nodes.iter().position(|node| node.min.is_nan() || node.max.is_nan()) {
-        return Err(invalid(format!("node {i}: its box has a NaN bound")));
-    }
-    if let Some(i) = boxes.iter().position(is_nan_box) {
-        return Err(invalid(format!("node {}, key {}: its box has a NaN bound", i / keys, i % keys)));
-    }
     let node_keys = (keys > 1).then_some(NodeKeys { keys, boxes });
     let depth = check_nodes(&nodes, slots)?;
     Ok((nodes, node_keys, depth))
-}
-
-/// Whether a bound of `bounds` is NaN.
-fn is_nan_box(bounds: &Bounds) -> bool {
-    bounds.0.is_nan() || bounds.1.is_nan()
 }
 
 /// Checks a depth-first node array over `slots` primitive slots: each inner node's children (at `index` and
@@ -474,9 +462,6 @@ impl InstanceBvh {
             return Err(invalid(format!("child {c} is placed by no instance")));
         }
         let bounds: Bounds = reader.value("bounds")?;
-        if is_nan_box(&bounds) {
-            return Err(invalid("the instance accel's bounds have a NaN bound"));
-        }
         let update_order: Option<Vec<u32>> = reader.optional("update order", |r| r.array("update order"))?;
         check_presence(&update_order, options, BuildFlags::ALLOW_UPDATE, "update order")?;
         if let Some(order) = &update_order {
