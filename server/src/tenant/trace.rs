@@ -745,8 +745,9 @@ mod tests {
 
     #[test]
     fn a_trace_known_to_take_long_runs_on_a_worker_and_a_few_rays_of_unknown_cost_teach_it() {
-        // Pieces of up to a second: 1,024 rays through the pile fit one piece, and take far more than a millisecond.
-        let (tenant, entry) = tenant_with_a_pile(1000);
+        // Pieces of up to a minute: 1,024 rays through the pile fit one piece, and take far more than a millisecond.
+        // (With a second, one ray timed on a loaded machine at over a millisecond cut the 1,024 into two pieces.)
+        let (tenant, entry) = tenant_with_a_pile(60_000);
         let closest = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::TTriidUV);
         assert_eq!(entry.pace.get(QueryKind::Closest), None);
         // One ray of unknown cost runs on the caller's thread, and teaches what the pile's rays cost.
