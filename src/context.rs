@@ -41,7 +41,7 @@ impl std::fmt::Debug for Device {
 impl Device {
     /// The CPU device, always present, its rays held to the default work ([`Device::cpu_with_max_ray_work`]).
     pub fn cpu() -> Device {
-        Device::cpu_with_max_ray_work(crate::backend::cpu::DEFAULT_MAX_RAY_WORK)
+        Device::cpu_with_max_ray_work(crate::backend::DEFAULT_MAX_RAY_WORK)
     }
 
     /// The CPU device, each of its rays taking at most `max_ray_work` node visits and triangle tests

@@ -22,6 +22,12 @@ use crate::query::{Query, TraceOutput, TraceStats};
 use crate::raygen::Generator;
 use crate::reduce::{Partial, Reduction};
 
+/// Node visits and triangle tests a ray may take on any device unless set otherwise
+/// ([`cpu::CpuBackend::with_max_ray_work`], `wgpu::WgpuOptions::max_ray_work`): 2^20, hundreds of times what a ray
+/// through an ordinary scene takes (the bunny's random rays take about 60), a few milliseconds of a core and a few
+/// seconds of a thread on an H100.
+pub const DEFAULT_MAX_RAY_WORK: u32 = 1 << 20;
+
 /// Which implementation a device uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum BackendKind {

@@ -37,7 +37,7 @@ use std::sync::Arc;
 use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
-use crate::backend::{Backend, BackendAccel, BackendKind, DeviceInfo, RaySource, Shape, host};
+use crate::backend::{Backend, BackendAccel, BackendKind, DEFAULT_MAX_RAY_WORK, DeviceInfo, RaySource, Shape, host};
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::format::Ray;
@@ -60,11 +60,6 @@ pub struct CpuBackend {
     /// Node visits and triangle tests a ray may take ([`CpuBackend::with_max_ray_work`]).
     max_ray_work: u32,
 }
-
-/// [`CpuBackend::with_max_ray_work`] unless set: 2^20 node visits and triangle tests, as on a GPU
-/// ([`crate::backend::wgpu`]'s default), hundreds of times what a ray through an ordinary scene takes and a few
-/// milliseconds of a core.
-pub const DEFAULT_MAX_RAY_WORK: u32 = 1 << 20;
 
 impl Default for CpuBackend {
     fn default() -> Self {
@@ -93,6 +88,19 @@ impl CpuBackend {
                 limit: self.max_ray_work,
                 setting: "scheduler.cpu_ray_work",
             }),
+        }
+    }
+
+    /// How a part of a trace in parts is traced on the CPU: by the batch driver on the calling thread
+    /// ([`trace_batch_here`]).
+    fn part_tracer<'a>(
+        &'a self,
+        accel: &'a CpuAccel,
+    ) -> impl Fn(&Query, &[u8], Option<ImageRows>, TraceOutput<'_>) -> Result<TraceStats> + Sync + 'a {
+        move |query, rays, rows, out| {
+            let work = u64::from(self.max_ray_work);
+            let stats = trace_batch_here(query, rays, rows, out, work, || accel.new_stacks(), walk(accel))?;
+            self.within_work(stats)
         }
     }
 }
@@ -277,21 +285,6 @@ impl Backend for CpuBackend {
         reduction: &Reduction,
     ) -> Result<(Partial, TraceStats)> {
         host::trace_reduced_in_parts(query, rays, first_ray, reduction, &self.part_tracer(cpu(accel)?))
-    }
-}
-
-impl CpuBackend {
-    /// How a part of a trace in parts is traced on the CPU: by the batch driver on the calling thread
-    /// ([`trace_batch_here`]).
-    fn part_tracer<'a>(
-        &'a self,
-        accel: &'a CpuAccel,
-    ) -> impl Fn(&Query, &[u8], Option<ImageRows>, TraceOutput<'_>) -> Result<TraceStats> + Sync + 'a {
-        move |query, rays, rows, out| {
-            let work = u64::from(self.max_ray_work);
-            let stats = trace_batch_here(query, rays, rows, out, work, || accel.new_stacks(), walk(accel))?;
-            self.within_work(stats)
-        }
     }
 }
 

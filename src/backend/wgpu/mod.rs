@@ -38,7 +38,7 @@ use glam::Vec3;
 
 use crate::accel::{BuildOptions, MemoryUsage};
 use crate::backend::cpu::{CpuAccel, CpuBackend, cpu};
-use crate::backend::{Backend, BackendAccel, DeviceInfo, RaySource, Shape, host};
+use crate::backend::{Backend, BackendAccel, DEFAULT_MAX_RAY_WORK, DeviceInfo, RaySource, Shape, host};
 use crate::context::Accel;
 use crate::error::{Error, Result};
 use crate::geometry::motion::{Bounds, TimeSpan};
@@ -74,10 +74,6 @@ pub struct WgpuOptions {
     /// (RESOURCE_EXHAUSTED) instead.
     pub max_ray_work: Option<u32>,
 }
-
-/// [`WgpuOptions::max_ray_work`] unless set: 2^20 node visits and triangle tests, hundreds of times what a ray through
-/// an ordinary scene takes (the bunny's random rays take about 60), and a few seconds of a thread on an H100.
-pub const DEFAULT_MAX_RAY_WORK: u32 = 1 << 20;
 
 /// [`WgpuOptions::max_trace_bytes`] unless set: 1 GiB, about eight times what a trace of ordinary chunks (2^18 rays
 /// and their closest hits) holds.
