@@ -357,9 +357,10 @@ mod tests {
 
     #[test]
     fn a_flow_is_charged_the_time_its_tasks_hold_a_worker() {
-        // Both flows' tasks are estimated at 1 ms; a's hold the one worker for 50 ms, b's for microseconds. Charged
+        // Both flows' tasks are estimated at 1 ms; a's hold the one worker for 200 ms, b's for microseconds. Charged
         // by estimate they would alternate (a's second task served third); charged by time, b's tasks go before a's
-        // second until they too have held the worker for 50 ms (all 20 of them, unless the machine stalls them).
+        // second until they too have held the worker for 200 ms (all 20 of them, unless the machine stalls them for
+        // that long: a margin for a loaded CI machine, where 50 ms was within reach of one stall).
         let scheduler = Scheduler::new("test", 1, 8, SECOND, 0);
         let (release, gate) = mpsc::channel::<()>();
         let (done, finished) = mpsc::channel::<&'static str>();
@@ -367,7 +368,7 @@ mod tests {
         for _ in 0..3 {
             let done = done.clone();
             let slow = move || {
-                std::thread::sleep(Duration::from_millis(50));
+                std::thread::sleep(Duration::from_millis(200));
                 done.send("a").unwrap()
             };
             scheduler.submit(&flow("a"), 0, MILLISECOND, Box::new(slow));
