@@ -76,7 +76,7 @@ pub(super) fn parse(bytes: &[u8], folder: &Path) -> Result<Mesh, String> {
         .collect::<Result<Vec<_>, String>>()?;
     let mut mesh = Mesh::default();
     match document.default_scene().or_else(|| document.scenes().next()) {
-        Some(scene) => scene.nodes().try_for_each(|node| add_node(&node, Mat4::IDENTITY, &buffers, &mut mesh))?,
+        Some(scene) => add_trees(scene.nodes(), document.nodes().len(), &buffers, &mut mesh)?,
         None => add_all_meshes(&document, &buffers, &mut mesh)?,
     }
     Ok(mesh)
@@ -92,13 +92,36 @@ fn read_uri(uri: &str, folder: &Path) -> Result<Vec<u8>, String> {
     std::fs::read(&file).map_err(|e| format!("{}: {e}", file.display()))
 }
 
-/// Adds `node`'s mesh and its children's, placed by `parent` times the node's own transform.
-fn add_node(node: &Node, parent: Mat4, buffers: &[Vec<u8>], out: &mut Mesh) -> Result<(), String> {
-    let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
-    if let Some(mesh) = node.mesh() {
-        add_mesh(&mesh, world, buffers, out)?;
+/// Adds the meshes of `roots` (of a document of `node_count` nodes) and of their descendants, depth first, each
+/// placed by its node's world transform. glTF nodes form strict trees (no node is a child of two nodes): a node
+/// reached twice (a cycle, a node with two parents, or a root listed twice) is refused, naming it, where it would
+/// recurse forever or copy its subtree again at every level. Walked without recursion, so a chain of any depth fits.
+fn add_trees<'a>(
+    roots: impl Iterator<Item = Node<'a>>,
+    node_count: usize,
+    buffers: &[Vec<u8>],
+    out: &mut Mesh,
+) -> Result<(), String> {
+    let mut reached = vec![false; node_count];
+    let mut pending: Vec<(Node, Mat4)> = roots.map(|root| (root, Mat4::IDENTITY)).collect();
+    pending.reverse();
+    while let Some((node, parent)) = pending.pop() {
+        if std::mem::replace(&mut reached[node.index()], true) {
+            return Err(format!(
+                "node {} is reached twice: glTF nodes form trees (no cycles, one parent)",
+                node.index()
+            ));
+        }
+        let world = parent * Mat4::from_cols_array_2d(&node.transform().matrix());
+        if let Some(mesh) = node.mesh() {
+            add_mesh(&mesh, world, buffers, out)?;
+        }
+        // Children in their order: the first is taken next.
+        let first_child = pending.len();
+        pending.extend(node.children().map(|child| (child, world)));
+        pending[first_child..].reverse();
     }
-    node.children().try_for_each(|child| add_node(&child, world, buffers, out))
+    Ok(())
 }
 
 /// Adds every mesh of a document that has no scene, untransformed.
@@ -208,6 +231,37 @@ mod tests {
         let mesh = load_files(&[("tri.glb", &glb)]).unwrap();
         assert_eq!(mesh.triangles, [[2, 1, 0]]);
         assert_eq!(mesh.positions[1], Vec3::new(11.0, 0.0, 0.0));
+    }
+
+    #[test]
+    fn nodes_are_taken_as_trees_in_order_and_a_node_reached_twice_is_refused() {
+        let text = embedded_document(false);
+        let with_nodes = |roots: &str, nodes: &str| {
+            let changed = text.replace(r#""scenes":[{"nodes":[0]}]"#, &format!(r#""scenes":[{{"nodes":{roots}}}]"#));
+            let changed =
+                changed.replace(r#""nodes":[{"mesh":0,"translation":[10,0,0]}]"#, &format!(r#""nodes":{nodes}"#));
+            assert_ne!(changed, text);
+            load_files(&[("tri.gltf", changed.as_bytes())])
+        };
+        // Node 0 holds node 2 then node 1; each child's triangle comes in the order the children are listed, placed
+        // by its parent's transform times its own.
+        let placed = r#"[{"translation":[10,0,0],"children":[2,1]},{"mesh":0,"translation":[0,1,0]},{"mesh":0}]"#;
+        let mesh = with_nodes("[0]", placed).unwrap();
+        assert_eq!(mesh.triangles, [[2, 1, 0], [5, 4, 3]]);
+        assert_eq!((mesh.positions[0], mesh.positions[3]), (Vec3::new(10.0, 0.0, 0.0), Vec3::new(10.0, 1.0, 0.0)));
+        // A chain 100,000 nodes deep, its mesh at the end: walked without recursion (it overflowed the stack).
+        let chain: Vec<String> = (1..100_000).map(|i| format!(r#"{{"children":[{i}]}}"#)).collect();
+        let chain = format!(r#"[{},{{"mesh":0}}]"#, chain.join(","));
+        assert_eq!(with_nodes("[0]", &chain).unwrap().triangles.len(), 1);
+        // A cycle (recursion without end), a node with two parents, a root listed twice (copies of subtrees).
+        for (roots, nodes, twice) in [
+            ("[0]", r#"[{"children":[1]},{"mesh":0,"children":[0]}]"#, 0),
+            ("[0]", r#"[{"children":[1,2]},{"children":[3]},{"children":[3]},{"mesh":0}]"#, 3),
+            ("[0,0]", r#"[{"mesh":0}]"#, 0),
+        ] {
+            let error = with_nodes(roots, nodes).unwrap_err();
+            assert!(error.reason.contains(&format!("node {twice} is reached twice")), "{}", error.reason);
+        }
     }
 
     #[test]
