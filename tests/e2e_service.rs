@@ -380,6 +380,18 @@ async fn stream_chunks_and_hit_buffers_hold_the_engines_bytes() {
     let gone = pb::DownloadBufferRequest { buffer: buffer(Ref::Id(hits_buffer.id.clone())), ..Default::default() };
     let result = client.download_buffer(gone).await;
     assert_refused(&mut client, result, Code::NotFound, &hits_buffer.id).await;
+
+    // No rays: both buffers still, empty (a script downloads `<name>.counts` whatever the batch's size).
+    let empty = pb::TraceBatchRequest {
+        query: Some(trace_query("bunny", &query)),
+        rays: Some(pb::trace_batch_request::Rays::RaysInline(Default::default())),
+        hits_buffer_name: "none.hits".into(),
+        ..Default::default()
+    };
+    let response = client.trace_batch(empty).await.expect("an empty trace into buffers").into_inner();
+    let (hits_buffer, counts_buffer) = (response.hits_buffer.expect("hits"), response.counts_buffer.expect("counts"));
+    assert_eq!((hits_buffer.name.as_str(), hits_buffer.size_bytes), ("none.hits", 0));
+    assert_eq!((counts_buffer.name.as_str(), counts_buffer.size_bytes), ("none.hits.counts", 0));
 }
 
 #[tokio::test]

@@ -128,7 +128,8 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
         let layout = query.output_layout(ray_count as usize * query.ray_format.size())?;
         let (hits, counts) = (&request.hits_buffer_name, counts_buffer_name(&request.hits_buffer_name));
         let mut buffers = vec![(hits.as_str(), layout.hits as u64)];
-        if layout.counts > 0 {
+        // A counting query gets its counts buffer even for no rays (empty, as its hits buffer is).
+        if query.kind.has_counts() {
             let most = MAX_NAME_CHARS - COUNTS_SUFFIX.len();
             if hits.len() > most {
                 let rule = format!(
@@ -158,7 +159,7 @@ pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> Servi
         };
         let name = &request.hits_buffer_name;
         let hits_buffer = tenant.create_buffer(HITS_BUFFER_NAME, name, result.hits, next()?)?;
-        let counts_buffer = if result.counts.is_empty() {
+        let counts_buffer = if !query.kind.has_counts() {
             None
         } else {
             // Both buffers or neither: when the counts buffer cannot be made, the hits buffer is taken back.
