@@ -907,6 +907,27 @@ fn pictures_and_scans_larger_than_a_message_are_traced_in_ranges_into_the_same_f
 }
 
 #[test]
+fn bitmask_hits_of_parts_that_end_within_a_byte_are_written_as_one_bitmask() {
+    // A server that traces at most 5 rays a batch: rayctl's parts end within a byte of the bitmask.
+    let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_RAYS_PER_BATCH", "5")]);
+    let server = daemon.url();
+    let scratch = Scratch::new("e2e-rayctl-bits");
+    build_bunny(&server);
+    let format = RayFormat::OriginDirection;
+    let rays = bunny().camera_rays(format, 13, 7);
+    let (rays_file, hits_file) = (scratch.path("camera.rays"), scratch.path("camera.bits"));
+    std::fs::write(&rays_file, &rays).unwrap();
+    let query = Query { kind: QueryKind::Any, ..Query::closest(format, HitFormat::Bitmask) };
+    let expected = bunny().trace(&query, &rays);
+    assert!(0 < expected.stats.rays_hit && expected.stats.rays_hit < expected.stats.rays, "rays hit and miss");
+    let trace = ["trace", "--accel", "bunny", "--rays", &rays_file, "--ray-format", format.name()];
+    let options = ["--query", "any", "--hit-format", "bitmask", "--out", &hits_file];
+    let report = json(&server, &[&trace[..], &options].concat());
+    assert_eq!(report["rays"].as_u64(), Some(91), "{report}");
+    assert_same_bytes(&read(&hits_file), &expected.hits, "91 rays' bits from parts of 5 rays");
+}
+
+#[test]
 fn a_ray_file_larger_than_a_message_is_traced_a_part_at_a_time_and_a_failed_trace_leaves_the_files_as_they_were() {
     // 64 KiB messages: the file's 2.9 MB of rays, and their hits, go in many parts each way.
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);

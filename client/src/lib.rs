@@ -56,5 +56,5 @@ pub use route::{ROUTE_HEADER, Ring, Router, route_key};
 pub use scene::{InstanceMotion, MotionKey, Scale, Scene, SceneInstance, SceneMotion};
 pub use secondary::{PrimaryRays, SecondaryRays};
 pub use stream::{AccelArg, BufferArg, Event, EventId, Operation, Stream};
-pub use trace::{TraceParts, TraceResult, add_stats, output_layout, output_layout_of_rays};
+pub use trace::{TraceParts, TraceResult, add_stats, append_bits, output_layout, output_layout_of_rays};
 pub use view::{HitView, RayView};

@@ -525,7 +525,7 @@ fn append_hits(hits: &mut Vec<u8>, query: &Query, rays_before: usize, part: &[u8
 
 /// Appends the first `count` bits of `part` to the first `filled` bits of `bits`, both packed least significant bit
 /// first as bitmask hits are; the unused bits of the last byte are left 0, as the contract has them.
-fn append_bits(bits: &mut Vec<u8>, filled: usize, part: &[u8], count: usize) {
+pub fn append_bits(bits: &mut Vec<u8>, filled: usize, part: &[u8], count: usize) {
     let shift = filled % 8;
     if shift == 0 {
         bits.extend_from_slice(part);

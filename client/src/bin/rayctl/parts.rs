@@ -417,18 +417,35 @@ fn statvfs_free(path: &Path) -> Result<u64> {
     Ok(stats.f_bavail.saturating_mul(stats.f_frsize))
 }
 
-/// Consumes `parts`, writing them to `outputs` where given.
+/// Consumes `parts`, writing them to `outputs` where given. Bitmask hits of parts that end within a byte (a server
+/// whose `max_rays_per_batch` is below 8 makes such parts) are shifted into place: a last byte that is not full yet
+/// waits for the next part's bits.
 async fn write_all(mut parts: TraceParts, mut outputs: Option<&mut Outputs>) -> Result<Written> {
     let mut written = Written { rays: 0, stats: proto::TraceStats::default() };
+    // Bitmask hits: the bits written, and the bytes not written yet (the last one, while it is not full).
+    let (mut bits, mut unwritten) = (0usize, Vec::new());
     while let Some(part) = parts.next().await.transpose()? {
         if let Some(outputs) = &mut outputs {
-            outputs.hits.write(part.hits()).await?;
+            match part.query().hit_format.size() {
+                Some(_) => outputs.hits.write(part.hits()).await?,
+                None => {
+                    let count = part.rays() * part.query().records_per_ray();
+                    rayd_client::append_bits(&mut unwritten, bits % 8, part.hits(), count);
+                    bits += count;
+                    let full = unwritten.len() - usize::from(!bits.is_multiple_of(8));
+                    outputs.hits.write(&unwritten[..full]).await?;
+                    unwritten.drain(..full);
+                }
+            }
             if let Some(counts) = &mut outputs.counts {
                 counts.write(part.counts()).await?;
             }
         }
         written.rays += part.rays();
         rayd_client::add_stats(&mut written.stats, part.stats());
+    }
+    if let Some(outputs) = outputs {
+        outputs.hits.write(&unwritten).await?;
     }
     Ok(written)
 }
