@@ -190,7 +190,7 @@ impl Client {
     fn generated_calls(&self, query: &Query, total: usize) -> Result<(OutputLayout, usize)> {
         let layout = output_layout_of_rays(query, total as u64)?;
         let (limit, max_rays) = (self.options.batch_limit_bytes, self.options.max_rays_per_call);
-        let per_call = if layout.hits + layout.counts <= limit && layout.rays <= max_rays {
+        let per_call = if layout.hits.saturating_add(layout.counts) <= limit && layout.rays <= max_rays {
             layout.rays
         } else {
             // Generated rays cost nothing on the wire: only the hits and counts must fit.
@@ -553,9 +553,12 @@ pub fn output_layout(query: &Query, ray_bytes: usize) -> Result<OutputLayout> {
 }
 
 /// The hits and counts that `rays` rays (made by a generator, or counted from a file's size) traced with `query`
-/// make, as [`output_layout`] checks them (their bytes saturate at `usize::MAX`).
+/// make, as [`output_layout`] checks them; [`Error::InvalidArgument`] where the rays' bytes pass `usize::MAX`.
 pub fn output_layout_of_rays(query: &Query, rays: u64) -> Result<OutputLayout> {
-    let ray_bytes = usize::try_from(rays).unwrap_or(usize::MAX).saturating_mul(query.ray_format.size());
+    let size = query.ray_format.size();
+    let ray_bytes = usize::try_from(rays).ok().and_then(|rays| rays.checked_mul(size)).ok_or_else(|| {
+        Error::InvalidArgument(format!("{rays} rays of {size} bytes each: more bytes than this machine addresses"))
+    })?;
     output_layout(query, ray_bytes)
 }
 
@@ -674,6 +677,15 @@ mod tests {
         assert_eq!(chunk_rays(&query, 1000, usize::MAX), 8, "never fewer than 8 rays");
         assert_eq!(chunk_rays(&query, 4 << 20, 20), 16, "the server's max_rays_per_batch caps chunks");
         assert_eq!(chunk_rays(&query, 4 << 20, 5), 5, "below 8 rays only when the server allows fewer");
+    }
+
+    #[test]
+    fn rays_whose_bytes_pass_the_address_space_are_invalid_arguments_not_a_saturated_length() {
+        let query = Query::closest(RayFormat::OriginDirection, HitFormat::T);
+        let error = output_layout_of_rays(&query, u64::MAX / 8).unwrap_err();
+        assert!(matches!(error, Error::InvalidArgument(_)), "{error:?}");
+        assert!(error.to_string().contains("rays of 24 bytes each: more bytes than this machine"), "{error}");
+        assert_eq!(output_layout_of_rays(&query, 1000).unwrap().hits, 4000);
     }
 
     /// A bitmask result of one ray a flag of `hits`, as a part of a trace.
