@@ -609,6 +609,9 @@ fn rayctl_traces_rays_made_by_the_server_as_the_engine_makes_them_sent_in_a_file
     let formats = ["--ray-format", ray_format.name(), "--hit-format", "t"];
     let refused = fails(&server, &[&["trace", "--accel", "bunny", "--points", &points_file][..], &formats].concat(), 1);
     assert!(refused.starts_with("error: InvalidArgument: ") && refused.contains("12-byte"), "{refused}");
+    std::fs::write(&points_file, b"").unwrap();
+    let refused = fails(&server, &[&["trace", "--accel", "bunny", "--points", &points_file][..], &formats].concat(), 1);
+    assert!(refused.starts_with(&format!("error: InvalidArgument: --points {points_file}: no points")), "{refused}");
 
     // Secondary rays: reflections of the jittered camera's rays at their hits in a file, then shadow rays of a ray
     // file's rays towards a light, their hits in a server-side buffer.

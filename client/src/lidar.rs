@@ -9,7 +9,7 @@ use rayd_engine::raygen::{Generator, Lidar};
 use rayd_engine::reduce::{PointCloud, PointEncoding, Reduction};
 
 use crate::client::Client;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::reduce::ReducedTrace;
 
 /// The returns of one lidar revolution.
@@ -55,6 +55,33 @@ impl Client {
         let reduction = Reduction::PointCloud(points);
         let ReducedTrace { data, stats, .. } =
             self.trace_generated_reduced_in_ranges(accel, &query, &generator, &reduction).await?;
+        check_points(data.len(), stats.rays)?;
         Ok(LidarScan { points: data, rays: stats.rays })
+    }
+}
+
+/// Fails with [`Error::Protocol`] unless `bytes` of a scan's points are whole 12-byte points, at most one a ray of
+/// `rays` (a PLY file's header would count fewer points than its body holds).
+fn check_points(bytes: usize, rays: u64) -> Result<()> {
+    if bytes.is_multiple_of(12) && bytes as u64 / 12 <= rays {
+        return Ok(());
+    }
+    Err(Error::Protocol(format!(
+        "{bytes} bytes of points from {rays} rays: not whole 12-byte points, one a ray at most"
+    )))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_scan_answered_with_part_of_a_point_or_more_points_than_rays_is_a_protocol_error() {
+        assert!(check_points(0, 0).is_ok() && check_points(24, 2).is_ok());
+        for (bytes, rays) in [(13, 5), (36, 2)] {
+            let error = check_points(bytes, rays).unwrap_err();
+            assert!(matches!(error, Error::Protocol(_)), "{error:?}");
+            assert!(error.to_string().contains(&format!("{bytes} bytes of points from {rays} rays")), "{error}");
+        }
     }
 }

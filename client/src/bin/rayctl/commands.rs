@@ -400,7 +400,12 @@ fn around_points(around: &AroundPointsArgs, samples: u32) -> Result<SphereSampli
     let (points, normals) = match &around.points {
         Some(file) => {
             let normals = around.normals.as_ref().map(|file| packed_points(file)).transpose()?;
-            (packed_points(file)?, normals.unwrap_or_default())
+            let points = packed_points(file)?;
+            if points.is_empty() {
+                let what = format!("--points {}: no points (1 to 65,536 of them)", file.display());
+                return Err(Error::InvalidArgument(what));
+            }
+            (points, normals.unwrap_or_default())
         }
         None => (around.point.clone(), around.normal.clone()),
     };
