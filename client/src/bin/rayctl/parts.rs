@@ -54,6 +54,15 @@ impl Records {
         let (named, size, format) = (self.named(), self.record_bytes, self.format);
         Err(Error::InvalidArgument(format!("{named}: {bytes} bytes is not a multiple of {size} ({format})")))
     }
+
+    /// The refusal of a file that held `size` bytes when it was opened and of which `read` bytes were read.
+    fn changed(&self, size: u64, read: u64) -> Error {
+        let named = self.named();
+        let read = if read > size { format!("more than {size}") } else { read.to_string() };
+        Error::InvalidArgument(format!(
+            "{named}: the file changed while it was read: {size} bytes when opened, {read} read"
+        ))
+    }
 }
 
 impl PackedFile {
@@ -126,16 +135,20 @@ impl PackedFile {
     }
 
     /// The file's bytes in chunks of whole records, `chunk_bytes` rounded down to them (the last chunk may be
-    /// shorter), read as they are asked for; a file that ends within a record ends the chunks with an error.
+    /// shorter), read as they are asked for; a file that ends within a record, or (a plain file) that is read to
+    /// more or fewer bytes than it held when it was opened, ends the chunks with an error naming it.
     pub fn chunks(self, chunk_bytes: usize) -> impl Stream<Item = Result<Bytes>> + Send + 'static {
-        let PackedFile { file, records, .. } = self;
+        let PackedFile { file, records, size, .. } = self;
         let chunk_bytes = (chunk_bytes / records.record_bytes).max(1) * records.record_bytes;
         let state = Some((tokio::fs::File::from_std(file), 0u64));
         futures_util::stream::unfold((records, state), move |(records, state)| async move {
             let (mut file, read) = state?;
             let mut chunk = BytesMut::zeroed(chunk_bytes);
             let filled = match fill(&mut file, &mut chunk).await {
-                Ok(0) => return None,
+                Ok(0) => {
+                    let shrunk = size.filter(|&size| size != read).map(|size| records.changed(size, read));
+                    return shrunk.map(|refused| (Err(refused), (records, None)));
+                }
                 Ok(filled) => filled,
                 Err(e) => {
                     let error = Error::io(&records.path, e);
@@ -143,7 +156,8 @@ impl PackedFile {
                 }
             };
             let read = read + filled as u64;
-            match records.check_whole(read) {
+            let grown = size.filter(|&size| read > size).map(|size| Err(records.changed(size, read)));
+            match grown.unwrap_or_else(|| records.check_whole(read)) {
                 Err(refused) => Some((Err(refused), (records, None))),
                 Ok(()) => {
                     chunk.truncate(filled);
@@ -448,4 +462,35 @@ async fn write_all(mut parts: TraceParts, mut outputs: Option<&mut Outputs>) -> 
         outputs.hits.write(&unwritten).await?;
     }
     Ok(written)
+}
+
+#[cfg(test)]
+mod tests {
+    use futures_util::StreamExt;
+
+    use super::*;
+
+    /// The chunks of a ray file of `rays` 24-byte rays, changed to `changed` rays once opened.
+    async fn chunks_of_a_changed_file(rays: usize, changed: usize) -> Vec<Result<Bytes>> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rays.bin");
+        std::fs::write(&path, vec![0u8; 24 * rays]).unwrap();
+        let file = PackedFile::rays(&path, RayFormat::OriginDirection).await.unwrap();
+        std::fs::write(&path, vec![0u8; 24 * changed]).unwrap();
+        file.chunks(24 * 4).collect().await
+    }
+
+    #[tokio::test]
+    async fn a_ray_file_that_changes_while_read_is_refused_naming_it() {
+        let whole = chunks_of_a_changed_file(10, 10).await;
+        let lengths: Vec<usize> = whole.into_iter().map(|chunk| chunk.unwrap().len()).collect();
+        assert_eq!(lengths, [96, 96, 48]);
+        for (changed, read) in [(6, "144"), (12, "more than 240")] {
+            let chunks = chunks_of_a_changed_file(10, changed).await;
+            let error = chunks.into_iter().find_map(Result::err).expect("an error");
+            let expected = format!("the file changed while it was read: 240 bytes when opened, {read} read");
+            assert!(matches!(&error, Error::InvalidArgument(e) if e.contains(&expected)), "{error:?}");
+            assert!(error.to_string().starts_with("--rays "), "{error}");
+        }
+    }
 }
