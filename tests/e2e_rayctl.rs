@@ -759,7 +759,7 @@ fn secondary_rays_from_hits_larger_than_a_message_are_traced_through_temporary_b
 }
 
 #[test]
-fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_partial_output() {
+fn ctrl_c_during_a_trace_rays_or_a_build_leaves_no_temporary_buffer_and_no_partial_output() {
     // 64 KiB messages, so that the 80 MB of hits take many messages to go up.
     let daemon = Daemon::start(&[("RAYD_LIMITS_MAX_MESSAGE_BYTES", "65536")]);
     let server = daemon.url();
@@ -796,6 +796,13 @@ fn ctrl_c_during_a_secondary_trace_or_rays_leaves_no_temporary_buffer_and_no_par
     let args = ["rays", "--accel", "bunny", "--random", "8000000", "-o", &many];
     interrupt_when(&server, &args, |_| left().len() > 2, "something was written beside -o");
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
+
+    // `rayctl build` of a mesh larger than a message, whose arrays go up as temporary buffers: interrupted once the
+    // first is up, it leaves neither buffer nor accel (its buffers' deletes were cancelled as rayctl ended).
+    let args = ["build", "--mesh", "../shared/data/meshes/ogre.obj", "--name", "interrupted"];
+    interrupt_when(&server, &args, |_| !buffers().is_empty(), "the mesh's first buffer went up");
+    assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
+    assert_eq!(accel_names(&server), ["bunny"]);
 
     // Rays from a named pipe that no writer opens: Ctrl-C while rayctl waits in its open (a thread of it in the
     // openat system call, 257 on x86-64), then once it has opened it and its writer (this test) writes nothing.

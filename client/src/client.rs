@@ -11,6 +11,7 @@ use tonic::transport::{Certificate, Channel, ClientTlsConfig, Endpoint, Identity
 use crate::auth::Auth;
 use crate::convert::{accel_ref, buffer_ref};
 use crate::error::{Error, Result, chain};
+use crate::upload::CleanUps;
 
 /// The server URL used when none is given.
 pub const DEFAULT_SERVER: &str = "http://127.0.0.1:50051";
@@ -127,6 +128,8 @@ pub struct Client {
     auth: Auth,
     /// Thresholds that pick between call shapes (inline or buffer, batch or stream).
     pub(crate) options: ClientOptions,
+    /// Deletes of temporary buffers left running by calls dropped midway, shared by the clones.
+    pub(crate) clean_ups: CleanUps,
 }
 
 impl Client {
@@ -146,7 +149,7 @@ impl Client {
             connections => spread(&endpoint, connections),
         };
         let rpc = stub(&channel, auth.clone(), &options);
-        Ok(Client { rpc, channel, auth, options })
+        Ok(Client { rpc, channel, auth, options, clean_ups: CleanUps::default() })
     }
 
     /// This client with every call — buffers, streams and listings included — sent for accel `accel`'s scene (its

@@ -69,10 +69,26 @@ impl Client {
         temporary.delete().await;
         result
     }
+
+    /// Waits for the deletes of temporary buffers that calls dropped midway (by a timeout, a `select!`, a Ctrl-C)
+    /// left running on their own tasks. A program about to end calls it (within a timeout of its own: a server that
+    /// does not answer holds it): ending the runtime would cancel them, leaving the buffers on the server.
+    pub async fn finish_clean_ups(&self) {
+        let running = std::mem::take(&mut *self.clean_ups.0.lock().expect("never held across a panic"));
+        for delete in running {
+            let _ = delete.await;
+        }
+    }
 }
 
+/// The deletes that dropped [`Temporary`]s left running, shared by a client and its clones
+/// ([`Client::finish_clean_ups`]).
+#[derive(Debug, Clone, Default)]
+pub(crate) struct CleanUps(Arc<Mutex<Vec<tokio::task::JoinHandle<()>>>>);
+
 /// Server buffers a call made for its own use, deleted when it is over: by [`Temporary::delete`], or, where the
-/// call's future is dropped midway (a timeout, a `select!`), by a task of their own. Deletes are best effort: a
+/// call's future is dropped midway (a timeout, a `select!`), by a task of their own ([`Client::finish_clean_ups`]
+/// waits for those). Deletes are best effort: a
 /// buffer left behind only counts against the tenant's limits.
 pub(crate) struct Temporary {
     /// The client that made them.
@@ -105,7 +121,10 @@ impl Drop for Temporary {
         let ids = std::mem::take(&mut self.ids);
         if let (false, Ok(runtime)) = (ids.is_empty(), tokio::runtime::Handle::try_current()) {
             let client = self.client.clone();
-            runtime.spawn(async move { delete_all(&client, ids).await });
+            let delete = runtime.spawn(async move { delete_all(&client, ids).await });
+            let mut running = self.client.clean_ups.0.lock().expect("never held across a panic");
+            running.retain(|delete| !delete.is_finished());
+            running.push(delete);
         }
     }
 }

@@ -50,10 +50,25 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         ..ClientOptions::default()
     };
     let client = Client::connect(&cli.server, options).await?;
-    match &cli.command {
-        Command::Devices => Ok(show::devices(&client.devices().await?)),
-        Command::Build(args) => build(&client, args).await,
+    let outcome = match &cli.command {
+        // These clean up what they made themselves when Ctrl-C ends them (accels, temporary buffers, files).
         Command::Scene(args) => scene(&client, args).await,
+        Command::Trace(args) => trace(&client, args).await,
+        Command::Rays(args) => rays(&client, args).await,
+        command => until_interrupted(ctrl_c()?, run_on(&client, command, cli.json)).await,
+    };
+    // The temporary buffers of calls that a Ctrl-C dropped are deleted before rayctl ends (its runtime's end would
+    // cancel their deletes), unless the server does not answer.
+    let _ = tokio::time::timeout(crate::CLEAN_UP_TIME, client.finish_clean_ups()).await;
+    outcome
+}
+
+/// Runs `command` (one that needs nothing cleaned up beyond the client's temporary buffers) through `client`; `json`:
+/// whether the output is JSON.
+async fn run_on(client: &Client, command: &Command, json: bool) -> Result<Output> {
+    match command {
+        Command::Devices => Ok(show::devices(&client.devices().await?)),
+        Command::Build(args) => build(client, args).await,
         Command::Accels => Ok(show::accels(&client.accels().await?)),
         Command::Info { name } => Ok(show::accel(&client.accel(name).await?)),
         Command::Update { name, mesh } => Ok(show::accel(&client.update_mesh(name, &load_mesh(mesh)?).await?)),
@@ -84,12 +99,11 @@ pub async fn run(cli: &Cli) -> Result<Output> {
         }
         Command::Buffers => Ok(show::buffers(&client.buffers().await?)),
         Command::Stats => Ok(show::stats(&client.tenants().await?)),
-        Command::Rays(args) => rays(&client, args).await,
-        Command::Trace(args) => trace(&client, args).await,
-        Command::Render(args) => render(&client, args).await,
-        Command::Lidar(args) => lidar(&client, args).await,
-        Command::Bench(args) => bench(&client, args, cli.json).await,
+        Command::Render(args) => render(client, args).await,
+        Command::Lidar(args) => lidar(client, args).await,
+        Command::Bench(args) => bench(client, args, json).await,
         Command::Health { .. } => unreachable!("answered before connecting"),
+        Command::Scene(_) | Command::Trace(_) | Command::Rays(_) => unreachable!("run with their own clean-ups"),
     }
 }
 
