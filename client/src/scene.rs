@@ -155,8 +155,17 @@ impl Scene {
     }
 
     /// The instance records. Their children index the meshes in name order, then the motion transforms of the
-    /// moving instances ([`Scene::motion_transforms`]) in instance order.
+    /// moving instances ([`Scene::motion_transforms`]) in instance order. Checked as the server would check them, so
+    /// that a scene it would refuse is refused before anything is built: INVALID_ARGUMENT naming the instance whose
+    /// mesh does not exist, whose transform is not finite and invertible, or whose motion is not a motion
+    /// transform's (2 keys or more over a finite time range, keys finite, S invertible …), or naming `motion` for the
+    /// scene's own motion options.
     pub fn records(&self) -> Result<Vec<InstanceRecord>> {
+        self.motion_options().check().map_err(|rule| Error::InvalidArgument(format!("motion: {rule}")))?;
+        for (index, _, transform) in self.motion_transforms() {
+            let refused = |e: rayd_engine::Error| Error::InvalidArgument(format!("instances[{index}].motion: {e}"));
+            transform.check().map_err(refused)?;
+        }
         let names: Vec<&String> = self.meshes.keys().collect();
         let mut moving = 0;
         self.instances
@@ -173,11 +182,16 @@ impl Scene {
                     }
                     None => mesh,
                 };
+                let transform = instance.transform.unwrap_or_else(|| Placement::rows(&instance.placement()));
+                if Placement::new(&transform).is_none() {
+                    let rule = "must be finite and invertible";
+                    return Err(Error::InvalidArgument(format!("instances[{index}].transform: {rule}")));
+                }
                 let mut flags = InstanceFlags::empty();
                 flags.set(InstanceFlags::FLIP_FACING, instance.flip_facing);
                 flags.set(InstanceFlags::DISABLE_FACE_CULLING, instance.disable_face_culling);
                 Ok(InstanceRecord {
-                    transform: instance.transform.unwrap_or_else(|| Placement::rows(&instance.placement())),
+                    transform,
                     instance_id: instance.id.unwrap_or(index as u32),
                     mask: instance.mask.unwrap_or(0xFF),
                     flags,
@@ -404,5 +418,28 @@ mod tests {
         let (q0, q1) = (Quat::from_slice(&keys[0][9..13]), Quat::from_slice(&keys[1][9..13]));
         assert!(q0.dot(q1) > 0.0, "-170° is taken the short way from 170° (20° apart), not 340° round");
         assert!(TransformInput::SrtMotion { keys: keys.clone(), motion: *motion }.check().is_ok());
+    }
+
+    #[test]
+    fn instances_the_server_would_refuse_are_refused_naming_them_before_anything_is_built() {
+        let refused = |instance: &str, motion: &str| {
+            let text =
+                format!(r#"{{ "meshes": {{ "a": "a.obj" }}, {motion} "instances": [{{ "mesh": "a" }}, {instance}] }}"#);
+            let scene: Scene = serde_json::from_str(&text).unwrap();
+            scene.records().unwrap_err().to_string()
+        };
+        let one_key = r#"{ "mesh": "a", "motion": { "time": [0, 1], "keys": [{ "translate": [1, 0, 0] }] } }"#;
+        let backwards = r#"{ "mesh": "a", "motion": { "time": [1, 0], "keys": [{}, { "translate": [1, 0, 0] }] } }"#;
+        let flat = r#"{ "mesh": "a", "scale": [1, 0, 1] }"#;
+        let singular = r#"{ "mesh": "a", "transform": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 0, 0] }"#;
+        for (instance, field) in [(one_key, "instances[1].motion: "), (backwards, "instances[1].motion: ")] {
+            let error = refused(instance, "");
+            assert!(error.starts_with(field) && error.contains("key"), "{error}");
+        }
+        for instance in [flat, singular] {
+            assert_eq!(refused(instance, ""), "instances[1].transform: must be finite and invertible");
+        }
+        let error = refused(r#"{ "mesh": "a" }"#, r#""motion": { "keys": 2, "time": [1, 1] },"#);
+        assert!(error.starts_with("motion: time_end 1 must be greater than time_begin 1"), "{error}");
     }
 }
