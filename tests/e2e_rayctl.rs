@@ -804,6 +804,17 @@ fn ctrl_c_during_a_trace_rays_or_a_build_leaves_no_temporary_buffer_and_no_parti
     assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
     assert_eq!(accel_names(&server), ["bunny"]);
 
+    // What a rayctl killed mid-call leaves is deleted with `rayctl rm-buffer`, by id or by name.
+    let left = [("", Bytes::from_static(b"unnamed")), ("named", Bytes::from_static(b"named"))];
+    let ids: Vec<String> =
+        left.into_iter().map(|(name, data)| runtime.block_on(client.upload_buffer(name, data)).unwrap().id).collect();
+    let deleted = json(&server, &["rm-buffer", &ids[0]]);
+    assert_eq!((deleted["deleted"].as_str(), deleted["name"].as_str()), (Some(ids[0].as_str()), Some("")), "{deleted}");
+    assert_eq!(json(&server, &["rm-buffer", "named"])["deleted"].as_str(), Some(ids[1].as_str()));
+    assert!(buffers().is_empty(), "both deleted: {:?}", buffers());
+    let refused = fails(&server, &["rm-buffer", "named"], 1);
+    assert!(refused.starts_with("error: NotFound: no buffer has id or name \"named\""), "{refused}");
+
     // Rays from a named pipe that no writer opens: Ctrl-C while rayctl waits in its open (a thread of it in the
     // openat system call, 257 on x86-64), then once it has opened it and its writer (this test) writes nothing.
     let fifo = scratch.path("rays.fifo");

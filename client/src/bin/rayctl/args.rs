@@ -123,6 +123,11 @@ pub enum Command {
     },
     /// List the server-side buffers (uploads left behind, trace outputs).
     Buffers,
+    /// Delete a server-side buffer (one left behind, or a trace's output once downloaded).
+    RmBuffer {
+        /// The buffer's id, as `rayctl buffers` lists it, or its name.
+        buffer: String,
+    },
     /// Show every tenant's usage against its quotas (an admin key where tenants are configured).
     Stats,
     /// Write a file of packed rays: a camera's (framing the accel by default) or random rays in its box.

@@ -98,6 +98,16 @@ async fn run_on(client: &Client, command: &Command, json: bool) -> Result<Output
             Ok(Output { json: json!({ "destroyed": name }), text: format!("destroyed {name}") })
         }
         Command::Buffers => Ok(show::buffers(&client.buffers().await?)),
+        Command::RmBuffer { buffer } => {
+            let buffers = client.buffers().await?;
+            // An id first: unnamed buffers have only theirs.
+            let found = buffers.iter().find(|b| b.id == *buffer).or_else(|| buffers.iter().find(|b| b.name == *buffer));
+            let found =
+                found.ok_or_else(|| tonic::Status::not_found(format!("no buffer has id or name {buffer:?}")))?;
+            client.delete_buffer(&found.id).await?;
+            let (id, name) = (&found.id, &found.name);
+            Ok(Output { json: json!({ "deleted": id, "name": name }), text: format!("deleted buffer {id} {name}") })
+        }
         Command::Stats => Ok(show::stats(&client.tenants().await?)),
         Command::Render(args) => render(client, args).await,
         Command::Lidar(args) => lidar(client, args).await,
