@@ -798,11 +798,13 @@ fn ctrl_c_during_a_trace_rays_or_a_build_leaves_no_temporary_buffer_and_no_parti
     assert_eq!(left().len(), 2, "only the rays and their hits: {:?}", left());
 
     // `rayctl build` of a mesh larger than a message, whose arrays go up as temporary buffers: interrupted once the
-    // first is up, it leaves neither buffer nor accel (its buffers' deletes were cancelled as rayctl ended).
+    // first is up, it leaves no buffer (their deletes were cancelled as rayctl ended) and no accel, unless this test
+    // saw the buffers only once the build had ended (a loaded machine), when the accel is whole.
     let args = ["build", "--mesh", "../shared/data/meshes/ogre.obj", "--name", "interrupted"];
     interrupt_when(&server, &args, |_| !buffers().is_empty(), "the mesh's first buffer went up");
     assert!(buffers().is_empty(), "temporary buffers left behind: {:?}", buffers());
-    assert_eq!(accel_names(&server), ["bunny"]);
+    let accels = accel_names(&server);
+    assert!(accels == ["bunny"] || accels == ["bunny", "interrupted"], "{accels:?}");
 
     // What a rayctl killed mid-call leaves is deleted with `rayctl rm-buffer`, by id or by name.
     let left = [("", Bytes::from_static(b"unnamed")), ("named", Bytes::from_static(b"named"))];
@@ -812,6 +814,8 @@ fn ctrl_c_during_a_trace_rays_or_a_build_leaves_no_temporary_buffer_and_no_parti
     assert_eq!((deleted["deleted"].as_str(), deleted["name"].as_str()), (Some(ids[0].as_str()), Some("")), "{deleted}");
     assert_eq!(json(&server, &["rm-buffer", "named"])["deleted"].as_str(), Some(ids[1].as_str()));
     assert!(buffers().is_empty(), "both deleted: {:?}", buffers());
+    let refused = fails(&server, &["rm-buffer", ""], 1);
+    assert!(refused.starts_with("error: InvalidArgument: rm-buffer: give a buffer's id or name"), "{refused}");
     let refused = fails(&server, &["rm-buffer", "named"], 1);
     assert!(refused.starts_with("error: NotFound: no buffer has id or name \"named\""), "{refused}");
 

@@ -109,10 +109,13 @@ impl Temporary {
         id
     }
 
-    /// Deletes them now, by a task of their own that goes on if this future is dropped first.
+    /// Deletes them now, by a task of their own. They stay held until it has ended: if this future is dropped first,
+    /// the drop deletes them again by a task that [`Client::finish_clean_ups`] waits for (a second delete of a buffer
+    /// already gone fails, and is ignored).
     pub async fn delete(mut self) {
-        let (client, ids) = (self.client.clone(), std::mem::take(&mut self.ids));
+        let (client, ids) = (self.client.clone(), self.ids.clone());
         let _ = tokio::spawn(async move { delete_all(&client, ids).await }).await;
+        self.ids.clear();
     }
 }
 

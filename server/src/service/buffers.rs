@@ -110,8 +110,13 @@ pub async fn upload(
         };
         upload.push(&chunk)?;
     }
-    // With a data directory the buffer is written to disk: off the async runtime.
-    Ok(info(&super::blocking(move || upload.finish(&tenant)).await?))
+    // With a data directory the buffer is written to disk: off the async runtime. A caller that has gone by then
+    // (a client interrupted after its last byte) would never learn the buffer's id, so nothing is kept for it.
+    let kept = super::blocking_for_caller(move |caller| {
+        caller.check(|| "the upload was not kept".into())?;
+        upload.finish(&tenant)
+    });
+    Ok(info(&kept.await?))
 }
 
 /// The buffer a download reads and its range in chunks (zero-copy slices).

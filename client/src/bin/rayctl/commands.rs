@@ -14,6 +14,7 @@ use rayd_client::{
 };
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::RayFormat;
+use rayd_engine::mesh::Mesh;
 use rayd_engine::query::{OutputLayout, Query, QueryKind};
 use rayd_engine::raygen::{Camera, Generator, Lidar, Orthographic, SphereSampling, fill_random_rays, uniform};
 use serde_json::json;
@@ -71,7 +72,9 @@ async fn run_on(client: &Client, command: &Command, json: bool) -> Result<Output
         Command::Build(args) => build(client, args).await,
         Command::Accels => Ok(show::accels(&client.accels().await?)),
         Command::Info { name } => Ok(show::accel(&client.accel(name).await?)),
-        Command::Update { name, mesh } => Ok(show::accel(&client.update_mesh(name, &load_mesh(mesh)?).await?)),
+        Command::Update { name, mesh } => {
+            Ok(show::accel(&client.update_mesh(name, &mesh_off_thread(mesh).await?).await?))
+        }
         Command::Copy { source, name, device, compact } => {
             Ok(show::accel(&client.copy_accel(source, name, device, *compact).await?))
         }
@@ -88,7 +91,7 @@ async fn run_on(client: &Client, command: &Command, json: bool) -> Result<Output
             })
         }
         Command::Load { file, name, device } => {
-            let blob = std::fs::read(file).map_err(|e| Error::io(file, e))?;
+            let blob = tokio::fs::read(file).await.map_err(|e| Error::io(file, e))?;
             let stem = || file.file_stem().unwrap_or_default().to_string_lossy().into_owned();
             let loaded = client.load_accel(&name.clone().unwrap_or_else(stem), device, blob.into()).await?;
             Ok(show::loaded(&loaded))
@@ -98,6 +101,9 @@ async fn run_on(client: &Client, command: &Command, json: bool) -> Result<Output
             Ok(Output { json: json!({ "destroyed": name }), text: format!("destroyed {name}") })
         }
         Command::Buffers => Ok(show::buffers(&client.buffers().await?)),
+        Command::RmBuffer { buffer } if buffer.is_empty() => {
+            Err(Error::InvalidArgument("rm-buffer: give a buffer's id or name, not an empty one".into()))
+        }
         Command::RmBuffer { buffer } => {
             let buffers = client.buffers().await?;
             // An id first: unnamed buffers have only theirs.
@@ -169,10 +175,18 @@ async fn health(url: &str, tls: Option<&ClientTls>, service: &str, timeout: Dura
 
 /// `rayctl build`: the accel is named after the file unless `--name` says otherwise.
 async fn build(client: &Client, args: &BuildArgs) -> Result<Output> {
-    let mesh = load_mesh(&args.mesh)?;
+    let mesh = mesh_off_thread(&args.mesh).await?;
     let stem = || args.mesh.file_stem().unwrap_or_default().to_string_lossy().into_owned();
     let name = args.name.clone().unwrap_or_else(stem);
     Ok(show::accel(&client.build_mesh(&name, &mesh, &args.device, args.flags()).await?))
+}
+
+/// The mesh file `path`, read and parsed on a blocking thread, so that Ctrl-C is seen meanwhile (a pipe waits for
+/// its writer; a large mesh takes seconds to parse).
+async fn mesh_off_thread(path: &Path) -> Result<Mesh> {
+    let path = path.to_owned();
+    let loading = tokio::task::spawn_blocking(move || load_mesh(&path));
+    loading.await.map_err(|e| Error::Status(tonic::Status::internal(format!("loading a mesh: {e}"))))?
 }
 
 /// `rayctl scene`: named after the file unless `--name` says otherwise.
