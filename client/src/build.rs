@@ -93,7 +93,7 @@ impl Client {
         let result = async {
             let mut uploaded = Vec::new();
             for data in vertices.into_iter().chain([indices]) {
-                uploaded.push(temporary.hold(self.upload_buffer("", data).await?.id));
+                uploaded.push(self.upload_buffer(&temporary.name_next(), data).await?.id);
             }
             let by_id = |id: &String| Source::Buffer(buffer_ref(id));
             let (indices, vertices) = uploaded.split_last().expect("the indices were uploaded");

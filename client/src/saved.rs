@@ -65,11 +65,12 @@ impl Client {
     /// Serializes the accel called `name` and everything below it, and downloads the blob; the server buffer that
     /// held it is deleted again, whatever the outcome.
     pub async fn save_accel(&self, name: &str) -> Result<Bytes> {
-        let request = proto::SaveAccelRequest { accel: Some(accel_ref(name)), buffer_name: String::new() };
         let node = self.for_scene(name);
         let mut temporary = Temporary::new(&node);
+        let buffer_name = temporary.name_next();
+        let request = proto::SaveAccelRequest { accel: Some(accel_ref(name)), buffer_name };
         let buffer = node.rpc.clone().save_accel(request).await?.into_inner();
-        let id = temporary.hold(buffer.id);
+        let id = buffer.id;
         let blob = node.download_chunks(&id).await.and_then(|download| download.whole(buffer.size_bytes));
         temporary.delete().await;
         blob

@@ -1,7 +1,9 @@
 //! `UploadBuffer`: a header, then the data in slices of one shared `Bytes` (no copies on the client), or as a stream
 //! of parts yields it (a file read a part at a time).
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::{SystemTime, UNIX_EPOCH};
 
 use bytes::Bytes;
 use futures_util::{Stream, StreamExt};
@@ -64,7 +66,7 @@ impl Client {
         call: impl FnOnce(proto::BufferRef) -> Call,
     ) -> Result<T> {
         let mut temporary = Temporary::new(self);
-        let id = temporary.hold(self.upload_buffer("", data).await?.id);
+        let id = self.upload_buffer(&temporary.name_next(), data).await?.id;
         let result = call(buffer_ref(&id)).await;
         temporary.delete().await;
         result
@@ -86,45 +88,56 @@ impl Client {
 #[derive(Debug, Clone, Default)]
 pub(crate) struct CleanUps(Arc<Mutex<Vec<tokio::task::JoinHandle<()>>>>);
 
+/// A name no other buffer has, for one that a call makes for its own use and deletes again: `tmp-PID-NANOS-N` (this
+/// process's id, the time, and a count of this process's names). A buffer named before its upload starts can be
+/// deleted by name even when the call is dropped just as the server keeps it, before its id comes back.
+pub fn temporary_buffer_name() -> String {
+    static NAMED: AtomicU64 = AtomicU64::new(0);
+    let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default().as_nanos();
+    let count = NAMED.fetch_add(1, Ordering::Relaxed);
+    format!("tmp-{}-{since_epoch}-{count}", std::process::id())
+}
+
 /// Server buffers a call made for its own use, deleted when it is over: by [`Temporary::delete`], or, where the
-/// call's future is dropped midway (a timeout, a `select!`), by a task of their own ([`Client::finish_clean_ups`]
-/// waits for those). Deletes are best effort: a
-/// buffer left behind only counts against the tenant's limits.
+/// call's future is dropped midway (a timeout, a `select!`, a Ctrl-C), by a task of their own
+/// ([`Client::finish_clean_ups`] waits for those). Each is named ([`temporary_buffer_name`]) and held before its
+/// upload starts. Deletes are best effort: a buffer left behind only counts against the tenant's limits.
 pub(crate) struct Temporary {
     /// The client that made them.
     client: Client,
-    /// Their ids.
-    ids: Vec<String>,
+    /// Their names.
+    names: Vec<String>,
 }
 
 impl Temporary {
     /// None yet, made through `client`.
     pub fn new(client: &Client) -> Temporary {
-        Temporary { client: client.clone(), ids: Vec::new() }
+        Temporary { client: client.clone(), names: Vec::new() }
     }
 
-    /// Deletes buffer `id` with the others; returns it.
-    pub fn hold(&mut self, id: String) -> String {
-        self.ids.push(id.clone());
-        id
+    /// A name for one more buffer, held: deleted with the others whether or not a buffer of it is made.
+    pub fn name_next(&mut self) -> String {
+        let name = temporary_buffer_name();
+        self.names.push(name.clone());
+        name
     }
 
     /// Deletes them now, by a task of their own. They stay held until it has ended: if this future is dropped first,
     /// the drop deletes them again by a task that [`Client::finish_clean_ups`] waits for (a second delete of a buffer
     /// already gone fails, and is ignored).
     pub async fn delete(mut self) {
-        let (client, ids) = (self.client.clone(), self.ids.clone());
-        let _ = tokio::spawn(async move { delete_all(&client, ids).await }).await;
-        self.ids.clear();
+        let (client, names) = (self.client.clone(), self.names.clone());
+        let _ = tokio::spawn(async move { delete_all(&client, names).await }).await;
+        self.names.clear();
     }
 }
 
 impl Drop for Temporary {
     fn drop(&mut self) {
-        let ids = std::mem::take(&mut self.ids);
-        if let (false, Ok(runtime)) = (ids.is_empty(), tokio::runtime::Handle::try_current()) {
+        let names = std::mem::take(&mut self.names);
+        if let (false, Ok(runtime)) = (names.is_empty(), tokio::runtime::Handle::try_current()) {
             let client = self.client.clone();
-            let delete = runtime.spawn(async move { delete_all(&client, ids).await });
+            let delete = runtime.spawn(async move { delete_all(&client, names).await });
             let mut running = self.client.clean_ups.0.lock().expect("never held across a panic");
             running.retain(|delete| !delete.is_finished());
             running.push(delete);
@@ -132,10 +145,12 @@ impl Drop for Temporary {
     }
 }
 
-/// Deletes buffers `ids` through `client`, ignoring failures.
-async fn delete_all(client: &Client, ids: Vec<String>) {
-    for id in ids {
-        let _ = client.delete_buffer(&id).await;
+/// Deletes the buffers called `names` through `client`, ignoring failures (one whose upload never ended is not
+/// found).
+async fn delete_all(client: &Client, names: Vec<String>) {
+    for name in names {
+        let named = proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Name(name)) };
+        let _ = client.rpc.clone().delete_buffer(proto::DeleteBufferRequest { buffer: Some(named) }).await;
     }
 }
 

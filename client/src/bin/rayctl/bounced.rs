@@ -2,8 +2,6 @@
 //! the primaries' hits (a file or a server-side buffer). Files go up as temporary buffers of the accel's scene, read
 //! and sent a part at a time, so that rayctl holds neither whole; the server makes the secondary rays from them.
 
-use std::time::{SystemTime, UNIX_EPOCH};
-
 use rayd_client::{Client, Error, PrimaryRays, Result, SecondaryRays, proto};
 use rayd_engine::format::RayFormat;
 use rayd_engine::raygen::Bounce;
@@ -33,7 +31,7 @@ pub struct Bounced {
     pub offset: f32,
 }
 
-/// Buffers uploaded for one trace, deleted again when it ends. Each is named (`rayctl-PID-NANOS-N`) and noted before
+/// Buffers uploaded for one trace, deleted again when it ends. Each is named (`tmp-PID-NANOS-N`) and noted before
 /// its upload starts, so that one whose upload was interrupted just as the server kept it is deleted too.
 #[derive(Default)]
 pub struct Temporary {
@@ -44,8 +42,7 @@ pub struct Temporary {
 impl Temporary {
     /// A name for one more buffer, noted.
     fn name_next(&mut self) -> String {
-        let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default().as_nanos();
-        let name = format!("rayctl-{}-{since_epoch}-{}", std::process::id(), self.names.len());
+        let name = rayd_client::temporary_buffer_name();
         self.names.push(name.clone());
         name
     }
