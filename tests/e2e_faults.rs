@@ -40,10 +40,14 @@ fn pieces(daemon: &Daemon, outcome: &str) -> u64 {
     daemon.metric("rayd_trace_pieces_total", &[&format!("outcome=\"{outcome}\"")]).unwrap_or(0.0) as u64
 }
 
-/// Polls (for up to 60 s) until `settled` holds of the pieces traced and skipped so far; returns them.
+/// Polls (for up to 60 s) until `settled` holds of the pieces traced and skipped so far; returns them. The skips are
+/// read first: a trace's pieces run one after another on the one worker, so the count of traced pieces read after a
+/// skip holds every piece traced before it (read the other way round, a piece that ended between the two reads
+/// would be missing, and a later wait for "more traced than that" would end at once).
 async fn pieces_when(daemon: &Daemon, what: &str, settled: impl Fn(u64, u64) -> bool) -> (u64, u64) {
     for _ in 0..600 {
-        let (traced, skipped) = (pieces(daemon, "traced"), pieces(daemon, "skipped"));
+        let skipped = pieces(daemon, "skipped");
+        let traced = pieces(daemon, "traced");
         if settled(traced, skipped) {
             return (traced, skipped);
         }
