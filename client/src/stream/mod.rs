@@ -385,11 +385,14 @@ impl Stream {
         self.shared.is_answered(self.shared.book().sent) || self.shared.progress.borrow().broken.is_some()
     }
 
-    /// Synchronizes, then closes the stream cleanly (the server ends the call with OK).
+    /// Synchronizes, then closes the stream cleanly: returns once the server has ended the call with OK (dropping
+    /// the call before its end was read would reset it).
     pub async fn finish(mut self) -> Result<()> {
         let synchronized = self.synchronize().await;
         self.sender.lock().await.take();
         self.rpc = None;
+        // The receiving task ends with the call: the server ends it once the requests have ended and all ran.
+        let _ = (&mut self.receiver).await;
         synchronized
     }
 
@@ -569,6 +572,22 @@ mod tests {
         let expected = [(1, "upload"), (1, "data"), (1, "data"), (1, "data"), (2, "record")];
         assert_eq!(received, expected.map(|(id, kind)| (id, kind.to_owned())));
         assert_eq!(event.expect("enqueued").id().operation, 2);
+    }
+
+    #[tokio::test]
+    async fn finish_returns_once_the_call_has_ended() {
+        let (sender, mut requests) = mpsc::channel(1);
+        let ended = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let ended_by_server = Arc::clone(&ended);
+        // The server's part: it ends the call a moment after the requests have ended.
+        let receiver = tokio::spawn(async move {
+            while requests.recv().await.is_some() {}
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            ended_by_server.store(true, std::sync::atomic::Ordering::Release);
+        });
+        let stream = Stream::new(&ClientOptions::default(), Arc::new(Shared::new(7)), sender, receiver, None);
+        stream.finish().await.expect("nothing failed");
+        assert!(ended.load(std::sync::atomic::Ordering::Acquire), "finish returned before the call's end was read");
     }
 
     #[tokio::test]
