@@ -12,7 +12,7 @@ use crate::convert::{
     accel_ref, buffer_ref, build_options_to_proto, index_format_to_proto, motion_to_proto, vertex_format_to_proto,
 };
 use crate::error::Result;
-use crate::upload::Temporary;
+use crate::upload::TemporaryBuffers;
 
 impl Client {
     /// Builds an accel from a request made by hand (sent for the scene of its name: buffers it uses must have been
@@ -89,7 +89,7 @@ impl Client {
         if total < self.options.inline_mesh_bytes {
             return call(vertices.into_iter().map(Source::Inline).collect(), Source::Inline(indices)).await;
         }
-        let mut temporary = Temporary::new(self);
+        let mut temporary = TemporaryBuffers::new(self);
         let result = async {
             let mut uploaded = Vec::new();
             for data in vertices.into_iter().chain([indices]) {
@@ -100,7 +100,7 @@ impl Client {
             call(vertices.iter().map(by_id).collect(), by_id(indices)).await
         }
         .await;
-        temporary.delete().await;
+        let _ = temporary.delete().await;
         result
     }
 }

@@ -57,5 +57,5 @@ pub use scene::{InstanceMotion, MotionKey, Scale, Scene, SceneInstance, SceneMot
 pub use secondary::{PrimaryRays, SecondaryRays};
 pub use stream::{AccelArg, BufferArg, Event, EventId, Operation, Stream};
 pub use trace::{TraceParts, TraceResult, add_stats, append_bits, output_layout, output_layout_of_rays};
-pub use upload::temporary_buffer_name;
+pub use upload::TemporaryBuffers;
 pub use view::{HitView, RayView};

@@ -10,7 +10,7 @@ use crate::client::Client;
 use crate::convert::{accel_ref, buffer_ref};
 use crate::error::{Error, Result};
 use crate::memory::append;
-use crate::upload::Temporary;
+use crate::upload::TemporaryBuffers;
 
 /// A whole buffer's bytes put together from the chunks a download streams, checked as they come: each must start
 /// where the bytes before it end.
@@ -66,13 +66,13 @@ impl Client {
     /// held it is deleted again, whatever the outcome.
     pub async fn save_accel(&self, name: &str) -> Result<Bytes> {
         let node = self.for_scene(name);
-        let mut temporary = Temporary::new(&node);
+        let mut temporary = TemporaryBuffers::new(&node);
         let buffer_name = temporary.name_next();
         let request = proto::SaveAccelRequest { accel: Some(accel_ref(name)), buffer_name };
         let buffer = node.rpc.clone().save_accel(request).await?.into_inner();
         let id = buffer.id;
         let blob = node.download_chunks(&id).await.and_then(|download| download.whole(buffer.size_bytes));
-        temporary.delete().await;
+        let _ = temporary.delete().await;
         blob
     }
 

@@ -59,16 +59,16 @@ impl Client {
     }
 
     /// Uploads `data` as a temporary buffer, calls `call` with a reference to it, and deletes the buffer again
-    /// whatever the call's outcome, also if this future is dropped first ([`Temporary`]).
+    /// whatever the call's outcome, also if this future is dropped first ([`TemporaryBuffers`]).
     pub(crate) async fn with_temporary_buffer<T, Call: Future<Output = Result<T>>>(
         &self,
         data: Bytes,
         call: impl FnOnce(proto::BufferRef) -> Call,
     ) -> Result<T> {
-        let mut temporary = Temporary::new(self);
+        let mut temporary = TemporaryBuffers::new(self);
         let id = self.upload_buffer(&temporary.name_next(), data).await?.id;
         let result = call(buffer_ref(&id)).await;
-        temporary.delete().await;
+        let _ = temporary.delete().await;
         result
     }
 
@@ -83,36 +83,29 @@ impl Client {
     }
 }
 
-/// The deletes that dropped [`Temporary`]s left running, shared by a client and its clones
+/// The deletes that dropped [`TemporaryBuffers`] left running, shared by a client and its clones
 /// ([`Client::finish_clean_ups`]).
 #[derive(Debug, Clone, Default)]
 pub(crate) struct CleanUps(Arc<Mutex<Vec<tokio::task::JoinHandle<()>>>>);
 
-/// A name no other buffer has, for one that a call makes for its own use and deletes again: `tmp-PID-NANOS-N` (this
-/// process's id, the time, and a count of this process's names). A buffer named before its upload starts can be
-/// deleted by name even when the call is dropped just as the server keeps it, before its id comes back.
-pub fn temporary_buffer_name() -> String {
-    static NAMED: AtomicU64 = AtomicU64::new(0);
-    let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default().as_nanos();
-    let count = NAMED.fetch_add(1, Ordering::Relaxed);
-    format!("tmp-{}-{since_epoch}-{count}", std::process::id())
-}
-
-/// Server buffers a call made for its own use, deleted when it is over: by [`Temporary::delete`], or, where the
-/// call's future is dropped midway (a timeout, a `select!`, a Ctrl-C), by a task of their own
-/// ([`Client::finish_clean_ups`] waits for those). Each is named ([`temporary_buffer_name`]) and held before its
-/// upload starts. Deletes are best effort: a buffer left behind only counts against the tenant's limits.
-pub(crate) struct Temporary {
-    /// The client that made them.
+/// Server buffers made for one call's own use, deleted when it is over: by [`TemporaryBuffers::delete`], or, where
+/// the call's future is dropped midway (a timeout, a `select!`, a Ctrl-C), by a task of their own
+/// ([`Client::finish_clean_ups`] waits for those). Each is named (`tmp-PID-NANOS-N`: this process's id, the time,
+/// and a count of its names) and held before its upload starts, so that one whose upload was interrupted just as
+/// the server kept it, before its id came back, is deleted too. A buffer left behind only counts against the
+/// tenant's limits.
+#[derive(Debug)]
+pub struct TemporaryBuffers {
+    /// The client that makes and deletes them.
     client: Client,
     /// Their names.
     names: Vec<String>,
 }
 
-impl Temporary {
-    /// None yet, made through `client`.
-    pub fn new(client: &Client) -> Temporary {
-        Temporary { client: client.clone(), names: Vec::new() }
+impl TemporaryBuffers {
+    /// None yet, made and deleted through `client`.
+    pub fn new(client: &Client) -> TemporaryBuffers {
+        TemporaryBuffers { client: client.clone(), names: Vec::new() }
     }
 
     /// A name for one more buffer, held: deleted with the others whether or not a buffer of it is made.
@@ -122,22 +115,32 @@ impl Temporary {
         name
     }
 
-    /// Deletes them now, by a task of their own. They stay held until it has ended: if this future is dropped first,
-    /// the drop deletes them again by a task that [`Client::finish_clean_ups`] waits for (a second delete of a buffer
-    /// already gone fails, and is ignored).
-    pub async fn delete(mut self) {
+    /// The names held so far.
+    pub fn names(&self) -> &[String] {
+        &self.names
+    }
+
+    /// Deletes them now, by a task of their own, and returns the first failure (a name of which no buffer was made
+    /// is no failure). They stay held until the task has ended: if this future is dropped first, the drop deletes
+    /// them again by a task that [`Client::finish_clean_ups`] waits for.
+    pub async fn delete(mut self) -> Result<()> {
         let (client, names) = (self.client.clone(), self.names.clone());
-        let _ = tokio::spawn(async move { delete_all(&client, names).await }).await;
+        let deleted = tokio::spawn(async move { delete_all(&client, names).await }).await;
         self.names.clear();
+        deleted.unwrap_or_else(|stopped| {
+            Err(tonic::Status::cancelled(format!("deleting temporary buffers: {stopped}")).into())
+        })
     }
 }
 
-impl Drop for Temporary {
+impl Drop for TemporaryBuffers {
     fn drop(&mut self) {
         let names = std::mem::take(&mut self.names);
         if let (false, Ok(runtime)) = (names.is_empty(), tokio::runtime::Handle::try_current()) {
             let client = self.client.clone();
-            let delete = runtime.spawn(async move { delete_all(&client, names).await });
+            let delete = runtime.spawn(async move {
+                let _ = delete_all(&client, names).await;
+            });
             let mut running = self.client.clean_ups.0.lock().expect("never held across a panic");
             running.retain(|delete| !delete.is_finished());
             running.push(delete);
@@ -145,13 +148,28 @@ impl Drop for Temporary {
     }
 }
 
-/// Deletes the buffers called `names` through `client`, ignoring failures (one whose upload never ended is not
-/// found).
-async fn delete_all(client: &Client, names: Vec<String>) {
+/// A name no other buffer has, for a temporary one ([`TemporaryBuffers`]).
+fn temporary_buffer_name() -> String {
+    static NAMED: AtomicU64 = AtomicU64::new(0);
+    let since_epoch = SystemTime::now().duration_since(UNIX_EPOCH).unwrap_or_default().as_nanos();
+    let count = NAMED.fetch_add(1, Ordering::Relaxed);
+    format!("tmp-{}-{since_epoch}-{count}", std::process::id())
+}
+
+/// Deletes the buffers called `names` through `client`, each tried whatever came of the others; the first failure
+/// other than NOT_FOUND (no buffer of that name was made, or it was deleted already).
+async fn delete_all(client: &Client, names: Vec<String>) -> Result<()> {
+    let mut first_failure = Ok(());
     for name in names {
         let named = proto::BufferRef { r#ref: Some(proto::buffer_ref::Ref::Name(name)) };
-        let _ = client.rpc.clone().delete_buffer(proto::DeleteBufferRequest { buffer: Some(named) }).await;
+        let deleted = client.rpc.clone().delete_buffer(proto::DeleteBufferRequest { buffer: Some(named) }).await;
+        if let Err(status) = deleted
+            && status.code() != tonic::Code::NotFound
+        {
+            first_failure = first_failure.and(Err(status.into()));
+        }
     }
+    first_failure
 }
 
 /// The messages of one upload: the header, then `data` in slices of at most `chunk_bytes`.

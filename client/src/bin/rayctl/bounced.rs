@@ -2,7 +2,7 @@
 //! the primaries' hits (a file or a server-side buffer). Files go up as temporary buffers of the accel's scene, read
 //! and sent a part at a time, so that rayctl holds neither whole; the server makes the secondary rays from them.
 
-use rayd_client::{Client, Error, PrimaryRays, Result, SecondaryRays, proto};
+use rayd_client::{Client, Error, PrimaryRays, Result, SecondaryRays, TemporaryBuffers, proto};
 use rayd_engine::format::RayFormat;
 use rayd_engine::raygen::Bounce;
 
@@ -31,48 +31,20 @@ pub struct Bounced {
     pub offset: f32,
 }
 
-/// Buffers uploaded for one trace, deleted again when it ends. Each is named (`tmp-PID-NANOS-N`) and noted before
-/// its upload starts, so that one whose upload was interrupted just as the server kept it is deleted too.
-#[derive(Default)]
-pub struct Temporary {
-    /// Their names.
-    names: Vec<String>,
-}
-
-impl Temporary {
-    /// A name for one more buffer, noted.
-    fn name_next(&mut self) -> String {
-        let name = rayd_client::temporary_buffer_name();
-        self.names.push(name.clone());
-        name
+/// Deletes the buffers of `temporary` (uploaded for one trace), for at most [`CLEAN_UP_TIME`](crate::CLEAN_UP_TIME);
+/// where that fails, says so on standard error, naming them (`rayctl buffers` lists them by name). The command's
+/// own outcome stands.
+pub async fn delete(temporary: TemporaryBuffers) {
+    let names = temporary.names().join(", ");
+    if names.is_empty() {
+        return;
     }
-
-    /// Deletes the buffers through `node`, for at most [`CLEAN_UP_TIME`](crate::CLEAN_UP_TIME) (best effort: a buffer left behind only counts
-    /// against the tenant's limits); where that fails, says so on standard error, naming them (`rayctl buffers` lists
-    /// them by name). The command's own outcome stands.
-    pub async fn delete(self, node: &Client) {
-        if self.names.is_empty() {
-            return;
-        }
-        let deleting = async {
-            let buffers = node.buffers().await?;
-            let mut first_failure = Ok(());
-            for buffer in buffers.iter().filter(|buffer| self.names.contains(&buffer.name)) {
-                let deleted = node.delete_buffer(&buffer.id).await;
-                first_failure = first_failure.and(deleted);
-            }
-            first_failure
-        };
-        let why = match tokio::time::timeout(crate::CLEAN_UP_TIME, deleting).await {
-            Ok(Ok(())) => return,
-            Ok(Err(failed)) => failed.to_string(),
-            Err(_) => format!("no answer within {} s", crate::CLEAN_UP_TIME.as_secs()),
-        };
-        let names = self.names.join(", ");
-        crate::warn(&format!(
-            "temporary buffers may be left on the server ({why}): {names} (`rayctl buffers` lists them)"
-        ));
-    }
+    let why = match tokio::time::timeout(crate::CLEAN_UP_TIME, temporary.delete()).await {
+        Ok(Ok(())) => return,
+        Ok(Err(failed)) => failed.to_string(),
+        Err(_) => format!("no answer within {} s", crate::CLEAN_UP_TIME.as_secs()),
+    };
+    crate::warn(&format!("temporary buffers may be left on the server ({why}): {names} (`rayctl buffers` lists them)"));
 }
 
 impl Bounced {
@@ -102,7 +74,7 @@ impl Bounced {
     /// The secondary rays as the server takes them, their files uploaded through `node` (the accel's scene's) as
     /// temporary buffers, each noted in `temporary` as soon as it is made (the caller deletes them once the trace
     /// has ended, or failed).
-    pub async fn on_server(self, node: &Client, temporary: &mut Temporary) -> Result<SecondaryRays> {
+    pub async fn on_server(self, node: &Client, temporary: &mut TemporaryBuffers) -> Result<SecondaryRays> {
         let primary = match self.primary {
             RaySource::File(file) => PrimaryRays::Buffer(upload(node, file, temporary).await?, self.ray_format),
             RaySource::Generator(generator) => PrimaryRays::Generated(generator),
@@ -117,7 +89,7 @@ impl Bounced {
 
 /// Uploads `file` through `node` as a new buffer named and noted in `temporary`, a part at a time (a pipe, whose
 /// size is not known before, is read whole first), and returns a reference to it.
-async fn upload(node: &Client, file: PackedFile, temporary: &mut Temporary) -> Result<proto::BufferRef> {
+async fn upload(node: &Client, file: PackedFile, temporary: &mut TemporaryBuffers) -> Result<proto::BufferRef> {
     let name = temporary.name_next();
     let buffer = match file.bytes() {
         Some(bytes) => {

@@ -10,7 +10,8 @@ use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayd_client::convert::bounds;
 use rayd_client::{
-    BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, check_health, load_mesh,
+    BenchOptions, Client, ClientOptions, ClientTls, Error, Result, Scene, ServingStatus, TemporaryBuffers,
+    check_health, load_mesh,
 };
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::RayFormat;
@@ -24,7 +25,7 @@ use crate::args::{
     AroundPointsArgs, BenchArgs, BuildArgs, Cli, Command, LidarArgs, LidarScanArgs, RaysArgs, RenderArgs, SceneArgs,
     TraceArgs, View,
 };
-use crate::bounced::{Bounced, PrimaryHits, Temporary};
+use crate::bounced::{Bounced, PrimaryHits};
 use crate::parts::{self, OutFile, Outputs, PackedFile, Written};
 use crate::show::{self, Output, ms};
 
@@ -221,7 +222,7 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
     let query = args.query.query(args.ray_format, args.hit_format);
     let options = ray_count_options(args);
     let node = client.for_scene(&args.accel);
-    let mut temporary = Temporary::default();
+    let mut temporary = TemporaryBuffers::new(&node);
     let traced = async {
         let rays = traced_rays(client, args).await?;
         let layout = rays.layout(&query)?;
@@ -249,7 +250,7 @@ async fn trace(client: &Client, args: &TraceArgs) -> Result<Output> {
         parts::write(parts, outputs, layout.map(|l| l.rays)).await
     };
     let written = until_interrupted(interrupt, traced).await;
-    temporary.delete(&node).await;
+    crate::bounced::delete(temporary).await;
     let Written { rays, stats } = written.map_err(asked_by(options))?;
     let wall = start.elapsed();
     let wall_ms = wall.as_secs_f64() * 1e3;
