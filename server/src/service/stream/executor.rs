@@ -110,11 +110,11 @@ impl Executor {
             Ok(()) => {
                 let (started, clock) = (unix_ns(), Instant::now());
                 let result = self.execute(id, op, queue, &mut responses).await;
+                self.products.record(id, producer, &result);
                 (result, started, unix_ns(), Some(clock.elapsed()))
             }
-            Err(error) => (Err(error), 0, 0, None),
+            Err(refused) => (Err(self.products.record_refused(id, producer, refused)), 0, 0, None),
         };
-        self.products.record(id, producer, &result);
         self.slot.finished(id);
         let (status, outcome) = match result {
             Ok(outcome) => (Status::ok(""), outcome),

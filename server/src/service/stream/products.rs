@@ -3,6 +3,7 @@
 //! before an operation runs.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use rayd_proto as pb;
 use rayd_proto::operation_result::Outcome;
@@ -17,8 +18,35 @@ enum Product {
     Buffer(String),
     /// An accel, by handle.
     Accel(String),
-    /// Nothing: the operation failed, with this message.
-    Failed(String),
+    /// Nothing: the operation failed, for this cause.
+    Failed(Arc<Cause>),
+}
+
+/// The first failure of a chain of operations, each naming the product of the one before: the operation that failed
+/// and its message. An operation refused for naming a failed one's product keeps that one's cause, not its own
+/// message, so that the messages of a long chain stay as short as its first.
+#[derive(Debug)]
+struct Cause {
+    /// The operation that failed first.
+    operation: u64,
+    /// Its message.
+    message: String,
+}
+
+/// Why an operation was refused before it ran: the error, and, where it named the product of an operation that had
+/// failed, that failure's cause, which becomes its own ([`Products::record_refused`]).
+#[derive(Debug)]
+pub struct Refused {
+    /// The operation's error.
+    pub error: ServiceError,
+    /// The cause it takes over.
+    inherited: Option<Arc<Cause>>,
+}
+
+impl From<ServiceError> for Refused {
+    fn from(error: ServiceError) -> Refused {
+        Refused { error, inherited: None }
+    }
 }
 
 /// The kind of object an operation makes, if any.
@@ -61,12 +89,12 @@ impl Products {
         Products { made: BTreeMap::new(), remembered: remembered.max(1), forgotten_through: None }
     }
 
-    /// Records what operation `id`, a `producer`, came to (operations come in id order), forgetting the oldest
-    /// product beyond the latest `remembered`.
+    /// Records what operation `id`, a `producer`, came to when it ran (operations come in id order), forgetting the
+    /// oldest product beyond the latest `remembered`.
     pub fn record(&mut self, id: u64, producer: Producer, result: &ServiceResult<Option<Outcome>>) {
         let product = match (producer, result) {
             (Producer::Nothing, _) => return,
-            (_, Err(error)) => Product::Failed(error.to_string()),
+            (_, Err(error)) => Product::Failed(Arc::new(Cause { operation: id, message: error.to_string() })),
             (Producer::Accel, Ok(Some(Outcome::Accel(info)))) => Product::Accel(info.handle.clone()),
             (Producer::Buffer, Ok(Some(Outcome::Buffer(info)))) => Product::Buffer(info.id.clone()),
             (Producer::Buffer, Ok(Some(Outcome::Trace(trace)))) => match &trace.hits_buffer {
@@ -75,6 +103,22 @@ impl Products {
             },
             _ => return,
         };
+        self.keep(id, product);
+    }
+
+    /// Records that operation `id`, a `producer`, was refused before it ran, and returns its error.
+    pub fn record_refused(&mut self, id: u64, producer: Producer, refused: Refused) -> ServiceError {
+        if producer != Producer::Nothing {
+            let cause = refused
+                .inherited
+                .unwrap_or_else(|| Arc::new(Cause { operation: id, message: refused.error.to_string() }));
+            self.keep(id, Product::Failed(cause));
+        }
+        refused.error
+    }
+
+    /// Keeps operation `id`'s `product`, forgetting the oldest beyond the latest `remembered`.
+    fn keep(&mut self, id: u64, product: Product) {
         self.made.insert(id, product);
         if self.made.len() > self.remembered
             && let Some((forgotten, _)) = self.made.pop_first()
@@ -84,7 +128,7 @@ impl Products {
     }
 
     /// Replaces every operation reference in `op` (operation `id`) by what it names.
-    pub fn resolve(&self, id: u64, op: &mut Op) -> ServiceResult<()> {
+    pub fn resolve(&self, id: u64, op: &mut Op) -> Result<(), Refused> {
         match op {
             Op::Build(build) => {
                 for (i, input) in build.inputs.iter_mut().enumerate() {
@@ -122,7 +166,7 @@ impl Products {
     }
 
     /// Resolves the references of one build input (named `field`): its data buffers and its child accels.
-    fn build_input(&self, id: u64, input: &mut pb::BuildInput, field: &str) -> ServiceResult<()> {
+    fn build_input(&self, id: u64, input: &mut pb::BuildInput, field: &str) -> Result<(), Refused> {
         use pb::build_input::Input;
         let mut sources: Vec<(String, &mut Option<pb::DataSource>)> = Vec::new();
         match &mut input.input {
@@ -169,7 +213,7 @@ impl Products {
     }
 
     /// Resolves the buffers a secondary generator (named `field`) reads, and those of its primary generator.
-    fn generator(&self, id: u64, generator: &mut pb::RayGenerator, field: &str) -> ServiceResult<()> {
+    fn generator(&self, id: u64, generator: &mut pb::RayGenerator, field: &str) -> Result<(), Refused> {
         use pb::secondary_rays::{Primary, PrimaryHits};
         let Some(pb::ray_generator::Kind::Secondary(secondary)) = &mut generator.kind else { return Ok(()) };
         let field = format!("{field}.secondary");
@@ -191,17 +235,17 @@ impl Products {
     }
 
     /// Resolves a buffer reference that may be absent.
-    fn optional_buffer(&self, id: u64, reference: Option<&mut pb::BufferRef>, field: &str) -> ServiceResult<()> {
+    fn optional_buffer(&self, id: u64, reference: Option<&mut pb::BufferRef>, field: &str) -> Result<(), Refused> {
         reference.map_or(Ok(()), |buffer| self.buffer(id, buffer, field))
     }
 
     /// Resolves an accel reference that may be absent.
-    fn optional_accel(&self, id: u64, reference: Option<&mut pb::AccelRef>, field: &str) -> ServiceResult<()> {
+    fn optional_accel(&self, id: u64, reference: Option<&mut pb::AccelRef>, field: &str) -> Result<(), Refused> {
         reference.map_or(Ok(()), |accel| self.accel(id, accel, field))
     }
 
     /// Replaces a buffer reference by operation with the buffer's id.
-    fn buffer(&self, id: u64, reference: &mut pb::BufferRef, field: &str) -> ServiceResult<()> {
+    fn buffer(&self, id: u64, reference: &mut pb::BufferRef, field: &str) -> Result<(), Refused> {
         if let Some(pb::buffer_ref::Ref::Operation(operation)) = reference.r#ref {
             let buffer = self.product(id, operation, field, "buffer", |p| match p {
                 Product::Buffer(buffer) => Some(buffer),
@@ -213,7 +257,7 @@ impl Products {
     }
 
     /// Replaces an accel reference by operation with the accel's handle.
-    fn accel(&self, id: u64, reference: &mut pb::AccelRef, field: &str) -> ServiceResult<()> {
+    fn accel(&self, id: u64, reference: &mut pb::AccelRef, field: &str) -> Result<(), Refused> {
         if let Some(pb::accel_ref::Ref::Operation(operation)) = reference.r#ref {
             let accel = self.product(id, operation, field, "accel", |p| match p {
                 Product::Accel(handle) => Some(handle),
@@ -232,16 +276,25 @@ impl Products {
         field: &str,
         what: &str,
         pick: impl Fn(&Product) -> Option<&String>,
-    ) -> ServiceResult<String> {
+    ) -> Result<String, Refused> {
         if operation >= id {
             return Err(ServiceError::invalid(
                 field,
                 format!("operation {operation} is not an earlier operation of this stream (this is {id})"),
-            ));
+            )
+            .into());
         }
-        match self.made.get(&operation) {
-            Some(Product::Failed(message)) => {
-                Err(ServiceError::Precondition(format!("{field}: operation {operation} failed: {message}")))
+        let found = match self.made.get(&operation) {
+            Some(Product::Failed(cause)) => {
+                let Cause { operation: first, message } = cause.as_ref();
+                let why = match *first == operation {
+                    true => format!("{field}: operation {operation} failed: {message}"),
+                    false => format!(
+                        "{field}: operation {operation} was refused, as it relied on operation {first}, which failed: \
+                         {message}"
+                    ),
+                };
+                return Err(Refused { error: ServiceError::Precondition(why), inherited: Some(Arc::clone(cause)) });
             }
             Some(product) => pick(product)
                 .cloned()
@@ -255,7 +308,8 @@ impl Products {
                 )))
             }
             None => Err(ServiceError::Precondition(format!("{field}: operation {operation} made no {what}"))),
-        }
+        };
+        found.map_err(Refused::from)
     }
 }
 
@@ -313,7 +367,7 @@ mod tests {
         products.resolve(3, &mut op).unwrap();
         assert_eq!(op, secondary(pb::buffer_ref::Ref::Id("buf-1".into()), pb::buffer_ref::Ref::Id("buf-2".into())));
         let mut later = secondary(pb::buffer_ref::Ref::Operation(1), pb::buffer_ref::Ref::Operation(4));
-        let error = products.resolve(3, &mut later).unwrap_err();
+        let error = products.resolve(3, &mut later).unwrap_err().error;
         assert!(error.to_string().contains("trace.rays_generator.secondary.primary_hits_buffer"), "{error}");
     }
 
@@ -341,7 +395,7 @@ mod tests {
             child: Some(pb::AccelRef { r#ref: Some(pb::accel_ref::Ref::Operation(3)) }),
             ..Default::default()
         }));
-        let error = products.resolve(2, &mut op).unwrap_err().to_string();
+        let error = products.resolve(2, &mut op).unwrap_err().error.to_string();
         assert!(error.contains("build.inputs[0].transform.child: operation 3 is not an earlier"), "{error}");
     }
 
@@ -353,7 +407,7 @@ mod tests {
         products.record(3, Producer::Nothing, &Ok(None));
         let refuse = |accel: u64, rays: u64| {
             let mut op = trace_on(pb::accel_ref::Ref::Operation(accel), pb::buffer_ref::Ref::Operation(rays));
-            products.resolve(4, &mut op).unwrap_err().to_string()
+            products.resolve(4, &mut op).unwrap_err().error.to_string()
         };
         assert!(refuse(1, 2).contains("trace.query.accel: operation 1 failed: name: bad"), "{}", refuse(1, 2));
         assert!(refuse(2, 2).contains("operation 2 made no accel"));
@@ -362,8 +416,32 @@ mod tests {
         assert!(later.contains("trace.query.accel") && later.contains("not an earlier operation"), "{later}");
         assert!(matches!(
             products.resolve(4, &mut trace_on(pb::accel_ref::Ref::Operation(1), pb::buffer_ref::Ref::Id("x".into()))),
-            Err(ServiceError::Precondition(_))
+            Err(Refused { error: ServiceError::Precondition(_), .. })
         ));
+    }
+
+    #[test]
+    fn an_operation_refused_for_naming_a_failed_one_keeps_the_first_cause_so_messages_stay_short() {
+        let mut products = Products::remembering(16);
+        products.record(1, Producer::Accel, &Err(ServiceError::invalid("accel", "required")));
+        let copy_of = |operation| {
+            Op::CopyAccel(pb::CopyAccelRequest {
+                accel: Some(pb::AccelRef { r#ref: Some(pb::accel_ref::Ref::Operation(operation)) }),
+                ..Default::default()
+            })
+        };
+        let mut messages = Vec::new();
+        for id in 2..=100 {
+            let refused = products.resolve(id, &mut copy_of(id - 1)).unwrap_err();
+            messages.push(products.record_refused(id, Producer::Accel, refused).to_string());
+        }
+        assert!(messages[0].contains("copy_accel.accel: operation 1 failed: accel: required"), "{}", messages[0]);
+        let last = messages.last().unwrap();
+        assert!(
+            last.contains("operation 99 was refused, as it relied on operation 1, which failed: accel: required"),
+            "{last}"
+        );
+        assert_eq!(last.len(), messages[10].len(), "no message grows along the chain (both name two-digit operations)");
     }
 
     #[test]
@@ -376,7 +454,7 @@ mod tests {
         assert_eq!(products.made.len(), 2, "no more than max_stream_products kept");
         let resolve = |accel: u64| {
             let mut op = trace_on(pb::accel_ref::Ref::Operation(accel), pb::buffer_ref::Ref::Id("rays".into()));
-            products.resolve(20, &mut op).map(|()| op)
+            products.resolve(20, &mut op).map(|()| op).map_err(|refused| refused.error)
         };
         let latest = resolve(4).unwrap();
         assert_eq!(
