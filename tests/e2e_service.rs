@@ -571,7 +571,8 @@ async fn accel_and_trace_limits_are_resource_exhausted_and_the_server_keeps_serv
     let response = trace_batch(&mut client, trace_query("tri", &closest), &down_rays(1000)).await;
     assert_eq!(response.expect("max_rays_per_batch rays").into_inner().stats.expect("stats").rays, 1000);
     let result = trace_batch(&mut client, trace_query("tri", &closest), &down_rays(1001)).await;
-    assert_refused(&mut client, result, Code::ResourceExhausted, "max_rays_per_batch").await;
+    let naming = "rays in one batch (rays_inline): 1001 exceeds limits.max_rays_per_batch = 1000";
+    assert_refused(&mut client, result, Code::ResourceExhausted, naming).await;
     let all = Query { kind: QueryKind::All, max_hits_per_ray: 8, ..closest };
     let result = trace_batch(&mut client, trace_query("tri", &all), &down_rays(1000)).await;
     assert_refused(&mut client, result, Code::ResourceExhausted, "max_message_bytes").await;
@@ -596,7 +597,8 @@ async fn accel_and_trace_limits_are_resource_exhausted_and_the_server_keeps_serv
         assert_eq!(status.code(), code, "a chunk of {rays} rays: {status:?}");
         assert!(status.message().contains(mention), "{status:?} does not mention {mention:?}");
         if code == Code::ResourceExhausted {
-            assert!(status.message().starts_with(mention) && status.message().contains("max_rays_per_batch"));
+            assert!(status.message().starts_with(mention), "{status:?}");
+            assert!(status.message().contains("rays in one batch (rays): 1001 exceeds limits.max_rays_per_batch"));
         }
         still_serving(&mut client).await;
     }
@@ -615,7 +617,8 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
     let result = client.upload_buffer(tokio_stream::iter(long)).await;
     assert_refused(&mut client, result, Code::InvalidArgument, "declared").await;
     let result = client.upload_buffer(tokio_stream::iter([upload_header("huge", 16385)])).await;
-    assert_refused(&mut client, result, Code::ResourceExhausted, "max_buffer_bytes").await;
+    let naming = r#"buffer "huge" (header.name): 16385 exceeds limits.max_buffer_bytes = 16384"#;
+    assert_refused(&mut client, result, Code::ResourceExhausted, naming).await;
     // A data message above max_message_bytes is refused by the gRPC layer, as in every other call.
     let oversized = [upload_header("oversized", 16384), upload_data(&[1; 70000])];
     let result = client.upload_buffer(tokio_stream::iter(oversized)).await;
@@ -630,7 +633,8 @@ async fn buffer_limits_and_bad_uploads_are_refused_and_the_server_keeps_serving(
     };
     let closest = Query::closest(RayFormat::OriginDirection, HitFormat::Full);
     let result = client.trace_batch(into_buffers(&closest, 1000)).await;
-    assert_refused(&mut client, result, Code::ResourceExhausted, "max_buffer_bytes").await;
+    let naming = r#"buffer "hits" (hits_buffer_name)"#;
+    assert_refused(&mut client, result, Code::ResourceExhausted, naming).await;
     assert!(list_buffers(&mut client).await.is_empty(), "no buffer was made by a refused call");
 
     let largest = upload(&mut client, "largest", &[7; 16384]).await.expect("a max_buffer_bytes buffer").into_inner();

@@ -152,7 +152,7 @@ pub fn resolve(tenant: &Tenant, device: &str, inputs: &[pb::BuildInput]) -> Serv
     };
     let depth = resolved.child_depth() + 1;
     ServiceError::check_limit(
-        || "levels of the accel's graph".into(),
+        || "levels of the accel's graph (this build's, above the deepest child its inputs name)".into(),
         u64::from(depth),
         "max_graph_depth",
         u64::from(tenant.limits().max_graph_depth),

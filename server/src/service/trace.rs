@@ -92,21 +92,24 @@ fn packed(bytes: Bytes, query: &Query, field: &str) -> ServiceResult<Rays> {
 /// One batch in one call.
 pub async fn batch(tenant: Arc<Tenant>, request: pb::TraceBatchRequest) -> ServiceResult<pb::TraceBatchResponse> {
     let (accel, query) = resolve_query(&tenant, request.query.as_ref())?;
-    let rays = match request.rays {
-        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => packed(bytes, &query, "rays_inline")?,
+    let (rays, rays_field) = match request.rays {
+        Some(pb::trace_batch_request::Rays::RaysInline(bytes)) => {
+            (packed(bytes, &query, "rays_inline")?, "rays_inline")
+        }
         Some(pb::trace_batch_request::Rays::RaysBuffer(reference)) => {
-            packed(buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1, &query, "rays_buffer")?
+            let bytes = buffers::resolve(&tenant, Some(&reference), "rays_buffer")?.1;
+            (packed(bytes, &query, "rays_buffer")?, "rays_buffer")
         }
         Some(pb::trace_batch_request::Rays::RaysGenerator(generator)) => {
             let buffer =
                 |reference: &pb::BufferRef, field: &str| Ok(buffers::resolve(&tenant, Some(reference), field)?.1);
             let (generator, range) = convert::generator(&generator, &buffer)?;
-            Rays::Generated(Arc::new(generator), range)
+            (Rays::Generated(Arc::new(generator), range), "rays_generator")
         }
         None => return Err(ServiceError::invalid("rays", "rays_inline, rays_buffer or rays_generator is required")),
     };
     let ray_count = rays.count(query.ray_format.size());
-    tenant.check_batch_rays(ray_count)?;
+    tenant.check_batch_rays(rays_field, ray_count)?;
     let to_buffer = !request.hits_buffer_name.is_empty();
     if let Some(reduction) = &request.reduction {
         if to_buffer {

@@ -585,22 +585,30 @@ impl Tenant {
                 check_name(field, name)?;
                 self.buffers.check_free(name)?;
             }
-            ServiceError::check_limit(|| "buffer size".into(), size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
+            let what = || match name {
+                "" => format!("the size of the buffer that {field} is for"),
+                name => format!("the size of buffer {} ({field})", quoted(name)),
+            };
+            ServiceError::check_limit(what, size, "max_buffer_bytes", self.limits.max_buffer_bytes)?;
         }
+        // What is held is read before what is being made: a buffer kept in between (added to those held, then its
+        // reservation let go) is then counted at most once. Outside the lock (`keep`) it may be missed, and the check
+        // under the lock, which every buffer passes before it is kept, counts it.
         let (own_bytes, own_count) = own.map_or((0, 0), |own| (own.bytes.amount(), own.count.amount()));
         let size = new.iter().map(|&(_, size)| size).fold(0, u64::saturating_add);
-        let coming = self.quotas.buffer_bytes_coming.get().saturating_sub(own_bytes);
-        let held = self.buffer_bytes() + coming;
+        let held_bytes = self.buffer_bytes();
+        let held = held_bytes + self.quotas.buffer_bytes_coming.get().saturating_sub(own_bytes);
         ServiceError::check_limit(
             || format!("buffer bytes of this tenant ({held} held or being made, {size} more)"),
             held.saturating_add(size),
             "max_total_buffer_bytes",
             self.limits.max_total_buffer_bytes,
         )?;
+        let held_count = self.buffers.len() as u64;
         let coming = self.quotas.buffers_coming.get().saturating_sub(own_count);
         ServiceError::check_limit(
             || "buffers of this tenant (held or being made)".into(),
-            self.buffers.len() as u64 + coming + new.len() as u64,
+            held_count + coming + new.len() as u64,
             "max_buffers",
             self.limits.max_buffers as u64,
         )

@@ -145,9 +145,14 @@ impl Quotas {
         let tokens = (tokens + now.duration_since(since).as_secs_f64() * rate).min(rate);
         if tokens <= 0.0 {
             *bucket = (tokens, now);
+            // The allowance spent (a second's, and the debt a large batch ran into), and this batch.
+            let asked = ((rate - tokens) as u64).saturating_add(rays);
             return Err(ServiceError::Limit {
-                what: format!("rays this second (the allowance refills in {:.0} ms)", -tokens / rate * 1e3),
-                requested: rays,
+                what: format!(
+                    "rays asked for within a second, this batch's {rays} included (the allowance refills in {:.0} ms)",
+                    -tokens / rate * 1e3
+                ),
+                requested: asked,
                 limit: "max_rays_per_second",
                 allowed: per_second,
             });
@@ -173,6 +178,11 @@ mod tests {
         quotas.take_rays(5000, 1000).unwrap();
         let error = quotas.take_rays(1, 1000).unwrap_err().to_string();
         assert!(error.contains("max_rays_per_second = 1000"), "{error}");
+        // 1,000 rays of the second's allowance and the 4,000 of the debt were spent: with this one, 5,001 (or a few
+        // fewer, as the allowance refilled while the test ran).
+        let asked: u64 = error.split(": ").nth(1).and_then(|s| s.split(' ').next()?.parse().ok()).expect(&error);
+        assert!((4990..=5001).contains(&asked), "{error}");
+        assert!(error.contains("this batch's 1 included"), "{error}");
         assert!(quotas.take_rays(u64::MAX, 0).is_ok(), "0 is no limit");
     }
 

@@ -61,10 +61,11 @@ impl Rays {
 }
 
 impl Tenant {
-    /// Fails with RESOURCE_EXHAUSTED naming `max_rays_per_batch` if a batch of `rays` rays is too large.
-    pub fn check_batch_rays(&self, rays: u64) -> ServiceResult<()> {
+    /// Fails with RESOURCE_EXHAUSTED naming `max_rays_per_batch` (and `field`, which holds the rays) if a batch of
+    /// `rays` rays is too large.
+    pub fn check_batch_rays(&self, field: &str, rays: u64) -> ServiceResult<()> {
         ServiceError::check_limit(
-            || "rays in one batch".into(),
+            || format!("rays in one batch ({field})"),
             rays,
             "max_rays_per_batch",
             self.limits.max_rays_per_batch,
@@ -83,7 +84,8 @@ impl Tenant {
         reduction: Option<Arc<Reduction>>,
     ) -> ServiceResult<TraceResult> {
         let ray_size = query.ray_format.size();
-        self.check_batch_rays(rays.count(ray_size))?;
+        // A TraceStream chunk's field; the other calls checked theirs, naming it.
+        self.check_batch_rays("rays", rays.count(ray_size))?;
         let layout = match &reduction {
             None => query.output_layout(rays.byte_len(ray_size))?,
             Some(_) => OutputLayout { rays: rays.count(ray_size) as usize, hits: 0, counts: 0 },
