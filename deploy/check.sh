@@ -55,7 +55,7 @@ yamllint -c deploy/.yamllint.yaml deploy/compose deploy/envoy deploy/kubernetes/
 
 echo "-- helm lint and template"
 helm lint --strict deploy/kubernetes/rayd | grep -v "^$"
-tenants='tenants=[{"name":"acme","keys":[{"key":"acme-pipeline-2f9c0d1e7b6a","role":"write"},'
+tenants='tenants=[{"name":"acme","share":3,"keys":[{"key":"acme-pipeline-2f9c0d1e7b6a","role":"write"},'
 tenants+='{"key":"acme-renderer-8e1a44c09d3f","role":"read"}],"limits":{"max_accels":100,"max_accel_bytes":8589934592}}]'
 helm template rayd deploy/kubernetes/rayd > "$rendered/defaults.yaml"
 helm template rayd deploy/kubernetes/rayd --namespace default --set-json "$tenants" \

@@ -58,6 +58,7 @@ def chart(rendered):
     full = objects(rendered / "full.yaml")
     toml = tomllib.loads(full[("Secret", "rayd")]["stringData"]["rayd.toml"])
     assert toml["tenants"][0]["name"] == "acme" and len(toml["tenants"][0]["keys"]) == 2
+    assert toml["tenants"][0]["share"] == 3, toml
     assert toml["tenants"][0]["limits"] == {"max_accels": 100, "max_accel_bytes": 8589934592}
     env = full[("ConfigMap", "rayd")]["data"]
     assert env["RAYD_LIMITS_MAX_TOTAL_ACCEL_BYTES"] == "34359738368", env
