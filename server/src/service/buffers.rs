@@ -110,8 +110,13 @@ pub async fn upload(
         };
         upload.push(&chunk)?;
     }
-    // With a data directory the buffer is written to disk: off the async runtime. A caller that has gone by then
-    // (a client interrupted after its last byte) would never learn the buffer's id, so nothing is kept for it.
+    keep(tenant, upload).await
+}
+
+/// Keeps an upload whose data has come, off the async runtime (with a data directory the buffer is written to disk).
+/// A caller that has gone by then (a client interrupted after its last byte, a stream cancelled) would never learn
+/// the buffer's id, so nothing is kept for it.
+pub async fn keep(tenant: Arc<Tenant>, upload: Upload) -> ServiceResult<pb::BufferInfo> {
     let kept = super::blocking_for_caller(move |caller| {
         caller.check(|| "the upload was not kept".into())?;
         upload.finish(&tenant)

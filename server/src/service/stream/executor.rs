@@ -205,9 +205,7 @@ impl Executor {
                 }
             }
         }
-        let tenant = Arc::clone(&self.tenant);
-        // With a data directory the buffer is written to disk: off the async runtime.
-        Ok(buffers::info(&super::super::blocking(move || receiving.finish(&tenant)).await?))
+        buffers::keep(Arc::clone(&self.tenant), receiving).await
     }
 
     /// Waits until operation `event.operation` of stream `event.stream_id` has finished (or that stream closed).
