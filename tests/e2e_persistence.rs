@@ -297,6 +297,31 @@ impl Drop for SmallDisk {
     }
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_skipped_object_does_not_come_back_over_a_newer_one_of_its_name() {
+    let dir = data_dir("superseded");
+    let (mut daemon, client) = start(&dir).await;
+    let first = client.upload_buffer("a", Bytes::from(vec![1u8; 600])).await.unwrap();
+    let old = client.upload_buffer("b", Bytes::from(vec![2u8; 600])).await.unwrap();
+    daemon.stop();
+    // Started under a lower limit, "b" does not fit: it is skipped, its file left for the operator.
+    let lower = [("RAYD_DATA_DIR", dir.to_str().unwrap()), ("RAYD_LIMITS_MAX_TOTAL_BUFFER_BYTES", "1000")];
+    let mut daemon = Daemon::start(&lower);
+    let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
+    assert_eq!(buffer_ids(&client).await, std::slice::from_ref(&first.id), "b is skipped");
+    client.delete_buffer(&first.id).await.unwrap();
+    let new = client.upload_buffer("b", Bytes::from(vec![3u8; 600])).await.unwrap();
+    daemon.stop();
+
+    // Started again with room for both: the new "b", which its client was told of, comes back, not the old one.
+    let (_daemon, client) = start(&dir).await;
+    let buffers: Vec<(String, String)> = client.buffers().await.unwrap().into_iter().map(|b| (b.id, b.name)).collect();
+    assert_eq!(buffers, [(new.id.clone(), "b".to_owned())]);
+    assert_eq!(client.download_buffer(&new.id).await.unwrap(), vec![3u8; 600]);
+    assert!(dir.join(format!("tenants/default/buffers/{}.buf", old.id)).exists(), "the old file stays as it was");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// The ids of the tenant's buffers, in creation order.
 async fn buffer_ids(client: &Client) -> Vec<String> {
     client.buffers().await.unwrap().into_iter().map(|b| b.id).collect()

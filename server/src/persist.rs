@@ -129,18 +129,20 @@ impl Store {
         remove(&self.accels, &format!("{handle}.acc"))
     }
 
-    /// Reads every stored object back; files that cannot be read are listed in [`Stored::skipped`].
+    /// Reads every stored object back; files that cannot be read, or whose record names another object than the
+    /// file does, are listed in [`Stored::skipped`].
     pub fn read_all(&self) -> io::Result<Stored> {
         let mut stored = Stored::default();
         for path in files(&self.buffers, "buf")? {
-            match read(&path) {
-                Ok((record, data)) => stored.buffers.push((record, data)),
+            match read(&path).and_then(|(record, data)| named_as_file(&path, record, |r: &BufferRecord| &r.id, data)) {
+                Ok(object) => stored.buffers.push(object),
                 Err(reason) => stored.skipped.push((path, reason)),
             }
         }
         for path in files(&self.accels, "acc")? {
-            match read(&path) {
-                Ok((record, blob)) => stored.accels.push((record, blob)),
+            match read(&path).and_then(|(record, blob)| named_as_file(&path, record, |r: &AccelRecord| &r.handle, blob))
+            {
+                Ok(object) => stored.accels.push(object),
                 Err(reason) => stored.skipped.push((path, reason)),
             }
         }
@@ -263,8 +265,22 @@ fn files(dir: &Path, extension: &str) -> io::Result<Vec<PathBuf>> {
     Ok(paths)
 }
 
-/// Reads and checks one file: its record and payload, or why it cannot be used.
+/// `record` and its `payload`, if the record's id (`id`) is the file's name: an object is deleted by removing the file
+/// its id names, so one read from another file would come back after its delete.
+fn named_as_file<R>(path: &Path, record: R, id: impl Fn(&R) -> &String, payload: Bytes) -> Result<(R, Bytes), String> {
+    match path.file_stem().is_some_and(|stem| *stem == **id(&record)) {
+        true => Ok((record, payload)),
+        false => Err(format!("its record names {:?}, not the file's name", id(&record))),
+    }
+}
+
+/// Reads and checks one file: its record and payload, or why it cannot be used. Only a regular file is read: a link,
+/// a pipe or a device could hold startup forever or fill the memory.
 fn read<R: for<'de> Deserialize<'de>>(path: &Path) -> Result<(R, Bytes), String> {
+    let kind = fs::symlink_metadata(path).map_err(|e| format!("cannot be read: {e}"))?.file_type();
+    if !kind.is_file() {
+        return Err("not a regular file (a link, a pipe, a device or a directory)".into());
+    }
     let bytes = fs::read(path).map_err(|e| format!("cannot be read: {e}"))?;
     let body_len = bytes.len().checked_sub(4).filter(|&n| n >= 12).ok_or("too short to be an object file")?;
     let (body, crc) = bytes.split_at(body_len);
@@ -321,13 +337,26 @@ mod tests {
         fs::write(dir.join("tenants/default/buffers/buf-4.buf"), b"RAYD").unwrap();
         fs::write(dir.join("tenants/default/buffers/buf-5.0.tmp"), b"half-written").unwrap();
         fs::create_dir(dir.join("tenants/default/accels/acc-12.0.tmp")).unwrap();
+        // A file whose record names another object, and a link to a file.
+        fs::copy(dir.join("tenants/default/buffers/buf-3.buf"), dir.join("tenants/default/buffers/buf-7.buf")).unwrap();
+        std::os::unix::fs::symlink(
+            dir.join("tenants/default/buffers/buf-3.buf"),
+            dir.join("tenants/default/buffers/buf-8.buf"),
+        )
+        .unwrap();
 
         let store = Store::open(&dir, "default").unwrap();
         let stored = store.read_all().unwrap();
         assert_eq!(stored.buffers, vec![(buffer, Bytes::from_static(b"some bytes"))]);
         assert_eq!(stored.accels, vec![(accel, Bytes::from_static(b"blob"))]);
         let reasons: Vec<&str> = stored.skipped.iter().map(|(_, why)| why.as_str()).collect();
-        assert_eq!(reasons, ["too short to be an object file", "checksum mismatch: the file is damaged"]);
+        let expected = [
+            "too short to be an object file",
+            "its record names \"buf-3\", not the file's name",
+            "not a regular file (a link, a pipe, a device or a directory)",
+            "checksum mismatch: the file is damaged",
+        ];
+        assert_eq!(reasons, expected);
         assert!(!dir.join("tenants/default/buffers/buf-5.0.tmp").exists(), "temporary files are cleared");
         assert!(dir.join("tenants/default/accels/acc-12.0.tmp").is_dir(), "what cannot be removed is left");
 

@@ -48,6 +48,33 @@ impl Pending {
     }
 }
 
+/// Of `objects` in creation order, those that no later one of the same name supersedes; the others are added to
+/// `skipped`. Two files of one name are left only when the older was skipped at a start (limits lowered, a device
+/// missing) and the name was then given to a new object: the new one, which its client was told of, comes back, not
+/// the old one over it. `name_and_id` gives an object's name (empty: none) and id.
+fn newest_of_each_name<R>(
+    objects: Vec<(R, bytes::Bytes)>,
+    name_and_id: impl Fn(&R) -> (&String, &String),
+    skipped: &mut Vec<(String, String)>,
+) -> Vec<(R, bytes::Bytes)> {
+    let mut newest: HashMap<String, String> = HashMap::new();
+    for (record, _) in &objects {
+        let (name, id) = name_and_id(record);
+        if !name.is_empty() {
+            newest.insert(name.clone(), id.clone());
+        }
+    }
+    let (kept, superseded): (Vec<_>, Vec<_>) = objects.into_iter().partition(|(record, _)| {
+        let (name, id) = name_and_id(record);
+        name.is_empty() || newest[name] == *id
+    });
+    for (record, _) in superseded {
+        let (name, id) = name_and_id(&record);
+        skipped.push((id.clone(), format!("{} of the same name {name:?} is newer", newest[name])));
+    }
+    kept
+}
+
 /// The number in a `prefix-N` id or handle.
 fn number(id: &str) -> Option<u64> {
     id.split_once('-')?.1.parse().ok()
@@ -134,6 +161,7 @@ impl Tenant {
         // In creation order (file names sort buf-10 before buf-2), so buffers list as they did before.
         let mut buffers = stored.buffers;
         buffers.sort_by_key(|(record, _)| number(&record.id));
+        let buffers = newest_of_each_name(buffers, |r| (&r.name, &r.id), &mut restored.skipped);
         for (record, data) in buffers {
             match self.restore_buffer(&record, data) {
                 Ok(()) => restored.buffers += 1,
@@ -142,6 +170,7 @@ impl Tenant {
         }
         let mut pending: Vec<(AccelRecord, bytes::Bytes)> = stored.accels;
         pending.sort_by_key(|(record, _)| number(&record.handle));
+        let mut pending = newest_of_each_name(pending, |r| (&r.name, &r.handle), &mut restored.skipped);
         let mut by_handle: HashMap<String, AccelEntry> = HashMap::new();
         while !pending.is_empty() {
             let ready = |record: &AccelRecord| record.children.iter().all(|c| by_handle.contains_key(&c.handle));
