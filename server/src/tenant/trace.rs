@@ -207,6 +207,8 @@ struct Progress {
     sizer: PieceSizer,
     /// Pieces taken and not finished.
     running: usize,
+    /// Whether a piece is queued and has not started (it holds the job, and so its rays and buffers).
+    queued: bool,
     /// The partials of a reduction that folds in any order ([`Reduction::folds_in_any_order`]), folded as their
     /// pieces finish: a trace of thousands of pieces keeps one, not thousands.
     folded: Option<Partial>,
@@ -286,6 +288,7 @@ impl TraceJob {
     /// Queues the job's next piece, estimated to take `estimate` (the fair queue charges the tenant the time it
     /// takes; the piece takes its rays when it starts).
     fn queue_next(self: &Arc<Self>, scheduler: &Scheduler, estimate: Duration) {
+        self.progress().queued = true;
         let job = Arc::clone(self);
         scheduler.submit(&self.tenant.flow, self.order, estimate, Box::new(move || job.run_next()));
     }
@@ -296,6 +299,7 @@ impl TraceJob {
         // Declared first, so dropped last: after any lock a panic below leaves held.
         let _answer_on_panic = AnswerOnPanic(self);
         let mut progress = self.progress();
+        progress.queued = false;
         let Some((piece, after)) = progress.take_piece(self) else {
             if progress.taken < self.rays.byte_len(self.query.ray_format.size()) {
                 crate::metrics::piece(&self.tenant.name, "skipped");
@@ -371,8 +375,12 @@ impl TraceJob {
                 None if !all_taken => Err(abandoned()),
                 None => progress.finish(self),
             };
-            // Let go before the caller hears, so that its next operation finds the place free.
-            progress.operation = None;
+            // Let go before the caller hears, so that its next operation finds the place free; but a piece still
+            // queued (the caller went, or a piece failed, while the one before it ran) holds the job's rays and
+            // buffers until it is skipped, and the place goes with the job then.
+            if !progress.queued {
+                progress.operation = None;
+            }
             let _ = reply.send(answer);
         }
     }
@@ -388,6 +396,7 @@ impl Progress {
             untaken,
             sizer,
             running: 0,
+            queued: false,
             folded: None,
             ordered_bytes: 0,
             stats: TraceStats::default(),
@@ -706,15 +715,20 @@ mod tests {
         }
     }
 
-    #[test]
-    fn a_panic_outside_the_engine_answers_the_caller_and_lets_its_place_go() {
-        let (tenant, entry) = tenant_with_a_pile(10);
+    /// A job of `rays` closest-hit rays of `tenant` on `entry`, holding one of its operation places and answering
+    /// the returned receiver, as [`Tenant::trace`] makes one; nothing is queued.
+    fn job_of(
+        tenant: &Arc<Tenant>,
+        entry: &AccelEntry,
+        rays: Bytes,
+    ) -> (Arc<TraceJob>, oneshot::Receiver<ServiceResult<TraceResult>>) {
         let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
         let scheduler = tenant.schedulers.get(DEFAULT_DEVICE).unwrap();
         let sizer = PieceSizer::new(scheduler.piece_limits(false, false), HIT_GRANULE, None);
-        let operation = tenant.quotas.start(1).unwrap();
+        let layout = query.output_layout(rays.len()).unwrap();
+        let untaken = (BytesMut::zeroed(layout.hits), BytesMut::zeroed(layout.counts));
         let job = TraceJob {
-            tenant: Arc::clone(&tenant),
+            tenant: Arc::clone(tenant),
             accel: Arc::clone(&entry.accel),
             pace: Arc::clone(&entry.pace),
             device: DEFAULT_DEVICE.into(),
@@ -722,14 +736,44 @@ mod tests {
             arrived: Instant::now(),
             query,
             reduction: None,
-            rays: Rays::Packed(rays(64)),
+            rays: Rays::Packed(rays),
             abandoned: AtomicBool::new(false),
-            progress: Mutex::new(Progress::new(sizer, (BytesMut::new(), BytesMut::new()), operation)),
+            progress: Mutex::new(Progress::new(sizer, untaken, tenant.quotas.start(1).unwrap())),
         };
-        let (reply, mut answer) = oneshot::channel();
-        job.progress.lock().unwrap().reply = Some(reply);
+        let (reply, answer) = oneshot::channel();
+        job.progress().reply = Some(reply);
+        (Arc::new(job), answer)
+    }
+
+    #[test]
+    fn a_trace_given_up_between_pieces_holds_its_place_until_its_queued_piece_is_skipped() {
+        let (tenant, entry) = tenant_with_a_pile(10);
+        let (job, mut answer) = job_of(&tenant, &entry, rays(4096));
+        // A piece runs, as a worker runs it, with the next one queued (flagged here, not handed to a worker); the
+        // caller goes meanwhile.
+        let (Piece { index, rays, output }, after) = job.progress().take_piece(&job).expect("rays are left");
+        assert!(after.is_some(), "more pieces follow");
+        job.progress().queued = true;
+        drop(Abandon(Arc::clone(&job)));
+        let (traced, took) = job.trace_piece_timed(rays.clone(), output);
+        let mut progress = job.progress();
+        progress.record(&job, index, rays, took, traced, Teach::FromAProbe);
+        job.answer_if_done(&mut progress);
+        drop(progress);
+        assert!(matches!(answer.try_recv(), Ok(Err(ServiceError::Transport(_)))), "the caller is answered");
+        assert_eq!(tenant.usage().operations, 1, "the queued piece holds the rays: the place is held");
+        // The queued piece runs: it takes nothing, and the place goes with the job.
+        job.run_next();
+        drop(job);
+        assert_eq!(tenant.usage().operations, 0, "the trace's place let go with the job");
+    }
+
+    #[test]
+    fn a_panic_outside_the_engine_answers_the_caller_and_lets_its_place_go() {
+        let (tenant, entry) = tenant_with_a_pile(10);
+        let (job, mut answer) = job_of(&tenant, &entry, rays(64));
         let panicked = std::panic::catch_unwind(AssertUnwindSafe(|| {
-            let _answer_on_panic = AnswerOnPanic(&job);
+            let _answer_on_panic = AnswerOnPanic(job.as_ref());
             let _held = job.progress.lock().unwrap();
             panic!("a bug while the progress is locked");
         }));
