@@ -322,6 +322,30 @@ async fn a_skipped_object_does_not_come_back_over_a_newer_one_of_its_name() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn ids_and_handles_of_deleted_objects_are_not_given_again_after_a_restart() {
+    let dir = data_dir("deleted-ids");
+    let (mut daemon, client) = start(&dir).await;
+    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    client.upload_buffer("kept", Bytes::from_static(b"kept")).await.unwrap();
+    let deleted = client.upload_buffer("deleted", Bytes::from_static(b"gone")).await.unwrap();
+    client.build_mesh("kept", &triangle, "", BuildFlags::empty()).await.unwrap();
+    let destroyed = client.build_mesh("destroyed", &triangle, "", BuildFlags::empty()).await.unwrap();
+    client.delete_buffer(&deleted.id).await.unwrap();
+    client.destroy_accel("destroyed").await.unwrap();
+    daemon.kill();
+
+    let (_daemon, client) = start(&dir).await;
+    let buffer = client.upload_buffer("new", Bytes::from_static(b"new")).await.unwrap();
+    let accel = client.build_mesh("new", &triangle, "", BuildFlags::empty()).await.unwrap();
+    let number = |id: &str| id.split_once('-').and_then(|(_, n)| n.parse::<u64>().ok()).unwrap();
+    assert!(number(&buffer.id) > number(&deleted.id), "{} after {} was deleted", buffer.id, deleted.id);
+    assert!(number(&accel.handle) > number(&destroyed.handle), "{} after {}", accel.handle, destroyed.handle);
+    let gone = client.download_buffer(&deleted.id).await.expect_err("a deleted id names nothing");
+    assert_eq!(gone.code(), Code::NotFound, "{gone}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// The ids of the tenant's buffers, in creation order.
 async fn buffer_ids(client: &Client) -> Vec<String> {
     client.buffers().await.unwrap().into_iter().map(|b| b.id).collect()

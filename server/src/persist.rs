@@ -9,12 +9,15 @@
 //! Layout: `<data-dir>/tenants/<tenant>/buffers/<id>.buf` and `<data-dir>/tenants/<tenant>/accels/<handle>.acc`.
 //! Each file: `0 magic "RAYDOBJ1" | 8 record length u32 (LE) | 12 record (JSON) | payload | CRC-32 u32 (LE) of
 //! everything before it`. The payload is a buffer's bytes, or an accel's blob (`rayd_engine::serialize`) with its
-//! children referred to, not embedded: the record lists them, and they are restored first.
+//! children referred to, not embedded: the record lists them, and they are restored first. `<data-dir>/tenants/
+//! <tenant>/issued` is a file of the same form whose record is the number past every id and handle given so far
+//! ([`Store::highest_issued`]), and whose payload is empty.
 
 use std::fs::{self, File};
 use std::io::{self, ErrorKind, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, PoisonError};
 
 use bytes::Bytes;
 use serde::{Deserialize, Serialize};
@@ -77,8 +80,28 @@ pub struct Store {
     buffers: PathBuf,
     /// `<data-dir>/tenants/<tenant>/accels`.
     accels: PathBuf,
+    /// `<data-dir>/tenants/<tenant>/issued`: [`Store::highest_issued`], as last written.
+    issued_file: PathBuf,
+    /// [`Store::highest_issued`] (held while it is raised: raises are written in turn).
+    issued: Mutex<u64>,
     /// Numbers temporary files, so concurrent writes of one object never share one.
     next_temporary: AtomicU64,
+}
+
+/// What `issued` holds.
+#[derive(Debug, Serialize, Deserialize)]
+struct IssuedRecord {
+    /// [`Store::highest_issued`].
+    highest: u64,
+}
+
+/// [`Store::highest_issued`] is raised this far past the number that needs it, so that it is written once in this
+/// many new objects, not for each.
+const ISSUED_STEP: u64 = 1024;
+
+/// The number in a `prefix-N` id or handle (`buf-7`, `acc-12`).
+pub fn id_number(id: &str) -> Option<u64> {
+    id.split_once('-')?.1.parse().ok()
 }
 
 impl Store {
@@ -89,8 +112,24 @@ impl Store {
         // Numbered from the time, so that a temporary file an earlier run could not remove is not reused.
         let since_epoch = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
         let next_temporary = AtomicU64::new(since_epoch.as_nanos() as u64);
-        let store = Store { buffers: root.join("buffers"), accels: root.join("accels"), next_temporary };
-        for dir in [&store.buffers, &store.accels] {
+        let issued_file = root.join("issued");
+        let issued = match read::<IssuedRecord>(&issued_file) {
+            Ok((record, _)) => record.highest,
+            Err(why) => {
+                if issued_file.exists() {
+                    tracing::warn!(path = %issued_file.display(), %why, "the highest id issued is not known");
+                }
+                0
+            }
+        };
+        let store = Store {
+            buffers: root.join("buffers"),
+            accels: root.join("accels"),
+            issued_file,
+            issued: Mutex::new(issued),
+            next_temporary,
+        };
+        for dir in [&store.buffers, &store.accels, &root] {
             fs::create_dir_all(dir)?;
             for entry in fs::read_dir(dir)? {
                 let path = entry?.path();
@@ -111,11 +150,13 @@ impl Store {
 
     /// Writes a buffer's file, to replace any file of the same id once [put](Prepared::put).
     pub fn prepare_buffer(&self, record: &BufferRecord, data: &[u8]) -> io::Result<Prepared> {
+        self.remember_issued(&record.id)?;
         self.prepare(self.buffers.join(format!("{}.buf", record.id)), record, data)
     }
 
     /// Writes an accel's file, to replace any file of the same handle once [put](Prepared::put).
     pub fn prepare_accel(&self, record: &AccelRecord, blob: &[u8]) -> io::Result<Prepared> {
+        self.remember_issued(&record.handle)?;
         self.prepare(self.accels.join(format!("{}.acc", record.handle)), record, blob)
     }
 
@@ -127,6 +168,26 @@ impl Store {
     /// Forgets an accel.
     pub fn remove_accel(&self, handle: &str) -> io::Result<()> {
         remove(&self.accels, &format!("{handle}.acc"))
+    }
+
+    /// A number at or above that of every id and handle (of a buffer or an accel) whose file was ever written here,
+    /// deleted since or not: numbers at start go past it, so that no id or handle a client was given names another
+    /// object after a restart.
+    pub fn highest_issued(&self) -> u64 {
+        *self.issued.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+
+    /// Raises [`Store::highest_issued`] past `id`'s number, durably, before a file of that id is written (in steps:
+    /// a write in [`ISSUED_STEP`] new objects). Deletes need no write, so a full disk can still be freed.
+    fn remember_issued(&self, id: &str) -> io::Result<()> {
+        let Some(number) = id_number(id) else { return Ok(()) };
+        let mut issued = self.issued.lock().unwrap_or_else(PoisonError::into_inner);
+        if number > *issued {
+            let highest = number.saturating_add(ISSUED_STEP);
+            self.prepare(self.issued_file.clone(), &IssuedRecord { highest }, &[])?.put()?;
+            *issued = highest;
+        }
+        Ok(())
     }
 
     /// Reads every stored object back; files that cannot be read, or whose record names another object than the
@@ -363,6 +424,7 @@ mod tests {
         store.remove_accel("acc-9").unwrap();
         store.remove_accel("acc-9").unwrap();
         assert!(store.read_all().unwrap().accels.is_empty());
+        assert_eq!(Store::open(&dir, "default").unwrap().highest_issued(), 3 + ISSUED_STEP, "past every file written");
         fs::remove_dir_all(&dir).unwrap();
     }
 }

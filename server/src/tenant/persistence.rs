@@ -11,7 +11,7 @@ use rayd_engine::Accel;
 
 use super::{AccelEntry, BufferEntry, DEFAULT_DEVICE, Tenant};
 use crate::error::{ServiceError, ServiceResult};
-use crate::persist::{AccelRecord, BufferRecord, ChildRecord, Prepared, Store};
+use crate::persist::{AccelRecord, BufferRecord, ChildRecord, Prepared, Store, id_number};
 
 /// What a restore did.
 #[derive(Debug, Default, PartialEq, Eq)]
@@ -75,11 +75,6 @@ fn newest_of_each_name<R>(
     kept
 }
 
-/// The number in a `prefix-N` id or handle.
-fn number(id: &str) -> Option<u64> {
-    id.split_once('-')?.1.parse().ok()
-}
-
 impl Tenant {
     /// Persists this tenant's objects in `store` from now on.
     pub fn with_store(self, store: Store) -> Tenant {
@@ -139,17 +134,18 @@ impl Tenant {
     pub fn restore(&self) -> ServiceResult<Restored> {
         let Some(store) = &self.store else { return Ok(Restored::default()) };
         let stored = store.read_all().map_err(|e| ServiceError::storage("reading the stored objects".into(), e))?;
-        // New objects must never take an id or handle a stored one has, restored or skipped: a skipped file stays
-        // for the operator, and a new object's file must not replace it.
+        // New objects must never take an id or handle a stored one has, restored or skipped (a skipped file stays
+        // for the operator, and a new object's file must not replace it), nor one a deleted object had (a client
+        // may still hold it).
         let skipped =
-            stored.skipped.iter().map(|(path, _)| path.file_stem().and_then(|stem| number(&stem.to_string_lossy())));
+            stored.skipped.iter().map(|(path, _)| path.file_stem().and_then(|stem| id_number(&stem.to_string_lossy())));
         let highest = stored
             .buffers
             .iter()
-            .map(|(r, _)| number(&r.id))
-            .chain(stored.accels.iter().map(|(r, _)| number(&r.handle)))
+            .map(|(r, _)| id_number(&r.id))
+            .chain(stored.accels.iter().map(|(r, _)| id_number(&r.handle)))
             .chain(skipped);
-        let highest = highest.flatten().max().unwrap_or(0);
+        let highest = highest.flatten().chain([store.highest_issued()]).max().unwrap_or(0);
         let mut restored = Restored {
             skipped: stored.skipped.into_iter().map(|(path, why)| (path.display().to_string(), why)).collect(),
             ..Restored::default()
@@ -160,7 +156,7 @@ impl Tenant {
         }
         // In creation order (file names sort buf-10 before buf-2), so buffers list as they did before.
         let mut buffers = stored.buffers;
-        buffers.sort_by_key(|(record, _)| number(&record.id));
+        buffers.sort_by_key(|(record, _)| id_number(&record.id));
         let buffers = newest_of_each_name(buffers, |r| (&r.name, &r.id), &mut restored.skipped);
         for (record, data) in buffers {
             match self.restore_buffer(&record, data) {
@@ -169,7 +165,7 @@ impl Tenant {
             }
         }
         let mut pending: Vec<(AccelRecord, bytes::Bytes)> = stored.accels;
-        pending.sort_by_key(|(record, _)| number(&record.handle));
+        pending.sort_by_key(|(record, _)| id_number(&record.handle));
         let mut pending = newest_of_each_name(pending, |r| (&r.name, &r.handle), &mut restored.skipped);
         let mut by_handle: HashMap<String, AccelEntry> = HashMap::new();
         while !pending.is_empty() {
