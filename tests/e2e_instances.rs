@@ -53,7 +53,7 @@ async fn instance_accels_and_transforms_trace_through_the_service() {
     let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
     let limits = client.server_info().await.unwrap().limits.unwrap();
     assert_eq!((limits.max_graph_depth, limits.max_accel_bytes), (3, 1_000_000));
-    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let triangle = common::unit_triangle();
     client.build_mesh("tri", &triangle, "", BuildFlags::empty()).await.unwrap();
     let lifted = client.build_transform("lifted", "", "tri", translation(0.0, 0.0, 2.0)).await.unwrap();
     assert_eq!((lifted.kind(), lifted.depth), (proto::AccelKind::Transform, 2));
@@ -148,7 +148,7 @@ async fn instance_accels_and_transforms_trace_through_the_service() {
 async fn updates_refit_in_place_and_placing_accels_refuse_traces_until_updated_too() {
     let daemon = Daemon::start(&[]);
     let client = Client::connect(&daemon.url(), ClientOptions::default()).await.unwrap();
-    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let triangle = common::unit_triangle();
     let lowered = Mesh { positions: triangle.positions.iter().map(|p| *p - Vec3::Z).collect(), ..triangle.clone() };
     let tri = client.build_mesh("tri", &triangle, "", BuildFlags::ALLOW_UPDATE).await.unwrap();
     let placed = [record(0, 7, translation(0.0, 0.0, 5.0))];

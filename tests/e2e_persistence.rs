@@ -153,7 +153,7 @@ async fn objects_survive_kill_9_and_come_back_as_they_were() {
 async fn damaged_files_are_skipped_with_what_depends_on_them() {
     let dir = data_dir("damaged");
     let (mut daemon, client) = start(&dir).await;
-    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let triangle = common::unit_triangle();
     let damaged = client.build_mesh("damaged", &triangle, "", BuildFlags::empty()).await.unwrap();
     client.build_instances("above", "", &["damaged"], &[record(0, 1, 0.0)], BuildFlags::empty()).await.unwrap();
     client.build_mesh("intact", &triangle, "", BuildFlags::empty()).await.unwrap();
@@ -326,7 +326,7 @@ async fn a_skipped_object_does_not_come_back_over_a_newer_one_of_its_name() {
 async fn ids_and_handles_of_deleted_objects_are_not_given_again_after_a_restart() {
     let dir = data_dir("deleted-ids");
     let (mut daemon, client) = start(&dir).await;
-    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let triangle = common::unit_triangle();
     client.upload_buffer("kept", Bytes::from_static(b"kept")).await.unwrap();
     let deleted = client.upload_buffer("deleted", Bytes::from_static(b"gone")).await.unwrap();
     client.build_mesh("kept", &triangle, "", BuildFlags::empty()).await.unwrap();

@@ -17,7 +17,6 @@ use rayd_client::{Client, ClientOptions, Error};
 use rayd_engine::accel::BuildFlags;
 use rayd_engine::format::{HitFormat, Ray, RayFormat};
 use rayd_engine::glam::{Vec3, Vec3A};
-use rayd_engine::mesh::Mesh;
 use rayd_engine::query::Query;
 use tonic::Code;
 
@@ -73,7 +72,7 @@ fn one_ray() -> Bytes {
 /// The codes of one call of each kind made with `caller` on the objects named `accel` and `buffer` (new objects
 /// are named after `fresh`), in the order of [`CALLS`].
 async fn codes(caller: &Client, accel: &str, buffer: &str, fresh: &str) -> Vec<Code> {
-    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let triangle = common::unit_triangle();
     let query = Query::closest(RayFormat::OriginTminDirectionTmax, HitFormat::T);
     vec![
         code(caller.server_info()).await,
@@ -192,7 +191,7 @@ async fn every_call_answers_by_key_role_and_tenant() {
     let _ = std::fs::remove_dir_all(&dir);
     let daemon = Daemon::start(&[("RAYD_CONFIG", config(&dir).to_str().unwrap())]);
     let acme = client(&daemon, Some(ACME_WRITE)).await;
-    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let triangle = common::unit_triangle();
     acme.build_mesh("tri", &triangle, "", BuildFlags::empty()).await.unwrap();
     let buffer = acme.upload_buffer("data", Bytes::from_static(b"acme's bytes")).await.unwrap();
 
@@ -289,7 +288,7 @@ async fn tenant_quotas_refuse_before_anything_is_made() {
     assert!(error.to_string().contains("max_total_buffer_bytes = 10"), "{error}");
     assert_eq!(gamma.buffers().await.unwrap().len(), 1, "nothing of the refused upload remains");
 
-    let triangle = Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] };
+    let triangle = common::unit_triangle();
     gamma.build_mesh("tri", &triangle, "", BuildFlags::empty()).await.unwrap();
     let sphere = common::icosphere(3, Vec3::ZERO);
     let error = gamma.build_mesh("sphere", &sphere, "", BuildFlags::empty()).await.unwrap_err();

@@ -377,15 +377,10 @@ fn instanced_scenes_hit_as_their_flattened_triangles() {
     assert_eq!(hit_rays[4], 0, "visibility 0 sees no instance");
 }
 
-/// A unit right triangle in the plane z = 0, front facing +z.
-fn unit_triangle() -> Mesh {
-    Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] }
-}
-
 #[test]
 fn hits_report_the_instance_path_and_keep_object_space_facing_through_mirrors_unless_flipped() {
     let context = Context::new(Device::cpu());
-    let triangle = triangles(&context, vec![unit_triangle()]);
+    let triangle = triangles(&context, vec![common::unit_triangle()]);
     let mirror_x = Placement::rows(&Affine3A::from_mat3(Mat3::from_diagonal(Vec3::new(-1.0, 1.0, 1.0))));
     let lift = Placement::rows(&Affine3A::from_translation(Vec3::new(0.0, 0.0, 5.0)));
     let scene = |flags: InstanceFlags| {
@@ -473,7 +468,7 @@ fn huge_translations_keep_the_precision_of_the_untranslated_scene() {
 #[test]
 fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_children() {
     let context = Context::new(Device::cpu());
-    let triangle = triangles(&context, vec![unit_triangle()]);
+    let triangle = triangles(&context, vec![common::unit_triangle()]);
     let identity = Placement::rows(&Affine3A::IDENTITY);
     let instance = |transform: [f32; 12]| Instance {
         transform,
@@ -529,7 +524,7 @@ fn graph_rules_refuse_singular_transforms_deep_graphs_and_destroying_placed_chil
 #[test]
 fn a_destroy_whose_last_step_fails_keeps_the_accel_and_refuses_placing_it_meanwhile() {
     let context = Context::new(Device::cpu());
-    let triangle = triangles(&context, vec![unit_triangle()]);
+    let triangle = triangles(&context, vec![common::unit_triangle()]);
     let placing = || {
         let instance = Instance {
             transform: Placement::rows(&Affine3A::IDENTITY),

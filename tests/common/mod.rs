@@ -30,6 +30,11 @@ pub fn shared_mesh(name: &str) -> Mesh {
     Mesh::load_obj(&path).unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// A unit right triangle in the plane z = 0, front facing +z.
+pub fn unit_triangle() -> Mesh {
+    Mesh { positions: vec![Vec3::ZERO, Vec3::X, Vec3::Y], triangles: vec![[0, 1, 2]] }
+}
+
 /// A closed sphere: an icosahedron subdivided `levels` times, vertices shared between triangles, radius 1 around
 /// `centre`, counter-clockwise seen from outside.
 pub fn icosphere(levels: u32, centre: Vec3) -> Mesh {
